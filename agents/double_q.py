@@ -1,0 +1,20 @@
+"""Double Q-learning (van Hasselt 2010): two tables; a coin picks the one to update, the other evaluates.
+
+Target for table ``i``: ``r + gamma * Q_j(s', argmax_a Q_i(s', a))`` with ``j = 1 - i``; actions are chosen
+epsilon-greedily on ``Q_0 + Q_1``. It removes Q-learning's maximisation bias.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from agents.tabular import Learner, epsilon_greedy
+
+
+def target(key, q, s2, a2, reward, discount, epsilon):
+    table = jax.random.bernoulli(key).astype(jnp.int32)
+    best = jnp.argmax(q[table, s2])
+    return table, reward + discount * q[1 - table, s2, best]
+
+
+LEARNER = Learner("double_q", epsilon_greedy, target, n_tables=2)

@@ -1,0 +1,16 @@
+"""Sarsa (the seed's ``Sarsa``): on-policy target ``r + gamma * Q(s', a')`` with the action ``a'`` taken next.
+
+Exploration is uniform epsilon-greedy with random ties in both modes (that is what the seed's Sarsa does).
+"""
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from agents.tabular import Learner, epsilon_greedy
+
+
+def target(key, q, s2, a2, reward, discount, epsilon):
+    return jnp.int32(0), reward + discount * q[0, s2, a2]
+
+
+LEARNER = Learner("sarsa", epsilon_greedy, target, on_policy=True)

@@ -1,0 +1,163 @@
+"""What every tabular learner shares: parameters, the table state, action choice and the table update.
+
+A learner (see :class:`Learner`) is two pure functions: ``select`` picks an action from one row of action
+values and ``target`` gives the value the updated entry moves towards. This module turns them into
+``act`` / ``learn`` over a dense ``q[n_tables, n_states, n_actions]`` table, for one table per environment or
+one table shared by a whole batch of environments.
+
+``seed_compat=True`` reproduces the seed's learners exactly (SPEC §4): the first update of an entry sets it
+to the reward itself, a terminal transition still bootstraps, and Q-learning explores by adding noise to the
+action values. The default is the textbook form: entries start at 0 and move by ``alpha`` towards the target,
+terminal transitions do not bootstrap, exploration is uniform epsilon-greedy.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrobo.struct import param, pytree_dataclass
+
+
+@pytree_dataclass
+class AgentParams:
+    """Learner hyper-parameters (traced: a sweep vmaps over them)."""
+
+    alpha: float = param(0.5, low=0.0, low_open=True, high=1.0, doc="learning rate")
+    gamma: float = param(0.9, low=0.0, high=1.0, doc="discount factor")
+    epsilon: float = param(0.1, low=0.0, high=1.0, doc="initial exploration rate")
+    epsilon_discount: float = param(0.999, low=0.0, low_open=True, high=1.0, doc="epsilon *= this per episode")
+    epsilon_min: float = param(0.05, low=0.0, high=1.0, doc="epsilon decays only while above this")
+
+
+@pytree_dataclass
+class AgentState:
+    """``q``: ``[n_tables, n_states, n_actions]`` action values; ``visited``: the seed's first-update flags."""
+
+    q: jax.Array
+    visited: jax.Array | None
+
+
+SelectFn = Callable[[jax.Array, jax.Array, jax.Array, bool], jax.Array]
+TargetFn = Callable[..., tuple[jax.Array, jax.Array]]
+
+
+@dataclasses.dataclass(frozen=True)
+class Learner:
+    """A tabular learner: its name, how many tables, on- or off-policy, and its two pure functions.
+
+    ``select(key, q_row, epsilon, seed_compat) -> action``;
+    ``target(key, q, s2, a2, reward, discount, epsilon) -> (table_index, target_value)``.
+    """
+
+    name: str
+    select: SelectFn
+    target: TargetFn
+    n_tables: int = 1
+    on_policy: bool = False
+
+
+# ---- action choice -----------------------------------------------------------------------------------------
+def greedy(key: jax.Array, q_row: jax.Array) -> jax.Array:
+    """argmax with ties broken uniformly at random (as the seed does)."""
+    is_max = q_row == jnp.max(q_row)
+    noise = jax.random.uniform(key, q_row.shape)
+    return jnp.argmax(jnp.where(is_max, noise, -1.0)).astype(jnp.int32)
+
+
+def epsilon_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array, seed_compat: bool = False) -> jax.Array:
+    """Uniform random action with probability ``epsilon``, else greedy (random ties)."""
+    k_explore, k_random, k_greedy = jax.random.split(key, 3)
+    random_action = jax.random.randint(k_random, (), 0, q_row.shape[-1], dtype=jnp.int32)
+    explore = jax.random.uniform(k_explore) < epsilon
+    return jnp.where(explore, random_action, greedy(k_greedy, q_row))
+
+
+def greedy_probabilities(q_row: jax.Array) -> jax.Array:
+    """The greedy policy's action probabilities, ties sharing the mass equally."""
+    is_max = (q_row == jnp.max(q_row)).astype(q_row.dtype)
+    return is_max / jnp.sum(is_max)
+
+
+def epsilon_greedy_probabilities(q_row: jax.Array, epsilon: jax.Array) -> jax.Array:
+    n = q_row.shape[-1]
+    return (1.0 - epsilon) * greedy_probabilities(q_row) + epsilon / n
+
+
+# ---- table state -------------------------------------------------------------------------------------------
+def init(learner: Learner, n_states: int, n_actions: int, seed_compat: bool = False) -> AgentState:
+    """Zero tables (the seed's ``q.get(..., 0.0)``), plus first-update flags in seed-compat mode."""
+    q = jnp.zeros((learner.n_tables, n_states, n_actions), jnp.float32)
+    visited = jnp.zeros((n_states, n_actions), bool) if seed_compat else None
+    return AgentState(q, visited)
+
+
+def action_values(agent: AgentState, s: jax.Array) -> jax.Array:
+    """The row of action values the policy uses (the sum of the tables for Double Q-learning)."""
+    return jnp.sum(agent.q[:, s, :], axis=0)
+
+
+def act(learner: Learner, key: jax.Array, agent: AgentState, s: jax.Array, epsilon: jax.Array,
+        seed_compat: bool = False) -> jax.Array:
+    return learner.select(key, action_values(agent, s), epsilon, seed_compat)
+
+
+def new_entry(learner: Learner, key: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,
+              params: AgentParams, seed_compat: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(table_index, old_value, new_value)`` of the entry ``(s, a)`` after learning from one transition."""
+    discount = params.gamma if seed_compat else params.gamma * (1.0 - terminated.astype(jnp.float32))
+    table, target = learner.target(key, agent.q, s2, a2, r, discount, epsilon)
+    old = agent.q[table, s, a]
+    new = old + params.alpha * (target - old)
+    if seed_compat:
+        new = jnp.where(agent.visited[s, a], new, r)
+    return table, old, new
+
+
+def learn(learner: Learner, key: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,
+          params: AgentParams, seed_compat: bool = False, active: jax.Array = True) -> AgentState:
+    """Update one environment's own table from one transition; ``active=False`` leaves it unchanged."""
+    table, old, new = new_entry(learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params, seed_compat)
+    q = agent.q.at[table, s, a].set(jnp.where(active, new, old))
+    visited = None if agent.visited is None else agent.visited.at[s, a].set(agent.visited[s, a] | active)
+    return AgentState(q, visited)
+
+
+def learn_shared(learner: Learner, keys: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,
+                 params: AgentParams, seed_compat: bool = False, active: jax.Array | None = None) -> AgentState:
+    """Update one table shared by a batch of environments from one transition each.
+
+    Every environment computes its new entry value from the same table; where several hit the same entry,
+    the entry takes the mean of their new values (a synchronous, batched TD update).
+    """
+    active = jnp.ones(s.shape, bool) if active is None else active
+    table, _, new = jax.vmap(new_entry, in_axes=(None, 0, None, 0, 0, 0, 0, 0, 0, 0, None, None))(
+        learner, keys, agent, s, a, r, s2, a2, terminated, epsilon, params, seed_compat)
+    w = active.astype(jnp.float32)
+    total = jnp.zeros_like(agent.q).at[table, s, a].add(w * new)
+    count = jnp.zeros_like(agent.q).at[table, s, a].add(w)
+    q = jnp.where(count > 0, total / jnp.maximum(count, 1.0), agent.q)
+    visited = None
+    if agent.visited is not None:
+        visited = agent.visited.at[s, a].max(active)
+    return AgentState(q, visited)
+
+
+# ---- exploration schedule ----------------------------------------------------------------------------------
+def decay_epsilon(epsilon: jax.Array, params: AgentParams) -> jax.Array:
+    """The seed's per-episode rule: ``epsilon *= epsilon_discount`` while ``epsilon > epsilon_min``."""
+    return jnp.where(epsilon > params.epsilon_min, epsilon * params.epsilon_discount, epsilon)
+
+
+def epsilon_schedule(params: AgentParams, nepisodes: int) -> np.ndarray:
+    """Epsilon used in each episode ``0 .. nepisodes-1`` (decayed once before the first, as in the seed)."""
+    eps = np.empty(nepisodes, np.float64)
+    e = float(params.epsilon)
+    for i in range(nepisodes):
+        if e > float(params.epsilon_min):
+            e *= float(params.epsilon_discount)
+        eps[i] = e
+    return eps.astype(np.float32)

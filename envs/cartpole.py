@@ -1,0 +1,52 @@
+"""The cart-pole robot (openai_ros' ``CartPoleEnv`` robot env): model, controllers and joint sensors.
+
+The MJCF (``assets/cartpole.xml``) states masses, lengths and actuator gains. The seed drove the cart through
+one of three ROS controller sets; here each is an actuator in the MJCF and the robot keeps only the one named
+by ``control_type``:
+
+* ``velocity`` - the command is the cart's velocity set-point (m/s), tracked by ``F = kv (u - v)``;
+* ``position`` - the command is the cart's position set-point (m), tracked by a PD law;
+* ``effort``   - the command is the force on the cart (N).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+
+from jaxrobo.robot import Robot
+from jaxrobo.sim import Simulator, asset_path, load_model
+
+CONTROL_TYPES = ("velocity", "position", "effort")
+CART_JOINT = "foot_to_base"
+POLE_JOINT = "pole_joint"
+MJCF = "cartpole.xml"
+
+
+class CartPoleRobot(Robot):
+    """A cart on a slider with a hinged pole; one actuator on the slider, chosen by ``control_type``."""
+
+    def __init__(self, control_type: str = "velocity", backend: str = "mjx", running_step: float = 0.04,
+                 timestep: float = 0.01):
+        if control_type not in CONTROL_TYPES:
+            raise ValueError(f"control_type={control_type!r}: allowed values are {', '.join(CONTROL_TYPES)}")
+        self.control_type = control_type
+        mj_model = load_model(asset_path(MJCF), keep_actuators=(control_type,), timestep=timestep)
+        super().__init__(Simulator(mj_model, backend, running_step))
+        jnt = lambda name: mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, name)  # noqa: E731
+        self.cart_q, self.pole_q = (int(mj_model.jnt_qposadr[jnt(n)]) for n in (CART_JOINT, POLE_JOINT))
+        self.cart_v, self.pole_v = (int(mj_model.jnt_dofadr[jnt(n)]) for n in (CART_JOINT, POLE_JOINT))
+
+    def init_pose(self, cart_x: jax.Array, pole_angle: jax.Array, cart_v: jax.Array = 0.0,
+                  pole_vel: jax.Array = 0.0) -> tuple[jax.Array, jax.Array]:
+        """``(qpos, qvel)`` for a cart position (m), pole angle (rad) and their rates."""
+        qpos = jnp.zeros(2).at[self.cart_q].set(cart_x).at[self.pole_q].set(pole_angle)
+        qvel = jnp.zeros(2).at[self.cart_v].set(cart_v).at[self.pole_v].set(pole_vel)
+        return qpos, qvel
+
+    def read_sensors(self, pipeline_state: Any) -> jax.Array:
+        """The joint sensors: ``[cart_x (m), cart_v (m/s), pole_angle (rad), pole_angular_velocity (rad/s)]``."""
+        q, v = self.sim.qpos(pipeline_state), self.sim.qvel(pipeline_state)
+        return jnp.stack([q[self.cart_q], v[self.cart_v], q[self.pole_q], v[self.pole_v]])

@@ -1,0 +1,87 @@
+"""Environments by id, with their step limit and config files: ``jaxrobo.make("CartPoleStayUp-v0", **overrides)``."""
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any, Callable
+
+from jaxrobo.config import ConfigError, load_yaml, split_and_validate, unknown_key
+from jaxrobo.env import Env, EnvSpec
+
+
+@dataclasses.dataclass(frozen=True)
+class Registration:
+    spec: EnvSpec
+    entry_point: Callable[..., Env] | type
+    defaults: dict[str, Any]
+
+
+_REGISTRY: dict[str, Registration] = {}
+
+
+def register(id: str, entry_point: type, max_episode_steps: int, *, config: str | None = None,
+             agent_config: str | None = None, description: str = "", **defaults: Any) -> None:
+    """Register an environment class under ``id``. ``defaults`` override the class's option/param defaults."""
+    if id in _REGISTRY:
+        raise ValueError(f"environment id {id!r} is already registered")
+    spec = EnvSpec(id, int(max_episode_steps), description, config, agent_config)
+    _REGISTRY[id] = Registration(spec, entry_point, dict(defaults))
+
+
+def registered() -> list[str]:
+    """All registered ids."""
+    _load_builtin()
+    return sorted(_REGISTRY)
+
+
+def spec(id: str) -> EnvSpec:
+    return _lookup(id).spec
+
+
+def _load_builtin() -> None:
+    import envs  # noqa: F401  (registers the built-in robots and tasks)
+
+
+def _lookup(id: str) -> Registration:
+    _load_builtin()
+    if id not in _REGISTRY:
+        raise unknown_key(id, _REGISTRY, where="environment id")
+    return _REGISTRY[id]
+
+
+def env_config(id: str) -> dict[str, Any]:
+    """The env parameters from the id's YAML file, merged over the registration defaults."""
+    reg = _lookup(id)
+    values = dict(reg.defaults)
+    values.setdefault("max_episode_steps", reg.spec.max_episode_steps)
+    if reg.spec.config:
+        values.update(load_yaml(reg.spec.config).get("env", {}) or {})
+    return values
+
+
+def make(id: str, **overrides: Any) -> Env:
+    """Create the environment ``id``; keyword overrides may name any option or parameter of the task.
+
+    Options (static: control type, backend, number of actions, ...) select the model and code path; parameters
+    (limits, gains, goals) become ``env.default_params`` and can later be changed, or vmapped, per call.
+    """
+    reg = _lookup(id)
+    cls = reg.entry_point
+    values = env_config(id)
+    values.update(overrides)
+    where = f"{id}"
+    options, params = split_and_validate(values, cls.Options, cls.Params, where=where)
+    try:
+        env = cls(cls.Options(**options), cls.Params(**params))
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{id}: {err}") from err
+    env.spec = dataclasses.replace(reg.spec, max_episode_steps=int(env.default_params.max_episode_steps))
+    return env
+
+
+def config_dir(package: str) -> str:
+    """Directory holding a package's shipped YAML files."""
+    mod = __import__(package)
+    return os.path.join(os.path.dirname(mod.__file__), "configs")

@@ -1,0 +1,36 @@
+"""The robot layer (openai_ros' robot env): a model, its actuators, a low-level controller and sensors.
+
+A robot owns a :class:`~jaxrobo.sim.Simulator`; tasks talk to the robot, never to the physics backend, so the
+same task runs on MJX or on a Brax pipeline.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from jaxrobo.sim import Simulator
+
+
+class Robot:
+    """Base robot: actuators take the task's command directly; subclasses add controllers and sensors."""
+
+    def __init__(self, sim: Simulator):
+        self.sim = sim
+
+    def controller(self, pipeline_state: Any, command: jax.Array) -> jax.Array:
+        """Map a task command to actuator controls; runs every physics substep. Default: pass through."""
+        return command
+
+    def advance(self, pipeline_state: Any, command: jax.Array) -> Any:
+        """Apply ``command`` for one control step (the seed's unpause → move → wait → pause)."""
+        return self.sim.advance(pipeline_state, command, self.controller)
+
+    def read_sensors(self, pipeline_state: Any) -> Any:
+        """What the robot senses; subclasses return named quantities."""
+        return {"qpos": self.sim.qpos(pipeline_state), "qvel": self.sim.qvel(pipeline_state)}
+
+    def _check_all_systems_ready(self, pipeline_state: Any) -> jax.Array:
+        """True when the physics state is usable (all finite); the seed waited for ROS topics here instead."""
+        return jnp.all(jnp.isfinite(self.sim.qpos(pipeline_state))) & jnp.all(jnp.isfinite(self.sim.qvel(pipeline_state)))

@@ -1,0 +1,140 @@
+"""The sim layer (openai_ros' ``RobotGazeboEnv``): advance a MuJoCo model by one control step.
+
+One control step is ``n_substeps = running_step / timestep`` physics steps, run as a ``lax.scan`` so the whole
+thing is one compiled loop. The low-level controller of the robot (if any) runs on every substep, as an
+on-board controller would; the "pause/unpause" of Gazebo has no equivalent because nothing runs between calls.
+
+Backends: ``mjx`` (MuJoCo MJX, the maintained engine and the default) or one of Brax's pipelines
+(``generalized``, ``positional``, ``spring``) built from the same MJCF. Brax's pipelines need the Euler
+integrator and approximate some dynamics (``spring`` most), so prefer ``mjx`` unless you compare engines.
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib
+import io
+import math
+import os
+import warnings
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import mujoco
+
+BACKENDS = ("mjx", "generalized", "positional", "spring")
+
+Controller = Callable[[Any, jax.Array], jax.Array]
+
+
+@contextlib.contextmanager
+def quiet_imports():
+    """Silence the 'Failed to import warp' lines MJX prints and Brax's unmaintained-pipeline warning."""
+    sink = io.StringIO()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*not actively being maintained.*")
+        warnings.filterwarnings("ignore", message=".*warp.*")
+        with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
+            yield
+
+
+with quiet_imports():
+    from mujoco import mjx  # noqa: E402
+
+
+def substeps_for(running_step: float, timestep: float) -> int:
+    """How many physics steps make one control step; the two must divide evenly (to 1e-6)."""
+    if running_step <= 0 or timestep <= 0:
+        raise ValueError(f"running_step ({running_step}) and timestep ({timestep}) must be > 0")
+    n = running_step / timestep
+    if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 1:
+        raise ValueError(
+            f"running_step={running_step} s is not a whole multiple of the physics timestep={timestep} s; "
+            f"choose running_step as k * {timestep} for an integer k >= 1"
+        )
+    return int(round(n))
+
+
+class Simulator:
+    """Holds a compiled model for one backend and advances it; every method is pure and jit/vmap friendly."""
+
+    def __init__(self, mj_model: mujoco.MjModel, backend: str = "mjx", running_step: float | None = None):
+        if backend not in BACKENDS:
+            raise ValueError(f"backend={backend!r}: allowed values are {', '.join(BACKENDS)}")
+        self.backend = backend
+        self.mj_model = mj_model
+        self.timestep = float(mj_model.opt.timestep)
+        self.running_step = self.timestep if running_step is None else float(running_step)
+        self.n_substeps = substeps_for(self.running_step, self.timestep)
+        if backend == "mjx":
+            self.model = mjx.put_model(mj_model)
+            self._data0 = mjx.put_data(mj_model, mujoco.MjData(mj_model))
+        else:
+            if mj_model.opt.integrator != mujoco.mjtIntegrator.mjINT_EULER:
+                raise ValueError(f"backend={backend!r} needs the Euler integrator in the MJCF <option>")
+            with quiet_imports():
+                from brax.io import mjcf
+
+                self.model = mjcf.load_model(mj_model)
+                self._pipeline = importlib.import_module(f"brax.{backend}.pipeline")
+
+    # -- state ---------------------------------------------------------------------------------------------
+    def init(self, qpos: jax.Array, qvel: jax.Array) -> Any:
+        """A pipeline state at the given generalized positions and velocities."""
+        if self.backend == "mjx":
+            return self._data0.replace(qpos=jnp.asarray(qpos, jnp.float32), qvel=jnp.asarray(qvel, jnp.float32))
+        with quiet_imports():
+            return self._pipeline.init(self.model, qpos, qvel)
+
+    def qpos(self, state: Any) -> jax.Array:
+        return state.qpos if self.backend == "mjx" else state.q
+
+    def qvel(self, state: Any) -> jax.Array:
+        return state.qvel if self.backend == "mjx" else state.qd
+
+    # -- dynamics ------------------------------------------------------------------------------------------
+    def physics_step(self, state: Any, ctrl: jax.Array) -> Any:
+        """One physics step of ``timestep`` seconds with actuator controls ``ctrl``."""
+        if self.backend == "mjx":
+            return mjx.step(self.model, state.replace(ctrl=ctrl))
+        return self._pipeline.step(self.model, state, ctrl)
+
+    def advance(self, state: Any, command: jax.Array, controller: Controller | None = None) -> Any:
+        """One control step: ``n_substeps`` physics steps, the controller mapping (state, command) to ctrl each time."""
+
+        def substep(s, _):
+            ctrl = command if controller is None else controller(s, command)
+            return self.physics_step(s, ctrl), None
+
+        if self.n_substeps == 1:
+            return substep(state, None)[0]
+        return jax.lax.scan(substep, state, None, length=self.n_substeps)[0]
+
+
+def asset_path(*parts: str) -> str:
+    """Absolute path of a file in ``envs/assets``."""
+    import envs
+
+    return os.path.join(os.path.dirname(envs.__file__), "assets", *parts)
+
+
+def load_model(xml_path: str, keep_actuators: tuple[str, ...] | None = None, timestep: float | None = None,
+               edit: Callable[[Any], None] | None = None) -> mujoco.MjModel:
+    """Compile an MJCF file, keeping only the named actuators and optionally overriding the physics timestep."""
+    spec = mujoco.MjSpec.from_file(xml_path)
+    if keep_actuators is not None:
+        names = [a.name for a in spec.actuators]
+        missing = set(keep_actuators) - set(names)
+        if missing:
+            raise ValueError(f"{os.path.basename(xml_path)} has no actuator {sorted(missing)}; it has {names}")
+        for act in list(spec.actuators):
+            if act.name not in keep_actuators:
+                spec.delete(act)
+    if timestep is not None:
+        spec.option.timestep = timestep
+    if edit is not None:
+        edit(spec)
+    model = spec.compile()
+    if not math.isfinite(model.opt.timestep) or model.opt.timestep <= 0:
+        raise ValueError(f"bad timestep in {xml_path}")
+    return model

@@ -1,0 +1,324 @@
+"""Vectorised tabular training: the seed's episodes × steps loop, for ``n_envs`` environments at once.
+
+Each environment runs the seed's experiment with its own learner and table (or, with ``shared_table``, all of
+them feed one table): ``nepisodes`` episodes of at most ``nsteps`` steps, the learner updated every step,
+``epsilon *= epsilon_discount`` at the start of every episode while it is above ``epsilon_min``. Environments
+that finish an episode reset with fresh randomness at once and carry on with their next episode; an
+environment that has done all its episodes stops learning and recording, so the results do not depend on how
+long the others take, nor on the chunk length.
+
+The whole step (act → env step → discretise → learn → record → auto-reset) is one function scanned over
+``chunk_steps`` steps and jitted once; the host only runs chunk after chunk and reads a few numbers in between
+for the progress bar, so the hot loop never syncs with the host. ``init`` and ``run_chunk`` take the learner
+and env parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`jaxrobo.sweep`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import agents
+from agents import tabular
+from agents.tabular import AgentParams, AgentState, Learner
+from jaxrobo.discretise import MODES, Discretiser, make_discretiser
+from jaxrobo.env import Env, EnvState
+from jaxrobo.struct import param, pytree_dataclass
+
+
+@pytree_dataclass
+class TrainConfig:
+    """How a run is shaped (static: these fix array shapes and code paths)."""
+
+    agent: str = param("qlearn", choices=tuple(agents.LEARNERS), static=True, doc="tabular learner")
+    n_envs: int = param(64, low=1, static=True, doc="independent copies of the experiment run at once")
+    nepisodes: int = param(1000, low=1, static=True, doc="episodes per environment")
+    nsteps: int = param(1000, low=1, static=True, doc="step cap per episode in the training loop")
+    seed: int = param(0, low=0, static=True, doc="random seed; the same seed gives the same results")
+    seed_compat: bool = param(False, static=True, doc="reproduce the seed's learners exactly (SPEC §4)")
+    shared_table: bool = param(False, static=True, doc="one table learning from all environments")
+    discretiser: str = param("bins", choices=MODES, static=True, doc="how observations become states")
+    number_splits: int = param(10, low=1, high=10_000, static=True, doc="bins per observation dimension")
+    bins: tuple | None = param(None, kind=tuple, static=True, doc="bins per dimension (overrides number_splits)")
+    state_low: tuple | None = param(None, kind=tuple, static=True, doc="discretiser lower bounds (default: task's)")
+    state_high: tuple | None = param(None, kind=tuple, static=True, doc="discretiser upper bounds")
+    edges: tuple | None = param(None, kind=tuple, static=True, doc="interior bin edges per dimension (mode edges)")
+    resolution: float = param(0.1, low=0.0, low_open=True, static=True, doc="bin width of mode round")
+    chunk_steps: int = param(1000, low=1, static=True, doc="steps per compiled chunk between progress updates")
+    record_episodes: bool = param(True, static=True, doc="keep every episode's return and length")
+    eval_episodes: int = param(100, low=0, static=True, doc="greedy evaluation episodes per evaluated table")
+    eval_envs: int = param(8, low=1, static=True, doc="how many trained tables to evaluate")
+
+
+@pytree_dataclass
+class Runner:
+    """The training carry: a batch of environments, their learner state and their records."""
+
+    env_state: EnvState
+    agent: AgentState
+    s: jax.Array
+    action: jax.Array
+    epsilon: jax.Array
+    episode: jax.Array
+    ep_return: jax.Array
+    key: jax.Array
+    returns: jax.Array
+    lengths: jax.Array
+    terminated: jax.Array
+    nan_episodes: jax.Array
+    env_steps: jax.Array
+
+
+def make_discretiser_for(env: Env, config: TrainConfig, env_params: Any = None) -> Discretiser:
+    """The discretiser a config asks for, over the task's state bounds unless the config gives its own."""
+    low, high = env.state_bounds(env_params)
+    low = np.asarray(config.state_low if config.state_low is not None else low, np.float64)
+    high = np.asarray(config.state_high if config.state_high is not None else high, np.float64)
+    splits = config.bins if config.bins is not None else config.number_splits
+    return make_discretiser(low, high, config.discretiser, splits, config.resolution, config.edges)
+
+
+class Trainer:
+    """Pure ``init`` / ``run_chunk`` / ``evaluate`` for one env, learner, discretiser and config."""
+
+    def __init__(self, env: Env, config: TrainConfig, discretiser: Discretiser | None = None,
+                 learner: Learner | None = None):
+        self.env = env
+        self.config = config
+        self.learner = learner or agents.get(config.agent)
+        self.disc = discretiser or make_discretiser_for(env, config)
+        self.n_actions = env.num_actions
+        if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
+            raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
+
+    # ---- building blocks -------------------------------------------------------------------------------
+    def _act(self, key, agent, s, epsilon):
+        c = self.config
+        if c.shared_table:
+            return jax.vmap(tabular.act, in_axes=(None, 0, None, 0, 0, None))(
+                self.learner, key, agent, s, epsilon, c.seed_compat)
+        return jax.vmap(tabular.act, in_axes=(None, 0, 0, 0, 0, None))(
+            self.learner, key, agent, s, epsilon, c.seed_compat)
+
+    def _learn(self, key, agent, s, a, r, s2, a2, terminated, epsilon, params, active):
+        c = self.config
+        if c.shared_table:
+            return tabular.learn_shared(self.learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params,
+                                        c.seed_compat, active)
+        return jax.vmap(tabular.learn, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None, 0))(
+            self.learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params, c.seed_compat, active)
+
+    def _reset(self, keys, env_params):
+        states = jax.vmap(self.env.reset, in_axes=(0, None))(keys, env_params)
+        return states, jax.vmap(self.disc)(states.obs)
+
+    # ---- public ----------------------------------------------------------------------------------------
+    def init(self, key: jax.Array, agent_params: AgentParams, env_params: Any = None) -> Runner:
+        c = self.config
+        env_params = self.env.default_params if env_params is None else env_params
+        n = c.n_envs
+        k_env, k_run, k_act = jax.random.split(key, 3)
+        env_state, s = self._reset(jax.random.split(k_env, n), env_params)
+        agent = tabular.init(self.learner, self.disc.n_states, self.n_actions, c.seed_compat)
+        if not c.shared_table:
+            agent = jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), agent)
+        epsilon = tabular.decay_epsilon(jnp.full((n,), agent_params.epsilon, jnp.float32), agent_params)
+        action = self._act(jax.random.split(k_act, n), agent, s, epsilon)
+        n_rec = c.nepisodes if c.record_episodes else 1
+        return Runner(
+            env_state=env_state, agent=agent, s=s, action=action, epsilon=epsilon,
+            episode=jnp.zeros(n, jnp.int32), ep_return=jnp.zeros(n, jnp.float32),
+            key=jax.random.split(k_run, n),
+            returns=jnp.zeros((n, n_rec), jnp.float32), lengths=jnp.zeros((n, n_rec), jnp.int32),
+            terminated=jnp.zeros((n, n_rec), bool), nan_episodes=jnp.zeros(n, jnp.int32),
+            env_steps=jnp.zeros(n, jnp.int32))
+
+    def step(self, runner: Runner, agent_params: AgentParams, env_params: Any) -> Runner:
+        """One training step of every environment."""
+        c, learner = self.config, self.learner
+        keys = jax.vmap(lambda k: jax.random.split(k, 5))(runner.key)
+        k_next, k_act, k_act2, k_learn, k_reset = (keys[:, i] for i in range(5))
+        active = runner.episode < c.nepisodes
+        a = runner.action if learner.on_policy else self._act(k_act, runner.agent, runner.s, runner.epsilon)
+
+        stepped = jax.vmap(self.env.step, in_axes=(0, 0, None))(runner.env_state, a, env_params)
+        s2 = jax.vmap(self.disc)(stepped.obs)
+        done = stepped.terminated | stepped.truncated | (stepped.steps >= c.nsteps)
+        a2 = self._act(k_act2, runner.agent, s2, runner.epsilon) if learner.on_policy else a
+        agent = self._learn(k_learn, runner.agent, runner.s, a, stepped.reward, s2, a2, stepped.terminated,
+                            runner.epsilon, agent_params, active & ~stepped.physics_nan)
+
+        ep_return = runner.ep_return + stepped.reward
+        record = done & active
+        returns, lengths, terminated = runner.returns, runner.lengths, runner.terminated
+        if c.record_episodes:
+            slot = jnp.minimum(runner.episode, c.nepisodes - 1)
+            rows = jnp.arange(c.n_envs)
+            put = lambda table, value: table.at[rows, slot].set(jnp.where(record, value, table[rows, slot]))  # noqa: E731
+            returns = put(returns, ep_return)
+            lengths = put(lengths, stepped.steps)
+            terminated = put(terminated, stepped.terminated)
+        else:  # keep the running totals only: slot 0 holds the sum of returns and lengths
+            returns = returns.at[:, 0].add(jnp.where(record, ep_return, 0.0))
+            lengths = lengths.at[:, 0].add(jnp.where(record, stepped.steps, 0))
+            terminated = terminated.at[:, 0].set(terminated[:, 0] | (record & stepped.terminated))
+
+        fresh, s_fresh = self._reset(k_reset, env_params)
+        pick = lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)  # noqa: E731
+        env_state = jax.tree.map(pick, fresh, stepped)
+        s_next = jnp.where(done, s_fresh, s2)
+        epsilon = jnp.where(done, tabular.decay_epsilon(runner.epsilon, agent_params), runner.epsilon)
+        if learner.on_policy:
+            a_fresh = self._act(k_act, agent, s_fresh, epsilon)
+            action = jnp.where(done, a_fresh, a2)
+        else:
+            action = a
+        return Runner(
+            env_state=env_state, agent=agent, s=s_next, action=action, epsilon=epsilon,
+            episode=runner.episode + record.astype(jnp.int32), ep_return=jnp.where(done, 0.0, ep_return),
+            key=k_next, returns=returns, lengths=lengths, terminated=terminated,
+            nan_episodes=runner.nan_episodes + (record & stepped.physics_nan).astype(jnp.int32),
+            env_steps=runner.env_steps + active.astype(jnp.int32))
+
+    def run_chunk(self, runner: Runner, agent_params: AgentParams, env_params: Any = None) -> Runner:
+        """``chunk_steps`` training steps as one ``lax.scan``."""
+        env_params = self.env.default_params if env_params is None else env_params
+        body = lambda r, _: (self.step(r, agent_params, env_params), None)  # noqa: E731
+        return jax.lax.scan(body, runner, None, length=self.config.chunk_steps)[0]
+
+    def max_chunks(self) -> int:
+        c = self.config
+        return -(-c.nepisodes * c.nsteps // c.chunk_steps)
+
+    def evaluate(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
+                 max_steps: int | None = None) -> tuple[jax.Array, jax.Array]:
+        """Greedy episodes with one table: ``(returns, lengths)``, each ``[n_episodes]``."""
+        env_params = self.env.default_params if env_params is None else env_params
+        horizon = int(max_steps or self.env.spec.max_episode_steps if self.env.spec else 1000)
+
+        def episode(k):
+            k_reset, k_run = jax.random.split(k)
+            state = self.env.reset(k_reset, env_params)
+
+            def body(carry, k_step):
+                state, ret, length, alive = carry
+                a = tabular.greedy(k_step, tabular.action_values(agent, self.disc(state.obs)))
+                nxt = self.env.step(state, a, env_params)
+                ret = ret + jnp.where(alive, nxt.reward, 0.0)
+                length = length + alive.astype(jnp.int32)
+                alive = alive & ~nxt.done
+                return (nxt, ret, length, alive), None
+
+            init = (state, jnp.float32(0), jnp.int32(0), jnp.bool_(True))
+            (_, ret, length, _), _ = jax.lax.scan(body, init, jax.random.split(k_run, horizon))
+            return ret, length
+
+        return jax.vmap(episode)(jax.random.split(key, n_episodes))
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What a run produced, as host arrays, with the seed's summary figures."""
+
+    env_id: str
+    config: TrainConfig
+    agent_params: AgentParams
+    returns: np.ndarray  # [n_envs, nepisodes]
+    lengths: np.ndarray
+    terminated: np.ndarray
+    epsilon: np.ndarray  # [nepisodes]
+    nan_episodes: np.ndarray  # [n_envs]
+    env_steps: int
+    q: np.ndarray  # [n_envs or 1, n_tables, n_states, n_actions]
+    compile_seconds: float
+    run_seconds: float
+    eval_returns: np.ndarray | None = None  # [eval_envs, eval_episodes]
+    eval_lengths: np.ndarray | None = None
+
+    @property
+    def steps_per_second(self) -> float:
+        return self.env_steps / max(self.run_seconds, 1e-9)
+
+    def summary(self) -> dict[str, Any]:
+        """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run."""
+        lengths = self.lengths.astype(np.float64)
+        best100 = np.sort(lengths, axis=1)[:, -100:].mean(axis=1)
+        out = {
+            "env_id": self.env_id,
+            "agent": self.config.agent,
+            "n_envs": self.config.n_envs,
+            "nepisodes": self.config.nepisodes,
+            "highest_reward_mean": float(self.returns.max(axis=1).mean()),
+            "highest_reward_max": float(self.returns.max()),
+            "overall_mean_length": float(lengths.mean()),
+            "best_100_mean_length": float(best100.mean()),
+            "final_100_mean_return": float(self.returns[:, -100:].mean()),
+            "physics_nan_episodes": int(self.nan_episodes.sum()),
+            "env_steps": int(self.env_steps),
+            "compile_seconds": round(self.compile_seconds, 3),
+            "run_seconds": round(self.run_seconds, 3),
+            "env_steps_per_second": round(self.steps_per_second, 1),
+        }
+        if self.eval_lengths is not None and self.eval_lengths.size:
+            out["eval_mean_length"] = float(self.eval_lengths.mean())
+            out["eval_mean_return"] = float(self.eval_returns.mean())
+            out["eval_best_table_mean_length"] = float(self.eval_lengths.mean(axis=1).max())
+        return out
+
+
+ProgressFn = Callable[[int, int, float], None]
+
+
+def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None, env_params: Any = None,
+          progress: ProgressFn | None = None) -> TrainResult:
+    """Run a whole training; ``progress(episodes_done_min, nepisodes, mean_last_return)`` after each chunk."""
+    agent_params = agent_params or AgentParams()
+    env_params = env.default_params if env_params is None else env_params
+    trainer = Trainer(env, config)
+    key = jax.random.key(config.seed)
+    t0 = time.perf_counter()
+    runner = jax.jit(trainer.init)(key, agent_params, env_params)
+    chunk = jax.jit(trainer.run_chunk, donate_argnums=0).lower(runner, agent_params, env_params).compile()
+    stats = jax.jit(_progress_stats).lower(runner).compile()
+    jax.block_until_ready(runner)
+    compile_seconds = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    for _ in range(trainer.max_chunks()):
+        runner = chunk(runner, agent_params, env_params)
+        done_min, last = (float(x) for x in jax.device_get(stats(runner)))
+        if progress is not None:
+            progress(int(done_min), config.nepisodes, last)
+        if done_min >= config.nepisodes:
+            break
+    jax.block_until_ready(runner)
+    run_seconds = time.perf_counter() - t0
+
+    eval_returns = eval_lengths = None
+    if config.eval_episodes > 0:
+        n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
+        tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
+        evaluate = jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0 if not config.shared_table else None, None, None)),
+                           static_argnums=2)
+        keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)
+        eval_returns, eval_lengths = (np.asarray(x) for x in evaluate(keys, tables, config.eval_episodes, env_params))
+
+    host = jax.device_get(runner)
+    q = np.asarray(host.agent.q)
+    return TrainResult(
+        env_id=env.name, config=config, agent_params=agent_params,
+        returns=np.asarray(host.returns), lengths=np.asarray(host.lengths), terminated=np.asarray(host.terminated),
+        epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
+        env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
+        compile_seconds=compile_seconds, run_seconds=run_seconds, eval_returns=eval_returns, eval_lengths=eval_lengths)
+
+
+def _progress_stats(runner: Runner) -> tuple[jax.Array, jax.Array]:
+    """Fewest episodes done by any env, and the mean return of each env's last finished episode."""
+    last_slot = jnp.clip(runner.episode - 1, 0, runner.returns.shape[1] - 1)
+    last = jnp.take_along_axis(runner.returns, last_slot[:, None], axis=1)[:, 0]
+    return jnp.min(runner.episode), jnp.mean(last)
