@@ -1,4 +1,5 @@
-"""Robots and tasks shipped with jaxrobo; importing this package registers their ids."""
+"""Robots and tasks shipped with jaxrobo; importing this package registers their ids (lazily: a task module,
+and MuJoCo with it, is imported only when its env is made)."""
 from __future__ import annotations
 
 import os
@@ -6,7 +7,6 @@ import os
 from jaxrobo.registry import register
 
 _CONFIGS = os.path.join(os.path.dirname(__file__), "configs")
-_AGENT_CONFIGS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "agents", "configs")
 
 
 def _cfg(name: str) -> str:
@@ -14,12 +14,14 @@ def _cfg(name: str) -> str:
 
 
 def _register_builtin() -> None:
-    from envs.cartpole_stay_up import CartPoleStayUp
-
-    register("CartPoleStayUp-v0", CartPoleStayUp, 1000, config=_cfg("cartpole_stay_up.yaml"),
-             agent_config="cartpole_stay_up.yaml", description="seed 001: keep the pole up, 4 actions")
-    register("CartPoleStayUp-v1", CartPoleStayUp, 1000, config=_cfg("cartpole_stay_up.yaml"),
-             agent_config="cartpole_stay_up.yaml", description="seed exercise 2.3: left/right only", n_actions=2)
+    # Cart-pole (seed 001). Agent YAML names are relative to agents/configs/.
+    register("CartPoleStayUp-v0", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
+             config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
+             description="seed 001: keep the pole up, 4 actions")
+    register("CartPoleStayUp-v1", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
+             config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
+             description="seed exercise 2.3: left/right only", n_actions=2)
+    # Quadcopter (seed 000): registered below by the quadcopter modules' authors.
 
 
 _register_builtin()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import os
 from typing import Any, Callable
 
@@ -12,16 +13,22 @@ from jaxrobo.env import Env, EnvSpec
 @dataclasses.dataclass(frozen=True)
 class Registration:
     spec: EnvSpec
-    entry_point: Callable[..., Env] | type
+    entry_point: str | type  # a class, or "module:Class" imported on first use (keeps `import envs` light)
     defaults: dict[str, Any]
+
+    def env_class(self) -> type:
+        if isinstance(self.entry_point, str):
+            module, _, name = self.entry_point.partition(":")
+            return getattr(importlib.import_module(module), name)
+        return self.entry_point
 
 
 _REGISTRY: dict[str, Registration] = {}
 
 
-def register(id: str, entry_point: type, max_episode_steps: int, *, config: str | None = None,
+def register(id: str, entry_point: str | type, max_episode_steps: int, *, config: str | None = None,
              agent_config: str | None = None, description: str = "", **defaults: Any) -> None:
-    """Register an environment class under ``id``. ``defaults`` override the class's option/param defaults."""
+    """Register an environment class (or ``"module:Class"``) under ``id``; ``defaults`` override its defaults."""
     if id in _REGISTRY:
         raise ValueError(f"environment id {id!r} is already registered")
     spec = EnvSpec(id, int(max_episode_steps), description, config, agent_config)
@@ -66,7 +73,7 @@ def make(id: str, **overrides: Any) -> Env:
     (limits, gains, goals) become ``env.default_params`` and can later be changed, or vmapped, per call.
     """
     reg = _lookup(id)
-    cls = reg.entry_point
+    cls = reg.env_class()
     values = env_config(id)
     values.update(overrides)
     where = f"{id}"

@@ -65,7 +65,7 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     chosen = dict(presets.get(preset, {}) or {})
     env_values = dict(chosen.pop("env", {}) or {})
     agent_values = chosen
-    env_cls = _lookup(env_id).entry_point
+    env_cls = _lookup(env_id).env_class()
     env_keys = set(rules(env_cls.Options)) | set(rules(env_cls.Params))
     agent_keys = set(rules(AgentParams)) | set(rules(TrainConfig))
     for key, value in (overrides or {}).items():
