@@ -46,6 +46,7 @@ class EnvState:
     task: Any
     key: jax.Array
     physics_nan: jax.Array
+    info: dict = dataclasses.field(default_factory=dict)
 
     @property
     def done(self) -> jax.Array:

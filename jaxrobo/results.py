@@ -1,0 +1,156 @@
+"""Run directories: what ``jaxrobo train`` writes and ``jaxrobo plot`` reads (the seed's ``training_results``).
+
+A run directory holds:
+
+=======================  =====================================================================================
+``config.yaml``          the resolved configuration (env options and params, learner params, loop settings)
+``episodes.csv``         ``env,episode,return,length,terminated,epsilon`` - one row per env and episode (the
+                         first ``max_csv_envs`` envs; every env is in ``records.npz``)
+``episode_stats.csv``    per episode over all envs: mean, std, 10th/50th/90th percentile of return and length
+``records.npz``          every env's ``returns``, ``lengths``, ``terminated``, and ``epsilon`` per episode
+``summary.json``         the seed's summary figures and the run's timing
+``qtables.npz``          ``q [n_envs, n_tables, n_states, n_actions]`` and the discretiser (``low``, ``width``,
+                         ``bins``, ``edges``) - plain arrays, no pickle
+``eval.csv``             greedy evaluation: ``table,episode,return,length`` (when evaluated)
+``tensorboard/``         TensorBoard scalars per episode (mean return, mean length, epsilon)
+=======================  =====================================================================================
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+from typing import Any
+
+import numpy as np
+import yaml
+
+from jaxrobo.discretise import Discretiser
+
+EPISODE_COLUMNS = ("env", "episode", "return", "length", "terminated", "epsilon")
+STAT_COLUMNS = ("episode", "return_mean", "return_std", "return_p10", "return_p50", "return_p90",
+                "length_mean", "length_std", "length_p10", "length_p50", "length_p90", "epsilon")
+
+
+def write_config(out_dir: str, config: dict[str, Any]) -> None:
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "config.yaml"), "w") as f:
+        yaml.safe_dump(config, f, sort_keys=False)
+
+
+def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray,
+                   epsilon: np.ndarray, max_csv_envs: int = 1024) -> None:
+    """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats."""
+    os.makedirs(out_dir, exist_ok=True)
+    returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
+    terminated = np.atleast_2d(terminated)
+    n_envs, n_ep = returns.shape
+    with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(EPISODE_COLUMNS)
+        for e in range(min(n_envs, max_csv_envs)):
+            for i in range(n_ep):
+                w.writerow((e, i, f"{returns[e, i]:.6g}", int(lengths[e, i]), int(terminated[e, i]), f"{epsilon[i]:.6g}"))
+    np.savez_compressed(os.path.join(out_dir, "records.npz"), returns=returns, lengths=lengths,
+                        terminated=terminated, epsilon=epsilon)
+    pct = lambda x, q: np.percentile(x, q, axis=0)  # noqa: E731
+    with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(STAT_COLUMNS)
+        cols = [np.arange(n_ep), returns.mean(0), returns.std(0), pct(returns, 10), pct(returns, 50), pct(returns, 90),
+                lengths.mean(0), lengths.std(0), pct(lengths, 10), pct(lengths, 50), pct(lengths, 90), epsilon]
+        for row in zip(*cols):
+            w.writerow([int(row[0])] + [f"{v:.6g}" for v in row[1:]])
+
+
+def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None) -> None:
+    arrays: dict[str, Any] = {"q": np.asarray(q)}
+    if disc is not None:
+        arrays.update(low=np.asarray(disc.low), width=np.asarray(disc.width), bins=np.asarray(disc.bins))
+        if disc.edges is not None:
+            for i, e in enumerate(disc.edges):
+                arrays[f"edges_{i}"] = np.asarray(e)
+    np.savez_compressed(os.path.join(out_dir, "qtables.npz"), **arrays)
+
+
+def write_summary(out_dir: str, summary: dict[str, Any]) -> None:
+    with open(os.path.join(out_dir, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+
+
+def write_eval(out_dir: str, returns: np.ndarray, lengths: np.ndarray) -> None:
+    with open(os.path.join(out_dir, "eval.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(("table", "episode", "return", "length"))
+        for t in range(returns.shape[0]):
+            for i in range(returns.shape[1]):
+                w.writerow((t, i, f"{returns[t, i]:.6g}", int(lengths[t, i])))
+
+
+def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray) -> None:
+    """Per-episode scalars (mean over envs) for TensorBoard: the seed plotted its reward topic live."""
+    try:
+        from tensorboardX import SummaryWriter
+    except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
+        return
+    writer = SummaryWriter(os.path.join(out_dir, "tensorboard"))
+    try:
+        mean_r, mean_l = np.atleast_2d(returns).mean(0), np.atleast_2d(lengths).mean(0)
+        for i in range(mean_r.shape[0]):
+            writer.add_scalar("episode/reward_mean", float(mean_r[i]), i)
+            writer.add_scalar("episode/length_mean", float(mean_l[i]), i)
+            writer.add_scalar("episode/epsilon", float(epsilon[i]), i)
+    finally:
+        writer.close()
+
+
+def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None) -> str:
+    """Write everything a :class:`jaxrobo.train.TrainResult` holds into ``out_dir``; returns ``out_dir``."""
+    write_config(out_dir, run_config)
+    write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon)
+    write_tables(out_dir, result.q, disc)
+    write_summary(out_dir, result.summary())
+    if result.eval_lengths is not None:
+        write_eval(out_dir, result.eval_returns, result.eval_lengths)
+    write_tensorboard(out_dir, result.returns, result.lengths, result.epsilon)
+    return out_dir
+
+
+def load_config(run_dir: str) -> dict[str, Any]:
+    with open(os.path.join(run_dir, "config.yaml")) as f:
+        return yaml.safe_load(f) or {}
+
+
+def read_columns(path: str) -> dict[str, np.ndarray]:
+    """A numeric CSV with a header row as ``{column: float array}``."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{path} has no rows")
+    return {name: np.asarray([float(r[name]) for r in rows]) for name in rows[0]}
+
+
+def load_stats(run_dir: str) -> dict[str, np.ndarray]:
+    """Per-episode statistics of a run (from ``episode_stats.csv``, else computed from ``episodes.csv``)."""
+    path = os.path.join(run_dir, "episode_stats.csv")
+    if os.path.exists(path):
+        return read_columns(path)
+    path = os.path.join(run_dir, "episodes.csv")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{run_dir}: no episode_stats.csv or episodes.csv; is it a jaxrobo run directory?")
+    data = read_columns(path)
+    env, ep = data["env"].astype(int), data["episode"].astype(int)
+    n_env, n_ep = env.max() + 1, ep.max() + 1
+    r = np.full((n_env, n_ep), np.nan)
+    r[env, ep] = data["return"]
+    ln = np.full((n_env, n_ep), np.nan)
+    ln[env, ep] = data["length"]
+    eps = np.zeros(n_ep)
+    eps[ep] = data["epsilon"]
+    stats = {"episode": np.arange(n_ep), "epsilon": eps}
+    for name, x in (("return", r), ("length", ln)):
+        stats[f"{name}_mean"] = np.nanmean(x, 0)
+        stats[f"{name}_std"] = np.nanstd(x, 0)
+        for q in (10, 50, 90):
+            stats[f"{name}_p{q}"] = np.nanpercentile(x, q, axis=0)
+    return stats

@@ -1,0 +1,23 @@
+"""Shared fixtures: CPU JAX, a persistent compilation cache for the session, and compiled cartpole functions."""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+# Identical programs compiled by several tests (e.g. the determinism check) are compiled once.
+_CACHE = os.environ.get("JAXROBO_TEST_CACHE", os.path.join(os.path.dirname(__file__), "..", ".jax_cache", "tests"))
+jax.config.update("jax_compilation_cache_dir", os.path.abspath(_CACHE))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+import jaxrobo  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def cartpole():
+    """CartPoleStayUp-v0 with its jitted reset and step."""
+    env = jaxrobo.make("CartPoleStayUp-v0")
+    return env, jax.jit(env.reset), jax.jit(env.step)

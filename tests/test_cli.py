@@ -1,0 +1,70 @@
+"""The `jaxrobo` command end to end: train writes a complete run directory, plot draws it, errors are clean."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+
+import numpy as np
+import pytest
+import yaml
+
+from jaxrobo.cli import main
+from jaxrobo.results import load_stats
+
+TINY = ["--set", "nsteps=40", "--set", "chunk_steps=50", "--set", "eval_episodes=2", "--set", "eval_envs=2",
+        "--set", "bins=[3, 6, 8, 10]", "--set", "state_low=[-2.4, -1.0, -0.3, -2.0]",
+        "--set", "state_high=[2.4, 1.0, 0.3, 2.0]"]
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("runs") / "q")
+    assert main(["train", "--env", "CartPoleStayUp-v0", "--agent", "qlearn", "--n-envs", "4", "--nepisodes", "6",
+                 "--no-progress", "--out", out, *TINY]) == 0
+    return out
+
+
+def test_train_writes_config_records_tables_summary_and_tensorboard(run_dir):
+    files = set(os.listdir(run_dir))
+    assert {"config.yaml", "episodes.csv", "episode_stats.csv", "records.npz", "summary.json", "qtables.npz",
+            "eval.csv", "tensorboard"} <= files
+    cfg = yaml.safe_load(open(os.path.join(run_dir, "config.yaml")))
+    assert cfg["env_id"] == "CartPoleStayUp-v0" and cfg["train"]["agent"] == "qlearn"
+    assert cfg["train"]["n_envs"] == 4 and cfg["env_options"]["control_type"] == "velocity"
+    rows = list(csv.DictReader(open(os.path.join(run_dir, "episodes.csv"))))
+    assert len(rows) == 4 * 6 and set(rows[0]) == {"env", "episode", "return", "length", "terminated", "epsilon"}
+    summary = json.load(open(os.path.join(run_dir, "summary.json")))
+    assert summary["n_envs"] == 4 and "best_100_mean_length" in summary
+    tables = np.load(os.path.join(run_dir, "qtables.npz"), allow_pickle=False)
+    assert tables["q"].shape == (4, 1, 1440, 4) and tuple(tables["bins"]) == (3, 6, 8, 10)
+    assert os.listdir(os.path.join(run_dir, "tensorboard"))
+    stats = load_stats(run_dir)
+    assert stats["return_mean"].shape == (6,)
+
+
+def test_plot_overlays_runs_into_a_png(run_dir, tmp_path):
+    png = str(tmp_path / "cmp.png")
+    assert main(["plot", run_dir, run_dir, "--labels", "a", "b", "--out", png]) == 0
+    with open(png, "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_plot_reads_a_run_with_only_episodes_csv(run_dir, tmp_path):
+    slim = tmp_path / "slim"
+    slim.mkdir()
+    (slim / "episodes.csv").write_text(open(os.path.join(run_dir, "episodes.csv")).read())
+    stats = load_stats(str(slim))
+    np.testing.assert_allclose(stats["return_mean"], load_stats(run_dir)["return_mean"], rtol=1e-5)
+
+
+def test_bad_values_exit_2_with_the_key_named(capsys):
+    assert main(["train", "--set", "alpha=7", "--no-progress"]) == 2
+    assert "alpha=7.0: expected a number > 0.0 and <= 1.0" in capsys.readouterr().err
+    assert main(["plot", "/nonexistent/run"]) == 2
+
+
+def test_list_names_envs_and_agents(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "CartPoleStayUp-v0" in out and "qlearn" in out

@@ -1,0 +1,68 @@
+"""YAML configs: shipped files load and validate; overrides route to learner, loop or env; errors name the key."""
+from __future__ import annotations
+
+import pytest
+
+import jaxrobo
+from jaxrobo.config import ConfigError, load_yaml, parse_overrides
+from jaxrobo.run import agent_presets, resolve
+
+
+def test_every_registered_env_resolves_with_each_preset():
+    for env_id in jaxrobo.registered():
+        for preset in agent_presets(env_id) or {"default": {}}:
+            spec = resolve(env_id, preset)
+            assert spec.config.nepisodes >= 1 and 0 < spec.agent_params.alpha <= 1
+
+
+def test_seed_preset_reproduces_the_seed_yaml():
+    spec = resolve("CartPoleStayUp-v0", "seed")
+    p, c = spec.agent_params, spec.config
+    assert (p.alpha, p.gamma, p.epsilon, p.epsilon_discount) == (0.5, 0.9, 0.1, 0.999)
+    assert (c.nepisodes, c.nsteps, c.number_splits, c.seed_compat, c.discretiser) == (1000, 1000, 10, True, "round")
+    assert spec.env.options.round_obs
+
+
+def test_overrides_route_by_key_and_by_prefix():
+    spec = resolve("CartPoleStayUp-v0", overrides={"alpha": 0.3, "pos_step": 0.02, "env.init_pos": 0.1,
+                                                   "agent.n_envs": 7})
+    assert spec.agent_params.alpha == 0.3 and spec.config.n_envs == 7
+    assert spec.env.default_params.pos_step == 0.02 and spec.env.default_params.init_pos == 0.1
+
+
+@pytest.mark.parametrize("overrides,fragment", [
+    ({"alfa": 0.1}, "unknown key 'alfa' (did you mean alpha"),
+    ({"alpha": 1.5}, "alpha=1.5: expected a number > 0.0 and <= 1.0"),
+    ({"gamma": "high"}, "gamma='high': expected a number"),
+    ({"n_envs": 0}, "n_envs=0: expected an integer >= 1"),
+    ({"agent": "dqn"}, "agent='dqn': allowed values are"),
+    ({"seed_compat": "yes"}, "seed_compat='yes': expected a boolean"),
+    ({"epsilon": float("nan")}, "must be finite"),
+])
+def test_bad_values_fail_before_compiling_with_the_key_named(overrides, fragment):
+    with pytest.raises(ConfigError) as err:
+        resolve("CartPoleStayUp-v0", overrides=overrides)
+    assert fragment in str(err.value)
+
+
+def test_unknown_preset_lists_the_allowed_ones():
+    with pytest.raises(ConfigError, match="preset='fast': allowed values are default, seed"):
+        resolve("CartPoleStayUp-v0", "fast")
+
+
+def test_yaml_is_loaded_safely(tmp_path):
+    bad = tmp_path / "evil.yaml"
+    bad.write_text("env: !!python/object/apply:os.system ['echo pwned']\n")
+    with pytest.raises(Exception, match="could not determine a constructor|ConstructorError"):
+        load_yaml(str(bad))
+    lst = tmp_path / "list.yaml"
+    lst.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load_yaml(str(lst))
+
+
+def test_command_line_values_parse_as_yaml():
+    assert parse_overrides(["alpha=0.3", "seed_compat=true", "bins=[1, 2]", "agent=sarsa"]) == {
+        "alpha": 0.3, "seed_compat": True, "bins": [1, 2], "agent": "sarsa"}
+    with pytest.raises(ConfigError, match="expected KEY=VALUE"):
+        parse_overrides(["alpha"])
