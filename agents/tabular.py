@@ -61,19 +61,27 @@ class Learner:
 
 
 # ---- action choice -----------------------------------------------------------------------------------------
-def greedy(key: jax.Array, q_row: jax.Array) -> jax.Array:
-    """argmax with ties broken uniformly at random (as the seed does)."""
+def argmax_random_ties(q_row: jax.Array, noise: jax.Array) -> jax.Array:
+    """argmax of ``q_row``; among equal maxima, the one with the largest ``noise`` (uniform draws) wins."""
     is_max = q_row == jnp.max(q_row)
-    noise = jax.random.uniform(key, q_row.shape)
     return jnp.argmax(jnp.where(is_max, noise, -1.0)).astype(jnp.int32)
 
 
+def greedy(key: jax.Array, q_row: jax.Array) -> jax.Array:
+    """argmax with ties broken uniformly at random (as the seed does)."""
+    return argmax_random_ties(q_row, jax.random.uniform(key, q_row.shape))
+
+
 def epsilon_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array, seed_compat: bool = False) -> jax.Array:
-    """Uniform random action with probability ``epsilon``, else greedy (random ties)."""
-    k_explore, k_random, k_greedy = jax.random.split(key, 3)
-    random_action = jax.random.randint(k_random, (), 0, q_row.shape[-1], dtype=jnp.int32)
-    explore = jax.random.uniform(k_explore) < epsilon
-    return jnp.where(explore, random_action, greedy(k_greedy, q_row))
+    """Uniform random action with probability ``epsilon``, else greedy (random ties).
+
+    One uniform draw of ``n_actions + 2`` numbers serves the coin, the random action and the tie-break: random
+    bits are a real share of a cart-pole step's cost on a GPU.
+    """
+    n = q_row.shape[-1]
+    u = jax.random.uniform(key, (n + 2,))
+    random_action = jnp.minimum(jnp.floor(u[1] * n), n - 1).astype(jnp.int32)
+    return jnp.where(u[0] < epsilon, random_action, argmax_random_ties(q_row, u[2:]))
 
 
 def greedy_probabilities(q_row: jax.Array) -> jax.Array:

@@ -21,7 +21,13 @@ def _register_builtin() -> None:
     register("CartPoleStayUp-v1", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
              config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
              description="seed exercise 2.3: left/right only", n_actions=2)
-    # Quadcopter (seed 000): registered below by the quadcopter modules' authors.
+    # Quadcopter (seed 000): the faithful live-show task and the seed's homework (goto with obstacles).
+    register("QuadcopterLiveShow-v0", "envs.quadcopter_live_show:QuadcopterLiveShow", 100,
+             config=_cfg("quadcopter_live_show.yaml"), agent_config="quadcopter_live_show.yaml",
+             description="seed 000: fly toward (14, 1, 0.7) observing x only (does not learn, as in the seed)")
+    register("QuadcopterGoto-v1", "envs.quadcopter_goto:QuadcopterGoto", 100,
+             config=_cfg("quadcopter_goto.yaml"), agent_config="quadcopter_goto.yaml",
+             description="seed 000 homework: random goals, obstacles, sonar, discretised relative pose")
 
 
 _register_builtin()

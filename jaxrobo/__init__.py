@@ -12,5 +12,6 @@ __version__ = "0.1.0"
 from jaxrobo.config import ConfigError
 from jaxrobo.env import EnvState, TaskEnv
 from jaxrobo.registry import make, register, registered, spec
+from jaxrobo import gym_adapter as _gym_adapter  # noqa: E402,F401  (registers "jaxrobo/<id>" with Gymnasium)
 
 __all__ = ["ConfigError", "EnvState", "TaskEnv", "make", "register", "registered", "spec", "__version__"]

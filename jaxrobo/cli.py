@@ -61,7 +61,11 @@ def _train(args: argparse.Namespace) -> int:
     print(f"highest reward {s['highest_reward_max']:.0f} · overall mean length {s['overall_mean_length']:.1f} · "
           f"best 100 mean {s['best_100_mean_length']:.1f}")
     if "eval_mean_length" in s:
-        print(f"greedy evaluation: mean length {s['eval_mean_length']:.1f}, mean return {s['eval_mean_return']:.1f}")
+        print(f"greedy evaluation: mean length {s['eval_mean_length']:.1f}, mean return {s['eval_mean_return']:.1f} "
+              f"over {result.eval_lengths.shape[0]} tables × {result.eval_lengths.shape[1]} episodes")
+    if "selected_table" in s:
+        print(f"best table ({s['selected_table']}) on fresh episodes: mean length "
+              f"{s['selected_table_fresh_mean_length']:.1f}, mean return {s['selected_table_fresh_mean_return']:.1f}")
     if s["physics_nan_episodes"]:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
     print(f"results in {out}")

@@ -108,7 +108,10 @@ class Simulator:
 
         if self.n_substeps == 1:
             return substep(state, None)[0]
-        return jax.lax.scan(substep, state, None, length=self.n_substeps)[0]
+        # On GPUs, unrolling short substep loops lets XLA fuse across substeps and saves a loop per control
+        # step; on CPUs it only multiplies compile time.
+        unroll = self.n_substeps if (self.n_substeps <= 8 and jax.default_backend() == "gpu") else 1
+        return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
 
 
 def asset_path(*parts: str) -> str:

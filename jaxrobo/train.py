@@ -238,6 +238,7 @@ class TrainResult:
     run_seconds: float
     eval_returns: np.ndarray | None = None  # [eval_envs, eval_episodes]
     eval_lengths: np.ndarray | None = None
+    selected: dict[str, Any] | None = None  # the best evaluated table, re-evaluated on fresh episodes
 
     @property
     def steps_per_second(self) -> float:
@@ -267,6 +268,11 @@ class TrainResult:
             out["eval_mean_length"] = float(self.eval_lengths.mean())
             out["eval_mean_return"] = float(self.eval_returns.mean())
             out["eval_best_table_mean_length"] = float(self.eval_lengths.mean(axis=1).max())
+            out["eval_share_of_tables_over_500"] = float((self.eval_lengths.mean(axis=1) >= 500).mean())
+        if self.selected is not None:
+            out["selected_table"] = self.selected["table"]
+            out["selected_table_fresh_mean_length"] = float(self.selected["lengths"].mean())
+            out["selected_table_fresh_mean_return"] = float(self.selected["returns"].mean())
         return out
 
 
@@ -298,7 +304,7 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
     jax.block_until_ready(runner)
     run_seconds = time.perf_counter() - t0
 
-    eval_returns = eval_lengths = None
+    eval_returns = eval_lengths = selected = None
     if config.eval_episodes > 0:
         n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
         tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
@@ -306,6 +312,14 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
                            static_argnums=2)
         keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)
         eval_returns, eval_lengths = (np.asarray(x) for x in evaluate(keys, tables, config.eval_episodes, env_params))
+        if n_eval > 1:
+            # Population selection, measured honestly: the best table on the episodes above is evaluated again on
+            # fresh episodes, so its figure is not the maximum of noisy estimates.
+            best = int(np.argmax(eval_returns.mean(axis=1)))
+            table = jax.tree.map(lambda x: x[best], tables)
+            sel_returns, sel_lengths = jax.jit(trainer.evaluate, static_argnums=2)(
+                jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)
+            selected = {"table": best, "returns": np.asarray(sel_returns), "lengths": np.asarray(sel_lengths)}
 
     host = jax.device_get(runner)
     q = np.asarray(host.agent.q)
@@ -314,7 +328,8 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
         returns=np.asarray(host.returns), lengths=np.asarray(host.lengths), terminated=np.asarray(host.terminated),
         epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
-        compile_seconds=compile_seconds, run_seconds=run_seconds, eval_returns=eval_returns, eval_lengths=eval_lengths)
+        compile_seconds=compile_seconds, run_seconds=run_seconds, eval_returns=eval_returns, eval_lengths=eval_lengths,
+        selected=selected)
 
 
 def _progress_stats(runner: Runner) -> tuple[jax.Array, jax.Array]:

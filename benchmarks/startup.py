@@ -1,0 +1,133 @@
+"""Start-up time: first and second run of the same training configuration, with the persistent compile cache.
+
+Each run is a fresh Python process doing what ``jaxrobo train`` does (resolve the config, build the env,
+compile init / chunk / progress functions, run the first chunk); the time is measured from just before the
+process is spawned until the first chunk of training steps has finished on the device. The first run fills a
+fresh cache directory, the second reads it. Target (issue 5): second < 5 s on CPU.
+
+    python benchmarks/startup.py                 # CPU, CartPoleStayUp-v0, Q-learning, 64 envs
+    python benchmarks/startup.py --mode export         # + the traced chunk kept with jax.export
+    python benchmarks/startup.py --device gpu --n-envs 4096
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+T_PROCESS = time.time()
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class _FirstChunk(Exception):
+    pass
+
+
+def child(args: argparse.Namespace) -> None:
+    """One start-up: import, resolve, compile, first chunk; prints one JSON line of phase times."""
+    t_import = time.time()
+    if args.device:
+        os.environ["JAX_PLATFORMS"] = "cuda" if args.device == "gpu" else args.device
+    sys.path.insert(0, ROOT)
+    import jax
+
+    from jaxrobo.cache import enable_compilation_cache, entries
+    from jaxrobo.run import resolve
+    from jaxrobo.train import train
+
+    directory = enable_compilation_cache(args.cache_dir)
+    n_before = entries(directory)
+    spec = resolve(args.env, "default", {"n_envs": args.n_envs, "chunk_steps": args.chunk_steps}, agent=args.agent)
+    t_resolved = time.time()
+    marks: dict[str, float] = {}
+
+    def progress(done: int, total: int, last: float) -> None:
+        marks["first_chunk"] = time.time()
+        raise _FirstChunk
+
+    if args.mode == "train":
+        try:
+            train(spec.env, spec.config, spec.agent_params, progress=progress)
+        except _FirstChunk:
+            pass
+    else:  # train()'s start-up, with the chunk's traced program loaded by jaxrobo.cache.exported_jit
+        from jaxrobo.cache import exported_jit
+        from jaxrobo.train import Trainer, _progress_stats
+
+        trainer = Trainer(spec.env, spec.config)
+        ap, ep = spec.agent_params, spec.env.default_params
+        runner = jax.jit(trainer.init)(jax.random.key(spec.config.seed), ap, ep)
+        tag = repr((spec.env.name, spec.env.options, spec.config, trainer.learner.name, trainer.disc))
+        chunk = exported_jit(trainer.run_chunk, (runner, ap, ep), runner, tag, donate_argnums=(0,))
+        stats = jax.jit(_progress_stats).lower(runner).compile()
+        runner = chunk(runner, ap, ep)
+        jax.device_get(stats(runner))
+        marks["first_chunk"] = time.time()
+    print(json.dumps({
+        "python_start_s": T_PROCESS, "imports_s": t_resolved - t_import, "first_chunk_at": marks["first_chunk"],
+        "to_first_chunk_in_process_s": marks["first_chunk"] - T_PROCESS, "cache_dir": directory,
+        "cache_entries_before": n_before, "cache_entries_after": entries(directory),
+        "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend()}), flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default="CartPoleStayUp-v0")
+    p.add_argument("--agent", default="qlearn")
+    p.add_argument("--n-envs", type=int, default=64)
+    p.add_argument("--chunk-steps", type=int, default=100, help="steps in the first compiled chunk")
+    p.add_argument("--device", choices=("cpu", "gpu"), default=None, help="JAX platform (default: JAX's choice)")
+    p.add_argument("--cache-dir", default=None, help="cache directory (default: a fresh temporary one)")
+    p.add_argument("--mode", choices=("train", "export"), default="train",
+                   help="train: what `jaxrobo train` does today; export: also keep the traced chunk (jax.export)")
+    p.add_argument("--runs", type=int, default=2, help="how many processes to start one after the other")
+    p.add_argument("--out", default=None, help="write the measurements to this JSON file")
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        child(args)
+        return 0
+
+    tmp = None
+    if args.cache_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="jaxrobo-startup-")
+        args.cache_dir = tmp.name
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", "--env", args.env, "--agent", args.agent,
+           "--n-envs", str(args.n_envs), "--chunk-steps", str(args.chunk_steps), "--cache-dir", args.cache_dir, "--mode", args.mode]
+    if args.device:
+        cmd += ["--device", args.device]
+    runs = []
+    for i in range(args.runs):
+        t0 = time.time()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            print(proc.stderr[-3000:], file=sys.stderr)
+            return proc.returncode
+        rec = json.loads(proc.stdout.strip().splitlines()[-1])
+        rec["to_first_chunk_s"] = rec["first_chunk_at"] - t0
+        rec["process_wall_s"] = time.time() - t0
+        runs.append(rec)
+        label = "first (empty cache)" if i == 0 else "second (cached)" if i == 1 else f"run {i + 1}"
+        print(f"{label:>20}: {rec['to_first_chunk_s']:6.2f} s to the first training chunk "
+              f"(imports+config {rec['imports_s']:.2f} s; cache files {rec['cache_entries_before']} -> "
+              f"{rec['cache_entries_after']}) on {rec['device']}")
+    result = {"mode": args.mode, "env": args.env, "agent": args.agent, "n_envs": args.n_envs, "chunk_steps": args.chunk_steps,
+              "runs": runs, "target_second_s": 5.0}
+    if len(runs) > 1:
+        ok = runs[1]["to_first_chunk_s"] < 5.0
+        print(f"second start-up {'meets' if ok else 'misses'} the < 5 s target")
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=2)
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

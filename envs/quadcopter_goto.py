@@ -1,0 +1,274 @@
+"""QuadcopterGoto: the seed's homework done - random goals, obstacles in the way, a sonar, a discretisable state.
+
+Environment card
+----------------
+Actions      ``Discrete(5)``, the seed's Twist at ``speed_value`` held for ``running_step`` s (as in
+             :mod:`envs.quadcopter_live_show`): 0 forward, 1 turn left, 2 turn right, 3 up, 4 down.
+Observation  ``[goal_dist (m, 3-D), goal_bearing (rad, goal direction relative to the heading, + = left),
+             goal_dz (m, goal altitude - altitude), sonar_forward, sonar_left, sonar_right (m, level rays at 0
+             and ±35° from the heading, to obstacles or the ground, clipped to sonar_range), sonar_down (m,
+             altitude above ground)]``. :meth:`QuadcopterGoto.state_bounds` gives the ranges a uniform ``bins``
+             discretiser cuts (``agents/configs/quadcopter_goto.yaml`` picks the bins per dimension).
+Reward       ``progress_reward`` per m the goal distance shrank this step, ``- step_cost``, ``- altitude_cost``
+             per m of altitude (the seed's "fly as low as possible"), ``+ arrival_bonus`` on arrival,
+             ``- crash_penalty`` on a crash, leaving the workspace or breaking an altitude/inclination limit.
+Termination  arrival (goal distance < ``goal_tolerance``); crash: the drone, a sphere of ``drone_radius``,
+             touches the ground or an obstacle (exact geometry); |x| or |y| > ``workspace``; altitude >
+             ``max_altitude``; |roll| or |pitch| >= ``max_incl``. Truncation at ``max_episode_steps``.
+Reset        hovering at ``(0, 0, init_z)`` with a uniformly random heading; the goal at a uniformly random
+             direction and horizontal distance in ``[goal_min_dist, goal_max_dist]``, altitude in
+             ``[goal_z_min, goal_z_max]``; ``n_obstacles`` obstacles (``obstacle_kind``: vertical cylinders of
+             radius ``obstacle_size``, boxes of half-width ``obstacle_size``, or a random mix), all
+             ``obstacle_height`` tall (taller than ``max_altitude``: the drone must go round them), placed
+             ``between`` start and goal (at a random fraction ``[obstacle_t_min, obstacle_t_max]`` of the way,
+             shifted sideways by up to ``obstacle_lateral``) or ``random``ly in the workspace (kept
+             ``obstacle_clearance`` clear of the start and the goal).
+Success      ``TaskVars.arrived``; :func:`success_rate` measures it for greedy or random policies.
+Parameters   see :class:`Options` (static) and :class:`Params` (numbers; vmappable).
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.quadcopter import (BACKENDS, BOX, CYLINDER, SONAR_RAYS, Obstacles, Quadcopter, sonar, sphere_hits,
+                             twist_command, wrap_angle)
+from jaxrobo import spaces
+from jaxrobo.env import BaseParams, EnvState, TaskEnv
+from jaxrobo.struct import param, pytree_dataclass
+
+OBS_NAMES = ("goal_dist", "goal_bearing", "goal_dz", "sonar_forward", "sonar_left", "sonar_right", "sonar_down")
+
+
+@pytree_dataclass
+class Options:
+    backend: str = param("rigid", choices=BACKENDS, static=True,
+                         doc="physics: 'mjx' (MuJoCo MJX) or 'rigid' (same model, hand-written one-body dynamics)")
+    running_step: float = param(0.3, low=0.0, low_open=True, high=5.0, static=True, unit="s",
+                                doc="how long each command is applied")
+    timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s", doc="physics step")
+    min_altitude: float = param(0.0, low=0.0, high=2.0, static=True, unit="m",
+                                doc="on-board altitude floor of descent commands (0: none, ground crashes possible)")
+    n_obstacles: int = param(1, low=0, high=32, static=True, doc="obstacles per episode")
+    obstacle_kind: str = param("cylinder", choices=("cylinder", "box", "mixed"), static=True)
+    obstacle_placement: str = param("between", choices=("between", "random"), static=True)
+
+
+@pytree_dataclass
+class Params(BaseParams):
+    max_episode_steps: int = param(100, low=1, unit="steps")
+    speed_value: float = param(1.0, low=0.0, low_open=True, high=5.0, unit="m/s or rad/s", doc="Twist magnitude")
+    init_z: float = param(1.0, low=0.0, high=10.0, unit="m", doc="start altitude")
+    goal_min_dist: float = param(3.0, low=0.0, high=100.0, unit="m", doc="horizontal start-goal distance, min")
+    goal_max_dist: float = param(6.0, low=0.0, high=100.0, unit="m", doc="horizontal start-goal distance, max")
+    goal_z_min: float = param(0.5, low=0.0, high=10.0, unit="m")
+    goal_z_max: float = param(1.5, low=0.0, high=10.0, unit="m")
+    goal_tolerance: float = param(0.5, low=0.0, low_open=True, high=10.0, unit="m", doc="arrival radius")
+    workspace: float = param(8.0, low=0.0, low_open=True, high=1000.0, unit="m", doc="|x|, |y| limit")
+    max_altitude: float = param(2.0, low=0.0, low_open=True, high=100.0, unit="m")
+    max_incl: float = param(0.7, low=0.0, low_open=True, high=1.6, unit="rad", doc="roll/pitch limit")
+    drone_radius: float = param(0.25, low=0.0, high=2.0, unit="m", doc="crash sphere")
+    obstacle_size: float = param(0.4, low=0.0, high=10.0, unit="m", doc="cylinder radius / box half-width")
+    obstacle_height: float = param(3.0, low=0.0, high=100.0, unit="m")
+    obstacle_t_min: float = param(0.35, low=0.0, high=1.0, doc="'between': fraction of the way, min")
+    obstacle_t_max: float = param(0.65, low=0.0, high=1.0, doc="'between': fraction of the way, max")
+    obstacle_lateral: float = param(0.5, low=0.0, high=100.0, unit="m", doc="'between': sideways shift, max")
+    obstacle_clearance: float = param(1.0, low=0.0, high=100.0, unit="m", doc="'random': free radius at start/goal")
+    sonar_range: float = param(4.0, low=0.0, low_open=True, high=100.0, unit="m")
+    progress_reward: float = param(10.0, low=0.0, high=1e4, unit="1/m")
+    step_cost: float = param(2.0, low=0.0, high=1e4)
+    altitude_cost: float = param(0.5, low=0.0, high=1e4, unit="1/m", doc="per step and metre of altitude")
+    arrival_bonus: float = param(100.0, low=0.0, high=1e5)
+    crash_penalty: float = param(50.0, low=0.0, high=1e5)
+    dist_bound: float = param(3.0, low=0.0, low_open=True, high=100.0, unit="m", doc="discretiser range, distance")
+    dz_bound: float = param(0.75, low=0.0, low_open=True, high=10.0, unit="m", doc="discretiser range, ±goal_dz")
+    sonar_bound: float = param(3.0, low=0.0, low_open=True, high=100.0, unit="m", doc="discretiser range, sonars")
+    down_bound: float = param(1.2, low=0.0, low_open=True, high=100.0, unit="m", doc="discretiser range, altitude")
+
+
+@pytree_dataclass
+class TaskVars:
+    """Per-episode variables: start, goal, obstacles, last goal distance and how the episode ended."""
+
+    start: jax.Array
+    goal: jax.Array
+    obstacles: Obstacles
+    prev_dist: jax.Array
+    arrived: jax.Array
+    crashed: jax.Array
+
+
+class QuadcopterGoto(TaskEnv):
+    Options = Options
+    Params = Params
+
+    def __init__(self, options: Options | None = None, params: Params | None = None):
+        super().__init__(options, params)
+        o = self.options
+        self.robot = Quadcopter(o.backend, o.running_step, o.timestep, min_altitude=o.min_altitude)
+
+    def action_space(self, params: Params | None = None) -> spaces.Discrete:
+        return spaces.Discrete(5)
+
+    def observation_space(self, params: Params | None = None) -> spaces.Box:
+        n = len(OBS_NAMES)
+        return spaces.Box(np.full(n, -np.inf, np.float32), np.full(n, np.inf, np.float32), OBS_NAMES)
+
+    def state_bounds(self, params: Params | None = None) -> tuple[jax.Array, jax.Array]:
+        p = self.default_params if params is None else params
+        zero = jnp.zeros(())
+        low = jnp.stack([zero, -jnp.pi + zero, -p.dz_bound, zero, zero, zero, zero])
+        high = jnp.stack([p.dist_bound, jnp.pi + zero, p.dz_bound, p.sonar_bound, p.sonar_bound, p.sonar_bound,
+                          p.down_bound])
+        return low.astype(jnp.float32), high.astype(jnp.float32)
+
+    # ---- episode layout ---------------------------------------------------------------------------------
+    def _obstacles(self, key: jax.Array, start: jax.Array, goal: jax.Array, params: Params) -> Obstacles:
+        o, n = self.options, self.options.n_obstacles
+        if n == 0:
+            return Obstacles.empty()
+        k_t, k_lat, k_kind, k_xy = jax.random.split(key, 4)
+        if o.obstacle_placement == "between":
+            t = jax.random.uniform(k_t, (n,), minval=params.obstacle_t_min, maxval=params.obstacle_t_max)
+            lat = jax.random.uniform(k_lat, (n,), minval=-params.obstacle_lateral, maxval=params.obstacle_lateral)
+            d = goal[:2] - start[:2]
+            side = jnp.stack([-d[1], d[0]]) / jnp.maximum(jnp.linalg.norm(d), 1e-6)
+            xy = start[:2] + t[:, None] * d + lat[:, None] * side
+        else:  # random: 16 candidates each, the first clear of start and goal (else the last)
+            cand = jax.random.uniform(k_xy, (n, 16, 2), minval=-params.workspace, maxval=params.workspace)
+            free = params.obstacle_clearance + params.obstacle_size * np.sqrt(2.0)
+            ok = (jnp.linalg.norm(cand - start[:2], axis=-1) > free) & (jnp.linalg.norm(cand - goal[:2], axis=-1) > free)
+            idx = jnp.where(jnp.any(ok, axis=1), jnp.argmax(ok, axis=1), 15)
+            xy = jnp.take_along_axis(cand, idx[:, None, None], axis=1)[:, 0]
+        if o.obstacle_kind == "cylinder":
+            kind = jnp.full((n,), CYLINDER, jnp.int32)
+        elif o.obstacle_kind == "box":
+            kind = jnp.full((n,), BOX, jnp.int32)
+        else:
+            kind = jax.random.randint(k_kind, (n,), 0, 2).astype(jnp.int32)
+        half_h = 0.5 * params.obstacle_height
+        center = jnp.concatenate([xy, jnp.full((n, 1), half_h)], axis=1)
+        size = jnp.broadcast_to(jnp.stack([params.obstacle_size, params.obstacle_size, half_h]), (n, 3))
+        return Obstacles(kind, center.astype(jnp.float32), size.astype(jnp.float32), jnp.ones(n, bool))
+
+    # ---- the seed's hooks -------------------------------------------------------------------------------
+    def _set_init_pose(self, key: jax.Array, params: Params) -> tuple[jax.Array, jax.Array]:
+        yaw = jax.random.uniform(key, (), minval=-jnp.pi, maxval=jnp.pi)
+        return self.robot.init_pose(jnp.stack([0.0, 0.0, params.init_z]), yaw)
+
+    def _init_env_variables(self, key: jax.Array, pipeline_state: Any, params: Params) -> TaskVars:
+        k_dir, k_dist, k_z, k_obs = jax.random.split(key, 4)
+        start = self.robot.read_sensors(pipeline_state)["pos"]
+        heading = jax.random.uniform(k_dir, (), minval=-jnp.pi, maxval=jnp.pi)
+        dist = jax.random.uniform(k_dist, (), minval=params.goal_min_dist, maxval=params.goal_max_dist)
+        z = jax.random.uniform(k_z, (), minval=params.goal_z_min, maxval=params.goal_z_max)
+        goal = jnp.stack([start[0] + dist * jnp.cos(heading), start[1] + dist * jnp.sin(heading), z])
+        obstacles = self._obstacles(k_obs, start, goal, params)
+        false = jnp.zeros((), bool)
+        return TaskVars(start, goal.astype(jnp.float32), obstacles, jnp.linalg.norm(goal - start), false, false)
+
+    def _set_action(self, action: jax.Array, task: TaskVars, params: Params) -> tuple[jax.Array, TaskVars]:
+        return twist_command(action, params.speed_value), task
+
+    def _sonar(self, sensors: dict, task: TaskVars, params: Params) -> jax.Array:
+        """Level (gimballed) rays: rotated by the heading only, so tilting to fly does not aim them at the floor."""
+        yaw = sensors["rpy"][2]
+        level = jnp.stack([jnp.cos(yaw / 2), 0.0 * yaw, 0.0 * yaw, jnp.sin(yaw / 2)])
+        return sonar(sensors["pos"], level, task.obstacles, params.sonar_range, SONAR_RAYS)
+
+    def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
+        s = self.robot.read_sensors(pipeline_state)
+        delta = task.goal - s["pos"]
+        bearing = wrap_angle(jnp.arctan2(delta[1], delta[0]) - s["rpy"][2])
+        head = jnp.stack([jnp.linalg.norm(delta), bearing, delta[2]])
+        return jnp.concatenate([head, self._sonar(s, task, params)]).astype(jnp.float32)
+
+    def _outcome(self, pipeline_state: Any, task: TaskVars, params: Params) -> tuple[jax.Array, jax.Array]:
+        """``(arrived, failed)``: failed = crash, out of the workspace, or an altitude/inclination limit."""
+        s = self.robot.read_sensors(pipeline_state)
+        pos, rpy = s["pos"], s["rpy"]
+        ground, obstacle = sphere_hits(pos, params.drone_radius, task.obstacles)
+        outside = (jnp.abs(pos[0]) > params.workspace) | (jnp.abs(pos[1]) > params.workspace)
+        limits = (pos[2] > params.max_altitude) | (jnp.abs(rpy[0]) >= params.max_incl) | \
+            (jnp.abs(rpy[1]) >= params.max_incl)
+        failed = ground | obstacle | outside | limits
+        arrived = (jnp.linalg.norm(task.goal - pos) < params.goal_tolerance) & ~failed
+        return arrived, failed
+
+    def _is_done(self, obs: jax.Array, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
+        arrived, failed = self._outcome(pipeline_state, task, params)
+        return arrived | failed
+
+    def _compute_reward(self, obs, done, action, pipeline_state, task, params) -> tuple[jax.Array, TaskVars]:
+        arrived, failed = self._outcome(pipeline_state, task, params)
+        dist = obs[0]
+        z = self.robot.read_sensors(pipeline_state)["pos"][2]
+        reward = (params.progress_reward * (task.prev_dist - dist) - params.step_cost - params.altitude_cost * z
+                  + jnp.where(arrived, params.arrival_bonus, 0.0) - jnp.where(failed, params.crash_penalty, 0.0))
+        task = task.replace(prev_dist=dist, arrived=task.arrived | arrived, crashed=task.crashed | failed)
+        return reward.astype(jnp.float32), task
+
+
+# ---- evaluation helpers (greedy / random flights, success rate) ------------------------------------------
+Policy = Callable[[jax.Array, jax.Array], jax.Array]  # (key, obs) -> action
+
+
+def rollouts(env: TaskEnv, policy: Policy, key: jax.Array, n_episodes: int, horizon: int | None = None,
+             params: Any = None) -> dict[str, jax.Array]:
+    """Run ``n_episodes`` episodes with ``policy``; returns per-step positions ``pos [n, T+1, 3]``, ``alive
+    [n, T+1]`` (True while the episode runs, including its last state), ``reward [n, T]``, ``actions [n, T]``,
+    and the first and last ``EnvState`` (``first``, ``last``; their ``task`` holds goal/obstacles/outcome)."""
+    params = env.default_params if params is None else params
+    horizon = int(horizon or env.spec.max_episode_steps if env.spec else 100)
+
+    def episode(k):
+        k_reset, k_run = jax.random.split(k)
+        state = env.reset(k_reset, params)
+
+        def body(carry, k_step):
+            state, alive = carry
+            a = policy(k_step, state.obs)
+            nxt = env.step(state, a, params)
+            nxt = jax.tree.map(lambda n, o: jnp.where(alive, n, o), nxt, state)
+            pos = env.robot.read_sensors(nxt.pipeline_state)["pos"]
+            out = (pos, alive, jnp.where(alive, nxt.reward, 0.0), a)
+            return (nxt, alive & ~nxt.done), out
+
+        (last, _), (pos, alive, reward, actions) = jax.lax.scan(body, (state, jnp.bool_(True)),
+                                                               jax.random.split(k_run, horizon))
+        pos0 = env.robot.read_sensors(state.pipeline_state)["pos"]
+        pos = jnp.concatenate([pos0[None], pos])
+        alive = jnp.concatenate([jnp.ones(1, bool), alive])
+        return {"pos": pos, "alive": alive, "reward": reward, "actions": actions, "first": state, "last": last}
+
+    return jax.vmap(episode)(jax.random.split(key, n_episodes))
+
+
+def greedy_policy(q: jax.Array, discretiser: Callable[[jax.Array], jax.Array]) -> Policy:
+    """Greedy in one learner's tables ``q [n_tables, n_states, n_actions]`` (summed, as Double Q acts; ties at
+    random, as the trainer's evaluation)."""
+    from agents.tabular import greedy
+
+    q = jnp.asarray(q)
+    return lambda k, obs: greedy(k, jnp.sum(q[:, discretiser(obs), :], axis=0))
+
+
+def random_policy(n_actions: int) -> Policy:
+    return lambda k, obs: jax.random.randint(k, (), 0, n_actions, dtype=jnp.int32)
+
+
+def success_rate(env: QuadcopterGoto, policy: Policy, key: jax.Array, n_episodes: int = 200,
+                 params: Any = None) -> dict[str, float]:
+    """Fraction of episodes that arrive, crash (any failure) or run out of steps, and the mean episode length."""
+    out = jax.jit(lambda k: rollouts(env, policy, k, n_episodes, params=params))(key)
+    task = out["last"].task
+    arrived, crashed = np.asarray(task.arrived), np.asarray(task.crashed)
+    return {"success": float(arrived.mean()), "failure": float(crashed.mean()),
+            "timeout": float((~arrived & ~crashed).mean()), "mean_steps": float(np.asarray(out["last"].steps).mean())}
+
+
+__all__ = ["QuadcopterGoto", "Options", "Params", "TaskVars", "rollouts", "greedy_policy", "random_policy",
+           "success_rate", "EnvState"]

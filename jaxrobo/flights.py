@@ -1,0 +1,150 @@
+"""``jaxrobo show``: top and side views of greedy quadcopter flights (path, start, goal, obstacles) to PNG.
+
+Reads a training run directory (``config.yaml`` + ``qtables.npz``, as :mod:`jaxrobo.results` writes them) and
+flies the greedy policy of one trained table; or, with ``--env ID``, flies an untrained (random) policy.
+Obstacles and goals are task data (never physics bodies), so they are drawn from each episode's task state.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from typing import Any
+
+import numpy as np
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run_dir", nargs="?", help="training run directory (config.yaml, qtables.npz)")
+    parser.add_argument("--env", dest="env_id", help="fly this env id with a random policy (no run needed)")
+    parser.add_argument("--preset", default="default", help="agent preset when --env is given")
+    parser.add_argument("--out", default="flights.png", help="PNG to write")
+    parser.add_argument("--episodes", type=int, default=6, help="flights to draw")
+    parser.add_argument("--table", type=int, default=0, help="which trained table (env index) to fly")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the flights")
+
+
+def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
+    import yaml
+
+    from jaxrobo.run import resolve
+
+    with open(os.path.join(run_dir, "config.yaml")) as f:
+        cfg = yaml.safe_load(f)
+    overrides = {f"env.{k}": v for k, v in (cfg.get("env_options") or {}).items()}
+    overrides.update({f"env.{k}": v for k, v in (cfg.get("env_params") or {}).items()})
+    overrides.update({f"agent.{k}": v for k, v in (cfg.get("agent_params") or {}).items()})
+    overrides.update({f"agent.{k}": v for k, v in (cfg.get("train") or {}).items()})
+    spec = resolve(cfg["env_id"], cfg.get("preset", "default"), overrides)
+    q = np.load(os.path.join(run_dir, "qtables.npz"))["q"]
+    return spec, cfg, q
+
+
+def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int) -> dict[str, np.ndarray]:
+    """Greedy flights of table ``q[table]`` (random flights when ``q`` is None) as host arrays."""
+    import jax
+
+    from envs.quadcopter_goto import greedy_policy, random_policy, rollouts
+    from jaxrobo.train import make_discretiser_for
+
+    env = spec.env
+    if q is None:
+        policy = random_policy(env.num_actions)
+    else:
+        policy = greedy_policy(np.asarray(q[min(table, q.shape[0] - 1)]), make_discretiser_for(env, spec.config))
+    out = jax.jit(lambda k: rollouts(env, policy, k, episodes))(jax.random.key(seed))
+    task = out["first"].task
+    res = {"pos": np.asarray(out["pos"]), "alive": np.asarray(out["alive"])}
+    res["return"] = np.asarray(out["reward"]).sum(axis=1)
+    if hasattr(task, "goal"):
+        res["goal"] = np.asarray(task.goal)
+        res["obs_kind"], res["obs_center"] = np.asarray(task.obstacles.kind), np.asarray(task.obstacles.center)
+        res["obs_size"], res["obs_active"] = np.asarray(task.obstacles.size), np.asarray(task.obstacles.active)
+        last = out["last"].task
+        res["arrived"], res["crashed"] = np.asarray(last.arrived), np.asarray(last.crashed)
+    else:  # the live show: a fixed goal from the parameters
+        p = env.default_params
+        res["goal"] = np.tile(np.array([p.goal_x, p.goal_y, p.goal_z], np.float32), (episodes, 1))
+    return res
+
+
+def draw(res: dict[str, np.ndarray], title: str, out: str, tolerance: float = 0.5,
+         max_altitude: float | None = None) -> None:
+    """Top view (x-y) and side view (distance along the path - z) of each flight, obstacles drawn to scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle, Rectangle
+
+    n = res["pos"].shape[0]
+    fig, (top, side) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1.1, 1]})
+    colors = plt.cm.tab10(np.arange(n) % 10)
+    for i in range(n):
+        alive = res["alive"][i]
+        path = res["pos"][i][alive]
+        goal = res["goal"][i]
+        c = colors[i]
+        outcome = ""
+        if "arrived" in res:
+            outcome = " arrived" if res["arrived"][i] else (" crashed" if res["crashed"][i] else " timeout")
+        top.plot(path[:, 0], path[:, 1], "-", color=c, lw=1.8, label=f"flight {i}{outcome}")
+        top.plot(path[0, 0], path[0, 1], "o", color=c, ms=6)
+        top.plot(path[-1, 0], path[-1, 1], "x", color=c, ms=8)
+        top.add_patch(Circle(goal[:2], tolerance, fill=False, ec=c, ls="--"))
+        top.plot(goal[0], goal[1], "*", color=c, ms=14, mec="k")
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1))])
+        side.plot(along, path[:, 2], "-", color=c, lw=1.8)
+        side.plot(along[-1], path[-1, 2], "x", color=c, ms=8)
+        side.plot(along[-1], goal[2], "*", color=c, ms=10, mec="k")
+        if "obs_kind" in res:
+            for k, ctr, size, act in zip(res["obs_kind"][i], res["obs_center"][i], res["obs_size"][i],
+                                         res["obs_active"][i]):
+                if not act:
+                    continue
+                if k == 1:
+                    top.add_patch(Circle(ctr[:2], size[0], color=c, alpha=0.25))
+                else:
+                    top.add_patch(Rectangle(ctr[:2] - size[:2], 2 * size[0], 2 * size[1], color=c, alpha=0.25))
+    top.set_aspect("equal")
+    top.set_xlabel("x (m)")
+    top.set_ylabel("y (m)")
+    top.set_title("top view: o start, x end, * goal (dashed: arrival radius), shaded: obstacles")
+    top.grid(alpha=0.3)
+    top.legend(fontsize=7, loc="best")
+    side.axhline(0.0, color="saddlebrown", lw=2)
+    if max_altitude is not None:
+        side.axhline(max_altitude, color="r", ls=":", label="max altitude")
+        side.legend(fontsize=8)
+    side.set_xlabel("distance flown over the ground (m)")
+    side.set_ylabel("altitude z (m)")
+    side.set_title("side view")
+    side.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Draw flights from a run directory (greedy) or an env id (random policy); returns a process exit code."""
+    from jaxrobo.run import resolve
+
+    if args.run_dir:
+        spec, cfg, q = _load_run(args.run_dir)
+        what = f"greedy flights of table {args.table}, {args.run_dir}"
+    elif args.env_id:
+        spec, q = resolve(args.env_id, args.preset), None
+        what = "random policy (untrained)"
+    else:
+        print("jaxrobo show: give a RUN_DIR or --env ID")
+        return 2
+    res = fly(spec, q, args.table, args.episodes, args.seed)
+    p = spec.env.default_params
+    summary = ""
+    if "arrived" in res:
+        summary = f" - arrived {int(res['arrived'].sum())}/{len(res['arrived'])}"
+    draw(res, f"{spec.env_id}: {what}{summary}", args.out, float(getattr(p, "goal_tolerance", 0.5)),
+         float(getattr(p, "max_altitude", 0.0)) or None)
+    print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,440 @@
+"""Gymnasium adapter: the classic single-env API and a vmapped vector env around any jaxrobo environment.
+
+The seed trained through ``gym.make('CartPoleStayUp-v0')`` one step at a time; this keeps that API for users
+and libraries that expect Gymnasium, over the same pure functions the vectorised trainer compiles:
+
+* :class:`JaxroboEnv` - a :class:`gymnasium.Env`: numpy ``float32`` observations, a Python ``float`` reward,
+  separate ``terminated`` / ``truncated``, reproducible ``reset(seed=...)``, exact spaces, one jitted call per
+  ``step`` and one device→host transfer of its results. ``render_mode="rgb_array"`` draws MuJoCo frames.
+* :class:`JaxroboVectorEnv` - a :class:`gymnasium.vector.VectorEnv` stepping ``num_envs`` copies as one vmapped
+  jitted call, with next-step autoreset (``AutoresetMode.NEXT_STEP``), numpy batches out.
+* :func:`register_gymnasium_envs` - every jaxrobo id as ``jaxrobo/<id>`` for ``gymnasium.make`` and
+  ``gymnasium.make_vec``. It runs on ``import jaxrobo`` and only records strings (no env is built).
+
+Seeding: ``reset(seed=s)`` starts from ``env.reset(jax.random.key(s))`` of the functional API (for
+``s < 2**32``), so both give the same trajectory; a later ``reset()`` without a seed continues from the key the
+previous episode carried (``jax.random.split(state.key)[1]``), as the vector env's autoreset does, so
+``JaxroboVectorEnv`` with ``reset(seed=s)`` reproduces Gymnasium's ``SyncVectorEnv`` of single envs seeded
+``s, s+1, ...``.
+
+Time limit: the task truncates by itself at its ``max_episode_steps`` parameter, which is also the
+``max_episode_steps`` of the Gymnasium registration; ``gymnasium.make`` therefore adds a ``TimeLimit`` at the
+same step (both report ``truncated``). ``gymnasium.make(id, max_episode_steps=M)`` can only shorten episodes,
+since Gymnasium keeps that keyword for its wrapper; to lengthen them pass
+``overrides={"max_episode_steps": M}`` as well.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping, Sequence
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces as gspaces
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+
+NAMESPACE = "jaxrobo"
+_KEY_MOD = 2**64  # Gymnasium seeds are any non-negative int; keys hold 64 bits
+
+
+class InvalidActionError(ValueError, AssertionError):
+    """An action the env cannot take; both a ``ValueError`` and the ``AssertionError`` Gymnasium envs raise."""
+
+
+# ---- action checks (host side, before any JAX call) ----------------------------------------------------------
+def check_action(action: Any, n: int) -> np.int32:
+    """``action`` as an ``int32`` in ``0 .. n-1``, or :class:`InvalidActionError` naming what is wrong."""
+    if isinstance(action, (bool, np.bool_)):
+        raise InvalidActionError(f"action={action!r}: a boolean is not an action; expected an integer in [0, {n})")
+    if isinstance(action, (int, np.integer)):
+        value = int(action)
+    else:
+        try:
+            arr = np.asarray(action)
+        except Exception as err:  # noqa: BLE001 - anything numpy cannot read is not an action
+            raise InvalidActionError(f"action={action!r} ({type(action).__name__}) is not an integer") from err
+        if arr.shape != ():
+            raise InvalidActionError(f"action has shape {arr.shape}; a Discrete({n}) action is one integer, shape ()")
+        if not np.issubdtype(arr.dtype, np.integer) or arr.dtype == np.bool_:
+            what = "NaN" if np.issubdtype(arr.dtype, np.floating) and np.isnan(arr) else f"dtype {arr.dtype}"
+            raise InvalidActionError(f"action={action!r} ({what}) is not an integer in [0, {n})")
+        value = int(arr)
+    if not 0 <= value < n:
+        raise InvalidActionError(f"action={value} is out of range: Discrete({n}) takes 0 .. {n - 1}")
+    return np.int32(value)
+
+
+def check_actions(actions: Any, n: int, num_envs: int) -> np.ndarray:
+    """A batch of actions as ``int32[num_envs]`` in ``0 .. n-1``, or :class:`InvalidActionError`."""
+    try:
+        arr = np.asarray(actions)
+    except Exception as err:  # noqa: BLE001
+        raise InvalidActionError(f"actions={actions!r} cannot be read as an integer array") from err
+    if arr.shape != (num_envs,):
+        raise InvalidActionError(f"actions have shape {arr.shape}; expected ({num_envs},), one per env")
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
+        bad = "NaN" if np.issubdtype(arr.dtype, np.floating) and np.isnan(arr).any() else f"dtype {arr.dtype}"
+        raise InvalidActionError(f"actions ({bad}) must be integers in [0, {n})")
+    out = (arr < 0) | (arr >= n)
+    if out.any():
+        i = int(np.argmax(out))
+        raise InvalidActionError(f"actions[{i}]={int(arr[i])} is out of range: Discrete({n}) takes 0 .. {n - 1}")
+    return arr.astype(np.int32)
+
+
+# ---- compiled functions, shared by every adapter of the same env -------------------------------------------
+_N_EXTRA = 5  # reward, terminated, truncated, physics_nan, steps follow the observation in the packed row
+
+
+def _pack(state: Any) -> Any:
+    """Observation and step results in one float32 row, so the host reads them with one transfer."""
+    import jax.numpy as jnp
+
+    extra = jnp.stack([state.reward, state.terminated, state.truncated, state.physics_nan, state.steps])
+    return jnp.concatenate([jnp.ravel(state.obs).astype(jnp.float32), extra.astype(jnp.float32)])
+
+
+@dataclasses.dataclass
+class _Compiled:
+    """Jitted single and batched reset/step of one env; params are arguments, so one compile serves all."""
+
+    env: Any
+
+    def __post_init__(self) -> None:
+        import jax
+        import jax.numpy as jnp
+
+        env = self.env
+
+        def reset(key, params):
+            state = env.reset(key, params)
+            return state, _pack(state)
+
+        def step(state, action, params):
+            state = env.step(state, action, params)
+            return state, _pack(state)
+
+        def next_key(key):
+            return jax.random.split(key)[1]
+
+        def vreset(keys, params):
+            states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+            return states, jnp.zeros(keys.shape, bool), jax.vmap(_pack)(states)
+
+        def vstep(states, needs_reset, actions, params):
+            # Next-step autoreset: an env that finished on the previous step starts its next episode now, from the
+            # key its state carried, and this step's action for it is ignored.
+            stepped = jax.vmap(env.step, in_axes=(0, 0, None))(states, actions, params)
+
+            def with_resets(stepped):
+                keys = jax.vmap(next_key)(states.key)
+                fresh = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+                pick = lambda new, old: jnp.where(  # noqa: E731
+                    needs_reset.reshape(needs_reset.shape + (1,) * (old.ndim - 1)), new, old)
+                return jax.tree.map(pick, fresh, stepped)
+
+            new = jax.lax.cond(jnp.any(needs_reset), with_resets, lambda s: s, stepped)
+            return new, new.terminated | new.truncated, jax.vmap(_pack)(new)
+
+        self.reset = jax.jit(reset)
+        self.step = jax.jit(step)
+        self.next_key = jax.jit(next_key)
+        self.vnext_key = jax.jit(jax.vmap(next_key))
+        self.vreset = jax.jit(vreset)
+        self.vstep = jax.jit(vstep, donate_argnums=(0,))
+
+
+_CACHE: dict[Any, _Compiled] = {}
+
+
+def compiled_for(env: Any) -> _Compiled:
+    """The shared jitted functions of ``env``: keyed by class and options (static), so every adapter of the same
+    env configuration reuses one compilation whatever its parameters."""
+    try:
+        key = (type(env), env.options)
+        hash(key)
+    except (AttributeError, TypeError):
+        return _Compiled(env)  # unhashable options: compile per instance
+    if key not in _CACHE:
+        _CACHE[key] = _Compiled(env)
+    return _CACHE[key]
+
+
+# ---- spaces --------------------------------------------------------------------------------------------------
+def gym_spaces(env: Any, params: Any = None) -> tuple[gspaces.Discrete, gspaces.Box]:
+    """The Gymnasium action and observation spaces of a jaxrobo env (Box with the task's own bounds).
+
+    An unbounded dimension (``±inf`` in the task) becomes ``±float32 max``, as Gymnasium's own CartPole does:
+    every finite float32 observation is inside it, and ``check_env`` does not warn about infinite bounds.
+    """
+    act, obs = env.action_space(params), env.observation_space(params)
+    big = np.finfo(np.float32).max
+    low = np.nan_to_num(np.asarray(obs.low, np.float32), neginf=-big, posinf=big)
+    high = np.nan_to_num(np.asarray(obs.high, np.float32), neginf=-big, posinf=big)
+    return gspaces.Discrete(int(act.n)), gspaces.Box(low, high, shape=low.shape, dtype=np.float32)
+
+
+def _make_env(env_id: str | None, env: Any, overrides: Mapping[str, Any] | None, kwargs: Mapping[str, Any]) -> Any:
+    import jaxrobo
+
+    values = {**(overrides or {}), **kwargs}
+    if env is not None:
+        if env_id is not None or values:
+            raise TypeError("pass either env= (a made jaxrobo env) or env_id with keyword overrides, not both")
+        return env
+    if env_id is None:
+        raise TypeError("env_id is required (a jaxrobo id such as 'CartPoleStayUp-v0')")
+    if env_id.startswith(NAMESPACE + "/"):
+        env_id = env_id[len(NAMESPACE) + 1:]
+    return jaxrobo.make(env_id, **values)
+
+
+def _reset_params(env: Any, base: Any, options: Mapping[str, Any] | None) -> Any:
+    """``options`` may set any task *parameter* for the episodes that follow (e.g. ``init_pole_angle``)."""
+    if not options:
+        return base
+    from jaxrobo.config import split_and_validate
+    from jaxrobo.struct import rules
+
+    static = set(rules(type(env.options))) if hasattr(env, "options") else set()
+    bad = sorted(k for k in options if k in static)
+    if bad:
+        raise ValueError(f"reset options {bad} are static options of {env.name}; pass them to gymnasium.make instead")
+    (checked,) = split_and_validate(dict(options), type(base), where=f"{env.name} reset options")
+    return base.replace(**checked)
+
+
+def _seed_keys(seeds: Sequence[int]) -> Any:
+    """The key of each seed, in one call: ``jax.random.key(s)`` for ``s < 2**32`` (threefry key data is
+    ``[s >> 32, s & 0xffffffff]``); larger seeds keep both halves, which ``jax.random.key`` without x64 would not."""
+    import jax
+
+    s = np.asarray([int(x) % _KEY_MOD for x in seeds], np.uint64)
+    data = np.stack([(s >> np.uint64(32)).astype(np.uint32), (s & np.uint64(0xFFFFFFFF)).astype(np.uint32)], -1)
+    return jax.random.wrap_key_data(data)
+
+
+def _frame_rate(env: Any) -> int:
+    sim = getattr(getattr(env, "robot", None), "sim", None)
+    dt = float(getattr(sim, "running_step", 0.0) or 0.0)
+    return max(1, int(round(1.0 / dt))) if dt > 0 else 30
+
+
+# ---- the single environment ----------------------------------------------------------------------------------
+class JaxroboEnv(gymnasium.Env):
+    """A jaxrobo env with Gymnasium's classic single-env API.
+
+    ``JaxroboEnv("CartPoleStayUp-v0", control_type="position")`` or ``gymnasium.make("jaxrobo/CartPoleStayUp-v0",
+    control_type="position")``: keyword arguments are the same overrides :func:`jaxrobo.make` takes;
+    ``overrides={...}`` passes them as a dict (for names Gymnasium keeps for itself, like ``max_episode_steps``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(self, env_id: str | None = None, render_mode: str | None = None, *, env: Any = None,
+                 overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
+                 camera: str | int | None = None, **kwargs: Any):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r}: allowed values are None, "
+                             + ", ".join(repr(m) for m in self.metadata["render_modes"]))
+        self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self.params = self.jax_env.default_params
+        self.action_space, self.observation_space = gym_spaces(self.jax_env, self.params)
+        self._n = int(self.action_space.n)
+        self._obs_size = int(np.prod(self.observation_space.shape))
+        self._fns = compiled_for(self.jax_env)
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
+        self._render_args = (int(width), int(height), camera)
+        self._renderer: Any = None
+        self.state: Any = None  # the current jaxrobo EnvState (on device)
+
+    # -- core API ----------------------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode; ``seed`` gives the functional ``reset(jax.random.key(seed))``; ``options`` may set task
+        parameters (``{"init_pole_angle": 0.52}``) for this and later episodes."""
+        super().reset(seed=seed)
+        self.params = _reset_params(self.jax_env, self.params, options)
+        if seed is not None:
+            key = _seed_keys([seed])[0]
+        elif self.state is not None:
+            key = self._fns.next_key(self.state.key)
+        else:
+            key = _seed_keys([int(self.np_random.integers(2**32))])[0]
+        self.state, packed = self._fns.reset(key, self.params)
+        obs, *_ = self._unpack(np.asarray(packed))
+        return obs, {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        a = check_action(action, self._n)
+        self.state, packed = self._fns.step(self.state, a, self.params)
+        obs, reward, terminated, truncated, nan, steps = self._unpack(np.asarray(packed))
+        return obs, reward, terminated, truncated, {"steps": steps, "physics_nan": nan}
+
+    def _unpack(self, row: np.ndarray) -> tuple[np.ndarray, float, bool, bool, bool, int]:
+        d = self._obs_size
+        obs = row[:d].reshape(self.observation_space.shape)
+        reward, term, trunc, nan, steps = row[d:d + _N_EXTRA]
+        return obs, float(reward), bool(term), bool(trunc), bool(nan), int(steps)
+
+    # -- rendering ---------------------------------------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        """An ``H x W x 3`` uint8 frame of the current state in ``rgb_array`` mode (None without a render mode)."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to make")
+            return None
+        if self.state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before render()")
+        if self._renderer is None:
+            from jaxrobo.render import Renderer
+
+            self._renderer = Renderer(self.jax_env, *self._render_args)
+        return self._renderer.render(self.state, self.params)
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        super().close()
+
+    def __repr__(self) -> str:
+        return f"<JaxroboEnv {self.jax_env.name}>"
+
+
+# ---- the vector environment ----------------------------------------------------------------------------------
+class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
+    """``num_envs`` copies of a jaxrobo env stepped as one vmapped jitted call, with next-step autoreset.
+
+    After a step that ends an env's episode (terminated or truncated), the next ``step`` resets that env and
+    returns its first observation with reward 0, ``terminated=truncated=False``, ignoring its action (Gymnasium's
+    ``AutoresetMode.NEXT_STEP``, the default of ``SyncVectorEnv``). ``info`` holds ``steps`` and ``physics_nan``
+    with their ``_steps`` / ``_physics_nan`` masks (False for envs that were reset on this step).
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(self, env_id: str | None = None, num_envs: int = 1, render_mode: str | None = None, *,
+                 env: Any = None, overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
+                 camera: str | int | None = None, **kwargs: Any):
+        if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
+            raise ValueError(f"num_envs={num_envs!r}: expected an integer >= 1")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array'")
+        self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self.params = self.jax_env.default_params
+        self.num_envs = int(num_envs)
+        self.single_action_space, self.single_observation_space = gym_spaces(self.jax_env, self.params)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self._n = int(self.single_action_space.n)
+        self._obs_size = int(np.prod(self.single_observation_space.shape))
+        self._fns = compiled_for(self.jax_env)
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
+        self._render_args = (int(width), int(height), camera)
+        self._renderer: Any = None
+        self.states: Any = None
+        self._needs_reset: Any = None
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every env; ``seed=s`` seeds env ``i`` with ``s + i`` (as ``SyncVectorEnv`` does), a list seeds each."""
+        if isinstance(seed, (list, tuple)):
+            if len(seed) != self.num_envs:
+                raise ValueError(f"{len(seed)} seeds for {self.num_envs} envs")
+            seeds = list(seed)
+            super().reset(seed=None)
+        else:
+            super().reset(seed=seed)
+            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        self.params = _reset_params(self.jax_env, self.params, options)
+        if self.states is not None and all(s is None for s in seeds):
+            keys = self._fns.vnext_key(self.states.key)  # continue each env's own key chain
+        else:
+            seeds = [int(self.np_random.integers(2**32)) if s is None else int(s) for s in seeds]
+            keys = _seed_keys(seeds)
+        self.states, self._needs_reset, packed = self._fns.vreset(keys, self.params)
+        obs, *_ = self._unpack(np.asarray(packed))
+        return obs, {}
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        if self.states is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        a = check_actions(actions, self._n, self.num_envs)
+        self.states, self._needs_reset, packed = self._fns.vstep(self.states, self._needs_reset, a, self.params)
+        obs, rewards, terms, truncs, nan, steps = self._unpack(np.asarray(packed))
+        was_reset = steps == 0
+        info = {"steps": np.where(was_reset, 0, steps).astype(np.int64), "_steps": ~was_reset,
+                "physics_nan": nan & ~was_reset, "_physics_nan": ~was_reset}
+        return obs, rewards, terms, truncs, info
+
+    def _unpack(self, rows: np.ndarray):
+        d = self._obs_size
+        obs = rows[:, :d].reshape((self.num_envs,) + self.single_observation_space.shape)
+        extra = rows[:, d:d + _N_EXTRA]
+        return (obs, extra[:, 0].astype(np.float64), extra[:, 1] > 0.5, extra[:, 2] > 0.5, extra[:, 3] > 0.5,
+                extra[:, 4].astype(np.int64))
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """One ``H x W x 3`` uint8 frame per env (``rgb_array`` mode), as ``SyncVectorEnv`` returns them."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        if self.states is None:
+            raise gymnasium.error.ResetNeeded("call reset() before render()")
+        import jax
+
+        if self._renderer is None:
+            from jaxrobo.render import Renderer
+
+            self._renderer = Renderer(self.jax_env, *self._render_args)
+        host = jax.device_get(self.states)
+        return tuple(self._renderer.render(jax.tree.map(lambda x, i=i: x[i], host), self.params)
+                     for i in range(self.num_envs))
+
+    def close_extras(self, **kwargs: Any) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def __repr__(self) -> str:
+        return f"<JaxroboVectorEnv {self.jax_env.name} x{self.num_envs}>"
+
+
+# ---- registration --------------------------------------------------------------------------------------------
+def gym_id(env_id: str) -> str:
+    """The Gymnasium id of a jaxrobo id: ``jaxrobo/<id>``."""
+    return f"{NAMESPACE}/{env_id}"
+
+
+def register_gymnasium_envs() -> list[str]:
+    """Register every jaxrobo id with Gymnasium as ``jaxrobo/<id>`` (idempotent; call again after
+    :func:`jaxrobo.register` adds ids). Records strings only: no env, model or JAX function is built."""
+    import jaxrobo
+    from jaxrobo.registry import env_config
+
+    added = []
+    for env_id in jaxrobo.registered():
+        gid = gym_id(env_id)
+        if gid in gymnasium.registry:
+            continue
+        try:
+            steps = int(env_config(env_id).get("max_episode_steps", jaxrobo.spec(env_id).max_episode_steps))
+        except Exception:  # noqa: BLE001 - a broken YAML shows up when the env is made, not at import
+            steps = jaxrobo.spec(env_id).max_episode_steps
+        gymnasium.register(
+            id=gid,
+            entry_point=f"{__name__}:JaxroboEnv",
+            vector_entry_point=f"{__name__}:JaxroboVectorEnv",
+            max_episode_steps=steps,
+            kwargs={"env_id": env_id},
+        )
+        added.append(gid)
+    return added
+
+
+register_gymnasium_envs()

@@ -1,0 +1,351 @@
+"""Frames of a jaxrobo state from MuJoCo's offscreen renderer, and videos of a policy's episode.
+
+The seed watched Gazebo and asked for "videos showing how the drone has learnt"; jaxrobo has no GUI in the
+loop, so a frame is drawn on demand: the robot's generalized positions (and velocities, and mocap poses where
+the backend has them) are copied into a host ``MjData``, ``mj_forward`` places every body, and
+:class:`mujoco.Renderer` draws the scene. This works for every backend (MJX, Brax, the quadcopter's ``rigid``)
+because it needs only ``sim.mj_model``, ``sim.qpos(state)`` and ``sim.qvel(state)``.
+
+Headless machines need an offscreen OpenGL: set ``MUJOCO_GL=egl`` (GPU or Mesa EGL) or ``MUJOCO_GL=osmesa``
+(software; ``apt-get install libosmesa6``) *before* ``mujoco`` is imported. When ``MUJOCO_GL`` is unset and
+there is no display, :class:`Renderer` picks EGL, then OSMesa, by itself.
+
+Task hooks (optional, looked up on the env; never required):
+
+``render_extras(state, params) -> Iterable[Mapping]``
+    Geometry that is task data rather than part of the MJCF (a goal marker, obstacles held as arrays). Each
+    mapping has ``type`` (``"sphere"``, ``"box"``, ``"cylinder"``, ``"capsule"``, ``"ellipsoid"``,
+    ``"arrow"`` or a :class:`mujoco.mjtGeom` value), ``size`` (3 numbers, MuJoCo's half-sizes), ``pos``
+    (3 numbers, world frame) and optionally ``rgba`` (4 numbers) and ``mat`` (9 numbers, row-major rotation).
+    ``state`` is the :class:`jaxrobo.env.EnvState` with host (numpy) arrays; ``params`` the env parameters.
+    They are added to the scene's user geoms with ``mujoco.mjv_initGeom``.
+``render_camera``
+    An attribute naming the default camera (a camera name in the MJCF, or ``"track"``).
+
+Without a camera choice the first camera of the model is used, else a free camera that tracks body 1.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import sys
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+GEOM_TYPES = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh", "sdf")
+
+
+class RenderUnavailable(RuntimeError):
+    """No OpenGL backend could be created (no display, and neither EGL nor OSMesa works)."""
+
+
+def _headless() -> bool:
+    return platform.system() == "Linux" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def prefer_headless_gl() -> None:
+    """Default ``MUJOCO_GL`` to ``egl`` on a display-less Linux, if ``mujoco`` is not imported yet.
+
+    Has no effect when the user chose a backend, or once ``mujoco`` is imported (``Renderer`` then falls back by
+    itself, see :func:`_gl_context_class`).
+    """
+    if "mujoco" not in sys.modules and not os.environ.get("MUJOCO_GL") and _headless():
+        os.environ["MUJOCO_GL"] = "egl"
+
+
+def _gl_context_class() -> type | None:
+    """The GLContext class to use, or None to keep MuJoCo's own choice.
+
+    MuJoCo picks its GL platform from ``MUJOCO_GL`` when it is imported, and defaults to GLFW, which needs a
+    display. On a display-less Linux with ``MUJOCO_GL`` unset we try EGL, then OSMesa, instead.
+    """
+    if os.environ.get("MUJOCO_GL") or not _headless():
+        return None
+    errors = []
+    for name in ("egl", "osmesa"):
+        try:
+            if name == "egl":
+                from mujoco.egl import GLContext
+            else:
+                if os.environ.get("PYOPENGL_PLATFORM", "osmesa") != "osmesa":
+                    raise ImportError(f"PYOPENGL_PLATFORM={os.environ['PYOPENGL_PLATFORM']!r} is not osmesa")
+                os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+                from mujoco.osmesa import GLContext
+            ctx = GLContext(16, 16)  # probe: fails here when the library is missing
+            ctx.free()
+            return GLContext
+        except Exception as err:  # noqa: BLE001 - any failure means "try the next backend"
+            errors.append(f"{name}: {err}")
+    raise RenderUnavailable("no display and no offscreen OpenGL: " + "; ".join(errors)
+                            + " (install libegl1 or libosmesa6, or set MUJOCO_GL)")
+
+
+_GL_REASON: list[str | None] = []
+
+
+def gl_unavailable_reason() -> str | None:
+    """None when offscreen rendering works in this process, else why not (checked once, with a tiny model)."""
+    if not _GL_REASON:
+        try:
+            import mujoco
+
+            model = mujoco.MjModel.from_xml_string("<mujoco><worldbody><geom size='1'/></worldbody></mujoco>")
+            renderer = _make_renderer(model, 8, 8, _gl_context_class())
+            renderer.close()
+            _GL_REASON.append(None)
+        except Exception as err:  # noqa: BLE001 - report, do not raise
+            _GL_REASON.append(f"no OpenGL for offscreen rendering (MUJOCO_GL={os.environ.get('MUJOCO_GL', '')!r}): "
+                              f"{type(err).__name__}: {err}")
+    return _GL_REASON[0]
+
+
+def _sim_of(env: Any) -> Any:
+    robot = getattr(env, "robot", None)
+    sim = getattr(robot, "sim", None)
+    if sim is None or not hasattr(sim, "mj_model"):
+        raise ValueError(f"{env!r} has no robot.sim.mj_model; only MuJoCo-model environments can be rendered")
+    return sim
+
+
+def _geom_type(value: Any) -> int:
+    import mujoco
+
+    if isinstance(value, str):
+        if value == "arrow":
+            return int(mujoco.mjtGeom.mjGEOM_ARROW)
+        if value not in GEOM_TYPES:
+            raise ValueError(f"render_extras: type={value!r}: allowed values are {', '.join(GEOM_TYPES)}, arrow")
+        return int(getattr(mujoco.mjtGeom, f"mjGEOM_{value.upper()}"))
+    return int(value)
+
+
+class Renderer:
+    """Draws an env's state to ``height x width x 3`` uint8 frames; reuse one per env (it holds a GL context)."""
+
+    def __init__(self, env: Any, width: int = 320, height: int = 240, camera: str | int | None = None):
+        import mujoco
+
+        self.env = env
+        self.sim = _sim_of(env)
+        self.model = self.sim.mj_model
+        self.data = mujoco.MjData(self.model)
+        self.width, self.height = int(width), int(height)
+        off_w, off_h = self.model.vis.global_.offwidth, self.model.vis.global_.offheight
+        if self.width > off_w or self.height > off_h:
+            # The framebuffer limits are model data; raise them on this private copy only.
+            self.model = _copy_model(self.model)
+            self.model.vis.global_.offwidth = max(off_w, self.width)
+            self.model.vis.global_.offheight = max(off_h, self.height)
+            self.data = mujoco.MjData(self.model)
+        camera = getattr(env, "render_camera", None) if camera is None else camera
+        self.camera = self._camera(camera)
+        context_cls = _gl_context_class()
+        self._renderer = _make_renderer(self.model, self.height, self.width, context_cls)
+
+    def _camera(self, camera: str | int | None) -> Any:
+        import mujoco
+
+        if camera is None:
+            camera = 0 if self.model.ncam > 0 else "track"
+        if camera == "track":
+            cam = mujoco.MjvCamera()
+            mujoco.mjv_defaultFreeCamera(self.model, cam)
+            if self.model.nbody > 1:
+                cam.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+                cam.trackbodyid = 1
+                cam.distance = max(2.0, 3.0 * float(self.model.stat.extent))
+                cam.elevation = -20.0
+                cam.azimuth = 90.0 + 45.0
+            return cam
+        if isinstance(camera, str):
+            cid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+            if cid < 0:
+                names = [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(self.model.ncam)]
+                raise ValueError(f"camera={camera!r}: the model's cameras are {names} (or 'track')")
+            return cid
+        if not 0 <= int(camera) < self.model.ncam:
+            raise ValueError(f"camera={camera!r}: the model has {self.model.ncam} cameras")
+        return int(camera)
+
+    def set_state(self, state: Any) -> None:
+        """Copy the robot's pose from a (single, unbatched) env state into the host MjData and run forward."""
+        import jax
+        import mujoco
+
+        ps = state.pipeline_state
+        parts = {"qpos": self.sim.qpos(ps), "qvel": self.sim.qvel(ps)}
+        for name in ("mocap_pos", "mocap_quat"):
+            if self.model.nmocap and hasattr(ps, name):
+                parts[name] = getattr(ps, name)
+        host = jax.device_get(parts)
+        qpos = np.asarray(host["qpos"], np.float64)
+        if qpos.shape != (self.model.nq,):
+            raise ValueError(f"state qpos has shape {qpos.shape}, the model needs ({self.model.nq},); "
+                             "render one environment of a batch at a time")
+        self.data.qpos[:] = qpos
+        self.data.qvel[:] = np.asarray(host["qvel"], np.float64)
+        for name in ("mocap_pos", "mocap_quat"):
+            if name in host:
+                getattr(self.data, name)[:] = np.asarray(host[name], np.float64)
+        mujoco.mj_forward(self.model, self.data)
+
+    def render(self, state: Any, params: Any = None) -> np.ndarray:
+        """The frame of ``state`` (``height x width x 3`` uint8), with the task's ``render_extras`` if any."""
+        self.set_state(state)
+        self._renderer.update_scene(self.data, camera=self.camera)
+        extras = getattr(self.env, "render_extras", None)
+        if extras is not None:
+            import jax
+
+            host_state = jax.device_get(state)
+            params = getattr(self.env, "default_params", None) if params is None else params
+            add_geoms(self._renderer.scene, extras(host_state, params))
+        return np.asarray(self._renderer.render(), np.uint8)
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def __enter__(self) -> "Renderer":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _copy_model(model: Any) -> Any:
+    import copy
+
+    return copy.copy(model)
+
+
+def _make_renderer(model: Any, height: int, width: int, context_cls: type | None) -> Any:
+    import mujoco
+
+    if context_cls is None:
+        try:
+            return mujoco.Renderer(model, height, width)
+        except Exception as err:  # noqa: BLE001
+            raise RenderUnavailable(f"mujoco.Renderer failed ({err}); on a headless machine set MUJOCO_GL=egl "
+                                    "or MUJOCO_GL=osmesa before importing mujoco") from err
+    from mujoco.rendering.classic import gl_context
+
+    saved = getattr(gl_context, "GLContext", None)
+    gl_context.GLContext = context_cls  # the renderer reads it at construction; restored right after
+    try:
+        return mujoco.Renderer(model, height, width)
+    finally:
+        gl_context.GLContext = saved
+
+
+def add_geoms(scene: Any, geoms: Iterable[Mapping[str, Any]] | None) -> int:
+    """Append task geometry to a ``mujoco.MjvScene``'s user geoms; returns how many were added."""
+    import mujoco
+
+    added = 0
+    for g in geoms or ():
+        if scene.ngeom >= scene.maxgeom:
+            break
+        size = np.zeros(3)
+        given = np.asarray(g["size"], np.float64).ravel()
+        size[: given.size] = given[:3]
+        pos = np.asarray(g["pos"], np.float64).reshape(3)
+        mat = np.asarray(g.get("mat", np.eye(3)), np.float64).reshape(9)
+        rgba = np.asarray(g.get("rgba", (0.2, 0.8, 0.2, 0.6)), np.float32).reshape(4)
+        mujoco.mjv_initGeom(scene.geoms[scene.ngeom], _geom_type(g["type"]), size, pos, mat, rgba)
+        scene.ngeom += 1
+        added += 1
+    return added
+
+
+def render_frame(env: Any, state: Any, width: int = 320, height: int = 240, camera: str | int | None = None,
+                 params: Any = None) -> np.ndarray:
+    """One frame of one state (creates and closes a renderer: use :class:`Renderer` for many frames)."""
+    with Renderer(env, width, height, camera) as r:
+        return r.render(state, params)
+
+
+Policy = Callable[[np.ndarray], int]
+
+
+def rollout_frames(env: Any, policy: Policy | None = None, seed: int = 0, max_steps: int | None = None,
+                   width: int = 320, height: int = 240, camera: str | int | None = None,
+                   params: Any = None) -> tuple[list[np.ndarray], dict[str, Any]]:
+    """Run one episode of ``policy`` (observation → action; random if None) and draw every state.
+
+    Returns ``(frames, {"return", "length", "terminated", "truncated"})``.
+    """
+    import jax
+
+    from jaxrobo.gym_adapter import compiled_for
+
+    params = env.default_params if params is None else params
+    fns = compiled_for(env)  # the Gymnasium adapter's jitted reset/step: compiled once per env configuration
+    state, _ = fns.reset(jax.random.key(seed), params)
+    limit = int(max_steps if max_steps is not None else params.max_episode_steps)
+    rng = np.random.default_rng(seed)
+    n_actions = env.action_space(params).n
+    frames, total, length = [], 0.0, 0
+    with Renderer(env, width, height, camera) as r:
+        frames.append(r.render(state, params))
+        while length < limit:
+            obs = np.asarray(state.obs)
+            action = int(rng.integers(n_actions)) if policy is None else int(policy(obs))
+            state, _ = fns.step(state, np.int32(action), params)
+            total += float(state.reward)
+            length += 1
+            frames.append(r.render(state, params))
+            if bool(state.terminated) or bool(state.truncated):
+                break
+    return frames, {"return": total, "length": length, "terminated": bool(state.terminated),
+                    "truncated": bool(state.truncated)}
+
+
+def write_video(path: str, frames: Sequence[np.ndarray], fps: float = 25.0) -> str:
+    """Write frames to ``.gif`` (Pillow, via imageio) or ``.mp4`` (needs ``imageio-ffmpeg``); returns ``path``."""
+    try:
+        import imageio.v2 as imageio
+    except ImportError as err:
+        raise ImportError("writing videos needs imageio: pip install imageio (and imageio-ffmpeg for .mp4)") from err
+    if not frames:
+        raise ValueError("write_video: no frames")
+    os.makedirs(os.path.dirname(os.path.abspath(path)) or ".", exist_ok=True)
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".gif":
+        imageio.mimsave(path, list(frames), duration=1000.0 / fps, loop=0)  # duration per frame, in ms
+    elif ext in (".mp4", ".mov", ".avi", ".mkv"):
+        try:
+            imageio.mimsave(path, list(frames), fps=fps, macro_block_size=1)
+        except (ImportError, ValueError, RuntimeError) as err:
+            raise RuntimeError(f"{path}: writing {ext} needs imageio-ffmpeg (pip install imageio-ffmpeg); "
+                               f"a .gif needs nothing more ({err})") from err
+    else:
+        raise ValueError(f"write_video: {path!r}: use a .gif or .mp4 file name")
+    return path
+
+
+def record_episode(env: Any, path: str, policy: Policy | None = None, seed: int = 0, max_steps: int | None = None,
+                   width: int = 320, height: int = 240, camera: str | int | None = None,
+                   fps: float | None = None, params: Any = None) -> dict[str, Any]:
+    """Roll out one episode of ``policy`` and write it as a GIF/MP4 at real-time speed by default.
+
+    Returns the episode's ``return``, ``length``, ``terminated``, ``truncated`` and the video ``path``.
+    """
+    frames, info = rollout_frames(env, policy, seed, max_steps, width, height, camera, params)
+    if fps is None:
+        fps = 1.0 / float(getattr(_sim_of(env), "running_step", 0.04) or 0.04)
+    write_video(path, frames, fps)
+    return {**info, "path": path, "frames": len(frames)}
+
+
+def q_policy(q: np.ndarray, discretiser: Callable[[Any], Any]) -> Policy:
+    """A greedy policy from a Q-table ``[n_tables, n_states, n_actions]`` (or ``[n_states, n_actions]``)."""
+    q = np.asarray(q)
+    values = q.sum(axis=0) if q.ndim == 3 else q
+
+    def policy(obs: np.ndarray) -> int:
+        return int(np.argmax(values[int(discretiser(obs))]))
+
+    return policy
