@@ -39,7 +39,7 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
     """Check one value against its rule; ints are accepted for floats. Returns the value in the rule's type."""
     loc = f"{where}: " if where else ""
     kind = rule.kind
-    if value is None and rule.choices is not None and None in rule.choices:
+    if value is None and (rule.optional or (rule.choices is not None and None in rule.choices)):
         return None
     if kind is bool:
         if not isinstance(value, bool):

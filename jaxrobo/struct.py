@@ -38,6 +38,7 @@ class Rule:
     doc: str = ""
     unit: str = ""
     low_open: bool = False  # True: the value must be strictly greater than ``low``
+    optional: bool = False  # None is allowed (the field's default is None: "not given")
 
     def describe(self) -> str:
         if self.choices is not None:
@@ -63,7 +64,8 @@ def param(
     default_factory: Callable[[], Any] | None = None,
 ) -> Any:
     """Declare a user-settable field. ``static`` fields select code paths or shapes; the rest are traced leaves."""
-    rule = Rule(kind or type(default), low, high, tuple(choices) if choices is not None else None, doc, unit, low_open)
+    rule = Rule(kind or type(default), low, high, tuple(choices) if choices is not None else None, doc, unit, low_open,
+                optional=default is None and default_factory is None)
     meta = {"static": static, _RULES: rule}
     if default_factory is not None:
         return dataclasses.field(default_factory=default_factory, metadata=meta)

@@ -66,3 +66,12 @@ def test_command_line_values_parse_as_yaml():
         "alpha": 0.3, "seed_compat": True, "bins": [1, 2], "agent": "sarsa"}
     with pytest.raises(ConfigError, match="expected KEY=VALUE"):
         parse_overrides(["alpha"])
+
+
+def test_a_saved_run_config_resolves_back_to_the_same_run():
+    spec = resolve("CartPoleStayUp-v0", "seed", overrides={"alpha": 0.2, "pos_step": 0.02})
+    saved = spec.to_dict()
+    overrides = {**saved["agent_params"], **saved["train"]}
+    overrides.update({f"env.{k}": v for k, v in {**saved["env_options"], **saved["env_params"]}.items()})
+    again = resolve(saved["env_id"], saved["preset"], overrides)
+    assert again.to_dict() == saved
