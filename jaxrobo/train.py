@@ -198,7 +198,7 @@ class Trainer:
                  max_steps: int | None = None) -> tuple[jax.Array, jax.Array]:
         """Greedy episodes with one table: ``(returns, lengths)``, each ``[n_episodes]``."""
         env_params = self.env.default_params if env_params is None else env_params
-        horizon = int(max_steps or self.env.spec.max_episode_steps if self.env.spec else 1000)
+        horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
 
         def episode(k):
             k_reset, k_run = jax.random.split(k)
