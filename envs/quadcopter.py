@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.rigid_body import RigidBodySim, airframe_from_model, quat_to_mat
+from jaxrobo import spaces
+from jaxrobo.env import TaskEnv
 from jaxrobo.robot import Robot
 from jaxrobo.sim import Simulator, asset_path, load_model
 from jaxrobo.struct import pytree_dataclass
@@ -246,3 +248,16 @@ class Quadcopter(Robot):
         vel_heading = jnp.stack([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]])
         return {"pos": q[:3], "quat": q[3:7], "rpy": rpy, "vel": v[:3], "vel_heading": vel_heading,
                 "omega": v[3:6]}
+
+
+class QuadcopterTask(TaskEnv):
+    """What the quadcopter tasks share: the robot built from the task's options (``backend``, ``running_step``,
+    ``timestep``, ``min_altitude``) and the seed's five Twist actions."""
+
+    def __init__(self, options: Any = None, params: Any = None):
+        super().__init__(options, params)
+        o = self.options
+        self.robot = Quadcopter(o.backend, o.running_step, o.timestep, min_altitude=o.min_altitude)
+
+    def action_space(self, params: Any = None) -> spaces.Discrete:
+        return spaces.Discrete(len(ACTION_NAMES))

@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter import (BACKENDS, BOX, CYLINDER, SONAR_RAYS, Obstacles, Quadcopter, sonar, sphere_hits,
+from envs.quadcopter import (BACKENDS, BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterTask, sonar, sphere_hits,
                              twist_command, wrap_angle)
 from jaxrobo import spaces
 from jaxrobo.env import BaseParams, EnvState, TaskEnv
@@ -101,17 +101,9 @@ class TaskVars:
     crashed: jax.Array
 
 
-class QuadcopterGoto(TaskEnv):
+class QuadcopterGoto(QuadcopterTask):
     Options = Options
     Params = Params
-
-    def __init__(self, options: Options | None = None, params: Params | None = None):
-        super().__init__(options, params)
-        o = self.options
-        self.robot = Quadcopter(o.backend, o.running_step, o.timestep, min_altitude=o.min_altitude)
-
-    def action_space(self, params: Params | None = None) -> spaces.Discrete:
-        return spaces.Discrete(5)
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         n = len(OBS_NAMES)

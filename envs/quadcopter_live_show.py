@@ -31,9 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter import BACKENDS, Quadcopter, twist_command
+from envs.quadcopter import BACKENDS, QuadcopterTask, twist_command
 from jaxrobo import spaces
-from jaxrobo.env import BaseParams, TaskEnv
+from jaxrobo.env import BaseParams
 from jaxrobo.struct import param, pytree_dataclass
 
 #: The seed's action shaping, added to every step's reward: forward, left, right, up, down.
@@ -74,17 +74,9 @@ class TaskVars:
     best_dist: jax.Array
 
 
-class QuadcopterLiveShow(TaskEnv):
+class QuadcopterLiveShow(QuadcopterTask):
     Options = Options
     Params = Params
-
-    def __init__(self, options: Options | None = None, params: Params | None = None):
-        super().__init__(options, params)
-        o = self.options
-        self.robot = Quadcopter(o.backend, o.running_step, o.timestep, min_altitude=o.min_altitude)
-
-    def action_space(self, params: Params | None = None) -> spaces.Discrete:
-        return spaces.Discrete(5)
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         return spaces.Box(np.full(1, -np.inf, np.float32), np.full(1, np.inf, np.float32), ("x",))

@@ -4,7 +4,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import os
-from typing import Any, Callable
+from typing import Any
 
 from jaxrobo.config import ConfigError, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env, EnvSpec
@@ -82,7 +82,7 @@ def make(id: str, **overrides: Any) -> Env:
         env = cls(cls.Options(**options), cls.Params(**params))
     except ConfigError:
         raise
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError) as err:  # e.g. a running_step that is not a multiple of the timestep
         raise ConfigError(f"{id}: {err}") from err
     env.spec = dataclasses.replace(reg.spec, max_episode_steps=int(env.default_params.max_episode_steps))
     return env
