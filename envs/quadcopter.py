@@ -28,7 +28,7 @@ from jaxrobo import spaces
 from jaxrobo.env import TaskEnv
 from jaxrobo.robot import Robot
 from jaxrobo.sim import Simulator, asset_path, load_model
-from jaxrobo.struct import pytree_dataclass
+from jaxrobo.struct import param, pytree_dataclass
 
 MJCF = "quadcopter.xml"
 BACKENDS = ("mjx", "rigid")
@@ -248,6 +248,19 @@ class Quadcopter(Robot):
         vel_heading = jnp.stack([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]])
         return {"pos": q[:3], "quat": q[3:7], "rpy": rpy, "vel": v[:3], "vel_heading": vel_heading,
                 "omega": v[3:6]}
+
+
+@pytree_dataclass
+class QuadcopterOptions:
+    """Static options every quadcopter task has (tasks subclass it to add theirs or change defaults)."""
+
+    backend: str = param("rigid", choices=BACKENDS, static=True,
+                         doc="physics: 'mjx' (MuJoCo MJX) or 'rigid' (same model, hand-written one-body dynamics)")
+    running_step: float = param(0.3, low=0.0, low_open=True, high=5.0, static=True, unit="s",
+                                doc="how long each command is applied")
+    timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s", doc="physics step")
+    min_altitude: float = param(0.0, low=0.0, high=2.0, static=True, unit="m",
+                                doc="on-board altitude floor of descent commands (0: none, ground crashes possible)")
 
 
 class QuadcopterTask(TaskEnv):

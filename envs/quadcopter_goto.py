@@ -34,8 +34,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter import (BACKENDS, BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterTask, sonar, sphere_hits,
-                             twist_command, wrap_angle)
+from envs.quadcopter import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
+                             sphere_hits, twist_command, wrap_angle)
 from jaxrobo import spaces
 from jaxrobo.env import BaseParams, EnvState, TaskEnv
 from jaxrobo.struct import param, pytree_dataclass
@@ -44,14 +44,7 @@ OBS_NAMES = ("goal_dist", "goal_bearing", "goal_dz", "sonar_forward", "sonar_lef
 
 
 @pytree_dataclass
-class Options:
-    backend: str = param("rigid", choices=BACKENDS, static=True,
-                         doc="physics: 'mjx' (MuJoCo MJX) or 'rigid' (same model, hand-written one-body dynamics)")
-    running_step: float = param(0.3, low=0.0, low_open=True, high=5.0, static=True, unit="s",
-                                doc="how long each command is applied")
-    timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s", doc="physics step")
-    min_altitude: float = param(0.0, low=0.0, high=2.0, static=True, unit="m",
-                                doc="on-board altitude floor of descent commands (0: none, ground crashes possible)")
+class Options(QuadcopterOptions):
     n_obstacles: int = param(1, low=0, high=32, static=True, doc="obstacles per episode")
     obstacle_kind: str = param("cylinder", choices=("cylinder", "box", "mixed"), static=True)
     obstacle_placement: str = param("between", choices=("between", "random"), static=True)

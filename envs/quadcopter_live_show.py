@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter import BACKENDS, QuadcopterTask, twist_command
+from envs.quadcopter import QuadcopterOptions, QuadcopterTask, twist_command
 from jaxrobo import spaces
 from jaxrobo.env import BaseParams
 from jaxrobo.struct import param, pytree_dataclass
@@ -41,14 +41,9 @@ ACTION_SHAPING = (100.0, -50.0, -50.0, -150.0, -50.0)
 
 
 @pytree_dataclass
-class Options:
-    backend: str = param("rigid", choices=BACKENDS, static=True,
-                         doc="physics: 'mjx' (MuJoCo MJX) or 'rigid' (same model, hand-written one-body dynamics)")
-    running_step: float = param(0.3, low=0.0, low_open=True, high=5.0, static=True, unit="s",
-                                doc="how long each command is applied")
-    timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s", doc="physics step")
+class Options(QuadcopterOptions):
     min_altitude: float = param(0.2, low=0.0, high=2.0, static=True, unit="m",
-                                doc="on-board altitude floor of descent commands (0: none)")
+                                doc="on-board altitude floor of descent commands (the seed's world had a floor)")
 
 
 @pytree_dataclass
