@@ -8,13 +8,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxrobo import rng
 from agents.tabular import Learner, argmax_random_ties, epsilon_greedy
 
 
 def noisy_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array) -> jax.Array:
     """The seed's QLearn.chooseAction (one uniform draw serves the coin, the noise and the tie-break)."""
     n = q_row.shape[-1]
-    u = jax.random.uniform(key, (2 * n + 1,))
+    u = rng.uniform(key, (2 * n + 1,))
     mag = jnp.maximum(jnp.abs(jnp.min(q_row)), jnp.abs(jnp.max(q_row)))
     noisy = q_row + u[1:n + 1] * mag - 0.5 * mag
     return argmax_random_ties(jnp.where(u[0] < epsilon, noisy, q_row), u[n + 1:])

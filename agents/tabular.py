@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrobo import rng
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -69,7 +70,7 @@ def argmax_random_ties(q_row: jax.Array, noise: jax.Array) -> jax.Array:
 
 def greedy(key: jax.Array, q_row: jax.Array) -> jax.Array:
     """argmax with ties broken uniformly at random (as the seed does)."""
-    return argmax_random_ties(q_row, jax.random.uniform(key, q_row.shape))
+    return argmax_random_ties(q_row, rng.uniform(key, q_row.shape))
 
 
 def epsilon_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array, seed_compat: bool = False) -> jax.Array:
@@ -79,7 +80,7 @@ def epsilon_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array, seed_co
     bits are a real share of a cart-pole step's cost on a GPU.
     """
     n = q_row.shape[-1]
-    u = jax.random.uniform(key, (n + 2,))
+    u = rng.uniform(key, (n + 2,))
     random_action = jnp.minimum(jnp.floor(u[1] * n), n - 1).astype(jnp.int32)
     return jnp.where(u[0] < epsilon, random_action, argmax_random_ties(q_row, u[2:]))
 

@@ -41,7 +41,10 @@ def child(args: argparse.Namespace) -> None:
 
     directory = enable_compilation_cache(args.cache_dir)
     n_before = entries(directory)
-    spec = resolve(args.env, "default", {"n_envs": args.n_envs, "chunk_steps": args.chunk_steps}, agent=args.agent)
+    from jaxrobo.config import parse_overrides
+
+    overrides = {"n_envs": args.n_envs, "chunk_steps": args.chunk_steps, **parse_overrides(args.set)}
+    spec = resolve(args.env, "default", overrides, agent=args.agent)
     t_resolved = time.time()
     marks: dict[str, float] = {}
 
@@ -86,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="train: what `jaxrobo train` does today; export: also keep the traced chunk (jax.export)")
     p.add_argument("--runs", type=int, default=2, help="how many processes to start one after the other")
     p.add_argument("--out", default=None, help="write the measurements to this JSON file")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="parameter override, e.g. backend=analytic (repeatable)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
@@ -100,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
            "--n-envs", str(args.n_envs), "--chunk-steps", str(args.chunk_steps), "--cache-dir", args.cache_dir, "--mode", args.mode]
     if args.device:
         cmd += ["--device", args.device]
+    for item in args.set:
+        cmd += ["--set", item]
     runs = []
     for i in range(args.runs):
         t0 = time.time()
@@ -115,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label:>20}: {rec['to_first_chunk_s']:6.2f} s to the first training chunk "
               f"(imports+config {rec['imports_s']:.2f} s; cache files {rec['cache_entries_before']} -> "
               f"{rec['cache_entries_after']}) on {rec['device']}")
-    result = {"mode": args.mode, "env": args.env, "agent": args.agent, "n_envs": args.n_envs, "chunk_steps": args.chunk_steps,
+    result = {"mode": args.mode, "env": args.env, "agent": args.agent, "overrides": args.set, "n_envs": args.n_envs,
+              "chunk_steps": args.chunk_steps,
               "runs": runs, "target_second_s": 5.0}
     if len(runs) > 1:
         ok = runs[1]["to_first_chunk_s"] < 5.0

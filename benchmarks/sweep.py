@@ -25,6 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", choices=("cpu", "gpu"), default=None)
     p.add_argument("--env", default="CartPoleStayUp-v0")
     p.add_argument("--preset", default="default", help="default (textbook learner) or seed (seed_compat, round)")
+    p.add_argument("--backend", default=None, help="cart-pole physics backend (default: the env's, mjx)")
     p.add_argument("--runs", type=int, default=None, help="independent runs (default: 1000 on GPU, 8 on CPU)")
     p.add_argument("--configs", type=int, default=4, help="learning rates in the grid (runs = configs × seeds)")
     p.add_argument("--nepisodes", type=int, default=None, help="episodes per run (default: 1000 GPU, 20 CPU)")
@@ -54,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     alphas = [round(float(a), 3) for a in np.linspace(0.1, 0.7, args.configs)] if args.configs > 1 else [0.5]
     points = [{"alpha": a} for a in alphas]
     overrides = {"n_envs": 1, "nepisodes": nepisodes, "nsteps": args.nsteps, "chunk_steps": args.chunk_steps}
+    if args.backend:
+        overrides["backend"] = args.backend
     mesh = sharding.make_mesh() if jax.device_count() > 1 else None
     print(f"{runs} runs ({len(points)} alphas × {len(seeds)} seeds) of {nepisodes} episodes ≤ {args.nsteps} steps, "
           f"{args.env} preset {args.preset}, on {jax.device_count()} × {jax.devices()[0].device_kind}", flush=True)
@@ -69,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     steps = result.env_steps
     best = result.best("final_return")
     out = {"device": jax.devices()[0].device_kind, "device_count": jax.device_count(), "env": args.env,
+           "backend": args.backend or "default",
            "preset": args.preset, "runs": runs, "nepisodes": nepisodes, "nsteps": args.nsteps, "alphas": alphas,
            "wall_seconds": wall, "compile_seconds": g["compile_seconds"], "run_seconds": g["run_seconds"],
            "env_steps": steps, "env_steps_per_second_run": steps / g["run_seconds"],

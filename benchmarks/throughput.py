@@ -3,8 +3,8 @@
     python benchmarks/throughput.py                         # --quick: CPU-sized, a few minutes on 2 cores
     python benchmarks/throughput.py --device gpu --full     # every env, backend and learner, 1k..1M envs
 
-For every registered jaxrobo env (cartpole on ``mjx`` and on each Brax pipeline; the quadcopter tasks when
-registered) it measures env-steps per second over a list of ``n_envs``:
+For every registered jaxrobo env (cartpole on ``mjx``, on each Brax pipeline and on its closed-form ``analytic``
+backend; the quadcopter tasks when registered) it measures env-steps per second over a list of ``n_envs``:
 
 * ``env``: random actions, ``lax.scan`` rollout, auto-reset with fresh randomness;
 * each learner: ``Trainer.run_chunk`` (act → step → discretise → learn → auto-reset) with ``record_episodes``
@@ -37,7 +37,7 @@ from typing import Any
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common  # noqa: E402
 
-QUICK_N = (64, 1024)
+QUICK_N = (64, 1024, 16384)
 FULL_N_CPU = (1, 16, 256, 4096)
 FULL_N_GPU = (1024, 8192, 65536, 262144, 1048576)
 ALL_LEARNERS = ("qlearn", "sarsa", "expected_sarsa", "double_q")
@@ -55,7 +55,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=None,
                    help="env steps per timed call (default: enough for ~0.1-1 s per call, 10..1000)")
     p.add_argument("--envs", default=None, help="comma list of env ids (default: every registered id)")
-    p.add_argument("--backends", default=None, help="comma list of cartpole backends (default: all four)")
+    p.add_argument("--backends", default=None,
+                   help="comma list of cartpole backends (default: mjx, the three Brax pipelines and analytic)")
     p.add_argument("--learners", default=None,
                    help="comma list of learners, or 'none' (default quick: qlearn,sarsa; full: all four)")
     p.add_argument("--peers", default="gymnax,brax,gymnasium,gymnasium-sync,gymnasium-vec,seed-loop",
@@ -340,7 +341,7 @@ def _guard(fn, skip_row, *a) -> dict[str, Any]:
 def jaxrobo_plan(args, n_list) -> list[tuple]:
     """(env_id, backend, learner, n) rows to run, plus skipped rows for ids that are not there."""
     import jaxrobo
-    from jaxrobo.sim import BACKENDS
+    from envs.cartpole import BACKENDS
 
     ids = jaxrobo.registered()
     wanted = args.envs.split(",") if args.envs else ids + [q for q in QUADCOPTERS if q not in ids]
@@ -366,7 +367,7 @@ def jaxrobo_plan(args, n_list) -> list[tuple]:
         cartpole = env_id.startswith("CartPoleStayUp")
         env_backends = (backends if env_id == "CartPoleStayUp-v0" else ("mjx",)) if cartpole else (None,)
         for backend in env_backends:
-            main = env_id == "CartPoleStayUp-v0" and backend == "mjx"
+            main = env_id == "CartPoleStayUp-v0" and backend in ("mjx", "analytic")
             if args.full:  # everything at every size
                 env_sizes, learner_sizes = n_list, {name: n_list for name in learners}
             elif main:  # quick: the headline rows at every size, the other learners at the largest

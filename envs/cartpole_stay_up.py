@@ -25,10 +25,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.cartpole import CONTROL_TYPES, CartPoleRobot
-from jaxrobo import spaces
+from envs.cartpole import BACKENDS, CONTROL_TYPES, CartPoleRobot
+from jaxrobo import rng, spaces
 from jaxrobo.env import BaseParams, TaskEnv
-from jaxrobo.sim import BACKENDS
 from jaxrobo.struct import param, pytree_dataclass
 
 #: Action ``i`` adds ``ACTION_STEPS[i] * pos_step`` to the cart command (left, right, left big, right big).
@@ -40,7 +39,8 @@ OBS_NAMES = ("cart_x", "cart_v", "pole_angle", "pole_angular_velocity")
 class Options:
     n_actions: int = param(4, choices=(2, 4), static=True, doc="4: the seed's v0; 2: left/right only (v1)")
     control_type: str = param("velocity", choices=CONTROL_TYPES, static=True, doc="controller receiving the command")
-    backend: str = param("mjx", choices=BACKENDS, static=True, doc="physics engine")
+    backend: str = param("mjx", choices=BACKENDS, static=True,
+                         doc="physics: 'mjx', a Brax pipeline, or 'analytic' (same model in closed form, fastest)")
     running_step: float = param(0.04, low=0.0, low_open=True, high=1.0, static=True, unit="s",
                                 doc="control period")
     timestep: float = param(0.01, low=0.0, low_open=True, high=0.04, static=True, unit="s", doc="physics step")
@@ -95,7 +95,7 @@ class CartPoleStayUp(TaskEnv):
 
     # ---- the seed's hooks -------------------------------------------------------------------------------
     def _set_init_pose(self, key: jax.Array, params: Params) -> tuple[jax.Array, jax.Array]:
-        noise = jax.random.uniform(key, (4,), minval=-params.init_noise, maxval=params.init_noise)
+        noise = rng.uniform(key, (4,), -params.init_noise, params.init_noise)
         return self.robot.init_pose(params.init_pos + noise[0], params.init_pole_angle + noise[2], noise[1], noise[3])
 
     def _init_env_variables(self, key: jax.Array, pipeline_state: Any, params: Params) -> TaskVars:

@@ -36,7 +36,7 @@ import numpy as np
 
 from envs.quadcopter import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
-from jaxrobo import spaces
+from jaxrobo import rng, spaces
 from jaxrobo.env import BaseParams, EnvState, TaskEnv
 from jaxrobo.struct import param, pytree_dataclass
 
@@ -117,13 +117,13 @@ class QuadcopterGoto(QuadcopterTask):
             return Obstacles.empty()
         k_t, k_lat, k_kind, k_xy = jax.random.split(key, 4)
         if o.obstacle_placement == "between":
-            t = jax.random.uniform(k_t, (n,), minval=params.obstacle_t_min, maxval=params.obstacle_t_max)
-            lat = jax.random.uniform(k_lat, (n,), minval=-params.obstacle_lateral, maxval=params.obstacle_lateral)
+            t = rng.uniform(k_t, (n,), params.obstacle_t_min, params.obstacle_t_max)
+            lat = rng.uniform(k_lat, (n,), -params.obstacle_lateral, params.obstacle_lateral)
             d = goal[:2] - start[:2]
             side = jnp.stack([-d[1], d[0]]) / jnp.maximum(jnp.linalg.norm(d), 1e-6)
             xy = start[:2] + t[:, None] * d + lat[:, None] * side
         else:  # random: 16 candidates each, the first clear of start and goal (else the last)
-            cand = jax.random.uniform(k_xy, (n, 16, 2), minval=-params.workspace, maxval=params.workspace)
+            cand = rng.uniform(k_xy, (n, 16, 2), -params.workspace, params.workspace)
             free = params.obstacle_clearance + params.obstacle_size * np.sqrt(2.0)
             ok = (jnp.linalg.norm(cand - start[:2], axis=-1) > free) & (jnp.linalg.norm(cand - goal[:2], axis=-1) > free)
             idx = jnp.where(jnp.any(ok, axis=1), jnp.argmax(ok, axis=1), 15)
@@ -141,15 +141,15 @@ class QuadcopterGoto(QuadcopterTask):
 
     # ---- the seed's hooks -------------------------------------------------------------------------------
     def _set_init_pose(self, key: jax.Array, params: Params) -> tuple[jax.Array, jax.Array]:
-        yaw = jax.random.uniform(key, (), minval=-jnp.pi, maxval=jnp.pi)
+        yaw = rng.uniform(key, (), -jnp.pi, jnp.pi)
         return self.robot.init_pose(jnp.stack([0.0, 0.0, params.init_z]), yaw)
 
     def _init_env_variables(self, key: jax.Array, pipeline_state: Any, params: Params) -> TaskVars:
         k_dir, k_dist, k_z, k_obs = jax.random.split(key, 4)
         start = self.robot.read_sensors(pipeline_state)["pos"]
-        heading = jax.random.uniform(k_dir, (), minval=-jnp.pi, maxval=jnp.pi)
-        dist = jax.random.uniform(k_dist, (), minval=params.goal_min_dist, maxval=params.goal_max_dist)
-        z = jax.random.uniform(k_z, (), minval=params.goal_z_min, maxval=params.goal_z_max)
+        heading = rng.uniform(k_dir, (), -jnp.pi, jnp.pi)
+        dist = rng.uniform(k_dist, (), params.goal_min_dist, params.goal_max_dist)
+        z = rng.uniform(k_z, (), params.goal_z_min, params.goal_z_max)
         goal = jnp.stack([start[0] + dist * jnp.cos(heading), start[1] + dist * jnp.sin(heading), z])
         obstacles = self._obstacles(k_obs, start, goal, params)
         false = jnp.zeros((), bool)

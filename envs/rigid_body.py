@@ -19,17 +19,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxrobo.sim import Simulator, substeps_for
-from jaxrobo.struct import pytree_dataclass
-
-
-@pytree_dataclass
-class RigidState:
-    """Free-joint coordinates in MuJoCo's convention: ``qpos = [pos (world), quat wxyz]``,
-    ``qvel = [linear velocity (world), angular velocity (body frame)]``."""
-
-    qpos: jax.Array
-    qvel: jax.Array
+from jaxrobo.sim import JointState, Simulator, substeps_for
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,7 +105,12 @@ def quat_integrate(q: jax.Array, omega_body: jax.Array, dt: float) -> jax.Array:
 
 
 class RigidBodySim(Simulator):
-    """The :class:`~jaxrobo.sim.Simulator` interface over Newton–Euler for one free body (backend ``rigid``)."""
+    """The :class:`~jaxrobo.sim.Simulator` interface over Newton–Euler for one free body (backend ``rigid``).
+
+    Its state is a :class:`~jaxrobo.sim.JointState` of the free joint: ``qpos = [pos (world), quat wxyz]``,
+    ``qvel = [linear velocity (world), angular velocity (body frame)]``."""
+
+    cheap_step = True
 
     def __init__(self, mj_model: mujoco.MjModel, running_step: float | None = None, body: str = "drone"):
         self.backend = "rigid"
@@ -126,8 +121,8 @@ class RigidBodySim(Simulator):
         self.n_substeps = substeps_for(self.running_step, self.timestep)
         self.model = None
 
-    def init(self, qpos: jax.Array, qvel: jax.Array) -> RigidState:
-        return RigidState(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
+    def init(self, qpos: jax.Array, qvel: jax.Array) -> JointState:
+        return JointState(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
 
     def qpos(self, state: Any) -> jax.Array:
         return state.qpos
@@ -135,7 +130,7 @@ class RigidBodySim(Simulator):
     def qvel(self, state: Any) -> jax.Array:
         return state.qvel
 
-    def physics_step(self, state: RigidState, ctrl: jax.Array) -> RigidState:
+    def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
         af = self.airframe
         dt = af.timestep
         ctrl = jnp.clip(ctrl, jnp.asarray(af.ctrl_low, jnp.float32), jnp.asarray(af.ctrl_high, jnp.float32))
@@ -148,4 +143,4 @@ class RigidBodySim(Simulator):
         omega = omega + dt * alpha
         pos = state.qpos[:3] + dt * vel
         quat = quat_integrate(quat, omega, dt)
-        return RigidState(jnp.concatenate([pos, quat]), jnp.concatenate([vel, omega]))
+        return JointState(jnp.concatenate([pos, quat]), jnp.concatenate([vel, omega]))

@@ -7,6 +7,8 @@ on-board controller would; the "pause/unpause" of Gazebo has no equivalent becau
 Backends: ``mjx`` (MuJoCo MJX, the maintained engine and the default) or one of Brax's pipelines
 (``generalized``, ``positional``, ``spring``) built from the same MJCF. Brax's pipelines need the Euler
 integrator and approximate some dynamics (``spring`` most), so prefer ``mjx`` unless you compare engines.
+Robots may add a hand-written backend that subclasses :class:`Simulator` over :class:`JointState`, with every
+constant read from the same compiled model (the quadcopter's ``rigid``, the cart-pole's ``analytic``).
 """
 from __future__ import annotations
 
@@ -21,6 +23,8 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import mujoco
+
+from jaxrobo.struct import pytree_dataclass
 
 BACKENDS = ("mjx", "generalized", "positional", "spring")
 
@@ -42,6 +46,15 @@ with quiet_imports():
     from mujoco import mjx  # noqa: E402
 
 
+@pytree_dataclass
+class JointState:
+    """Generalized coordinates in MuJoCo's convention (``qpos``, ``qvel``): the whole state of a hand-written
+    backend (:mod:`envs.rigid_body`, :mod:`envs.cartpole_dynamics`), whose step needs nothing else."""
+
+    qpos: jax.Array
+    qvel: jax.Array
+
+
 def substeps_for(running_step: float, timestep: float) -> int:
     """How many physics steps make one control step; the two must divide evenly (to 1e-6)."""
     if running_step <= 0 or timestep <= 0:
@@ -58,6 +71,9 @@ def substeps_for(running_step: float, timestep: float) -> int:
 class Simulator:
     """Holds a compiled model for one backend and advances it; every method is pure and jit/vmap friendly."""
 
+    #: True for hand-written closed-form steps: a few fused arithmetic ops, cheap to unroll and compile.
+    cheap_step: bool = False
+
     def __init__(self, mj_model: mujoco.MjModel, backend: str = "mjx", running_step: float | None = None):
         if backend not in BACKENDS:
             raise ValueError(f"backend={backend!r}: allowed values are {', '.join(BACKENDS)}")
@@ -67,8 +83,11 @@ class Simulator:
         self.running_step = self.timestep if running_step is None else float(running_step)
         self.n_substeps = substeps_for(self.running_step, self.timestep)
         if backend == "mjx":
-            self.model = mjx.put_model(mj_model)
-            self._data0 = mjx.put_data(mj_model, mujoco.MjData(mj_model))
+            # This process's first device: MJX's default is jax.devices()[0], which in a multi-host run
+            # belongs to process 0, and another process cannot close over arrays it cannot address.
+            device = jax.local_devices()[0]
+            self.model = mjx.put_model(mj_model, device=device)
+            self._data0 = mjx.put_data(mj_model, mujoco.MjData(mj_model), device=device)
         else:
             if mj_model.opt.integrator != mujoco.mjtIntegrator.mjINT_EULER:
                 raise ValueError(f"backend={backend!r} needs the Euler integrator in the MJCF <option>")
@@ -108,9 +127,11 @@ class Simulator:
 
         if self.n_substeps == 1:
             return substep(state, None)[0]
-        # On GPUs, unrolling short substep loops lets XLA fuse across substeps and saves a loop per control
-        # step; on CPUs it only multiplies compile time.
-        unroll = self.n_substeps if (self.n_substeps <= 8 and jax.default_backend() == "gpu") else 1
+        # Unrolling a short substep loop lets XLA fuse across substeps and saves a loop per control step. For
+        # MJX on a CPU it only multiplies compile time; a closed-form backend (``cheap_step``) compiles in a
+        # moment either way, so it is unrolled everywhere.
+        short = self.n_substeps <= 8
+        unroll = self.n_substeps if short and (self.cheap_step or jax.default_backend() == "gpu") else 1
         return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
 
 

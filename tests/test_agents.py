@@ -170,3 +170,14 @@ def test_shared_table_averages_colliding_updates():
 def test_unknown_agent_name_is_a_clear_error():
     with pytest.raises(ValueError, match="allowed values are qlearn, sarsa"):
         agents.get("dqn")
+
+
+def test_fast_uniform_equals_jax_random_uniform_under_jit():
+    from jaxrobo import rng
+
+    for i in range(10):
+        key = jax.random.key(i)
+        for shape, low, high in (((6,), 0.0, 1.0), ((4,), -0.05, 0.05), ((), -3.14, 3.14), ((3, 5), 2.0, 7.5)):
+            ours = jax.jit(lambda k: rng.uniform(k, shape, low, high))(key)
+            theirs = jax.jit(lambda k: jax.random.uniform(k, shape, jnp.float32, low, high))(key)
+            np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from envs.cartpole import CartPoleRobot
+from jaxrobo.sim import asset_path, load_model
 
 # Runs in a fresh interpreter because float64 must be switched on before JAX starts.
 _X64_SCRIPT = textwrap.dedent("""
@@ -99,3 +100,77 @@ def test_brax_pipelines_run_the_same_task(backend):
     assert np.all(np.isfinite(np.asarray(state.obs)))
     if backend != "spring":  # Brax's spring pipeline is an approximation that drifts on this stiff actuator
         assert state.obs[0] > 0.0 and state.obs[1] > 0.2, f"{backend}: {state.obs}"
+
+
+# ---- the closed-form backend --------------------------------------------------------------------------------
+_X64_ANALYTIC = textwrap.dedent("""
+    import jax, jax.numpy as jnp, mujoco, numpy as np
+    from envs.cartpole import CartPoleRobot
+    from jaxrobo.sim import JointState
+    for control_type in ("velocity", "position", "effort"):
+        robot = CartPoleRobot(control_type, "analytic", running_step=0.01, timestep=0.01)
+        m = robot.sim.mj_model
+        ctrl = 0.8 * np.sin(np.arange(500) * 0.05)
+        d = mujoco.MjData(m); d.qpos[:] = [0.1, 0.2]
+        native = []
+        for u in ctrl:
+            d.ctrl[0] = u; mujoco.mj_step(m, d); native.append(np.concatenate([d.qpos, d.qvel]))
+        def body(s, u):
+            s = robot.sim.physics_step(s, jnp.array([u]))
+            return s, jnp.concatenate([s.qpos, s.qvel])
+        s0 = JointState(jnp.array([0.1, 0.2]), jnp.zeros(2))
+        _, traj = jax.jit(lambda s: jax.lax.scan(body, s, jnp.asarray(ctrl)))(s0)
+        err = np.abs(np.asarray(traj) - np.array(native)).max()
+        print(f"{control_type} MAXERR {err:.3e} SWING {np.abs(np.array(native)[:, 1]).max():.3f}")
+""")
+
+
+def test_analytic_backend_matches_native_mujoco_to_float64_roundoff():
+    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", _X64_ANALYTIC], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = [ln.split() for ln in out.stdout.splitlines() if "MAXERR" in ln]
+    assert [ln[0] for ln in lines] == ["velocity", "position", "effort"]
+    for name, _, err, _, swing in lines:
+        assert float(swing) > 1.0, f"{name}: the pole should fall and swing"
+        assert float(err) < 1e-9, f"{name}: analytic and native MuJoCo differ by {err} over 500 steps"
+
+
+def test_analytic_backend_tracks_mjx_in_float32():
+    """Same task, same actions: the two backends stay within float32 round-off over a 2 s episode."""
+    import jaxrobo
+
+    traces = []
+    for backend in ("mjx", "analytic"):
+        env = jaxrobo.make("CartPoleStayUp-v0", backend=backend, init_noise=0.0, init_pole_angle=0.05)
+        step = jax.jit(env.step)
+        state, obs = env.reset(jax.random.key(0)), []
+        for t in range(50):
+            state = step(state, (0, 1, 1, 0, 3)[t % 5])
+            obs.append(np.asarray(state.obs))
+        traces.append(np.array(obs))
+    assert np.abs(traces[0][:, 2]).max() > 0.1, "the pole should move"
+    np.testing.assert_allclose(traces[1], traces[0], atol=2e-4)
+
+
+def test_analytic_backend_refuses_what_it_cannot_model():
+    from envs.cartpole import CART_JOINT, MJCF, POLE_JOINT
+    from envs.cartpole_dynamics import CartPoleSim
+
+    with pytest.raises(ValueError, match="damping"):
+        CartPoleSim(load_model(asset_path(MJCF), edit=lambda s: setattr(s.joint(CART_JOINT), "damping", [0.5, 0, 0])),
+                    CART_JOINT, POLE_JOINT)
+    with pytest.raises(ValueError, match="limits"):
+        CartPoleSim(load_model(asset_path(MJCF), edit=lambda s: setattr(s.joint(POLE_JOINT), "range", [-1, 1])),
+                    CART_JOINT, POLE_JOINT)
+    with pytest.raises(ValueError, match="backend='mjx'"):
+        CartPoleSim(load_model(asset_path(MJCF)), CART_JOINT, "no_such_joint")
+
+
+def test_analytic_backend_is_a_task_option():
+    import jaxrobo
+
+    env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
+    assert env.robot.sim.backend == "analytic" and env.robot.sim.n_substeps == 4
+    with pytest.raises(Exception, match="backend"):
+        jaxrobo.make("CartPoleStayUp-v0", backend="bullet")

@@ -86,3 +86,40 @@ def test_padding_and_shardings():
     assert sharding.padded_size(5, mesh) % mesh.devices.size == 0
     padded = sharding.pad_rows({"a": np.arange(3)}, 4)
     assert padded["a"].tolist() == [0, 1, 2, 2]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_with_jax_distributed_give_the_single_process_sweep(tmp_path):
+    """The multi-host path for real, on one machine: two processes (2 CPU devices each) join through
+    ``jax.distributed`` (``JAXROBO_COORDINATOR`` & co.), shard a ``jaxrobo sweep`` over 4 devices and write
+    the same CSV as one process does alone. On MJX (the default backend), whose model must live on each
+    process's own device."""
+    args = [sys.executable, "-m", "jaxrobo.cli", "sweep", "--env", "CartPoleStayUp-v0", "--grid", "alpha=0.1,0.5",
+            "--seeds", "2", "--n-envs", "1", "--nepisodes", "3", "--nsteps", "30",
+            "--no-plots"]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               PYTHONPATH=ROOT)
+    port = _free_port()
+    procs = [subprocess.Popen(args + ["--out", str(tmp_path / "multi")], cwd=ROOT, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              env=dict(env, JAXROBO_COORDINATOR=f"localhost:{port}", JAXROBO_NUM_PROCESSES="2",
+                                       JAXROBO_PROCESS_ID=str(i)))
+             for i in range(2)]
+    logs = [p.communicate(timeout=600)[0] for p in procs]
+    for p, log in zip(procs, logs):
+        assert p.returncode == 0, log[-3000:]
+    assert "over 4 devices" in logs[0], logs[0][-2000:]
+    single = subprocess.run(args + ["--out", str(tmp_path / "single")], cwd=ROOT, text=True, capture_output=True,
+                            env=env, timeout=600)
+    assert single.returncode == 0, single.stderr[-3000:]
+    assert "over 2 devices" in single.stdout
+    multi_csv = (tmp_path / "multi" / "sweep.csv").read_text()
+    assert multi_csv == (tmp_path / "single" / "sweep.csv").read_text()
+    assert len(multi_csv.splitlines()) == 1 + 2 * 2
