@@ -532,18 +532,21 @@ def plot(rows: list[dict[str, Any]], path: str, device: str) -> None:
         name = f"{r['suite']}: {r['env']}" + (f" [{r['backend']}]" if r["backend"] not in ("-", "numpy") else "")
         name += f" {r['mode']}"
         series.setdefault(name, []).append((r["n_envs"], r["steps_per_s"]))
-    fig, ax = plt.subplots(figsize=(9, 6))
-    for name, pts in sorted(series.items()):
+    fig, ax = plt.subplots(figsize=(10, 6.5))
+    colours = plt.cm.tab20.colors  # 20 distinct colours; markers cycle too, so no two series look alike
+    markers = "osD^v<>ph*"
+    for i, (name, pts) in enumerate(sorted(series.items())):
         pts.sort()
-        style = "o-" if name.startswith("jaxrobo") else "s--"
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=name, markersize=4)
+        line = "-" if name.startswith("jaxrobo") else "--"
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], line, marker=markers[i % len(markers)],
+                color=colours[i % len(colours)], label=name, markersize=5)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("n_envs (parallel environments)")
     ax.set_ylabel("env steps per second")
     ax.set_title(f"throughput on {device}")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -318,3 +318,13 @@ def test_vector_env_seeds_per_env():
     np.testing.assert_array_equal(a[1], single.reset(seed=6)[0])
     with pytest.raises(ValueError, match="2 seeds for 3 envs"):
         venv.reset(seed=[1, 2])
+
+
+def test_v0_is_not_called_out_of_date_because_a_v1_task_exists():
+    """CartPoleStayUp-v1 is a different task (2 actions), not a newer -v0: Gymnasium's warning is silenced."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        gym_adapter.register_gymnasium_envs()
+        env = gym.make("jaxrobo/CartPoleStayUp-v0", backend="analytic")
+    assert not [w for w in caught if "out of date" in str(w.message)]
+    assert env.unwrapped.jax_env.robot.sim.backend == "analytic"
