@@ -32,10 +32,35 @@ GOTO_ID = "QuadcopterGoto-v1"
 GOTO_TARGET = 0.8  # share of greedy episodes that arrive at the goal
 
 
+def train_until(runner, chunk, score, target, args, max_chunks, label):
+    """Run ``--eval-every`` chunks at a time until ``score`` reaches ``target``, ``--budget`` seconds of training
+    pass or the run ends; only the chunks are timed. ``score(runner, chunks) -> (value, record, text)``.
+    Returns the runner, the training seconds, the evaluation records, the last score and whether it met."""
+    import jax
+    import numpy as np
+
+    train_s, evals, best, chunks, met = 0.0, [], 0.0, 0, False
+    while train_s < args.budget and chunks < max_chunks:
+        t = time.perf_counter()
+        for _ in range(args.eval_every):
+            runner = chunk(runner)
+        jax.block_until_ready(runner)
+        train_s += time.perf_counter() - t
+        chunks += args.eval_every
+        best, record, text = score(runner, chunks)
+        steps = int(np.asarray(runner.env_steps, np.int64).sum())
+        evals.append({"train_seconds": train_s, "env_steps": steps, **record,
+                      "episodes_min": int(runner.episode.min())})
+        print(f"  {label}: {train_s:6.1f} s, {steps:,} steps, {text}", flush=True)
+        if best >= target:
+            met = True
+            break
+    return runner, train_s, evals, best, met
+
+
 def jaxrobo_cartpole(args) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     from jaxrobo.run import resolve
     from jaxrobo.train import Trainer
@@ -63,24 +88,12 @@ def jaxrobo_cartpole(args) -> dict[str, Any]:
     ev = jax.jit(evaluate).lower(runner, jax.random.key(0)).compile()
     jax.block_until_ready(runner)
     compile_s = time.perf_counter() - t0
-    train_s, evals, best, chunks = 0.0, [], 0.0, 0
-    met = False
-    while train_s < args.budget and chunks < trainer.max_chunks():
-        t = time.perf_counter()
-        for _ in range(args.eval_every):
-            runner = chunk(runner, ap, ep)
-        jax.block_until_ready(runner)
-        train_s += time.perf_counter() - t
-        chunks += args.eval_every
-        scores = [float(x) for x in ev(runner, jax.random.key(1000 + chunks))]
-        best = max(scores)
-        steps = int(np.asarray(runner.env_steps, np.int64).sum())
-        evals.append({"train_seconds": train_s, "env_steps": steps, "best_mean_length": best,
-                      "episodes_min": int(runner.episode.min())})
-        print(f"  jaxrobo: {train_s:6.1f} s, {steps:,} steps, best greedy mean length {best:.0f}", flush=True)
-        if best >= CARTPOLE_TARGET:
-            met = True
-            break
+    def score(runner, chunks):
+        best = max(float(x) for x in ev(runner, jax.random.key(1000 + chunks)))
+        return best, {"best_mean_length": best}, f"best greedy mean length {best:.0f}"
+
+    runner, train_s, evals, best, met = train_until(runner, lambda r: chunk(r, ap, ep), score, CARTPOLE_TARGET,
+                                                    args, trainer.max_chunks(), "jaxrobo")
     return {"side": "jaxrobo", "env": "CartPoleStayUp-v0", "agent": args.agent, "n_envs": args.n_envs,
             "target": f"mean greedy length >= {CARTPOLE_TARGET:.0f} over 100 episodes (best of {k} tables)",
             "met": met, "seconds_to_target": train_s if met else None, "compile_seconds": compile_s,
@@ -144,24 +157,18 @@ def goto_row(args) -> dict[str, Any]:
     select = jax.jit(jax.vmap(lambda t, k: success(t, k, 100))).lower(
         runner.agent.q, jax.random.split(jax.random.key(0), runs)).compile()
     compile_s = time.perf_counter() - t0
-    train_s, evals, best, chunks, met = 0.0, [], 0.0, 0, False
-    while train_s < args.budget and chunks < trainer.max_chunks():
-        t = time.perf_counter()
-        for _ in range(args.eval_every):
-            runner = chunk(runner, ap, ep)
-        jax.block_until_ready(runner)
-        train_s += time.perf_counter() - t
-        chunks += args.eval_every
-        rates = np.asarray(select(runner.agent.q, jax.random.split(jax.random.key(5000 + chunks), runs)))
+    last = {}
+
+    def score(runner, chunks):
+        last["rates"] = rates = np.asarray(select(runner.agent.q, jax.random.split(jax.random.key(5000 + chunks), runs)))
         best = float(rates.max())
-        steps = int(np.asarray(runner.env_steps, np.int64).sum())
-        evals.append({"train_seconds": train_s, "env_steps": steps, "best_success": best,
-                      "mean_success": float(rates.mean()), "episodes_min": int(runner.episode.min())})
-        print(f"  goto:    {train_s:6.1f} s, {steps:,} steps, best greedy success {best:.2f} "
-              f"(mean over {runs} runs {rates.mean():.2f})", flush=True)
-        if best >= GOTO_TARGET:
-            met = True
-            break
+        return best, {"best_success": best, "mean_success": float(rates.mean())}, \
+            f"best greedy success {best:.2f} (mean over {runs} runs {rates.mean():.2f})"
+
+    runner, train_s, evals, best, met = train_until(runner, lambda r: chunk(r, ap, ep), score, GOTO_TARGET, args,
+                                                    trainer.max_chunks(), "goto   ")
+    rates = last["rates"] if "rates" in last else np.asarray(  # no chunk ran (--budget 0): untrained tables
+        select(runner.agent.q, jax.random.split(jax.random.key(5000), runs)))
     chosen = int(np.argmax(rates))
     fresh = float(jax.jit(lambda t, k: success(t, k, 200))(runner.agent.q[chosen], jax.random.key(123_456)))
     print(f"  goto:    selected run {chosen}: success {fresh:.2f} on 200 fresh goals", flush=True)

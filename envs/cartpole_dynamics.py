@@ -26,14 +26,13 @@ with ``a`` the joint armatures and ``F_x``, ``τ_θ`` the actuator forces on the
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxrobo.sim import JointState, Simulator, substeps_for
+from jaxrobo.sim import ClosedFormSim, JointState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,29 +120,13 @@ def constants_from_model(mj_model: mujoco.MjModel, cart_joint: str, pole_joint: 
     )
 
 
-class CartPoleSim(Simulator):
-    """The :class:`~jaxrobo.sim.Simulator` interface over the closed-form cart-pole (backend ``analytic``)."""
-
-    cheap_step = True
+class CartPoleSim(ClosedFormSim):
+    """A :class:`~jaxrobo.sim.ClosedFormSim` over the closed-form cart-pole (backend ``analytic``)."""
 
     def __init__(self, mj_model: mujoco.MjModel, cart_joint: str, pole_joint: str,
                  running_step: float | None = None):
-        self.backend = "analytic"
-        self.mj_model = mj_model
         self.constants = constants_from_model(mj_model, cart_joint, pole_joint)
-        self.timestep = self.constants.timestep
-        self.running_step = self.timestep if running_step is None else float(running_step)
-        self.n_substeps = substeps_for(self.running_step, self.timestep)
-        self.model = None
-
-    def init(self, qpos: jax.Array, qvel: jax.Array) -> JointState:
-        return JointState(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
-
-    def qpos(self, state: Any) -> jax.Array:
-        return state.qpos
-
-    def qvel(self, state: Any) -> jax.Array:
-        return state.qvel
+        super().__init__(mj_model, "analytic", running_step)
 
     def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
         c = self.constants

@@ -6,20 +6,19 @@ reduces to Newton–Euler plus a quaternion update. :class:`RigidBodySim` does e
 read from the compiled :class:`mujoco.MjModel`, so the MJCF stays the single source of truth. It mirrors
 MuJoCo's semi-implicit Euler (velocities first, then positions with the new velocities; quaternions integrated
 in the body frame as ``mju_quatIntegrate`` does), so it agrees with MJX to float32 round-off over seconds of
-flight (see ``tests/test_quadcopter.py``). It subclasses :class:`jaxrobo.sim.Simulator`, so the robot, the tasks
+flight (see ``tests/test_quadcopter.py``). It subclasses :class:`jaxrobo.sim.ClosedFormSim`, so the robot, the tasks
 and ``advance`` (the controller every substep) are shared with the MJX backend.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxrobo.sim import JointState, Simulator, substeps_for
+from jaxrobo.sim import ClosedFormSim, JointState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,31 +103,15 @@ def quat_integrate(q: jax.Array, omega_body: jax.Array, dt: float) -> jax.Array:
     return out / jnp.sqrt(jnp.sum(out * out))
 
 
-class RigidBodySim(Simulator):
-    """The :class:`~jaxrobo.sim.Simulator` interface over Newton–Euler for one free body (backend ``rigid``).
+class RigidBodySim(ClosedFormSim):
+    """A :class:`~jaxrobo.sim.ClosedFormSim` over Newton–Euler for one free body (backend ``rigid``).
 
     Its state is a :class:`~jaxrobo.sim.JointState` of the free joint: ``qpos = [pos (world), quat wxyz]``,
     ``qvel = [linear velocity (world), angular velocity (body frame)]``."""
 
-    cheap_step = True
-
     def __init__(self, mj_model: mujoco.MjModel, running_step: float | None = None, body: str = "drone"):
-        self.backend = "rigid"
-        self.mj_model = mj_model
         self.airframe = airframe_from_model(mj_model, body)
-        self.timestep = self.airframe.timestep
-        self.running_step = self.timestep if running_step is None else float(running_step)
-        self.n_substeps = substeps_for(self.running_step, self.timestep)
-        self.model = None
-
-    def init(self, qpos: jax.Array, qvel: jax.Array) -> JointState:
-        return JointState(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
-
-    def qpos(self, state: Any) -> jax.Array:
-        return state.qpos
-
-    def qvel(self, state: Any) -> jax.Array:
-        return state.qvel
+        super().__init__(mj_model, "rigid", running_step)
 
     def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
         af = self.airframe

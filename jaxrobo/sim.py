@@ -7,7 +7,7 @@ on-board controller would; the "pause/unpause" of Gazebo has no equivalent becau
 Backends: ``mjx`` (MuJoCo MJX, the maintained engine and the default) or one of Brax's pipelines
 (``generalized``, ``positional``, ``spring``) built from the same MJCF. Brax's pipelines need the Euler
 integrator and approximate some dynamics (``spring`` most), so prefer ``mjx`` unless you compare engines.
-Robots may add a hand-written backend that subclasses :class:`Simulator` over :class:`JointState`, with every
+Robots may add a hand-written backend on :class:`ClosedFormSim` (state: :class:`JointState`), with every
 constant read from the same compiled model (the quadcopter's ``rigid``, the cart-pole's ``analytic``).
 """
 from __future__ import annotations
@@ -133,6 +133,34 @@ class Simulator:
         short = self.n_substeps <= 8
         unroll = self.n_substeps if short and (self.cheap_step or jax.default_backend() == "gpu") else 1
         return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
+
+
+class ClosedFormSim(Simulator):
+    """Base of a hand-written backend: the state is a :class:`JointState` and ``physics_step`` is the model's
+    equations of motion, with its constants read from ``mj_model`` by the subclass (so the MJCF stays the single
+    source of truth). ``advance`` and the controller-every-substep contract are the base class's."""
+
+    cheap_step = True
+
+    def __init__(self, mj_model: mujoco.MjModel, backend: str, running_step: float | None = None):
+        self.backend = backend
+        self.mj_model = mj_model
+        self.model = None
+        self.timestep = float(mj_model.opt.timestep)
+        self.running_step = self.timestep if running_step is None else float(running_step)
+        self.n_substeps = substeps_for(self.running_step, self.timestep)
+
+    def init(self, qpos: jax.Array, qvel: jax.Array) -> JointState:
+        return JointState(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
+
+    def qpos(self, state: Any) -> jax.Array:
+        return state.qpos
+
+    def qvel(self, state: Any) -> jax.Array:
+        return state.qvel
+
+    def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
+        raise NotImplementedError
 
 
 def asset_path(*parts: str) -> str:

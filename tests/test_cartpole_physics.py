@@ -15,36 +15,44 @@ import pytest
 from envs.cartpole import CartPoleRobot
 from jaxrobo.sim import asset_path, load_model
 
-# Runs in a fresh interpreter because float64 must be switched on before JAX starts.
+# Runs in a fresh interpreter because float64 must be switched on before JAX starts. Each backend steps the
+# robot's own model (the MJCF as shipped) through 500 physics steps of a swinging trajectory beside native MuJoCo.
 _X64_SCRIPT = textwrap.dedent("""
     import jax, jax.numpy as jnp, mujoco, numpy as np
     from envs.cartpole import CartPoleRobot
-    from jaxrobo.sim import mjx
-    robot = CartPoleRobot("velocity", "mjx", running_step=0.01, timestep=0.01)
-    m = robot.sim.mj_model
-    ctrl = 0.8 * np.sin(np.arange(500) * 0.05)
-    d = mujoco.MjData(m); d.qpos[:] = [0.1, 0.2]
-    native = []
-    for u in ctrl:
-        d.ctrl[0] = u; mujoco.mj_step(m, d); native.append(np.concatenate([d.qpos, d.qvel]))
-    mx = mjx.put_model(m)
-    dx = mjx.put_data(m, mujoco.MjData(m)).replace(qpos=jnp.array([0.1, 0.2]))
-    def body(dx, u):
-        dx = mjx.step(mx, dx.replace(ctrl=jnp.array([u])))
-        return dx, jnp.concatenate([dx.qpos, dx.qvel])
-    _, traj = jax.jit(lambda dx: jax.lax.scan(body, dx, jnp.asarray(ctrl)))(dx)
-    err = np.abs(np.asarray(traj) - np.array(native)).max()
-    swing = np.abs(np.array(native)[:, 1]).max()
-    print(f"MAXERR {err:.3e} SWING {swing:.3f}")
+    from jaxrobo.sim import JointState
+    cases = [("mjx", "velocity")] + [("analytic", c) for c in ("velocity", "position", "effort")]
+    for backend, control_type in cases:
+        robot = CartPoleRobot(control_type, backend, running_step=0.01, timestep=0.01)
+        m = robot.sim.mj_model
+        ctrl = 0.8 * np.sin(np.arange(500) * 0.05)
+        d = mujoco.MjData(m); d.qpos[:] = [0.1, 0.2]
+        native = []
+        for u in ctrl:
+            d.ctrl[0] = u; mujoco.mj_step(m, d); native.append(np.concatenate([d.qpos, d.qvel]))
+        q0, v0 = jnp.array([0.1, 0.2]), jnp.zeros(2)  # float64: not through sim.init, which casts to float32
+        s0 = robot.sim._data0.replace(qpos=q0, qvel=v0) if backend == "mjx" else JointState(q0, v0)
+        def body(s, u):
+            s = robot.sim.physics_step(s, jnp.array([u]))
+            return s, jnp.concatenate([robot.sim.qpos(s), robot.sim.qvel(s)])
+        _, traj = jax.jit(lambda s: jax.lax.scan(body, s, jnp.asarray(ctrl)))(s0)
+        err = np.abs(np.asarray(traj) - np.array(native)).max()
+        print(f"{backend} {control_type} MAXERR {err:.3e} SWING {np.abs(np.array(native)[:, 1]).max():.3f}")
 """)
 
 
-def test_mjx_matches_native_mujoco_over_500_steps():
+@pytest.fixture(scope="module")
+def x64_errors() -> dict[tuple[str, str], tuple[float, float]]:
+    """``(backend, control_type) -> (max error vs native MuJoCo, max pole swing)`` over 500 float64 steps."""
     env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
     out = subprocess.run([sys.executable, "-c", _X64_SCRIPT], capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    line = [ln for ln in out.stdout.splitlines() if ln.startswith("MAXERR")][0]
-    err, swing = float(line.split()[1]), float(line.split()[3])
+    rows = [ln.split() for ln in out.stdout.splitlines() if "MAXERR" in ln]
+    return {(r[0], r[1]): (float(r[3]), float(r[5])) for r in rows}
+
+
+def test_mjx_matches_native_mujoco_over_500_steps(x64_errors):
+    err, swing = x64_errors[("mjx", "velocity")]
     assert swing > 1.0, "the trajectory should exercise the dynamics (the pole falls and swings)"
     assert err < 1e-5, f"MJX and native MuJoCo differ by {err} over 500 steps"
 
@@ -103,37 +111,11 @@ def test_brax_pipelines_run_the_same_task(backend):
 
 
 # ---- the closed-form backend --------------------------------------------------------------------------------
-_X64_ANALYTIC = textwrap.dedent("""
-    import jax, jax.numpy as jnp, mujoco, numpy as np
-    from envs.cartpole import CartPoleRobot
-    from jaxrobo.sim import JointState
+def test_analytic_backend_matches_native_mujoco_to_float64_roundoff(x64_errors):
     for control_type in ("velocity", "position", "effort"):
-        robot = CartPoleRobot(control_type, "analytic", running_step=0.01, timestep=0.01)
-        m = robot.sim.mj_model
-        ctrl = 0.8 * np.sin(np.arange(500) * 0.05)
-        d = mujoco.MjData(m); d.qpos[:] = [0.1, 0.2]
-        native = []
-        for u in ctrl:
-            d.ctrl[0] = u; mujoco.mj_step(m, d); native.append(np.concatenate([d.qpos, d.qvel]))
-        def body(s, u):
-            s = robot.sim.physics_step(s, jnp.array([u]))
-            return s, jnp.concatenate([s.qpos, s.qvel])
-        s0 = JointState(jnp.array([0.1, 0.2]), jnp.zeros(2))
-        _, traj = jax.jit(lambda s: jax.lax.scan(body, s, jnp.asarray(ctrl)))(s0)
-        err = np.abs(np.asarray(traj) - np.array(native)).max()
-        print(f"{control_type} MAXERR {err:.3e} SWING {np.abs(np.array(native)[:, 1]).max():.3f}")
-""")
-
-
-def test_analytic_backend_matches_native_mujoco_to_float64_roundoff():
-    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-    out = subprocess.run([sys.executable, "-c", _X64_ANALYTIC], capture_output=True, text=True, env=env, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    lines = [ln.split() for ln in out.stdout.splitlines() if "MAXERR" in ln]
-    assert [ln[0] for ln in lines] == ["velocity", "position", "effort"]
-    for name, _, err, _, swing in lines:
-        assert float(swing) > 1.0, f"{name}: the pole should fall and swing"
-        assert float(err) < 1e-9, f"{name}: analytic and native MuJoCo differ by {err} over 500 steps"
+        err, swing = x64_errors[("analytic", control_type)]
+        assert swing > 1.0, f"{control_type}: the pole should fall and swing"
+        assert err < 1e-9, f"{control_type}: analytic and native MuJoCo differ by {err} over 500 steps"
 
 
 def test_analytic_backend_tracks_mjx_in_float32():
