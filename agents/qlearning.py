@@ -8,8 +8,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxrobo import rng
 from agents.tabular import Learner, argmax_random_ties, epsilon_greedy
+from jaxrobo import rng
 
 
 def noisy_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array) -> jax.Array:

@@ -88,6 +88,7 @@ def jaxrobo_cartpole(args) -> dict[str, Any]:
     ev = jax.jit(evaluate).lower(runner, jax.random.key(0)).compile()
     jax.block_until_ready(runner)
     compile_s = time.perf_counter() - t0
+
     def score(runner, chunks):
         best = max(float(x) for x in ev(runner, jax.random.key(1000 + chunks)))
         return best, {"best_mean_length": best}, f"best greedy mean length {best:.0f}"
