@@ -44,7 +44,6 @@ class CartPoleConstants:
     pole_mass_length: float  # m_p l (kg m)
     pole_inertia: float  # m_p l² + I + armature of the hinge (kg m²)
     gravity: float  # g > 0, pointing -z (m/s²)
-    timestep: float  # s
     transmission: np.ndarray  # [2, n_act] gear of actuator j on coordinate i (one-hot rows)
     gain: np.ndarray  # [n_act] force per unit control
     bias: np.ndarray  # [3, n_act] force = gain ctrl + b0 + b1 length + b2 velocity
@@ -109,7 +108,7 @@ def constants_from_model(mj_model: mujoco.MjModel, cart_joint: str, pole_joint: 
         total_mass=mass_c + mass_p + float(arm[m.jnt_dofadr[slide]]),
         pole_mass_length=mass_p * length,
         pole_inertia=mass_p * length**2 + inertia_y + float(arm[m.jnt_dofadr[hinge]]),
-        gravity=float(-m.opt.gravity[2]), timestep=float(m.opt.timestep),
+        gravity=float(-m.opt.gravity[2]),
         transmission=transmission,
         gain=np.array(m.actuator_gainprm[:, 0]),
         bias=np.where(affine, m.actuator_biasprm[:, :3].T, 0.0),
@@ -138,8 +137,8 @@ class CartPoleSim(ClosedFormSim):
         generalized = [0.0, 0.0]
         for j in range(c.gain.shape[0]):
             gear = c.transmission[:, j]
-            length = sum(float(g) * q for g, q in zip(gear, (x, th)) if g)
-            velocity = sum(float(g) * v for g, v in zip(gear, (xd, thd)) if g)
+            length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
+            velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
             u = _clip(ctrl[j], c.ctrl_low[j], c.ctrl_high[j])
             force = float(c.gain[j]) * u + float(c.bias[0, j])
             force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
@@ -155,8 +154,8 @@ class CartPoleSim(ClosedFormSim):
         acc = jnp.stack([c.pole_inertia * rhs_x - coupling * rhs_th, c.total_mass * rhs_th - coupling * rhs_x])
         # Semi-implicit Euler, as MuJoCo: velocities first, positions with the new velocities. (Whole-vector
         # updates: on a CPU they vectorise better than per-coordinate ones over the batch.)
-        v = v + c.timestep * (acc * inv_det)
-        return JointState(q + c.timestep * v, v)
+        v = v + self.timestep * (acc * inv_det)
+        return JointState(q + self.timestep * v, v)
 
 
 def _clip(value: jax.Array, low: float, high: float) -> jax.Array:
