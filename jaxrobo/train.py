@@ -92,6 +92,11 @@ class Trainer:
         self.learner = learner or agents.get(config.agent)
         self.disc = discretiser or make_discretiser_for(env, config)
         self.n_actions = env.num_actions
+        #: Most envs reset per step by gathering them (see ``_reset_done``); a step with more resets them all.
+        #: On a CPU an eighth of the batch; on accelerators the whole batch, i.e. the plain select: there the
+        #: gather/scatter and the branch cost more than the resets they save (H100: 61 M vs 73 M env-steps/s).
+        cpu = jax.default_backend() == "cpu"
+        self.reset_capacity = -(-config.n_envs // 8) if cpu else config.n_envs
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
 
@@ -115,6 +120,33 @@ class Trainer:
     def _reset(self, keys, env_params):
         states = jax.vmap(self.env.reset, in_axes=(0, None))(keys, env_params)
         return states, jax.vmap(self.disc)(states.obs)
+
+    def _reset_done(self, done, keys, env_params, stepped, s2):
+        """``(env_state, s, s_fresh)`` with a fresh episode wherever ``done`` (``s_fresh`` valid there only).
+
+        A reset draws random numbers and builds a physics state, and under ``vmap`` a plain select would pay
+        for it in every env every step although few are done. So the done envs (at most ``capacity``, an
+        eighth of the batch by default: ``reset_capacity``) are gathered, reset and scattered back; a step with
+        more of them resets the whole batch. Both paths give the same values: each env resets from its own key
+        either way (tested). On 2 CPU cores this made cart-pole training ~25 % faster."""
+        n, capacity = self.config.n_envs, self.reset_capacity
+
+        def everyone(_):
+            fresh, s_fresh = self._reset(keys, env_params)
+            pick = lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)  # noqa: E731
+            return jax.tree.map(pick, fresh, stepped), jnp.where(done, s_fresh, s2), s_fresh
+
+        if capacity >= n:
+            return everyone(None)
+
+        def only_done(_):
+            rows = jnp.nonzero(done, size=capacity, fill_value=n)[0]  # n = padding, dropped by the scatters
+            fresh, s_fresh = self._reset(keys[jnp.minimum(rows, n - 1)], env_params)
+            put = lambda old, new: old.at[rows].set(new, mode="drop")  # noqa: E731
+            s_next = put(s2, s_fresh)
+            return jax.tree.map(put, stepped, fresh), s_next, s_next
+
+        return jax.lax.cond(jnp.sum(done) > capacity, everyone, only_done, None)
 
     # ---- public ----------------------------------------------------------------------------------------
     def init(self, key: jax.Array, agent_params: AgentParams, env_params: Any = None) -> Runner:
@@ -167,10 +199,7 @@ class Trainer:
             lengths = lengths.at[:, 0].add(jnp.where(record, stepped.steps, 0))
             terminated = terminated.at[:, 0].set(terminated[:, 0] | (record & stepped.terminated))
 
-        fresh, s_fresh = self._reset(k_reset, env_params)
-        pick = lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)  # noqa: E731
-        env_state = jax.tree.map(pick, fresh, stepped)
-        s_next = jnp.where(done, s_fresh, s2)
+        env_state, s_next, s_fresh = self._reset_done(done, k_reset, env_params, stepped, s2)
         epsilon = jnp.where(done, tabular.decay_epsilon(runner.epsilon, agent_params), runner.epsilon)
         if learner.on_policy:
             a_fresh = self._act(k_act, agent, s_fresh, epsilon)
