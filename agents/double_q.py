@@ -5,15 +5,15 @@ epsilon-greedily on ``Q_0 + Q_1``. It removes Q-learning's maximisation bias.
 """
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
-from agents.tabular import Learner, epsilon_greedy
+from agents.tabular import Learner, epsilon_greedy, row_argmax
+from jaxrobo import rng
 
 
 def target(key, q, s2, a2, reward, discount, epsilon):
-    table = jax.random.bernoulli(key).astype(jnp.int32)
-    best = jnp.argmax(q[table, s2])
+    table = rng.bernoulli(key).astype(jnp.int32)
+    best = row_argmax(q[table, s2])
     return table, reward + discount * q[1 - table, s2, best]
 
 

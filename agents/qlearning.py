@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from agents.tabular import Learner, argmax_random_ties, epsilon_greedy
+from agents.tabular import Learner, argmax_random_ties, epsilon_greedy, row_max, row_min
 from jaxrobo import rng
 
 
@@ -16,7 +16,7 @@ def noisy_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array) -> jax.Ar
     """The seed's QLearn.chooseAction (one uniform draw serves the coin, the noise and the tie-break)."""
     n = q_row.shape[-1]
     u = rng.uniform(key, (2 * n + 1,))
-    mag = jnp.maximum(jnp.abs(jnp.min(q_row)), jnp.abs(jnp.max(q_row)))
+    mag = jnp.maximum(jnp.abs(row_min(q_row)), jnp.abs(row_max(q_row)))
     noisy = q_row + u[1:n + 1] * mag - 0.5 * mag
     return argmax_random_ties(jnp.where(u[0] < epsilon, noisy, q_row), u[n + 1:])
 
@@ -26,7 +26,7 @@ def select(key: jax.Array, q_row: jax.Array, epsilon: jax.Array, seed_compat: bo
 
 
 def target(key, q, s2, a2, reward, discount, epsilon):
-    return jnp.int32(0), reward + discount * jnp.max(q[0, s2])
+    return jnp.int32(0), reward + discount * row_max(q[0, s2])
 
 
 LEARNER = Learner("qlearn", select, target)

@@ -13,6 +13,7 @@ terminal transitions do not bootstrap, exploration is uniform epsilon-greedy.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable
 
 import jax
@@ -61,33 +62,91 @@ class Learner:
     on_policy: bool = False
 
 
+# ---- reductions over the action axis -----------------------------------------------------------------------
+#: Action rows up to this long are reduced with written-out elementwise comparisons: under ``vmap`` on a CPU,
+#: XLA's reduction of a few elements per env (a library call per batch) cost more than the rest of the Q update.
+UNROLL_ACTIONS = 16
+
+
+def row_max(row: jax.Array) -> jax.Array:
+    """``max`` over the last (action) axis."""
+    n = row.shape[-1]
+    if n > UNROLL_ACTIONS:
+        return jnp.max(row, axis=-1)
+    return functools.reduce(jnp.maximum, (row[..., i] for i in range(n)))
+
+
+def row_min(row: jax.Array) -> jax.Array:
+    """``min`` over the last (action) axis."""
+    n = row.shape[-1]
+    if n > UNROLL_ACTIONS:
+        return jnp.min(row, axis=-1)
+    return functools.reduce(jnp.minimum, (row[..., i] for i in range(n)))
+
+
+def row_argmax(row: jax.Array) -> jax.Array:
+    """``argmax`` over the last (action) axis (the first of equal maxima), as int32."""
+    n = row.shape[-1]
+    if n > UNROLL_ACTIONS:
+        return jnp.argmax(row, axis=-1).astype(jnp.int32)
+    best, index = row[..., 0], jnp.zeros(row.shape[:-1], jnp.int32)
+    for i in range(1, n):
+        better = row[..., i] > best
+        best, index = jnp.where(better, row[..., i], best), jnp.where(better, jnp.int32(i), index)
+    return index
+
+
 # ---- action choice -----------------------------------------------------------------------------------------
 def argmax_random_ties(q_row: jax.Array, noise: jax.Array) -> jax.Array:
     """argmax of ``q_row``; among equal maxima, the one with the largest ``noise`` (uniform draws) wins."""
-    is_max = q_row == jnp.max(q_row)
-    return jnp.argmax(jnp.where(is_max, noise, -1.0)).astype(jnp.int32)
+    is_max = q_row == row_max(q_row)[..., None]
+    return row_argmax(jnp.where(is_max, noise, -1.0))
+
+
+def pick_among_maxima(q_row: jax.Array, u: jax.Array) -> jax.Array:
+    """The greedy action, ties broken uniformly at random by one uniform draw ``u`` in ``[0, 1)``.
+
+    With ``k`` equal maxima the ``floor(u * k)``-th of them is taken: one random number per choice whatever
+    the number of actions (written out for small action counts, like :func:`row_max`)."""
+    n = q_row.shape[-1]
+    if n > UNROLL_ACTIONS:
+        is_max = q_row == jnp.max(q_row, axis=-1, keepdims=True)
+        count = jnp.sum(is_max, axis=-1, dtype=jnp.int32)
+        wanted = jnp.minimum(jnp.floor(u * count).astype(jnp.int32), count - 1)
+        rank = jnp.cumsum(is_max, axis=-1, dtype=jnp.int32) - 1
+        return jnp.argmax(is_max & (rank == wanted[..., None]), axis=-1).astype(jnp.int32)
+    top = row_max(q_row)
+    is_max = [q_row[..., i] == top for i in range(n)]
+    count = functools.reduce(jnp.add, (m.astype(jnp.int32) for m in is_max))
+    wanted = jnp.minimum(jnp.floor(u * count).astype(jnp.int32), count - 1)
+    choice, seen = jnp.zeros_like(count), jnp.zeros_like(count)
+    for i, m in enumerate(is_max):
+        choice = jnp.where(m & (seen == wanted), jnp.int32(i), choice)
+        seen = seen + m.astype(jnp.int32)
+    return choice
 
 
 def greedy(key: jax.Array, q_row: jax.Array) -> jax.Array:
     """argmax with ties broken uniformly at random (as the seed does)."""
-    return argmax_random_ties(q_row, rng.uniform(key, q_row.shape))
+    return pick_among_maxima(q_row, rng.uniform_pair(key)[0])
 
 
 def epsilon_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array, seed_compat: bool = False) -> jax.Array:
     """Uniform random action with probability ``epsilon``, else greedy (random ties).
 
-    One uniform draw of ``n_actions + 2`` numbers serves the coin, the random action and the tie-break: random
-    bits are a real share of a cart-pole step's cost on a GPU.
+    One hash gives two uniforms: the first tosses the coin, the second picks the random action or, when the
+    coin says exploit, the greedy action among ties (the branches exclude each other, so one number serves
+    both). Random numbers are the largest cost of a tabular step after the physics.
     """
     n = q_row.shape[-1]
-    u = rng.uniform(key, (n + 2,))
-    random_action = jnp.minimum(jnp.floor(u[1] * n), n - 1).astype(jnp.int32)
-    return jnp.where(u[0] < epsilon, random_action, argmax_random_ties(q_row, u[2:]))
+    coin, u = rng.uniform_pair(key)
+    random_action = jnp.minimum(jnp.floor(u * n), n - 1).astype(jnp.int32)
+    return jnp.where(coin < epsilon, random_action, pick_among_maxima(q_row, u))
 
 
 def greedy_probabilities(q_row: jax.Array) -> jax.Array:
     """The greedy policy's action probabilities, ties sharing the mass equally."""
-    is_max = (q_row == jnp.max(q_row)).astype(q_row.dtype)
+    is_max = (q_row == row_max(q_row)[..., None]).astype(q_row.dtype)
     return is_max / jnp.sum(is_max)
 
 
@@ -106,7 +165,7 @@ def init(learner: Learner, n_states: int, n_actions: int, seed_compat: bool = Fa
 
 def action_values(agent: AgentState, s: jax.Array) -> jax.Array:
     """The row of action values the policy uses (the sum of the tables for Double Q-learning)."""
-    return jnp.sum(agent.q[:, s, :], axis=0)
+    return agent.q[0, s] if agent.q.shape[0] == 1 else jnp.sum(agent.q[:, s, :], axis=0)
 
 
 def act(learner: Learner, key: jax.Array, agent: AgentState, s: jax.Array, epsilon: jax.Array,

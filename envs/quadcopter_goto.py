@@ -115,7 +115,7 @@ class QuadcopterGoto(QuadcopterTask):
         o, n = self.options, self.options.n_obstacles
         if n == 0:
             return Obstacles.empty()
-        k_t, k_lat, k_kind, k_xy = jax.random.split(key, 4)
+        k_t, k_lat, k_kind, k_xy = rng.split(key, 4)
         if o.obstacle_placement == "between":
             t = rng.uniform(k_t, (n,), params.obstacle_t_min, params.obstacle_t_max)
             lat = rng.uniform(k_lat, (n,), -params.obstacle_lateral, params.obstacle_lateral)
@@ -145,7 +145,7 @@ class QuadcopterGoto(QuadcopterTask):
         return self.robot.init_pose(jnp.stack([0.0, 0.0, params.init_z]), yaw)
 
     def _init_env_variables(self, key: jax.Array, pipeline_state: Any, params: Params) -> TaskVars:
-        k_dir, k_dist, k_z, k_obs = jax.random.split(key, 4)
+        k_dir, k_dist, k_z, k_obs = rng.split(key, 4)
         start = self.robot.read_sensors(pipeline_state)["pos"]
         heading = rng.uniform(k_dir, (), -jnp.pi, jnp.pi)
         dist = rng.uniform(k_dist, (), params.goal_min_dist, params.goal_max_dist)

@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 import jax
 import jax.numpy as jnp
 
-from jaxrobo import spaces
+from jaxrobo import rng, spaces
 from jaxrobo.robot import Robot
 from jaxrobo.struct import param, pytree_dataclass
 
@@ -144,7 +144,7 @@ class TaskEnv(Env):
     # ---- composition ----------------------------------------------------------------------------------
     def reset(self, key: jax.Array, params: Any = None) -> EnvState:
         params = self.default_params if params is None else params
-        key, pose_key, var_key = jax.random.split(key, 3)
+        key, pose_key, var_key = rng.split(key, 3)
         qpos, qvel = self._set_init_pose(pose_key, params)
         pipeline_state = self.robot.sim.init(qpos, qvel)
         task = self._init_env_variables(var_key, pipeline_state, params)

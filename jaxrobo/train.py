@@ -25,6 +25,7 @@ import numpy as np
 import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
+from jaxrobo import rng
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState
 from jaxrobo.struct import param, pytree_dataclass
@@ -172,8 +173,9 @@ class Trainer:
     def step(self, runner: Runner, agent_params: AgentParams, env_params: Any) -> Runner:
         """One training step of every environment."""
         c, learner = self.config, self.learner
-        keys = jax.vmap(lambda k: jax.random.split(k, 5))(runner.key)
-        k_next, k_act, k_act2, k_learn, k_reset = (keys[:, i] for i in range(5))
+        # The five keys of ``split(key, 5)``, each hashed on its own: those a learner does not use cost nothing.
+        k_next, k_act, k_act2, k_learn, k_reset = (jax.vmap(rng.subkey, in_axes=(0, None, None))(runner.key, i, 5)
+                                                   for i in range(5))
         active = runner.episode < c.nepisodes
         a = runner.action if learner.on_policy else self._act(k_act, runner.agent, runner.s, runner.epsilon)
 

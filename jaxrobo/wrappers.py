@@ -10,6 +10,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from jaxrobo import rng
 from jaxrobo.env import Env, EnvState
 
 
@@ -52,7 +53,7 @@ class AutoReset(Wrapper):
     def step(self, state: EnvState, action: jax.Array, params: Any = None) -> EnvState:
         inner = state.replace(info={k: v for k, v in state.info.items() if k != "final_obs"})
         stepped = self.env.step(inner, action, params)
-        key, reset_key = jax.random.split(stepped.key)
+        key, reset_key = rng.split(stepped.key)
         fresh = self.env.reset(reset_key, params)
         done = stepped.done
 

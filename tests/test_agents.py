@@ -172,12 +172,58 @@ def test_unknown_agent_name_is_a_clear_error():
         agents.get("dqn")
 
 
-def test_fast_uniform_equals_jax_random_uniform_under_jit():
+def test_rng_draws_equal_jax_random_under_jit_and_vmap():
+    """jaxrobo.rng's unrolled threefry gives JAX's own numbers: results do not depend on which one ran."""
     from jaxrobo import rng
 
-    for i in range(10):
+    for i in (0, 1, 7, 2**31 + 5):
         key = jax.random.key(i)
-        for shape, low, high in (((6,), 0.0, 1.0), ((4,), -0.05, 0.05), ((), -3.14, 3.14), ((3, 5), 2.0, 7.5)):
+        for shape, low, high in (((6,), 0.0, 1.0), ((4,), -0.05, 0.05), ((), -3.14, 3.14), ((3, 5), 2.0, 7.5),
+                                 ((0,), 0.0, 1.0)):
             ours = jax.jit(lambda k: rng.uniform(k, shape, low, high))(key)
             theirs = jax.jit(lambda k: jax.random.uniform(k, shape, jnp.float32, low, high))(key)
             np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
+            np.testing.assert_array_equal(np.asarray(jax.jit(lambda k: rng.bits(k, shape))(key)),
+                                          np.asarray(jax.random.bits(key, shape, jnp.uint32)))
+        for num in (1, 2, 5, 17):
+            theirs = jax.random.key_data(jax.random.split(key, num))
+            np.testing.assert_array_equal(np.asarray(jax.random.key_data(jax.jit(lambda k: rng.split(k, num))(key))),
+                                          np.asarray(theirs))
+            for j in range(num):
+                np.testing.assert_array_equal(np.asarray(jax.random.key_data(rng.subkey(key, j, num))),
+                                              np.asarray(theirs[j]))
+        batch = jax.random.split(key, 7)
+        ours = jax.jit(jax.vmap(lambda k: (jax.random.key_data(rng.split(k, 3)), rng.bernoulli(k, 0.3, (4,)))))(batch)
+        theirs = jax.vmap(lambda k: (jax.random.key_data(jax.random.split(k, 3)), jax.random.bernoulli(k, 0.3, (4,))))(
+            batch)
+        for a, b in zip(ours, theirs):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="index must be in"):
+        rng.subkey(jax.random.key(0), 3, 3)
+
+
+def test_rng_defers_to_jax_random_for_other_key_implementations():
+    from jaxrobo import rng
+
+    key = jax.random.key(3, impl="rbg")
+    np.testing.assert_array_equal(np.asarray(jax.random.key_data(rng.split(key, 3))),
+                                  np.asarray(jax.random.key_data(jax.random.split(key, 3))))
+    np.testing.assert_array_equal(np.asarray(rng.uniform(key, (5,))), np.asarray(jax.random.uniform(key, (5,))))
+    u1, u2 = rng.uniform_pair(key)
+    assert 0.0 <= float(u1) < 1.0 and 0.0 <= float(u2) < 1.0
+
+
+@pytest.mark.parametrize("n", [1, 2, 4, 7, tabular.UNROLL_ACTIONS + 3])
+def test_action_axis_reductions_match_numpy(n):
+    rows = np.random.default_rng(n).integers(-3, 3, size=(50, n)).astype(np.float32)  # many ties
+    np.testing.assert_array_equal(np.asarray(tabular.row_max(jnp.asarray(rows))), rows.max(-1))
+    np.testing.assert_array_equal(np.asarray(tabular.row_min(jnp.asarray(rows))), rows.min(-1))
+    np.testing.assert_array_equal(np.asarray(tabular.row_argmax(jnp.asarray(rows))), rows.argmax(-1))
+
+
+@pytest.mark.parametrize("n", [4, tabular.UNROLL_ACTIONS + 4])
+def test_ties_are_picked_uniformly_by_one_draw(n):
+    q_row = jnp.zeros(n).at[jnp.array([0, 2, n - 1])].set(1.0)
+    u = jnp.arange(3000, dtype=jnp.float32) / 3000  # evenly spread draws: each tied action gets a third
+    picks = np.asarray(jax.vmap(lambda x: tabular.pick_among_maxima(q_row, x))(u))
+    np.testing.assert_array_equal(np.bincount(picks, minlength=n)[[0, 2, n - 1]], [1000, 1000, 1000])
