@@ -18,7 +18,9 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+import _common  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -73,8 +75,7 @@ def main(argv=None) -> int:
            "mean_selection_success": float(np.mean([s["success"] for s in select])),
            "selected_run": best, "selected_fresh": fresh, "random_fresh": rand}
     print(json.dumps(out, indent=2))
-    path = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                                    jax.devices()[0].platform, "goto_learning.json")
+    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "goto_learning.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:
         json.dump(out, f, indent=2)

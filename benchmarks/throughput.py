@@ -125,15 +125,19 @@ def sim_info(env: Any) -> tuple[int, float]:
     return n_sub, running
 
 
-def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: int, args, ctx) -> dict[str, Any]:
-    """One row: env-only (learner None) or training with ``learner``, at ``n`` envs."""
+def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: int, args, ctx,
+                    options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One row: env-only (learner None) or training with ``learner``, at ``n`` envs; ``options`` are env options
+    that differ from the defaults (shown beside the backend, e.g. ``mjx dt=0.02``)."""
     import jax
 
     from jaxrobo.run import resolve
     from jaxrobo.train import Trainer
 
-    row = {"suite": "jaxrobo", "env": env_id, "backend": backend or "-", "mode": learner or "env", "n_envs": n}
-    overrides: dict[str, Any] = {"n_envs": n, "record_episodes": False, "nepisodes": 10**9, "eval_episodes": 0}
+    row = {"suite": "jaxrobo", "env": env_id, "backend": _backend_label(backend, options), "mode": learner or "env",
+           "n_envs": n}
+    overrides: dict[str, Any] = {"n_envs": n, "record_episodes": False, "nepisodes": 10**9, "eval_episodes": 0,
+                                 **(options or {})}
     if backend is not None:
         overrides["backend"] = backend
     steps = steps_for(n, ctx["gpu"], args.steps)
@@ -168,17 +172,16 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
         runner = jax.jit(trainer.init)(key, ap, ep)
         chunk, compile_s, hit = _common.compile_timed(jax.jit(trainer.run_chunk, donate_argnums=0), runner, ap, ep,
                                                       cache_dir=ctx["cache"])
-        check = jax.jit(_common.checksum)
-
-        def fn(r, _):
-            r = chunk(r, ap, ep)
-            return r, check(r.agent.q)
-
-        seconds, runner = _common.time_carry(fn, runner, 0, repeats=args.repeats)
+        # The chunk returns the whole carry, so all of it is computed. The tables' checksum (a full read of
+        # them: 126 MB at 16,384 cart-pole envs, ~40 % of a 10-step call on 2 cores) is taken once, untimed.
+        seconds, runner = _common.time_carry(lambda r, _: (chunk(r, ap, ep), None), runner, 0,
+                                             repeats=args.repeats)
+        row["q_checksum"] = float(jax.jit(_common.checksum)(runner.agent.q))
     n_sub, running = sim_info(env)
     sps = n * steps / seconds
     row.update(status="ok", steps=steps, seconds=seconds, steps_per_s=sps, compile_s=compile_s, compile_cached=hit,
-               n_substeps=n_sub, physics_steps_per_s=sps * n_sub, sim_seconds_per_s=sps * running,
+               n_substeps=n_sub, control_dt=running, physics_dt=running / n_sub, physics_steps_per_s=sps * n_sub,
+               sim_seconds_per_s=sps * running,
                **{f"device_{k}": v for k, v in _common.device_memory().items()})
     return row
 
@@ -246,6 +249,26 @@ def peer_brax(n: int, args, ctx) -> dict[str, Any]:
 
     return _time_jax_peer("brax", "inverted_pendulum/mjx", n, steps, init, rollout, args, ctx,
                           int(base._n_frames), float(base.dt))
+
+
+def brax_physics_dt() -> float | str:
+    """Brax ``inverted_pendulum``'s physics step on ``mjx`` (s), or why it cannot be read."""
+    try:
+        from jaxrobo.sim import quiet_imports
+
+        with quiet_imports():
+            from brax import envs
+            base = envs.get_environment("inverted_pendulum", backend="mjx")
+        return float(f"{float(base.sys.opt.timestep):.6g}")  # stored as float32 (0.019999999552965164)
+    except Exception as err:  # brax missing or changed: the matched rows are skipped with this reason
+        return f"{type(err).__name__}: {str(err)[:120]}"
+
+
+def _backend_label(backend: str | None, options: dict[str, Any] | None) -> str:
+    label = backend or "-"
+    if options and "timestep" in options:
+        label += f" dt={options['timestep']:g}"
+    return label
 
 
 def _time_jax_peer(suite, env_id, n, steps, init, rollout, args, ctx, n_sub, control_dt) -> dict[str, Any]:
@@ -338,8 +361,8 @@ def _guard(fn, skip_row, *a) -> dict[str, Any]:
         return {**skip_row, "status": "error", "reason": f"{type(err).__name__}: {str(err)[:200]}"}
 
 
-def jaxrobo_plan(args, n_list) -> list[tuple]:
-    """(env_id, backend, learner, n) rows to run, plus skipped rows for ids that are not there."""
+def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
+    """("run", env_id, backend, learner, n, options) rows, plus ("skip", env_id, reason) for ids not there."""
     import jaxrobo
     from envs.cartpole import BACKENDS
 
@@ -380,11 +403,34 @@ def jaxrobo_plan(args, n_list) -> list[tuple]:
             else:  # other tasks (quadcopters): physics and the first learner at the largest size
                 env_sizes, learner_sizes = last, {name: last for name in learners[:1]}
             for n in env_sizes:
-                plan.append(("run", env_id, backend, None, n))
+                plan.append(("run", env_id, backend, None, n, None))
             for name, sizes in learner_sizes.items():
                 for n in sizes:
-                    plan.append(("run", env_id, backend, name, n))
+                    plan.append(("run", env_id, backend, name, n, None))
+            if main and backend == "mjx" and "brax" in args.peers.split(","):
+                plan.extend(_matched_rows(env_id, learners, _brax_sizes(args, n_list, gpu)))
     return plan
+
+
+def _matched_rows(env_id: str, learners: tuple, sizes) -> list[tuple]:
+    """Cart-pole on MJX at Brax ``inverted_pendulum``'s physics step, beside the Brax rows.
+
+    Both control at 0.04 s a step, but the cart-pole's default physics step is 0.01 s (4 MJX steps per env step)
+    and Brax's pendulum's 0.02 s (2): at the same physics step the two rows do the same physics work per env
+    step, so their ratio compares the frameworks rather than the integrators' step sizes."""
+    dt = brax_physics_dt()
+    if isinstance(dt, str):
+        return [("skip", env_id, f"mjx at Brax's physics step: {dt}")]
+    rows = []
+    for n in sizes:
+        rows.append(("run", env_id, "mjx", None, n, {"timestep": dt}))
+        rows.extend(("run", env_id, "mjx", name, n, {"timestep": dt}) for name in learners[:1])
+    return rows
+
+
+def _brax_sizes(args, n_list, gpu: bool):
+    """The sizes the Brax peer runs at: every size with ``--full``, else the largest (two largest on a GPU)."""
+    return n_list if args.full else n_list[-2:] if gpu else n_list[-1:]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -412,13 +458,13 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print("  " + _line(row), flush=True)
 
-    for item in jaxrobo_plan(args, n_list):
+    for item in jaxrobo_plan(args, n_list, gpu):
         if item[0] == "skip":
             add(_skip("jaxrobo", item[1], "-", "-", 0, item[2]))
             continue
-        _, env_id, backend, learner, n = item
-        add(_guard(measure_jaxrobo, _skip("jaxrobo", env_id, backend or "-", learner or "env", n, ""),
-                   env_id, backend, learner, n, args, ctx))
+        _, env_id, backend, learner, n, options = item
+        add(_guard(measure_jaxrobo, _skip("jaxrobo", env_id, _backend_label(backend, options), learner or "env", n, ""),
+                   env_id, backend, learner, n, args, ctx, options))
 
     peers = [] if args.peers == "none" else args.peers.split(",")
     for peer in peers:
@@ -426,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
             for n in n_list:
                 add(_guard(peer_gymnax, _skip("gymnax", "CartPole-v1", "-", "env", n, ""), n, args, ctx))
         elif peer == "brax":
-            for n in (n_list if args.full else n_list[-2:] if gpu else n_list[-1:]):
+            for n in _brax_sizes(args, n_list, gpu):
                 add(_guard(peer_brax, _skip("brax", "inverted_pendulum/mjx", "-", "env", n, ""), n, args, ctx))
         elif peer == "gymnasium":
             add(_guard(peer_gymnasium, _skip("gymnasium", "CartPole-v1", "numpy", "env", 1, ""), 1, args, ctx))
@@ -468,6 +514,7 @@ def _ratios(rows: list[dict[str, Any]]) -> None:
     peers = [r for r in rows if r["suite"] != "jaxrobo" and r.get("status") == "ok"]
     best = max(peers, key=lambda r: r["steps_per_s"], default=None)
     seed = next((r for r in peers if r["suite"] == "seed-loop"), None)
+    brax_at = {r["n_envs"]: r for r in peers if r["suite"] == "brax"}
     for r in rows:
         if r["suite"] != "jaxrobo" or r.get("status") != "ok":
             continue
@@ -476,6 +523,9 @@ def _ratios(rows: list[dict[str, Any]]) -> None:
             r["best_peer"] = f"{best['suite']} n={best['n_envs']}"
         if seed is not None:
             r["x_seed_loop"] = r["steps_per_s"] / seed["steps_per_s"]
+        brax = brax_at.get(r["n_envs"])
+        if brax is not None and r["env"].startswith("CartPole"):
+            r["x_brax"] = r["steps_per_s"] / brax["steps_per_s"]
 
 
 def _fmt_rate(x: float | None) -> str:
@@ -488,7 +538,7 @@ def _fmt_rate(x: float | None) -> str:
 
 
 def _line(r: dict[str, Any]) -> str:
-    head = f"{r['suite']:14s} {r['env']:22s} {r['backend']:11s} {r['mode']:14s} n={r['n_envs']:<8}"
+    head = f"{r['suite']:14s} {r['env']:22s} {r['backend']:14s} {r['mode']:14s} n={r['n_envs']:<8}"
     if r.get("status") != "ok":
         return f"{head} {r.get('status')}: {r.get('reason', '')}"
     comp = f"compile {r['compile_s']:.1f}s{' (cache)' if r.get('compile_cached') else ''}" if "compile_s" in r else ""
@@ -497,12 +547,13 @@ def _line(r: dict[str, Any]) -> str:
 
 def table(rows: list[dict[str, Any]]) -> str:
     """The stdout table: one line per row, ratios for jaxrobo rows."""
-    hdr = (f"{'suite':14s} {'env':22s} {'backend':11s} {'mode':14s} {'n_envs':>8s} {'steps/s':>9s} "
-           f"{'phys/s':>9s} {'sim s/s':>9s} {'compile':>8s} {'B/env':>9s} {'x best peer':>11s} {'x seed':>8s}")
+    hdr = (f"{'suite':14s} {'env':22s} {'backend':14s} {'mode':14s} {'n_envs':>8s} {'steps/s':>9s} "
+           f"{'phys/s':>9s} {'sim s/s':>9s} {'compile':>8s} {'B/env':>9s} {'x best peer':>11s} {'x brax':>7s} "
+           f"{'x seed':>8s}")
     lines = [hdr, "-" * len(hdr)]
     for r in rows:
         if r.get("status") != "ok":
-            lines.append(f"{r['suite']:14s} {r['env']:22s} {r['backend']:11s} {r['mode']:14s} {r['n_envs']:>8} "
+            lines.append(f"{r['suite']:14s} {r['env']:22s} {r['backend']:14s} {r['mode']:14s} {r['n_envs']:>8} "
                          f"{r.get('status')}: {r.get('reason', '')}")
             continue
         comp = f"{r['compile_s']:.1f}s{'*' if r.get('compile_cached') else ''}" if "compile_s" in r else "-"
@@ -511,11 +562,14 @@ def table(rows: list[dict[str, Any]]) -> str:
         xb = f"{r['x_best_peer']:.2f}" if "x_best_peer" in r else "-"
         xs = (f"{r['x_seed_loop']:.0f}" if r["x_seed_loop"] >= 10 else f"{r['x_seed_loop']:.2f}") \
             if "x_seed_loop" in r else "-"
-        lines.append(f"{r['suite']:14s} {r['env']:22s} {r['backend']:11s} {r['mode']:14s} {r['n_envs']:>8} "
+        xbrax = f"{r['x_brax']:.2f}" if "x_brax" in r else "-"
+        lines.append(f"{r['suite']:14s} {r['env']:22s} {r['backend']:14s} {r['mode']:14s} {r['n_envs']:>8} "
                      f"{_fmt_rate(r['steps_per_s']):>9s} {_fmt_rate(r.get('physics_steps_per_s')):>9s} "
-                     f"{_fmt_rate(r.get('sim_seconds_per_s')):>9s} {comp:>8s} {bpe:>9s} {xb:>11s} {xs:>8s}")
+                     f"{_fmt_rate(r.get('sim_seconds_per_s')):>9s} {comp:>8s} {bpe:>9s} {xb:>11s} {xbrax:>7s} "
+                     f"{xs:>8s}")
     lines.append("compile: * = served from the persistent cache; B/env = training carry (env state + Q-table + "
-                 "records) per env; x = steps/s ratio")
+                 "records) per env; x = steps/s ratio (x brax: to Brax inverted_pendulum/mjx at the same n_envs); "
+                 "dt = physics step (s) where it differs from the default")
     return "\n".join(lines)
 
 

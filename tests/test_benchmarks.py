@@ -52,3 +52,27 @@ def test_time_to_learn_smoke_covers_the_cartpole_and_the_goto_task(tmp_path):
     assert cart["evaluations"] and 1 <= cart["best_mean_length"] <= 1000
     assert goto["runs"] == 2 and goto["evaluations"] and 0.0 <= goto["best_success"] <= 1.0
     assert 0.0 <= goto["selected_fresh_success"] <= 1.0 and goto["met"] == (goto["best_success"] >= 0.8)
+
+
+def test_throughput_plan_matches_brax_physics_step_and_ratios_use_the_same_size():
+    """The like-for-like rows: cart-pole on MJX at Brax inverted_pendulum's physics step, beside its rows."""
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import throughput
+
+    dt = throughput.brax_physics_dt()
+    assert dt == 0.02, dt  # Brax's inverted_pendulum.xml; the cart-pole's default is 0.01
+    args = throughput.parse_args(["--envs", "CartPoleStayUp-v0", "--backends", "mjx", "--learners", "qlearn",
+                                  "--peers", "brax"])
+    plan = throughput.jaxrobo_plan(args, (4, 64), gpu=False)
+    assert ("run", "CartPoleStayUp-v0", "mjx", "qlearn", 64, {"timestep": dt}) in plan
+    assert ("run", "CartPoleStayUp-v0", "mjx", None, 64, {"timestep": dt}) in plan
+    assert not any(item[-1] for item in plan if item[0] == "run" and item[4] == 4)  # Brax runs at the largest only
+    no_brax = throughput.jaxrobo_plan(throughput.parse_args(["--envs", "CartPoleStayUp-v0", "--peers", "gymnax"]),
+                                      (4,), gpu=False)
+    assert not any(item[-1] for item in no_brax if item[0] == "run")
+    rows = [{"suite": "jaxrobo", "env": "CartPoleStayUp-v0", "status": "ok", "n_envs": n, "steps_per_s": 100.0 * n}
+            for n in (4, 64)]
+    rows.append({"suite": "brax", "env": "inverted_pendulum/mjx", "status": "ok", "n_envs": 64, "steps_per_s": 1600.0})
+    throughput._ratios(rows)
+    assert rows[1]["x_brax"] == 4.0 and "x_brax" not in rows[0]
+    assert throughput._backend_label("mjx", {"timestep": dt}) == "mjx dt=0.02"
