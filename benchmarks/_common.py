@@ -6,6 +6,7 @@ depends on the whole final state (a reduction over every leaf), so XLA cannot dr
 """
 from __future__ import annotations
 
+import math
 import os
 import random
 import sys
@@ -64,21 +65,28 @@ def tree_bytes(tree: Any) -> int:
     return total
 
 
-def time_carry(fn: Callable, carry: Any, *args: Any, repeats: int = 3) -> tuple[float, Any]:
-    """Min-of-``repeats`` seconds of ``carry = fn(carry, *args)`` after one warm-up call; returns (s, carry).
+def time_carry(fn: Callable, carry: Any, *args: Any, repeats: int = 3,
+               min_seconds: float = 0.0) -> tuple[float, Any]:
+    """Seconds per call of ``carry = fn(carry, *args)``: the minimum over ``repeats`` samples, after one warm-up
+    call; returns (s, carry).
 
-    ``fn`` returns ``(carry, checksum)``; both are waited for.
+    ``fn`` returns ``(carry, checksum)``; both are waited for at the end of each sample. A sample is as many
+    back-to-back calls as fill ``min_seconds`` (judged from the warm-up call): a 20 ms call timed alone on a
+    busy 2-core machine measures mostly dispatch and scheduling jitter.
     """
     import jax
 
+    t0 = time.perf_counter()
     carry, check = fn(carry, *args)
     jax.block_until_ready((carry, check))
+    calls = max(1, min(1000, math.ceil(min_seconds / max(time.perf_counter() - t0, 1e-6))))
     best = float("inf")
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
-        carry, check = fn(carry, *args)
+        for _ in range(calls):
+            carry, check = fn(carry, *args)
         jax.block_until_ready((carry, check))
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, (time.perf_counter() - t0) / calls)
     return best, carry
 
 

@@ -42,6 +42,7 @@ FULL_N_CPU = (1, 16, 256, 4096)
 FULL_N_GPU = (1024, 8192, 65536, 262144, 1048576)
 ALL_LEARNERS = ("qlearn", "sarsa", "expected_sarsa", "double_q")
 QUADCOPTERS = ("QuadcopterLiveShow-v0", "QuadcopterGoto-v1")
+MIN_SAMPLE_SECONDS = 0.25  # a timed sample repeats a short call back to back until it lasts this long
 MEMORY_FRACTION = 0.8  # skip sizes whose carry (+25 % for temporaries) needs more than this share of device memory
 
 
@@ -167,7 +168,8 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
         carry = jax.jit(init)(key)
         fn, compile_s, hit = _common.compile_timed(jax.jit(rollout, donate_argnums=0), carry, 0,
                                                    cache_dir=ctx["cache"])
-        seconds, carry = _common.time_carry(lambda c, z: fn(c, z), carry, 0, repeats=args.repeats)
+        seconds, carry = _common.time_carry(lambda c, z: fn(c, z), carry, 0, repeats=args.repeats,
+                                            min_seconds=MIN_SAMPLE_SECONDS)
     else:
         runner = jax.jit(trainer.init)(key, ap, ep)
         chunk, compile_s, hit = _common.compile_timed(jax.jit(trainer.run_chunk, donate_argnums=0), runner, ap, ep,
@@ -175,7 +177,7 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
         # The chunk returns the whole carry, so all of it is computed. The tables' checksum (a full read of
         # them: 126 MB at 16,384 cart-pole envs, ~40 % of a 10-step call on 2 cores) is taken once, untimed.
         seconds, runner = _common.time_carry(lambda r, _: (chunk(r, ap, ep), None), runner, 0,
-                                             repeats=args.repeats)
+                                             repeats=args.repeats, min_seconds=MIN_SAMPLE_SECONDS)
         row["q_checksum"] = float(jax.jit(_common.checksum)(runner.agent.q))
     n_sub, running = sim_info(env)
     sps = n * steps / seconds
@@ -276,7 +278,8 @@ def _time_jax_peer(suite, env_id, n, steps, init, rollout, args, ctx, n_sub, con
 
     carry = jax.jit(init)(jax.random.key(0))
     fn, compile_s, hit = _common.compile_timed(jax.jit(rollout, donate_argnums=0), carry, 0, cache_dir=ctx["cache"])
-    seconds, _ = _common.time_carry(lambda c, z: fn(c, z), carry, 0, repeats=args.repeats)
+    seconds, _ = _common.time_carry(lambda c, z: fn(c, z), carry, 0, repeats=args.repeats,
+                                    min_seconds=MIN_SAMPLE_SECONDS)
     sps = n * steps / seconds
     return {"suite": suite, "env": env_id, "backend": "-", "mode": "env", "n_envs": n, "status": "ok",
             "steps": steps, "seconds": seconds, "steps_per_s": sps, "compile_s": compile_s, "compile_cached": hit,

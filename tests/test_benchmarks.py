@@ -76,3 +76,24 @@ def test_throughput_plan_matches_brax_physics_step_and_ratios_use_the_same_size(
     throughput._ratios(rows)
     assert rows[1]["x_brax"] == 4.0 and "x_brax" not in rows[0]
     assert throughput._backend_label("mjx", {"timestep": dt}) == "mjx dt=0.02"
+
+
+def test_time_carry_fills_short_samples_with_back_to_back_calls():
+    import time
+
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import _common
+
+    calls = []
+
+    def fn(carry, _):
+        calls.append(1)
+        time.sleep(0.01)
+        return carry + 1, None
+
+    seconds, carry = _common.time_carry(fn, 0, 0, repeats=2, min_seconds=0.05)
+    assert carry == len(calls) and len(calls) >= 1 + 2 * 4  # warm-up, then two samples of >= 4 calls each
+    assert 0.009 < seconds < 0.05  # per call, not per sample
+    calls.clear()
+    _common.time_carry(fn, 0, 0, repeats=3)
+    assert len(calls) == 4  # without min_seconds: one call per sample
