@@ -129,7 +129,7 @@ class Trainer:
         for it in every env every step although few are done. So the done envs (at most ``capacity``, an
         eighth of the batch by default: ``reset_capacity``) are gathered, reset and scattered back; a step with
         more of them resets the whole batch. Both paths give the same values: each env resets from its own key
-        either way (tested). On 2 CPU cores this made cart-pole training ~25 % faster. (Under an outer ``vmap``,
+        either way (tested). On 2 CPU cores this made cart-pole training 10-25 % faster. (Under an outer ``vmap``,
         e.g. a sweep with several envs per row, the branch becomes a select that computes both paths.)"""
         n, capacity = self.config.n_envs, self.reset_capacity
 
