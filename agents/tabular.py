@@ -68,20 +68,21 @@ class Learner:
 UNROLL_ACTIONS = 16
 
 
+def _fold_actions(row: jax.Array, pairwise: Callable, reduction: Callable) -> jax.Array:
+    """``reduction`` over the last (action) axis, written out with ``pairwise`` for short rows."""
+    if row.shape[-1] > UNROLL_ACTIONS:
+        return reduction(row, axis=-1)
+    return functools.reduce(pairwise, (row[..., i] for i in range(row.shape[-1])))
+
+
 def row_max(row: jax.Array) -> jax.Array:
     """``max`` over the last (action) axis."""
-    n = row.shape[-1]
-    if n > UNROLL_ACTIONS:
-        return jnp.max(row, axis=-1)
-    return functools.reduce(jnp.maximum, (row[..., i] for i in range(n)))
+    return _fold_actions(row, jnp.maximum, jnp.max)
 
 
 def row_min(row: jax.Array) -> jax.Array:
     """``min`` over the last (action) axis."""
-    n = row.shape[-1]
-    if n > UNROLL_ACTIONS:
-        return jnp.min(row, axis=-1)
-    return functools.reduce(jnp.minimum, (row[..., i] for i in range(n)))
+    return _fold_actions(row, jnp.minimum, jnp.min)
 
 
 def row_argmax(row: jax.Array) -> jax.Array:
@@ -109,20 +110,16 @@ def pick_among_maxima(q_row: jax.Array, u: jax.Array) -> jax.Array:
     With ``k`` equal maxima the ``floor(u * k)``-th of them is taken: one random number per choice whatever
     the number of actions (written out for small action counts, like :func:`row_max`)."""
     n = q_row.shape[-1]
+    is_max = q_row == row_max(q_row)[..., None]
+    count = _fold_actions(is_max.astype(jnp.int32), jnp.add, jnp.sum)
+    wanted = jnp.minimum(jnp.floor(u * count).astype(jnp.int32), count - 1)
     if n > UNROLL_ACTIONS:
-        is_max = q_row == jnp.max(q_row, axis=-1, keepdims=True)
-        count = jnp.sum(is_max, axis=-1, dtype=jnp.int32)
-        wanted = jnp.minimum(jnp.floor(u * count).astype(jnp.int32), count - 1)
         rank = jnp.cumsum(is_max, axis=-1, dtype=jnp.int32) - 1
         return jnp.argmax(is_max & (rank == wanted[..., None]), axis=-1).astype(jnp.int32)
-    top = row_max(q_row)
-    is_max = [q_row[..., i] == top for i in range(n)]
-    count = functools.reduce(jnp.add, (m.astype(jnp.int32) for m in is_max))
-    wanted = jnp.minimum(jnp.floor(u * count).astype(jnp.int32), count - 1)
     choice, seen = jnp.zeros_like(count), jnp.zeros_like(count)
-    for i, m in enumerate(is_max):
-        choice = jnp.where(m & (seen == wanted), jnp.int32(i), choice)
-        seen = seen + m.astype(jnp.int32)
+    for i in range(n):
+        choice = jnp.where(is_max[..., i] & (seen == wanted), jnp.int32(i), choice)
+        seen = seen + is_max[..., i].astype(jnp.int32)
     return choice
 
 
