@@ -11,10 +11,10 @@ from agents.tabular import Learner, epsilon_greedy, row_argmax
 from jaxrobo import rng
 
 
-def target(key, q, s2, a2, reward, discount, epsilon):
+def target(key, q_next, a2, reward, discount, epsilon):
     table = rng.bernoulli(key).astype(jnp.int32)
-    best = row_argmax(q[table, s2])
-    return table, reward + discount * q[1 - table, s2, best]
+    best = row_argmax(q_next[table])
+    return table, reward + discount * q_next[1 - table, best]
 
 
 LEARNER = Learner("double_q", epsilon_greedy, target, n_tables=2)

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 from agents.tabular import Learner, epsilon_greedy, epsilon_greedy_probabilities
 
 
-def target(key, q, s2, a2, reward, discount, epsilon):
-    row = q[0, s2]
+def target(key, q_next, a2, reward, discount, epsilon):
+    row = q_next[0]
     return jnp.int32(0), reward + discount * jnp.dot(epsilon_greedy_probabilities(row, epsilon), row)
 
 

@@ -25,8 +25,8 @@ def select(key: jax.Array, q_row: jax.Array, epsilon: jax.Array, seed_compat: bo
     return noisy_greedy(key, q_row, epsilon) if seed_compat else epsilon_greedy(key, q_row, epsilon)
 
 
-def target(key, q, s2, a2, reward, discount, epsilon):
-    return jnp.int32(0), reward + discount * row_max(q[0, s2])
+def target(key, q_next, a2, reward, discount, epsilon):
+    return jnp.int32(0), reward + discount * row_max(q_next[0])
 
 
 LEARNER = Learner("qlearn", select, target)

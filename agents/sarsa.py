@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agents.tabular import Learner, epsilon_greedy
+from agents.tabular import Learner, epsilon_greedy, row_pick
 
 
-def target(key, q, s2, a2, reward, discount, epsilon):
-    return jnp.int32(0), reward + discount * q[0, s2, a2]
+def target(key, q_next, a2, reward, discount, epsilon):
+    return jnp.int32(0), reward + discount * row_pick(q_next[0], a2)
 
 
 LEARNER = Learner("sarsa", epsilon_greedy, target, on_policy=True)

@@ -1,9 +1,11 @@
 """What every tabular learner shares: parameters, the table state, action choice and the table update.
 
 A learner (see :class:`Learner`) is two pure functions: ``select`` picks an action from one row of action
-values and ``target`` gives the value the updated entry moves towards. This module turns them into
-``act`` / ``learn`` over a dense ``q[n_tables, n_states, n_actions]`` table, for one table per environment or
-one table shared by a whole batch of environments.
+values and ``target`` gives the value the updated entry moves towards, from the next state's rows. This module
+turns them into ``act`` / ``learn`` over a dense ``q[n_tables, n_states, n_actions]`` table, for one table per
+environment or one table shared by a whole batch of environments. ``update`` is the same update from rows the
+caller already holds: the trainer carries each environment's current rows from one step to the next, so the
+table is read once a step (the next state's rows) instead of three times.
 
 ``seed_compat=True`` reproduces the seed's learners exactly (SPEC §4): the first update of an entry sets it
 to the reward itself, a terminal transition still bootstraps, and Q-learning explores by adding noise to the
@@ -52,7 +54,8 @@ class Learner:
     """A tabular learner: its name, how many tables, on- or off-policy, and its two pure functions.
 
     ``select(key, q_row, epsilon, seed_compat) -> action``;
-    ``target(key, q, s2, a2, reward, discount, epsilon) -> (table_index, target_value)``.
+    ``target(key, q_next, a2, reward, discount, epsilon) -> (table_index, target_value)``, where ``q_next``
+    (``[n_tables, n_actions]``) holds every table's action values in the next state ``s'``.
     """
 
     name: str
@@ -83,6 +86,18 @@ def row_max(row: jax.Array) -> jax.Array:
 def row_min(row: jax.Array) -> jax.Array:
     """``min`` over the last (action) axis."""
     return _fold_actions(row, jnp.minimum, jnp.min)
+
+
+def row_pick(row: jax.Array, index: jax.Array) -> jax.Array:
+    """``row[..., index]`` for a (batched) index into the last (action) axis: written out for short rows, where
+    XLA's gather is a separate, slower loop on a CPU."""
+    n = row.shape[-1]
+    if n > UNROLL_ACTIONS:
+        return jnp.take_along_axis(row, jnp.expand_dims(index, -1), axis=-1)[..., 0]
+    out = row[..., 0]
+    for i in range(1, n):
+        out = jnp.where(index == i, row[..., i], out)
+    return out
 
 
 def row_argmax(row: jax.Array) -> jax.Array:
@@ -160,9 +175,19 @@ def init(learner: Learner, n_states: int, n_actions: int, seed_compat: bool = Fa
     return AgentState(q, visited)
 
 
+def rows(agent: AgentState, s: jax.Array) -> jax.Array:
+    """Every table's action values in state ``s``: ``[n_tables, n_actions]``."""
+    return agent.q[:, s, :]
+
+
+def policy_values(q_rows: jax.Array) -> jax.Array:
+    """The row of action values the policy uses: the table's own, or the sum of both for Double Q-learning."""
+    return q_rows[0] if q_rows.shape[0] == 1 else jnp.sum(q_rows, axis=0)
+
+
 def action_values(agent: AgentState, s: jax.Array) -> jax.Array:
-    """The row of action values the policy uses (the sum of the tables for Double Q-learning)."""
-    return agent.q[0, s] if agent.q.shape[0] == 1 else jnp.sum(agent.q[:, s, :], axis=0)
+    """The policy's action values in state ``s`` (see :func:`policy_values`)."""
+    return policy_values(rows(agent, s))
 
 
 def act(learner: Learner, key: jax.Array, agent: AgentState, s: jax.Array, epsilon: jax.Array,
@@ -170,25 +195,41 @@ def act(learner: Learner, key: jax.Array, agent: AgentState, s: jax.Array, epsil
     return learner.select(key, action_values(agent, s), epsilon, seed_compat)
 
 
+def update(learner: Learner, key: jax.Array, q_s: jax.Array, q_s2: jax.Array, a, r, a2, terminated, epsilon,
+           params: AgentParams, seed_compat: bool = False, visited_sa: jax.Array | None = None
+           ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(table_index, old_value, new_value)`` of the entry ``(s, a)``, from the rows ``q_s`` and ``q_s2``
+    (``[n_tables, n_actions]``: :func:`rows` in ``s`` and ``s'``); ``visited_sa`` is the seed's first-update flag
+    of the entry (seed-compat mode only)."""
+    discount = params.gamma if seed_compat else params.gamma * (1.0 - terminated.astype(jnp.float32))
+    table, target = learner.target(key, q_s2, a2, r, discount, epsilon)
+    old = row_pick(q_s[0], a) if q_s.shape[0] == 1 else q_s[table, a]
+    new = old + params.alpha * (target - old)
+    if seed_compat:
+        new = jnp.where(visited_sa, new, r)
+    return table, old, new
+
+
 def new_entry(learner: Learner, key: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,
               params: AgentParams, seed_compat: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
     """``(table_index, old_value, new_value)`` of the entry ``(s, a)`` after learning from one transition."""
-    discount = params.gamma if seed_compat else params.gamma * (1.0 - terminated.astype(jnp.float32))
-    table, target = learner.target(key, agent.q, s2, a2, r, discount, epsilon)
-    old = agent.q[table, s, a]
-    new = old + params.alpha * (target - old)
-    if seed_compat:
-        new = jnp.where(agent.visited[s, a], new, r)
-    return table, old, new
+    visited_sa = agent.visited[s, a] if seed_compat else None
+    return update(learner, key, rows(agent, s), rows(agent, s2), a, r, a2, terminated, epsilon, params,
+                  seed_compat, visited_sa)
+
+
+def write(agent: AgentState, table, s, a, value, active: jax.Array = True) -> AgentState:
+    """The table with entry ``(table, s, a)`` set to ``value``, and its first-update flag set where ``active``."""
+    q = agent.q.at[table, s, a].set(value)
+    visited = None if agent.visited is None else agent.visited.at[s, a].set(agent.visited[s, a] | active)
+    return AgentState(q, visited)
 
 
 def learn(learner: Learner, key: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,
           params: AgentParams, seed_compat: bool = False, active: jax.Array = True) -> AgentState:
     """Update one environment's own table from one transition; ``active=False`` leaves it unchanged."""
     table, old, new = new_entry(learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params, seed_compat)
-    q = agent.q.at[table, s, a].set(jnp.where(active, new, old))
-    visited = None if agent.visited is None else agent.visited.at[s, a].set(agent.visited[s, a] | active)
-    return AgentState(q, visited)
+    return write(agent, table, s, a, jnp.where(active, new, old), active)
 
 
 def learn_shared(learner: Learner, keys: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,

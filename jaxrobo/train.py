@@ -62,6 +62,10 @@ class Runner:
     env_state: EnvState
     agent: AgentState
     s: jax.Array
+    #: Each env's table rows at ``s`` (``[n_envs, n_tables, n_actions]``), carried so that a step reads the
+    #: table once (the next state's rows) instead of three times; ``None`` with a shared table, where other envs'
+    #: updates would make a carried copy stale.
+    q_rows: jax.Array | None
     action: jax.Array
     epsilon: jax.Array
     episode: jax.Array
@@ -98,32 +102,48 @@ class Trainer:
         #: gather/scatter and the branch cost more than the resets they save (H100: 61 M vs 73 M env-steps/s).
         cpu = jax.default_backend() == "cpu"
         self.reset_capacity = -(-config.n_envs // 8) if cpu else config.n_envs
+        #: Carry each env's table rows at its state (``Runner.q_rows``): one table read a step instead of three.
+        #: Not with a shared table, whose rows other envs change; turning it off gives the same values (tested).
+        self.carry_rows = not config.shared_table
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
 
     # ---- building blocks -------------------------------------------------------------------------------
-    def _act(self, key, agent, s, epsilon):
-        c = self.config
-        if c.shared_table:
-            return jax.vmap(tabular.act, in_axes=(None, 0, None, 0, 0, None))(
-                self.learner, key, agent, s, epsilon, c.seed_compat)
-        return jax.vmap(tabular.act, in_axes=(None, 0, 0, 0, 0, None))(
-            self.learner, key, agent, s, epsilon, c.seed_compat)
+    def _rows(self, agent, s, envs=None):
+        """Table rows ``[len(s), n_tables, n_actions]`` at states ``s``: of each env's own table (of the tables of
+        ``envs``, a subset of the batch, when given), or of the shared table."""
+        if self.config.shared_table:
+            return jax.vmap(tabular.rows, in_axes=(None, 0))(agent, s)
+        if envs is None:
+            return jax.vmap(tabular.rows)(agent, s)
+        return agent.q[envs, :, s, :]
 
-    def _learn(self, key, agent, s, a, r, s2, a2, terminated, epsilon, params, active):
-        c = self.config
+    def _select(self, key, q_rows, epsilon):
+        select = lambda k, r, e: self.learner.select(k, tabular.policy_values(r), e, self.config.seed_compat)  # noqa: E731
+        return jax.vmap(select)(key, q_rows, epsilon)
+
+    def _learn(self, key, agent, q_s, q_s2, s, a, r, s2, a2, terminated, epsilon, params, active):
+        """The updated tables, and ``q_s2`` as it reads after the update (where ``s' == s`` the entry changed)."""
+        c, learner = self.config, self.learner
         if c.shared_table:
-            return tabular.learn_shared(self.learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params,
-                                        c.seed_compat, active)
-        return jax.vmap(tabular.learn, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None, 0))(
-            self.learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params, c.seed_compat, active)
+            return tabular.learn_shared(learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params,
+                                        c.seed_compat, active), q_s2
+        visited_sa = jax.vmap(lambda v, s, a: v[s, a])(agent.visited, s, a) if c.seed_compat else None
+        table, old, new = jax.vmap(tabular.update, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, None, None, 0))(
+            learner, key, q_s, q_s2, a, r, a2, terminated, epsilon, params, c.seed_compat, visited_sa)
+        written = jnp.where(active, new, old)
+        agent = jax.vmap(tabular.write)(agent, table, s, a, written, active)
+        n_tables, n_actions = q_s2.shape[1:]
+        hit = ((s2 == s)[:, None, None] & (jnp.arange(n_tables)[:, None] == table[:, None, None])
+               & (jnp.arange(n_actions) == a[:, None, None]))
+        return agent, jnp.where(hit, written[:, None, None], q_s2)
 
     def _reset(self, keys, env_params):
         states = jax.vmap(self.env.reset, in_axes=(0, None))(keys, env_params)
         return states, jax.vmap(self.disc)(states.obs)
 
-    def _reset_done(self, done, keys, env_params, stepped, s2):
-        """``(env_state, s)`` with a fresh episode (and its first state index) wherever ``done``.
+    def _reset_done(self, done, keys, env_params, stepped, s2, agent, q_s2):
+        """``(env_state, s, q_rows)`` with a fresh episode (its first state index and table rows) wherever ``done``.
 
         A reset draws random numbers and builds a physics state, and under ``vmap`` a plain select would pay
         for it in every env every step although few are done. So the done envs (at most ``capacity``, an
@@ -136,18 +156,28 @@ class Trainer:
         def everyone(_):
             fresh, s_fresh = self._reset(keys, env_params)
             pick = lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)  # noqa: E731
-            return jax.tree.map(pick, fresh, stepped), jnp.where(done, s_fresh, s2)
+            s_next = jnp.where(done, s_fresh, s2)
+            q_rows = None if q_s2 is None else pick(self._rows(agent, s_next), q_s2)
+            return jax.tree.map(pick, fresh, stepped), s_next, q_rows
 
         if capacity >= n:
             return everyone(None)
 
-        def only_done(_):
-            rows = jnp.nonzero(done, size=capacity, fill_value=n)[0]  # n = padding, dropped by the scatters
-            fresh, s_fresh = self._reset(keys[jnp.minimum(rows, n - 1)], env_params)
-            put = lambda old, new: old.at[rows].set(new, mode="drop")  # noqa: E731
-            return jax.tree.map(put, stepped, fresh), put(s2, s_fresh)
+        # Where each done env goes in the compacted list: one running count (``jnp.nonzero`` takes two and a
+        # histogram for the same list).
+        slot = jnp.cumsum(done, dtype=jnp.int32) - 1
 
-        return jax.lax.cond(jnp.sum(done) > capacity, everyone, only_done, None)
+        def only_done(_):
+            # The done envs in order, padded with n (dropped by the scatters below).
+            rows = jnp.full(capacity, n, jnp.int32).at[jnp.where(done, slot, capacity)].set(
+                jnp.arange(n, dtype=jnp.int32), mode="drop")
+            envs = jnp.minimum(rows, n - 1)
+            fresh, s_fresh = self._reset(keys[envs], env_params)
+            put = lambda old, new: old.at[rows].set(new, mode="drop")  # noqa: E731
+            q_rows = None if q_s2 is None else put(q_s2, self._rows(agent, s_fresh, envs))
+            return jax.tree.map(put, stepped, fresh), put(s2, s_fresh), q_rows
+
+        return jax.lax.cond(slot[-1] >= capacity, everyone, only_done, None)
 
     # ---- public ----------------------------------------------------------------------------------------
     def init(self, key: jax.Array, agent_params: AgentParams, env_params: Any = None) -> Runner:
@@ -160,10 +190,12 @@ class Trainer:
         if not c.shared_table:
             agent = jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), agent)
         epsilon = tabular.decay_epsilon(jnp.full((n,), agent_params.epsilon, jnp.float32), agent_params)
-        action = self._act(jax.random.split(k_act, n), agent, s, epsilon)
+        q_rows = self._rows(agent, s)
+        action = self._select(jax.random.split(k_act, n), q_rows, epsilon)
         n_rec = c.nepisodes if c.record_episodes else 1
         return Runner(
-            env_state=env_state, agent=agent, s=s, action=action, epsilon=epsilon,
+            env_state=env_state, agent=agent, s=s, q_rows=q_rows if self.carry_rows else None, action=action,
+            epsilon=epsilon,
             episode=jnp.zeros(n, jnp.int32), ep_return=jnp.zeros(n, jnp.float32),
             key=jax.random.split(k_run, n),
             returns=jnp.zeros((n, n_rec), jnp.float32), lengths=jnp.zeros((n, n_rec), jnp.int32),
@@ -177,14 +209,16 @@ class Trainer:
         k_next, k_act, k_act2, k_learn, k_reset = (jax.vmap(rng.subkey, in_axes=(0, None, None))(runner.key, i, 5)
                                                    for i in range(5))
         active = runner.episode < c.nepisodes
-        a = runner.action if learner.on_policy else self._act(k_act, runner.agent, runner.s, runner.epsilon)
+        q_s = self._rows(runner.agent, runner.s) if runner.q_rows is None else runner.q_rows
+        a = runner.action if learner.on_policy else self._select(k_act, q_s, runner.epsilon)
 
         stepped = jax.vmap(self.env.step, in_axes=(0, 0, None))(runner.env_state, a, env_params)
         s2 = jax.vmap(self.disc)(stepped.obs)
         done = stepped.terminated | stepped.truncated | (stepped.steps >= c.nsteps)
-        a2 = self._act(k_act2, runner.agent, s2, runner.epsilon) if learner.on_policy else a
-        agent = self._learn(k_learn, runner.agent, runner.s, a, stepped.reward, s2, a2, stepped.terminated,
-                            runner.epsilon, agent_params, active & ~stepped.physics_nan)
+        q_s2 = self._rows(runner.agent, s2)  # before the update: what the targets (and Sarsa's next action) see
+        a2 = self._select(k_act2, q_s2, runner.epsilon) if learner.on_policy else a
+        agent, q_s2 = self._learn(k_learn, runner.agent, q_s, q_s2, runner.s, a, stepped.reward, s2, a2,
+                                  stepped.terminated, runner.epsilon, agent_params, active & ~stepped.physics_nan)
 
         ep_return = runner.ep_return + stepped.reward
         record = done & active
@@ -201,15 +235,17 @@ class Trainer:
             lengths = lengths.at[:, 0].add(jnp.where(record, stepped.steps, 0))
             terminated = terminated.at[:, 0].set(terminated[:, 0] | (record & stepped.terminated))
 
-        env_state, s_next = self._reset_done(done, k_reset, env_params, stepped, s2)
+        env_state, s_next, q_rows = self._reset_done(done, k_reset, env_params, stepped, s2, agent,
+                                                     None if runner.q_rows is None else q_s2)
         epsilon = jnp.where(done, tabular.decay_epsilon(runner.epsilon, agent_params), runner.epsilon)
         if learner.on_policy:
-            a_fresh = self._act(k_act, agent, s_next, epsilon)  # used only where done: the new episode's state
+            # Used only where done: the new episode's first action, from the updated table.
+            a_fresh = self._select(k_act, self._rows(agent, s_next) if q_rows is None else q_rows, epsilon)
             action = jnp.where(done, a_fresh, a2)
         else:
             action = a
         return Runner(
-            env_state=env_state, agent=agent, s=s_next, action=action, epsilon=epsilon,
+            env_state=env_state, agent=agent, s=s_next, q_rows=q_rows, action=action, epsilon=epsilon,
             episode=runner.episode + record.astype(jnp.int32), ep_return=jnp.where(done, 0.0, ep_return),
             key=k_next, returns=returns, lengths=lengths, terminated=terminated,
             nan_episodes=runner.nan_episodes + (record & stepped.physics_nan).astype(jnp.int32),

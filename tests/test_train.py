@@ -111,3 +111,38 @@ def test_gathered_resets_equal_resetting_every_env(agent):
     assert int(np.asarray(carries[0][0]).size) > 0
     for a, b in zip(*carries):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("agent,extra", [("qlearn", {}), ("sarsa", {}), ("double_q", {}),
+                                         ("qlearn", {"seed_compat": True})])
+def test_carried_table_rows_change_nothing(agent, extra):
+    """The trainer carries each env's table rows at its state from one step to the next (patched where the
+    update hit them) instead of reading the table again: the rows always equal the table's, and the carry is
+    bit for bit the one of reading the table every time, on both reset paths."""
+    import jax
+
+    from jaxrobo.train import Trainer
+
+    spec = resolve("CartPoleStayUp-v0", overrides={**TINY, "n_envs": 12, "backend": "analytic", **extra},
+                   agent=agent)
+    ap, ep = spec.agent_params, spec.env.default_params
+    for capacity in (2, 12):
+        carries = []
+        for carry_rows in (True, False):
+            trainer = Trainer(spec.env, spec.config)
+            trainer.reset_capacity, trainer.carry_rows = capacity, carry_rows
+            runner = trainer.init(jax.random.key(7), ap, ep)
+            chunk = jax.jit(trainer.run_chunk)
+            for _ in range(3):
+                runner = chunk(runner, ap, ep)
+                if carry_rows:
+                    q = np.asarray(runner.agent.q)
+                    expected = q[np.arange(12), :, np.asarray(runner.s), :]
+                    np.testing.assert_array_equal(np.asarray(runner.q_rows), expected)
+            assert (runner.q_rows is None) != carry_rows
+            carries.append(jax.tree.leaves(jax.tree.map(
+                lambda x: jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x,
+                runner.replace(q_rows=None))))
+        assert np.asarray(runner.agent.q).any()  # the tables learnt something
+        for a, b in zip(*carries):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
