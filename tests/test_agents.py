@@ -219,6 +219,9 @@ def test_action_axis_reductions_match_numpy(n):
     np.testing.assert_array_equal(np.asarray(tabular.row_max(jnp.asarray(rows))), rows.max(-1))
     np.testing.assert_array_equal(np.asarray(tabular.row_min(jnp.asarray(rows))), rows.min(-1))
     np.testing.assert_array_equal(np.asarray(tabular.row_argmax(jnp.asarray(rows))), rows.argmax(-1))
+    index = np.random.default_rng(n + 1).integers(0, n, size=50)
+    np.testing.assert_array_equal(np.asarray(tabular.row_pick(jnp.asarray(rows), jnp.asarray(index))),
+                                  rows[np.arange(50), index])
 
 
 @pytest.mark.parametrize("n", [4, tabular.UNROLL_ACTIONS + 4])
