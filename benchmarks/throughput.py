@@ -2,6 +2,7 @@
 
     python benchmarks/throughput.py                         # --quick: CPU-sized, a few minutes on 2 cores
     python benchmarks/throughput.py --device gpu --full     # every env, backend and learner, 1k..1M envs
+    python benchmarks/throughput.py --device gpu --full --envs CartPoleStayUp-v0 --append   # the matrix in parts
 
 For every registered jaxrobo env (cartpole on ``mjx``, on each Brax pipeline and on its closed-form ``analytic``
 backend; the quadcopter tasks when registered) it measures env-steps per second over a list of ``n_envs``:
@@ -66,6 +67,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--out", default=None, help="output folder (default benchmarks/results/<device-name>)")
     p.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     p.add_argument("--no-plot", action="store_true")
+    p.add_argument("--append", action="store_true",
+                   help="merge into the throughput.json already in the output folder (same device; a row measured "
+                        "again replaces the old one), so a long matrix can run in parts")
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error(f"--repeats {args.repeats}: must be >= 1")
@@ -456,6 +460,7 @@ def main(argv: list[str] | None = None) -> int:
 
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
+    earlier = load_earlier(out_dir, jax.devices()[0].device_kind) if args.append else None
 
     def add(row: dict[str, Any]) -> None:
         rows.append(row)
@@ -490,14 +495,18 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"--peers {peer!r}: allowed values are gymnax, brax, gymnasium, gymnasium-sync, "
                              "gymnasium-vec, seed-loop, none")
 
-    _ratios(rows)
-    print()
-    print(table(rows))
     meta = {"device": jax.devices()[0].device_kind, "device_name": dev, "backend": jax.default_backend(),
             "device_count": jax.device_count(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
             "python": platform.python_version(), "jax": jax.__version__, "argv": sys.argv,
             "n_envs": list(n_list), "total_seconds": time.perf_counter() - t_start, "compile_cache": cache,
             "device_memory": ctx["memory"]}
+    if earlier is not None:
+        rows, meta["parts"] = merge_rows(earlier, rows, meta)
+        print(f"\nmerged with {len(meta['parts']) - 1} earlier part(s) in {out_dir}/throughput.json: ratios across "
+              "parts compare rows measured in different processes")
+    _ratios(rows)
+    print()
+    print(table(rows))
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "throughput.json"), "w") as f:
         json.dump({"meta": meta, "rows": rows}, f, indent=2, default=str)
@@ -513,7 +522,41 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _row_key(row: dict[str, Any]) -> tuple:
+    return row["suite"], row["env"], row["backend"], row["mode"], row["n_envs"]
+
+
+def load_earlier(out_dir: str, device: str) -> dict[str, Any]:
+    """The results already in ``out_dir`` for ``--append`` (none yet: an empty start); refuses another device's."""
+    path = os.path.join(out_dir, "throughput.json")
+    if not os.path.exists(path):
+        return {"meta": None, "rows": []}
+    with open(path) as f:
+        earlier = json.load(f)
+    if earlier["meta"]["device"] != device:
+        raise SystemExit(f"--append: {path} holds results of {earlier['meta']['device']!r}, this is {device!r}; "
+                         "choose another --out")
+    return earlier
+
+
+def merge_rows(earlier: dict[str, Any], rows: list[dict[str, Any]], meta: dict[str, Any]) -> tuple[list, list]:
+    """Earlier rows not measured again, then this run's rows (each tagged with its part); the parts' argv list."""
+    old_meta = earlier["meta"]
+    parts = [] if old_meta is None else old_meta.get("parts") or [{"argv": old_meta["argv"], "jax": old_meta["jax"]}]
+    part = len(parts)
+    parts = parts + [{"argv": meta["argv"], "jax": meta["jax"]}]
+    fresh = {_row_key(r) for r in rows}
+    kept = [r for r in earlier["rows"] if _row_key(r) not in fresh]
+    for r in kept:
+        r.setdefault("part", 0)
+    merged = kept + [{**r, "part": part} for r in rows]
+    return sorted(merged, key=lambda r: r["suite"] != "jaxrobo"), parts  # stable: jaxrobo rows, then the peers
+
+
 def _ratios(rows: list[dict[str, Any]]) -> None:
+    for r in rows:  # recomputed from the rows at hand (with --append, earlier ratios may be stale)
+        for k in ("x_best_peer", "best_peer", "x_seed_loop", "x_brax"):
+            r.pop(k, None)
     peers = [r for r in rows if r["suite"] != "jaxrobo" and r.get("status") == "ok"]
     best = max(peers, key=lambda r: r["steps_per_s"], default=None)
     seed = next((r for r in peers if r["suite"] == "seed-loop"), None)
@@ -573,6 +616,9 @@ def table(rows: list[dict[str, Any]]) -> str:
     lines.append("compile: * = served from the persistent cache; B/env = training carry (env state + Q-table + "
                  "records) per env; x = steps/s ratio (x brax: to Brax inverted_pendulum/mjx at the same n_envs); "
                  "dt = physics step (s) where it differs from the default")
+    parts = {r.get("part", 0) for r in rows}
+    if len(parts) > 1:
+        lines.append(f"rows from {len(parts)} runs merged with --append (the JSON's meta.parts has their commands)")
     return "\n".join(lines)
 
 

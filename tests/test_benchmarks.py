@@ -7,6 +7,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -97,3 +99,30 @@ def test_time_carry_fills_short_samples_with_back_to_back_calls():
     calls.clear()
     _common.time_carry(fn, 0, 0, repeats=3)
     assert len(calls) == 4  # without min_seconds: one call per sample
+
+
+def test_append_merges_parts_replacing_rows_measured_again(tmp_path):
+    """``--append``: a long matrix runs in parts; a row measured again replaces the old one, ratios are
+    recomputed over the merged rows, and another device's results are refused."""
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import throughput
+
+    def row(suite, mode, n, sps, **kw):
+        return {"suite": suite, "env": "CartPoleStayUp-v0" if suite == "jaxrobo" else "inverted_pendulum/mjx",
+                "backend": "mjx", "mode": mode, "n_envs": n, "status": "ok", "steps_per_s": sps, **kw}
+
+    assert throughput.load_earlier(str(tmp_path), "cpu") == {"meta": None, "rows": []}
+    first = {"meta": {"device": "cpu", "argv": ["part0"], "jax": "x"},
+             "rows": [row("jaxrobo", "qlearn", 64, 10.0, x_brax=99.0), row("brax", "env", 64, 5.0)]}
+    (tmp_path / "throughput.json").write_text(json.dumps(first))
+    earlier = throughput.load_earlier(str(tmp_path), "cpu")
+    rows, parts = throughput.merge_rows(earlier, [row("jaxrobo", "env", 64, 40.0), row("brax", "env", 64, 8.0)],
+                                        {"argv": ["part1"], "jax": "x"})
+    assert [p["argv"] for p in parts] == [["part0"], ["part1"]]
+    assert [(r["mode"], r["steps_per_s"], r["part"]) for r in rows] == [
+        ("qlearn", 10.0, 0), ("env", 40.0, 1), ("env", 8.0, 1)]  # the Brax row measured again replaced the old one
+    throughput._ratios(rows)
+    assert rows[0]["x_brax"] == 10.0 / 8.0 and rows[1]["x_brax"] == 5.0
+    assert "2 runs merged with --append" in throughput.table(rows)
+    with pytest.raises(SystemExit, match="holds results of 'cpu'"):
+        throughput.load_earlier(str(tmp_path), "NVIDIA H100 80GB HBM3")
