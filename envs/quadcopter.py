@@ -195,7 +195,11 @@ class Quadcopter(Robot):
         if backend not in BACKENDS:
             raise ValueError(f"backend={backend!r}: allowed values are {', '.join(BACKENDS)}")
         mj_model = load_model(asset_path(MJCF), timestep=timestep)
-        sim = RigidBodySim(mj_model, running_step) if backend == "rigid" else Simulator(mj_model, "mjx", running_step)
+        if backend == "rigid":
+            sim: Simulator = RigidBodySim(mj_model, running_step)
+        else:
+            physics = load_model(asset_path(MJCF), timestep=timestep, physics_only=True)
+            sim = Simulator(mj_model, "mjx", running_step, physics_model=physics)
         super().__init__(sim)
         self.gains = gains
         self.min_altitude = float(min_altitude)

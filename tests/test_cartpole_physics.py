@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from envs.cartpole import CartPoleRobot
-from jaxrobo.sim import asset_path, load_model
+from jaxrobo.sim import Simulator, asset_path, check_same_dynamics, load_model
 
 # Runs in a fresh interpreter because float64 must be switched on before JAX starts. Each backend steps the
 # robot's own model (the MJCF as shipped) through 500 physics steps of a swinging trajectory beside native MuJoCo.
@@ -108,6 +108,38 @@ def test_brax_pipelines_run_the_same_task(backend):
     assert np.all(np.isfinite(np.asarray(state.obs)))
     if backend != "spring":  # Brax's spring pipeline is an approximation that drifts on this stiff actuator
         assert state.obs[0] > 0.0 and state.obs[1] > 0.2, f"{backend}: {state.obs}"
+
+
+# ---- the physics-only model MJX integrates -------------------------------------------------------------------
+@pytest.mark.parametrize("xml,nu", [("cartpole.xml", 1), ("quadcopter.xml", 4)])
+def test_physics_only_model_has_the_same_dynamics_bit_for_bit(xml, nu):
+    """Without visual geoms, camera and light, native MuJoCo steps the same trajectory bit for bit (the MJX test
+    above runs the robot's physics-only model against native MuJoCo on the whole one)."""
+    keep = ("effort",) if xml == "cartpole.xml" else None
+    full, lean = (load_model(asset_path(xml), keep_actuators=keep, physics_only=p) for p in (False, True))
+    assert full.ngeom > 0 and full.nlight > 0 and (lean.ngeom, lean.ncam, lean.nlight) == (0, 0, 0)
+    check_same_dynamics(full, lean)
+    traces = []
+    for m in (full, lean):
+        d = mujoco.MjData(m)
+        mujoco.mj_resetData(m, d)
+        d.qpos[:2] += 0.1
+        trace = []
+        for t in range(300):
+            d.ctrl[:] = np.sin(0.05 * t + np.arange(nu)) + (0.07 if nu == 4 else 0.0)  # quadcopter: ~hover thrust
+            mujoco.mj_step(m, d)
+            trace.append(np.concatenate([d.qpos, d.qvel]))
+        traces.append(np.array(trace))
+    assert np.abs(traces[0][-1] - traces[0][0]).max() > 0.05, "the model should move"
+    np.testing.assert_array_equal(traces[1], traces[0])
+
+
+def test_mjx_integrates_the_physics_only_model_and_refuses_another():
+    robot = CartPoleRobot("velocity", "mjx")
+    assert robot.sim.mj_model.ngeom == 4 and robot.sim.model.ngeom == 0  # rendering keeps the whole model
+    other = load_model(asset_path("cartpole.xml"), keep_actuators=("position",), physics_only=True)
+    with pytest.raises(ValueError, match="physics_model differs from mj_model in actuator"):
+        Simulator(robot.sim.mj_model, "mjx", physics_model=other)
 
 
 # ---- the closed-form backend --------------------------------------------------------------------------------
