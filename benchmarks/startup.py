@@ -6,7 +6,6 @@ process is spawned until the first chunk of training steps has finished on the d
 fresh cache directory, the second reads it. Target (issue 5): second < 5 s on CPU.
 
     python benchmarks/startup.py                 # CPU, CartPoleStayUp-v0, Q-learning, 64 envs
-    python benchmarks/startup.py --mode export         # + the traced chunk kept with jax.export
     python benchmarks/startup.py --device gpu --n-envs 4096
 """
 from __future__ import annotations
@@ -52,24 +51,10 @@ def child(args: argparse.Namespace) -> None:
         marks["first_chunk"] = time.time()
         raise _FirstChunk
 
-    if args.mode == "train":
-        try:
-            train(spec.env, spec.config, spec.agent_params, progress=progress)
-        except _FirstChunk:
-            pass
-    else:  # train()'s start-up, with the chunk's traced program loaded by jaxrobo.cache.exported_jit
-        from jaxrobo.cache import exported_jit
-        from jaxrobo.train import Trainer, _progress_stats
-
-        trainer = Trainer(spec.env, spec.config)
-        ap, ep = spec.agent_params, spec.env.default_params
-        runner = jax.jit(trainer.init)(jax.random.key(spec.config.seed), ap, ep)
-        tag = repr((spec.env.name, spec.env.options, spec.config, trainer.learner.name, trainer.disc))
-        chunk = exported_jit(trainer.run_chunk, (runner, ap, ep), runner, tag, donate_argnums=(0,))
-        stats = jax.jit(_progress_stats).lower(runner).compile()
-        runner = chunk(runner, ap, ep)
-        jax.device_get(stats(runner))
-        marks["first_chunk"] = time.time()
+    try:
+        train(spec.env, spec.config, spec.agent_params, progress=progress)
+    except _FirstChunk:
+        pass
     print(json.dumps({
         "python_start_s": T_PROCESS, "imports_s": t_resolved - t_import, "first_chunk_at": marks["first_chunk"],
         "to_first_chunk_in_process_s": marks["first_chunk"] - T_PROCESS, "cache_dir": directory,
@@ -85,8 +70,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chunk-steps", type=int, default=100, help="steps in the first compiled chunk")
     p.add_argument("--device", choices=("cpu", "gpu"), default=None, help="JAX platform (default: JAX's choice)")
     p.add_argument("--cache-dir", default=None, help="cache directory (default: a fresh temporary one)")
-    p.add_argument("--mode", choices=("train", "export"), default="train",
-                   help="train: what `jaxrobo train` does today; export: also keep the traced chunk (jax.export)")
     p.add_argument("--runs", type=int, default=2, help="how many processes to start one after the other")
     p.add_argument("--out", default=None, help="write the measurements to this JSON file")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -102,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         tmp = tempfile.TemporaryDirectory(prefix="jaxrobo-startup-")
         args.cache_dir = tmp.name
     cmd = [sys.executable, os.path.abspath(__file__), "--child", "--env", args.env, "--agent", args.agent,
-           "--n-envs", str(args.n_envs), "--chunk-steps", str(args.chunk_steps), "--cache-dir", args.cache_dir, "--mode", args.mode]
+           "--n-envs", str(args.n_envs), "--chunk-steps", str(args.chunk_steps), "--cache-dir", args.cache_dir]
     if args.device:
         cmd += ["--device", args.device]
     for item in args.set:
@@ -122,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label:>20}: {rec['to_first_chunk_s']:6.2f} s to the first training chunk "
               f"(imports+config {rec['imports_s']:.2f} s; cache files {rec['cache_entries_before']} -> "
               f"{rec['cache_entries_after']}) on {rec['device']}")
-    result = {"mode": args.mode, "env": args.env, "agent": args.agent, "overrides": args.set, "n_envs": args.n_envs,
+    result = {"env": args.env, "agent": args.agent, "overrides": args.set, "n_envs": args.n_envs,
               "chunk_steps": args.chunk_steps,
               "runs": runs, "target_second_s": 5.0}
     if len(runs) > 1:

@@ -7,7 +7,9 @@ on the program and the device, so it is written to disk and reused by every late
 """
 from __future__ import annotations
 
+import inspect
 import os
+from typing import Any
 
 import jax
 
@@ -145,15 +147,21 @@ def exported_jit(fn, example_args: tuple, out_like, tag: str, donate_argnums: tu
         except Exception:  # noqa: BLE001 - a stale or partial file is rebuilt
             exported = None
     if exported is None:
-        exported = export.export(jax.jit(flat))(*[jax.ShapeDtypeStruct(x.shape, x.dtype) for x in raw])
-        data = exported.serialize()
+        try:
+            exported = export.export(jax.jit(flat))(*[jax.ShapeDtypeStruct(x.shape, x.dtype) for x in raw])
+            data = exported.serialize()
+        except Exception:  # noqa: BLE001 - a program jax.export refuses (e.g. a custom call it cannot keep)
+            return plain()
         os.makedirs(os.path.dirname(path), exist_ok=True)
         tmp = f"{path}.{os.getpid()}.tmp"
         with open(tmp, "wb") as f:
             f.write(data)
         os.replace(tmp, path)
         exported = export.deserialize(data)  # compile what later processes will load: same cache entry
-    compiled = jax.jit(exported.call, donate_argnums=donated).lower(*raw).compile()
+    try:
+        compiled = jax.jit(exported.call, donate_argnums=donated).lower(*raw).compile()
+    except Exception:  # noqa: BLE001 - a kept program this JAX cannot run: trace afresh (errors in fn surface there)
+        return plain()
     out_impls = [jax.random.key_impl(jnp.asarray(x)) if k else None for x, k in zip(out_leaves, out_key)]
 
     def call(*args):
@@ -163,6 +171,20 @@ def exported_jit(fn, example_args: tuple, out_like, tag: str, donate_argnums: tu
         return jax.tree.unflatten(out_tree, ys)
 
     return call
+
+
+#: Packages hashed by :func:`source_hash`: a traced program may be kept only if all its code comes from them.
+OWN_PACKAGES = ("jaxrobo", "envs", "agents")
+
+
+def is_own_code(*objects: Any) -> bool:
+    """True when every object's class (a function's own module, for functions) is defined in jaxrobo, envs or
+    agents, whose sources key an exported program; code from elsewhere could change without the key changing."""
+    for obj in objects:
+        module = obj.__module__ if inspect.isfunction(obj) else type(obj).__module__
+        if (module or "").split(".")[0] not in OWN_PACKAGES:
+            return False
+    return True
 
 
 def _leaf_owners(args: tuple) -> list[tuple[int, int]]:

@@ -82,3 +82,34 @@ def test_exported_jit_matches_jit_and_reloads(tmp_path):
     for a, b in ((want, got), (want, got2)):
         assert jnp.array_equal(a["x"], b["x"])
         assert jnp.array_equal(jax.random.key_data(a["key"]), jax.random.key_data(b["key"]))
+
+
+def test_train_keeps_its_traced_chunk_and_gives_the_same_result(tmp_path, monkeypatch):
+    """train() with the chunk's traced program kept (first run: exported; second: loaded) equals a plain jit run."""
+    import numpy as np
+    import pytest
+
+    import jaxrobo
+    from jaxrobo.train import TrainConfig, train
+
+    pytest.importorskip("flatbuffers")
+    env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
+    config = TrainConfig(n_envs=4, nepisodes=3, nsteps=60, chunk_steps=30, seed=5, eval_episodes=0)
+    results = []
+    for directory in (None, str(tmp_path), str(tmp_path)):
+        monkeypatch.setattr(cache, "_current_dir", lambda d=directory: d)
+        results.append(train(env, config))
+        if directory is not None:
+            assert len(os.listdir(tmp_path / "exported")) == 1  # written once, then loaded
+    for got in results[1:]:
+        np.testing.assert_array_equal(got.q, results[0].q)
+        np.testing.assert_array_equal(got.returns, results[0].returns)
+        assert got.env_steps == results[0].env_steps
+
+
+def test_only_own_code_keys_a_kept_program():
+    import jaxrobo
+
+    env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
+    assert cache.is_own_code(env, env.robot, env.robot.sim)
+    assert not cache.is_own_code(env, lambda x: x)  # defined here, outside jaxrobo/envs/agents
