@@ -9,8 +9,9 @@ by ``control_type``:
 * ``effort``   - the command is the force on the cart (N).
 
 Backends: ``mjx`` (MuJoCo MJX, default), Brax's ``generalized``/``positional``/``spring`` pipelines, or
-``analytic`` (:mod:`envs.cartpole_dynamics`: the same model's equations of motion in closed form, 10-25× faster
-than MJX on a CPU, 13× on an H100, free of the GPU's small-batch latency; agrees with native MuJoCo to round-off).
+``analytic`` (:mod:`envs.cartpole_dynamics`: the same model's equations of motion in closed form, ~30× faster
+than MJX on 2 CPU cores, 18-38× on an H100, free of the GPU's small-batch latency; agrees with native MuJoCo to
+round-off).
 """
 from __future__ import annotations
 
