@@ -70,6 +70,10 @@ def _reset_if_initialised() -> None:
 _SOURCE_HASH: str | None = None
 
 
+#: Packages whose sources :func:`source_hash` hashes: a traced program may be kept only if all its code comes from them.
+OWN_PACKAGES = ("jaxrobo", "envs", "agents")
+
+
 def source_hash() -> str:
     """Hash of jaxrobo's, the envs' and the agents' sources and assets: a traced program depends on all of them."""
     global _SOURCE_HASH
@@ -78,7 +82,7 @@ def source_hash() -> str:
 
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         h = hashlib.sha256()
-        for package in ("jaxrobo", "envs", "agents"):
+        for package in OWN_PACKAGES:
             for dirpath, dirnames, files in sorted(os.walk(os.path.join(root, package))):
                 dirnames.sort()
                 for name in sorted(files):
@@ -171,10 +175,6 @@ def exported_jit(fn, example_args: tuple, out_like, tag: str, donate_argnums: tu
         return jax.tree.unflatten(out_tree, ys)
 
     return call
-
-
-#: Packages hashed by :func:`source_hash`: a traced program may be kept only if all its code comes from them.
-OWN_PACKAGES = ("jaxrobo", "envs", "agents")
 
 
 def is_own_code(*objects: Any) -> bool:
