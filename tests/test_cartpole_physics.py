@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from envs.cartpole import CartPoleRobot
-from jaxrobo.sim import Simulator, asset_path, check_same_dynamics, load_model
+from jaxrobo.sim import MjxState, Simulator, asset_path, check_same_dynamics, load_model, mjx
 
 # Runs in a fresh interpreter because float64 must be switched on before JAX starts. Each backend steps the
 # robot's own model (the MJCF as shipped) through 500 physics steps of a swinging trajectory beside native MuJoCo.
 _X64_SCRIPT = textwrap.dedent("""
     import jax, jax.numpy as jnp, mujoco, numpy as np
     from envs.cartpole import CartPoleRobot
-    from jaxrobo.sim import JointState
+    from jaxrobo.sim import JointState, MjxState
     cases = [("mjx", "velocity")] + [("analytic", c) for c in ("velocity", "position", "effort")]
     for backend, control_type in cases:
         robot = CartPoleRobot(control_type, backend, running_step=0.01, timestep=0.01)
@@ -31,7 +31,7 @@ _X64_SCRIPT = textwrap.dedent("""
         for u in ctrl:
             d.ctrl[0] = u; mujoco.mj_step(m, d); native.append(np.concatenate([d.qpos, d.qvel]))
         q0, v0 = jnp.array([0.1, 0.2]), jnp.zeros(2)  # float64: not through sim.init, which casts to float32
-        s0 = robot.sim._data0.replace(qpos=q0, qvel=v0) if backend == "mjx" else JointState(q0, v0)
+        s0 = MjxState.of(robot.sim._data0).replace(qpos=q0, qvel=v0) if backend == "mjx" else JointState(q0, v0)
         def body(s, u):
             s = robot.sim.physics_step(s, jnp.array([u]))
             return s, jnp.concatenate([robot.sim.qpos(s), robot.sim.qvel(s)])
@@ -140,6 +140,29 @@ def test_mjx_integrates_the_physics_only_model_and_refuses_another():
     other = load_model(asset_path("cartpole.xml"), keep_actuators=("position",), physics_only=True)
     with pytest.raises(ValueError, match="physics_model differs from mj_model in actuator"):
         Simulator(robot.sim.mj_model, "mjx", physics_model=other)
+
+
+def test_mjx_state_steps_like_the_full_data_and_forward_rebuilds_it():
+    """The env carries only MuJoCo's integration state (MjxState); stepping it gives the same qpos/qvel bit for
+    bit as stepping the whole mjx.Data, and ``forward`` rebuilds the derived quantities (body poses)."""
+    robot = CartPoleRobot("effort", "mjx", running_step=0.01, timestep=0.01)
+    sim = robot.sim
+    state = sim.init(jnp.array([0.1, 0.3]), jnp.array([0.2, -0.5]))
+    assert isinstance(state, MjxState) and sum(x.size for x in jax.tree.leaves(state)) == 1 + 2 + 2 + 0 + 2
+    full = sim._data0.replace(**state.fields())
+    ctrl = jnp.array([1.5])
+    for _ in range(3):
+        state = jax.jit(sim.physics_step)(state, ctrl)
+        full = jax.jit(lambda d: mjx.step(sim.model, d.replace(ctrl=ctrl)))(full)
+    for name in ("time", "qpos", "qvel", "qacc_warmstart"):
+        np.testing.assert_array_equal(np.asarray(getattr(state, name)), np.asarray(getattr(full, name)), name)
+    m = sim.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = np.asarray(state.qpos), np.asarray(state.qvel)
+    mujoco.mj_forward(m, d)
+    np.testing.assert_allclose(np.asarray(jax.jit(sim.forward)(state).xpos), d.xpos, atol=1e-5)
+    with pytest.raises(ValueError, match="forward"):
+        CartPoleRobot("effort", "analytic").sim.forward(state)
 
 
 # ---- the closed-form backend --------------------------------------------------------------------------------
