@@ -98,9 +98,11 @@ def env_rollout(env: Any, n: int, steps: int):
     import jax
     import jax.numpy as jnp
 
+    from jaxrobo.env import default_env_group, step_batch
     from jaxrobo.wrappers import AutoReset
 
     wrapped = AutoReset(env)
+    group = default_env_group(env)
     params = env.default_params
     n_actions = env.num_actions
 
@@ -111,7 +113,7 @@ def env_rollout(env: Any, n: int, steps: int):
         def body(c, k):
             s, acc = c
             a = jax.random.randint(k, (n,), 0, n_actions)
-            s = jax.vmap(wrapped.step, in_axes=(0, 0, None))(s, a, params)
+            s = step_batch(wrapped, s, a, params, group)  # as the trainer steps them
             return (s, acc + s.reward), None
 
         (state, acc), _ = jax.lax.scan(body, (state, jnp.zeros(n, jnp.float32)), keys[1:])

@@ -11,6 +11,7 @@ shards (:func:`put_batch`) and :func:`gather` brings the whole result to every p
 """
 from __future__ import annotations
 
+import copy
 import math
 import os
 from typing import Any, Callable
@@ -151,6 +152,11 @@ class ShardedTrainer:
         n, d = trainer.config.n_envs, self.mesh.devices.size
         if n % d:
             raise ValueError(f"n_envs={n} must be a multiple of the {d} devices to shard environments over them")
+        if d > 1 and trainer.env_group is not None:
+            # Stepping the env axis group after group would slice across the devices' shards: each device steps
+            # its own n_envs / d envs at once instead (the same values).
+            self.trainer = trainer = copy.copy(trainer)
+            trainer.env_group = None
         self._init = None
         self._chunk = None
 

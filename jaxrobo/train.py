@@ -27,7 +27,7 @@ from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
 from jaxrobo import cache, rng
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
-from jaxrobo.env import Env, EnvState
+from jaxrobo.env import Env, EnvState, default_env_group, layers, step_batch
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -53,6 +53,8 @@ class TrainConfig:
     record_episodes: bool = param(True, static=True, doc="keep every episode's return and length")
     eval_episodes: int = param(100, low=0, static=True, doc="greedy evaluation episodes per evaluated table")
     eval_envs: int = param(8, low=1, static=True, doc="how many trained tables to evaluate")
+    env_group: int = param(0, low=0, static=True,
+                           doc="envs stepped together, group after group (0: automatic, see jaxrobo.env.step_batch)")
 
 
 @pytree_dataclass
@@ -108,6 +110,8 @@ class Trainer:
         #: pre-update rows (H100, 65 k envs: 1.3 G -> 89 M env-steps/s), nor with a shared table, whose rows
         #: other envs change. Either way the values are the same (tested).
         self.carry_rows = cpu and not config.shared_table
+        #: Envs stepped at once (:func:`jaxrobo.env.step_batch`); None: the whole batch.
+        self.env_group = config.env_group or default_env_group(env)
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
 
@@ -215,7 +219,7 @@ class Trainer:
         q_s = self._rows(runner.agent, runner.s) if runner.q_rows is None else runner.q_rows
         a = runner.action if learner.on_policy else self._select(k_act, q_s, runner.epsilon)
 
-        stepped = jax.vmap(self.env.step, in_axes=(0, 0, None))(runner.env_state, a, env_params)
+        stepped = step_batch(self.env, runner.env_state, a, env_params, self.env_group)
         s2 = jax.vmap(self.disc)(stepped.obs)
         done = stepped.terminated | stepped.truncated | (stepped.steps >= c.nsteps)
         q_s2 = self._rows(runner.agent, s2)  # before the update: what the targets (and Sarsa's next action) see
@@ -354,16 +358,12 @@ def _compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams,
     the loop, the traced program is kept too (:func:`jaxrobo.cache.exported_jit`), so a second start of the same
     configuration skips tracing it (~2 s of an MJX start-up on 2 CPU cores); the same program, the same values."""
     env, learner = trainer.env, trainer.learner
-    parts = [env, trainer.disc, learner.select, learner.target]
-    inner = env
-    while hasattr(inner, "env"):  # wrappers
-        inner = inner.env
-        parts.append(inner)
-    robot = getattr(inner, "robot", None)
-    parts += [] if robot is None else [robot, robot.sim]
+    robot = getattr(layers(env)[-1], "robot", None)
+    parts = [*layers(env), trainer.disc, learner.select, learner.target] + ([] if robot is None else [robot, robot.sim])
     if cache.is_own_code(*parts):
         tag = repr((getattr(env, "name", None), getattr(env, "options", None), trainer.config, learner.name,
-                    trainer.disc, trainer.reset_capacity, trainer.carry_rows, jax.random.key_impl(runner.key[0]),
+                    trainer.disc, trainer.reset_capacity, trainer.carry_rows, trainer.env_group,
+                    jax.random.key_impl(runner.key[0]),
                     jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision))
         return cache.exported_jit(trainer.run_chunk, (runner, agent_params, env_params), runner, tag,
                                   donate_argnums=(0,))

@@ -60,6 +60,10 @@ ap, ep, key = spec.agent_params, spec.env.default_params, jax.random.key(1)
 r1 = chunk(init(key, ap, ep), ap, ep)
 r2 = st.run_chunk(st.init(key, ap, ep), ap, ep)
 out["train_sharded_over"] = len(r2.agent.q.sharding.device_set)
+# A trainer that steps its envs in groups: sharded, each device steps its own envs at once (a copy; the original
+# keeps its groups).
+grouped = Trainer(spec.env, spec.config.replace(env_group=3))
+out["groups"] = [grouped.env_group, sharding.ShardedTrainer(grouped, mesh).trainer.env_group]
 out["train_equal"] = all(np.array_equal(a, b) for a, b in zip(leaves(r1), leaves(sharding.gather(r2))))
 print(json.dumps(out))
 """
@@ -74,6 +78,7 @@ def test_sharded_equals_unsharded():
     assert out["devices"] == 4
     assert out["sweep_rows"] == 3 and out["sweep_equal"]
     assert out["train_sharded_over"] == 4 and out["train_equal"]
+    assert out["groups"] == [3, None]
 
 
 def test_padding_and_shardings():

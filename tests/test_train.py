@@ -58,6 +58,28 @@ def test_results_do_not_depend_on_the_chunk_length(qlearn_run):
     np.testing.assert_array_equal(_run(chunk_steps=17).returns, qlearn_run.returns)
 
 
+def test_stepping_envs_in_groups_changes_nothing(qlearn_run):
+    """``env_group``: the 4 envs stepped as groups of 3 and 1 (as GPUs step large MJX batches) give the same run."""
+    grouped = _run(eval_episodes=2, eval_envs=2, env_group=3)
+    np.testing.assert_array_equal(grouped.returns, qlearn_run.returns)
+    np.testing.assert_array_equal(grouped.q, qlearn_run.q)
+
+
+def test_env_group_defaults(monkeypatch):
+    import jax
+
+    from jaxrobo import env as env_module
+    from jaxrobo.config import ConfigError
+
+    mjx_env, closed_form = (resolve("CartPoleStayUp-v0", overrides={"backend": b}).env for b in ("mjx", "analytic"))
+    assert env_module.default_env_group(mjx_env) is None  # CPU: the whole batch
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert env_module.default_env_group(mjx_env) == env_module.GPU_ENV_GROUP
+    assert env_module.default_env_group(closed_form) is None  # one fused kernel: no groups
+    with pytest.raises(ConfigError, match="env_group"):
+        resolve("CartPoleStayUp-v0", overrides={"env_group": -1})
+
+
 @pytest.mark.parametrize("agent", ["sarsa", "expected_sarsa", "double_q"])
 def test_each_learner_trains(agent):
     r = _run(agent=agent)
