@@ -359,7 +359,8 @@ def _compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams,
     configuration skips tracing it (~2 s of an MJX start-up on 2 CPU cores); the same program, the same values."""
     env, learner = trainer.env, trainer.learner
     robot = getattr(layers(env)[-1], "robot", None)
-    parts = [*layers(env), trainer.disc, learner.select, learner.target] + ([] if robot is None else [robot, robot.sim])
+    parts = [*layers(env), trainer.disc, learner.select, learner.target]
+    parts += [] if robot is None else [robot, robot.sim]
     if cache.is_own_code(*parts):
         tag = repr((getattr(env, "name", None), getattr(env, "options", None), trainer.config, learner.name,
                     trainer.disc, trainer.reset_capacity, trainer.carry_rows, trainer.env_group,
