@@ -126,7 +126,9 @@ def env_rollout(env: Any, n: int, steps: int):
 
 
 def sim_info(env: Any) -> tuple[int, float]:
-    sim = getattr(getattr(env, "robot", None), "sim", None)
+    from jaxrobo.env import simulator_of
+
+    sim = simulator_of(env)
     n_sub = int(getattr(sim, "n_substeps", 1) or 1)
     running = float(getattr(sim, "running_step", 0.0) or 0.0)
     return n_sub, running

@@ -217,7 +217,9 @@ def _seed_keys(seeds: Sequence[int]) -> Any:
 
 
 def _frame_rate(env: Any) -> int:
-    sim = getattr(getattr(env, "robot", None), "sim", None)
+    from jaxrobo.env import simulator_of
+
+    sim = simulator_of(env)
     dt = float(getattr(sim, "running_step", 0.0) or 0.0)
     return max(1, int(round(1.0 / dt))) if dt > 0 else 30
 

@@ -101,8 +101,9 @@ def gl_unavailable_reason() -> str | None:
 
 
 def _sim_of(env: Any) -> Any:
-    robot = getattr(env, "robot", None)
-    sim = getattr(robot, "sim", None)
+    from jaxrobo.env import simulator_of
+
+    sim = simulator_of(env)
     if sim is None or not hasattr(sim, "mj_model"):
         raise ValueError(f"{env!r} has no robot.sim.mj_model; only MuJoCo-model environments can be rendered")
     return sim
