@@ -175,7 +175,8 @@ class TaskEnv(Env):
 # ---- stepping a batch ------------------------------------------------------------------------------------------
 #: Envs that :func:`step_batch` steps together on a GPU when the env runs on a physics engine (MJX, Brax): an
 #: MJX step is many small kernels whose intermediates go to memory between them, and at 65,536 cart-pole envs
-#: they still fit in an H100's 50 MB L2 cache. Larger batches run as groups of this size one after another.
+#: they likely still fit in an H100's 50 MB L2 cache. Larger batches run as groups of this size one after another
+#: (H100, cart-pole with Q-learning: 72 -> 85 M env-steps/s at 262,144 envs, 63 -> 87 M at 1,048,576).
 GPU_ENV_GROUP = 65_536
 
 
