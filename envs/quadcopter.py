@@ -112,12 +112,17 @@ def ray_ground(origin: jax.Array, direction: jax.Array) -> jax.Array:
 
 
 def ray_box(origin: jax.Array, direction: jax.Array, center: jax.Array, half: jax.Array) -> jax.Array:
-    """Slab test: distance to an axis-aligned box (0 when the origin is inside, ``_INF`` on a miss)."""
+    """Slab test: distance to an axis-aligned box (0 when the origin is inside, ``_INF`` on a miss).
+
+    A ray parallel to a slab (direction component ~0) is inside it for all t if its origin is within the slab's
+    closed range, boundary included (a ray grazing along a face touches the box), else never."""
     inv = _safe_inv(direction)
     t1 = (center - half - origin) * inv
     t2 = (center + half - origin) * inv
-    t_near = jnp.max(jnp.minimum(t1, t2))
-    t_far = jnp.min(jnp.maximum(t1, t2))
+    parallel = jnp.abs(direction) < 1e-9
+    in_slab = jnp.abs(origin - center) <= half
+    t_near = jnp.max(jnp.where(parallel, jnp.where(in_slab, -_INF, _INF), jnp.minimum(t1, t2)))
+    t_far = jnp.min(jnp.where(parallel, jnp.where(in_slab, _INF, -_INF), jnp.maximum(t1, t2)))
     hit = (t_near <= t_far) & (t_far >= 0)
     return jnp.where(hit, jnp.maximum(t_near, 0.0), _INF)
 
