@@ -106,7 +106,10 @@ class _Compiled:
         import jax
         import jax.numpy as jnp
 
+        from jaxrobo.env import default_env_group, step_batch
+
         env = self.env
+        group = default_env_group(env)
 
         def reset(key, params):
             state = env.reset(key, params)
@@ -126,7 +129,7 @@ class _Compiled:
         def vstep(states, needs_reset, actions, params):
             # Next-step autoreset: an env that finished on the previous step starts its next episode now, from the
             # key its state carried, and this step's action for it is ignored.
-            stepped = jax.vmap(env.step, in_axes=(0, 0, None))(states, actions, params)
+            stepped = step_batch(env, states, actions, params, group)  # grouped on a GPU, as the trainer steps
 
             def with_resets(stepped):
                 keys = jax.vmap(next_key)(states.key)
