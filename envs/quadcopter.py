@@ -100,14 +100,18 @@ def wrap_angle(a: jax.Array) -> jax.Array:
 
 
 # ---- exact geometry --------------------------------------------------------------------------------------
+#: A direction component below this is treated as parallel to the axis' planes by the ray tests.
+_PARALLEL = 1e-9
+
+
 def _safe_inv(d: jax.Array) -> jax.Array:
-    return 1.0 / jnp.where(jnp.abs(d) < 1e-9, jnp.where(d < 0, -1e-9, 1e-9), d)
+    return 1.0 / jnp.where(jnp.abs(d) < _PARALLEL, jnp.where(d < 0, -_PARALLEL, _PARALLEL), d)
 
 
 def ray_ground(origin: jax.Array, direction: jax.Array) -> jax.Array:
     """Distance along a unit ray to the plane z = 0 (``_INF`` if it points up or sideways; 0 if below it)."""
     t = -origin[2] * _safe_inv(direction[2])
-    hit = (direction[2] < -1e-9) | (origin[2] <= 0)
+    hit = (direction[2] < -_PARALLEL) | (origin[2] <= 0)
     return jnp.where(hit, jnp.maximum(t, 0.0) * (origin[2] > 0), _INF)
 
 
@@ -119,7 +123,7 @@ def ray_box(origin: jax.Array, direction: jax.Array, center: jax.Array, half: ja
     inv = _safe_inv(direction)
     t1 = (center - half - origin) * inv
     t2 = (center + half - origin) * inv
-    parallel = jnp.abs(direction) < 1e-9
+    parallel = jnp.abs(direction) < _PARALLEL
     in_slab = jnp.abs(origin - center) <= half
     t_near = jnp.max(jnp.where(parallel, jnp.where(in_slab, -_INF, _INF), jnp.minimum(t1, t2)))
     t_far = jnp.min(jnp.where(parallel, jnp.where(in_slab, _INF, -_INF), jnp.maximum(t1, t2)))
@@ -141,7 +145,7 @@ def ray_cylinder(origin: jax.Array, direction: jax.Array, center: jax.Array, rad
     inv_z = _safe_inv(direction[2])
     caps = jnp.stack([(half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z])
     cap_xy = o[:2, None] + caps[None, :] * direction[:2, None]
-    caps_ok = (caps >= 0) & (jnp.sum(cap_xy**2, axis=0) <= radius**2) & (jnp.abs(direction[2]) > 1e-9)
+    caps_ok = (caps >= 0) & (jnp.sum(cap_xy**2, axis=0) <= radius**2) & (jnp.abs(direction[2]) > _PARALLEL)
     inside = (c <= 0) & (jnp.abs(o[2]) <= half_height)
     t = jnp.minimum(jnp.where(side_ok, t_side, _INF), jnp.min(jnp.where(caps_ok, caps, _INF)))
     return jnp.where(inside, 0.0, t)
