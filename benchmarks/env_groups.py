@@ -1,10 +1,10 @@
-"""Training throughput against ``env_group``: the envs the trainer steps at once (:func:`jaxrobo.env.step_batch`).
+"""Training throughput against ``env_group``: the envs the trainer steps at once (``Trainer.env_group``).
 
 An MJX step is many small kernels whose intermediates go to device memory between them; while a batch's
 intermediates fit in the GPU's L2 cache that traffic stays on chip. This script trains the MJX cart-pole with
-Q-learning at each batch size, once stepping the whole batch at once (``all``) and once per listed group size,
-and prints env-steps per second (minimum time of ``--repeats`` chunks after a warm-up) and a fingerprint of
-the Q-tables after the first chunk, which must be the same for every group size.
+Q-learning at each batch size, once stepping the whole batch at once (``all``) and once per listed group size
+(:func:`jaxrobo.env.step_batch`), and prints env-steps per second (minimum time of ``--repeats`` chunks after a
+warm-up) and a fingerprint of the Q-tables after the first chunk, which must be the same for every group size.
 
     python benchmarks/env_groups.py --device gpu --n-envs 262144,1048576 --groups all,65536
     python benchmarks/env_groups.py --device cpu --n-envs 4096 --groups all,1024 --steps 20

@@ -173,10 +173,11 @@ class TaskEnv(Env):
 
 
 # ---- stepping a batch ------------------------------------------------------------------------------------------
-#: Envs that :func:`step_batch` steps together on a GPU when the env runs on a physics engine (MJX, Brax): an
-#: MJX step is many small kernels whose intermediates go to memory between them, and at 65,536 cart-pole envs
-#: they likely still fit in an H100's 50 MB L2 cache. Larger batches run as groups of this size one after another
-#: (H100, cart-pole with Q-learning: 72 -> 85 M env-steps/s at 262,144 envs, 63 -> 87 M at 1,048,576).
+#: Envs that :func:`step_batch` steps together on a GPU when the env runs on MJX: an MJX step is many small
+#: kernels whose intermediates go to memory between them, and at 65,536 cart-pole envs they likely still fit in
+#: an H100's 50 MB L2 cache. Larger batches run as groups of this size one after another
+#: (H100, cart-pole with Q-learning: 72 -> 86 M env-steps/s at 262,144 envs, 63 -> 87 M at 1,048,576;
+#: groups of 32,768 were slower, of 131,072 no better: benchmarks/results/h100/env_groups.txt).
 GPU_ENV_GROUP = 65_536
 
 
@@ -195,32 +196,47 @@ def simulator_of(env: Env) -> Any:
 
 
 def default_env_group(env: Env) -> int | None:
-    """How many envs :func:`step_batch` should step at once: :data:`GPU_ENV_GROUP` for a physics engine on a GPU,
-    otherwise None (the whole batch: a closed-form step is one fused kernel, and CPUs gain nothing measurable)."""
+    """How many envs :func:`step_batch` should step at once: :data:`GPU_ENV_GROUP` for MJX on a GPU, otherwise
+    None (the whole batch). Not for Brax's pipelines, which ran slower in groups (H100, cart-pole env steps at
+    1,048,576 envs, whole batch in session 12 against groups in session 13: generalized 56 -> 33 M/s, spring
+    103 -> 92 M/s, positional 51 -> 50 M/s), nor for a closed form (one fused kernel) or a CPU (nothing
+    measurable to gain)."""
     sim = simulator_of(env)
-    if jax.default_backend() == "gpu" and sim is not None and not sim.cheap_step:
+    if jax.default_backend() == "gpu" and sim is not None and sim.backend == "mjx":
         return GPU_ENV_GROUP
     return None
+
+
+def map_groups(fn: Callable[[Any], Any], tree: Any, group: int | None) -> Any:
+    """``fn`` applied to consecutive slices of ``group`` rows of ``tree`` (its leaves share a leading axis), one
+    slice after another, each result written back in place; ``fn`` keeps the tree's structure and shapes. With
+    ``group`` None or not smaller than the batch, simply ``fn(tree)``. For work whose rows are independent (an
+    env step), so the values are those of ``fn(tree)``. In place: a loop of dynamic slices and updates rather
+    than ``lax.map``, whose stacked output would hold the tree twice (and which cannot reshape the zero-size
+    leaves of an MJX state's ``act``)."""
+    n = jax.tree.leaves(tree)[0].shape[0]
+    if group is None or group >= n:
+        return fn(tree)
+    n_groups, rest = divmod(n, group)
+
+    def one(i, t):
+        start = i * group
+        part = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, group), t)
+        return jax.tree.map(lambda x, y: jax.lax.dynamic_update_slice_in_dim(x, y, start, 0), t, fn(part))
+
+    tree = jax.lax.fori_loop(0, n_groups, one, tree)
+    if rest == 0:
+        return tree
+    head = n_groups * group
+    tail = fn(jax.tree.map(lambda x: x[head:], tree))
+    return jax.tree.map(lambda x, y: x.at[head:].set(y), tree, tail)
 
 
 def step_batch(env: Env, states: EnvState, actions: jax.Array, params: Any = None,
                group: int | None = None) -> EnvState:
     """``env.step`` over a batch (the leading axis): vmapped over all of it, or with ``group`` set and smaller
-    than the batch, vmapped over ``group`` envs at a time in a ``lax.map``. Each env's step does not depend on
-    the others, so the values are the same (bit for bit in the tests and on an H100; XLA may round a last bit
+    than the batch, vmapped over ``group`` envs at a time (:func:`map_groups`). Each env's step does not depend
+    on the others, so the values are the same (bit for bit in the tests and on an H100; XLA may round a last bit
     differently when it compiles the code around the step differently, as at optimisation level 0)."""
     batch = jax.vmap(lambda s, a: env.step(s, a, params))
-    n = actions.shape[0]
-    if group is None or group >= n:
-        return batch(states, actions)
-    # By hand rather than ``lax.map(..., batch_size=group)``, which cannot reshape zero-size leaves (an MJX
-    # state's ``act`` of a model without actuator state).
-    n_groups, rest = divmod(n, group)
-    head = n_groups * group
-    grouped = jax.tree.map(lambda x: x[:head].reshape((n_groups, group) + x.shape[1:]), (states, actions))
-    out = jax.lax.map(lambda sa: batch(*sa), grouped)
-    out = jax.tree.map(lambda x: x.reshape((head,) + x.shape[2:]), out)
-    if rest == 0:
-        return out
-    tail = batch(*jax.tree.map(lambda x: x[head:], (states, actions)))
-    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out, tail)
+    return map_groups(lambda sa: (batch(*sa), sa[1]), (states, actions), group)[0]

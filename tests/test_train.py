@@ -58,11 +58,34 @@ def test_results_do_not_depend_on_the_chunk_length(qlearn_run):
     np.testing.assert_array_equal(_run(chunk_steps=17).returns, qlearn_run.returns)
 
 
-def test_stepping_envs_in_groups_changes_nothing(qlearn_run):
-    """``env_group``: the 4 envs stepped as groups of 3 and 1 (as GPUs step large MJX batches) give the same run."""
-    grouped = _run(eval_episodes=2, eval_envs=2, env_group=3)
+@pytest.mark.parametrize("group", [3, 2])
+def test_stepping_envs_in_groups_changes_nothing(qlearn_run, group):
+    """``env_group``: the 4 envs stepped as groups of 3 and 1, or 2 and 2 (as GPUs step large MJX batches), give
+    the same run as all 4 at once."""
+    grouped = _run(eval_episodes=2, eval_envs=2, env_group=group)
     np.testing.assert_array_equal(grouped.returns, qlearn_run.returns)
+    np.testing.assert_array_equal(grouped.lengths, qlearn_run.lengths)
     np.testing.assert_array_equal(grouped.q, qlearn_run.q)
+
+
+def test_a_shared_table_run_steps_its_envs_in_groups_with_the_same_values():
+    whole, grouped = (_run(shared_table=True, env_group=g) for g in (0, 3))
+    np.testing.assert_array_equal(grouped.returns, whole.returns)
+    np.testing.assert_array_equal(grouped.q, whole.q)
+
+
+def test_map_groups_writes_each_slice_in_place():
+    import jax.numpy as jnp
+
+    from jaxrobo.env import map_groups
+
+    tree = {"x": jnp.arange(7.0), "y": jnp.arange(14).reshape(7, 2)}
+    # y grows by the number of rows fn saw at once, which shows the slicing
+    fn = lambda t: {"x": t["x"] * 2 + t["y"][:, 0], "y": t["y"] + t["x"].shape[0]}  # noqa: E731
+    for group, rows_seen in ((3, [3, 3, 3, 3, 3, 3, 1]), (7, [7] * 7), (8, [7] * 7), (None, [7] * 7)):
+        out = map_groups(fn, tree, group)
+        np.testing.assert_array_equal(out["x"], fn(tree)["x"])
+        np.testing.assert_array_equal(out["y"], tree["y"] + np.array(rows_seen)[:, None])
 
 
 def test_env_group_defaults(monkeypatch):
@@ -71,11 +94,13 @@ def test_env_group_defaults(monkeypatch):
     from jaxrobo import env as env_module
     from jaxrobo.config import ConfigError
 
-    mjx_env, closed_form = (resolve("CartPoleStayUp-v0", overrides={"backend": b}).env for b in ("mjx", "analytic"))
+    mjx_env, closed_form, brax_env = (resolve("CartPoleStayUp-v0", overrides={"backend": b}).env
+                                      for b in ("mjx", "analytic", "generalized"))
     assert env_module.default_env_group(mjx_env) is None  # CPU: the whole batch
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert env_module.default_env_group(mjx_env) == env_module.GPU_ENV_GROUP
     assert env_module.default_env_group(closed_form) is None  # one fused kernel: no groups
+    assert env_module.default_env_group(brax_env) is None  # Brax's pipelines ran slower in groups
     with pytest.raises(ConfigError, match="env_group"):
         resolve("CartPoleStayUp-v0", overrides={"env_group": -1})
 
