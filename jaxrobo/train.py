@@ -110,8 +110,8 @@ class Trainer:
         #: pre-update rows (H100, 65 k envs: 1.3 G -> 89 M env-steps/s), nor with a shared table, whose rows
         #: other envs change. Either way the values are the same (tested).
         self.carry_rows = cpu and not config.shared_table
-        #: Envs stepped at once (:func:`jaxrobo.env.step_batch`; None: the whole batch): on a GPU a physics
-        #: engine's batch steps as groups of :data:`jaxrobo.env.GPU_ENV_GROUP` envs. Only the env step: training
+        #: Envs stepped at once (:func:`jaxrobo.env.step_batch`; None: the whole batch): on a GPU an MJX batch
+        #: steps as groups of :data:`jaxrobo.env.GPU_ENV_GROUP` envs. Only the env step: training
         #: a group's whole chunk of steps before the next group's (tried on an H100, 262,144 cart-poles with
         #: Q-learning) gained 2 % with 100-step chunks (88 vs 86 M env-steps/s) but lost 5 % with the 15-step
         #: chunks of throughput.py (83 M), as each group's 500 MB of Q-tables is copied out and back per chunk.

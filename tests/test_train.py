@@ -74,7 +74,7 @@ def test_a_shared_table_run_steps_its_envs_in_groups_with_the_same_values():
     np.testing.assert_array_equal(grouped.q, whole.q)
 
 
-def test_map_groups_writes_each_slice_in_place():
+def test_map_groups_applies_fn_slice_by_slice():
     import jax.numpy as jnp
 
     from jaxrobo.env import map_groups
