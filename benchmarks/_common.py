@@ -14,6 +14,9 @@ import time
 from typing import Any, Callable
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+#: Training config overrides for a timed run: episodes without end, nothing recorded, no evaluation, so every
+#: chunk does the same work and the carry holds only what training needs.
+TIMED_TRAINING = {"record_episodes": False, "nepisodes": 10**9, "eval_episodes": 0}
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 

@@ -45,8 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     for n in (int(x) for x in args.n_envs.split(",")):
         for token in args.groups.split(","):
             group = n if token == "all" else int(token)
-            overrides = {"n_envs": n, "record_episodes": False, "nepisodes": 10**9, "eval_episodes": 0,
-                         "chunk_steps": args.steps, "env_group": group}
+            overrides = {"n_envs": n, **_common.TIMED_TRAINING, "chunk_steps": args.steps, "env_group": group}
             if args.backend is not None:
                 overrides["backend"] = args.backend
             spec = resolve(args.env, "default", overrides, agent="qlearn")

@@ -145,8 +145,7 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
 
     row = {"suite": "jaxrobo", "env": env_id, "backend": _backend_label(backend, options), "mode": learner or "env",
            "n_envs": n}
-    overrides: dict[str, Any] = {"n_envs": n, "record_episodes": False, "nepisodes": 10**9, "eval_episodes": 0,
-                                 **(options or {})}
+    overrides: dict[str, Any] = {"n_envs": n, **_common.TIMED_TRAINING, **(options or {})}
     if backend is not None:
         overrides["backend"] = backend
     steps = steps_for(n, ctx["gpu"], args.steps)
