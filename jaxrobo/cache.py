@@ -93,6 +93,20 @@ def source_hash() -> str:
     return _SOURCE_HASH
 
 
+def _traced_library_versions() -> list[str]:
+    """Versions of the physics libraries whose Python code a traced program inlines (MJX's step, Brax's
+    pipelines): upgrading one must not reuse a program traced with the other."""
+    from importlib import metadata
+
+    out = []
+    for dist in ("mujoco", "mujoco-mjx", "brax"):
+        try:
+            out.append(f"{dist}=={metadata.version(dist)}")
+        except metadata.PackageNotFoundError:
+            out.append(f"{dist} absent")
+    return out
+
+
 def exported_jit(fn, example_args: tuple, out_like, tag: str, donate_argnums: tuple[int, ...] = (),
                  directory: str | None = None):
     """``jax.jit(fn)`` compiled for ``example_args``, whose traced program is kept on disk with ``jax.export``.
@@ -101,9 +115,10 @@ def exported_jit(fn, example_args: tuple, out_like, tag: str, donate_argnums: tu
     training chunk that is ~2-3 s of a CPU start-up). Here the first process serialises the traced program
     under ``<cache dir>/exported``; later ones load it and go straight to the (cached) compile. ``tag`` must
     name everything ``fn`` closes over (config, env options, discretiser, learner); the argument shapes, the
-    sources of jaxrobo/envs/agents, the JAX version and the backend are added to the key. ``out_like`` is any
-    pytree with the structure of the result (for ``run_chunk``: the runner). Without a cache directory or
-    without the ``flatbuffers`` package this is a plain ``jax.jit(...).lower(...).compile()``.
+    sources of jaxrobo/envs/agents, the versions of JAX, MuJoCo, MJX and Brax, and the backend are added to
+    the key. ``out_like`` is any pytree with the structure of the result (for ``run_chunk``: the runner).
+    Without a cache directory or without the ``flatbuffers`` package this is a plain
+    ``jax.jit(...).lower(...).compile()``.
     """
     import hashlib
 
@@ -133,8 +148,8 @@ def exported_jit(fn, example_args: tuple, out_like, tag: str, donate_argnums: tu
     # MJX keeps static numpy arrays in the pytree metadata; their repr carries a memory address
     signature = re.sub(r" at 0x[0-9a-fA-F]+", "", repr([(x.shape, str(x.dtype)) for x in raw]) + str(in_tree)
                        + str(out_tree))
-    key = hashlib.sha256("|".join([tag, signature, source_hash(), jax.__version__, jax.default_backend()])
-                         .encode()).hexdigest()[:32]
+    key = hashlib.sha256("|".join([tag, signature, source_hash(), jax.__version__, jax.default_backend(),
+                                   *_traced_library_versions()]).encode()).hexdigest()[:32]
     path = os.path.join(directory, "exported", f"{key}.bin")
 
     def flat(*xs):

@@ -23,7 +23,7 @@ ends the episode, and flags it, if the physics produced a non-finite number, so 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -173,12 +173,19 @@ class TaskEnv(Env):
 
 
 # ---- stepping a batch ------------------------------------------------------------------------------------------
-#: Envs that :func:`step_batch` steps together on a GPU when the env runs on MJX: an MJX step is many small
-#: kernels whose intermediates go to memory between them, and at 65,536 cart-pole envs they likely still fit in
-#: an H100's 50 MB L2 cache. Larger batches run as groups of this size one after another
-#: (H100, cart-pole with Q-learning: 72 -> 86 M env-steps/s at 262,144 envs, 63 -> 87 M at 1,048,576;
-#: groups of 32,768 were slower, of 131,072 no better: benchmarks/results/h100/env_groups.txt).
-GPU_ENV_GROUP = 65_536
+#: Envs that :func:`step_batch` steps together on a GPU when the env runs on MJX; larger batches run as groups
+#: of this size one after another (H100, MJX cart-pole with Q-learning, lean MJX, 100-step chunks: at 1,048,576
+#: envs 99.9 M env-steps/s as one batch, 110.6 M in groups of 262,144, 109.0 M of 131,072, 104.4 M of 65,536;
+#: at 262,144 envs 110.5 M as one batch, 104.4 M in groups of 65,536: benchmarks/results/h100/env_groups.txt).
+#: Most likely a step's intermediates fall out of the L2 cache beyond that size (a reading, not profiled).
+GPU_ENV_GROUP = 262_144
+#: Groups that :func:`map_groups` writes out one after another with static slices (more run in a loop over
+#: blocks of this many). Written out, XLA fuses each group's slicing into the code around it and needs no loop
+#: (H100, 262,144 cart-poles with Q-learning, stock MJX, in groups of 65,536: 86.1 M env-steps/s in a loop of
+#: dynamic slices, 91.4 M written out, same tables); each group written out is one more copy of the step to
+#: compile (1,048,576 envs in groups of 262,144, lean MJX: 110.6 M after 51 s of compile with 4 written out,
+#: 104.5 M after 12 s with 1).
+UNROLLED_GROUPS = 4
 
 
 def layers(env: Env) -> list[Env]:
@@ -207,28 +214,52 @@ def default_env_group(env: Env) -> int | None:
     return None
 
 
-def map_groups(fn: Callable[[Any], Any], tree: Any, group: int | None) -> Any:
+def _rows_of(tree: Any) -> int:
+    return jax.tree.leaves(tree)[0].shape[0]
+
+
+def _written_out(fn: Callable[[Any], Any], tree: Any, group: int) -> Any:
+    """``fn`` over consecutive static slices of ``group`` rows (the last one shorter if need be), in order."""
+    n = _rows_of(tree)
+    for start in range(0, n, group):
+        rows = slice(start, min(n, start + group))
+        part = fn(jax.tree.map(lambda x, rows=rows: x[rows], tree))
+        tree = jax.tree.map(lambda x, y, rows=rows: x.at[rows].set(y), tree, part)
+    return tree
+
+
+def map_groups(fn: Callable[[Any], Any], tree: Any, group: int | None, unrolled: int | None = None) -> Any:
     """``fn`` applied to consecutive slices of ``group`` rows of ``tree`` (its leaves share a leading axis), one
     slice after another, each result written back in place; ``fn`` keeps the tree's structure and shapes. With
     ``group`` None or not smaller than the batch, simply ``fn(tree)``. For work whose rows are independent (an
-    env step), so the values are those of ``fn(tree)``. In place: a loop of dynamic slices and updates rather
-    than ``lax.map``, whose stacked output would hold the tree twice (and which cannot reshape the zero-size
-    leaves of an MJX state's ``act``)."""
-    n = jax.tree.leaves(tree)[0].shape[0]
+    env step), so the values are those of ``fn(tree)``.
+
+    A batch of up to ``unrolled`` groups (default :data:`UNROLLED_GROUPS`) has them written out with static
+    slices; a larger one runs blocks of ``unrolled`` groups in a ``fori_loop`` of dynamic slices and updates,
+    then the rows left over written out. In place, not ``lax.map``, whose stacked output would hold the tree
+    twice (and which cannot reshape the zero-size leaves of an MJX state's ``act``)."""
+    n = _rows_of(tree)
     if group is None or group >= n:
         return fn(tree)
-    n_groups, rest = divmod(n, group)
+    unrolled = UNROLLED_GROUPS if unrolled is None else unrolled
+    if unrolled < 1:
+        raise ValueError(f"unrolled={unrolled}: expected an integer >= 1")
+    block = group * unrolled  # rows per loop iteration
+    if n <= block:
+        return _written_out(fn, tree, group)
+    n_blocks = n // block
 
     def one(i, t):
-        start = i * group
-        part = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, group), t)
-        return jax.tree.map(lambda x, y: jax.lax.dynamic_update_slice_in_dim(x, y, start, 0), t, fn(part))
+        start = i * block
+        part = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, block), t)
+        done = _written_out(fn, part, group)
+        return jax.tree.map(lambda x, y: jax.lax.dynamic_update_slice_in_dim(x, y, start, 0), t, done)
 
-    tree = jax.lax.fori_loop(0, n_groups, one, tree)
-    if rest == 0:
+    tree = jax.lax.fori_loop(0, n_blocks, one, tree)
+    head = n_blocks * block
+    if head == n:
         return tree
-    head = n_groups * group
-    tail = fn(jax.tree.map(lambda x: x[head:], tree))
+    tail = _written_out(fn, jax.tree.map(lambda x: x[head:], tree), group)
     return jax.tree.map(lambda x, y: x.at[head:].set(y), tree, tail)
 
 

@@ -25,7 +25,8 @@ import numpy as np
 import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
-from jaxrobo import cache, rng
+from jaxrobo import cache, rng, sim
+from jaxrobo import env as env_layer
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState, default_env_group, layers, step_batch
 from jaxrobo.struct import param, pytree_dataclass
@@ -111,10 +112,11 @@ class Trainer:
         #: other envs change. Either way the values are the same (tested).
         self.carry_rows = cpu and not config.shared_table
         #: Envs stepped at once (:func:`jaxrobo.env.step_batch`; None: the whole batch): on a GPU an MJX batch
-        #: steps as groups of :data:`jaxrobo.env.GPU_ENV_GROUP` envs. Only the env step: training
-        #: a group's whole chunk of steps before the next group's (tried on an H100, 262,144 cart-poles with
-        #: Q-learning) gained 2 % with 100-step chunks (88 vs 86 M env-steps/s) but lost 5 % with the 15-step
-        #: chunks of throughput.py (83 M), as each group's 500 MB of Q-tables is copied out and back per chunk.
+        #: steps as groups of :data:`jaxrobo.env.GPU_ENV_GROUP` envs. Only the env step: training a group's whole
+        #: chunk of steps before the next group's (tried on an H100, 262,144 cart-poles with Q-learning, stock MJX
+        #: in groups of 65,536) gained 2 % with 100-step chunks (88 vs 86 M env-steps/s) but lost 5 % with the
+        #: 15-step chunks of throughput.py (83 M), as each group's 500 MB of Q-tables is copied out and back per
+        #: chunk.
         self.env_group = config.env_group or default_env_group(env)
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
@@ -368,6 +370,7 @@ def _compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams,
     if cache.is_own_code(*parts):
         tag = repr((getattr(env, "name", None), getattr(env, "options", None), trainer.config, learner.name,
                     trainer.disc, trainer.reset_capacity, trainer.carry_rows, trainer.env_group,
+                    env_layer.UNROLLED_GROUPS, sim.LEAN_MJX,
                     jax.random.key_impl(runner.key[0]),
                     jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision))
         return cache.exported_jit(trainer.run_chunk, (runner, agent_params, env_params), runner, tag,

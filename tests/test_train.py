@@ -75,6 +75,7 @@ def test_a_shared_table_run_steps_its_envs_in_groups_with_the_same_values():
 
 
 def test_map_groups_applies_fn_slice_by_slice():
+    import jax
     import jax.numpy as jnp
 
     from jaxrobo.env import map_groups
@@ -83,9 +84,13 @@ def test_map_groups_applies_fn_slice_by_slice():
     # y grows by the number of rows fn saw at once, which shows the slicing
     fn = lambda t: {"x": t["x"] * 2 + t["y"][:, 0], "y": t["y"] + t["x"].shape[0]}  # noqa: E731
     for group, rows_seen in ((3, [3, 3, 3, 3, 3, 3, 1]), (7, [7] * 7), (8, [7] * 7), (None, [7] * 7)):
-        out = map_groups(fn, tree, group)
-        np.testing.assert_array_equal(out["x"], fn(tree)["x"])
-        np.testing.assert_array_equal(out["y"], tree["y"] + np.array(rows_seen)[:, None])
+        # groups written out (default 4 of them), in a loop of blocks of 1 or 2 groups, or all written out
+        for unrolled in (None, 1, 2, 8):
+            out = jax.jit(lambda t, g=group, u=unrolled: map_groups(fn, t, g, u))(tree)
+            np.testing.assert_array_equal(out["x"], fn(tree)["x"])
+            np.testing.assert_array_equal(out["y"], tree["y"] + np.array(rows_seen)[:, None])
+    with pytest.raises(ValueError, match="unrolled=0"):
+        map_groups(fn, tree, 3, unrolled=0)
 
 
 def test_env_group_defaults(monkeypatch):
