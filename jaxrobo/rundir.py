@@ -133,7 +133,15 @@ def staging(path: str) -> str:
     path = os.path.abspath(path)
     parent, name = os.path.split(path.rstrip(os.sep))
     os.makedirs(parent, exist_ok=True)
-    return tempfile.mkdtemp(prefix=f".{name}.", suffix=".partial", dir=parent)
+    path = tempfile.mkdtemp(prefix=f".{name}.", suffix=".partial", dir=parent)
+    os.chmod(path, 0o777 & ~_umask())  # mkdtemp makes it private; a published run has the usual permissions
+    return path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _fsync_dir(path: str) -> None:
@@ -225,6 +233,7 @@ def atomic_write(path: str, writer: Callable[[IO], None], mode: str = "wb") -> N
             writer(f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private
         os.replace(tmp, path)
     except BaseException:
         try:

@@ -467,6 +467,27 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes))
 
 
+def spec_from_config(run_config: dict[str, Any]):
+    """The :class:`jaxrobo.run.RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
+    applied as an override of the saved preset, and the result must give back the same config."""
+    from jaxrobo.config import ConfigError
+    from jaxrobo.run import resolve
+
+    try:
+        env_id, preset = run_config["env_id"], run_config.get("preset", "default")
+        overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
+        overrides.update({f"agent.{k}": v for part in ("agent_params", "train") for k, v in run_config[part].items()})
+    except (KeyError, TypeError, AttributeError) as err:
+        raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
+    spec = resolve(env_id, preset, overrides)
+    again = json.loads(json.dumps(spec.to_dict()))
+    if again != json.loads(json.dumps(run_config)):
+        a, b = _flat(run_config), _flat(again)
+        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        raise ConfigError(f"config.yaml: does not resolve to itself ({', '.join(keys[:5])}); edited by hand?")
+    return spec
+
+
 # ---- checkpoints -------------------------------------------------------------------------------------------------
 #: Bumped when the checkpoint layout changes.
 CHECKPOINT_FORMAT = 1
