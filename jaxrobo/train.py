@@ -11,6 +11,10 @@ The whole step (act → env step → discretise → learn → record → auto-re
 ``chunk_steps`` steps and jitted once; the host only runs chunk after chunk and reads a few numbers in between
 for the progress bar, so the hot loop never syncs with the host. ``init`` and ``run_chunk`` take the learner
 and env parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`jaxrobo.sweep`).
+
+The host loop (:func:`train`) starts from a fresh carry or a saved one (:func:`save_checkpoint` /
+:func:`load_checkpoint`, what ``jaxrobo train --resume`` uses), hands the carry to a checkpoint callback now and
+then, and stops at a chunk boundary when asked.
 """
 from __future__ import annotations
 

@@ -172,7 +172,7 @@ def test_check_out_names_the_flag_and_the_way_out(tmp_path):
     assert rundir.is_resumable(str(run)) and not rundir.is_complete(str(run))
 
 
-def test_overwrite_replaces_the_whole_old_run(tmp_path, capsys):
+def test_overwrite_replaces_the_whole_old_run(tmp_path):
     out = tmp_path / "run"
     out.mkdir()
     (out / "summary.json").write_text("{}")
