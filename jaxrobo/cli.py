@@ -20,41 +20,167 @@ PLUGINS = {"show": ("jaxrobo.flights", "draw greedy flights of a trained quadcop
            "sweep": ("jaxrobo.sweep", "parameter sweep as one vmapped computation")}
 
 
-def _train(args: argparse.Namespace) -> int:
-    from jaxrobo.config import ConfigError, parse_overrides
-    from jaxrobo.results import save_run
-    from jaxrobo.run import resolve
-    from jaxrobo.train import Trainer, train
+#: Default checkpoint cadence of ``jaxrobo train``: at the first chunk boundary this long after the last save.
+CHECKPOINT_SECONDS = 300.0
 
+
+def _train(args: argparse.Namespace) -> int:
+    """``jaxrobo train``: a fresh run into ``--out``, or ``--resume DIR``; exit 130/143 after SIGINT/SIGTERM with a
+    resumable directory (:mod:`jaxrobo.rundir` has the rules of run directories)."""
     try:
-        overrides = parse_overrides(args.set or [])
-        for key, flag in (("n_envs", args.n_envs), ("seed", args.seed), ("nepisodes", args.nepisodes)):
-            if flag is not None:
-                overrides[key] = flag
-        spec = resolve(args.env, args.preset, overrides, agent=args.agent)
-    except ConfigError as err:
+        return _train_checked(args)
+    except KeyboardInterrupt:  # before the handlers are installed or after a second signal: nothing half-written
+        print("jaxrobo train: interrupted", file=sys.stderr)
+        return 130
+
+
+def _train_checked(args: argparse.Namespace) -> int:
+    import shlex
+    import signal
+    import threading
+
+    import jax
+    import numpy as np
+    import yaml
+
+    from jaxrobo import rundir
+    from jaxrobo import train as training
+    from jaxrobo.config import ConfigError, parse_overrides
+    from jaxrobo.results import save_run, write_config, write_episodes
+    from jaxrobo.run import resolve
+
+    resume = args.resume
+    try:
+        if args.checkpoint_every is not None and args.checkpoint_every < 0:
+            raise ConfigError(f"--checkpoint-every={args.checkpoint_every}: expected an integer >= 0 (chunks; 0: "
+                              "only when interrupted)")
+        if resume is not None:
+            given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent), ("--preset", args.preset),
+                                              ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
+                                              ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
+                     if value is not None]
+            given += ["--overwrite"] if args.overwrite else []
+            if given:
+                raise ConfigError(f"--resume {resume}: the run goes on with its own config.yaml and directory; "
+                                  f"drop {', '.join(given)}")
+            rundir.check_out(resume, resume=True, flag="--resume")
+            out = resume
+            try:
+                with open(os.path.join(out, "config.yaml")) as f:
+                    saved = yaml.safe_load(f)
+            except (OSError, yaml.YAMLError) as err:
+                raise ConfigError(f"--resume {resume}: cannot read config.yaml ({err})") from err
+            spec = training.spec_from_config(saved if isinstance(saved, dict) else {})
+        else:
+            overrides = parse_overrides(args.set or [])
+            for key, flag in (("n_envs", args.n_envs), ("seed", args.seed), ("nepisodes", args.nepisodes)):
+                if flag is not None:
+                    overrides[key] = flag
+            spec = resolve(args.env or "CartPoleStayUp-v0", args.preset or "default", overrides, agent=args.agent)
+            out = args.out or os.path.join("training_results",
+                                           f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
+            rundir.check_out(out, overwrite=args.overwrite)
+        cfg = spec.config
+        trainer = training.Trainer(spec.env, cfg)
+        template = training.carry_template(trainer, spec.agent_params)
+        fingerprint = training.carry_fingerprint(template, spec.to_dict())
+        initial, start_chunk = None, 0
+        if resume is not None:
+            initial, start_chunk = training.load_checkpoint(os.path.join(out, rundir.CHECKPOINT), template,
+                                                            fingerprint)
+    except (ConfigError, training.CheckpointError) as err:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
-    out = args.out or os.path.join("training_results",
-                                   f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
-    cfg = spec.config
+
+    # Where the checkpoints go while training: the run directory itself (new, empty, or the run being resumed),
+    # so that a hard crash leaves it resumable; with --overwrite a hidden sibling, so that the old run stays
+    # whole until the new one replaces it.
+    if resume is None and os.path.isdir(out) and os.listdir(out):
+        live = rundir.staging(out)
+    else:
+        live = out
+        os.makedirs(out, exist_ok=True)
+    if resume is None:
+        write_config(live, spec.to_dict())
+    n_chunks = trainer.max_chunks()
+    resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
+    rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=start_chunk, chunks=n_chunks,
+                        resume=resume_cmd)
+    checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
     print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {cfg.n_envs} envs × {cfg.nepisodes} episodes "
-          f"≤ {cfg.nsteps} steps → {out}")
+          f"≤ {cfg.nsteps} steps → {out}" + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
+    if live != out:
+        print(f"checkpoints in {live} until the run is done", file=sys.stderr)
+
+    done0 = 0 if initial is None else int(np.min(np.asarray(jax.device_get(initial.episode))))
     bar = None
     if not args.no_progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.nepisodes, unit="ep", desc="training", dynamic_ncols=True)
+        bar = tqdm(total=cfg.nepisodes, initial=min(done0, cfg.nepisodes), unit="ep", desc="training",
+                   dynamic_ncols=True)
 
     def progress(done: int, total: int, last_return: float) -> None:
         if bar is not None:
             bar.update(done - bar.n)
             bar.set_postfix(mean_reward=f"{last_return:.1f}")
 
-    result = train(spec.env, cfg, spec.agent_params, progress=progress)
-    if bar is not None:
-        bar.close()
-    save_run(out, result, spec.to_dict(), Trainer(spec.env, cfg).disc)
+    def checkpoint(runner, chunks_done: int) -> None:
+        training.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
+        rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
+                            chunks=n_chunks, resume=resume_cmd)
+
+    # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
+    received: list[int] = []
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        if received:
+            raise SystemExit(128 + signum)
+        received.append(signum)
+        print(f"\n{signal.Signals(signum).name}: finishing the current chunk, then saving a checkpoint "
+              "(again to quit without saving)", file=sys.stderr)
+
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
+    try:
+        result = training.train(spec.env, cfg, spec.agent_params, progress=progress, initial=initial,
+                                start_chunk=start_chunk, checkpoint=checkpoint,
+                                checkpoint_every=args.checkpoint_every or 0, checkpoint_seconds=every,
+                                should_stop=lambda: bool(received))
+        if bar is not None:
+            bar.close()
+        if not result.complete:
+            # The checkpoint is saved (train called ``checkpoint``); the finished episodes and the status go
+            # with it, the status last, and a staging directory is moved into place.
+            write_episodes(live, result.returns, result.lengths, result.terminated, result.epsilon,
+                           episodes_done=result.episodes_done)
+            name = signal.Signals(received[0]).name
+            done_min = int(result.episodes_done.min())
+            rundir.write_status(live, rundir.INTERRUPTED, out=os.path.abspath(out), signal=name,
+                                chunks_done=result.chunks_done, chunks=n_chunks, episodes_done_min=done_min,
+                                nepisodes=cfg.nepisodes, resume=resume_cmd)
+            if live != out:
+                rundir.publish(live, out, overwrite=True)
+            print(f"jaxrobo train: {name}: stopped after chunk {result.chunks_done} of {n_chunks} ({done_min} of "
+                  f"{cfg.nepisodes} episodes in every env); to go on: {resume_cmd}", file=sys.stderr)
+            return 128 + received[0]
+        staged = rundir.staging(out)
+        try:
+            save_run(staged, result, spec.to_dict(), trainer.disc)
+            rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
+                                **({"resumed_after_chunk": start_chunk} if resume else {}))
+            # ``out`` holds this run's own checkpoint, or an old run that --overwrite allows to replace.
+            rundir.publish(staged, out, overwrite=True)
+        except BaseException:
+            rundir.discard(staged)
+            raise
+        if live != out:
+            rundir.discard(live)
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
     s = result.summary()
     print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps']:,} env steps in {s['run_seconds']:.1f} s "
           f"({s['env_steps_per_second']:,.0f} steps/s)")
@@ -108,14 +234,23 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("train", help="train a tabular agent on many envs at once")
-    p.add_argument("--env", default="CartPoleStayUp-v0", help="environment id (see `jaxrobo list`)")
+    p.add_argument("--env", default=None, help="environment id (see `jaxrobo list`; default CartPoleStayUp-v0)")
     p.add_argument("--agent", default=None, help="qlearn | sarsa | expected_sarsa | double_q")
-    p.add_argument("--preset", default="default", help="parameter preset of the env's agent YAML: default | seed")
+    p.add_argument("--preset", default=None,
+                   help="parameter preset of the env's agent YAML: default | seed (default: default)")
     p.add_argument("--n-envs", type=int, default=None, help="environments (independent learners) run at once")
     p.add_argument("--nepisodes", type=int, default=None, help="episodes per environment")
     p.add_argument("--seed", type=int, default=None, help="random seed")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a parameter (repeatable)")
     p.add_argument("--out", default=None, help="run directory (default training_results/<env>_<agent>_<time>)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the run already in --out (only once the new run is done or interrupted)")
+    p.add_argument("--resume", default=None, metavar="DIR",
+                   help="go on with the interrupted run in DIR, from its config.yaml and checkpoint (no other "
+                        "config flags)")
+    p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+                   help="save the training carry every N chunks (default: every ~5 minutes; 0: only when "
+                        "interrupted); SIGINT/SIGTERM always save one")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_train)
 

@@ -13,7 +13,17 @@ A run directory holds:
                          ``bins``, ``edges``) - plain arrays, no pickle
 ``eval.csv``             greedy evaluation: ``table,episode,return,length`` (when evaluated)
 ``tensorboard/``         TensorBoard scalars per episode (mean return, mean length, epsilon)
+``status.json``          ``{"status": "running" | "interrupted" | "complete", ...}``: an interrupted run also
+                         says how far it got (``chunks_done``, ``episodes_done_min``) and how to go on
+                         (``resume``: the command line)
+``checkpoint.npz``       only in an unfinished run: the whole training carry, from which ``jaxrobo train
+                         --resume DIR`` goes on (format: :func:`jaxrobo.train.save_checkpoint`)
 =======================  =====================================================================================
+
+A complete run is written into a hidden sibling and renamed into place (:mod:`jaxrobo.rundir`), so a directory
+whose status is ``complete`` has all of its files. An interrupted run holds ``config.yaml``, ``status.json``,
+``checkpoint.npz`` and the episodes finished so far (``episodes.csv``, ``records.npz`` with ``episodes_done``
+per env, ``episode_stats.csv`` over the episodes every env finished); no tables, summary or evaluation.
 """
 from __future__ import annotations
 
@@ -39,20 +49,27 @@ def write_config(out_dir: str, config: dict[str, Any]) -> None:
 
 
 def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray,
-                   epsilon: np.ndarray, max_csv_envs: int = 1024) -> None:
-    """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats."""
+                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None) -> None:
+    """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats.
+
+    ``episodes_done`` (per env, for an interrupted run): only finished episodes get CSV rows, ``records.npz``
+    keeps the count, and the stats cover the episodes that every env finished."""
     os.makedirs(out_dir, exist_ok=True)
     returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
     terminated = np.atleast_2d(terminated)
     n_envs, n_ep = returns.shape
+    done = np.full(n_envs, n_ep) if episodes_done is None else np.minimum(np.asarray(episodes_done), n_ep)
     with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(EPISODE_COLUMNS)
         for e in range(min(n_envs, max_csv_envs)):
-            for i in range(n_ep):
+            for i in range(int(done[e])):
                 w.writerow((e, i, f"{returns[e, i]:.6g}", int(lengths[e, i]), int(terminated[e, i]), f"{epsilon[i]:.6g}"))
+    extra = {} if episodes_done is None else {"episodes_done": done}
     np.savez_compressed(os.path.join(out_dir, "records.npz"), returns=returns, lengths=lengths,
-                        terminated=terminated, epsilon=epsilon)
+                        terminated=terminated, epsilon=epsilon, **extra)
+    n_ep = int(done.min()) if n_envs else 0
+    returns, lengths, epsilon = returns[:, :n_ep], lengths[:, :n_ep], np.asarray(epsilon)[:n_ep]
     pct = lambda x, q: np.percentile(x, q, axis=0)  # noqa: E731
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
@@ -105,8 +122,16 @@ def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, ep
 
 
 def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None) -> str:
-    """Write everything a :class:`jaxrobo.train.TrainResult` holds into ``out_dir``; returns ``out_dir``."""
+    """Write everything a :class:`jaxrobo.train.TrainResult` holds into ``out_dir``; returns ``out_dir``.
+
+    An interrupted result (``complete`` False) writes its config and the episodes finished so far only. The
+    caller writes ``status.json`` (and, for an interrupted run, the checkpoint) and publishes the directory
+    (:mod:`jaxrobo.rundir`)."""
     write_config(out_dir, run_config)
+    if not getattr(result, "complete", True):
+        write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
+                       episodes_done=result.episodes_done)
+        return out_dir
     write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon)
     write_tables(out_dir, result.q, disc)
     write_summary(out_dir, result.summary())

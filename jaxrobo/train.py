@@ -11,10 +11,16 @@ The whole step (act → env step → discretise → learn → record → auto-re
 ``chunk_steps`` steps and jitted once; the host only runs chunk after chunk and reads a few numbers in between
 for the progress bar, so the hot loop never syncs with the host. ``init`` and ``run_chunk`` take the learner
 and env parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`jaxrobo.sweep`).
+
+The host loop (:func:`train`) starts from a fresh carry or a saved one (:func:`save_checkpoint` /
+:func:`load_checkpoint`, what ``jaxrobo train --resume`` uses), hands the carry to a checkpoint callback now and
+then, and stops at a chunk boundary when asked.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 import time
 from typing import Any, Callable
 
@@ -319,6 +325,11 @@ class TrainResult:
     eval_returns: np.ndarray | None = None  # [eval_envs, eval_episodes]
     eval_lengths: np.ndarray | None = None
     selected: dict[str, Any] | None = None  # the best evaluated table, re-evaluated on fresh episodes
+    #: False when ``should_stop`` ended the run early: the records hold the episodes finished so far
+    #: (``episodes_done`` per env), there is no evaluation, and the carry at ``chunks_done`` goes on from there.
+    complete: bool = True
+    chunks_done: int = 0
+    episodes_done: np.ndarray | None = None  # [n_envs] finished episodes per env
 
     @property
     def steps_per_second(self) -> float:
@@ -378,33 +389,61 @@ def _compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams,
     return jax.jit(trainer.run_chunk, donate_argnums=0).lower(runner, agent_params, env_params).compile()
 
 
+CheckpointFn = Callable[[Runner, int], None]
+
+
 def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None, env_params: Any = None,
-          progress: ProgressFn | None = None) -> TrainResult:
-    """Run a whole training; ``progress(episodes_done_min, nepisodes, mean_last_return)`` after each chunk."""
+          progress: ProgressFn | None = None, *, initial: Runner | None = None, start_chunk: int = 0,
+          checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
+          checkpoint_seconds: float | None = None, should_stop: Callable[[], bool] | None = None) -> TrainResult:
+    """Run a whole training; ``progress(episodes_done_min, nepisodes, mean_last_return)`` after each chunk.
+
+    The host loop runs chunk after chunk from ``initial`` (a carry after ``start_chunk`` chunks, e.g. from
+    :func:`load_checkpoint`; default: a fresh ``Trainer.init``), so a resumed run is the uninterrupted one bit for
+    bit: training is deterministic and does not depend on where the chunks are cut. ``initial`` is donated to
+    the first chunk (its buffers are reused).
+
+    ``checkpoint(runner, chunks_done)`` is called with the carry every ``checkpoint_every`` chunks and/or at the
+    first chunk boundary ``checkpoint_seconds`` after the last one (neither: never), except after the last chunk,
+    and when ``should_stop()`` says to stop: that is asked before each chunk, so a stop request finishes the
+    current chunk, saves it through ``checkpoint`` and returns a result with ``complete=False`` (episodes so
+    far, no evaluation). The library installs no signal handlers; the CLI's ``should_stop`` reads a flag its
+    SIGINT/SIGTERM handlers set. Evaluation runs only after the last chunk."""
     agent_params = agent_params or AgentParams()
     env_params = env.default_params if env_params is None else env_params
     trainer = Trainer(env, config)
     key = jax.random.key(config.seed)
     t0 = time.perf_counter()
-    runner = jax.jit(trainer.init)(key, agent_params, env_params)
+    runner = jax.jit(trainer.init)(key, agent_params, env_params) if initial is None else initial
     chunk = _compiled_chunk(trainer, runner, agent_params, env_params)
     stats = jax.jit(_progress_stats).lower(runner).compile()
-    jax.block_until_ready(runner)
+    done_min = float(jax.device_get(stats(runner))[0])
     compile_seconds = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    for _ in range(trainer.max_chunks()):
+    t0 = last_saved = time.perf_counter()
+    n_chunks, chunks_done, stopped = trainer.max_chunks(), start_chunk, False
+    while chunks_done < n_chunks and done_min < config.nepisodes:
+        if should_stop is not None and should_stop():
+            stopped = True
+            break
         runner = chunk(runner, agent_params, env_params)
+        chunks_done += 1
         done_min, last = (float(x) for x in jax.device_get(stats(runner)))
         if progress is not None:
             progress(int(done_min), config.nepisodes, last)
-        if done_min >= config.nepisodes:
-            break
+        finished = done_min >= config.nepisodes or chunks_done >= n_chunks
+        due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
+            checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
+        if checkpoint is not None and due and not finished:
+            checkpoint(runner, chunks_done)
+            last_saved = time.perf_counter()
     jax.block_until_ready(runner)
     run_seconds = time.perf_counter() - t0
+    if stopped and checkpoint is not None:
+        checkpoint(runner, chunks_done)
 
     eval_returns = eval_lengths = selected = None
-    if config.eval_episodes > 0:
+    if config.eval_episodes > 0 and not stopped:
         n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
         tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
         evaluate = jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0 if not config.shared_table else None, None, None)),
@@ -420,7 +459,7 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
                 jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)
             selected = {"table": best, "returns": np.asarray(sel_returns), "lengths": np.asarray(sel_lengths)}
 
-    host = jax.device_get(runner)
+    host = jax.device_get(runner.replace(key=None, env_state=None))
     q = np.asarray(host.agent.q)
     return TrainResult(
         env_id=env.name, config=config, agent_params=agent_params,
@@ -428,7 +467,164 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
         epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=run_seconds, eval_returns=eval_returns, eval_lengths=eval_lengths,
-        selected=selected)
+        selected=selected, complete=not stopped, chunks_done=chunks_done,
+        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes))
+
+
+def spec_from_config(run_config: dict[str, Any]):
+    """The :class:`jaxrobo.run.RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
+    applied as an override of the saved preset, and the result must give back the same config."""
+    from jaxrobo.config import ConfigError
+    from jaxrobo.run import resolve
+
+    try:
+        env_id, preset = run_config["env_id"], run_config.get("preset", "default")
+        overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
+        overrides.update({f"agent.{k}": v for part in ("agent_params", "train") for k, v in run_config[part].items()})
+    except (KeyError, TypeError, AttributeError) as err:
+        raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
+    spec = resolve(env_id, preset, overrides)
+    again = json.loads(json.dumps(spec.to_dict()))
+    if again != json.loads(json.dumps(run_config)):
+        a, b = _flat(run_config), _flat(again)
+        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        raise ConfigError(f"config.yaml: does not resolve to itself ({', '.join(keys[:5])}); edited by hand?")
+    return spec
+
+
+# ---- checkpoints -------------------------------------------------------------------------------------------------
+#: Bumped when the checkpoint layout changes.
+CHECKPOINT_FORMAT = 1
+_SOURCE_DIRS = ("jaxrobo", "envs", "agents")
+_SOURCE_SUFFIXES = (".py", ".xml")
+
+
+def source_hash() -> str:
+    """SHA-256 over the code that shapes a run (``jaxrobo``, ``envs``, ``agents``: Python and MJCF files)."""
+    import hashlib
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    h = hashlib.sha256()
+    for top in _SOURCE_DIRS:
+        for dirpath, dirnames, files in os.walk(os.path.join(root, top)):
+            dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+            for name in sorted(f for f in files if f.endswith(_SOURCE_SUFFIXES)):
+                path = os.path.join(dirpath, name)
+                h.update(os.path.relpath(path, root).encode() + b"\0")
+                with open(path, "rb") as f:
+                    h.update(f.read() + b"\0")
+    return h.hexdigest()
+
+
+def _is_key(x: Any) -> bool:
+    return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any = None) -> Runner:
+    """The carry's structure, shapes and dtypes (``ShapeDtypeStruct`` leaves), traced without compiling."""
+    env_params = trainer.env.default_params if env_params is None else env_params
+    return jax.eval_shape(trainer.init, jax.random.key(trainer.config.seed), agent_params, env_params)
+
+
+def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint must match to be loaded: the resolved run config, the jaxrobo and JAX versions, the
+    carry's tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`source_hash`)."""
+    import jaxrobo
+
+    leaves, treedef = jax.tree.flatten(template)
+    return json.loads(json.dumps({
+        "format": CHECKPOINT_FORMAT, "config": run_config, "jaxrobo": jaxrobo.__version__, "jax": jax.__version__,
+        "treedef": str(treedef), "leaves": [[list(x.shape), str(x.dtype)] for x in leaves],
+        "sources": source_hash()}))
+
+
+def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: dict[str, Any]) -> None:
+    """Write the whole training carry to ``path`` (``.npz``), atomically.
+
+    Layout (``np.savez``, no pickled objects, so ``np.load(allow_pickle=False)`` reads it): ``leaf_<i>`` the
+    i-th leaf of ``jax.tree.flatten(runner)`` as a plain array (a PRNG key array as its ``jax.random.key_data``),
+    ``key_impls`` a JSON list with each leaf's PRNG implementation name or null, ``chunks_done`` the number of
+    chunks the carry has run, and ``fingerprint`` the JSON of :func:`carry_fingerprint`.
+
+    Why npz rather than orbax-checkpoint: the carry is one single-host pytree of a few arrays, written now and
+    then as a whole; npz does that with numpy alone, while orbax is a heavy dependency (tensorstore, async
+    managers, a directory layout per step) that is not installed here and brings nothing a single host needs."""
+    from jaxrobo.rundir import atomic_savez
+
+    leaves = jax.tree.leaves(runner)
+    impls = [str(jax.random.key_impl(x)) if _is_key(x) else None for x in leaves]
+    host = jax.device_get([jax.random.key_data(x) if _is_key(x) else x for x in leaves])
+    arrays = {f"leaf_{i}": np.asarray(x) for i, x in enumerate(host)}
+    atomic_savez(path, **arrays, key_impls=np.array(json.dumps(impls)), chunks_done=np.int64(chunks_done),
+                 fingerprint=np.array(json.dumps(fingerprint, sort_keys=True)))
+
+
+def read_fingerprint(path: str) -> tuple[dict[str, Any], int]:
+    """A checkpoint's fingerprint and chunk count, without loading the carry."""
+    with np.load(path, allow_pickle=False) as data:
+        return json.loads(str(data["fingerprint"])), int(data["chunks_done"])
+
+
+def fingerprint_mismatch(saved: dict[str, Any], expected: dict[str, Any]) -> str | None:
+    """Why a checkpoint with fingerprint ``saved`` cannot go on as ``expected`` (None if it can)."""
+    what = {"format": "checkpoint format", "config": "configuration", "jaxrobo": "jaxrobo version",
+            "jax": "JAX version", "treedef": "training carry structure", "leaves": "training carry shapes/dtypes",
+            "sources": "jaxrobo/envs/agents source code"}
+    for field, name in what.items():
+        if saved.get(field) != expected.get(field):
+            if field == "config":
+                a, b = _flat(saved.get("config") or {}), _flat(expected.get("config") or {})
+                keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+                diff = ", ".join(f"{k}: {a.get(k)!r} in the checkpoint vs {b.get(k)!r} now" for k in keys[:5])
+                return f"the configuration differs ({diff})"
+            if field in ("jaxrobo", "jax"):
+                return f"it was written by {name} {saved.get(field)} (this is {expected.get(field)})"
+            return f"the {name} differs from the one that wrote it"
+    return None
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be loaded: unreadable, or from another config or code version."""
+
+
+def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) -> tuple[Runner, int]:
+    """The carry saved at ``path`` and its chunk count, on the default device, checked against ``fingerprint``
+    (:func:`carry_fingerprint` of this run) and ``template``'s structure: refused with :class:`CheckpointError`
+    saying why, rather than loaded, when they differ."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({err})") from err
+    with data:
+        try:
+            saved = json.loads(str(data["fingerprint"]))
+            impls = json.loads(str(data["key_impls"]))
+            chunks_done = int(data["chunks_done"])
+        except (KeyError, ValueError) as err:
+            raise CheckpointError(f"{path}: not a jaxrobo checkpoint ({err})") from err
+        why = fingerprint_mismatch(saved, fingerprint)
+        if why is not None:
+            raise CheckpointError(f"{path}: refusing to resume: {why}")
+        specs, treedef = jax.tree.flatten(template)
+        leaves = []
+        for i, (spec, impl) in enumerate(zip(specs, impls)):
+            x = data[f"leaf_{i}"]
+            leaf = jax.random.wrap_key_data(x, impl=impl) if impl is not None else jnp.asarray(x)
+            if leaf.shape != spec.shape or leaf.dtype != spec.dtype:
+                raise CheckpointError(f"{path}: leaf {i} is {leaf.shape} {leaf.dtype}, expected {spec.shape} "
+                                      f"{spec.dtype}")
+            leaves.append(leaf)
+    return jax.tree.unflatten(treedef, leaves), chunks_done
 
 
 def _progress_stats(runner: Runner) -> tuple[jax.Array, jax.Array]:

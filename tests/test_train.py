@@ -198,3 +198,25 @@ def test_carried_table_rows_change_nothing(agent, extra):
         assert np.asarray(runner.agent.q).any()  # the tables learnt something
         for a, b in zip(*carries):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_the_host_loop_checkpoints_every_n_chunks_and_stops_when_asked():
+    """``checkpoint`` sees the carry every ``checkpoint_every`` chunks but not after the last one; ``should_stop``
+    is asked before each chunk, and a stop saves the carry and returns the episodes so far, unevaluated."""
+    spec = resolve("CartPoleStayUp-v0", overrides={**TINY, "chunk_steps": 10, "backend": "analytic",
+                                                   "eval_episodes": 2, "eval_envs": 2})
+    saved = []
+    full = train(spec.env, spec.config, spec.agent_params, checkpoint_every=2,
+                 checkpoint=lambda runner, chunks: saved.append((chunks, int(runner.episode.min()))))
+    assert full.complete and full.chunks_done > 4 and full.eval_lengths is not None
+    assert [c for c, _ in saved] == list(range(2, full.chunks_done, 2))
+    assert all(done < spec.config.nepisodes for _, done in saved)
+    np.testing.assert_array_equal(full.episodes_done, spec.config.nepisodes)
+
+    asked, saved = [], []
+    part = train(spec.env, spec.config, spec.agent_params, checkpoint=lambda r, c: saved.append(c),
+                 should_stop=lambda: asked.append(1) or len(asked) > 3)
+    assert not part.complete and part.chunks_done == 3 and saved == [3] and part.eval_lengths is None
+    finished = part.episodes_done[:, None] > np.arange(spec.config.nepisodes)
+    np.testing.assert_array_equal(part.lengths[finished], full.lengths[finished])
+    assert np.all(part.lengths[~finished] == 0)

@@ -1,0 +1,246 @@
+"""Nothing lost: run directories checked before compiling, checkpoints of the whole carry, interrupt and resume
+bit for bit, real signals, refused checkpoints."""
+from __future__ import annotations
+
+import filecmp
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from jaxrobo import rundir
+from jaxrobo import train as training
+from jaxrobo.cli import main
+from jaxrobo.config import ConfigError
+from jaxrobo.results import save_run
+from jaxrobo.run import resolve
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TIMING = {"compile_seconds", "run_seconds", "env_steps_per_second"}
+CARTPOLE = dict(n_envs=4, nepisodes=6, nsteps=40, chunk_steps=15, eval_episodes=2, eval_envs=2,
+                bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
+QUADCOPTER = dict(n_envs=4, nepisodes=6, nsteps=30, chunk_steps=10, eval_episodes=2, eval_envs=2)
+CASES = {"CartPoleStayUp-v0": CARTPOLE, "QuadcopterGoto-v1": QUADCOPTER}
+
+
+def _save(result, spec, out):
+    save_run(str(out), result, spec.to_dict(), training.Trainer(spec.env, spec.config).disc)
+    return str(out)
+
+
+def _assert_same_run(a: str, b: str) -> None:
+    """Two run directories hold the same results: CSVs byte for byte, arrays bit for bit, summary but timings."""
+    for name in ("config.yaml", "episodes.csv", "episode_stats.csv", "eval.csv"):
+        if os.path.exists(os.path.join(a, name)) or os.path.exists(os.path.join(b, name)):
+            assert filecmp.cmp(os.path.join(a, name), os.path.join(b, name), shallow=False), name
+    for name in ("records.npz", "qtables.npz"):
+        with np.load(os.path.join(a, name), allow_pickle=False) as x, np.load(os.path.join(b, name),
+                                                                             allow_pickle=False) as y:
+            assert set(x) == set(y)
+            for k in x:
+                np.testing.assert_array_equal(x[k], y[k], err_msg=f"{name}:{k}")
+    sa, sb = (json.load(open(os.path.join(d, "summary.json"))) for d in (a, b))
+    assert {k: v for k, v in sa.items() if k not in TIMING} == {k: v for k, v in sb.items() if k not in TIMING}
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def uninterrupted(request, tmp_path_factory):
+    spec = resolve(request.param, overrides=CASES[request.param])
+    result = training.train(spec.env, spec.config, spec.agent_params)
+    assert result.complete and result.chunks_done > 3
+    return spec, result, _save(result, spec, tmp_path_factory.mktemp("full") / "run")
+
+
+@pytest.mark.parametrize("stop_at", [1, 3])
+def test_interrupted_and_resumed_equals_uninterrupted(uninterrupted, stop_at, tmp_path):
+    """Stopped after ``stop_at`` chunks (``should_stop`` asked before each chunk), saved, loaded and resumed: the
+    tables, records, episodes.csv and summary equal those of the run that never stopped."""
+    spec, full, full_dir = uninterrupted
+    trainer = training.Trainer(spec.env, spec.config)
+    template = training.carry_template(trainer, spec.agent_params)
+    fingerprint = training.carry_fingerprint(template, spec.to_dict())
+    path = str(tmp_path / rundir.CHECKPOINT)
+    asked, saved = [], []
+
+    def should_stop():
+        asked.append(1)
+        return len(asked) > stop_at
+
+    def checkpoint(runner, chunks_done):
+        training.save_checkpoint(path, runner, chunks_done, fingerprint)
+        saved.append(chunks_done)
+
+    part = training.train(spec.env, spec.config, spec.agent_params, should_stop=should_stop, checkpoint=checkpoint)
+    assert not part.complete and part.chunks_done == stop_at and saved == [stop_at]
+    assert part.eval_lengths is None and np.all(part.episodes_done < spec.config.nepisodes)
+    done = part.episodes_done[:, None] > np.arange(spec.config.nepisodes)
+    np.testing.assert_array_equal(part.returns[done], full.returns[done])  # the finished episodes are final
+
+    with np.load(path, allow_pickle=False) as data:  # plain arrays: no pickle needed to read it
+        assert int(data["chunks_done"]) == stop_at
+    runner, chunks_done = training.load_checkpoint(path, template, fingerprint)
+    assert chunks_done == stop_at
+    resumed = training.train(spec.env, spec.config, spec.agent_params, initial=runner, start_chunk=chunks_done)
+    assert resumed.complete and resumed.chunks_done == full.chunks_done
+    for field in ("q", "returns", "lengths", "terminated", "nan_episodes", "eval_returns", "eval_lengths"):
+        np.testing.assert_array_equal(getattr(resumed, field), getattr(full, field), err_msg=field)
+    _assert_same_run(_save(resumed, spec, tmp_path / "resumed"), full_dir)
+
+
+def test_a_checkpoint_of_another_config_or_code_is_refused(uninterrupted, tmp_path):
+    spec, _, _ = uninterrupted
+    trainer = training.Trainer(spec.env, spec.config)
+    template = training.carry_template(trainer, spec.agent_params)
+    fingerprint = training.carry_fingerprint(template, spec.to_dict())
+    path = str(tmp_path / rundir.CHECKPOINT)
+    training.save_checkpoint(path, jax.jit(trainer.init)(jax.random.key(0), spec.agent_params,
+                                                         spec.env.default_params), 0, fingerprint)
+    changed = json.loads(json.dumps(spec.to_dict()))
+    changed["agent_params"]["alpha"] = 0.123
+    with pytest.raises(training.CheckpointError, match=r"agent_params.alpha: .* in the checkpoint vs 0.123 now"):
+        training.load_checkpoint(path, template, training.carry_fingerprint(template, changed))
+    with pytest.raises(training.CheckpointError, match="source code"):
+        training.load_checkpoint(path, template, {**fingerprint, "sources": "0" * 64})
+    with pytest.raises(training.CheckpointError, match="JAX version"):
+        training.load_checkpoint(path, template, {**fingerprint, "jax": "0.0.1"})
+
+
+# ---- the command line ------------------------------------------------------------------------------------------
+CLI_TINY = ["--env", "CartPoleStayUp-v0", "--n-envs", "4", "--nepisodes", "6", "--no-progress",
+            "--set", "nsteps=40", "--set", "chunk_steps=15", "--set", "eval_episodes=2", "--set", "eval_envs=2",
+            "--set", "bins=[3, 6, 8, 10]", "--set", "state_low=[-2.4, -1.0, -0.3, -2.0]",
+            "--set", "state_high=[2.4, 1.0, 0.3, 2.0]"]
+
+
+@pytest.fixture
+def no_training(monkeypatch):
+    """Fails the test if anything is traced or trained: refusals must come before."""
+    def boom(*a, **k):
+        raise AssertionError("compiled or trained before refusing")
+
+    monkeypatch.setattr(training, "carry_template", boom)
+    monkeypatch.setattr(training, "train", boom)
+
+
+def test_out_an_existing_file_or_a_nonempty_dir_is_refused_before_compiling(tmp_path, capsys, no_training):
+    existing = tmp_path / "results.txt"
+    existing.write_text("keep me")
+    assert main(["train", *CLI_TINY, "--out", str(existing)]) == 2
+    assert "--out" in capsys.readouterr().err and existing.read_text() == "keep me"
+    assert main(["train", *CLI_TINY, "--out", str(existing / "run")]) == 2
+    assert "is a file" in capsys.readouterr().err
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "summary.json").write_text("{}")
+    (run / "eval.csv").write_text("stale")
+    assert main(["train", *CLI_TINY, "--out", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "not empty" in err and "--overwrite" in err
+    other = tmp_path / "home"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert main(["train", *CLI_TINY, "--out", str(other), "--overwrite"]) == 2  # not a run: never replaced
+    assert "run directories only" in capsys.readouterr().err
+    assert sorted(os.listdir(run)) == ["eval.csv", "summary.json"]
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # nothing staged
+
+    assert main(["train", "--resume", str(run), "--no-progress"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+    assert main(["train", "--resume", str(run), "--seed", "3"]) == 2
+    assert "drop --seed" in capsys.readouterr().err
+    assert main(["train", *CLI_TINY, "--out", str(tmp_path / "x"), "--checkpoint-every", "-1"]) == 2
+    assert "--checkpoint-every=-1" in capsys.readouterr().err
+
+
+def test_check_out_names_the_flag_and_the_way_out(tmp_path):
+    rundir.check_out(str(tmp_path / "new" / "run"))  # missing parents are fine
+    rundir.check_out(str(tmp_path))  # an empty directory too
+    run = tmp_path / "r"
+    run.mkdir()
+    rundir.write_status(str(run), rundir.INTERRUPTED)
+    (run / rundir.CHECKPOINT).write_bytes(b"")
+    with pytest.raises(ConfigError, match=r"--out .*interrupted run.*--overwrite.*--resume"):
+        rundir.check_out(str(run))
+    rundir.check_out(str(run), resume=True)
+    assert rundir.is_resumable(str(run)) and not rundir.is_complete(str(run))
+
+
+def test_overwrite_replaces_the_whole_old_run(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "summary.json").write_text("{}")
+    (out / "eval.csv").write_text("a stale evaluation of 400 rows")
+    (out / "tensorboard").mkdir()
+    assert main(["train", *CLI_TINY, "--set", "eval_episodes=0", "--out", str(out), "--overwrite"]) == 0
+    files = set(os.listdir(out))
+    assert "eval.csv" not in files and {"summary.json", "episodes.csv", "qtables.npz", "status.json"} <= files
+    assert rundir.is_complete(str(out)) and rundir.CHECKPOINT not in files
+    assert os.listdir(out / "tensorboard") and not [n for n in os.listdir(tmp_path) if n.startswith(".")]
+
+
+def _wait_for(path: str, proc: subprocess.Popen, timeout: float = 240.0) -> None:
+    end = time.monotonic() + timeout
+    while not os.path.exists(path):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < end, f"{path} did not appear"
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT])
+def test_a_real_signal_leaves_a_resumable_run_that_resumes_to_the_uninterrupted_one(tmp_path, sig):
+    """``jaxrobo train`` in a subprocess gets SIGINT once it has saved a checkpoint (one chunk per step, so that
+    it is still training): it exits 130 with one line, no traceback, and a resumable directory with the episodes
+    so far; ``--resume`` completes it to the run that was never interrupted."""
+    args = [*CLI_TINY, "--set", "chunk_steps=1", "--nepisodes", "40"]
+    out = str(tmp_path / "run")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": jax.config.jax_compilation_cache_dir or "off"}
+    proc = subprocess.Popen([sys.executable, "-m", "jaxrobo.cli", "train", *args, "--checkpoint-every", "10",
+                             "--out", out], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        _wait_for(os.path.join(out, rundir.CHECKPOINT), proc)
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + sig, (stdout, stderr)
+    assert "Traceback" not in stderr and f"--resume {out}" in stderr
+    status = rundir.read_status(out)
+    assert status["status"] == rundir.INTERRUPTED and status["signal"] == "SIGINT"
+    assert 10 <= status["chunks_done"] < status["chunks"] and rundir.is_resumable(out)
+    assert os.path.exists(os.path.join(out, "episodes.csv")) and not os.path.exists(os.path.join(out, "summary.json"))
+
+    assert main(["train", "--resume", out, "--no-progress"]) == 0
+    assert rundir.is_complete(out) and not os.path.exists(os.path.join(out, rundir.CHECKPOINT))
+    full = str(tmp_path / "full")
+    assert main(["train", *args, "--checkpoint-every", "0", "--out", full]) == 0
+    _assert_same_run(out, full)
+
+
+def test_changed_config_message(tmp_path, capsys):
+    """The refusal of an edited config.yaml names what differs."""
+    out = str(tmp_path / "run")
+    spec = resolve("CartPoleStayUp-v0", overrides=CARTPOLE)
+    trainer = training.Trainer(spec.env, spec.config)
+    template = training.carry_template(trainer, spec.agent_params)
+    os.makedirs(out)
+    from jaxrobo.results import write_config
+
+    write_config(out, spec.to_dict())
+    rundir.write_status(out, rundir.INTERRUPTED)
+    runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
+    training.save_checkpoint(os.path.join(out, rundir.CHECKPOINT), runner, 0,
+                             training.carry_fingerprint(template, spec.to_dict()))
+    text = open(os.path.join(out, "config.yaml")).read()
+    open(os.path.join(out, "config.yaml"), "w").write(text.replace("alpha: 0.3", "alpha: 0.25"))
+    assert main(["train", "--resume", out, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "refusing to resume" in err and "agent_params.alpha: 0.3 in the checkpoint vs 0.25 now" in err
