@@ -154,7 +154,8 @@ def check(low: Sequence[float], high: Sequence[float], mode: str = "bins", numbe
         bins = tuple(int(c) for c in splits)
     total = math.prod(bins)
     if total > MAX_STATES:
-        what = n["edges"] if mode == "edges" else n["resolution"] if mode == "round" else n["splits"]
+        what = (f"{n['edges']}" if mode == "edges" else f"{n['resolution']}={resolution!r}" if mode == "round"
+                else f"{n['splits']}={number_splits!r}")
         raise ValueError(f"{what}: {' x '.join(map(str, bins))} = {total:.3g} states, more than the {MAX_STATES} a "
                          f"table may have (state indices are int32); use fewer bins")
     return low_np, high_np, bins, edges_t
