@@ -26,19 +26,11 @@ TRAIN_FLAGS = (("n_envs", "--n-envs"), ("seed", "--seed"), ("nepisodes", "--nepi
 
 def train_overrides(args: argparse.Namespace) -> dict:
     """``--set`` pairs merged with the flags; a key given both ways is refused (neither silently wins)."""
-    from jaxrobo.config import ConfigError, parse_overrides
+    from jaxrobo.config import merge_flags, parse_overrides
 
-    overrides = parse_overrides(args.set or [])
-    for key, flag in TRAIN_FLAGS:
-        value = getattr(args, key)
-        if value is None:
-            continue
-        for name in (key, f"agent.{key}"):
-            if name in overrides:
-                raise ConfigError(f"{key} given twice: {flag} {value} and --set {name}={overrides[name]!r}; "
-                                  "give it once")
-        if key != "agent":  # --agent goes to resolve(agent=...)
-            overrides[key] = value
+    overrides = merge_flags(parse_overrides(args.set or []), [(k, f, getattr(args, k)) for k, f in TRAIN_FLAGS])
+    if args.agent is not None:
+        del overrides["agent"]  # --agent goes to resolve(agent=...)
     return overrides
 
 

@@ -104,7 +104,8 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
             raise ConfigError(f"{loc}{key}={value!r}: must be finite")
     elif kind is tuple:
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{loc}{key}={value!r}: expected a list")
+            doc = f" ({rule.doc})" if rule.doc else ""
+            raise ConfigError(f"{loc}{key}={value!r}: expected a list{' or null' if rule.optional else ''}{doc}")
         value = tuple(value)
     elif kind is str:
         if not isinstance(value, str):
@@ -171,6 +172,20 @@ def parse_overrides(pairs: Iterable[str]) -> dict[str, Any]:
             raise ConfigError(f"--set {key}: given twice ({out[key]!r} and {text!r}); give each key once")
         out[key] = parse_value(text, key)
     return out
+
+
+def merge_flags(overrides: dict[str, Any], flags: Iterable[tuple[str, str, Any]]) -> dict[str, Any]:
+    """Add command-line flags ``(key, flag, value)`` (value None: not given) to ``--set`` overrides; a key given
+    both ways (``--n-envs 2 --set n_envs=3``, or ``agent.n_envs``) is refused rather than one silently winning."""
+    for key, flag, value in flags:
+        if value is None:
+            continue
+        for name in (key, f"agent.{key}"):
+            if name in overrides:
+                raise ConfigError(f"{key} given twice: {flag} {value} and --set {name}={overrides[name]!r}; "
+                                  "give it once")
+        overrides[key] = value
+    return overrides
 
 
 def as_dict(obj: Any) -> dict[str, Any]:

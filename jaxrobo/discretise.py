@@ -67,6 +67,13 @@ def _is_integral(x: object) -> bool:
     return not isinstance(x, bool) and isinstance(x, (int, float, np.integer, np.floating)) and float(x).is_integer()
 
 
+def _show(x: object) -> str:
+    """A value as the user wrote it: lists (tuples once validated) print as lists."""
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_show(v) for v in x) + "]"
+    return repr(x.item() if isinstance(x, np.generic) else x)
+
+
 def _is_seq(x: object) -> bool:
     return isinstance(x, (list, tuple)) or (isinstance(x, np.ndarray) and x.ndim == 1)
 
@@ -78,16 +85,16 @@ def _is_number(x: object) -> bool:
 def _vector(value: object, name: str, dims: int | None, other: str = "") -> np.ndarray:
     """A 1-D list of finite numbers (``dims`` long when given), else ValueError naming ``name``."""
     if not _is_seq(value) or not all(_is_number(x) for x in value):
-        raise ValueError(f"{name}={value!r}: expected a list of numbers, one per observation dimension"
+        raise ValueError(f"{name}={_show(value)}: expected a list of numbers, one per observation dimension"
                          + (f" ({dims})" if dims is not None else ""))
     arr = np.asarray(value, np.float64)
     if dims is not None and arr.shape[0] != dims:
-        raise ValueError(f"{name}={list(value)!r}: expected {dims} values, one per observation dimension, "
+        raise ValueError(f"{name}={_show(value)}: expected {dims} values, one per observation dimension, "
                          f"got {arr.shape[0]}" + (f" ({other} and {name} must be equal-length lists)" if other else ""))
     if arr.shape[0] == 0:
         raise ValueError(f"{name}=[]: expected at least one value")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}={list(value)!r}: every value must be finite")
+        raise ValueError(f"{name}={_show(value)}: every value must be finite")
     return arr
 
 
@@ -115,13 +122,13 @@ def check(low: Sequence[float], high: Sequence[float], mode: str = "bins", numbe
     edges_t = None
     if mode == "edges":
         if not _is_seq(edges) or len(edges) != dims:
-            got = "none" if edges is None else repr(edges)
+            got = "none" if edges is None else _show(edges)
             raise ValueError(f"{n['mode']}='edges' needs {n['edges']}: one list of edges per dimension "
                              f"({dims} lists of interior bin edges), got {got}")
         out = []
         for i, e in enumerate(edges):
             if not _is_seq(e) or not all(_is_number(x) for x in e):
-                raise ValueError(f"{n['edges']}[{i}]={e!r}: expected a list of numbers (the interior bin edges)")
+                raise ValueError(f"{n['edges']}[{i}]={_show(e)}: expected a list of numbers (the interior bin edges)")
             e = tuple(float(x) for x in e)
             if not all(math.isfinite(x) for x in e):
                 raise ValueError(f"{n['edges']}[{i}]={list(e)}: every edge must be finite")
@@ -141,21 +148,21 @@ def check(low: Sequence[float], high: Sequence[float], mode: str = "bins", numbe
     else:
         many = _is_seq(number_splits)
         if not (many or _is_number(number_splits)):
-            raise ValueError(f"{n['splits']}={number_splits!r}: expected a positive integer or one per dimension "
+            raise ValueError(f"{n['splits']}={_show(number_splits)}: expected a positive integer or one per dimension "
                              f"({dims})")
         splits = list(number_splits) if many else [number_splits] * dims
         if len(splits) != dims:
-            raise ValueError(f"{n['splits']}={list(splits)!r}: expected {dims} bin counts, one per observation "
+            raise ValueError(f"{n['splits']}={_show(splits)}: expected {dims} bin counts, one per observation "
                              f"dimension, got {len(splits)}")
         for i, c in enumerate(splits):
             if not _is_integral(c) or c < 1:
                 at = f"[{i}]" if many else ""
-                raise ValueError(f"{n['splits']}{at}={c!r}: expected an integer >= 1 (bins in that dimension)")
+                raise ValueError(f"{n['splits']}{at}={_show(c)}: expected an integer >= 1 (bins in that dimension)")
         bins = tuple(int(c) for c in splits)
     total = math.prod(bins)
     if total > MAX_STATES:
         what = (f"{n['edges']}" if mode == "edges" else f"{n['resolution']}={resolution!r}" if mode == "round"
-                else f"{n['splits']}={number_splits!r}")
+                else f"{n['splits']}={_show(number_splits)}")
         raise ValueError(f"{what}: {' x '.join(map(str, bins))} = {total:.3g} states, more than the {MAX_STATES} a "
                          f"table may have (state indices are int32); use fewer bins")
     return low_np, high_np, bins, edges_t

@@ -75,7 +75,10 @@ def env_config(id: str) -> dict[str, Any]:
     values = dict(reg.defaults)
     values.setdefault("max_episode_steps", reg.spec.max_episode_steps)
     if reg.spec.config:
-        values.update(load_yaml(reg.spec.config).get("env", {}) or {})
+        env = load_yaml(reg.spec.config).get("env", {}) or {}
+        if not isinstance(env, dict):
+            raise ConfigError(f"{reg.spec.config}: env: expected a mapping of key: value, got {type(env).__name__}")
+        values.update(env)
     return values
 
 
