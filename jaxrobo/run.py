@@ -139,6 +139,7 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     (:func:`check_combinations`), the discretiser against the task's observation, and (``check_memory``) the
     batch's estimated memory against what the device has (:func:`jaxrobo.budget.check_memory`).
     """
+    env_id = _lookup(env_id).spec.id  # a deprecated alias resolves (and warns) once; the run records the real id
     presets = agent_presets(env_id)
     if not isinstance(preset, str) or (presets and preset not in presets):
         raise ConfigError(f"{env_id}: preset={preset!r}: allowed values are {', '.join(presets) or 'default'}")
