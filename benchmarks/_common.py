@@ -15,8 +15,9 @@ from typing import Any, Callable
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: Training config overrides for a timed run: episodes without end, nothing recorded, no evaluation, so every
-#: chunk does the same work and the carry holds only what training needs.
-TIMED_TRAINING = {"record_episodes": False, "nepisodes": 10**9, "eval_episodes": 0}
+#: chunk does the same work and the carry holds only what training needs. "Without end": more episodes than any
+#: timed run reaches, yet nepisodes x nsteps (1000) within the int32 step counters that resolve() checks.
+TIMED_TRAINING = {"record_episodes": False, "nepisodes": 2_000_000, "eval_episodes": 0}
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 

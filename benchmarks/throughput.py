@@ -406,7 +406,7 @@ def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
             elif main:  # quick: the headline rows at every size, the other learners at the largest
                 env_sizes = n_list
                 learner_sizes = {name: (n_list if i == 0 else last) for i, name in enumerate(learners)}
-            elif env_id == "CartPoleStayUp-v1":  # same physics as v0: its 2-action learner at the largest size
+            elif env_id == "CartPoleStayUpLeftRight-v0":  # same physics as v0: its 2-action learner at the largest size
                 env_sizes, learner_sizes = (), {name: last for name in learners[:1]}
             elif cartpole:  # Brax pipelines: physics only, largest size
                 env_sizes, learner_sizes = last, {}

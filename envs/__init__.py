@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from jaxrobo.registry import register
+from jaxrobo.registry import deprecated_alias, register
 
 _CONFIGS = os.path.join(os.path.dirname(__file__), "configs")
 
@@ -18,9 +18,12 @@ def _register_builtin() -> None:
     register("CartPoleStayUp-v0", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
              config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
              description="seed 001: keep the pole up, 4 actions")
-    register("CartPoleStayUp-v1", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
+    # The seed's exercise 2.3 is a different task, not a newer CartPoleStayUp: an id of its own, so Gymnasium
+    # never calls CartPoleStayUp-v0 "out of date". Its first name, CartPoleStayUp-v1, still works in jaxrobo.
+    register("CartPoleStayUpLeftRight-v0", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
              config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
              description="seed exercise 2.3: left/right only", n_actions=2)
+    deprecated_alias("CartPoleStayUp-v1", "CartPoleStayUpLeftRight-v0")
     # Quadcopter (seed 000): the faithful live-show task and the seed's homework (goto with obstacles).
     register("QuadcopterLiveShow-v0", "envs.quadcopter_live_show:QuadcopterLiveShow", 100,
              config=_cfg("quadcopter_live_show.yaml"), agent_config="quadcopter_live_show.yaml",

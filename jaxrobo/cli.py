@@ -24,6 +24,20 @@ PLUGINS = {"show": ("jaxrobo.flights", "draw greedy flights of a trained quadcop
 CHECKPOINT_SECONDS = 300.0
 
 
+#: ``jaxrobo train`` flags that are also settable with ``--set KEY=VALUE``.
+TRAIN_FLAGS = (("n_envs", "--n-envs"), ("seed", "--seed"), ("nepisodes", "--nepisodes"), ("agent", "--agent"))
+
+
+def train_overrides(args: argparse.Namespace) -> dict:
+    """``--set`` pairs merged with the flags; a key given both ways is refused (neither silently wins)."""
+    from jaxrobo.config import merge_flags, parse_overrides
+
+    overrides = merge_flags(parse_overrides(args.set or []), [(k, f, getattr(args, k)) for k, f in TRAIN_FLAGS])
+    if args.agent is not None:
+        del overrides["agent"]  # --agent goes to resolve(agent=...)
+    return overrides
+
+
 def _train(args: argparse.Namespace) -> int:
     """``jaxrobo train``: a fresh run into ``--out``, or ``--resume DIR``; exit 130/143 after SIGINT/SIGTERM with a
     resumable directory (:mod:`jaxrobo.rundir` has the rules of run directories)."""
@@ -45,7 +59,7 @@ def _train_checked(args: argparse.Namespace) -> int:
 
     from jaxrobo import rundir
     from jaxrobo import train as training
-    from jaxrobo.config import ConfigError, parse_overrides
+    from jaxrobo.config import ConfigError
     from jaxrobo.results import save_run, write_config, write_episodes
     from jaxrobo.run import resolve
 
@@ -72,10 +86,7 @@ def _train_checked(args: argparse.Namespace) -> int:
                 raise ConfigError(f"--resume {resume}: cannot read config.yaml ({err})") from err
             spec = training.spec_from_config(saved if isinstance(saved, dict) else {})
         else:
-            overrides = parse_overrides(args.set or [])
-            for key, flag in (("n_envs", args.n_envs), ("seed", args.seed), ("nepisodes", args.nepisodes)):
-                if flag is not None:
-                    overrides[key] = flag
+            overrides = train_overrides(args)
             spec = resolve(args.env or "CartPoleStayUp-v0", args.preset or "default", overrides, agent=args.agent)
             out = args.out or os.path.join("training_results",
                                            f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
@@ -198,15 +209,40 @@ def _train_checked(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Image formats the PNG-writing commands accept (matplotlib picks the format from the extension).
+IMAGE_EXTENSIONS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+
+
+def check_image_path(path: str, flag: str = "--out") -> None:
+    """ConfigError unless ``path`` names an image file matplotlib writes, in a directory that is not a file."""
+    from jaxrobo.config import ConfigError
+
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in IMAGE_EXTENSIONS:
+        raise ConfigError(f"{flag} {path!r}: expected an image file ending in {', '.join(IMAGE_EXTENSIONS)}")
+    if os.path.isdir(path):
+        raise ConfigError(f"{flag} {path!r} is a directory; give a file name")
+    parent = os.path.dirname(os.path.abspath(path))
+    while parent and not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if parent and not os.path.isdir(parent):
+        raise ConfigError(f"{flag} {path!r}: {parent!r} is a file, not a directory")
+
+
 def _plot(args: argparse.Namespace) -> int:
+    from jaxrobo.config import ConfigError
     from jaxrobo.plots import plot_runs
 
-    for d in args.runs:
-        if not os.path.isdir(d):
-            print(f"jaxrobo plot: {d!r} is not a directory", file=sys.stderr)
-            return 2
-    out = args.out or os.path.join(args.runs[0], "rewards.png")
     try:
+        for d in args.runs:
+            if not os.path.isdir(d):
+                raise ConfigError(f"run directory {d!r} does not exist (or is not a directory)")
+        if args.window < 1:
+            raise ConfigError(f"--window {args.window}: must be an integer >= 1 (episodes averaged)")
+        if args.labels is not None and len(args.labels) != len(args.runs):
+            raise ConfigError(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs; give one per run")
+        out = args.out or os.path.join(args.runs[0], "rewards.png")
+        check_image_path(out)
         plot_runs(args.runs, out, labels=args.labels, window=args.window)
     except (FileNotFoundError, ValueError) as err:
         print(f"jaxrobo plot: {err}", file=sys.stderr)
@@ -218,13 +254,21 @@ def _plot(args: argparse.Namespace) -> int:
 def _list(args: argparse.Namespace) -> int:
     import agents
     import jaxrobo
+    from jaxrobo.config import ConfigError
     from jaxrobo.run import agent_presets
 
     print("environments:")
     for env_id in jaxrobo.registered():
         spec = jaxrobo.spec(env_id)
-        presets = ", ".join(agent_presets(env_id)) or "-"
+        try:
+            presets = ", ".join(agent_presets(env_id)) or "-"
+        except ConfigError as err:  # one broken agent YAML must not hide the other envs
+            presets = "(agent YAML unreadable: see note)"
+            print(f"  note: {env_id}: {err}", file=sys.stderr)
         print(f"  {env_id:28s} max {spec.max_episode_steps:5d} steps  presets: {presets:14s} {spec.description}")
+    aliases = getattr(jaxrobo.registry, "ALIASES", {})
+    for old, new in sorted(aliases.items()):
+        print(f"  {old:28s} deprecated name of {new}")
     print("agents: " + ", ".join(agents.LEARNERS))
     return 0
 

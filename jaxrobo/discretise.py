@@ -53,38 +53,133 @@ class Discretiser:
         return jnp.sum(idx * jnp.asarray(strides)).astype(jnp.int32)
 
 
+#: Most states a table may have: state indices are int32 (``Discretiser.__call__``), and a table this size already
+#: takes 8 GiB per action and table, far past what any batch of them fits in.
+MAX_STATES = 2**31 - 1
+
+#: The names :func:`make_discretiser`'s arguments have in messages; :func:`jaxrobo.run.resolve` passes the
+#: TrainConfig field names instead (``state_low``, ``bins``, ...), so each message names what the user set.
+ARG_NAMES = {"low": "low", "high": "high", "mode": "mode", "splits": "number_splits", "resolution": "resolution",
+             "edges": "edges"}
+
+
+def _is_integral(x: object) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float, np.integer, np.floating)) and float(x).is_integer()
+
+
+def _show(x: object) -> str:
+    """A value as the user wrote it: lists (tuples once validated) print as lists."""
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_show(v) for v in x) + "]"
+    return repr(x.item() if isinstance(x, np.generic) else x)
+
+
+def _is_seq(x: object) -> bool:
+    return isinstance(x, (list, tuple)) or (isinstance(x, np.ndarray) and x.ndim == 1)
+
+
+def _is_number(x: object) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float, np.integer, np.floating))
+
+
+def _vector(value: object, name: str, dims: int | None, other: str = "") -> np.ndarray:
+    """A 1-D list of finite numbers (``dims`` long when given), else ValueError naming ``name``."""
+    if not _is_seq(value) or not all(_is_number(x) for x in value):
+        raise ValueError(f"{name}={_show(value)}: expected a list of numbers, one per observation dimension"
+                         + (f" ({dims})" if dims is not None else ""))
+    arr = np.asarray(value, np.float64)
+    if dims is not None and arr.shape[0] != dims:
+        raise ValueError(f"{name}={_show(value)}: expected {dims} values, one per observation dimension, "
+                         f"got {arr.shape[0]}" + (f" ({other} and {name} must be equal-length lists)" if other else ""))
+    if arr.shape[0] == 0:
+        raise ValueError(f"{name}=[]: expected at least one value")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}={_show(value)}: every value must be finite")
+    return arr
+
+
+def check(low: Sequence[float], high: Sequence[float], mode: str = "bins", number_splits: int | Sequence[int] = 10,
+          resolution: float = 0.1, edges: Sequence[Sequence[float]] | None = None, dims: int | None = None,
+          names: dict[str, str] | None = None) -> tuple[np.ndarray, np.ndarray, tuple[int, ...],
+                                                         tuple[tuple[float, ...], ...] | None]:
+    """Validate discretiser settings with plain numpy (nothing on a device): ``(low, high, bins, edges)``.
+
+    Raises ``ValueError`` naming the field (as ``names`` calls it) and what it accepts. ``dims``: the
+    observation's length, when known, which every per-dimension list must match.
+    """
+    n = {**ARG_NAMES, **(names or {})}
+    if mode not in MODES:
+        raise ValueError(f"{n['mode']}={mode!r}: allowed values are {', '.join(MODES)}")
+    low_np = _vector(low, n["low"], dims)
+    dims = low_np.shape[0]
+    high_np = _vector(high, n["high"], dims, other=n["low"])
+    if mode != "edges":
+        bad = [i for i in range(dims) if not high_np[i] > low_np[i]]
+        if bad:
+            i = bad[0]
+            raise ValueError(f"{n['high']}[{i}]={high_np[i]:g} must be greater than {n['low']}[{i}]={low_np[i]:g} "
+                             f"(each dimension needs {n['high']} > {n['low']})")
+    edges_t = None
+    if mode == "edges":
+        if not _is_seq(edges) or len(edges) != dims:
+            got = "none" if edges is None else _show(edges)
+            raise ValueError(f"{n['mode']}='edges' needs {n['edges']}: one list of edges per dimension "
+                             f"({dims} lists of interior bin edges), got {got}")
+        out = []
+        for i, e in enumerate(edges):
+            if not _is_seq(e) or not all(_is_number(x) for x in e):
+                raise ValueError(f"{n['edges']}[{i}]={_show(e)}: expected a list of numbers (the interior bin edges)")
+            e = tuple(float(x) for x in e)
+            if not all(math.isfinite(x) for x in e):
+                raise ValueError(f"{n['edges']}[{i}]={list(e)}: every edge must be finite")
+            if any(b <= a for a, b in zip(e, e[1:])):
+                raise ValueError(f"{n['edges']}[{i}]={list(e)}: edges must be strictly increasing")
+            out.append(e)
+        edges_t = tuple(out)
+        bins = tuple(len(e) + 1 for e in edges_t)
+    elif mode == "round":
+        if not (_is_number(resolution) and math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"{n['resolution']}={resolution!r}: expected a finite number > 0")
+        counts = np.round(high_np / resolution) - np.round(low_np / resolution) + 1
+        if np.any(counts > MAX_STATES):
+            raise ValueError(f"{n['resolution']}={resolution!r}: gives {counts.max():.3g} bins in one dimension "
+                             f"(at most {MAX_STATES} states); use a coarser resolution")
+        bins = tuple(int(c) for c in counts)
+    else:
+        many = _is_seq(number_splits)
+        if not (many or _is_number(number_splits)):
+            raise ValueError(f"{n['splits']}={_show(number_splits)}: expected a positive integer or one per dimension "
+                             f"({dims})")
+        splits = list(number_splits) if many else [number_splits] * dims
+        if len(splits) != dims:
+            raise ValueError(f"{n['splits']}={_show(splits)}: expected {dims} bin counts, one per observation "
+                             f"dimension, got {len(splits)}")
+        for i, c in enumerate(splits):
+            if not _is_integral(c) or c < 1:
+                at = f"[{i}]" if many else ""
+                raise ValueError(f"{n['splits']}{at}={_show(c)}: expected an integer >= 1 (bins in that dimension)")
+        bins = tuple(int(c) for c in splits)
+    total = math.prod(bins)
+    if total > MAX_STATES:
+        what = (f"{n['edges']}" if mode == "edges" else f"{n['resolution']}={resolution!r}" if mode == "round"
+                else f"{n['splits']}={_show(number_splits)}")
+        raise ValueError(f"{what}: {' x '.join(map(str, bins))} = {total:.3g} states, more than the {MAX_STATES} a "
+                         f"table may have (state indices are int32); use fewer bins")
+    return low_np, high_np, bins, edges_t
+
+
 def make_discretiser(low: Sequence[float], high: Sequence[float], mode: str = "bins",
                      number_splits: int | Sequence[int] = 10, resolution: float = 0.1,
                      edges: Sequence[Sequence[float]] | None = None) -> Discretiser:
-    """Build a discretiser; raises ``ValueError`` naming the bad field."""
-    low_np, high_np = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    """Build a discretiser; raises ``ValueError`` naming the bad field (see :func:`check`)."""
+    low_np, high_np, bins, edges_t = check(low, high, mode, number_splits, resolution, edges)
     dims = low_np.shape[0]
-    if mode not in MODES:
-        raise ValueError(f"discretiser mode={mode!r}: allowed values are {', '.join(MODES)}")
-    if low_np.shape != high_np.shape or low_np.ndim != 1:
-        raise ValueError(f"discretiser low/high must be equal-length lists, got {low_np.shape} and {high_np.shape}")
-    if not (np.all(np.isfinite(low_np)) and np.all(np.isfinite(high_np)) and np.all(high_np > low_np)):
-        raise ValueError(f"discretiser bounds must be finite with high > low, got low={low_np} high={high_np}")
     if mode == "edges":
-        if edges is None or len(edges) != dims:
-            raise ValueError(f"discretiser mode='edges' needs one list of edges per dimension ({dims})")
-        edges_t = tuple(tuple(float(x) for x in e) for e in edges)
-        for i, e in enumerate(edges_t):
-            if list(e) != sorted(e):
-                raise ValueError(f"discretiser edges[{i}] must be increasing, got {list(e)}")
-        bins = tuple(len(e) + 1 for e in edges_t)
         return Discretiser(jnp.asarray(low_np, jnp.float32), jnp.ones(dims, jnp.float32), bins, edges_t)
     if mode == "round":
-        if not resolution > 0:
-            raise ValueError(f"discretiser resolution={resolution}: must be > 0")
         first = np.round(low_np / resolution)
-        bins = tuple(int(n) for n in np.round(high_np / resolution) - first + 1)
         start = (first - 0.5) * resolution
         width = np.full(dims, resolution)
         return Discretiser(jnp.asarray(start, jnp.float32), jnp.asarray(width, jnp.float32), bins)
-    splits = [number_splits] * dims if np.ndim(number_splits) == 0 else list(number_splits)
-    if len(splits) != dims or any(int(n) != n or n < 1 for n in splits):
-        raise ValueError(f"number_splits={number_splits!r}: need a positive integer or one per dimension ({dims})")
-    bins = tuple(int(n) for n in splits)
     width = (high_np - low_np) / np.asarray(bins)
     return Discretiser(jnp.asarray(low_np, jnp.float32), jnp.asarray(width, jnp.float32), bins)

@@ -23,20 +23,66 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed of the flights")
 
 
-def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
-    import yaml
+#: Task modules whose episodes ``fly`` can draw (they have a position and a goal): the quadcopter tasks.
+FLYING_MODULES = ("envs.quadcopter_goto", "envs.quadcopter_live_show")
+#: Most flights one figure draws (each is a path and its obstacles in one picture).
+MAX_EPISODES = 100
 
+
+def check_flying(spec: Any, source: str) -> None:
+    """ConfigError unless the run's env is a quadcopter task (``jaxrobo show`` draws flights)."""
+    from jaxrobo.config import ConfigError
+
+    module = type(spec.env).__module__
+    if module not in FLYING_MODULES:
+        raise ConfigError(f"{source}: env_id={spec.env_id!r} is not a quadcopter task; `jaxrobo show` draws flights "
+                          f"of QuadcopterGoto-v1 or QuadcopterLiveShow-v0 (use `jaxrobo plot` for other runs)")
+
+
+def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
+    """The run's RunSpec, config and tables, each checked (ConfigError naming the file and field)."""
+    from jaxrobo.config import ConfigError
+    from jaxrobo.results import load_config, load_tables
     from jaxrobo.run import resolve
 
-    with open(os.path.join(run_dir, "config.yaml")) as f:
-        cfg = yaml.safe_load(f)
+    if not os.path.isdir(run_dir):
+        raise ConfigError(f"run directory {run_dir!r} does not exist (or is not a directory)")
+    try:
+        cfg = load_config(run_dir)
+    except FileNotFoundError as err:
+        raise ConfigError(str(err)) from None
+    where = os.path.join(run_dir, "config.yaml")
+    if not isinstance(cfg.get("env_id"), str):
+        raise ConfigError(f"{where}: env_id is missing; is it a jaxrobo run directory?")
     overrides = {f"env.{k}": v for k, v in (cfg.get("env_options") or {}).items()}
     overrides.update({f"env.{k}": v for k, v in (cfg.get("env_params") or {}).items()})
     overrides.update({f"agent.{k}": v for k, v in (cfg.get("agent_params") or {}).items()})
     overrides.update({f"agent.{k}": v for k, v in (cfg.get("train") or {}).items()})
-    spec = resolve(cfg["env_id"], cfg.get("preset", "default"), overrides)
-    q = np.load(os.path.join(run_dir, "qtables.npz"))["q"]
+    try:
+        spec = resolve(cfg["env_id"], cfg.get("preset", "default"), overrides, check_memory=False)
+    except ConfigError as err:
+        raise ConfigError(f"{where}: {err}") from None
+    check_flying(spec, where)
+    q = load_tables(run_dir)["q"]
+    from jaxrobo.run import check_discretiser
+
+    n_states, n_actions = check_discretiser(spec.env, spec.config), spec.env.num_actions
+    if q.shape[2:] != (n_states, n_actions):
+        raise ConfigError(f"{os.path.join(run_dir, 'qtables.npz')}: q has shape {q.shape}, but the run's config "
+                          f"gives tables of {n_states} states x {n_actions} actions")
     return spec, cfg, q
+
+
+def check_table(q: np.ndarray, table: int, source: str) -> None:
+    """``--table`` must name one of the run's tables, and that table must hold finite values."""
+    from jaxrobo.config import ConfigError
+
+    if not 0 <= table < q.shape[0]:
+        raise ConfigError(f"--table {table}: must be in 0..{q.shape[0] - 1} (the run has {q.shape[0]} tables)")
+    if not np.all(np.isfinite(q[table])):
+        bad = int(np.size(q[table]) - np.isfinite(q[table]).sum())
+        raise ConfigError(f"{source}: table {table} has {bad} non-finite values of {np.size(q[table])}; "
+                          "it cannot be flown")
 
 
 def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int) -> dict[str, np.ndarray]:
@@ -50,7 +96,7 @@ def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int) -
     if q is None:
         policy = random_policy(env.num_actions)
     else:
-        policy = greedy_policy(np.asarray(q[min(table, q.shape[0] - 1)]), make_discretiser_for(env, spec.config))
+        policy = greedy_policy(np.asarray(q[table]), make_discretiser_for(env, spec.config))
     out = jax.jit(lambda k: rollouts(env, policy, k, episodes))(jax.random.key(seed))
     task = out["first"].task
     res = {"pos": np.asarray(out["pos"]), "alive": np.asarray(out["alive"])}
@@ -126,18 +172,44 @@ def draw(res: dict[str, np.ndarray], title: str, out: str, tolerance: float = 0.
     plt.close(fig)
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """The flags of ``jaxrobo show`` (ConfigError naming the flag and what it accepts)."""
+    from jaxrobo.cli import check_image_path
+    from jaxrobo.config import ConfigError
+    from jaxrobo.struct import INT32_MAX
+
+    if args.run_dir and args.env_id:
+        raise ConfigError(f"give a RUN_DIR or --env ID, not both (got {args.run_dir!r} and --env {args.env_id})")
+    if not args.run_dir and not args.env_id:
+        raise ConfigError("give a RUN_DIR (greedy flights of a trained run) or --env ID (random flights)")
+    if not 1 <= args.episodes <= MAX_EPISODES:
+        raise ConfigError(f"--episodes {args.episodes}: must be an integer >= 1 and <= {MAX_EPISODES}")
+    if not 0 <= args.seed <= INT32_MAX:
+        raise ConfigError(f"--seed {args.seed}: must be an integer >= 0 and <= {INT32_MAX}")
+    if args.table < 0:
+        raise ConfigError(f"--table {args.table}: must be an integer >= 0")
+    check_image_path(args.out)
+
+
 def run(args: argparse.Namespace) -> int:
     """Draw flights from a run directory (greedy) or an env id (random policy); returns a process exit code."""
+    import sys
+
+    from jaxrobo.config import ConfigError
     from jaxrobo.run import resolve
 
-    if args.run_dir:
-        spec, cfg, q = _load_run(args.run_dir)
-        what = f"greedy flights of table {args.table}, {args.run_dir}"
-    elif args.env_id:
-        spec, q = resolve(args.env_id, args.preset), None
-        what = "random policy (untrained)"
-    else:
-        print("jaxrobo show: give a RUN_DIR or --env ID")
+    try:
+        check_args(args)
+        if args.run_dir:
+            spec, cfg, q = _load_run(args.run_dir)
+            check_table(q, args.table, os.path.join(args.run_dir, "qtables.npz"))
+            what = f"greedy flights of table {args.table}, {args.run_dir}"
+        else:
+            spec, q = resolve(args.env_id, args.preset, check_memory=False), None
+            check_flying(spec, f"--env {args.env_id}")
+            what = "random policy (untrained)"
+    except ConfigError as err:
+        print(f"jaxrobo show: {err}", file=sys.stderr)
         return 2
     res = fly(spec, q, args.table, args.episodes, args.seed)
     p = spec.env.default_params

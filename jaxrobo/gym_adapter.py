@@ -26,7 +26,6 @@ since Gymnasium keeps that keyword for its wrapper; to lengthen them pass
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from typing import Any, Mapping, Sequence
 
 import gymnasium
@@ -440,10 +439,6 @@ def register_gymnasium_envs() -> list[str]:
             kwargs={"env_id": env_id},
         )
         added.append(gid)
-    # Gymnasium calls an id "out of date" when the same name has a higher version; jaxrobo's versions are
-    # different tasks (CartPoleStayUp-v1 is the seed's 2-action exercise, not a newer -v0), so the warning
-    # would only mislead. Silenced for jaxrobo's own ids, nothing else.
-    warnings.filterwarnings("ignore", message=rf".*environment {NAMESPACE}/\S+ is out of date.*")
     return added
 
 

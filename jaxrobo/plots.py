@@ -19,7 +19,7 @@ def run_label(run_dir: str) -> str:
         cfg = load_config(run_dir)
         train = cfg.get("train", {})
         return f"{cfg.get('env_id', '?')} · {train.get('agent', '?')} ({cfg.get('preset', '?')})"
-    except (FileNotFoundError, OSError):
+    except (FileNotFoundError, OSError, ValueError):  # a label only: a broken config.yaml is not fatal here
         return os.path.basename(os.path.normpath(run_dir))
 
 
@@ -48,9 +48,11 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
     labels = list(labels) if labels else [run_label(d) for d in run_dirs]
     if len(labels) != len(run_dirs):
         raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    if not (isinstance(window, int) and window >= 1):
+        raise ValueError(f"window={window!r}: must be an integer >= 1 (episodes averaged)")
+    all_stats = [load_stats(d) for d in run_dirs]  # every run read (and checked) before anything is drawn
     fig, (ax_r, ax_l) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
-    for run_dir, label in zip(run_dirs, labels):
-        s = load_stats(run_dir)
+    for s, label in zip(all_stats, labels):
         ep = s["episode"]
         for ax, name in ((ax_r, "return"), (ax_l, "length")):
             mean = smooth(s[f"{name}_mean"], window)

@@ -24,6 +24,14 @@ class Registration:
 
 
 _REGISTRY: dict[str, Registration] = {}
+#: Old ids that still work in jaxrobo (with a FutureWarning) but are not registered ids of their own, nor
+#: Gymnasium ids: ``{old: new}``.
+ALIASES: dict[str, str] = {}
+
+
+def deprecated_alias(old: str, new: str) -> None:
+    """Keep ``old`` working as a deprecated name of the registered id ``new``."""
+    ALIASES[old] = new
 
 
 def register(id: str, entry_point: str | type, max_episode_steps: int, *, config: str | None = None,
@@ -51,7 +59,12 @@ def _load_builtin() -> None:
 
 def _lookup(id: str) -> Registration:
     _load_builtin()
-    if id not in _REGISTRY:
+    if id in ALIASES and id not in _REGISTRY:
+        import warnings
+
+        warnings.warn(f"environment id {id!r} is deprecated: it is {ALIASES[id]!r}", FutureWarning, stacklevel=3)
+        id = ALIASES[id]
+    if not isinstance(id, str) or id not in _REGISTRY:
         raise unknown_key(id, _REGISTRY, where="environment id")
     return _REGISTRY[id]
 
@@ -62,7 +75,10 @@ def env_config(id: str) -> dict[str, Any]:
     values = dict(reg.defaults)
     values.setdefault("max_episode_steps", reg.spec.max_episode_steps)
     if reg.spec.config:
-        values.update(load_yaml(reg.spec.config).get("env", {}) or {})
+        env = load_yaml(reg.spec.config).get("env", {}) or {}
+        if not isinstance(env, dict):
+            raise ConfigError(f"{reg.spec.config}: env: expected a mapping of key: value, got {type(env).__name__}")
+        values.update(env)
     return values
 
 

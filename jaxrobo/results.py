@@ -142,30 +142,78 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
 
 
 def load_config(run_dir: str) -> dict[str, Any]:
-    with open(os.path.join(run_dir, "config.yaml")) as f:
-        return yaml.safe_load(f) or {}
+    """A run's ``config.yaml`` as a mapping; FileNotFoundError if absent, ConfigError if it is not valid YAML
+    or not a mapping whose sections (``env_options``, ``env_params``, ``agent_params``, ``train``) are mappings."""
+    from jaxrobo.config import ConfigError, load_yaml
+
+    path = os.path.join(run_dir, "config.yaml")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{run_dir}: no config.yaml; is it a jaxrobo run directory?")
+    cfg = load_yaml(path)
+    for section in ("env_options", "env_params", "agent_params", "train"):
+        if cfg.get(section) is not None and not isinstance(cfg[section], dict):
+            raise ConfigError(f"{path}: {section} must be a mapping of key: value, got {cfg[section]!r}")
+    if "env_id" in cfg and not isinstance(cfg["env_id"], str):
+        raise ConfigError(f"{path}: env_id must be a string, got {cfg['env_id']!r}")
+    if "preset" in cfg and not isinstance(cfg["preset"], str):
+        raise ConfigError(f"{path}: preset must be a string, got {cfg['preset']!r}")
+    return cfg
 
 
-def read_columns(path: str) -> dict[str, np.ndarray]:
-    """A numeric CSV with a header row as ``{column: float array}``."""
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """A numeric CSV with a header row as ``{column: float array}``.
+
+    ValueError naming the file, and the column or line, when a ``required`` column is missing, a row is short
+    (a truncated file) or a value is not a number."""
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            header = reader.fieldnames or []
+            missing = [c for c in required if c not in header]
+            if missing:
+                raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; expected {', '.join(required)}")
+            rows = list(reader)
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not a text CSV file ({err})") from None
+    except csv.Error as err:
+        raise ValueError(f"{path}: not a valid CSV file ({err})") from None
     if not rows:
         raise ValueError(f"{path} has no rows")
-    return {name: np.asarray([float(r[name]) for r in rows]) for name in rows[0]}
+    out: dict[str, list[float]] = {name: [] for name in header}
+    for line, row in enumerate(rows, start=2):
+        if None in row or any(row.get(name) is None for name in header):
+            raise ValueError(f"{path} line {line}: expected {len(header)} values ({', '.join(header)}); "
+                             "the file is truncated or malformed")
+        for name in header:
+            try:
+                out[name].append(float(row[name]))
+            except ValueError:
+                raise ValueError(f"{path} line {line}: column {name}={row[name]!r} is not a number") from None
+    return {name: np.asarray(values) for name, values in out.items()}
+
+
+#: The columns of ``episode_stats.csv`` that ``jaxrobo plot`` draws.
+PLOTTED_STATS = ("episode", "return_mean", "return_p10", "return_p90", "length_mean", "length_p10", "length_p90")
 
 
 def load_stats(run_dir: str) -> dict[str, np.ndarray]:
     """Per-episode statistics of a run (from ``episode_stats.csv``, else computed from ``episodes.csv``)."""
     path = os.path.join(run_dir, "episode_stats.csv")
     if os.path.exists(path):
-        return read_columns(path)
+        return read_columns(path, PLOTTED_STATS)
     path = os.path.join(run_dir, "episodes.csv")
     if not os.path.exists(path):
         raise FileNotFoundError(f"{run_dir}: no episode_stats.csv or episodes.csv; is it a jaxrobo run directory?")
-    data = read_columns(path)
+    data = read_columns(path, ("env", "episode", "return", "length", "epsilon"))
+    for name in ("env", "episode"):
+        col = data[name]
+        if not (np.all(np.isfinite(col)) and np.all(col >= 0) and np.all(col == np.round(col))):
+            raise ValueError(f"{path}: column {name} must hold integers >= 0")
     env, ep = data["env"].astype(int), data["episode"].astype(int)
     n_env, n_ep = env.max() + 1, ep.max() + 1
+    if n_env * n_ep > 10 * env.size + 1_000_000:
+        raise ValueError(f"{path}: env/episode numbers up to {n_env - 1}/{n_ep - 1} for {env.size} rows; "
+                         "the file is malformed")
     r = np.full((n_env, n_ep), np.nan)
     r[env, ep] = data["return"]
     ln = np.full((n_env, n_ep), np.nan)
@@ -179,3 +227,28 @@ def load_stats(run_dir: str) -> dict[str, np.ndarray]:
         for q in (10, 50, 90):
             stats[f"{name}_p{q}"] = np.nanpercentile(x, q, axis=0)
     return stats
+
+
+def load_tables(run_dir: str) -> dict[str, np.ndarray]:
+    """A run's ``qtables.npz`` as plain arrays (no pickle); ConfigError naming the file when it is missing,
+    truncated, pickled or has no ``q`` of shape ``[n_envs, n_tables, n_states, n_actions]``."""
+    import zipfile
+
+    from jaxrobo.config import ConfigError
+
+    path = os.path.join(run_dir, "qtables.npz")
+    if not os.path.isfile(path):
+        raise ConfigError(f"{run_dir}: no qtables.npz; is it a finished jaxrobo run directory?")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
+        raise ConfigError(f"{path}: cannot be read as plain arrays ({type(err).__name__}: {err}); "
+                          "it is truncated, pickled or not an npz file") from None
+    if "q" not in arrays:
+        raise ConfigError(f"{path}: no array 'q' (found {', '.join(arrays) or 'none'})")
+    q = arrays["q"]
+    if q.ndim != 4 or not np.issubdtype(q.dtype, np.floating):
+        raise ConfigError(f"{path}: q must be a float array [n_envs, n_tables, n_states, n_actions], got "
+                          f"{q.dtype} of shape {q.shape}")
+    return arrays

@@ -14,11 +14,14 @@ import dataclasses
 import os
 from typing import Any, Mapping
 
+import numpy as np
+
 from agents.tabular import AgentParams
+from jaxrobo import discretise
 from jaxrobo.config import ConfigError, as_dict, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env
 from jaxrobo.registry import _lookup, make
-from jaxrobo.struct import rules
+from jaxrobo.struct import INT32_MAX, rules
 from jaxrobo.train import TrainConfig
 
 AGENT_CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "agents", "configs")
@@ -46,35 +49,118 @@ class RunSpec:
 
 
 def agent_presets(env_id: str) -> dict[str, dict[str, Any]]:
-    """The presets in the id's agent YAML (``{}`` if it has none)."""
+    """The presets in the id's agent YAML (``{}`` if it has none); ConfigError if the file is not a mapping of
+    preset name to a mapping of settings."""
     spec = _lookup(env_id).spec
     if not spec.agent_config:
         return {}
     path = spec.agent_config
     if not os.path.isabs(path):
         path = os.path.join(AGENT_CONFIG_DIR, path)
-    return load_yaml(path)
+    presets = load_yaml(path)
+    for name, values in presets.items():
+        if not isinstance(name, str):
+            raise ConfigError(f"{path}: preset names must be strings, got {name!r}")
+        if values is not None and not isinstance(values, dict):
+            raise ConfigError(f"{path}: preset {name!r} must be a mapping of key: value, got "
+                              f"{type(values).__name__} {values!r}")
+        env = (values or {}).get("env")
+        if env is not None and not isinstance(env, dict):
+            raise ConfigError(f"{path}: preset {name!r}: env must be a mapping of key: value, got "
+                              f"{type(env).__name__} {env!r}")
+    return presets
+
+
+#: The discretiser fields each mode leaves unused (``bins`` mode: number_splits too when bins is given).
+_UNUSED_BY_MODE = {"bins": ("resolution", "edges"), "round": ("number_splits", "bins", "edges"),
+                   "edges": ("number_splits", "bins", "resolution")}
+#: TrainConfig field names of the discretiser's arguments, for messages.
+DISCRETISER_NAMES = {"low": "state_low", "high": "state_high", "mode": "discretiser", "splits": "bins",
+                     "resolution": "resolution", "edges": "edges"}
+
+
+def check_combinations(config: TrainConfig, given: Mapping[str, Any], where: str = "") -> None:
+    """Refuse settings that are each valid but do not go together, or that would be silently ignored.
+
+    ``given``: the loop settings the user set explicitly (``--set``/flags); one of them that the chosen
+    discretiser mode does not use is refused unless it equals the default (a saved run's config lists every
+    field, so it must resolve again).
+    """
+    import agents
+
+    loc = f"{where}: " if where else ""
+    defaults = TrainConfig()
+    if config.seed_compat and agents.get(config.agent).n_tables > 1:
+        raise ConfigError(f"{loc}agent={config.agent!r} with seed_compat=true: the seed's learners had one table "
+                          f"and {config.agent} has no seed form; set seed_compat=false or agent to one of "
+                          + ", ".join(n for n, lr in agents.LEARNERS.items() if lr.n_tables == 1))
+    unused = list(_UNUSED_BY_MODE[config.discretiser])
+    if config.discretiser == "bins" and config.bins is not None:
+        unused.append("number_splits")
+    for key in unused:
+        if key in given and getattr(config, key) != getattr(defaults, key):
+            because = (f"bins={list(config.bins)} is given (set bins=null to use number_splits)"
+                       if key == "number_splits" and config.discretiser == "bins"
+                       else f"discretiser={config.discretiser!r} does not use it")
+            raise ConfigError(f"{loc}{key}={given[key]!r} would be ignored: {because}")
+    steps = config.nepisodes * config.nsteps
+    if steps > INT32_MAX:
+        raise ConfigError(f"{loc}nepisodes x nsteps = {config.nepisodes} x {config.nsteps} = {steps:,} steps per env: "
+                          f"must be <= {INT32_MAX:,} (step counters are int32); use fewer nepisodes or nsteps")
+    if config.eval_episodes * max(config.nsteps, 1) > INT32_MAX:
+        raise ConfigError(f"{loc}eval_episodes={config.eval_episodes}: too many greedy evaluation episodes; "
+                          f"must be <= {INT32_MAX // max(config.nsteps, 1):,} with nsteps={config.nsteps}")
+
+
+def check_discretiser(env: Env, config: TrainConfig, where: str = "") -> int:
+    """Validate the config's discretiser settings against the task's observation; returns the table's n_states."""
+    loc = f"{where}: " if where else ""
+    dims = int(env.observation_space().shape[0])
+    low, high = config.state_low, config.state_high
+    if low is None or high is None:
+        task_low, task_high = (np.asarray(b, np.float64) for b in env.state_bounds())
+        low = task_low if low is None else low
+        high = task_high if high is None else high
+    splits = config.bins if config.bins is not None else config.number_splits
+    names = dict(DISCRETISER_NAMES, splits="bins" if config.bins is not None else "number_splits")
+    try:
+        _, _, bins, _ = discretise.check(low, high, config.discretiser, splits, config.resolution, config.edges,
+                                         dims=dims, names=names)
+    except ValueError as err:
+        raise ConfigError(f"{loc}{err}") from None
+    return int(np.prod(bins, dtype=object))
 
 
 def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] | None = None,
-            agent: str | None = None) -> RunSpec:
-    """Build env, learner parameters and loop config for a run; raises :class:`ConfigError` on any bad value."""
+            agent: str | None = None, check_memory: bool = True) -> RunSpec:
+    """Build env, learner parameters and loop config for a run; raises :class:`ConfigError` on any bad value.
+
+    Everything is checked here, before anything compiles: each value against its declared rule, combinations
+    (:func:`check_combinations`), the discretiser against the task's observation, and (``check_memory``) the
+    batch's estimated memory against what the device has (:func:`jaxrobo.budget.check_memory`).
+    """
+    env_id = _lookup(env_id).spec.id  # a deprecated alias resolves (and warns) once; the run records the real id
     presets = agent_presets(env_id)
-    if presets and preset not in presets:
-        raise ConfigError(f"{env_id}: preset={preset!r}: allowed values are {', '.join(presets)}")
+    if not isinstance(preset, str) or (presets and preset not in presets):
+        raise ConfigError(f"{env_id}: preset={preset!r}: allowed values are {', '.join(presets) or 'default'}")
+    if overrides is not None and not isinstance(overrides, Mapping):
+        raise ConfigError(f"overrides: expected a mapping of key: value, got {type(overrides).__name__}")
     chosen = dict(presets.get(preset, {}) or {})
     env_values = dict(chosen.pop("env", {}) or {})
     agent_values = chosen
     env_cls = _lookup(env_id).env_class()
     env_keys = set(rules(env_cls.Options)) | set(rules(env_cls.Params))
     agent_keys = set(rules(AgentParams)) | set(rules(TrainConfig))
+    given: dict[str, Any] = {}
     for key, value in (overrides or {}).items():
+        if not isinstance(key, str):
+            raise unknown_key(repr(key), agent_keys | env_keys, where="--set")
         if key.startswith("env."):
             env_values[key[4:]] = value
         elif key.startswith("agent."):
-            agent_values[key[6:]] = value
+            agent_values[key[6:]] = given[key[6:]] = value
         elif key in agent_keys:
-            agent_values[key] = value
+            agent_values[key] = given[key] = value
         elif key in env_keys:
             env_values[key] = value
         else:
@@ -83,5 +169,12 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
         agent_values["agent"] = agent
     where = f"{env_id} preset {preset}"
     agent_kw, train_kw = split_and_validate(agent_values, AgentParams, TrainConfig, where=where)
+    config = TrainConfig(**train_kw)
+    check_combinations(config, given, where)
     env = make(env_id, **env_values)
-    return RunSpec(env_id, preset, env, AgentParams(**agent_kw), TrainConfig(**train_kw), env_values)
+    n_states = check_discretiser(env, config, where)
+    if check_memory:
+        from jaxrobo.budget import check_memory as fits
+
+        fits(env, config, n_states, where=where)
+    return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values)

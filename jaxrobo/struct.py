@@ -15,6 +15,10 @@ T = TypeVar("T")
 
 _RULES = "jaxrobo_rules"
 
+#: Upper bound of every declared integer field that gives none: values become int32 arrays (counters, step
+#: limits, indices) or shapes, so anything larger would wrap around or fail deep inside a compile.
+INT32_MAX = 2**31 - 1
+
 
 def pytree_dataclass(cls: type[T]) -> type[T]:
     """A frozen dataclass registered as a pytree; fields declared with ``static=True`` become treedef metadata."""
@@ -43,7 +47,7 @@ class Rule:
     def describe(self) -> str:
         if self.choices is not None:
             return "one of " + ", ".join(repr(c) for c in self.choices)
-        kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}.get(self.kind, str(self.kind))
+        kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string", tuple: "a list"}.get(self.kind, str(self.kind))
         lo = "" if self.low is None else f"{'>' if self.low_open else '>='} {self.low}"
         hi = "" if self.high is None else f"<= {self.high}"
         bounds = " and ".join(b for b in (lo, hi) if b)
@@ -64,7 +68,10 @@ def param(
     default_factory: Callable[[], Any] | None = None,
 ) -> Any:
     """Declare a user-settable field. ``static`` fields select code paths or shapes; the rest are traced leaves."""
-    rule = Rule(kind or type(default), low, high, tuple(choices) if choices is not None else None, doc, unit, low_open,
+    kind = kind or type(default)
+    if kind is int and high is None:
+        high = INT32_MAX
+    rule = Rule(kind, low, high, tuple(choices) if choices is not None else None, doc, unit, low_open,
                 optional=default is None and default_factory is None)
     meta = {"static": static, _RULES: rule}
     if default_factory is not None:

@@ -13,9 +13,9 @@ from jaxrobo.wrappers import AutoReset
 
 
 def test_registered_ids_and_action_counts():
-    assert {"CartPoleStayUp-v0", "CartPoleStayUp-v1"} <= set(jaxrobo.registered())
+    assert {"CartPoleStayUp-v0", "CartPoleStayUpLeftRight-v0"} <= set(jaxrobo.registered())
     assert jaxrobo.make("CartPoleStayUp-v0").num_actions == 4
-    assert jaxrobo.make("CartPoleStayUp-v1").num_actions == 2
+    assert jaxrobo.make("CartPoleStayUpLeftRight-v0").num_actions == 2
     assert jaxrobo.spec("CartPoleStayUp-v0").max_episode_steps == 1000
 
 

@@ -59,13 +59,6 @@ def single(env_id) -> JaxroboEnv:
     return JaxroboEnv(env_id)
 
 
-def _quiet_make(gid: str, **kw):
-    """gymnasium.make, hiding only its 'v0 is out of date' notice (CartPoleStayUp-v1 is a variant, not an upgrade)."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*is out of date.*", category=DeprecationWarning)
-        return gym.make(gid, **kw)
-
-
 def _actions(n: int, count: int, seed: int = 0) -> list[int]:
     return [int(a) for a in np.random.default_rng(seed).integers(n, size=count)]
 
@@ -88,7 +81,7 @@ def test_registration_is_cheap_and_namespace_needs_import():
     registers every id without importing any task module."""
     code = (
         "import sys, gymnasium as gym\n"
-        "try:\n    gym.make('jaxrobo/CartPoleStayUp-v1'); print('AUTO')\n"
+        "try:\n    gym.make('jaxrobo/CartPoleStayUpLeftRight-v0'); print('AUTO')\n"
         "except gym.error.Error as e:\n    print('NEEDS_IMPORT', type(e).__name__)\n"
         "import jaxrobo\n"
         "ids = [k for k in gym.registry if k.startswith('jaxrobo/')]\n"
@@ -103,20 +96,20 @@ def test_registration_is_cheap_and_namespace_needs_import():
 
 
 def test_module_prefix_form_imports_jaxrobo():
-    env = _quiet_make("jaxrobo:jaxrobo/CartPoleStayUp-v1")
+    env = gym.make("jaxrobo:jaxrobo/CartPoleStayUpLeftRight-v0")
     assert isinstance(env.unwrapped, JaxroboEnv)
     env.close()
 
 
 def test_make_passes_overrides_and_rejects_bad_ones():
-    env = _quiet_make("jaxrobo/CartPoleStayUp-v0", control_type="position", pos_step=0.02)
+    env = gym.make("jaxrobo/CartPoleStayUp-v0", control_type="position", pos_step=0.02)
     inner = env.unwrapped.jax_env
     assert inner.options.control_type == "position" and inner.default_params.pos_step == pytest.approx(0.02)
     assert env.spec.max_episode_steps == 1000
     with pytest.raises(ValueError, match="pos_stepp"):
-        _quiet_make("jaxrobo/CartPoleStayUp-v0", pos_stepp=0.02)
+        gym.make("jaxrobo/CartPoleStayUp-v0", pos_stepp=0.02)
     with pytest.raises(ValueError, match="control_type"):
-        _quiet_make("jaxrobo/CartPoleStayUp-v0", control_type="magic")
+        gym.make("jaxrobo/CartPoleStayUp-v0", control_type="magic")
 
 
 # ---- the single env ------------------------------------------------------------------------------------------
@@ -131,7 +124,7 @@ def test_spaces_are_exact(env_id, single):
 
 
 def test_check_env_passes_without_warnings(env_id, single):
-    env = _quiet_make(f"jaxrobo/{env_id}")
+    env = gym.make(f"jaxrobo/{env_id}")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         # The made env's spec lets check_env re-make it for each render mode and check close() twice.
@@ -198,7 +191,7 @@ def test_time_limit_is_the_tasks_own_truncation():
     env.reset(seed=0)
     flags = [env.step(0)[2:4] for _ in range(3)]
     assert flags == [(False, False), (False, False), (False, True)]
-    made = _quiet_make("jaxrobo/CartPoleStayUp-v0", max_episode_steps=2)  # Gymnasium's TimeLimit shortens it
+    made = gym.make("jaxrobo/CartPoleStayUp-v0", max_episode_steps=2)  # Gymnasium's TimeLimit shortens it
     made.reset(seed=0)
     assert [made.step(0)[3] for _ in range(2)] == [False, True]
 
@@ -219,7 +212,7 @@ def test_invalid_actions_raise_before_jax(bad):
 
 
 def test_step_before_reset_is_an_error():
-    env = JaxroboEnv("CartPoleStayUp-v1")
+    env = JaxroboEnv("CartPoleStayUpLeftRight-v0")
     with pytest.raises(gym.error.ResetNeeded):
         env.step(0)
 
@@ -247,7 +240,7 @@ def _check_vector_env(venv: gym.vector.VectorEnv, n: int, steps: int = 4) -> Non
 
 def test_make_vec_uses_the_vector_entry_point(env_id, single):
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*is out of date.*", category=DeprecationWarning)
+        warnings.simplefilter("error")
         venv = gym.make_vec(f"jaxrobo/{env_id}", num_envs=N_VEC)
     assert isinstance(venv.unwrapped, JaxroboVectorEnv)
     assert venv.unwrapped.params.max_episode_steps == gym.spec(f"jaxrobo/{env_id}").max_episode_steps
@@ -257,15 +250,15 @@ def test_make_vec_uses_the_vector_entry_point(env_id, single):
 
 @pytest.fixture(scope="module")
 def short_episodes():
-    """CartPoleStayUp-v1 with episodes that end fast both ways: the pole limit terminates, the step cap truncates."""
+    """CartPoleStayUpLeftRight-v0 with episodes that end fast both ways: the pole limit terminates, the step cap truncates."""
     return {"max_episode_steps": 6, "max_pole_angle": 0.03, "min_pole_angle": -0.03}
 
 
 def test_vector_env_matches_sync_vector_env(short_episodes):
     """Same seeds, same actions: JaxroboVectorEnv == SyncVectorEnv(JaxroboEnv) step for step, across autoresets."""
     n = N_VEC
-    ours = JaxroboVectorEnv("CartPoleStayUp-v1", num_envs=n, overrides=short_episodes)
-    ref = SyncVectorEnv([lambda: JaxroboEnv("CartPoleStayUp-v1", overrides=short_episodes) for _ in range(n)],
+    ours = JaxroboVectorEnv("CartPoleStayUpLeftRight-v0", num_envs=n, overrides=short_episodes)
+    ref = SyncVectorEnv([lambda: JaxroboEnv("CartPoleStayUpLeftRight-v0", overrides=short_episodes) for _ in range(n)],
                         autoreset_mode=AutoresetMode.NEXT_STEP)
     o1, _ = ours.reset(seed=9)
     o2, _ = ref.reset(seed=9)
@@ -287,7 +280,7 @@ def test_vector_env_matches_sync_vector_env(short_episodes):
 
 
 def test_next_step_autoreset_semantics(short_episodes):
-    venv = JaxroboVectorEnv("CartPoleStayUp-v1", num_envs=N_VEC, overrides=short_episodes)
+    venv = JaxroboVectorEnv("CartPoleStayUpLeftRight-v0", num_envs=N_VEC, overrides=short_episodes)
     venv.reset(seed=0)
     done = np.zeros(N_VEC, bool)
     for _ in range(12):
@@ -300,7 +293,7 @@ def test_next_step_autoreset_semantics(short_episodes):
 
 
 def test_vector_invalid_actions():
-    venv = JaxroboVectorEnv("CartPoleStayUp-v1", num_envs=3)
+    venv = JaxroboVectorEnv("CartPoleStayUpLeftRight-v0", num_envs=3)
     venv.reset(seed=0)
     for bad in (np.array([0, 1]), np.array([0, 1, 2]), np.array([0.0, 1.0, 0.0]), np.array([0, -1, 1]),
                 np.array([[0, 1, 1]]), 1, np.array([0, np.nan, 1]), ["a", "b", "c"]):
@@ -310,21 +303,37 @@ def test_vector_invalid_actions():
 
 
 def test_vector_env_seeds_per_env():
-    venv = JaxroboVectorEnv("CartPoleStayUp-v1", num_envs=3)
+    venv = JaxroboVectorEnv("CartPoleStayUpLeftRight-v0", num_envs=3)
     a, _ = venv.reset(seed=[5, 6, 7])
     b, _ = venv.reset(seed=5)
-    single = JaxroboEnv("CartPoleStayUp-v1")
+    single = JaxroboEnv("CartPoleStayUpLeftRight-v0")
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a[1], single.reset(seed=6)[0])
     with pytest.raises(ValueError, match="2 seeds for 3 envs"):
         venv.reset(seed=[1, 2])
 
 
-def test_v0_is_not_called_out_of_date_because_a_v1_task_exists():
-    """CartPoleStayUp-v1 is a different task (2 actions), not a newer -v0: Gymnasium's warning is silenced."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("default")
+def test_gym_make_of_every_id_raises_no_warning():
+    """No jaxrobo id is a higher version of another (Gymnasium would call the lower one "out of date"): the
+    2-action cart-pole has a name of its own, and every id makes cleanly with warnings as errors."""
+    names = {}
+    for env_id in IDS:
+        name, _, version = env_id.rpartition("-v")
+        assert names.setdefault(name, version) == version, f"{name} has two versions: {names[name]} and {version}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         gym_adapter.register_gymnasium_envs()
+        for env_id in IDS:
+            env = gym.make(gym_adapter.gym_id(env_id))
+            env.close()
         env = gym.make("jaxrobo/CartPoleStayUp-v0", backend="analytic")
-    assert not [w for w in caught if "out of date" in str(w.message)]
     assert env.unwrapped.jax_env.robot.sim.backend == "analytic"
+
+
+def test_old_v1_name_is_a_jaxrobo_alias_only():
+    """CartPoleStayUp-v1 (the first name of the 2-action task) still makes it in jaxrobo, with a FutureWarning;
+    it is not a registered id, so Gymnasium never sees a v1 beside CartPoleStayUp-v0."""
+    assert "CartPoleStayUp-v1" not in IDS and "jaxrobo/CartPoleStayUp-v1" not in gym.registry
+    with pytest.warns(FutureWarning, match="CartPoleStayUpLeftRight-v0"):
+        env = jaxrobo.make("CartPoleStayUp-v1")
+    assert env.num_actions == 2 and env.spec.id == "CartPoleStayUpLeftRight-v0"

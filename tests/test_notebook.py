@@ -28,7 +28,7 @@ def test_quickstart_notebook_runs(tmp_path, monkeypatch):
     client = nbclient.NotebookClient(nb, timeout=180, kernel_name="python3", resources={"metadata": {"path": ROOT}})
     client.execute()
     text = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
-    assert "jaxrobo/CartPoleStayUp-v1" in text
+    assert "jaxrobo/CartPoleStayUpLeftRight-v0" in text
     assert "random policy:" in text and "compiled in" in text
     assert "(240, 320, 3) uint8" in text or "no offscreen OpenGL here" in text
     assert not [o for c in nb.cells for o in c.get("outputs", []) if o.get("output_type") == "error"]

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.skipif(_REASON is not None, reason=str(_REASON))
 
 @pytest.fixture(scope="module")
 def cartpole_env():
-    env = JaxroboEnv("CartPoleStayUp-v1", render_mode="rgb_array", width=160, height=120)
+    env = JaxroboEnv("CartPoleStayUpLeftRight-v0", render_mode="rgb_array", width=160, height=120)
     yield env
     env.close()
 
@@ -57,7 +57,7 @@ def test_render_extras_hook_draws_task_geometry(cartpole_env):
 
 
 def test_cameras_and_bad_camera():
-    env = jaxrobo.make("CartPoleStayUp-v1")
+    env = jaxrobo.make("CartPoleStayUpLeftRight-v0")
     state = jax.jit(env.reset)(jax.random.key(0))
     tracked = render.render_frame(env, state, 64, 48, camera="track")
     assert tracked.shape == (48, 64, 3)
@@ -66,7 +66,7 @@ def test_cameras_and_bad_camera():
 
 
 def test_vector_env_renders_one_frame_per_env():
-    venv = JaxroboVectorEnv("CartPoleStayUp-v1", num_envs=3, render_mode="rgb_array", width=64, height=48)
+    venv = JaxroboVectorEnv("CartPoleStayUpLeftRight-v0", num_envs=3, render_mode="rgb_array", width=64, height=48)
     venv.reset(seed=0)
     frames = venv.render()
     assert len(frames) == 3 and all(f.shape == (48, 64, 3) and f.dtype == np.uint8 for f in frames)
@@ -93,7 +93,7 @@ def test_record_episode_writes_a_gif(tmp_path):
     pytest.importorskip("imageio", reason="imageio (the test extra) writes the GIF")
     import imageio.v2 as imageio
 
-    env = jaxrobo.make("CartPoleStayUp-v1")
+    env = jaxrobo.make("CartPoleStayUpLeftRight-v0")
     out = render.record_episode(env, str(tmp_path / "episode.gif"), policy=lambda obs: int(obs[2] > 0),
                                 seed=1, max_steps=8, width=64, height=48)
     assert os.path.exists(out["path"]) and out["frames"] == out["length"] + 1 <= 9

@@ -1,0 +1,601 @@
+"""Every bad input is refused at the boundary: a clear message naming the field, exit code 2 (or the error for a
+Python call), no traceback, nothing written, nothing compiled or trained.
+
+One table, :data:`CASES`. A case is a command (``train``, ``sweep``, ``plot``, ``show``, ``list`` - run in-process
+through ``jaxrobo.cli.main`` - or ``api``, a Python call), its arguments, the message fragment that must appear,
+and optionally a ``setup`` that writes the input files (a broken run directory, a broken YAML) first. ``{tmp}``
+in an argument is the case's own temporary directory. To cover a new command, add its cases with its name: the
+runner is the same.
+
+Training, sweeping, flying and drawing are replaced for this module by functions that fail the test, so a case
+that got past validation cannot pass by accident (and none compiles: the whole file runs in seconds).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle  # noqa: F401  (the pickled-npz case writes an object array, which needs pickle)
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+
+from jaxrobo.cli import main
+from jaxrobo.config import ConfigError, load_yaml, parse_overrides
+
+CP = "CartPoleStayUp-v0"
+GOTO = "QuadcopterGoto-v1"
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    id: str
+    command: str  # train | sweep | plot | show | list | api
+    args: tuple = ()  # argv after the command; for "api", a callable(tmp) that must raise
+    fragment: str = ""  # must appear in stderr (CLI) or in the error message (api)
+    setup: Callable[[str, Any], None] | None = None  # setup(tmp, monkeypatch): write input files first
+    code: int = 2  # expected exit code (list survives a broken agent YAML with 0 and a note)
+
+
+# ---- input builders -------------------------------------------------------------------------------------------
+_GOTO_CONFIG: dict[str, Any] = {}
+
+
+def goto_config() -> dict[str, Any]:
+    """A valid QuadcopterGoto-v1 run config (as `jaxrobo train` writes it), built once."""
+    if not _GOTO_CONFIG:
+        from jaxrobo.run import resolve
+
+        _GOTO_CONFIG.update(resolve(GOTO, check_memory=False).to_dict())
+    return _GOTO_CONFIG
+
+
+def write_run(tmp: str, name: str = "run", config: Any = "goto", q: Any = "ok", npz: bytes | None = None,
+              config_text: str | None = None) -> str:
+    """A run directory with config.yaml and qtables.npz; each part can be broken or left out (None)."""
+    import yaml
+
+    d = os.path.join(tmp, name)
+    os.makedirs(d, exist_ok=True)
+    if config_text is not None:
+        with open(os.path.join(d, "config.yaml"), "w") as f:
+            f.write(config_text)
+    elif config is not None:
+        cfg = goto_config() if config == "goto" else config
+        with open(os.path.join(d, "config.yaml"), "w") as f:
+            yaml.safe_dump(cfg, f, sort_keys=False)
+    path = os.path.join(d, "qtables.npz")
+    if npz is not None:
+        with open(path, "wb") as f:
+            f.write(npz)
+    elif isinstance(q, str) and q == "ok":
+        np.savez(path, q=np.zeros((1, 1, 1296, 5), np.float32))  # the Goto default preset: 1296 states, 5 actions
+    elif q is not None:
+        np.savez(path, **q) if isinstance(q, dict) else np.savez(path, q=q)
+    return d
+
+
+def ok_npz_bytes(tmp: str) -> bytes:
+    path = os.path.join(tmp, "_ok.npz")
+    np.savez(path, q=np.zeros((1, 1, 1296, 5), np.float32))
+    data = open(path, "rb").read()
+    os.remove(path)
+    return data
+
+
+def pickled_npz_bytes(tmp: str) -> bytes:
+    path = os.path.join(tmp, "_p.npz")
+    np.savez(path, q=np.array([{"evil": 1}], dtype=object))
+    data = open(path, "rb").read()
+    os.remove(path)
+    return data
+
+
+STATS_HEADER = ("episode,return_mean,return_std,return_p10,return_p50,return_p90,length_mean,length_std,"
+                "length_p10,length_p50,length_p90,epsilon\n")
+STATS_ROW = "0,1,0,1,1,1,5,0,5,5,5,0.1\n"
+
+
+def write_csv_run(tmp: str, name: str, filename: str, text: str | bytes) -> None:
+    d = os.path.join(tmp, name)
+    os.makedirs(d, exist_ok=True)
+    with open(os.path.join(d, filename), "wb") as f:
+        f.write(text.encode() if isinstance(text, str) else text)
+
+
+def agent_yaml(text: str, env_id: str = CP, which: str = "agent_config") -> Callable[[str, Any], None]:
+    """Point ``env_id``'s agent (or env) YAML at a file holding ``text`` for this case only."""
+    def setup(tmp: str, monkeypatch: Any) -> None:
+        from jaxrobo import registry
+
+        path = os.path.join(tmp, "cfg", "bad.yaml")
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w") as f:
+            f.write(text)
+        reg = registry._lookup(env_id)
+        spec = dataclasses.replace(reg.spec, **{which: path})
+        monkeypatch.setitem(registry._REGISTRY, env_id, dataclasses.replace(reg, spec=spec))
+    return setup
+
+
+def run_dir(**kw: Any) -> Callable[[str, Any], None]:
+    return lambda tmp, _mp: write_run(tmp, **kw)
+
+
+def raises(fn: Callable[[], Any]) -> Callable[[str], Any]:
+    return lambda tmp: fn()
+
+
+# ---- the table --------------------------------------------------------------------------------------------------
+def T(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a table row
+    return Case(f"train-{id}", "train", argv, fragment, setup)
+
+
+TRAIN = [
+    # unknown keys and ids
+    T("unknown-key", "unknown key 'alfa' (did you mean alpha", "--set", "alfa=0.1"),
+    T("unknown-env-key", "unknown key 'nope'", "--set", "env.nope=1"),
+    T("unknown-agent-key", "unknown key 'pos_step'", "--set", "agent.pos_step=1"),
+    T("typo-env-param", "unknown key 'pos_stepp'", "--set", "pos_stepp=0.1"),
+    T("other-task-key", "unknown key 'max_altitude'", "--set", "max_altitude=3"),
+    T("unknown-env-id", "environment id: unknown key 'Nope-v0'", "--env", "Nope-v0"),
+    T("env-id-typo", "did you mean CartPoleStayUp-v0", "--env", "CartPoleStayUp-v2"),
+    T("unknown-preset", "preset='fast': allowed values are default, seed", "--preset", "fast"),
+    # --set syntax
+    T("set-no-equals", "--set 'alpha': expected KEY=VALUE", "--set", "alpha"),
+    T("set-empty-key", "the key is empty", "--set", "=3"),
+    T("set-twice", "--set alpha: given twice", "--set", "alpha=0.1", "--set", "alpha=0.2"),
+    T("set-bad-yaml", "--set alpha: not valid YAML", "--set", "alpha=[1"),
+    T("set-python-tag", "could not determine a constructor", "--set", "alpha=!!python/object/apply:os.system [ls]"),
+    T("set-duplicate-key", "duplicate key 'a'", "--set", "alpha={a: 1, a: 2}"),
+    T("set-mapping-for-number", "alpha={'a': 1}: expected a number", "--set", "alpha={a: 1}"),
+    # flags against --set: refused, neither silently wins
+    T("n-envs-clash", "n_envs given twice: --n-envs 2 and --set n_envs=3", "--n-envs", "2", "--set", "n_envs=3"),
+    T("seed-clash", "seed given twice", "--seed", "2", "--set", "seed=3"),
+    T("nepisodes-clash", "nepisodes given twice: --nepisodes 2 and --set agent.nepisodes=3", "--nepisodes", "2",
+      "--set", "agent.nepisodes=3"),
+    T("agent-clash", "agent given twice", "--agent", "sarsa", "--set", "agent=qlearn"),
+    # floats: range, type, finiteness
+    T("alpha-high", "alpha=1.5: expected a number > 0.0 and <= 1.0", "--set", "alpha=1.5"),
+    T("alpha-zero", "alpha=0.0: expected a number > 0.0", "--set", "alpha=0"),
+    T("alpha-tiny-exponent-ok-but-negative", "alpha=-0.001: expected a number > 0.0", "--set", "alpha=-1e-3"),
+    T("alpha-string", "alpha='abc': expected a number", "--set", "alpha=abc"),
+    T("alpha-nan", "alpha=nan: must be finite", "--set", "alpha=.nan"),
+    T("alpha-overflow", "alpha=inf: must be finite", "--set", "alpha=1e400"),
+    T("alpha-list", "alpha=[0.1]: expected a number", "--set", "alpha=[0.1]"),
+    T("alpha-bool", "alpha=True: expected a number", "--set", "alpha=true"),
+    T("gamma-negative", "gamma=-0.1: expected a number >= 0.0 and <= 1.0", "--set", "gamma=-0.1"),
+    T("gamma-high", "gamma=1.01", "--set", "gamma=1.01"),
+    T("epsilon-high", "epsilon=2", "--set", "epsilon=2"),
+    T("epsilon-discount-zero", "epsilon_discount=0.0: expected a number > 0.0", "--set", "epsilon_discount=0"),
+    T("epsilon-min-negative", "epsilon_min=-1", "--set", "epsilon_min=-1"),
+    T("resolution-zero", "resolution=0.0: expected a number > 0.0", "--set", "resolution=0"),
+    # integers: range, type, int32
+    T("n-envs-zero-set", "n_envs=0: expected an integer >= 1", "--set", "n_envs=0"),
+    T("n-envs-fraction", "n_envs=2.5: expected an integer", "--set", "n_envs=2.5"),
+    T("n-envs-string", "n_envs='abc': expected an integer", "--set", "n_envs=abc"),
+    T("n-envs-bool", "n_envs=True: expected an integer", "--set", "n_envs=true"),
+    T("n-envs-int32", "n_envs=3000000000: expected an integer >= 1 and <= 2147483647", "--set", "n_envs=3000000000"),
+    T("n-envs-flag-zero", "n_envs=0: expected an integer >= 1", "--n-envs", "0"),
+    T("n-envs-flag-not-int", "argument --n-envs: invalid int value: 'abc'", "--n-envs", "abc"),
+    T("seed-negative", "seed=-1: expected an integer >= 0 and <= 2147483647", "--seed", "-1"),
+    T("seed-int64-overflow", "seed=99999999999999999999: expected an integer >= 0 and <= 2147483647", "--seed",
+      "99999999999999999999"),
+    T("seed-int32-overflow", "seed=2147483648", "--seed", "2147483648"),
+    T("seed-fraction", "seed=1.5: expected an integer", "--set", "seed=1.5"),
+    T("nepisodes-zero", "nepisodes=0: expected an integer >= 1", "--nepisodes", "0"),
+    T("nepisodes-negative", "nepisodes=-3", "--nepisodes", "-3"),
+    T("nsteps-zero", "nsteps=0: expected an integer >= 1", "--set", "nsteps=0"),
+    T("nsteps-int32", "nsteps=99999999999: expected an integer >= 1 and <= 2147483647", "--set", "nsteps=99999999999"),
+    T("nsteps-inf", "nsteps=inf: expected an integer", "--set", "nsteps=1e400"),
+    T("nsteps-exponent-int32", "nsteps=10000000000: expected an integer", "--set", "nsteps=1e10"),
+    T("steps-product-int32", "nepisodes x nsteps = 100000 x 100000 = 10,000,000,000 steps per env: must be <=",
+      "--nepisodes", "100000", "--set", "nsteps=100000"),
+    T("chunk-steps-zero", "chunk_steps=0: expected an integer >= 1", "--set", "chunk_steps=0"),
+    T("eval-episodes-negative", "eval_episodes=-1: expected an integer >= 0", "--set", "eval_episodes=-1"),
+    T("eval-envs-zero", "eval_envs=0: expected an integer >= 1", "--set", "eval_envs=0"),
+    T("env-group-negative", "env_group=-1: expected an integer >= 0", "--set", "env_group=-1"),
+    T("max-episode-steps-zero", "max_episode_steps=0: expected an integer >= 1", "--set", "env.max_episode_steps=0"),
+    T("max-episode-steps-int32", "max_episode_steps=99999999999", "--set", "env.max_episode_steps=99999999999"),
+    # booleans and choices
+    T("record-episodes-not-bool", "record_episodes='maybe': expected a boolean", "--set", "record_episodes=maybe"),
+    T("shared-table-int", "shared_table=1: expected a boolean", "--set", "shared_table=1"),
+    T("seed-compat-not-bool", "seed_compat='sure': expected a boolean", "--set", "seed_compat=sure"),
+    T("agent-flag-unknown", "agent='dqn': allowed values are 'qlearn', 'sarsa', 'expected_sarsa', 'double_q'",
+      "--agent", "dqn"),
+    T("agent-set-unknown", "agent='dqn': allowed values are", "--set", "agent=dqn"),
+    T("discretiser-unknown", "discretiser='hash': allowed values are 'bins', 'round', 'edges'", "--set",
+      "discretiser=hash"),
+    T("control-type-unknown", "control_type='magic': allowed values are", "--set", "control_type=magic"),
+    T("n-actions-unsupported", "n_actions=3: allowed values are 2, 4", "--set", "n_actions=3"),
+    T("running-step-off-grid", "running_step=0.0333 s is not a whole multiple of the physics timestep",
+      "--set", "running_step=0.0333"),
+    # combinations
+    T("double-q-seed-compat", "agent='double_q' with seed_compat=true: the seed's learners had one table",
+      "--agent", "double_q", "--set", "seed_compat=true"),
+    T("double-q-seed-preset", "agent='double_q' with seed_compat=true", "--preset", "seed", "--agent", "double_q"),
+    T("number-splits-ignored", "number_splits=20 would be ignored: bins=[1, 6, 8, 10] is given (set bins=null",
+      "--set", "number_splits=20"),
+    T("edges-ignored", "edges=[[0], [0], [0], [0]] would be ignored: discretiser='bins' does not use it",
+      "--set", "edges=[[0], [0], [0], [0]]"),
+    T("resolution-ignored", "resolution=0.5 would be ignored: discretiser='bins' does not use it",
+      "--set", "resolution=0.5"),
+    T("bins-ignored-in-round", "bins=[1, 2, 3, 4] would be ignored: discretiser='round' does not use it",
+      "--preset", "seed", "--set", "bins=[1, 2, 3, 4]"),
+    # discretiser settings
+    T("number-splits-zero", "number_splits=0: expected an integer >= 1", "--set", "number_splits=0"),
+    T("number-splits-above-range", "number_splits=10001: expected an integer >= 1 and <= 10000", "--set", "bins=null",
+      "--set", "number_splits=10001"),
+    T("number-splits-state-overflow", "number_splits=10000: 10000 x 10000 x 10000 x 10000 = 1e+16 states, more than",
+      "--set", "bins=null", "--set", "number_splits=10000"),
+    T("bins-short", "bins=[1, 2, 3]: expected 4 bin counts, one per observation dimension, got 3", "--set",
+      "bins=[1, 2, 3]"),
+    T("bins-long", "expected 4 bin counts, one per observation dimension, got 5", "--set", "bins=[1, 2, 3, 4, 5]"),
+    T("bins-empty", "expected 4 bin counts", "--set", "bins=[]"),
+    T("bins-zero", "bins[2]=0: expected an integer >= 1", "--set", "bins=[1, 6, 0, 10]"),
+    T("bins-negative", "bins[2]=-2: expected an integer >= 1", "--set", "bins=[1, 6, -2, 10]"),
+    T("bins-fraction", "bins[2]=2.5: expected an integer >= 1", "--set", "bins=[1, 6, 2.5, 10]"),
+    T("bins-string-entry", "bins[2]='a': expected an integer >= 1", "--set", "bins=[1, 6, a, 10]"),
+    T("bins-bool-entry", "bins[2]=True: expected an integer >= 1", "--set", "bins=[1, 6, true, 10]"),
+    T("bins-nested", "bins[0]=[1]: expected an integer >= 1", "--set", "bins=[[1], [2], [3], [4]]"),
+    T("bins-scalar", "bins=5: expected a list or null", "--set", "bins=5"),
+    T("bins-state-overflow", "bins=[100000, 100000, 1, 1]: 100000 x 100000 x 1 x 1 = 1e+10 states", "--set",
+      "bins=[100000, 100000, 1, 1]"),
+    T("state-low-short", "state_low=[0, 0, 0]: expected 4 values, one per observation dimension, got 3", "--set",
+      "state_low=[0, 0, 0]"),
+    T("state-high-long", "state_high=[1, 1, 1, 1, 1]: expected 4 values", "--set", "state_high=[1, 1, 1, 1, 1]"),
+    T("state-high-below-low", "state_high[2]=-1 must be greater than state_low[2]=-1", "--set",
+      "state_low=[-1, -1, -1, -1]", "--set", "state_high=[1, 1, -1, 1]"),
+    T("state-equal", "state_high[0]=0 must be greater than state_low[0]=0", "--set", "state_low=[0, 0, 0, 0]",
+      "--set", "state_high=[0, 1, 1, 1]"),
+    T("state-high-below-task-low", "state_high[0]=-10 must be greater than state_low[0]=-2.4", "--set",
+      "state_high=[-10, 1, 1, 1]"),
+    T("state-low-string", "state_low=[0, 0, 'a', 0]: expected a list of numbers", "--set", "state_low=[0, 0, a, 0]"),
+    T("state-low-inf", "every value must be finite", "--set", "state_low=[0, 0, .inf, 0]"),
+    T("state-low-scalar", "state_low=5: expected a list or null", "--set", "state_low=5"),
+    T("edges-missing", "discretiser='edges' needs edges: one list of edges per dimension (4 lists", "--set",
+      "discretiser=edges"),
+    T("edges-short", "one list of edges per dimension (4 lists", "--set", "discretiser=edges", "--set",
+      "edges=[[0], [0], [0]]"),
+    T("edges-unsorted", "edges[0]=[1.0, 0.0]: edges must be strictly increasing", "--set", "discretiser=edges",
+      "--set", "edges=[[1, 0], [0], [0], [0]]"),
+    T("edges-repeated", "edges[0]=[0.0, 0.0]: edges must be strictly increasing", "--set", "discretiser=edges",
+      "--set", "edges=[[0, 0], [0], [0], [0]]"),
+    T("edges-not-numbers", "edges[0]=['a']: expected a list of numbers", "--set", "discretiser=edges", "--set",
+      "edges=[[a], [0], [0], [0]]"),
+    T("edges-flat", "edges[0]=0: expected a list of numbers", "--set", "discretiser=edges", "--set",
+      "edges=[0, 0, 0, 0]"),
+    T("edges-nan", "edges[0]=[nan]: every edge must be finite", "--set", "discretiser=edges", "--set",
+      "edges=[[.nan], [0], [0], [0]]"),
+    T("round-resolution-tiny", "resolution=1e-09: gives", "--preset", "seed", "--set", "resolution=1e-9"),
+    # memory
+    T("n-envs-huge", "n_envs=1000000000: the batch needs at least", "--n-envs", "1000000000"),
+    T("tables-huge", "the batch needs at least", "--set", "bins=null", "--set", "number_splits=120"),
+    T("records-huge", "nepisodes=1000000 recorded) but", "--n-envs", "100000", "--nepisodes", "1000000",
+      "--set", "nsteps=10"),
+    # other tasks
+    T("goto-n-obstacles", "n_obstacles=33: expected an integer >= 0 and <= 32", "--env", GOTO, "--set",
+      "n_obstacles=33"),
+    T("goto-obstacle-kind", "obstacle_kind='triangle': allowed values are", "--env", GOTO, "--set",
+      "obstacle_kind=triangle"),
+    T("goto-backend", "backend='warp': allowed values are", "--env", GOTO, "--set", "backend=warp"),
+    T("goto-goal-tolerance", "goal_tolerance=-1.0: expected a number > 0.0", "--env", GOTO, "--set",
+      "goal_tolerance=-1"),
+    T("goto-bins-short", "bins=[2, 9, 3]: expected 7 bin counts", "--env", GOTO, "--set", "bins=[2, 9, 3]"),
+    T("liveshow-double-q-seed", "agent='double_q' with seed_compat=true", "--env", "QuadcopterLiveShow-v0",
+      "--preset", "seed", "--set", "agent=double_q"),
+    # broken YAML files behind the presets
+    T("agent-yaml-malformed", "not valid YAML", setup=agent_yaml("default: [1, 2\n")),
+    T("agent-yaml-python-tag", "could not determine a constructor",
+      setup=agent_yaml("default: !!python/object/apply:os.system ['echo pwned']\n")),
+    T("agent-yaml-preset-not-mapping", "preset 'default' must be a mapping of key: value, got list",
+      setup=agent_yaml("default: [1, 2]\n")),
+    T("agent-yaml-top-level-list", "expected a mapping of key: value at the top level, got list",
+      setup=agent_yaml("- 1\n- 2\n")),
+    T("agent-yaml-duplicate-key", "duplicate key 'alpha' (lines 2 and 3)",
+      setup=agent_yaml("default:\n  alpha: 0.1\n  alpha: 0.2\n")),
+    T("agent-yaml-env-not-mapping", "preset 'default': env must be a mapping",
+      setup=agent_yaml("default:\n  env: 3\n")),
+    T("agent-yaml-unknown-key", "unknown key 'alfa'", setup=agent_yaml("default:\n  alfa: 0.1\n")),
+    T("agent-yaml-out-of-range", "alpha=5.0: expected a number > 0.0", setup=agent_yaml("default:\n  alpha: 5\n")),
+    T("agent-yaml-non-string-key", "unknown key '1'", setup=agent_yaml("default:\n  1: 2\n")),
+    T("env-yaml-not-mapping", "expected a mapping of key: value, got list",
+      setup=agent_yaml("env: [1, 2]\n", which="config")),
+    T("env-yaml-duplicate-key", "duplicate key 'pos_step'",
+      setup=agent_yaml("env:\n  pos_step: 0.1\n  pos_step: 0.2\n", which="config")),
+]
+
+SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
+    ("seeds-zero", ("--seeds", "0"), "--seeds 0: must be >= 1"),
+    ("eval-episodes-negative", ("--eval-episodes", "-1"), "--eval-episodes -1: must be >= 0"),
+    ("eval-metric-without-eval", ("--metric", "eval_mean_length", "--eval-episodes", "0"),
+     "--metric eval_mean_length: needs --eval-episodes > 0"),
+    ("metric-unknown", ("--metric", "bogus"), "argument --metric: invalid choice: 'bogus'"),
+    ("grid-no-equals", ("--grid", "alpha"), "--grid 'alpha': expected KEY=V1,V2,..."),
+    ("grid-no-values", ("--grid", "alpha="), "no values after '='"),
+    ("grid-seed", ("--grid", "seed=1,2"), "the seed is not a swept parameter"),
+    ("grid-unknown-key", ("--grid", "alfa=0.1,0.2"), "unknown key 'alfa'"),
+    ("grid-out-of-range", ("--grid", "alpha=5,0.1"), "alpha=5.0: expected a number > 0.0 and <= 1.0"),
+    ("range-malformed", ("--random", "2", "--range", "alpha=0.1"), "expected KEY=LOW:HIGH"),
+    ("range-reversed", ("--random", "2", "--range", "alpha=0.9:0.1"), "need LOW < HIGH"),
+    ("range-without-random", ("--range", "alpha=0.1:0.9"), "--range needs --random N"),
+    ("random-without-range", ("--random", "3"), "--random N needs at least one --range"),
+    ("set-out-of-range", ("--set", "alpha=7"), "alpha=7.0: expected a number > 0.0 and <= 1.0"),
+    ("n-envs-zero", ("--n-envs", "0"), "n_envs=0: expected an integer >= 1"),
+    ("set-bad-yaml", ("--set", "alpha=[1"), "not valid YAML"),
+]]
+
+
+def P(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a table row
+    return Case(f"plot-{id}", "plot", argv, fragment, setup)
+
+
+def csv_run(filename: str, text: str | bytes, name: str = "r"):
+    return lambda tmp, _mp: write_csv_run(tmp, name, filename, text)
+
+
+PLOT = [
+    P("missing-dir", "run directory '{tmp}/nope' does not exist", "{tmp}/nope"),
+    P("no-csv", "no episode_stats.csv or episodes.csv", "{tmp}/r", setup=lambda tmp, _mp: os.makedirs(f"{tmp}/r")),
+    P("stats-missing-columns", "missing column(s) return_p10, return_p90", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", "episode,return_mean,length_mean,length_p10,length_p90\n0,1,2,3,4\n")),
+    P("stats-truncated", "episode_stats.csv line 3: expected 12 values", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW + "1,1,0,1\n")),
+    P("stats-not-a-number", "line 2: column return_mean='abc' is not a number", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW.replace("0,1,", "0,abc,", 1))),
+    P("stats-header-only", "episode_stats.csv has no rows", "{tmp}/r", setup=csv_run("episode_stats.csv", STATS_HEADER)),
+    P("stats-binary", "not a text CSV file", "{tmp}/r", setup=csv_run("episode_stats.csv", b"\xff\xfe\x00\x81bad")),
+    P("episodes-missing-column", "missing column(s) epsilon", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated\n0,0,1,2,0\n")),
+    P("episodes-negative-env", "column env must hold integers >= 0", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n-1,0,1,2,0,0.1\n")),
+    P("episodes-huge-index", "the file is malformed", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,99999999,1,2,0,0.1\n")),
+    P("window-zero", "--window 0: must be an integer >= 1", "{tmp}/r", "--window", "0",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW)),
+    P("labels-count", "--labels: 2 labels for 1 runs", "{tmp}/r", "--labels", "a", "b",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW)),
+    P("out-not-image", "--out '{tmp}/plot.txt': expected an image file", "{tmp}/r", "--out", "{tmp}/plot.txt",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW)),
+    P("out-is-dir", "is a directory; give a file name", "{tmp}/r", "--out", "{tmp}/r.png",
+      setup=lambda tmp, mp: (write_csv_run(tmp, "r", "episode_stats.csv", STATS_HEADER + STATS_ROW),
+                             os.makedirs(f"{tmp}/r.png"))),
+    P("second-run-broken", "missing column(s)", "{tmp}/r", "{tmp}/s",
+      setup=lambda tmp, mp: (write_csv_run(tmp, "r", "episode_stats.csv", STATS_HEADER + STATS_ROW),
+                             write_csv_run(tmp, "s", "episode_stats.csv", "episode\n0\n"))),
+]
+
+
+def S(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a table row
+    return Case(f"show-{id}", "show", argv + ("--out", "{tmp}/out/flights.png"), fragment, setup)
+
+
+SHOW = [
+    S("missing-dir", "run directory '{tmp}/nope' does not exist", "{tmp}/nope"),
+    S("no-config", "no config.yaml; is it a jaxrobo run directory?", "{tmp}/run", setup=run_dir(config=None)),
+    S("config-malformed", "config.yaml: not valid YAML", "{tmp}/run", setup=run_dir(config_text="env_id: [1\n")),
+    S("config-pickle-tag", "could not determine a constructor", "{tmp}/run",
+      setup=run_dir(config_text="env_id: !!python/object/apply:os.system ['ls']\n")),
+    S("config-not-mapping", "expected a mapping of key: value at the top level", "{tmp}/run",
+      setup=run_dir(config_text="- 1\n")),
+    S("config-duplicate-key", "duplicate key 'env_id'", "{tmp}/run",
+      setup=run_dir(config_text=f"env_id: {GOTO}\nenv_id: {CP}\n")),
+    S("config-no-env-id", "env_id is missing", "{tmp}/run", setup=run_dir(config_text="preset: default\n")),
+    S("config-section-not-mapping", "train must be a mapping of key: value", "{tmp}/run",
+      setup=run_dir(config_text=f"env_id: {GOTO}\ntrain: 5\n")),
+    S("config-bad-value", "alpha=5.0: expected a number > 0.0", "{tmp}/run",
+      setup=lambda tmp, mp: write_run(tmp, config={**goto_config(), "agent_params": {"alpha": 5}})),
+    S("config-unknown-env", "environment id: unknown key 'Nope-v0'", "{tmp}/run",
+      setup=run_dir(config_text="env_id: Nope-v0\n")),
+    S("cartpole-run", f"env_id='{CP}' is not a quadcopter task", "{tmp}/run",
+      setup=run_dir(config_text=f"env_id: {CP}\n")),
+    S("no-tables", "no qtables.npz", "{tmp}/run", setup=run_dir(q=None)),
+    S("truncated-npz", "cannot be read as plain arrays", "{tmp}/run",
+      setup=lambda tmp, mp: write_run(tmp, npz=ok_npz_bytes(tmp)[:100])),
+    S("pickled-npz", "cannot be read as plain arrays", "{tmp}/run",
+      setup=lambda tmp, mp: write_run(tmp, npz=pickled_npz_bytes(tmp))),
+    S("not-an-npz", "cannot be read as plain arrays", "{tmp}/run", setup=run_dir(npz=b"hello, not a zip file")),
+    S("npz-without-q", "no array 'q' (found tables)", "{tmp}/run", setup=run_dir(q={"tables": np.zeros(3)})),
+    S("q-wrong-ndim", "q must be a float array [n_envs, n_tables, n_states, n_actions], got float32 of shape (3, 4)",
+      "{tmp}/run", setup=run_dir(q=np.zeros((3, 4), np.float32))),
+    S("q-wrong-shape", "q has shape (1, 1, 10, 5), but the run's config gives tables of 1296 states x 5 actions",
+      "{tmp}/run", setup=run_dir(q=np.zeros((1, 1, 10, 5), np.float32))),
+    S("q-all-nan", "table 0 has 6480 non-finite values of 6480", "{tmp}/run",
+      setup=run_dir(q=np.full((1, 1, 1296, 5), np.nan, np.float32))),
+    S("table-out-of-range", "--table 5: must be in 0..0 (the run has 1 tables)", "{tmp}/run", "--table", "5",
+      setup=run_dir()),
+    S("table-negative", "--table -1: must be an integer >= 0", "{tmp}/run", "--table", "-1", setup=run_dir()),
+    S("episodes-zero", "--episodes 0: must be an integer >= 1 and <= 100", "{tmp}/run", "--episodes", "0",
+      setup=run_dir()),
+    S("episodes-huge", "--episodes 100000: must be an integer >= 1 and <= 100", "{tmp}/run", "--episodes", "100000",
+      setup=run_dir()),
+    S("seed-negative", "--seed -1: must be an integer >= 0", "{tmp}/run", "--seed", "-1", setup=run_dir()),
+    S("run-and-env", "give a RUN_DIR or --env ID, not both", "{tmp}/run", "--env", GOTO, setup=run_dir()),
+    S("neither", "give a RUN_DIR (greedy flights of a trained run) or --env ID"),
+    S("env-cartpole", f"env_id='{CP}' is not a quadcopter task", "--env", CP),
+    S("env-unknown", "environment id: unknown key 'Nope-v0'", "--env", "Nope-v0"),
+    S("env-bad-preset", "preset='nope': allowed values are default, seed", "--env", GOTO, "--preset", "nope"),
+    Case("show-out-not-image", "show", ("{tmp}/run", "--out", "{tmp}/flights.txt"),
+         "--out '{tmp}/flights.txt': expected an image file", run_dir()),
+]
+
+LIST = [
+    Case("list-broken-agent-yaml", "list", (), f"note: {CP}: ", agent_yaml("default: [1, 2\n"), code=0),
+    Case("list-duplicate-key-agent-yaml", "list", (), "duplicate key 'alpha'",
+         agent_yaml("default:\n  alpha: 0.1\n  alpha: 0.2\n"), code=0),
+]
+
+
+def _make(*a, **kw):
+    import jaxrobo
+
+    return jaxrobo.make(*a, **kw)
+
+
+def _resolve(*a, **kw):
+    from jaxrobo.run import resolve
+
+    return resolve(*a, **kw)
+
+
+def _disc(*a, **kw):
+    from jaxrobo.discretise import make_discretiser
+
+    return make_discretiser(*a, **kw)
+
+
+def _gym_make(*a, **kw):
+    import gymnasium as gym
+
+    import jaxrobo  # noqa: F401  (registers the jaxrobo/ ids)
+
+    return gym.make(*a, **kw)
+
+
+def _yaml_file(text: str) -> dict[str, Any]:
+    """A call of load_yaml on a file holding ``text`` (written by the case's setup, before the snapshot)."""
+    def setup(tmp: str, _mp: Any) -> None:
+        with open(os.path.join(tmp, "in.yaml"), "w") as f:
+            f.write(text)
+    return {"call": lambda tmp: load_yaml(os.path.join(tmp, "in.yaml")), "setup": setup}
+
+
+def A(id: str, fragment: str, call: Any) -> Case:  # noqa: N802 - a table row
+    if isinstance(call, dict):
+        return Case(f"api-{id}", "api", call["call"], fragment, call["setup"])
+    return Case(f"api-{id}", "api", call, fragment)
+
+
+API = [
+    A("make-unknown-key", "unknown key 'pos_stepp' (did you mean pos_step", raises(lambda: _make(CP, pos_stepp=1))),
+    A("make-unknown-id", "environment id: unknown key 'Nope'", raises(lambda: _make("Nope"))),
+    A("make-int32", "max_episode_steps=1099511627776: expected an integer >= 1 and <= 2147483647",
+      raises(lambda: _make(CP, max_episode_steps=2**40))),
+    A("make-choice", "n_actions=3: allowed values are 2, 4", raises(lambda: _make(CP, n_actions=3))),
+    A("make-wrong-type", "pos_step='fast': expected a number", raises(lambda: _make(CP, pos_step="fast"))),
+    A("gym-make-unknown-key", "unknown key 'pos_stepp'", raises(lambda: _gym_make(f"jaxrobo/{CP}", pos_stepp=1))),
+    A("resolve-string-number", "alpha='1e-3': expected a number", raises(lambda: _resolve(CP, overrides={"alpha": "1e-3"}))),
+    A("resolve-overrides-not-mapping", "overrides: expected a mapping of key: value, got list",
+      raises(lambda: _resolve(CP, overrides=[("alpha", 0.1)]))),
+    A("resolve-non-string-key", "--set: unknown key '1'", raises(lambda: _resolve(CP, overrides={1: 2}))),
+    A("resolve-preset-none", "preset=None: allowed values are default, seed", raises(lambda: _resolve(CP, None))),
+    A("resolve-memory", "n_envs=1000000000: the batch needs at least",
+      raises(lambda: _resolve(CP, overrides={"n_envs": 10**9}))),
+    A("resolve-double-q-seed-compat", "agent='double_q' with seed_compat=true",
+      raises(lambda: _resolve(CP, overrides={"agent": "double_q", "seed_compat": True}))),
+    A("resolve-ignored-number-splits", "number_splits=20 would be ignored",
+      raises(lambda: _resolve(CP, overrides={"agent.number_splits": 20}))),
+    A("resolve-bins-tuple-wrong-length", "bins=[2, 2]: expected 4 bin counts",
+      raises(lambda: _resolve(CP, overrides={"bins": (2, 2)}))),
+    A("disc-unequal-bounds", "high=[1]: expected 2 values, one per observation dimension, got 1 (low and high must "
+      "be equal-length lists)", raises(lambda: _disc([0, 0], [1], number_splits=3))),
+    A("disc-splits-length", "number_splits=[2, 3]: expected 1 bin counts", raises(lambda: _disc([0], [1], number_splits=[2, 3]))),
+    A("disc-splits-string", "number_splits='3': expected a positive integer", raises(lambda: _disc([0], [1], number_splits="3"))),
+    A("disc-splits-zero", "number_splits=0: expected an integer >= 1", raises(lambda: _disc([0], [1], number_splits=0))),
+    A("disc-equal-bounds", "high[0]=0 must be greater than low[0]=0 (each dimension needs high > low)",
+      raises(lambda: _disc([0], [0]))),
+    A("disc-nan-bound", "low=[nan]: every value must be finite", raises(lambda: _disc([float("nan")], [1]))),
+    A("disc-empty", "low=[]: expected at least one value", raises(lambda: _disc([], []))),
+    A("disc-bounds-not-list", "low=0.5: expected a list of numbers", raises(lambda: _disc(0.5, [1]))),
+    A("disc-mode", "mode='hash': allowed values are bins, round, edges", raises(lambda: _disc([0], [1], mode="hash"))),
+    A("disc-round-resolution", "resolution=0: expected a finite number > 0",
+      raises(lambda: _disc([0], [1], mode="round", resolution=0))),
+    A("disc-edges-unsorted", "edges[0]=[1.0, 0.0]: edges must be strictly increasing",
+      raises(lambda: _disc([0], [1], mode="edges", edges=[[1, 0]]))),
+    A("disc-edges-none", "mode='edges' needs edges: one list of edges per dimension (1 lists",
+      raises(lambda: _disc([0], [1], mode="edges"))),
+    A("disc-edges-ragged-count", "one list of edges per dimension (2 lists",
+      raises(lambda: _disc([0, 0], [1, 1], mode="edges", edges=[[0.5]]))),
+    A("disc-state-overflow", "number_splits=[65536, 65536]: 65536 x 65536 = 4.29e+09 states, more than",
+      raises(lambda: _disc([0, 0], [1, 1], number_splits=[65536, 65536]))),
+    A("parse-overrides-no-equals", "--set 'alpha': expected KEY=VALUE", raises(lambda: parse_overrides(["alpha"]))),
+    A("yaml-duplicate-key", "duplicate key 'a' (lines 1 and 2)", _yaml_file("a: 1\na: 2\n")),
+    A("yaml-python-tag", "could not determine a constructor", _yaml_file("a: !!python/name:os.system\n")),
+    A("yaml-malformed", "not valid YAML", _yaml_file("a: [1\n")),
+    A("yaml-missing-file", "config file not found", lambda tmp: load_yaml(os.path.join(tmp, "absent.yaml"))),
+]
+
+CASES = TRAIN + SWEEP + PLOT + SHOW + LIST + API
+
+
+# ---- the runner -------------------------------------------------------------------------------------------------
+@pytest.fixture(autouse=True)
+def nothing_runs(monkeypatch):
+    """Whatever got past validation would reach one of these; each fails the case instead of training/drawing."""
+    import matplotlib.figure
+
+    from jaxrobo import flights, results, sweep, train
+
+    def forbidden(what: str):
+        def fail(*_a, **_kw):
+            raise AssertionError(f"{what} was reached: the input was not refused at validation")
+        return fail
+
+    monkeypatch.setattr(train, "train", forbidden("train()"))
+    monkeypatch.setattr(train.Trainer, "init", forbidden("Trainer.init"))
+    monkeypatch.setattr(sweep, "GroupRunner", forbidden("the sweep's compiled group"))
+    monkeypatch.setattr(flights, "fly", forbidden("flights.fly"))
+    monkeypatch.setattr(results, "save_run", forbidden("save_run"))
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", forbidden("savefig"))
+
+
+def _files(root: str) -> set[str]:
+    return {os.path.join(d, f) for d, _, fs in os.walk(root) for f in fs} | {d for d, _, _ in os.walk(root)}
+
+
+def _sub(x: Any, tmp: str) -> Any:
+    return x.replace("{tmp}", tmp) if isinstance(x, str) else x
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input_is_refused_naming_the_field(case: Case, tmp_path, monkeypatch, capsys):
+    tmp = str(tmp_path)
+    if case.setup is not None:
+        case.setup(tmp, monkeypatch)
+    before = _files(tmp)
+    capsys.readouterr()
+    fragment = _sub(case.fragment, tmp)
+    if case.command == "api":
+        with pytest.raises((ConfigError, ValueError)) as err:
+            case.args(tmp)
+        assert fragment in str(err.value), str(err.value)
+    else:
+        argv = [case.command] + [_sub(a, tmp) for a in case.args]
+        if case.command in ("train", "sweep"):
+            argv += ["--out", os.path.join(tmp, "out")]
+        if case.command == "train":
+            argv.append("--no-progress")
+        try:
+            code = main(argv)
+        except SystemExit as exc:  # argparse's own usage errors
+            code = exc.code
+        out, err = capsys.readouterr()
+        assert code == case.code, (code, out, err)
+        assert "Traceback" not in err + out
+        assert fragment in err, err
+        assert not os.path.exists(os.path.join(tmp, "out"))
+    assert _files(tmp) == before, sorted(_files(tmp) - before)
+
+
+def test_the_table_is_large_and_its_ids_unique():
+    assert len(CASES) >= 110
+    assert len({c.id for c in CASES}) == len(CASES)
+    assert {c.command for c in CASES} == {"train", "sweep", "plot", "show", "list", "api"}
+
+
+def test_numbers_in_every_float_syntax_are_accepted():
+    """``--set alpha=1e-3`` is the number 0.001 (YAML 1.1 alone reads it as a string)."""
+    assert parse_overrides(["alpha=1e-3", "gamma=9.9E-1", "epsilon=.5e-1", "nsteps=1e3", "bins=[1e0, 2]"]) == {
+        "alpha": 0.001, "gamma": 0.99, "epsilon": 0.05, "nsteps": 1000.0, "bins": [1.0, 2]}
+    spec = _resolve(CP, overrides={"alpha": 1e-3, "nsteps": 1e3})
+    assert spec.agent_params.alpha == 0.001 and spec.config.nsteps == 1000
+
+
+def test_list_still_lists_every_env_with_a_broken_agent_yaml(tmp_path, monkeypatch, capsys):
+    import jaxrobo
+
+    agent_yaml("default: [1, 2\n")(str(tmp_path), monkeypatch)
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert all(env_id in out for env_id in jaxrobo.registered())
+    assert "agent YAML unreadable" in out
