@@ -31,7 +31,7 @@ import numpy as np
 import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
-from jaxrobo import cache, rng, sim
+from jaxrobo import budget, cache, rng, sim
 from jaxrobo import env as env_layer
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState, default_env_group, layers, step_batch
@@ -412,6 +412,8 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
     agent_params = agent_params or AgentParams()
     env_params = env.default_params if env_params is None else env_params
     trainer = Trainer(env, config)
+    # The CLI checked this in ``run.resolve``; a Python caller gets the same refusal before anything compiles.
+    budget.check_memory(env, config, trainer.disc.n_states, where=env.name)
     key = jax.random.key(config.seed)
     t0 = time.perf_counter()
     runner = jax.jit(trainer.init)(key, agent_params, env_params) if initial is None else initial
