@@ -722,19 +722,21 @@ def _show(value: Any) -> str:
     return " ".join(map(str, value)) if isinstance(value, list) else str(value)
 
 
-def sweep_flags(args: argparse.Namespace) -> tuple[str, dict[str, Any], list[str]]:
+def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, dict[str, Any], list[str]]:
     """The output directory, the sweep-defining flags and the command line of the sweep, checked at the boundary.
 
-    A new sweep: ``--out`` must be new or empty (or a run, with ``--overwrite``). ``--resume DIR``: DIR must hold
-    an interrupted sweep, whose saved flags are used; a flag given again must say the same. Raises
-    :class:`ConfigError` naming the flag."""
+    A new sweep: ``--out`` must be new or empty (or a run, with ``--overwrite``); ``check_out=False`` skips that
+    check (processes other than 0, which never write it). ``--resume DIR``: DIR must hold an interrupted sweep,
+    whose saved flags are used; a flag given again must say the same. Raises :class:`ConfigError` naming the
+    flag."""
     from jaxrobo import rundir
 
     given = {k: getattr(args, k, None) for k in SWEEP_FLAGS}
     if args.resume is None:
         out = args.out or os.path.join("sweep_results", f"{given['env'] or SWEEP_FLAGS['env']}_"
                                                         f"{time.strftime('%Y%m%d-%H%M%S')}")
-        rundir.check_out(out, overwrite=args.overwrite)
+        if check_out:
+            rundir.check_out(out, overwrite=args.overwrite)
         flags = {k: SWEEP_FLAGS[k] if v is None else v for k, v in given.items()}
         return out, flags, list(sys.argv)
     out = args.resume
@@ -753,6 +755,16 @@ def sweep_flags(args: argparse.Namespace) -> tuple[str, dict[str, Any], list[str
             raise ConfigError(f"--resume {out}: {_flag(k)} {_show(v)} differs from the saved sweep's "
                               f"{_flag(k)} {_show(saved[k])}; a resumed sweep keeps its settings (drop the flag)")
     return out, dict(saved), list(extra.get("argv") or [])
+
+
+def _all_agree(ok: bool) -> bool:
+    """Whether every process accepted the sweep: with several, all of them run it or none does (one alone
+    would wait forever for the others)."""
+    if jax.process_count() == 1:
+        return ok
+    from jax.experimental import multihost_utils
+
+    return bool(np.all(multihost_utils.process_allgather(np.asarray(ok))))
 
 
 class _StopOnSignal:
@@ -813,10 +825,11 @@ def run(args: argparse.Namespace) -> int:
     saved for ``--resume``."""
     from jaxrobo import rundir, sharding
 
+    error = None
     try:
         sharding.initialize_distributed()  # a no-op unless JAXROBO_COORDINATOR & co. are set (docs/scaling.md)
         main_process = jax.process_index() == 0
-        out, flags, argv = sweep_flags(args)
+        out, flags, argv = sweep_flags(args, check_out=main_process)
         f = argparse.Namespace(**flags)
         if f.seeds < 1:
             raise ConfigError(f"--seeds {f.seeds}: must be >= 1")
@@ -837,7 +850,9 @@ def run(args: argparse.Namespace) -> int:
         if args.shard == "on" or (args.shard == "auto" and jax.device_count() > 1):
             mesh = sharding.make_mesh()
     except (ConfigError, ValueError) as err:
-        print(f"jaxrobo sweep: {err}", file=sys.stderr)
+        error = str(err)
+    if not _all_agree(error is None):
+        print(f"jaxrobo sweep: {error or 'another process refused the sweep (see its output)'}", file=sys.stderr)
         return 2
     resume_hint = f"jaxrobo sweep --resume {out}"
     if main_process and args.resume is None:
@@ -852,8 +867,10 @@ def run(args: argparse.Namespace) -> int:
     # --overwrite replaces.
     state_dir = out if main_process or args.resume is not None else None
     with _StopOnSignal() as stop:
+        # Processes stop together (a signal may reach only some of them): one more collective per chunk.
+        should_stop = stop if jax.process_count() == 1 else (lambda: not _all_agree(not stop()))
         try:
-            result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=stop,
+            result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
         except SweepInterrupted as err:
             name = signal.Signals(stop.signum).name if stop.signum else "stop request"
