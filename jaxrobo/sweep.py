@@ -17,6 +17,15 @@ with a single ``jaxrobo train`` run.
     jaxrobo sweep --env CartPoleStayUp-v0 --agent qlearn --grid alpha=0.1,0.3,0.5 --grid gamma=0.9,0.99 \\
         --seeds 4 --n-envs 8 --out runs/sweep
     jaxrobo sweep --random 64 --range alpha=0.05:0.9 --range epsilon_discount=0.99:0.9999 --seeds 2
+
+Nothing is lost: ``--out`` is checked before anything compiles (an existing file, a non-empty directory without
+``--overwrite``, a parent that cannot be written are refused, exit status 2). While the sweep runs, ``--out``
+holds its state: the settings and code versions (``sweep_state.json``) and the metrics of every finished group
+(``checkpoint.npz``, rewritten atomically after each group). Ctrl-C or SIGTERM abandons the group in progress
+(a compiled group cannot be split) and exits with 130 / 143; ``jaxrobo sweep --resume DIR`` reads the saved
+settings back, skips the finished groups and writes the same ``sweep.csv`` and ``summary.json`` as an
+uninterrupted sweep (timings aside). The results are written into a hidden sibling directory and replace the
+state in one rename, so a directory with a ``sweep.csv`` is always a whole sweep.
 """
 from __future__ import annotations
 
@@ -676,8 +685,10 @@ def _save(fig: Any, out_dir: str, name: str) -> str:
 #: The flags that define a sweep, with their defaults: saved with its state and read back by ``--resume``.
 SWEEP_FLAGS: dict[str, Any] = {"env": "CartPoleStayUp-v0", "agent": None, "preset": "default", "grid": None,
                                "random": 0, "ranges": None, "seeds": 4, "seed": 0, "n_envs": None, "nepisodes": None,
-                               "nsteps": None, "set": None, "eval_episodes": 10, "metric": "final_return"}
-_FLAG_NAMES = {"ranges": "--range", "n_envs": "--n-envs", "eval_episodes": "--eval-episodes"}
+                               "nsteps": None, "set": None, "eval_episodes": 10, "metric": "final_return",
+                               "no_plots": False}
+_FLAG_NAMES = {"ranges": "--range", "n_envs": "--n-envs", "eval_episodes": "--eval-episodes",
+               "no_plots": "--no-plots"}
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -711,7 +722,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace the jaxrobo run or sweep in --out")
     parser.add_argument("--resume", default=None, metavar="DIR",
                         help="go on with the interrupted sweep in DIR: its saved settings, its unfinished groups")
-    parser.add_argument("--no-plots", action="store_true", help="skip the heatmap PNGs")
+    parser.add_argument("--no-plots", action="store_true", default=None, help="skip the heatmap PNGs")
 
 
 def _flag(dest: str) -> str:
@@ -719,6 +730,8 @@ def _flag(dest: str) -> str:
 
 
 def _show(value: Any) -> str:
+    if isinstance(value, bool):
+        return "(given)" if value else "(not given)"
     return " ".join(map(str, value)) if isinstance(value, list) else str(value)
 
 
@@ -873,7 +886,7 @@ def run(args: argparse.Namespace) -> int:
             result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
         except SweepInterrupted as err:
-            name = signal.Signals(stop.signum).name if stop.signum else "stop request"
+            name = signal.Signals(stop.signum).name if stop.signum else "a signal to another process"
             if main_process:
                 rundir.write_status(out, rundir.INTERRUPTED, command="sweep", resume=resume_hint,
                                     finished_groups=err.done, groups=err.total)
@@ -893,7 +906,7 @@ def run(args: argparse.Namespace) -> int:
         write_csv(result, os.path.join(staged, "sweep.csv"))
         with open(os.path.join(staged, "summary.json"), "w") as fh:
             json.dump(summary, fh, indent=2, default=str)
-        plots = [] if args.no_plots else plot_sweep(result, staged, metric)
+        plots = [] if f.no_plots else plot_sweep(result, staged, metric)
         rundir.write_status(staged, rundir.COMPLETE, command="sweep")
         rundir.publish(staged, out, overwrite=True)  # replaces the in-progress state in one step
     except BaseException:

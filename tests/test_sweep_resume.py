@@ -142,7 +142,8 @@ def test_cli_sigint_in_a_subprocess(uninterrupted, tmp_path, capsys):
     assert len(lines) == 1 and "SIGINT" in lines[0] and "--resume" in lines[0], stderr
     assert "Traceback" not in stderr
     assert _finished_groups(out) == 1
-    assert sweep.main(["--resume", str(out)]) == 0
+    assert sweep.main(["--resume", str(out)]) == 0  # with the saved --no-plots
+    assert sorted(os.listdir(out)) == sorted(os.listdir(uninterrupted))
     csv_text, summary = _outputs(out)
     ref_csv, ref_summary = _outputs(uninterrupted)
     assert csv_text == ref_csv
