@@ -893,6 +893,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"jaxrobo sweep: interrupted by {name}: {err.done} of {err.total} groups finished, saved in {out}; "
                   f"go on with: {resume_hint}", file=sys.stderr)
             return 128 + (stop.signum or signal.SIGINT)
+        except Exception as err:  # the finished groups are saved: say how to go on, then fail as before
+            if main_process:
+                rundir.write_status(out, rundir.INTERRUPTED, command="sweep", resume=resume_hint,
+                                    error=f"{type(err).__name__}: {err}")
+            print(f"jaxrobo sweep: failed ({type(err).__name__}); the finished groups are saved in {out}; "
+                  f"go on with: {resume_hint}", file=sys.stderr)
+            raise
     if not main_process:
         return 0
     metric = f.metric

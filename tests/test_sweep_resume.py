@@ -230,3 +230,28 @@ def test_overwrite_replaces_a_sweep(uninterrupted, tmp_path):
     assert sorted(os.listdir(out)) == ["status.json", "summary.json", "sweep.csv"]
     assert rundir.is_complete(str(out))
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
+
+
+def test_crash_keeps_finished_groups(uninterrupted, tmp_path, monkeypatch, capsys):
+    """An error in the second group: the first stays saved, the error propagates with a line saying how to go
+    on, and --resume finishes the sweep as if nothing happened."""
+    out = tmp_path / "sweep"
+    run = sweep.GroupRunner.run
+    calls = []
+
+    def fail_second(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("device lost")
+        return run(self, *args, **kwargs)
+
+    monkeypatch.setattr(sweep.GroupRunner, "run", fail_second)
+    with pytest.raises(RuntimeError, match="device lost"):
+        sweep.main([*ARGS, "--out", str(out)])
+    assert f"--resume {out}" in capsys.readouterr().err
+    status = rundir.read_status(str(out))
+    assert status["status"] == rundir.INTERRUPTED and "device lost" in status["error"]
+    assert _finished_groups(out) == 1
+    monkeypatch.setattr(sweep.GroupRunner, "run", run)
+    assert sweep.main(["--resume", str(out)]) == 0
+    assert _outputs(out) == _outputs(uninterrupted)
