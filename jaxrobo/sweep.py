@@ -35,6 +35,7 @@ import dataclasses
 import itertools
 import json
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -740,7 +741,8 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
 
     A new sweep: ``--out`` must be new or empty (or a run, with ``--overwrite``); ``check_out=False`` skips that
     check (processes other than 0, which never write it). ``--resume DIR``: DIR must hold an interrupted sweep,
-    whose saved flags are used; a flag given again must say the same. Raises :class:`ConfigError` naming the
+    whose saved flags are used (a flag given again must say the same) and whose ``status.json`` names the output
+    directory (DIR itself, or the run an ``--overwrite`` sweep replaces). Raises :class:`ConfigError` naming the
     flag."""
     from jaxrobo import rundir
 
@@ -752,21 +754,22 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
             rundir.check_out(out, overwrite=args.overwrite)
         flags = {k: SWEEP_FLAGS[k] if v is None else v for k, v in given.items()}
         return out, flags, list(sys.argv)
-    out = args.resume
+    live = args.resume
     if args.overwrite:
-        raise ConfigError(f"--resume {out}: cannot be combined with --overwrite (one continues the sweep, the "
+        raise ConfigError(f"--resume {live}: cannot be combined with --overwrite (one continues the sweep, the "
                           "other replaces it)")
-    if args.out is not None and os.path.abspath(args.out) != os.path.abspath(out):
-        raise ConfigError(f"--out {args.out}: a resumed sweep finishes in its own directory ({out}); drop --out")
-    rundir.check_out(out, resume=True, flag="--resume")
-    extra = read_state(out).get("extra", {})
+    if args.out is not None:
+        raise ConfigError(f"--out {args.out}: a resumed sweep finishes where it was going to; drop --out")
+    rundir.check_out(live, resume=True, flag="--resume")
+    extra = read_state(live).get("extra", {})
     saved = extra.get("flags")
     if not isinstance(saved, dict) or set(saved) != set(SWEEP_FLAGS):
-        raise ConfigError(f"--resume {out}: its sweep state has no command-line flags to resume from")
+        raise ConfigError(f"--resume {live}: its sweep state has no command-line flags to resume from")
     for k, v in given.items():
         if v is not None and _canonical(v) != saved[k]:
-            raise ConfigError(f"--resume {out}: {_flag(k)} {_show(v)} differs from the saved sweep's "
+            raise ConfigError(f"--resume {live}: {_flag(k)} {_show(v)} differs from the saved sweep's "
                               f"{_flag(k)} {_show(saved[k])}; a resumed sweep keeps its settings (drop the flag)")
+    out = (rundir.read_status(live) or {}).get("out") or live
     return out, dict(saved), list(extra.get("argv") or [])
 
 
@@ -832,10 +835,11 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
 def run(args: argparse.Namespace) -> int:
     """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best.
 
-    The output directory holds the sweep's state while it runs (``status.json``, ``sweep_state.json``,
-    ``checkpoint.npz`` with the finished groups); the results are written into a hidden sibling and replace it
-    at the end in one rename. SIGINT / SIGTERM stop the sweep with exit status 130 / 143, the finished groups
-    saved for ``--resume``."""
+    The sweep's state (``status.json``, ``sweep_state.json``, ``checkpoint.npz`` with the finished groups) lives
+    in the output directory while it runs, or, with ``--overwrite``, in a hidden sibling, so that the old run
+    stays whole until the new one replaces it. The results are written into a hidden sibling and replace the
+    state (or the old run) in one rename. SIGINT / SIGTERM stop the sweep with exit status 130 / 143, the
+    finished groups saved for ``--resume``."""
     from jaxrobo import rundir, sharding
 
     error = None
@@ -843,6 +847,7 @@ def run(args: argparse.Namespace) -> int:
         sharding.initialize_distributed()  # a no-op unless JAXROBO_COORDINATOR & co. are set (docs/scaling.md)
         main_process = jax.process_index() == 0
         out, flags, argv = sweep_flags(args, check_out=main_process)
+        live = args.resume  # where the state is; a new sweep's is chosen by process 0 below
         f = argparse.Namespace(**flags)
         if f.seeds < 1:
             raise ConfigError(f"--seeds {f.seeds}: must be >= 1")
@@ -858,7 +863,7 @@ def run(args: argparse.Namespace) -> int:
         seeds = list(range(f.seed, f.seed + f.seeds))
         plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes)
         if args.resume is not None:
-            open_state(out, plan)  # refuses a state of other settings or code before anything compiles
+            open_state(live, plan)  # refuses a state of other settings or code before anything compiles
         mesh = None
         if args.shard == "on" or (args.shard == "auto" and jax.device_count() > 1):
             mesh = sharding.make_mesh()
@@ -867,18 +872,24 @@ def run(args: argparse.Namespace) -> int:
     if not _all_agree(error is None):
         print(f"jaxrobo sweep: {error or 'another process refused the sweep (see its output)'}", file=sys.stderr)
         return 2
-    resume_hint = f"jaxrobo sweep --resume {out}"
-    if main_process and args.resume is None:
-        if os.path.isdir(out) and os.listdir(out):  # --overwrite (checked above): the old run goes now
-            rundir.publish(rundir.staging(out), out, overwrite=True)
-        os.makedirs(out, exist_ok=True)
+    if main_process and live is None:
+        # The state of a new sweep goes to --out itself (new or empty), so that a hard crash leaves it resumable;
+        # with --overwrite (checked above) to a hidden sibling, so that the old run stays whole until the end.
+        if os.path.isdir(out) and os.listdir(out):
+            live = rundir.staging(out)
+        else:
+            os.makedirs(out, exist_ok=True)
+            live = out
+    resume_hint = (f"jaxrobo sweep --resume {shlex.quote(live)}" if live is not None
+                   else "jaxrobo sweep --resume DIR (DIR as process 0 says)")
     if main_process:
-        rundir.write_status(out, rundir.RUNNING, command="sweep", resume=resume_hint)
+        rundir.write_status(live, rundir.RUNNING, command="sweep", out=os.path.abspath(out), resume=resume_hint)
     print(f"{f.env}: {len(points)} configurations × {len(seeds)} seeds in {len(plan.groups)} groups"
           f"{f' over {mesh.devices.size} devices' if mesh is not None else ''} → {out}")
-    # Other processes read the state only when resuming: a new sweep's directory may still hold the run that
-    # --overwrite replaces.
-    state_dir = out if main_process or args.resume is not None else None
+    if live is not None and os.path.abspath(live) != os.path.abspath(out):
+        print(f"state in {live} until the sweep is done", file=sys.stderr)
+    # Other processes read the state only when resuming (a new sweep's state directory is process 0's choice).
+    state_dir = live
     with _StopOnSignal() as stop:
         # Processes stop together (a signal may reach only some of them): one more collective per chunk.
         should_stop = stop if jax.process_count() == 1 else (lambda: not _all_agree(not stop()))
@@ -888,17 +899,17 @@ def run(args: argparse.Namespace) -> int:
         except SweepInterrupted as err:
             name = signal.Signals(stop.signum).name if stop.signum else "a signal to another process"
             if main_process:
-                rundir.write_status(out, rundir.INTERRUPTED, command="sweep", resume=resume_hint,
-                                    finished_groups=err.done, groups=err.total)
-            print(f"jaxrobo sweep: interrupted by {name}: {err.done} of {err.total} groups finished, saved in {out}; "
-                  f"go on with: {resume_hint}", file=sys.stderr)
+                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
+                                    resume=resume_hint, finished_groups=err.done, groups=err.total)
+            print(f"jaxrobo sweep: interrupted by {name}: {err.done} of {err.total} groups finished, saved in "
+                  f"{live or 'process 0'}; go on with: {resume_hint}", file=sys.stderr)
             return 128 + (stop.signum or signal.SIGINT)
         except Exception as err:  # the finished groups are saved: say how to go on, then fail as before
             if main_process:
-                rundir.write_status(out, rundir.INTERRUPTED, command="sweep", resume=resume_hint,
-                                    error=f"{type(err).__name__}: {err}")
-            print(f"jaxrobo sweep: failed ({type(err).__name__}); the finished groups are saved in {out}; "
-                  f"go on with: {resume_hint}", file=sys.stderr)
+                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
+                                    resume=resume_hint, error=f"{type(err).__name__}: {err}")
+            print(f"jaxrobo sweep: failed ({type(err).__name__}); the finished groups are saved in "
+                  f"{live or 'process 0'}; go on with: {resume_hint}", file=sys.stderr)
             raise
     if not main_process:
         return 0
@@ -915,10 +926,12 @@ def run(args: argparse.Namespace) -> int:
             json.dump(summary, fh, indent=2, default=str)
         plots = [] if f.no_plots else plot_sweep(result, staged, metric)
         rundir.write_status(staged, rundir.COMPLETE, command="sweep")
-        rundir.publish(staged, out, overwrite=True)  # replaces the in-progress state in one step
+        rundir.publish(staged, out, overwrite=True)  # replaces the state (or the old run) in one step
     except BaseException:
         rundir.discard(staged)
         raise
+    if os.path.abspath(live) != os.path.abspath(out):
+        rundir.discard(live)
     plots = [os.path.join(out, os.path.basename(p)) for p in plots]
     print(f"{len(result.rows)} rows, {result.env_steps:,} env steps in {result.wall_seconds:.1f} s "
           f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile)")

@@ -255,3 +255,30 @@ def test_crash_keeps_finished_groups(uninterrupted, tmp_path, monkeypatch, capsy
     monkeypatch.setattr(sweep.GroupRunner, "run", run)
     assert sweep.main(["--resume", str(out)]) == 0
     assert _outputs(out) == _outputs(uninterrupted)
+
+
+def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkeypatch, capsys):
+    """With --overwrite the state lives in a hidden sibling: an interrupt leaves the old run whole, and resuming
+    the sibling replaces the old run and removes the sibling."""
+    out = tmp_path / "sweep"
+    shutil.copytree(uninterrupted, out)
+    (out / "summary.json").write_text('{"old": true}')  # tells the old run from the new one
+    save = sweep.save_checkpoint
+
+    def save_then_signal(state_dir, fingerprint, plan, finished):
+        save(state_dir, fingerprint, plan, finished)
+        if len(finished) == 1:
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(sweep, "save_checkpoint", save_then_signal)
+    assert sweep.main([*ARGS, "--out", str(out), "--overwrite"]) == 130
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    (live,) = [p for p in os.listdir(tmp_path) if p.startswith(".sweep.") and p.endswith(".partial")]
+    live = str(tmp_path / live)
+    assert f"--resume {live}" in last
+    assert json.loads((out / "summary.json").read_text()) == {"old": True}
+    assert rundir.read_status(live)["out"] == str(out) and _finished_groups(live) == 1
+    monkeypatch.setattr(sweep, "save_checkpoint", save)
+    assert sweep.main(["--resume", live]) == 0
+    assert _outputs(out) == _outputs(uninterrupted)
+    assert not os.path.exists(live) and os.listdir(tmp_path) == ["sweep"]
