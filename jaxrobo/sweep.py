@@ -833,6 +833,16 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``jaxrobo sweep`` (see :func:`_run`); Ctrl-C before the sweep's own handlers are in place exits with 130
+    and one line (nothing is half-written: the state and the results are written atomically)."""
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        print("jaxrobo sweep: interrupted", file=sys.stderr)
+        return 128 + signal.SIGINT
+
+
+def _run(args: argparse.Namespace) -> int:
     """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best.
 
     The sweep's state (``status.json``, ``sweep_state.json``, ``checkpoint.npz`` with the finished groups) lives
@@ -896,6 +906,13 @@ def run(args: argparse.Namespace) -> int:
         try:
             result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
+        except KeyboardInterrupt:  # a second Ctrl-C: the group in progress is dropped at once
+            if main_process:
+                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
+                                    resume=resume_hint)
+            print(f"jaxrobo sweep: interrupted by SIGINT: the finished groups are saved in {live or 'process 0'}; "
+                  f"go on with: {resume_hint}", file=sys.stderr)
+            return 128 + signal.SIGINT
         except SweepInterrupted as err:
             name = signal.Signals(stop.signum).name if stop.signum else "a signal to another process"
             if main_process:

@@ -232,9 +232,10 @@ def test_overwrite_replaces_a_sweep(uninterrupted, tmp_path):
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
 
 
-def test_crash_keeps_finished_groups(uninterrupted, tmp_path, monkeypatch, capsys):
-    """An error in the second group: the first stays saved, the error propagates with a line saying how to go
-    on, and --resume finishes the sweep as if nothing happened."""
+@pytest.mark.parametrize("error", [RuntimeError("device lost"), KeyboardInterrupt()], ids=["crash", "ctrl-c"])
+def test_error_mid_group_keeps_finished_groups(error, uninterrupted, tmp_path, monkeypatch, capsys):
+    """An error in the second group (or a second Ctrl-C, which drops the group at once): the first group stays
+    saved, a line says how to go on, and --resume finishes the sweep as if nothing happened."""
     out = tmp_path / "sweep"
     run = sweep.GroupRunner.run
     calls = []
@@ -242,15 +243,20 @@ def test_crash_keeps_finished_groups(uninterrupted, tmp_path, monkeypatch, capsy
     def fail_second(self, *args, **kwargs):
         calls.append(1)
         if len(calls) == 2:
-            raise RuntimeError("device lost")
+            raise error
         return run(self, *args, **kwargs)
 
     monkeypatch.setattr(sweep.GroupRunner, "run", fail_second)
-    with pytest.raises(RuntimeError, match="device lost"):
-        sweep.main([*ARGS, "--out", str(out)])
-    assert f"--resume {out}" in capsys.readouterr().err
+    if isinstance(error, KeyboardInterrupt):
+        assert sweep.main([*ARGS, "--out", str(out)]) == 130
+    else:
+        with pytest.raises(RuntimeError, match="device lost"):
+            sweep.main([*ARGS, "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--resume {out}" in err[0]
     status = rundir.read_status(str(out))
-    assert status["status"] == rundir.INTERRUPTED and "device lost" in status["error"]
+    assert status["status"] == rundir.INTERRUPTED
+    assert isinstance(error, KeyboardInterrupt) or "device lost" in status["error"]
     assert _finished_groups(out) == 1
     monkeypatch.setattr(sweep.GroupRunner, "run", run)
     assert sweep.main(["--resume", str(out)]) == 0
