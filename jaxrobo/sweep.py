@@ -17,6 +17,15 @@ with a single ``jaxrobo train`` run.
     jaxrobo sweep --env CartPoleStayUp-v0 --agent qlearn --grid alpha=0.1,0.3,0.5 --grid gamma=0.9,0.99 \\
         --seeds 4 --n-envs 8 --out runs/sweep
     jaxrobo sweep --random 64 --range alpha=0.05:0.9 --range epsilon_discount=0.99:0.9999 --seeds 2
+
+Nothing is lost: ``--out`` is checked before anything compiles (an existing file, a non-empty directory without
+``--overwrite``, a parent that cannot be written are refused, exit status 2). While the sweep runs, ``--out``
+holds its state: the settings and code versions (``sweep_state.json``) and the metrics of every finished group
+(``checkpoint.npz``, rewritten atomically after each group). Ctrl-C or SIGTERM abandons the group in progress
+(a compiled group cannot be split) and exits with 130 / 143; ``jaxrobo sweep --resume DIR`` reads the saved
+settings back, skips the finished groups and writes the same ``sweep.csv`` and ``summary.json`` as an
+uninterrupted sweep (timings aside). The results are written into a hidden sibling directory and replace the
+state in one rename, so a directory with a ``sweep.csv`` is always a whole sweep.
 """
 from __future__ import annotations
 
@@ -26,7 +35,10 @@ import dataclasses
 import itertools
 import json
 import os
+import shlex
+import signal
 import sys
+import threading
 import time
 from typing import Any, Callable, Mapping, Sequence
 
@@ -228,9 +240,10 @@ class GroupRunner:
 
     def run(self, key_data: np.ndarray, agent_params: Any, env_params: Any,
             progress: Callable[[int, int], None] | None = None,
-            max_seconds: float | None = None) -> dict[str, np.ndarray]:
+            max_seconds: float | None = None, stop: Callable[[], bool] | None = None) -> dict[str, np.ndarray]:
         """Train every row to its last episode (or until ``max_seconds`` of running); per-row metrics as host
-        arrays of length ``n_rows``. ``self.complete`` says whether every row finished."""
+        arrays of length ``n_rows``. ``self.complete`` says whether every row finished. ``stop`` is polled after
+        every chunk; when it returns True the group is abandoned with :class:`SweepInterrupted`."""
         from jaxrobo import sharding
 
         mesh, n = self.mesh, self.n_padded
@@ -256,6 +269,8 @@ class GroupRunner:
                 progress(done, nepisodes)
             if done >= nepisodes:
                 break
+            if stop is not None and stop():
+                raise SweepInterrupted(0, 1, None)
             if max_seconds is not None and time.perf_counter() - t0 > max_seconds:
                 break
         self.complete = done >= nepisodes
@@ -278,31 +293,54 @@ def plan_groups(env_id: str, points: Sequence[Mapping[str, Any]]
     return swept, kinds, checked, groups
 
 
-def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[int] = (0,),
-              preset: str = "default", agent: str | None = None, overrides: Mapping[str, Any] | None = None,
-              mesh: Any = None, eval_episodes: int = 0, n_last: int = 100,
-              log: Callable[[str], None] | None = None,
-              progress: Callable[[int, int], None] | None = None,
-              compiler_options: dict[str, Any] | None = None, max_seconds: float | None = None) -> SweepResult:
-    """Train every point × seed; rows grouped by static settings, one compiled program per group.
+@dataclasses.dataclass
+class PlannedGroup:
+    """One compiled group, resolved before anything compiles: its static values, its run and its rows."""
 
-    ``points`` map swept keys to values (see :func:`classify`); ``overrides`` apply to every point (like
-    ``--set``); ``max_seconds`` stops each group's training early (its rows then have ``episodes_done`` below
-    ``nepisodes`` and the group ``complete: False``). Raises :class:`ConfigError` naming the key for any bad
-    key or value, before compiling.
+    index: int
+    static: tuple
+    spec: Any  # jaxrobo.run.RunSpec
+    configs: list[int]
+    meta: list[tuple[int, int, Any]]  # (config index, seed, learner params) per row
+    agent_list: list[Any]
+    env_list: list[Any]
+
+
+@dataclasses.dataclass
+class SweepPlan:
+    """A validated sweep: its points, its groups and every setting its numbers depend on (``settings``)."""
+
+    env_id: str
+    swept: list[str]
+    kinds: dict[str, KeyKind]
+    checked: list[dict[str, Any]]
+    seeds: list[int]
+    groups: list[PlannedGroup]
+    eval_episodes: int
+    n_last: int
+    max_seconds: float | None
+    compiler_options: dict[str, Any] | None
+    settings: dict[str, Any]
+
+
+def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[int] = (0,),
+               preset: str = "default", agent: str | None = None, overrides: Mapping[str, Any] | None = None,
+               eval_episodes: int = 0, n_last: int = 100, compiler_options: dict[str, Any] | None = None,
+               max_seconds: float | None = None) -> SweepPlan:
+    """Validate every point and resolve every group's run (see :func:`run_sweep`); nothing compiles.
+
+    Raises :class:`ConfigError` naming the key for any bad key or value, in whichever group it is.
     """
     from jaxrobo.run import resolve
 
-    log = log or (lambda _msg: None)
     overrides = dict(overrides or {})
     overrides.setdefault("record_episodes", True)
     if not seeds:
         raise ConfigError("--seeds: need at least one seed")
+    seeds = [int(s) for s in seeds]
     swept, kinds, checked, groups = plan_groups(env_id, points)
-
-    rows: list[dict[str, Any]] = []
-    timings: list[dict[str, Any]] = []
-    t_all = time.perf_counter()
+    options = COMPILER_OPTIONS if compiler_options is None else compiler_options
+    planned = []
     for g, (static, members) in enumerate(groups.items()):
         spec = resolve(env_id, preset, {**overrides, **{_bare(k): v for k, v in static}}, agent=agent)
         env, base_ap, base_ep = spec.env, spec.agent_params, spec.env.default_params
@@ -322,30 +360,241 @@ def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[
                 agent_list.append(ap)
                 env_list.append(ep)
                 meta.append((i, s, ap))
-        key_data = np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for (_, s, _) in meta])
-        trainer = Trainer(env, spec.config)
-        group = GroupRunner(trainer, len(meta), mesh, eval_episodes, n_last, compiler_options)
+        planned.append(PlannedGroup(g, static, spec, list(members), meta, agent_list, env_list))
+    settings = {"env_id": env_id, "points": checked, "seeds": seeds, "preset": preset, "agent": agent,
+                "overrides": overrides, "eval_episodes": eval_episodes, "n_last": n_last,
+                "max_seconds": max_seconds, "compiler_options": options,
+                "groups": [p.spec.to_dict() for p in planned]}
+    return SweepPlan(env_id, swept, kinds, checked, seeds, planned, eval_episodes, n_last, max_seconds, options,
+                     _canonical(settings))
+
+
+def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[int] = (0,),
+              preset: str = "default", agent: str | None = None, overrides: Mapping[str, Any] | None = None,
+              mesh: Any = None, eval_episodes: int = 0, n_last: int = 100,
+              log: Callable[[str], None] | None = None,
+              progress: Callable[[int, int], None] | None = None,
+              compiler_options: dict[str, Any] | None = None, max_seconds: float | None = None,
+              state_dir: str | None = None, should_stop: Callable[[], bool] | None = None) -> SweepResult:
+    """Train every point × seed; rows grouped by static settings, one compiled program per group.
+
+    ``points`` map swept keys to values (see :func:`classify`); ``overrides`` apply to every point (like
+    ``--set``); ``max_seconds`` stops each group's training early (its rows then have ``episodes_done`` below
+    ``nepisodes`` and the group ``complete: False``). Raises :class:`ConfigError` naming the key for any bad
+    key or value, before compiling. ``state_dir`` and ``should_stop`` make it resumable: see :func:`run_plan`.
+    """
+    plan = plan_sweep(env_id, points, seeds, preset, agent, overrides, eval_episodes, n_last, compiler_options,
+                      max_seconds)
+    return run_plan(plan, mesh, log, progress, state_dir, should_stop)
+
+
+def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | None = None,
+             progress: Callable[[int, int], None] | None = None, state_dir: str | None = None,
+             should_stop: Callable[[], bool] | None = None, state_extra: Mapping[str, Any] | None = None
+             ) -> SweepResult:
+    """Run a planned sweep, group by group.
+
+    ``state_dir`` makes the sweep resumable by finished groups: the sweep's settings, the code's versions and
+    their fingerprint go to ``state_dir/sweep_state.json`` before the first compile (with ``state_extra``, kept
+    but not compared), and the row metrics of every finished group to ``state_dir/checkpoint.npz`` (rewritten
+    atomically after each group; an empty one at the start). Running the same plan again on the same
+    ``state_dir`` skips the saved groups and gives the same rows; a state saved by other settings or other code
+    raises :class:`ConfigError` before anything compiles. ``should_stop`` is polled before each group and after
+    each training chunk; when it returns True the sweep abandons the group it is in (a compiled group cannot be
+    split) and raises :class:`SweepInterrupted`, the finished groups staying saved. With several processes only
+    process 0 writes; the others read ``state_dir`` if they are given it (a shared file system).
+    """
+    log = log or (lambda _msg: None)
+    planned = plan.groups
+    saved: dict[int, dict[str, Any]] = {}
+    fingerprint = None
+    if state_dir is not None:
+        state = open_state(state_dir, plan, state_extra)
+        fingerprint = state["fingerprint"]
+        saved = load_checkpoint(state_dir, plan, fingerprint)
+        if saved:
+            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}")
+        elif jax.process_index() == 0:
+            save_checkpoint(state_dir, fingerprint, plan, saved)
+
+    rows: list[dict[str, Any]] = []
+    timings: list[dict[str, Any]] = []
+    t_all = time.perf_counter()
+    for p in planned:
+        g, static, spec, meta = p.index, p.static, p.spec, p.meta
         label = ", ".join(f"{k}={v}" for k, v in static) or "all"
-        log(f"group {g + 1}/{len(groups)} [{label}]: {len(members)} configs × {len(seeds)} seeds × "
-            f"{spec.config.n_envs} envs, {spec.config.nepisodes} episodes ≤ {spec.config.nsteps} steps")
-        metrics = group.run(key_data, _stack(agent_list), _stack(env_list), progress, max_seconds)
+        if g in saved:
+            log(f"group {g + 1}/{len(planned)} [{label}]: finished before, read from {state_dir}")
+        else:
+            if should_stop is not None and should_stop():
+                raise SweepInterrupted(len(saved), len(planned), state_dir)
+            key_data = np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for (_, s, _) in meta])
+            trainer = Trainer(spec.env, spec.config)
+            group = GroupRunner(trainer, len(meta), mesh, plan.eval_episodes, plan.n_last, plan.compiler_options)
+            log(f"group {g + 1}/{len(planned)} [{label}]: {len(p.configs)} configs × {len(plan.seeds)} seeds × "
+                f"{spec.config.n_envs} envs, {spec.config.nepisodes} episodes ≤ {spec.config.nsteps} steps")
+            try:
+                metrics = group.run(key_data, _stack(p.agent_list), _stack(p.env_list), progress, plan.max_seconds,
+                                    stop=should_stop)
+            except SweepInterrupted:
+                raise SweepInterrupted(len(saved), len(planned), state_dir) from None
+            saved[g] = {"metrics": metrics, "compile_seconds": group.compile_seconds,
+                        "run_seconds": group.run_seconds, "complete": group.complete}
+            if state_dir is not None and jax.process_index() == 0:
+                save_checkpoint(state_dir, fingerprint, plan, saved)
+        done = saved[g]
+        metrics = done["metrics"]
         steps = int(metrics["env_steps"].astype(np.int64).sum())
         timings.append({"group": g, "static": dict(static), "rows": len(meta), "n_envs": spec.config.n_envs,
-                        "compile_seconds": group.compile_seconds, "run_seconds": group.run_seconds,
-                        "env_steps": steps, "env_steps_per_second": steps / max(group.run_seconds, 1e-9),
-                        "complete": group.complete})
-        log(f"  compiled in {group.compile_seconds:.1f} s; {steps:,} env steps in {group.run_seconds:.1f} s "
-            f"({steps / max(group.run_seconds, 1e-9):,.0f} steps/s)")
+                        "compile_seconds": done["compile_seconds"], "run_seconds": done["run_seconds"],
+                        "env_steps": steps, "env_steps_per_second": steps / max(done["run_seconds"], 1e-9),
+                        "complete": done["complete"]})
+        log(f"  compiled in {done['compile_seconds']:.1f} s; {steps:,} env steps in {done['run_seconds']:.1f} s "
+            f"({steps / max(done['run_seconds'], 1e-9):,.0f} steps/s)")
         for r, (i, s, ap) in enumerate(meta):
             row: dict[str, Any] = {"config": i, "seed": s, "group": g}
-            row.update(checked[i])
+            row.update(plan.checked[i])
             row.update({k: float(getattr(ap, k)) for k in rules(AgentParams)})
             for m, values in metrics.items():
                 v = values[r]
                 row[m] = int(v) if np.issubdtype(values.dtype, np.integer) else float(v)
             rows.append(row)
     rows.sort(key=lambda r: (r["config"], r["seed"]))
-    return SweepResult(env_id, swept, rows, timings, time.perf_counter() - t_all)
+    return SweepResult(plan.env_id, plan.swept, rows, timings, time.perf_counter() - t_all)
+
+
+# ---- saved progress: finished groups survive an interrupt or a crash ----------------------------------------
+STATE_FILE = "sweep_state.json"
+STATE_FORMAT = 1
+
+
+class SweepInterrupted(Exception):
+    """The sweep's stop hook fired; ``done`` of ``total`` groups are finished (and saved in ``state_dir``)."""
+
+    def __init__(self, done: int, total: int, state_dir: str | None):
+        super().__init__(f"interrupted with {done} of {total} groups finished")
+        self.done, self.total, self.state_dir = done, total, state_dir
+
+
+def code_version() -> dict[str, str]:
+    """What the sweep's numbers depend on besides its settings: jaxrobo's sources and the libraries' versions."""
+    from importlib import metadata
+
+    import jaxrobo
+    from jaxrobo.cache import source_hash
+
+    out = {"jaxrobo": jaxrobo.__version__, "jaxrobo_sources": source_hash()}
+    for dist in ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx", "brax"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "absent"
+    return out
+
+
+def _canonical(obj: Any) -> Any:
+    """``obj`` as JSON reads it back (tuples → lists, numpy scalars → Python), so saved and new settings compare."""
+    return json.loads(json.dumps(obj, sort_keys=True, default=_json_default))
+
+
+def _json_default(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    return repr(v)
+
+
+def read_state(state_dir: str) -> dict[str, Any]:
+    """The saved ``sweep_state.json`` of ``state_dir``: settings, versions, fingerprint and extra."""
+    path = os.path.join(state_dir, STATE_FILE)
+    try:
+        with open(path) as f:
+            state = json.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"{state_dir}: not a sweep ({STATE_FILE} missing)") from None
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: unreadable sweep state ({err})") from None
+    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+        found = state.get("format") if isinstance(state, dict) else None
+        raise ConfigError(f"{path}: not a sweep state this jaxrobo reads (format {found!r}, expected {STATE_FORMAT})")
+    return state
+
+
+def open_state(state_dir: str, plan: SweepPlan, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The saved state of ``plan`` in ``state_dir``: checked to be this sweep's (same settings and code) if there
+    is one, else written (process 0). Raises :class:`ConfigError` saying what differs."""
+    import hashlib
+
+    from jaxrobo import rundir
+
+    versions = code_version()
+    fingerprint = hashlib.sha256(json.dumps([plan.settings, versions], sort_keys=True).encode()).hexdigest()
+    if os.path.exists(os.path.join(state_dir, STATE_FILE)):
+        state = read_state(state_dir)
+        if state.get("fingerprint") != fingerprint:
+            old_v, old_s = state.get("versions", {}), state.get("settings", {})
+            code = [k if k == "jaxrobo_sources" else f"{k} {old_v.get(k)} → {versions[k]}"
+                    for k in versions if old_v.get(k) != versions[k]]
+            diff = sorted(k for k in set(plan.settings) | set(old_s) if plan.settings.get(k) != old_s.get(k))
+            why = (f"by other code ({', '.join(code)} changed)" if code else
+                   f"by a sweep with other settings ({', '.join(diff) or 'fingerprint'} differ)")
+            raise ConfigError(f"{state_dir}: cannot resume: its sweep state was saved {why}; "
+                              "start it again with --overwrite, or sweep into another --out")
+        return state
+    state = {"format": STATE_FORMAT, "fingerprint": fingerprint, "versions": versions, "settings": plan.settings,
+             "extra": _canonical(dict(extra or {}))}
+    if jax.process_index() == 0:
+        rundir.atomic_write_json(os.path.join(state_dir, STATE_FILE), state)
+    return state
+
+
+def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished: Mapping[int, Mapping[str, Any]]
+                    ) -> None:
+    """The row metrics of every finished group in ``state_dir/checkpoint.npz`` (plain arrays, no pickle),
+    written atomically: a crash leaves the previous checkpoint or this one."""
+    from jaxrobo import rundir
+
+    arrays: dict[str, np.ndarray] = {"fingerprint": np.asarray(fingerprint),
+                                     "finished": np.asarray(sorted(finished), np.int64)}
+    for g, done in finished.items():
+        p = plan.groups[g]
+        arrays[f"g{g}_config"] = np.asarray([i for i, _, _ in p.meta], np.int64)
+        arrays[f"g{g}_seed"] = np.asarray([s for _, s, _ in p.meta], np.int64)
+        for k in ("compile_seconds", "run_seconds"):
+            arrays[f"g{g}_{k}"] = np.asarray(done[k], np.float64)
+        arrays[f"g{g}_complete"] = np.asarray(bool(done["complete"]))
+        arrays.update({f"g{g}_metric_{k}": np.asarray(v) for k, v in done["metrics"].items()})
+    rundir.atomic_savez(os.path.join(state_dir, rundir.CHECKPOINT), **arrays)
+
+
+def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[int, dict[str, Any]]:
+    """The finished groups saved in ``state_dir``: ``{group: {"metrics", "compile_seconds", "run_seconds",
+    "complete"}}`` (empty without a checkpoint). Raises :class:`ConfigError` for one of another sweep."""
+    from jaxrobo import rundir
+
+    path = os.path.join(state_dir, rundir.CHECKPOINT)
+    if not os.path.exists(path):
+        return {}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: unreadable sweep checkpoint ({err})") from None
+    if str(data.get("fingerprint")) != fingerprint:
+        raise ConfigError(f"{path}: saved by another sweep than {os.path.join(state_dir, STATE_FILE)}; "
+                          "start it again with --overwrite")
+    out = {}
+    for g in (int(x) for x in data["finished"]):
+        p = plan.groups[g]
+        if not (np.array_equal(data[f"g{g}_config"], [i for i, _, _ in p.meta])
+                and np.array_equal(data[f"g{g}_seed"], [s for _, s, _ in p.meta])):
+            raise ConfigError(f"{path}: group {g} holds other rows than the sweep plans")
+        prefix = f"g{g}_metric_"
+        out[g] = {"metrics": {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)},
+                  "compile_seconds": float(data[f"g{g}_compile_seconds"]),
+                  "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"])}
+    return out
 
 
 def _bare(key: str) -> str:
@@ -434,29 +683,132 @@ def _save(fig: Any, out_dir: str, name: str) -> str:
 
 
 # ---- command line ----------------------------------------------------------------------------------------------
+#: The flags that define a sweep, with their defaults: saved with its state and read back by ``--resume``.
+SWEEP_FLAGS: dict[str, Any] = {"env": "CartPoleStayUp-v0", "agent": None, "preset": "default", "grid": None,
+                               "random": 0, "ranges": None, "seeds": 4, "seed": 0, "n_envs": None, "nepisodes": None,
+                               "nsteps": None, "set": None, "eval_episodes": 10, "metric": "final_return",
+                               "no_plots": False}
+_FLAG_NAMES = {"ranges": "--range", "n_envs": "--n-envs", "eval_episodes": "--eval-episodes",
+               "no_plots": "--no-plots"}
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Flags of ``jaxrobo sweep``."""
-    parser.add_argument("--env", default="CartPoleStayUp-v0", help="environment id (see `jaxrobo list`)")
+    """Flags of ``jaxrobo sweep``. The sweep-defining flags parse to None when absent (defaults in
+    :data:`SWEEP_FLAGS`), so ``--resume`` can tell a flag given again from one left out."""
+    d = SWEEP_FLAGS
+    parser.add_argument("--env", default=None, help=f"environment id (see `jaxrobo list`; default {d['env']})")
     parser.add_argument("--agent", default=None, help="qlearn | sarsa | expected_sarsa | double_q")
-    parser.add_argument("--preset", default="default", help="parameter preset of the env's agent YAML")
+    parser.add_argument("--preset", default=None, help="parameter preset of the env's agent YAML (default default)")
     parser.add_argument("--grid", action="append", metavar="KEY=V1,V2,...",
                         help="values of one swept key (repeatable; the grid is their product)")
-    parser.add_argument("--random", type=int, default=0, metavar="N", help="N random points from the --range's")
+    parser.add_argument("--random", type=int, default=None, metavar="N", help="N random points from the --range's")
     parser.add_argument("--range", action="append", metavar="KEY=LOW:HIGH[:log]", dest="ranges",
                         help="sampling range of one key for --random (repeatable)")
-    parser.add_argument("--seeds", type=int, default=4, help="seeds per configuration (rows = configs × seeds)")
-    parser.add_argument("--seed", type=int, default=0, help="first seed; seeds are SEED .. SEED+N-1")
+    parser.add_argument("--seeds", type=int, default=None,
+                        help=f"seeds per configuration (rows = configs × seeds; default {d['seeds']})")
+    parser.add_argument("--seed", type=int, default=None, help="first seed; seeds are SEED .. SEED+N-1 (default 0)")
     parser.add_argument("--n-envs", type=int, default=None, help="environments (tables) per row")
     parser.add_argument("--nepisodes", type=int, default=None, help="episodes per environment")
     parser.add_argument("--nsteps", type=int, default=None, help="step cap per episode")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override for every row")
-    parser.add_argument("--eval-episodes", type=int, default=10,
-                        help="greedy evaluation episodes of each row's first table (0: none)")
-    parser.add_argument("--metric", default="final_return", choices=METRICS, help="what ranks configurations")
+    parser.add_argument("--eval-episodes", type=int, default=None,
+                        help=f"greedy evaluation episodes of each row's first table (0: none; default "
+                             f"{d['eval_episodes']})")
+    parser.add_argument("--metric", default=None, choices=METRICS,
+                        help=f"what ranks configurations (default {d['metric']})")
     parser.add_argument("--shard", choices=("auto", "on", "off"), default="auto",
                         help="split rows over all devices (auto: when there is more than one)")
-    parser.add_argument("--out", default=None, help="output directory (default sweep_results/<env>_<time>)")
-    parser.add_argument("--no-plots", action="store_true", help="skip the heatmap PNGs")
+    parser.add_argument("--out", default=None, help="output directory (default sweep_results/<env>_<time>); "
+                        "must be new or empty unless --overwrite")
+    parser.add_argument("--overwrite", action="store_true", help="replace the jaxrobo run or sweep in --out")
+    parser.add_argument("--resume", default=None, metavar="DIR",
+                        help="go on with the interrupted sweep in DIR: its saved settings, its unfinished groups")
+    parser.add_argument("--no-plots", action="store_true", default=None, help="skip the heatmap PNGs")
+
+
+def _flag(dest: str) -> str:
+    return _FLAG_NAMES.get(dest, "--" + dest)
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, bool):
+        return "(given)" if value else "(not given)"
+    return " ".join(map(str, value)) if isinstance(value, list) else str(value)
+
+
+def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, dict[str, Any], list[str]]:
+    """The output directory, the sweep-defining flags and the command line of the sweep, checked at the boundary.
+
+    A new sweep: ``--out`` must be new or empty (or a run, with ``--overwrite``); ``check_out=False`` skips that
+    check (processes other than 0, which never write it). ``--resume DIR``: DIR must hold an interrupted sweep,
+    whose saved flags are used (a flag given again must say the same) and whose ``status.json`` names the output
+    directory (DIR itself, or the run an ``--overwrite`` sweep replaces). Raises :class:`ConfigError` naming the
+    flag."""
+    from jaxrobo import rundir
+
+    given = {k: getattr(args, k, None) for k in SWEEP_FLAGS}
+    if args.resume is None:
+        out = args.out or os.path.join("sweep_results", f"{given['env'] or SWEEP_FLAGS['env']}_"
+                                                        f"{time.strftime('%Y%m%d-%H%M%S')}")
+        if check_out:
+            rundir.check_out(out, overwrite=args.overwrite)
+        flags = {k: SWEEP_FLAGS[k] if v is None else v for k, v in given.items()}
+        return out, flags, list(sys.argv)
+    live = args.resume
+    if args.overwrite:
+        raise ConfigError(f"--resume {live}: cannot be combined with --overwrite (one continues the sweep, the "
+                          "other replaces it)")
+    if args.out is not None:
+        raise ConfigError(f"--out {args.out}: a resumed sweep finishes where it was going to; drop --out")
+    rundir.check_out(live, resume=True, flag="--resume")
+    extra = read_state(live).get("extra", {})
+    saved = extra.get("flags")
+    if not isinstance(saved, dict) or set(saved) != set(SWEEP_FLAGS):
+        raise ConfigError(f"--resume {live}: its sweep state has no command-line flags to resume from")
+    for k, v in given.items():
+        if v is not None and _canonical(v) != saved[k]:
+            raise ConfigError(f"--resume {live}: {_flag(k)} {_show(v)} differs from the saved sweep's "
+                              f"{_flag(k)} {_show(saved[k])}; a resumed sweep keeps its settings (drop the flag)")
+    out = (rundir.read_status(live) or {}).get("out") or live
+    return out, dict(saved), list(extra.get("argv") or [])
+
+
+def _all_agree(ok: bool) -> bool:
+    """Whether every process accepted the sweep: with several, all of them run it or none does (one alone
+    would wait forever for the others)."""
+    if jax.process_count() == 1:
+        return ok
+    from jax.experimental import multihost_utils
+
+    return bool(np.all(multihost_utils.process_allgather(np.asarray(ok))))
+
+
+class _StopOnSignal:
+    """SIGINT / SIGTERM ask the sweep to stop (polled as ``should_stop``); a second one acts as it would
+    without this handler (KeyboardInterrupt, termination)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> "_StopOnSignal":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        self.signum = signum
+        signal.signal(signum, self._old.get(signum, signal.SIG_DFL))
+
+    def __call__(self) -> bool:
+        return self.signum is not None
+
+    def __exit__(self, *_exc: Any) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
 
 
 def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -481,47 +833,123 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best."""
-    from jaxrobo import sharding
+    """``jaxrobo sweep`` (see :func:`_run`); Ctrl-C before the sweep's own handlers are in place exits with 130
+    and one line (nothing is half-written: the state and the results are written atomically)."""
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        print("jaxrobo sweep: interrupted", file=sys.stderr)
+        return 128 + signal.SIGINT
 
+
+def _run(args: argparse.Namespace) -> int:
+    """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best.
+
+    The sweep's state (``status.json``, ``sweep_state.json``, ``checkpoint.npz`` with the finished groups) lives
+    in the output directory while it runs, or, with ``--overwrite``, in a hidden sibling, so that the old run
+    stays whole until the new one replaces it. The results are written into a hidden sibling and replace the
+    state (or the old run) in one rename. SIGINT / SIGTERM stop the sweep with exit status 130 / 143, the
+    finished groups saved for ``--resume``."""
+    from jaxrobo import rundir, sharding
+
+    error = None
     try:
         sharding.initialize_distributed()  # a no-op unless JAXROBO_COORDINATOR & co. are set (docs/scaling.md)
-        if args.seeds < 1:
-            raise ConfigError(f"--seeds {args.seeds}: must be >= 1")
-        if args.eval_episodes < 0:
-            raise ConfigError(f"--eval-episodes {args.eval_episodes}: must be >= 0")
-        if args.metric.startswith("eval_") and args.eval_episodes == 0:
-            raise ConfigError(f"--metric {args.metric}: needs --eval-episodes > 0")
-        points = points_from_args(args)
-        overrides = parse_overrides(args.set or [])
-        for key, flag in (("n_envs", args.n_envs), ("nepisodes", args.nepisodes), ("nsteps", args.nsteps)):
-            if flag is not None:
-                overrides[key] = flag
+        main_process = jax.process_index() == 0
+        out, flags, argv = sweep_flags(args, check_out=main_process)
+        live = args.resume  # where the state is; a new sweep's is chosen by process 0 below
+        f = argparse.Namespace(**flags)
+        if f.seeds < 1:
+            raise ConfigError(f"--seeds {f.seeds}: must be >= 1")
+        if f.eval_episodes < 0:
+            raise ConfigError(f"--eval-episodes {f.eval_episodes}: must be >= 0")
+        if f.metric.startswith("eval_") and f.eval_episodes == 0:
+            raise ConfigError(f"--metric {f.metric}: needs --eval-episodes > 0")
+        points = points_from_args(f)
+        overrides = parse_overrides(f.set or [])
+        for key, value in (("n_envs", f.n_envs), ("nepisodes", f.nepisodes), ("nsteps", f.nsteps)):
+            if value is not None:
+                overrides[key] = value
+        seeds = list(range(f.seed, f.seed + f.seeds))
+        plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes)
+        if args.resume is not None:
+            open_state(live, plan)  # refuses a state of other settings or code before anything compiles
         mesh = None
         if args.shard == "on" or (args.shard == "auto" and jax.device_count() > 1):
             mesh = sharding.make_mesh()
-        seeds = list(range(args.seed, args.seed + args.seeds))
-        out = args.out or os.path.join("sweep_results", f"{args.env}_{time.strftime('%Y%m%d-%H%M%S')}")
-        print(f"{args.env}: {len(points)} configurations × {len(seeds)} seeds"
-              f"{f' over {mesh.devices.size} devices' if mesh is not None else ''} → {out}")
-        result = run_sweep(args.env, points, seeds, args.preset, args.agent, overrides, mesh,
-                           args.eval_episodes, log=print)
     except (ConfigError, ValueError) as err:
-        print(f"jaxrobo sweep: {err}", file=sys.stderr)
+        error = str(err)
+    if not _all_agree(error is None):
+        print(f"jaxrobo sweep: {error or 'another process refused the sweep (see its output)'}", file=sys.stderr)
         return 2
-    metric = args.metric
-    if jax.process_index() != 0:
+    if main_process and live is None:
+        # The state of a new sweep goes to --out itself (new or empty), so that a hard crash leaves it resumable;
+        # with --overwrite (checked above) to a hidden sibling, so that the old run stays whole until the end.
+        if os.path.isdir(out) and os.listdir(out):
+            live = rundir.staging(out)
+        else:
+            os.makedirs(out, exist_ok=True)
+            live = out
+    resume_hint = (f"jaxrobo sweep --resume {shlex.quote(live)}" if live is not None
+                   else "jaxrobo sweep --resume DIR (DIR as process 0 says)")
+    if main_process:
+        rundir.write_status(live, rundir.RUNNING, command="sweep", out=os.path.abspath(out), resume=resume_hint)
+    print(f"{f.env}: {len(points)} configurations × {len(seeds)} seeds in {len(plan.groups)} groups"
+          f"{f' over {mesh.devices.size} devices' if mesh is not None else ''} → {out}")
+    if live is not None and os.path.abspath(live) != os.path.abspath(out):
+        print(f"state in {live} until the sweep is done", file=sys.stderr)
+    # Other processes read the state only when resuming (a new sweep's state directory is process 0's choice).
+    state_dir = live
+    with _StopOnSignal() as stop:
+        # Processes stop together (a signal may reach only some of them): one more collective per chunk.
+        should_stop = stop if jax.process_count() == 1 else (lambda: not _all_agree(not stop()))
+        try:
+            result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=should_stop,
+                              state_extra={"flags": flags, "argv": argv})
+        except KeyboardInterrupt:  # a second Ctrl-C: the group in progress is dropped at once
+            if main_process:
+                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
+                                    resume=resume_hint)
+            print(f"jaxrobo sweep: interrupted by SIGINT: the finished groups are saved in {live or 'process 0'}; "
+                  f"go on with: {resume_hint}", file=sys.stderr)
+            return 128 + signal.SIGINT
+        except SweepInterrupted as err:
+            name = signal.Signals(stop.signum).name if stop.signum else "a signal to another process"
+            if main_process:
+                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
+                                    resume=resume_hint, finished_groups=err.done, groups=err.total)
+            print(f"jaxrobo sweep: interrupted by {name}: {err.done} of {err.total} groups finished, saved in "
+                  f"{live or 'process 0'}; go on with: {resume_hint}", file=sys.stderr)
+            return 128 + (stop.signum or signal.SIGINT)
+        except Exception as err:  # the finished groups are saved: say how to go on, then fail as before
+            if main_process:
+                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
+                                    resume=resume_hint, error=f"{type(err).__name__}: {err}")
+            print(f"jaxrobo sweep: failed ({type(err).__name__}); the finished groups are saved in "
+                  f"{live or 'process 0'}; go on with: {resume_hint}", file=sys.stderr)
+            raise
+    if not main_process:
         return 0
-    os.makedirs(out, exist_ok=True)
-    write_csv(result, os.path.join(out, "sweep.csv"))
+    metric = f.metric
     best = result.best(metric)
-    summary = {"env_id": args.env, "agent": args.agent, "preset": args.preset, "swept": result.swept,
+    summary = {"env_id": f.env, "agent": f.agent, "preset": f.preset, "swept": result.swept,
                "seeds": seeds, "n_rows": len(result.rows), "wall_seconds": result.wall_seconds,
                "env_steps": result.env_steps, "env_steps_per_second": result.env_steps / max(result.wall_seconds, 1e-9),
-               "groups": result.groups, "best": best, "argv": sys.argv}
-    with open(os.path.join(out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=2, default=str)
-    plots = [] if args.no_plots else plot_sweep(result, out, metric)
+               "groups": result.groups, "best": best, "argv": argv}
+    staged = rundir.staging(out)
+    try:
+        write_csv(result, os.path.join(staged, "sweep.csv"))
+        with open(os.path.join(staged, "summary.json"), "w") as fh:
+            json.dump(summary, fh, indent=2, default=str)
+        plots = [] if f.no_plots else plot_sweep(result, staged, metric)
+        rundir.write_status(staged, rundir.COMPLETE, command="sweep")
+        rundir.publish(staged, out, overwrite=True)  # replaces the state (or the old run) in one step
+    except BaseException:
+        rundir.discard(staged)
+        raise
+    if os.path.abspath(live) != os.path.abspath(out):
+        rundir.discard(live)
+    plots = [os.path.join(out, os.path.basename(p)) for p in plots]
     print(f"{len(result.rows)} rows, {result.env_steps:,} env steps in {result.wall_seconds:.1f} s "
           f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile)")
     print("best configuration: " + ", ".join(f"{k}={_fmt(best[k])}" for k in result.swept) +
