@@ -8,7 +8,7 @@ set -uo pipefail
 out=${1:-runs/multiprocess_demo}
 mkdir -p "$out"
 export NCCL_NVLS_ENABLE=0   # keep NVLink multicast off on shared GPU hosts
-args=(sweep --env CartPoleStayUp-v0 --grid alpha=0.1,0.3,0.5,0.7 --seeds 64 --n-envs 1 --nepisodes 100 --no-plots)
+args=(sweep --env CartPoleStayUp-v0 --grid alpha=0.1,0.3,0.5,0.7 --seeds 64 --n-envs 1 --nepisodes 100 --no-plots --overwrite)
 if [ "${DEMO_CPU:-0}" = 1 ]; then
   export JAX_PLATFORMS=cpu
   one_env=(XLA_FLAGS=--xla_force_host_platform_device_count=2)

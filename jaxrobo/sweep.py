@@ -47,9 +47,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from agents.tabular import AgentParams
-from jaxrobo.config import ConfigError, coerce, parse_overrides, parse_value, unknown_key
+from jaxrobo import budget
+from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value, unknown_key
 from jaxrobo.registry import _lookup
-from jaxrobo.struct import rules
+from jaxrobo.struct import INT32_MAX, rules
 from jaxrobo.train import Runner, TrainConfig, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
@@ -360,6 +361,9 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
                 agent_list.append(ap)
                 env_list.append(ep)
                 meta.append((i, s, ap))
+        # Every row of a group trains its own n_envs envs at once: the group's memory is that of rows x n_envs.
+        budget.check_memory(env, spec.config.replace(n_envs=len(meta) * spec.config.n_envs),
+                            Trainer(env, spec.config).disc.n_states, where=f"sweep group {g + 1} ({len(meta)} rows)")
         planned.append(PlannedGroup(g, static, spec, list(members), meta, agent_list, env_list))
     settings = {"env_id": env_id, "points": checked, "seeds": seeds, "preset": preset, "agent": agent,
                 "overrides": overrides, "eval_episodes": eval_episodes, "n_last": n_last,
@@ -866,10 +870,12 @@ def _run(args: argparse.Namespace) -> int:
         if f.metric.startswith("eval_") and f.eval_episodes == 0:
             raise ConfigError(f"--metric {f.metric}: needs --eval-episodes > 0")
         points = points_from_args(f)
-        overrides = parse_overrides(f.set or [])
-        for key, value in (("n_envs", f.n_envs), ("nepisodes", f.nepisodes), ("nsteps", f.nsteps)):
-            if value is not None:
-                overrides[key] = value
+        overrides = merge_flags(parse_overrides(f.set or []), [("n_envs", "--n-envs", f.n_envs),
+                                                                ("nepisodes", "--nepisodes", f.nepisodes),
+                                                                ("nsteps", "--nsteps", f.nsteps)])
+        if f.seed < 0 or f.seed + f.seeds - 1 > INT32_MAX:
+            raise ConfigError(f"--seed {f.seed} --seeds {f.seeds}: the seeds run from --seed to --seed + --seeds - 1, "
+                              f"which must lie in [0, {INT32_MAX}]")
         seeds = list(range(f.seed, f.seed + f.seeds))
         plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes)
         if args.resume is not None:

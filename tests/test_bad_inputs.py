@@ -323,6 +323,12 @@ SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
     ("set-out-of-range", ("--set", "alpha=7"), "alpha=7.0: expected a number > 0.0 and <= 1.0"),
     ("n-envs-zero", ("--n-envs", "0"), "n_envs=0: expected an integer >= 1"),
     ("set-bad-yaml", ("--set", "alpha=[1"), "not valid YAML"),
+    ("flag-and-set-clash", ("--n-envs", "2", "--set", "n_envs=3"), "n_envs given twice: --n-envs 2 and --set n_envs=3"),
+    ("seeds-past-int32", ("--seed", "2147483647", "--seeds", "2"), "which must lie in [0, 2147483647]"),
+    # each run fits (a few GB); its 128 rows at once do not
+    ("group-too-big-for-memory", ("--grid", "alpha=0.1,0.2", "--seeds", "64", "--n-envs", "200000", "--nepisodes", "10"),
+     "sweep group 1 (128 rows)"),
+    ("second-group-bad", ("--grid", "number_splits=4,100000"), "number_splits"),
 ]]
 
 
