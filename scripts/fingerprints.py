@@ -30,7 +30,7 @@ def cases() -> list[dict]:
     """(env id, preset, learner, extra overrides) of every case: each id's presets with their own learner, and
     every learner on both cart-pole backends."""
     out = []
-    for env_id in ("CartPoleStayUp-v0", "CartPoleStayUp-v1", "QuadcopterLiveShow-v0", "QuadcopterGoto-v1"):
+    for env_id in ("CartPoleStayUp-v0", "CartPoleStayUpLeftRight-v0", "QuadcopterLiveShow-v0", "QuadcopterGoto-v1"):
         for preset in ("default", "seed"):
             out.append(dict(env_id=env_id, preset=preset, agent=None, extra={}))
     for backend in ("analytic", "mjx"):
