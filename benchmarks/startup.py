@@ -7,12 +7,17 @@ fresh cache directory, the second reads it. Target (issue 5): second < 5 s on CP
 
     python benchmarks/startup.py                 # CPU, CartPoleStayUp-v0, Q-learning, 64 envs
     python benchmarks/startup.py --device gpu --n-envs 4096
+    python benchmarks/startup.py --runs 5         # one cold start, then the median of four cached ones
+
+A cached start still traces and lowers the training chunk in Python (the persistent cache is keyed on the
+lowered module, so it cannot serve a program other than the one the process's code produces); it skips XLA.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -111,6 +116,12 @@ def main(argv: list[str] | None = None) -> int:
     if len(runs) > 1:
         ok = runs[1]["to_first_chunk_s"] < 5.0
         print(f"second start-up {'meets' if ok else 'misses'} the < 5 s target")
+    if len(runs) > 2:
+        # on a shared machine single starts vary by seconds: the median of the cached ones is the figure to quote
+        cached = sorted(r["to_first_chunk_s"] for r in runs[1:])
+        result["cached_median_s"] = statistics.median(cached)
+        print(f"{'cached starts':>20}: median {result['cached_median_s']:.2f} s over {len(cached)} "
+              f"(min {cached[0]:.2f}, max {cached[-1]:.2f})")
     if args.out:
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         with open(args.out, "w") as f:

@@ -371,21 +371,12 @@ ProgressFn = Callable[[int, int, float], None]
 
 
 def _compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, env_params: Any) -> Callable:
-    """``trainer.run_chunk`` compiled for ``runner``. With the compilation cache on and only jaxrobo's own code in
-    the loop, the traced program is kept too (:func:`jaxrobo.cache.exported_jit`), so a second start of the same
-    configuration skips tracing it (~2 s of an MJX start-up on 2 CPU cores); the same program, the same values."""
-    env, learner = trainer.env, trainer.learner
-    robot = getattr(layers(env)[-1], "robot", None)
-    parts = [*layers(env), trainer.disc, learner.select, learner.target]
-    parts += [] if robot is None else [robot, robot.sim]
-    if cache.is_own_code(*parts):
-        tag = repr((getattr(env, "name", None), getattr(env, "options", None), trainer.config, learner.name,
-                    trainer.disc, trainer.reset_capacity, trainer.carry_rows, trainer.env_group,
-                    env_layer.UNROLLED_GROUPS, sim.LEAN_MJX,
-                    jax.random.key_impl(runner.key[0]),
-                    jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision))
-        return cache.exported_jit(trainer.run_chunk, (runner, agent_params, env_params), runner, tag,
-                                  donate_argnums=(0,))
+    """``trainer.run_chunk`` traced, lowered and compiled for ``runner``.
+
+    Traced afresh in every process and every call, so training runs the code as it is now in this process (a
+    patched physics step, a flipped ``sim.LEAN_MJX``), exactly as evaluation does. A second start of the same
+    configuration still skips XLA: the persistent compilation cache (:mod:`jaxrobo.cache`) is keyed on the
+    lowered module, so it serves the executable only when the traced program is the same."""
     return jax.jit(trainer.run_chunk, donate_argnums=0).lower(runner, agent_params, env_params).compile()
 
 

@@ -56,60 +56,56 @@ def test_off_writes_nothing(tmp_path):
     assert _child(env)["dir"] is None
 
 
-def test_exported_jit_matches_jit_and_reloads(tmp_path):
-    """A traced program kept with jax.export gives the same numbers as jax.jit, and is loaded, not re-traced."""
-    import jax
-    import jax.numpy as jnp
-    import pytest
+TRAIN_CHILD = r"""
+import hashlib, json, sys
+sys.path.insert(0, sys.argv[1])
+from jaxrobo.cache import enable_compilation_cache, entries
+d = enable_compilation_cache()
+import jax, jax.numpy as jnp, numpy as np
+import jaxrobo
+from envs.cartpole_dynamics import CartPoleSim
+from jaxrobo.train import TrainConfig, train
 
-    pytest.importorskip("flatbuffers")
-    traces = []
-
-    def step(state, scale):
-        traces.append(1)
-        key, sub = jax.random.split(state["key"])
-        return {"key": key, "x": state["x"] * scale + jax.random.uniform(sub, state["x"].shape)}
-
-    state = {"key": jax.random.key(3), "x": jnp.arange(4.0)}
-    want = jax.jit(step)(state, 2.0)
-    first = cache.exported_jit(step, (state, 2.0), state, "test-step", directory=str(tmp_path))
-    got = first(state, 2.0)
-    assert os.listdir(tmp_path / "exported")
-    n = len(traces)
-    again = cache.exported_jit(step, (state, 2.0), state, "test-step", directory=str(tmp_path))
-    assert len(traces) == n  # loaded from disk: no Python tracing
-    got2 = again(state, 2.0)
-    for a, b in ((want, got), (want, got2)):
-        assert jnp.array_equal(a["x"], b["x"])
-        assert jnp.array_equal(jax.random.key_data(a["key"]), jax.random.key_data(b["key"]))
+env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
+config = TrainConfig(n_envs=4, nepisodes=3, nsteps=40, chunk_steps=40, seed=5, eval_episodes=0)
 
 
-def test_train_keeps_its_traced_chunk_and_gives_the_same_result(tmp_path, monkeypatch):
-    """train() with the chunk's traced program kept (first run: exported; second: loaded) equals a plain jit run."""
-    import numpy as np
-    import pytest
-
-    import jaxrobo
-    from jaxrobo.train import TrainConfig, train
-
-    pytest.importorskip("flatbuffers")
-    env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
-    config = TrainConfig(n_envs=4, nepisodes=3, nsteps=60, chunk_steps=30, seed=5, eval_episodes=0)
-    results = []
-    for directory in (None, str(tmp_path), str(tmp_path)):
-        monkeypatch.setattr(cache, "_current_dir", lambda d=directory: d)
-        results.append(train(env, config))
-        if directory is not None:
-            assert len(os.listdir(tmp_path / "exported")) == 1  # written once, then loaded
-    for got in results[1:]:
-        np.testing.assert_array_equal(got.q, results[0].q)
-        np.testing.assert_array_equal(got.returns, results[0].returns)
-        assert got.env_steps == results[0].env_steps
+def run():
+    r = train(env, config)
+    digest = hashlib.sha256(np.asarray(r.q).tobytes() + np.asarray(r.returns).tobytes()).hexdigest()
+    return {"digest": digest, "nan_episodes": int(r.nan_episodes.sum()), "entries": entries(d)}
 
 
-def test_only_own_code_keys_a_kept_program():
-    import jaxrobo
+out = {}
+if "patch" in sys.argv[2:]:
+    step = CartPoleSim.physics_step
+    # the kind of physics blow-up a user can patch in at run time: every state becomes NaN
+    CartPoleSim.physics_step = lambda self, s, ctrl: jax.tree.map(lambda x: x * jnp.nan, step(self, s, ctrl))
+    out["patched"] = run()
+    CartPoleSim.physics_step = step
+out["plain"] = run()
+print(json.dumps(out))
+"""
 
-    env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
-    assert cache.is_own_code(env, env.robot, env.robot.sim)
-    assert not cache.is_own_code(env, lambda x: x)  # defined here, outside jaxrobo/envs/agents
+
+def _train_child(env, *args):
+    out = subprocess.run([sys.executable, "-c", TRAIN_CHILD, ROOT, *args], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_warm_cache_never_serves_stale_training_code(tmp_path):
+    """With the cache filled by a first process, a second process that patches the physics step at run time
+    trains with the patched step (its NaN episodes are counted), and after undoing the patch trains exactly as the
+    first process did, reading the first process's compiles instead of writing new ones."""
+    env = {**os.environ, cache.ENV_VAR: str(tmp_path / "jax"), "JAX_PLATFORMS": "cpu"}
+    first = _train_child(env)["plain"]
+    assert first["nan_episodes"] == 0 and first["entries"] > 0
+    second = _train_child(env, "patch")
+    assert second["patched"]["nan_episodes"] > 0  # training ran the patched step, not the cached one
+    assert second["patched"]["digest"] != first["digest"]
+    assert second["patched"]["entries"] > first["entries"]  # another program, so another compile
+    assert second["plain"]["nan_episodes"] == 0
+    assert second["plain"]["digest"] == first["digest"]  # the original code again, the original results
+    assert second["plain"]["entries"] == second["patched"]["entries"]  # served from the first process's cache
