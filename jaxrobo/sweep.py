@@ -485,7 +485,7 @@ def code_version() -> dict[str, str]:
     from importlib import metadata
 
     import jaxrobo
-    from jaxrobo.cache import source_hash
+    from jaxrobo.rundir import source_hash
 
     out = {"jaxrobo": jaxrobo.__version__, "jaxrobo_sources": source_hash()}
     for dist in ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx", "brax"):

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from typing import Any, Callable
 
@@ -31,10 +30,9 @@ import numpy as np
 import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
-from jaxrobo import budget, cache, rng, sim
-from jaxrobo import env as env_layer
+from jaxrobo import budget, rng, rundir
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
-from jaxrobo.env import Env, EnvState, default_env_group, layers, step_batch
+from jaxrobo.env import Env, EnvState, default_env_group, step_batch
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -488,27 +486,6 @@ def spec_from_config(run_config: dict[str, Any]):
 # ---- checkpoints -------------------------------------------------------------------------------------------------
 #: Bumped when the checkpoint layout changes.
 CHECKPOINT_FORMAT = 1
-_SOURCE_DIRS = ("jaxrobo", "envs", "agents")
-_SOURCE_SUFFIXES = (".py", ".xml")
-
-
-def source_hash() -> str:
-    """SHA-256 over the code that shapes a run (``jaxrobo``, ``envs``, ``agents``: Python and MJCF files)."""
-    import hashlib
-
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    h = hashlib.sha256()
-    for top in _SOURCE_DIRS:
-        for dirpath, dirnames, files in os.walk(os.path.join(root, top)):
-            dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
-            for name in sorted(f for f in files if f.endswith(_SOURCE_SUFFIXES)):
-                path = os.path.join(dirpath, name)
-                h.update(os.path.relpath(path, root).encode() + b"\0")
-                with open(path, "rb") as f:
-                    h.update(f.read() + b"\0")
-    return h.hexdigest()
-
-
 def _is_key(x: Any) -> bool:
     return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
@@ -521,14 +498,14 @@ def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any 
 
 def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:
     """What a checkpoint must match to be loaded: the resolved run config, the jaxrobo and JAX versions, the
-    carry's tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`source_hash`)."""
+    carry's tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`jaxrobo.rundir.source_hash`)."""
     import jaxrobo
 
     leaves, treedef = jax.tree.flatten(template)
     return json.loads(json.dumps({
         "format": CHECKPOINT_FORMAT, "config": run_config, "jaxrobo": jaxrobo.__version__, "jax": jax.__version__,
         "treedef": str(treedef), "leaves": [[list(x.shape), str(x.dtype)] for x in leaves],
-        "sources": source_hash()}))
+        "sources": rundir.source_hash()}))
 
 
 def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: dict[str, Any]) -> None:
