@@ -61,7 +61,7 @@ def _train_checked(args: argparse.Namespace) -> int:
     from jaxrobo import train as training
     from jaxrobo.config import ConfigError
     from jaxrobo.results import save_run, write_config, write_episodes
-    from jaxrobo.run import resolve
+    from jaxrobo.run import resolve, spec_from_config
 
     resume = args.resume
     try:
@@ -84,7 +84,7 @@ def _train_checked(args: argparse.Namespace) -> int:
                     saved = yaml.safe_load(f)
             except (OSError, yaml.YAMLError) as err:
                 raise ConfigError(f"--resume {resume}: cannot read config.yaml ({err})") from err
-            spec = training.spec_from_config(saved if isinstance(saved, dict) else {})
+            spec = spec_from_config(saved if isinstance(saved, dict) else {})
         else:
             overrides = train_overrides(args)
             spec = resolve(args.env or "CartPoleStayUp-v0", args.preset or "default", overrides, agent=args.agent)

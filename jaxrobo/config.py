@@ -202,3 +202,14 @@ def as_dict(obj: Any) -> dict[str, Any]:
             pass
         out[f.name] = v
     return out
+
+
+def flat_keys(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested mapping as ``{"outer.inner": value}`` (to name the keys where two configs differ)."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(flat_keys(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out

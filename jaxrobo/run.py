@@ -11,6 +11,7 @@ and loop first), ``env.KEY`` forces the env and ``agent.KEY`` the learner/loop.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from typing import Any, Mapping
 
@@ -18,7 +19,7 @@ import numpy as np
 
 from agents.tabular import AgentParams
 from jaxrobo import discretise
-from jaxrobo.config import ConfigError, as_dict, load_yaml, split_and_validate, unknown_key
+from jaxrobo.config import ConfigError, as_dict, flat_keys, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env
 from jaxrobo.registry import _lookup, make
 from jaxrobo.struct import INT32_MAX, rules
@@ -178,3 +179,21 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
 
         fits(env, config, n_states, where=where)
     return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values)
+
+
+def spec_from_config(run_config: dict[str, Any]):
+    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
+    applied as an override of the saved preset, and the result must give back the same config."""
+    try:
+        env_id, preset = run_config["env_id"], run_config.get("preset", "default")
+        overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
+        overrides.update({f"agent.{k}": v for part in ("agent_params", "train") for k, v in run_config[part].items()})
+    except (KeyError, TypeError, AttributeError) as err:
+        raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
+    spec = resolve(env_id, preset, overrides)
+    again = json.loads(json.dumps(spec.to_dict()))
+    if again != json.loads(json.dumps(run_config)):
+        a, b = flat_keys(run_config), flat_keys(again)
+        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        raise ConfigError(f"config.yaml: does not resolve to itself ({', '.join(keys[:5])}); edited by hand?")
+    return spec

@@ -31,6 +31,7 @@ import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
 from jaxrobo import budget, rng, rundir
+from jaxrobo.config import flat_keys
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState, default_env_group, step_batch
 from jaxrobo.struct import param, pytree_dataclass
@@ -462,30 +463,11 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes))
 
 
-def spec_from_config(run_config: dict[str, Any]):
-    """The :class:`jaxrobo.run.RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
-    applied as an override of the saved preset, and the result must give back the same config."""
-    from jaxrobo.config import ConfigError
-    from jaxrobo.run import resolve
-
-    try:
-        env_id, preset = run_config["env_id"], run_config.get("preset", "default")
-        overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
-        overrides.update({f"agent.{k}": v for part in ("agent_params", "train") for k, v in run_config[part].items()})
-    except (KeyError, TypeError, AttributeError) as err:
-        raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
-    spec = resolve(env_id, preset, overrides)
-    again = json.loads(json.dumps(spec.to_dict()))
-    if again != json.loads(json.dumps(run_config)):
-        a, b = _flat(run_config), _flat(again)
-        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
-        raise ConfigError(f"config.yaml: does not resolve to itself ({', '.join(keys[:5])}); edited by hand?")
-    return spec
-
-
 # ---- checkpoints -------------------------------------------------------------------------------------------------
 #: Bumped when the checkpoint layout changes.
 CHECKPOINT_FORMAT = 1
+
+
 def _is_key(x: Any) -> bool:
     return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
@@ -543,7 +525,7 @@ def fingerprint_mismatch(saved: dict[str, Any], expected: dict[str, Any]) -> str
     for field, name in what.items():
         if saved.get(field) != expected.get(field):
             if field == "config":
-                a, b = _flat(saved.get("config") or {}), _flat(expected.get("config") or {})
+                a, b = flat_keys(saved.get("config") or {}), flat_keys(expected.get("config") or {})
                 keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
                 diff = ", ".join(f"{k}: {a.get(k)!r} in the checkpoint vs {b.get(k)!r} now" for k in keys[:5])
                 return f"the configuration differs ({diff})"
@@ -551,16 +533,6 @@ def fingerprint_mismatch(saved: dict[str, Any], expected: dict[str, Any]) -> str
                 return f"it was written by {name} {saved.get(field)} (this is {expected.get(field)})"
             return f"the {name} differs from the one that wrote it"
     return None
-
-
-def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
 
 
 class CheckpointError(ValueError):
