@@ -30,6 +30,9 @@ if [ "${_JAXROBO_WITHOUT_GL:-}" != inside ]; then
     read -r -a flags <<< "$ns"
     if probe=$(unshare "${flags[@]}" --propagation private sh -c 'mount --bind /dev/null /dev/null' 2>&1); then
       export _JAXROBO_WITHOUT_GL=inside
+      # In a user namespace the command runs as "root": give it its own temporary directory, so that tools
+      # keyed by user name (pytest's /tmp/pytest-of-root) do not collide with the real root's.
+      [ "${flags[0]}" = --user ] && [ -z "${TMPDIR:-}" ] && TMPDIR=$(mktemp -d) && export TMPDIR
       exec unshare "${flags[@]}" --propagation private -- bash "$0" "$@"
     fi
     why="${why:+$why; }unshare $ns: ${probe:-failed}"
