@@ -120,11 +120,6 @@ def select_gl_backend() -> str | None:
     return None
 
 
-def prefer_headless_gl() -> None:
-    """Kept for callers of the earlier name: same as :func:`select_gl_backend`."""
-    select_gl_backend()
-
-
 def _install_hint() -> str:
     return "install libegl1 (or libosmesa6), or set MUJOCO_GL to a backend this machine has"
 
@@ -169,6 +164,8 @@ _GL_REASON: list[str | None] = []
 
 def gl_unavailable_reason() -> str | None:
     """None when offscreen rendering works in this process, else why not, on one line (checked once)."""
+    if not _GL_REASON and _disabled_reason() is not None:
+        _GL_REASON.append(f"no OpenGL for offscreen rendering: {_disabled_reason()}")
     if not _GL_REASON:
         try:
             import mujoco
