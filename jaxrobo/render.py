@@ -105,7 +105,9 @@ def select_gl_backend() -> str | None:
     if chosen or not _headless():
         return None if chosen in _OFF else (chosen or None)
     platform_var = os.environ.get("PYOPENGL_PLATFORM", "").lower().strip()
-    candidates = [platform_var] if platform_var in _BACKEND_LIBS else list(_BACKEND_LIBS)
+    if platform_var and platform_var not in _BACKEND_LIBS:
+        return None  # PyOpenGL is told to use another platform (glx, ...): neither EGL nor OSMesa could start
+    candidates = [platform_var] if platform_var else list(_BACKEND_LIBS)
     notes = []
     for backend in candidates:
         missing = backend_missing(backend)
@@ -113,8 +115,6 @@ def select_gl_backend() -> str | None:
             os.environ["MUJOCO_GL"] = backend
             return backend
         notes.append(f"{backend}: {missing}")
-    if platform_var and platform_var not in _BACKEND_LIBS:
-        notes.append(f"PYOPENGL_PLATFORM={platform_var!r}")
     _SELECTION_NOTE[:] = ["no display and no loadable offscreen OpenGL (" + "; ".join(notes) + ")"]
     os.environ["MUJOCO_GL"] = "disable"
     return None

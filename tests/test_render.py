@@ -130,7 +130,9 @@ NONE = {name: f"no lib{name}" for name in EGL_ONLY}
     (EGL_ONLY, {"MUJOCO_GL": "egl"}, "egl", "egl"),
     (NONE, {"MUJOCO_GL": "glfw"}, "glfw", "glfw"),  # not ours to second-guess
     (NONE, {"DISPLAY": ":0"}, None, None),  # a display: MuJoCo's own default (GLFW)
-], ids=["egl", "osmesa", "pyopengl-platform", "none", "forced-missing", "forced-present", "glfw", "display"])
+    (EGL_ONLY, {"PYOPENGL_PLATFORM": "glx"}, None, None),  # EGL could not start under PyOpenGL's GLX platform
+], ids=["egl", "osmesa", "pyopengl-platform", "none", "forced-missing", "forced-present", "glfw", "display",
+        "pyopengl-glx"])
 def test_backend_choice_names_only_loadable_libraries(monkeypatch, libs, env, chosen, after):
     """``MUJOCO_GL`` ends up naming a backend whose libraries load, or ``disable`` with the reason kept."""
     with monkeypatch.context() as m:
