@@ -9,6 +9,10 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from jaxrobo.render import select_gl_backend as _select_gl
+
+_select_gl()  # before anything imports mujoco: MUJOCO_GL may only name a backend whose library loads
+
 from jaxrobo.config import ConfigError
 from jaxrobo.env import EnvState, TaskEnv
 from jaxrobo.registry import make, register, registered, spec

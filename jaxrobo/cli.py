@@ -331,7 +331,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ImportError:
         pass
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    from jaxrobo.config import ConfigError
+
+    try:
+        return int(args.func(args) or 0)
+    except ConfigError as err:  # a subcommand that does not catch it itself (show), e.g. JAX 64-bit mode is on
+        print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ from typing import Any
 
 from jaxrobo.config import ConfigError, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env, EnvSpec
+from jaxrobo.precision import check_precision
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +89,7 @@ def make(id: str, **overrides: Any) -> Env:
     Options (static: control type, backend, number of actions, ...) select the model and code path; parameters
     (limits, gains, goals) become ``env.default_params`` and can later be changed, or vmapped, per call.
     """
+    check_precision(f"jaxrobo.make({id!r})")  # before any model is built or code is traced
     reg = _lookup(id)
     cls = reg.env_class()
     values = env_config(id)

@@ -6,9 +6,13 @@ the backend has them) are copied into a host ``MjData``, ``mj_forward`` places e
 :class:`mujoco.Renderer` draws the scene. This works for every backend (MJX, Brax, the quadcopter's ``rigid``)
 because it needs only ``sim.mj_model``, ``sim.qpos(state)`` and ``sim.qvel(state)``.
 
-Headless machines need an offscreen OpenGL: set ``MUJOCO_GL=egl`` (GPU or Mesa EGL) or ``MUJOCO_GL=osmesa``
-(software; ``apt-get install libosmesa6``) *before* ``mujoco`` is imported. When ``MUJOCO_GL`` is unset and
-there is no display, :class:`Renderer` picks EGL, then OSMesa, by itself.
+Headless machines need an offscreen OpenGL: EGL (``libegl1``, GPU driver or Mesa) or OSMesa (software,
+``apt-get install libosmesa6``). MuJoCo reads ``MUJOCO_GL`` once, when it is imported, and a backend whose
+library is absent makes ``import mujoco`` itself fail inside PyOpenGL. So ``import jaxrobo`` first calls
+:func:`select_gl_backend`, which sets ``MUJOCO_GL`` only to a backend whose libraries load (EGL, else OSMesa,
+else ``disable``), and replaces a ``MUJOCO_GL=egl``/``osmesa`` whose library is missing with ``disable``.
+Nothing but rendering needs OpenGL: without a backend, training, the CLI and ``gym.make`` work, and a
+:class:`Renderer` raises :class:`RenderUnavailable` saying why (:func:`gl_unavailable_reason`).
 
 Task hooks (optional, looked up on the env; never required):
 
@@ -26,6 +30,7 @@ Without a camera choice the first camera of the model is used, else a free camer
 """
 from __future__ import annotations
 
+import ctypes
 import os
 import platform
 import sys
@@ -44,48 +49,123 @@ def _headless() -> bool:
     return platform.system() == "Linux" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def prefer_headless_gl() -> None:
-    """Default ``MUJOCO_GL`` to ``egl`` on a display-less Linux, if ``mujoco`` is not imported yet.
+# The libraries PyOpenGL loads for each headless backend: every group needs one loadable member.
+_BACKEND_LIBS = {"egl": (("EGL",), ("OpenGL", "GL", "GLESv2", "GLESv1_CM")), "osmesa": (("OSMesa",),)}
+_OFF = ("disable", "disabled", "off", "false", "0")
+_LOAD_ERRORS: dict[str, str | None] = {}
+# Why select_gl_backend turned rendering off, for the error a Renderer raises and the tests' skip reason.
+_SELECTION_NOTE: list[str] = []
 
-    Has no effect when the user chose a backend, or once ``mujoco`` is imported (``Renderer`` then falls back by
-    itself, see :func:`_gl_context_class`).
+
+def _load_error(name: str) -> str | None:
+    """None when ``lib<name>.so`` loads the way PyOpenGL looks for it (``.so``, then ``.so.9`` .. ``.so.0``)."""
+    if name not in _LOAD_ERRORS:
+        first = None
+        for filename in [f"lib{name}.so"] + [f"lib{name}.so.{i}" for i in range(9, -1, -1)]:
+            try:
+                ctypes.CDLL(filename)
+            except OSError as err:
+                first = first or str(err)
+            else:
+                first = None
+                break
+        _LOAD_ERRORS[name] = first
+    return _LOAD_ERRORS[name]
+
+
+def backend_missing(backend: str) -> str | None:
+    """None when the libraries of ``backend`` (``"egl"`` or ``"osmesa"``) can be loaded, else what is missing."""
+    missing = []
+    for group in _BACKEND_LIBS[backend]:
+        errors = [_load_error(name) for name in group]
+        if all(errors):
+            missing.append(errors[0])
+    return "; ".join(missing) or None
+
+
+def select_gl_backend() -> str | None:
+    """Make ``MUJOCO_GL`` name only a backend that can load, before ``mujoco`` is imported; returns the backend.
+
+    On a display-less Linux with ``MUJOCO_GL`` unset: EGL if ``libEGL`` (and a GL library) load, else OSMesa if
+    ``libOSMesa`` loads, else ``disable`` (a set ``PYOPENGL_PLATFORM`` restricts the choice to that platform).
+    ``MUJOCO_GL=egl`` or ``osmesa`` whose library is missing becomes ``disable``: ``import mujoco`` would
+    otherwise fail inside PyOpenGL for every use, rendering or not. Any other choice (``glfw``, ``glx``, a
+    display) is left to MuJoCo. Does nothing once ``mujoco`` is imported (its choice is made then).
     """
-    if "mujoco" not in sys.modules and not os.environ.get("MUJOCO_GL") and _headless():
-        os.environ["MUJOCO_GL"] = "egl"
+    chosen = os.environ.get("MUJOCO_GL", "").lower().strip()
+    if "mujoco" in sys.modules:
+        return chosen or None
+    if chosen in _BACKEND_LIBS:
+        missing = backend_missing(chosen)
+        if missing is None:
+            return chosen
+        _SELECTION_NOTE[:] = [f"MUJOCO_GL={chosen!r} is set but its library cannot be loaded ({missing})"]
+        os.environ["MUJOCO_GL"] = "disable"
+        return None
+    if chosen or not _headless():
+        return None if chosen in _OFF else (chosen or None)
+    platform_var = os.environ.get("PYOPENGL_PLATFORM", "").lower().strip()
+    if platform_var and platform_var not in _BACKEND_LIBS:
+        return None  # PyOpenGL is told to use another platform (glx, ...): neither EGL nor OSMesa could start
+    candidates = [platform_var] if platform_var else list(_BACKEND_LIBS)
+    notes = []
+    for backend in candidates:
+        missing = backend_missing(backend)
+        if missing is None:
+            os.environ["MUJOCO_GL"] = backend
+            return backend
+        notes.append(f"{backend}: {missing}")
+    _SELECTION_NOTE[:] = ["no display and no loadable offscreen OpenGL (" + "; ".join(notes) + ")"]
+    os.environ["MUJOCO_GL"] = "disable"
+    return None
+
+
+def _install_hint() -> str:
+    return "install libegl1 (or libosmesa6), or set MUJOCO_GL to a backend this machine has"
+
+
+def _disabled_reason() -> str | None:
+    """Why rendering is off in this process (``MUJOCO_GL`` disabled), or None when a backend was chosen."""
+    if os.environ.get("MUJOCO_GL", "").lower().strip() not in _OFF:
+        return None
+    note = _SELECTION_NOTE[0] if _SELECTION_NOTE else "MUJOCO_GL disables OpenGL"
+    return f"{note}; {_install_hint()}"
 
 
 def _gl_context_class() -> type | None:
     """The GLContext class to use, or None to keep MuJoCo's own choice.
 
-    MuJoCo picks its GL platform from ``MUJOCO_GL`` when it is imported, and defaults to GLFW, which needs a
-    display. On a display-less Linux with ``MUJOCO_GL`` unset we try EGL, then OSMesa, instead.
+    :func:`select_gl_backend` sets ``MUJOCO_GL`` on a display-less Linux, so this matters only when ``mujoco``
+    was imported before ``jaxrobo`` with ``MUJOCO_GL`` unset: MuJoCo then defaulted to GLFW, which needs a
+    display, and we try EGL, then OSMesa, whose libraries load.
     """
     if os.environ.get("MUJOCO_GL") or not _headless():
         return None
     errors = []
     for name in ("egl", "osmesa"):
         try:
+            missing = backend_missing(name)
+            if missing is not None:
+                raise ImportError(missing)
             if name == "egl":
                 from mujoco.egl import GLContext
             else:
-                if os.environ.get("PYOPENGL_PLATFORM", "osmesa") != "osmesa":
-                    raise ImportError(f"PYOPENGL_PLATFORM={os.environ['PYOPENGL_PLATFORM']!r} is not osmesa")
-                os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
                 from mujoco.osmesa import GLContext
-            ctx = GLContext(16, 16)  # probe: fails here when the library is missing
+            ctx = GLContext(16, 16)  # probe: fails here when no context can be created
             ctx.free()
             return GLContext
         except Exception as err:  # noqa: BLE001 - any failure means "try the next backend"
             errors.append(f"{name}: {err}")
-    raise RenderUnavailable("no display and no offscreen OpenGL: " + "; ".join(errors)
-                            + " (install libegl1 or libosmesa6, or set MUJOCO_GL)")
+    raise RenderUnavailable("no display and no offscreen OpenGL: " + "; ".join(errors) + f" ({_install_hint()})")
 
 
 _GL_REASON: list[str | None] = []
 
 
 def gl_unavailable_reason() -> str | None:
-    """None when offscreen rendering works in this process, else why not (checked once, with a tiny model)."""
+    """None when offscreen rendering works in this process, else why not, on one line (checked once)."""
+    if not _GL_REASON and _disabled_reason() is not None:
+        _GL_REASON.append(f"no OpenGL for offscreen rendering: {_disabled_reason()}")
     if not _GL_REASON:
         try:
             import mujoco
@@ -95,8 +175,8 @@ def gl_unavailable_reason() -> str | None:
             renderer.close()
             _GL_REASON.append(None)
         except Exception as err:  # noqa: BLE001 - report, do not raise
-            _GL_REASON.append(f"no OpenGL for offscreen rendering (MUJOCO_GL={os.environ.get('MUJOCO_GL', '')!r}): "
-                              f"{type(err).__name__}: {err}")
+            reason = f"no OpenGL for offscreen rendering (MUJOCO_GL={os.environ.get('MUJOCO_GL', '')!r}): {err}"
+            _GL_REASON.append(" ".join(reason.split()))
     return _GL_REASON[0]
 
 
@@ -225,12 +305,15 @@ def _copy_model(model: Any) -> Any:
 def _make_renderer(model: Any, height: int, width: int, context_cls: type | None) -> Any:
     import mujoco
 
+    disabled = _disabled_reason()
+    if disabled is not None:  # mujoco.Renderer has no GL context to make then: say why instead of crashing
+        raise RenderUnavailable(disabled)
     if context_cls is None:
         try:
             return mujoco.Renderer(model, height, width)
         except Exception as err:  # noqa: BLE001
-            raise RenderUnavailable(f"mujoco.Renderer failed ({err}); on a headless machine set MUJOCO_GL=egl "
-                                    "or MUJOCO_GL=osmesa before importing mujoco") from err
+            raise RenderUnavailable(f"mujoco.Renderer failed ({type(err).__name__}: {err}); {_install_hint()}, "
+                                    "before mujoco is imported") from err
     from mujoco.rendering.classic import gl_context
 
     saved = getattr(gl_context, "GLContext", None)

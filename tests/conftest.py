@@ -20,7 +20,15 @@ _CACHE = os.environ.get("JAXROBO_TEST_CACHE", os.path.join(os.path.dirname(__fil
 jax.config.update("jax_compilation_cache_dir", os.path.abspath(_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
-import jaxrobo  # noqa: E402
+import jaxrobo  # noqa: E402  (picks an OpenGL backend whose library loads, or none: jaxrobo.render)
+
+
+def pytest_report_header(config):
+    """Which OpenGL the rendering tests use, or why they skip (one line in the session header)."""
+    from jaxrobo.render import gl_unavailable_reason
+
+    reason = gl_unavailable_reason()
+    return f"OpenGL: MUJOCO_GL={os.environ.get('MUJOCO_GL')}" if reason is None else f"OpenGL: none, {reason}"
 
 
 @pytest.fixture(scope="session")

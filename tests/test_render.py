@@ -1,11 +1,15 @@
-"""Offscreen rendering: frames of states, the task geometry hook, the Gymnasium render modes, episode videos.
+"""Offscreen rendering: frames of states, the task geometry hook, the Gymnasium render modes, episode videos,
+and the choice of OpenGL backend.
 
-Needs an offscreen OpenGL (``MUJOCO_GL=egl`` or ``osmesa``; scripts/test.sh sets osmesa and .ci/run installs
-libosmesa6). Where none can be had the tests skip, naming the reason.
+Drawing needs an offscreen OpenGL (EGL or OSMesa; ``import jaxrobo`` picks one whose library loads, and
+.ci/run installs libosmesa6). Where none can be had the drawing tests skip, naming the reason; the tests of
+the backend choice run everywhere.
 """
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -17,7 +21,8 @@ from jaxrobo.gym_adapter import JaxroboEnv, JaxroboVectorEnv
 from jaxrobo.wrappers import Wrapper
 
 _REASON = render.gl_unavailable_reason()
-pytestmark = pytest.mark.skipif(_REASON is not None, reason=str(_REASON))
+needs_gl = pytest.mark.skipif(_REASON is not None, reason=str(_REASON))
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +32,7 @@ def cartpole_env():
     env.close()
 
 
+@needs_gl
 def test_rgb_array_frame(cartpole_env):
     cartpole_env.reset(seed=0)
     frame = cartpole_env.render()
@@ -38,6 +44,7 @@ def test_rgb_array_frame(cartpole_env):
     assert not np.array_equal(frame, moved)  # the frame follows the state
 
 
+@needs_gl
 def test_render_extras_hook_draws_task_geometry(cartpole_env):
     """A task may add geometry that is data, not MJCF (goals, obstacles), through ``render_extras``."""
 
@@ -56,6 +63,7 @@ def test_render_extras_hook_draws_task_geometry(cartpole_env):
     assert red > red_before + 100
 
 
+@needs_gl
 def test_cameras_and_bad_camera():
     env = jaxrobo.make("CartPoleStayUpLeftRight-v0")
     state = jax.jit(env.reset)(jax.random.key(0))
@@ -65,6 +73,7 @@ def test_cameras_and_bad_camera():
         render.Renderer(env, 64, 48, camera="nope")
 
 
+@needs_gl
 def test_vector_env_renders_one_frame_per_env():
     venv = JaxroboVectorEnv("CartPoleStayUpLeftRight-v0", num_envs=3, render_mode="rgb_array", width=64, height=48)
     venv.reset(seed=0)
@@ -73,6 +82,7 @@ def test_vector_env_renders_one_frame_per_env():
     venv.close()
 
 
+@needs_gl
 @pytest.mark.parametrize("env_id", jaxrobo.registered())
 def test_every_registered_env_renders(env_id):
     from jaxrobo.gym_adapter import compiled_for
@@ -89,6 +99,7 @@ def test_every_registered_env_renders(env_id):
     assert frame.shape == (72, 96, 3) and frame.dtype == np.uint8 and frame.std() > 1.0
 
 
+@needs_gl
 def test_record_episode_writes_a_gif(tmp_path):
     pytest.importorskip("imageio", reason="imageio (the test extra) writes the GIF")
     import imageio.v2 as imageio
@@ -101,3 +112,91 @@ def test_record_episode_writes_a_gif(tmp_path):
     assert len(frames) == out["frames"] and frames[0].shape[:2] == (48, 64)
     with pytest.raises(ValueError, match="gif or .mp4"):
         render.write_video(str(tmp_path / "x.avi2"), [np.zeros((4, 4, 3), np.uint8)])
+
+
+# -- choice of OpenGL backend -----------------------------------------------------------------------------------
+EGL_ONLY = {"EGL": None, "GL": None, "OpenGL": None, "GLESv2": None, "GLESv1_CM": None, "OSMesa": "no libOSMesa"}
+OSMESA_ONLY = {"EGL": "no libEGL", "GL": "no libGL", "OpenGL": "no libOpenGL", "GLESv2": "no libGLESv2",
+               "GLESv1_CM": "no libGLESv1_CM", "OSMesa": None}
+NONE = {name: f"no lib{name}" for name in EGL_ONLY}
+
+
+@pytest.mark.parametrize("libs, env, chosen, after", [
+    (EGL_ONLY, {}, "egl", "egl"),
+    (OSMESA_ONLY, {}, "osmesa", "osmesa"),
+    ({**EGL_ONLY, "OSMesa": None}, {"PYOPENGL_PLATFORM": "osmesa"}, "osmesa", "osmesa"),
+    (NONE, {}, None, "disable"),
+    (EGL_ONLY, {"MUJOCO_GL": "osmesa"}, None, "disable"),  # the README's failure: osmesa forced, not installed
+    (EGL_ONLY, {"MUJOCO_GL": "egl"}, "egl", "egl"),
+    (NONE, {"MUJOCO_GL": "glfw"}, "glfw", "glfw"),  # not ours to second-guess
+    (NONE, {"DISPLAY": ":0"}, None, None),  # a display: MuJoCo's own default (GLFW)
+    (EGL_ONLY, {"PYOPENGL_PLATFORM": "glx"}, None, None),  # EGL could not start under PyOpenGL's GLX platform
+], ids=["egl", "osmesa", "pyopengl-platform", "none", "forced-missing", "forced-present", "glfw", "display",
+        "pyopengl-glx"])
+def test_backend_choice_names_only_loadable_libraries(monkeypatch, libs, env, chosen, after):
+    """``MUJOCO_GL`` ends up naming a backend whose libraries load, or ``disable`` with the reason kept."""
+    with monkeypatch.context() as m:
+        m.delitem(sys.modules, "mujoco")  # select_gl_backend acts only before mujoco is imported
+        m.setattr(render, "_LOAD_ERRORS", dict(libs))
+        m.setattr(render, "_SELECTION_NOTE", [])
+        for name in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "DISPLAY", "WAYLAND_DISPLAY"):
+            m.delenv(name, raising=False)
+        for name, value in env.items():
+            m.setenv(name, value)
+        assert render.select_gl_backend() == chosen
+        assert os.environ.get("MUJOCO_GL") == after
+        disabled = render._disabled_reason()
+        if after == "disable":
+            missing = "libOSMesa" if env.get("MUJOCO_GL") else "libEGL"
+            assert missing in disabled and "\n" not in disabled
+            assert "libosmesa6" in disabled  # says what to install
+        else:
+            assert disabled is None
+        note = list(render._SELECTION_NOTE)
+    if after == "disable":
+        with monkeypatch.context() as m:
+            m.setenv("MUJOCO_GL", "disable")
+            m.setattr(render, "_SELECTION_NOTE", note)
+            with pytest.raises(render.RenderUnavailable, match="cannot be loaded|no loadable offscreen OpenGL"):
+                render._make_renderer(None, 8, 8, None)
+
+
+def test_choice_is_left_alone_once_mujoco_is_imported(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    monkeypatch.setattr(render, "_LOAD_ERRORS", dict(NONE))
+    assert render.select_gl_backend() == "osmesa" and os.environ["MUJOCO_GL"] == "osmesa"
+
+
+def test_a_forced_backend_that_is_absent_does_not_break_import_make_or_step(tmp_path):
+    """``MUJOCO_GL`` naming a backend this machine lacks (scripts/test.sh once forced osmesa): ``import mujoco``
+    used to fail inside PyOpenGL. Now everything but drawing works, and drawing says what is missing."""
+    absent = [b for b in ("osmesa", "egl") if render.backend_missing(b) is not None]
+    if not absent:
+        pytest.skip("this machine loads both EGL and OSMesa: no absent backend to force")
+    backend = absent[0]
+    code = f"""
+import os
+import gymnasium as gym
+import jaxrobo
+from jaxrobo import render
+assert os.environ["MUJOCO_GL"] == "disable", os.environ["MUJOCO_GL"]
+env = gym.make("jaxrobo/CartPoleStayUp-v0")
+obs, _ = env.reset(seed=0)
+obs, reward, terminated, truncated, _ = env.step(1)
+assert obs.shape == (4,) and reward == 1.0
+reason = render.gl_unavailable_reason()
+assert reason and "MUJOCO_GL={backend!r} is set but its library cannot be loaded" in reason, reason
+try:
+    render.Renderer(jaxrobo.make("CartPoleStayUp-v0"))
+except render.RenderUnavailable as err:
+    assert "install libegl1" in str(err), err
+else:
+    raise AssertionError("a renderer without OpenGL")
+print("ok")
+"""
+    env = {**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend, "JAX_PLATFORMS": "cpu",
+           "PYTHONPATH": ROOT, "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or "",
+           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5"}
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stdout + proc.stderr
