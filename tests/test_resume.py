@@ -112,10 +112,20 @@ def test_a_checkpoint_of_another_config_or_code_is_refused(uninterrupted, tmp_pa
 
 
 # ---- the command line ------------------------------------------------------------------------------------------
-CLI_TINY = ["--env", "CartPoleStayUp-v0", "--n-envs", "4", "--nepisodes", "6", "--no-progress",
-            "--set", "nsteps=40", "--set", "chunk_steps=15", "--set", "eval_episodes=2", "--set", "eval_envs=2",
-            "--set", "bins=[3, 6, 8, 10]", "--set", "state_low=[-2.4, -1.0, -0.3, -2.0]",
-            "--set", "state_high=[2.4, 1.0, 0.3, 2.0]"]
+_CLI_SETS = {"nsteps": "40", "chunk_steps": "15", "eval_episodes": "2", "eval_envs": "2", "bins": "[3, 6, 8, 10]",
+             "state_low": "[-2.4, -1.0, -0.3, -2.0]", "state_high": "[2.4, 1.0, 0.3, 2.0]"}
+
+
+def cli_tiny(nepisodes: int = 6, **sets: str) -> list[str]:
+    """The tiny cart-pole run's CLI flags, with some ``--set`` values changed (each key once: the CLI refuses a
+    key given twice)."""
+    args = ["--env", "CartPoleStayUp-v0", "--n-envs", "4", "--nepisodes", str(nepisodes), "--no-progress"]
+    for key, value in {**_CLI_SETS, **sets}.items():
+        args += ["--set", f"{key}={value}"]
+    return args
+
+
+CLI_TINY = cli_tiny()
 
 
 @pytest.fixture
@@ -178,7 +188,7 @@ def test_overwrite_replaces_the_whole_old_run(tmp_path):
     (out / "summary.json").write_text("{}")
     (out / "eval.csv").write_text("a stale evaluation of 400 rows")
     (out / "tensorboard").mkdir()
-    assert main(["train", *CLI_TINY, "--set", "eval_episodes=0", "--out", str(out), "--overwrite"]) == 0
+    assert main(["train", *cli_tiny(eval_episodes="0"), "--out", str(out), "--overwrite"]) == 0
     files = set(os.listdir(out))
     assert "eval.csv" not in files and {"summary.json", "episodes.csv", "qtables.npz", "status.json"} <= files
     assert rundir.is_complete(str(out)) and rundir.CHECKPOINT not in files
@@ -198,7 +208,7 @@ def test_a_real_signal_leaves_a_resumable_run_that_resumes_to_the_uninterrupted_
     """``jaxrobo train`` in a subprocess gets SIGINT once it has saved a checkpoint (one chunk per step, so that
     it is still training): it exits 130 with one line, no traceback, and a resumable directory with the episodes
     so far; ``--resume`` completes it to the run that was never interrupted."""
-    args = [*CLI_TINY, "--set", "chunk_steps=1", "--nepisodes", "40"]
+    args = cli_tiny(nepisodes=40, chunk_steps="1")
     out = str(tmp_path / "run")
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": jax.config.jax_compilation_cache_dir or "off"}
     proc = subprocess.Popen([sys.executable, "-m", "jaxrobo.cli", "train", *args, "--checkpoint-every", "10",

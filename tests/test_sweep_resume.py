@@ -23,7 +23,7 @@ FAST = {"xla_backend_optimization_level": 0}
 # the analytic cart-pole compiles in seconds, and chunks of 10 steps give every group several chunks to stop in.
 ARGS = ["--env", ENV, "--agent", "qlearn", "--grid", "number_splits=4,6", "--grid", "alpha=0.1,0.5",
         "--seeds", "2", "--n-envs", "2", "--nepisodes", "3", "--nsteps", "30", "--set", "chunk_steps=10",
-        "--set", "backend=analytic", "--eval-episodes", "1", "--no-plots"]
+        "--set", "backend=analytic", "--set", "bins=null", "--eval-episodes", "1", "--no-plots"]
 TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds"}
 
 
@@ -153,7 +153,7 @@ def test_cli_sigint_in_a_subprocess(uninterrupted, tmp_path, capsys):
 def _plan(**changes):
     kw = dict(points=[{"number_splits": s, "alpha": a} for s in (4, 6) for a in (0.1, 0.5)], seeds=[0, 1],
               agent="qlearn", overrides={"n_envs": 2, "nepisodes": 3, "nsteps": 30, "chunk_steps": 10,
-                                         "backend": "analytic"}, eval_episodes=1)
+                                         "backend": "analytic", "bins": None}, eval_episodes=1)
     kw.update(changes)
     return sweep.plan_sweep(ENV, **kw)
 
