@@ -10,7 +10,8 @@ Public surface:
 * :func:`make` - build an env by id with keyword overrides of its options and parameters (``jaxrobo.make``);
 * :func:`register` - add an id: a :class:`jaxrobo.env.TaskEnv` subclass or ``"module:Class"``, its step limit
   and optional YAML files; :func:`deprecated_alias` keeps an old id working;
-* :func:`registered`, :func:`spec`, :func:`env_config` - what is registered and with which values;
+* :func:`registered`, :func:`spec`, :func:`registration`, :func:`env_config` - what is registered (an id's
+  :class:`Registration`: its spec, its class, its registered defaults) and with which values;
 * :func:`learners`, :func:`learner` - the tabular learners by name (``qlearn``, ``sarsa``, ...).
 
 Private: ``_REGISTRY``, ``_lookup`` and the loading of the built-in packages.
@@ -72,6 +73,11 @@ def registered() -> list[str]:
 
 def spec(id: str) -> EnvSpec:
     return _lookup(id).spec
+
+
+def registration(id: str) -> Registration:
+    """The registration of ``id`` (a deprecated alias resolves, with a FutureWarning)."""
+    return _lookup(id)
 
 
 def _load_builtin() -> None:

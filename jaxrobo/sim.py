@@ -27,6 +27,7 @@ module imports nothing from ``envs`` or ``agents``.
 """
 from __future__ import annotations
 
+import abc
 import contextlib
 import dataclasses
 import functools
@@ -165,7 +166,7 @@ def substeps_for(running_step: float, timestep: float) -> int:
     return int(round(n))
 
 
-class Simulator:
+class Simulator(abc.ABC):
     """Base of every backend: a compiled model advanced one control step at a time; every method is pure and
     jit/vmap friendly. A backend implements :meth:`init`, :meth:`qpos`, :meth:`qvel` and :meth:`physics_step`
     (and :meth:`forward` if it can rebuild ``mjx.Data``); :meth:`advance`, the substep loop with the robot's
@@ -185,24 +186,26 @@ class Simulator:
         self.n_substeps = substeps_for(self.running_step, self.timestep)
 
     # -- state ---------------------------------------------------------------------------------------------
+    @abc.abstractmethod
     def init(self, qpos: jax.Array, qvel: jax.Array) -> Any:
         """The backend's state at the given generalized positions and velocities."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def qpos(self, state: Any) -> jax.Array:
-        raise NotImplementedError
+        """The generalized positions of a state (MuJoCo's ``qpos`` order)."""
 
+    @abc.abstractmethod
     def qvel(self, state: Any) -> jax.Array:
-        raise NotImplementedError
+        """The generalized velocities of a state (MuJoCo's ``qvel`` order)."""
 
     def forward(self, state: Any) -> Any:
         """The full ``mjx.Data`` of a state (MJX only: see :meth:`MjxSim.forward`)."""
         raise ValueError(f"forward() rebuilds mjx.Data; backend={self.backend!r} keeps its own pipeline state")
 
     # -- dynamics ------------------------------------------------------------------------------------------
+    @abc.abstractmethod
     def physics_step(self, state: Any, ctrl: jax.Array) -> Any:
         """One physics step of ``timestep`` seconds with actuator controls ``ctrl``."""
-        raise NotImplementedError
 
     def advance(self, state: Any, command: jax.Array, controller: Controller | None = None) -> Any:
         """One control step: ``n_substeps`` physics steps, the controller mapping (state, command) to ctrl each time."""
