@@ -1,5 +1,23 @@
 """Robots and tasks shipped with jaxrobo; importing this package registers their ids (lazily: a task module,
-and MuJoCo with it, is imported only when its env is made)."""
+and MuJoCo with it, is imported only when its env is made). :mod:`jaxrobo.registry` imports it by name (its
+``BUILTIN_ENVS`` entry point) the first time an id is looked up.
+
+Layout, and how to add your own robot or task (in this package or in your own):
+
+* a **robot** (``cartpole.py``, ``quadcopter.py``) subclasses :class:`jaxrobo.robot.Robot`: it loads its MJCF
+  with :func:`jaxrobo.sim.load_model` from :func:`asset_path` (or any path of its own), builds its simulator with
+  :func:`jaxrobo.sim.make_simulator` (offering its hand-written backends, :class:`jaxrobo.sim.ClosedFormSim`
+  subclasses such as ``cartpole_dynamics.CartPoleSim`` and ``rigid_body.RigidBodySim``, by name), and adds its
+  controller and sensors;
+* a **task** (``cartpole_stay_up.py``, ``quadcopter_goto.py``, ``quadcopter_live_show.py``) subclasses
+  :class:`jaxrobo.env.TaskEnv` with its ``Options``/``Params`` and is registered here with
+  :func:`jaxrobo.registry.register` (``"module:Class"``, its step limit, its YAML files under ``configs/``).
+
+What a module here may import from jaxrobo is the task API: ``jaxrobo.env``, ``jaxrobo.robot``, ``jaxrobo.sim``,
+``jaxrobo.spaces``, ``jaxrobo.struct``, ``jaxrobo.rng``, ``jaxrobo.registry`` and the rollout/evaluation module
+``jaxrobo.rollout`` (for a task's own evaluation); never the trainer, the CLI or a learner
+(``tests/test_structure.py`` checks it).
+"""
 from __future__ import annotations
 
 import os
@@ -7,6 +25,13 @@ import os
 from jaxrobo.registry import deprecated_alias, register
 
 _CONFIGS = os.path.join(os.path.dirname(__file__), "configs")
+#: The robots' MJCF files.
+ASSETS = os.path.join(os.path.dirname(__file__), "assets")
+
+
+def asset_path(*parts: str) -> str:
+    """Absolute path of a file in ``envs/assets``."""
+    return os.path.join(ASSETS, *parts)
 
 
 def _cfg(name: str) -> str:

@@ -21,16 +21,18 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
+from envs import asset_path
 from envs.cartpole_dynamics import CartPoleSim
 from jaxrobo.robot import Robot
-from jaxrobo.sim import BACKENDS as SIM_BACKENDS
-from jaxrobo.sim import Simulator, asset_path, load_model
+from jaxrobo.sim import backend_choices, load_model, make_simulator
 
 CONTROL_TYPES = ("velocity", "position", "effort")
-BACKENDS = SIM_BACKENDS + ("analytic",)
 CART_JOINT = "foot_to_base"
 POLE_JOINT = "pole_joint"
 MJCF = "cartpole.xml"
+#: The cart-pole's hand-written backend, beside every engine of :mod:`jaxrobo.sim`.
+CLOSED_FORM = {"analytic": lambda mj_model, running_step: CartPoleSim(mj_model, CART_JOINT, POLE_JOINT, running_step)}
+BACKENDS = backend_choices(CLOSED_FORM)
 
 
 class CartPoleRobot(Robot):
@@ -40,19 +42,13 @@ class CartPoleRobot(Robot):
                  timestep: float = 0.01):
         if control_type not in CONTROL_TYPES:
             raise ValueError(f"control_type={control_type!r}: allowed values are {', '.join(CONTROL_TYPES)}")
-        if backend not in BACKENDS:
-            raise ValueError(f"backend={backend!r}: allowed values are {', '.join(BACKENDS)}")
         self.control_type = control_type
         options = dict(keep_actuators=(control_type,), timestep=timestep)
         mj_model = load_model(asset_path(MJCF), **options)
-        if backend == "analytic":
-            sim: Simulator = CartPoleSim(mj_model, CART_JOINT, POLE_JOINT, running_step)
-        else:
-            # MJX integrates the model without its visual geoms, camera and light (same dynamics, 1.3-1.5x the
-            # MJX steps per second on 2 CPU cores); Brax's loader needs the geoms.
-            physics = load_model(asset_path(MJCF), physics_only=True, **options) if backend == "mjx" else None
-            sim = Simulator(mj_model, backend, running_step, physics_model=physics)
-        super().__init__(sim)
+        # MJX integrates the model without its visual geoms, camera and light (same dynamics, 1.3-1.5x the MJX
+        # steps per second on 2 CPU cores); loaded only if the backend is MJX.
+        physics = lambda: load_model(asset_path(MJCF), physics_only=True, **options)  # noqa: E731
+        super().__init__(make_simulator(mj_model, backend, running_step, physics, closed_form=CLOSED_FORM))
         jnt = lambda name: mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, name)  # noqa: E731
         self.cart_q, self.pole_q = (int(mj_model.jnt_qposadr[jnt(n)]) for n in (CART_JOINT, POLE_JOINT))
         self.cart_v, self.pole_v = (int(mj_model.jnt_dofadr[jnt(n)]) for n in (CART_JOINT, POLE_JOINT))

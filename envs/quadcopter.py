@@ -23,15 +23,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs import asset_path
 from envs.rigid_body import RigidBodySim, airframe_from_model, quat_to_mat
 from jaxrobo import spaces
 from jaxrobo.env import TaskEnv
 from jaxrobo.robot import Robot
-from jaxrobo.sim import Simulator, asset_path, load_model
+from jaxrobo.sim import backend_choices, load_model, make_simulator
 from jaxrobo.struct import param, pytree_dataclass
 
 MJCF = "quadcopter.xml"
-BACKENDS = ("mjx", "rigid")
+#: The quadcopter's hand-written backend; of the engines, its tasks offer MJX only.
+CLOSED_FORM = {"rigid": RigidBodySim}
+ENGINES = ("mjx",)
+BACKENDS = backend_choices(CLOSED_FORM, ENGINES)
 BOX, CYLINDER = 0, 1
 #: Unit sonar rays in the body frame: forward, forward-left 35°, forward-right 35°, down.
 SONAR_RAYS = np.array([[1.0, 0.0, 0.0], [np.cos(0.61), np.sin(0.61), 0.0], [np.cos(0.61), -np.sin(0.61), 0.0],
@@ -201,15 +205,10 @@ class Quadcopter(Robot):
 
     def __init__(self, backend: str = "mjx", running_step: float = 0.3, timestep: float = 0.01,
                  min_altitude: float = 0.0, gains: ControllerGains = ControllerGains()):
-        if backend not in BACKENDS:
-            raise ValueError(f"backend={backend!r}: allowed values are {', '.join(BACKENDS)}")
         mj_model = load_model(asset_path(MJCF), timestep=timestep)
-        if backend == "rigid":
-            sim: Simulator = RigidBodySim(mj_model, running_step)
-        else:
-            physics = load_model(asset_path(MJCF), timestep=timestep, physics_only=True)
-            sim = Simulator(mj_model, "mjx", running_step, physics_model=physics)
-        super().__init__(sim)
+        physics = lambda: load_model(asset_path(MJCF), timestep=timestep, physics_only=True)  # noqa: E731
+        super().__init__(make_simulator(mj_model, backend, running_step, physics, closed_form=CLOSED_FORM,
+                                        engines=ENGINES))
         self.gains = gains
         self.min_altitude = float(min_altitude)
         af = airframe_from_model(mj_model)  # constants of the controller, from the same model as the physics

@@ -179,7 +179,7 @@ def gym_spaces(env: Any, params: Any = None) -> tuple[gspaces.Discrete, gspaces.
 
 
 def _make_env(env_id: str | None, env: Any, overrides: Mapping[str, Any] | None, kwargs: Mapping[str, Any]) -> Any:
-    import jaxrobo
+    from jaxrobo.registry import make
 
     values = {**(overrides or {}), **kwargs}
     if env is not None:
@@ -190,7 +190,7 @@ def _make_env(env_id: str | None, env: Any, overrides: Mapping[str, Any] | None,
         raise TypeError("env_id is required (a jaxrobo id such as 'CartPoleStayUp-v0')")
     if env_id.startswith(NAMESPACE + "/"):
         env_id = env_id[len(NAMESPACE) + 1:]
-    return jaxrobo.make(env_id, **values)
+    return make(env_id, **values)
 
 
 def _reset_params(env: Any, base: Any, options: Mapping[str, Any] | None) -> Any:
@@ -419,18 +419,17 @@ def gym_id(env_id: str) -> str:
 def register_gymnasium_envs() -> list[str]:
     """Register every jaxrobo id with Gymnasium as ``jaxrobo/<id>`` (idempotent; call again after
     :func:`jaxrobo.register` adds ids). Records strings only: no env, model or JAX function is built."""
-    import jaxrobo
-    from jaxrobo.registry import env_config
+    from jaxrobo.registry import env_config, registered, spec
 
     added = []
-    for env_id in jaxrobo.registered():
+    for env_id in registered():
         gid = gym_id(env_id)
         if gid in gymnasium.registry:
             continue
         try:
-            steps = int(env_config(env_id).get("max_episode_steps", jaxrobo.spec(env_id).max_episode_steps))
+            steps = int(env_config(env_id).get("max_episode_steps", spec(env_id).max_episode_steps))
         except Exception:  # noqa: BLE001 - a broken YAML shows up when the env is made, not at import
-            steps = jaxrobo.spec(env_id).max_episode_steps
+            steps = spec(env_id).max_episode_steps
         gymnasium.register(
             id=gid,
             entry_point=f"{__name__}:JaxroboEnv",

@@ -1,14 +1,35 @@
-"""Environments by id, with their step limit and config files: ``jaxrobo.make("CartPoleStayUp-v0", **overrides)``."""
+"""Environments by id, with their step limit and config files: ``jaxrobo.make("CartPoleStayUp-v0", **overrides)``;
+and the tabular learners by name.
+
+This is the one place ``jaxrobo`` reaches the built-in environments (the ``envs`` package) and the learners (the
+``agents`` package): by the module names :data:`BUILTIN_ENVS` and :data:`LEARNERS_MODULE`, imported with
+importlib on first use, so neither package is a static import of jaxrobo (``tests/test_structure.py``).
+
+Public surface:
+
+* :func:`make` - build an env by id with keyword overrides of its options and parameters (``jaxrobo.make``);
+* :func:`register` - add an id: a :class:`jaxrobo.env.TaskEnv` subclass or ``"module:Class"``, its step limit
+  and optional YAML files; :func:`deprecated_alias` keeps an old id working;
+* :func:`registered`, :func:`spec`, :func:`registration`, :func:`env_config` - what is registered (an id's
+  :class:`Registration`: its spec, its class, its registered defaults) and with which values;
+* :func:`learners`, :func:`learner` - the tabular learners by name (``qlearn``, ``sarsa``, ...).
+
+Private: ``_REGISTRY``, ``_lookup`` and the loading of the built-in packages.
+"""
 from __future__ import annotations
 
 import dataclasses
 import importlib
-import os
 from typing import Any
 
 from jaxrobo.config import ConfigError, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env, EnvSpec
 from jaxrobo.precision import check_precision
+
+#: The package whose import registers the built-in robots and tasks.
+BUILTIN_ENVS = "envs"
+#: The package holding the tabular learners: its ``LEARNERS`` maps each name to its learner.
+LEARNERS_MODULE = "agents"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,8 +75,13 @@ def spec(id: str) -> EnvSpec:
     return _lookup(id).spec
 
 
+def registration(id: str) -> Registration:
+    """The registration of ``id`` (a deprecated alias resolves, with a FutureWarning)."""
+    return _lookup(id)
+
+
 def _load_builtin() -> None:
-    import envs  # noqa: F401  (registers the built-in robots and tasks)
+    importlib.import_module(BUILTIN_ENVS)  # registers the built-in robots and tasks (once: Python caches it)
 
 
 def _lookup(id: str) -> Registration:
@@ -106,7 +132,11 @@ def make(id: str, **overrides: Any) -> Env:
     return env
 
 
-def config_dir(package: str) -> str:
-    """Directory holding a package's shipped YAML files."""
-    mod = __import__(package)
-    return os.path.join(os.path.dirname(mod.__file__), "configs")
+def learners() -> dict[str, Any]:
+    """The tabular learners, ``{name: agents.tabular.Learner}``, in their listed order."""
+    return importlib.import_module(LEARNERS_MODULE).LEARNERS
+
+
+def learner(name: str) -> Any:
+    """The tabular learner called ``name`` (a ValueError naming the allowed ones otherwise)."""
+    return importlib.import_module(LEARNERS_MODULE).get(name)

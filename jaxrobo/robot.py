@@ -1,7 +1,14 @@
 """The robot layer (openai_ros' robot env): a model, its actuators, a low-level controller and sensors.
 
 A robot owns a :class:`~jaxrobo.sim.Simulator`; tasks talk to the robot, never to the physics backend, so the
-same task runs on MJX or on a Brax pipeline.
+same task runs on MJX, on a Brax pipeline or on the robot's own closed form.
+
+Public surface: subclass :class:`Robot`; build its simulator in ``__init__`` with
+:func:`jaxrobo.sim.make_simulator` from a model loaded by :func:`jaxrobo.sim.load_model` (the robot module owns
+its MJCF's path), and override :meth:`Robot.controller` (runs every physics substep) and
+:meth:`Robot.read_sensors`. Tasks call :meth:`Robot.advance` and :meth:`Robot.read_sensors`; ``robot.sim`` is
+there for tasks that need the state's coordinates or ``forward`` (MJX). ``_check_all_systems_ready`` keeps the
+seed's name and is called by the task layer.
 """
 from __future__ import annotations
 

@@ -9,14 +9,25 @@ The MJX state between steps is :class:`MjxState` (time, ``qpos``, ``qvel``, ``ac
 MJX steps are traced under :func:`lean_mjx`, which computes one stage of ``mjx.step`` in a form XLA compiles
 better (the same values bit for bit).
 
-Backends: ``mjx`` (MuJoCo MJX, the maintained engine and the default) or one of Brax's pipelines
-(``generalized``, ``positional``, ``spring``) built from the same MJCF. Brax's pipelines need the Euler
-integrator and approximate some dynamics (``spring`` most), so prefer ``mjx`` unless you compare engines.
-Robots may add a hand-written backend on :class:`ClosedFormSim` (state: :class:`JointState`), with every
-constant read from the same compiled model (the quadcopter's ``rigid``, the cart-pole's ``analytic``).
+Backends are small classes on :class:`Simulator`, which owns the substep loop (:meth:`Simulator.advance`):
+:class:`MjxSim` (``mjx``: MuJoCo MJX, the maintained engine and the default) and :class:`BraxPipelineSim` (one of
+Brax's pipelines, ``generalized``, ``positional``, ``spring``, built from the same MJCF) are the engines, in
+:data:`ENGINES`. Brax's pipelines need the Euler integrator and approximate some dynamics (``spring`` most), so
+prefer ``mjx`` unless you compare engines. Robots may add a hand-written backend on :class:`ClosedFormSim` (state:
+:class:`JointState`), with every constant read from the same compiled model (the quadcopter's ``rigid``, the
+cart-pole's ``analytic``).
+
+Public surface: call :func:`load_model` (compile an MJCF file: the robot owns its path) and
+:func:`make_simulator` (the one place a backend name is resolved and checked; :func:`backend_choices` gives a
+robot's names for its task option); subclass :class:`ClosedFormSim` for a hand-written backend (implement
+``physics_step``), or :class:`Simulator` for another engine. Tasks and robots read a simulator through ``init``,
+``qpos``, ``qvel``, ``advance``, ``forward`` (MJX), and the attributes ``backend`` (its name), ``mj_model``,
+``timestep``, ``running_step`` and ``n_substeps``. Everything named with a leading underscore is private. This
+module imports nothing from ``envs`` or ``agents``.
 """
 from __future__ import annotations
 
+import abc
 import contextlib
 import dataclasses
 import functools
@@ -26,7 +37,7 @@ import math
 import operator
 import os
 import warnings
-from typing import Any, Callable
+from typing import Any, Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -34,8 +45,6 @@ import mujoco
 import numpy as np
 
 from jaxrobo.struct import pytree_dataclass
-
-BACKENDS = ("mjx", "generalized", "positional", "spring")
 
 Controller = Callable[[Any, jax.Array], jax.Array]
 
@@ -157,72 +166,46 @@ def substeps_for(running_step: float, timestep: float) -> int:
     return int(round(n))
 
 
-class Simulator:
-    """Holds a compiled model for one backend and advances it; every method is pure and jit/vmap friendly."""
+class Simulator(abc.ABC):
+    """Base of every backend: a compiled model advanced one control step at a time; every method is pure and
+    jit/vmap friendly. A backend implements :meth:`init`, :meth:`qpos`, :meth:`qvel` and :meth:`physics_step`
+    (and :meth:`forward` if it can rebuild ``mjx.Data``); :meth:`advance`, the substep loop with the robot's
+    controller on every substep, is shared. ``backend`` is the backend's name (``"mjx"``, ``"analytic"``...)."""
 
+    #: The backend's name, as tasks' ``backend`` option spells it.
+    backend: str = ""
     #: True for hand-written closed-form steps: a few fused arithmetic ops, cheap to unroll and compile.
     cheap_step: bool = False
 
-    def __init__(self, mj_model: mujoco.MjModel, backend: str = "mjx", running_step: float | None = None,
-                 physics_model: mujoco.MjModel | None = None):
-        """``mj_model`` is the whole model (rendering reads it); the engine integrates ``physics_model`` if given:
-        the same model loaded with ``load_model(..., physics_only=True)``, whose dynamics must be the same."""
-        if backend not in BACKENDS:
-            raise ValueError(f"backend={backend!r}: allowed values are {', '.join(BACKENDS)}")
-        self.backend = backend
+    def __init__(self, mj_model: mujoco.MjModel, running_step: float | None = None):
+        """``mj_model`` is the whole model (rendering reads it); one control step is ``running_step`` seconds
+        (default: one physics step), a whole multiple of the model's timestep."""
         self.mj_model = mj_model
         self.timestep = float(mj_model.opt.timestep)
         self.running_step = self.timestep if running_step is None else float(running_step)
         self.n_substeps = substeps_for(self.running_step, self.timestep)
-        physics = mj_model if physics_model is None else physics_model
-        if physics is not mj_model:
-            check_same_dynamics(mj_model, physics)
-        if backend == "mjx":
-            # This process's first device: MJX's default is jax.devices()[0], which in a multi-host run
-            # belongs to process 0, and another process cannot close over arrays it cannot address.
-            device = jax.local_devices()[0]
-            self.model = mjx.put_model(physics, device=device)
-            self._data0 = mjx.put_data(physics, mujoco.MjData(physics), device=device)
-        else:
-            if physics.opt.integrator != mujoco.mjtIntegrator.mjINT_EULER:
-                raise ValueError(f"backend={backend!r} needs the Euler integrator in the MJCF <option>")
-            with quiet_imports():
-                from brax.io import mjcf
-
-                self.model = mjcf.load_model(physics)
-                self._pipeline = importlib.import_module(f"brax.{backend}.pipeline")
 
     # -- state ---------------------------------------------------------------------------------------------
+    @abc.abstractmethod
     def init(self, qpos: jax.Array, qvel: jax.Array) -> Any:
-        """A pipeline state at the given generalized positions and velocities (for ``mjx``: an :class:`MjxState`)."""
-        if self.backend == "mjx":
-            return MjxState.of(self._data0).replace(qpos=jnp.asarray(qpos, jnp.float32),
-                                                     qvel=jnp.asarray(qvel, jnp.float32))
-        with quiet_imports():
-            return self._pipeline.init(self.model, qpos, qvel)
+        """The backend's state at the given generalized positions and velocities."""
 
+    @abc.abstractmethod
     def qpos(self, state: Any) -> jax.Array:
-        return state.qpos if self.backend == "mjx" else state.q
+        """The generalized positions of a state (MuJoCo's ``qpos`` order)."""
 
+    @abc.abstractmethod
     def qvel(self, state: Any) -> jax.Array:
-        return state.qvel if self.backend == "mjx" else state.qd
+        """The generalized velocities of a state (MuJoCo's ``qvel`` order)."""
 
-    def forward(self, state: MjxState) -> Any:
-        """The full ``mjx.Data`` of an MJX state, with every derived quantity (body poses, velocities, sensors)
-        computed by ``mjx.forward`` on the integrated model (``physics_only``: no visual geoms): for tasks that
-        read more than ``qpos``/``qvel``."""
-        if self.backend != "mjx":
-            raise ValueError(f"forward() rebuilds mjx.Data; backend={self.backend!r} keeps its own pipeline state")
-        with lean_mjx():
-            return mjx.forward(self.model, self._data0.replace(**state.fields()))
+    def forward(self, state: Any) -> Any:
+        """The full ``mjx.Data`` of a state (MJX only: see :meth:`MjxSim.forward`)."""
+        raise ValueError(f"forward() rebuilds mjx.Data; backend={self.backend!r} keeps its own pipeline state")
 
     # -- dynamics ------------------------------------------------------------------------------------------
+    @abc.abstractmethod
     def physics_step(self, state: Any, ctrl: jax.Array) -> Any:
         """One physics step of ``timestep`` seconds with actuator controls ``ctrl``."""
-        if self.backend == "mjx":
-            with lean_mjx():
-                return MjxState.of(mjx.step(self.model, self._data0.replace(ctrl=ctrl, **state.fields())))
-        return self._pipeline.step(self.model, state, ctrl)
 
     def advance(self, state: Any, command: jax.Array, controller: Controller | None = None) -> Any:
         """One control step: ``n_substeps`` physics steps, the controller mapping (state, command) to ctrl each time."""
@@ -241,20 +224,103 @@ class Simulator:
         return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
 
 
+class MjxSim(Simulator):
+    """MuJoCo MJX (backend ``mjx``, the maintained engine). Its state is an :class:`MjxState`."""
+
+    backend = "mjx"
+
+    def __init__(self, mj_model: mujoco.MjModel, running_step: float | None = None,
+                 physics_model: mujoco.MjModel | Callable[[], mujoco.MjModel] | None = None):
+        """MJX integrates ``physics_model`` if given (or returned by it, when a function): the same model loaded
+        with ``load_model(..., physics_only=True)``, whose dynamics must be the same as ``mj_model``'s."""
+        super().__init__(mj_model, running_step)
+        physics = physics_model() if callable(physics_model) else physics_model
+        if physics is None:
+            physics = mj_model
+        elif physics is not mj_model:
+            check_same_dynamics(mj_model, physics)
+        # This process's first device: MJX's default is jax.devices()[0], which in a multi-host run belongs to
+        # process 0, and another process cannot close over arrays it cannot address.
+        device = jax.local_devices()[0]
+        self.model = mjx.put_model(physics, device=device)
+        self._data0 = mjx.put_data(physics, mujoco.MjData(physics), device=device)
+
+    def init(self, qpos: jax.Array, qvel: jax.Array) -> MjxState:
+        return MjxState.of(self._data0).replace(qpos=jnp.asarray(qpos, jnp.float32),
+                                                 qvel=jnp.asarray(qvel, jnp.float32))
+
+    def qpos(self, state: MjxState) -> jax.Array:
+        return state.qpos
+
+    def qvel(self, state: MjxState) -> jax.Array:
+        return state.qvel
+
+    def forward(self, state: MjxState) -> Any:
+        """The full ``mjx.Data`` of an MJX state, with every derived quantity (body poses, velocities, sensors)
+        computed by ``mjx.forward`` on the integrated model (``physics_only``: no visual geoms): for tasks that
+        read more than ``qpos``/``qvel``."""
+        with lean_mjx():
+            return mjx.forward(self.model, self._data0.replace(**state.fields()))
+
+    def physics_step(self, state: MjxState, ctrl: jax.Array) -> MjxState:
+        with lean_mjx():
+            return MjxState.of(mjx.step(self.model, self._data0.replace(ctrl=ctrl, **state.fields())))
+
+
+class BraxPipelineSim(Simulator):
+    """One of Brax's pipelines built from the same MJCF; subclasses name it (:class:`GeneralizedSim`,
+    :class:`PositionalSim`, :class:`SpringSim`). They need the Euler integrator and approximate some dynamics
+    (``spring`` most). The state is the pipeline's own (``q``, ``qd``)."""
+
+    def __init__(self, mj_model: mujoco.MjModel, running_step: float | None = None, physics_model: Any = None):
+        """Brax's loader reads ``mj_model`` whole (it needs the geoms): ``physics_model`` is for MJX only."""
+        super().__init__(mj_model, running_step)
+        if mj_model.opt.integrator != mujoco.mjtIntegrator.mjINT_EULER:
+            raise ValueError(f"backend={self.backend!r} needs the Euler integrator in the MJCF <option>")
+        with quiet_imports():
+            from brax.io import mjcf
+
+            self.model = mjcf.load_model(mj_model)
+            self._pipeline = importlib.import_module(f"brax.{self.backend}.pipeline")
+
+    def init(self, qpos: jax.Array, qvel: jax.Array) -> Any:
+        with quiet_imports():
+            return self._pipeline.init(self.model, qpos, qvel)
+
+    def qpos(self, state: Any) -> jax.Array:
+        return state.q
+
+    def qvel(self, state: Any) -> jax.Array:
+        return state.qd
+
+    def physics_step(self, state: Any, ctrl: jax.Array) -> Any:
+        return self._pipeline.step(self.model, state, ctrl)
+
+
+class GeneralizedSim(BraxPipelineSim):
+    backend = "generalized"
+
+
+class PositionalSim(BraxPipelineSim):
+    backend = "positional"
+
+
+class SpringSim(BraxPipelineSim):
+    backend = "spring"
+
+
 class ClosedFormSim(Simulator):
     """Base of a hand-written backend: the state is a :class:`JointState` and ``physics_step`` is the model's
     equations of motion, with its constants read from ``mj_model`` by the subclass (so the MJCF stays the single
-    source of truth). ``advance`` and the controller-every-substep contract are the base class's."""
+    source of truth). ``advance`` and the controller-every-substep contract are the base class's. A robot offers
+    it by name through ``make_simulator(..., closed_form={name: factory})``."""
 
     cheap_step = True
 
     def __init__(self, mj_model: mujoco.MjModel, backend: str, running_step: float | None = None):
+        super().__init__(mj_model, running_step)
         self.backend = backend
-        self.mj_model = mj_model
         self.model = None
-        self.timestep = float(mj_model.opt.timestep)
-        self.running_step = self.timestep if running_step is None else float(running_step)
-        self.n_substeps = substeps_for(self.running_step, self.timestep)
 
     def init(self, qpos: jax.Array, qvel: jax.Array) -> JointState:
         return JointState(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
@@ -265,8 +331,42 @@ class ClosedFormSim(Simulator):
     def qvel(self, state: Any) -> jax.Array:
         return state.qvel
 
-    def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
-        raise NotImplementedError
+
+#: The engines that step any MJCF, by backend name (MJX first: the default).
+ENGINES: dict[str, type[Simulator]] = {cls.backend: cls for cls in (MjxSim, GeneralizedSim, PositionalSim, SpringSim)}
+#: Their names, in that order.
+BACKENDS = tuple(ENGINES)
+
+#: A robot's hand-written backend, built from the whole model and the control step.
+ClosedFormFactory = Callable[[mujoco.MjModel, Any], ClosedFormSim]
+
+
+def backend_choices(closed_form: Mapping[str, ClosedFormFactory] | None = None,
+                    engines: Sequence[str] = BACKENDS) -> tuple[str, ...]:
+    """The backend names a robot accepts: the ``engines`` it runs on, then its closed forms (the order of a
+    task option's ``choices``)."""
+    unknown = [name for name in engines if name not in ENGINES]
+    if unknown:
+        raise ValueError(f"engines={unknown}: allowed values are {', '.join(ENGINES)}")
+    return tuple(engines) + tuple(closed_form or ())
+
+
+def make_simulator(mj_model: mujoco.MjModel, backend: str = "mjx", running_step: float | None = None,
+                   physics_model: mujoco.MjModel | Callable[[], mujoco.MjModel] | None = None, *,
+                   closed_form: Mapping[str, ClosedFormFactory] | None = None,
+                   engines: Sequence[str] = BACKENDS) -> Simulator:
+    """The simulator of ``mj_model`` for the backend named ``backend``: one of ``engines`` (by default every
+    engine in :data:`ENGINES`) or one of the robot's ``closed_form`` backends, each called as
+    ``factory(mj_model, running_step)``. The one place a backend name is checked.
+
+    ``physics_model`` (a model or a function returning one, called only when needed) is what MJX integrates:
+    the same MJCF loaded with ``physics_only=True``; Brax's pipelines and closed forms read ``mj_model``."""
+    choices = backend_choices(closed_form, engines)
+    if backend not in choices:
+        raise ValueError(f"backend={backend!r}: allowed values are {', '.join(choices)}")
+    if closed_form is not None and backend in closed_form:
+        return closed_form[backend](mj_model, running_step)
+    return ENGINES[backend](mj_model, running_step, physics_model=physics_model)
 
 
 def check_same_dynamics(model: mujoco.MjModel, physics: mujoco.MjModel) -> None:
@@ -280,13 +380,6 @@ def check_same_dynamics(model: mujoco.MjModel, physics: mujoco.MjModel) -> None:
         if a.shape != b.shape or not np.array_equal(a, b):
             raise ValueError(f"physics_model differs from mj_model in {name}; load both from the same MJCF and "
                              f"options (physics_model with load_model(..., physics_only=True))")
-
-
-def asset_path(*parts: str) -> str:
-    """Absolute path of a file in ``envs/assets``."""
-    import envs
-
-    return os.path.join(os.path.dirname(envs.__file__), "assets", *parts)
 
 
 def load_model(xml_path: str, keep_actuators: tuple[str, ...] | None = None, timestep: float | None = None,

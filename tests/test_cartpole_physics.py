@@ -12,8 +12,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from envs import asset_path
 from envs.cartpole import CartPoleRobot
-from jaxrobo.sim import MjxState, Simulator, asset_path, check_same_dynamics, load_model, mjx
+from jaxrobo.sim import MjxState, check_same_dynamics, load_model, make_simulator, mjx
 
 # Runs in a fresh interpreter because float64 must be switched on before JAX starts. Each backend steps the
 # robot's own model (the MJCF as shipped) through 500 physics steps of a swinging trajectory beside native MuJoCo.
@@ -139,7 +140,7 @@ def test_mjx_integrates_the_physics_only_model_and_refuses_another():
     assert robot.sim.mj_model.ngeom == 4 and robot.sim.model.ngeom == 0  # rendering keeps the whole model
     other = load_model(asset_path("cartpole.xml"), keep_actuators=("position",), physics_only=True)
     with pytest.raises(ValueError, match="physics_model differs from mj_model in actuator"):
-        Simulator(robot.sim.mj_model, "mjx", physics_model=other)
+        make_simulator(robot.sim.mj_model, "mjx", physics_model=other)
 
 
 def test_mjx_state_steps_like_the_full_data_and_forward_rebuilds_it():

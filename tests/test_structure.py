@@ -1,0 +1,244 @@
+"""The import structure of ``jaxrobo/``, ``envs/`` and ``agents/``: no circles, and only the allowed directions.
+
+Every ``import`` and ``from ... import`` is read with :mod:`ast`, module-level and inside functions alike (a
+function-level import is still a dependency; it only runs later). An edge goes to the module the statement names:
+``from jaxrobo import rng`` is an edge to ``jaxrobo.rng``, ``from jaxrobo import make`` one to ``jaxrobo`` (the
+package's ``__init__``). The parent packages Python initialises on the way are not edges: they are never the
+cause of a circle unless a parent imports its child back, which is an edge of its own.
+
+The layers (the public surface each may use is written down in the docstrings of ``jaxrobo/sim.py``,
+``jaxrobo/robot.py``, ``jaxrobo/registry.py`` and ``envs/__init__.py``):
+
+* ``envs/`` (robots and tasks) builds on the task API: :data:`ENVS_MAY_IMPORT`.
+* ``agents/`` (tabular learners) builds on pure helpers only: :data:`AGENTS_MAY_IMPORT`. ``envs`` and ``agents``
+  never import each other.
+* ``jaxrobo/`` reaches ``envs`` and the learners only through the registry's entry points
+  (:data:`ENTRY_POINTS`: ``jaxrobo.registry`` imports them by name with importlib). The one exception is the
+  learner protocol :data:`LEARNER_PROTOCOL` (``agents.tabular``: what a learner implements and the trainer
+  calls), which imports nothing but ``jaxrobo.rng``/``jaxrobo.struct``, so using it makes no circle.
+
+Run ``python tests/test_structure.py`` to print the graph (every edge into or out of envs/agents, and circles).
+"""
+from __future__ import annotations
+
+import ast
+import os
+import sys
+from typing import NamedTuple
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PACKAGES = ("jaxrobo", "envs", "agents")
+
+#: What a robot or task module may import from jaxrobo: the task API and the helpers it is written with.
+#: ``jaxrobo.rollout`` is the rollout/evaluation module tasks' own evaluations (the Goto success rate) run on.
+ENVS_MAY_IMPORT = frozenset({"jaxrobo.env", "jaxrobo.robot", "jaxrobo.sim", "jaxrobo.spaces", "jaxrobo.struct",
+                             "jaxrobo.rng", "jaxrobo.registry", "jaxrobo.rollout"})
+#: What a learner may import from jaxrobo: pure helpers with no knowledge of envs or training.
+AGENTS_MAY_IMPORT = frozenset({"jaxrobo.struct", "jaxrobo.rng"})
+#: The jaxrobo modules that may import envs/agents (by entry-point name, with importlib, in practice).
+ENTRY_POINTS = frozenset({"jaxrobo.registry"})
+#: The contract between the trainer and the learners; jaxrobo may import it directly (see the module docstring).
+LEARNER_PROTOCOL = "agents.tabular"
+
+#: Edges that break the rules today and are being removed by work on other modules; each names what removes it.
+#: Nothing else may be added here: a new forbidden edge fails the test.
+ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {
+    # The concrete learners through the registry: `agents.LEARNERS` / `agents.get(name)` become
+    # `jaxrobo.registry.learners()` / `jaxrobo.registry.learner(name)` at these call sites.
+    ("jaxrobo.train", "agents"): "TrainConfig.agent choices and Trainer.__init__: registry.learners()/learner()",
+    ("jaxrobo.run", "agents"): "run.resolve's seed_compat check: registry.learner()/learners()",
+    ("jaxrobo.budget", "agents"): "budget.check_memory's n_tables: registry.learner(config.agent)",
+    ("jaxrobo.cli", "agents"): "`jaxrobo list`: registry.learners()",
+    # Greedy rollouts move out of envs/quadcopter_goto.py into jaxrobo/rollout.py (rollout/evaluation module).
+    ("jaxrobo.flights", "envs.quadcopter_goto"): "flights' rollouts: from jaxrobo.rollout instead",
+    ("envs.quadcopter_goto", "agents.tabular"): "greedy_policy's tie-breaking: the rollout module's greedy rule",
+    # Rendering's episode loop takes the adapter's jitted reset/step; the rollout/evaluation module gives it its own.
+    ("jaxrobo.render", "jaxrobo.gym_adapter"): "render.rollout_frames: compiled reset/step from jaxrobo.rollout",
+}
+
+
+class Edge(NamedTuple):
+    src: str
+    dst: str
+    path: str
+    line: int
+    in_function: bool
+
+    def __str__(self) -> str:
+        where = "function-level" if self.in_function else "module-level"
+        return f"{self.src} -> {self.dst}  ({self.path}:{self.line}, {where})"
+
+
+def modules() -> dict[str, str]:
+    """``{dotted module name: file path}`` of every module of the three packages."""
+    found = {}
+    for pkg in PACKAGES:
+        for dirpath, dirnames, filenames in os.walk(os.path.join(ROOT, pkg)):
+            dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+            rel = os.path.relpath(dirpath, ROOT).split(os.sep)
+            for name in filenames:
+                if name.endswith(".py"):
+                    parts = rel if name == "__init__.py" else rel + [name[:-3]]
+                    found[".".join(parts)] = os.path.join(dirpath, name)
+    return found
+
+
+def _resolve(name: str, known: dict[str, str]) -> str | None:
+    """The longest known module ``name`` starts with (``jaxrobo.sim.mjx`` -> ``jaxrobo.sim``); None if outside."""
+    parts = name.split(".")
+    while parts:
+        candidate = ".".join(parts)
+        if candidate in known:
+            return candidate
+        parts.pop()
+    return None
+
+
+def import_edges() -> list[Edge]:
+    known = modules()
+    edges = []
+    for module, path in sorted(known.items()):
+        tree = ast.parse(open(path, encoding="utf-8").read(), path)
+        is_package = os.path.basename(path) == "__init__.py"
+        functions = [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))]
+        in_function = {id(inner) for f in functions for inner in ast.walk(f) if inner is not f}
+        for node in ast.walk(tree):
+            targets = []
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:  # relative: resolve against this module's package
+                    package = module.split(".") if is_package else module.split(".")[:-1]
+                    package = package[: len(package) - (node.level - 1)]
+                    base = ".".join(package + ([base] if base else []))
+                # `from pkg import sub` names the submodule when there is one, else the package itself
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names]
+            for target in targets:
+                dst = _resolve(target, known)
+                if dst is not None and dst != module:
+                    edges.append(Edge(module, dst, os.path.relpath(path, ROOT), node.lineno, id(node) in in_function))
+    return sorted(set(edges), key=lambda e: (e.src, e.dst, e.line))
+
+
+def circles(edges: list[Edge]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan), each sorted."""
+    graph: dict[str, set[str]] = {}
+    for e in edges:
+        graph.setdefault(e.src, set()).add(e.dst)
+        graph.setdefault(e.dst, set())
+    index, low, stack, on_stack, out = {}, {}, [], set(), []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(out)
+
+
+def _top(module: str) -> str:
+    return module.split(".")[0]
+
+
+def forbidden(edge: Edge) -> str | None:
+    """Why ``edge`` breaks a layering rule, or None if it is allowed."""
+    src, dst = _top(edge.src), _top(edge.dst)
+    if src == "envs" and dst == "agents":
+        return "envs must not import agents (tasks know nothing of learners)"
+    if src == "agents" and dst == "envs":
+        return "agents must not import envs (learners know nothing of tasks)"
+    if src == "envs" and dst == "jaxrobo" and edge.dst not in ENVS_MAY_IMPORT:
+        return f"envs may import only {', '.join(sorted(ENVS_MAY_IMPORT))} from jaxrobo"
+    if src == "agents" and dst == "jaxrobo" and edge.dst not in AGENTS_MAY_IMPORT:
+        return f"agents may import only {', '.join(sorted(AGENTS_MAY_IMPORT))} from jaxrobo"
+    if src == "jaxrobo" and dst in ("envs", "agents") and edge.src not in ENTRY_POINTS and edge.dst != LEARNER_PROTOCOL:
+        return (f"jaxrobo reaches {dst} only through the registry's entry points ({', '.join(sorted(ENTRY_POINTS))}"
+                f"{'' if dst == 'envs' else ', or the learner protocol ' + LEARNER_PROTOCOL})")
+    return None
+
+
+def _cycle_edges(component: list[str], edges: list[Edge]) -> list[Edge]:
+    members = set(component)
+    return sorted({e for e in edges if e.src in members and e.dst in members}, key=lambda e: (e.src, e.dst, e.line))
+
+
+# ---- tests ---------------------------------------------------------------------------------------------------
+def test_every_package_is_parsed():
+    known = modules()
+    for pkg in PACKAGES:
+        assert pkg in known, f"{pkg}/__init__.py not found under {ROOT}"
+    assert {"jaxrobo.sim", "jaxrobo.registry", "envs.cartpole", "agents.tabular"} <= set(known)
+    assert any(e.src == "envs.cartpole" and e.dst == "jaxrobo.robot" for e in import_edges())
+
+
+def test_no_import_circles():
+    edges = [e for e in import_edges() if (e.src, e.dst) not in ALLOWED_FOR_NOW]
+    found = circles(edges)
+    message = "\n\n".join("circle: " + " <-> ".join(c) + "\n  " + "\n  ".join(map(str, _cycle_edges(c, edges)))
+                          for c in found)
+    assert not found, f"import circles between modules:\n{message}"
+
+
+def test_no_forbidden_import_direction():
+    bad = [(e, why) for e in import_edges() if (why := forbidden(e)) and (e.src, e.dst) not in ALLOWED_FOR_NOW]
+    message = "\n".join(f"{e}\n    {why}" for e, why in bad)
+    assert not bad, f"imports against the layering:\n{message}"
+
+
+def test_allowed_for_now_lists_only_edges_that_still_exist():
+    """An edge that is gone comes off the list, so the list cannot hide a new one of the same pair later."""
+    present = {(e.src, e.dst) for e in import_edges()}
+    stale = sorted(set(ALLOWED_FOR_NOW) - present)
+    assert not stale, "edges in ALLOWED_FOR_NOW that no longer exist (remove them): " + ", ".join(
+        f"{a} -> {b}" for a, b in stale)
+
+
+def test_the_checker_finds_circles_and_forbidden_edges():
+    """The graph code itself: a made-up circle and made-up upward edges are reported."""
+    e = lambda a, b: Edge(a, b, "x.py", 1, False)  # noqa: E731
+    assert circles([e("jaxrobo.a", "jaxrobo.b"), e("jaxrobo.b", "jaxrobo.c"), e("jaxrobo.c", "jaxrobo.a"),
+                    e("jaxrobo.c", "jaxrobo.d")]) == [["jaxrobo.a", "jaxrobo.b", "jaxrobo.c"]]
+    assert forbidden(e("jaxrobo.sim", "envs")) and forbidden(e("jaxrobo.train", "agents.qlearning"))
+    assert forbidden(e("envs.x", "agents.tabular")) and forbidden(e("agents.sarsa", "envs.cartpole"))
+    assert forbidden(e("envs.x", "jaxrobo.train")) and forbidden(e("agents.sarsa", "jaxrobo.env"))
+    assert not forbidden(e("jaxrobo.registry", "envs")) and not forbidden(e("jaxrobo.train", "agents.tabular"))
+    assert not forbidden(e("envs.cartpole", "jaxrobo.sim")) and not forbidden(e("agents.sarsa", "jaxrobo.rng"))
+
+
+def report() -> str:
+    """The graph as text: circles, then every edge between the three packages or breaking a rule."""
+    edges = import_edges()
+    found = circles(edges)
+    lines = ["circles (edges allowed for now included):"] + (["  " + " <-> ".join(c) for c in found] or ["  none"])
+    lines.append("edges across packages (src -> dst), [!] against the layering, [allowed for now] listed:")
+    for e in sorted(set(edges), key=lambda e: (e.src, e.dst, e.line)):
+        why = forbidden(e)
+        allowed = (e.src, e.dst) in ALLOWED_FOR_NOW
+        if _top(e.src) != _top(e.dst) or why or allowed:
+            tag = " [allowed for now]" if allowed else (" [!]" if why else "")
+            lines.append(f"  {e}{tag}")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(print(report()))
