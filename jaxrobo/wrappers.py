@@ -8,9 +8,9 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
 from jaxrobo import rng
+from jaxrobo.autoreset import where_done
 from jaxrobo.env import Env, EnvState
 
 
@@ -55,12 +55,7 @@ class AutoReset(Wrapper):
         stepped = self.env.step(inner, action, params)
         key, reset_key = rng.split(stepped.key)
         fresh = self.env.reset(reset_key, params)
-        done = stepped.done
-
-        def pick(new, old):
-            return jnp.where(jnp.reshape(done, done.shape + (1,) * (jnp.ndim(old) - jnp.ndim(done))), new, old)
-
-        merged = jax.tree.map(pick, fresh.replace(info=stepped.info), stepped)
+        merged = where_done(stepped.done, fresh.replace(info=stepped.info), stepped)
         return merged.replace(reward=stepped.reward, terminated=stepped.terminated, truncated=stepped.truncated,
                               physics_nan=stepped.physics_nan, key=key,
                               info={**stepped.info, "final_obs": stepped.obs})
