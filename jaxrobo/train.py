@@ -30,7 +30,7 @@ import numpy as np
 import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
-from jaxrobo import autoreset, budget, rng, rundir
+from jaxrobo import autoreset, budget, rng, rollout, rundir
 from jaxrobo.config import flat_keys
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState, default_env_group, step_batch
@@ -258,28 +258,13 @@ class Trainer:
 
     def evaluate(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
                  max_steps: int | None = None) -> tuple[jax.Array, jax.Array]:
-        """Greedy episodes with one table: ``(returns, lengths)``, each ``[n_episodes]``."""
+        """Greedy episodes with one table (:func:`jaxrobo.rollout.rollout` of
+        :func:`jaxrobo.rollout.greedy_policy`): ``(returns, lengths)``, each ``[n_episodes]``."""
         env_params = self.env.default_params if env_params is None else env_params
         horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
-
-        def episode(k):
-            k_reset, k_run = jax.random.split(k)
-            state = self.env.reset(k_reset, env_params)
-
-            def body(carry, k_step):
-                state, ret, length, alive = carry
-                a = tabular.greedy(k_step, tabular.action_values(agent, self.disc(state.obs)))
-                nxt = self.env.step(state, a, env_params)
-                ret = ret + jnp.where(alive, nxt.reward, 0.0)
-                length = length + alive.astype(jnp.int32)
-                alive = alive & ~nxt.done
-                return (nxt, ret, length, alive), None
-
-            init = (state, jnp.float32(0), jnp.int32(0), jnp.bool_(True))
-            (_, ret, length, _), _ = jax.lax.scan(body, init, jax.random.split(k_run, horizon))
-            return ret, length
-
-        return jax.vmap(episode)(jax.random.split(key, n_episodes))
+        out = rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes, horizon,
+                              env_params)
+        return out["return"], out["length"]
 
 
 @dataclasses.dataclass
