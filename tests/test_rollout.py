@@ -81,6 +81,25 @@ def test_trainer_evaluate_is_the_greedy_rollout_with_its_key_layout(cartpole):
     assert len(set(np.asarray(got[1]).tolist())) > 1  # the episodes differ: the test is not vacuous
 
 
+def test_render_q_policy_breaks_ties_by_the_same_rule():
+    """The video policy ties like the trainer's evaluation (random among maxima, from the step's key), not by
+    taking the first maximum: an untrained (all-zero) table does not always push the same way."""
+    from jaxrobo import render
+
+    q = np.zeros((1, 2, 4), np.float32)
+    q[0, 1] = [0.0, 2.0, 1.0, 2.0]  # state 1: actions 1 and 3 tie
+    state_of = lambda obs: (obs[0] > 0).astype(jnp.int32)  # noqa: E731
+    policy = render.q_policy(q, state_of, seed=5)
+    tied = [policy(np.array([1.0])) for _ in range(40)]
+    assert set(tied) == {1, 3}
+    keys = [jax.random.fold_in(jax.random.key(5), t) for t in range(40)]
+    assert tied == [int(tabular.greedy(k, jnp.asarray(q[0, 1]))) for k in keys]
+    untrained = render.q_policy(q[0], state_of, seed=0)  # a [n_states, n_actions] table works too
+    assert len({untrained(np.array([-1.0])) for _ in range(40)}) == 4
+    again = render.q_policy(q, state_of, seed=5)
+    assert [again(np.array([1.0])) for _ in range(40)] == tied  # same seed, same choices
+
+
 # ---- rollouts -------------------------------------------------------------------------------------------------
 def _host_lengths(env, policy_action, keys, horizon):
     """Episode lengths and returns stepped one by one on the host, the obvious way."""
