@@ -1,7 +1,11 @@
 """Functional wrappers: same ``reset(key, params)`` / ``step(state, action, params)`` interface, added behaviour.
 
 Brax and MuJoCo Playground auto-reset to a cached first state, so every episode after the first starts the
-same way; :class:`AutoReset` draws a fresh random initial state from the key carried in the state instead.
+same way; :class:`AutoReset` draws a fresh random initial state from the key carried in the state instead
+(the single-env form of :mod:`jaxrobo.autoreset`, which the trainer and the Gymnasium vector env use batched).
+
+Public surface: subclass :class:`Wrapper` (override ``reset`` / ``step``; everything else is forwarded to the
+wrapped env); :class:`AutoReset`.
 """
 from __future__ import annotations
 
