@@ -25,7 +25,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from envs.quadcopter_goto import greedy_policy, random_policy, rollouts  # noqa: E402
+from jaxrobo.rollout import greedy_policy, random_policy, rollout  # noqa: E402
 from jaxrobo.run import resolve  # noqa: E402
 from jaxrobo.train import Trainer  # noqa: E402
 
@@ -61,13 +61,13 @@ def main(argv=None) -> int:
                 "mean_steps": last.steps.mean()}
 
     # One compiled evaluation for every table: the table is an argument, not a constant.
-    greedy_rate = jax.jit(lambda table, k, n: outcome(rollouts(env, greedy_policy(table, disc), k, n)["last"]),
+    greedy_rate = jax.jit(lambda table, k, n: outcome(rollout(env, greedy_policy(table, disc), k, n)["last"]),
                           static_argnums=2)
     as_float = lambda d: {k: round(float(v), 4) for k, v in d.items()}  # noqa: E731
     select = [as_float(greedy_rate(q[i], jax.random.key(10_000 + i), args.select_episodes)) for i in range(args.runs)]
     best = int(np.argmax([s["success"] for s in select]))
     fresh = as_float(greedy_rate(q[best], jax.random.key(123_456), args.episodes))
-    rand = as_float(jax.jit(lambda k: outcome(rollouts(env, random_policy(env.num_actions), k, args.episodes)["last"]))(
+    rand = as_float(jax.jit(lambda k: outcome(rollout(env, random_policy(env.num_actions), k, args.episodes)["last"]))(
         jax.random.key(123_456)))
     out = {"device": jax.devices()[0].device_kind, "runs": args.runs, "n_envs": spec.config.n_envs,
            "nepisodes": spec.config.nepisodes, "train_seconds": round(train_s, 2),

@@ -137,7 +137,7 @@ def goto_row(args) -> dict[str, Any]:
     import numpy as np
 
     import jaxrobo
-    from envs.quadcopter_goto import greedy_policy, rollouts
+    from jaxrobo.rollout import greedy_policy, rollout
     from jaxrobo.run import resolve
     from jaxrobo.train import Trainer
 
@@ -148,7 +148,7 @@ def goto_row(args) -> dict[str, Any]:
     runs = args.goto_runs
 
     def success(table, key, n):
-        return rollouts(env, greedy_policy(table, trainer.disc), key, n, params=ep)["last"].task.arrived.mean()
+        return rollout(env, greedy_policy(table, trainer.disc), key, n, params=ep)["last"].task.arrived.mean()
 
     t0 = time.perf_counter()
     keys = jnp.stack([jax.random.key(args.seed + i) for i in range(runs)])

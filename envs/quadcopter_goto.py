@@ -23,12 +23,12 @@ Reset        hovering at ``(0, 0, init_z)`` with a uniformly random heading; the
              ``between`` start and goal (at a random fraction ``[obstacle_t_min, obstacle_t_max]`` of the way,
              shifted sideways by up to ``obstacle_lateral``) or ``random``ly in the workspace (kept
              ``obstacle_clearance`` clear of the start and the goal).
-Success      ``TaskVars.arrived``; :func:`success_rate` measures it for greedy or random policies.
+Success      ``TaskVars.arrived``; :func:`jaxrobo.rollout.success_rate` measures it for greedy or random policies.
 Parameters   see :class:`Options` (static) and :class:`Params` (numbers; vmappable).
 """
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +37,7 @@ import numpy as np
 from envs.quadcopter import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
 from jaxrobo import rng, spaces
-from jaxrobo.env import BaseParams, EnvState, TaskEnv
+from jaxrobo.env import BaseParams, EnvState
 from jaxrobo.struct import param, pytree_dataclass
 
 OBS_NAMES = ("goal_dist", "goal_bearing", "goal_dz", "sonar_forward", "sonar_left", "sonar_right", "sonar_down")
@@ -197,63 +197,4 @@ class QuadcopterGoto(QuadcopterTask):
         return reward.astype(jnp.float32), task
 
 
-# ---- evaluation helpers (greedy / random flights, success rate) ------------------------------------------
-Policy = Callable[[jax.Array, jax.Array], jax.Array]  # (key, obs) -> action
-
-
-def rollouts(env: TaskEnv, policy: Policy, key: jax.Array, n_episodes: int, horizon: int | None = None,
-             params: Any = None) -> dict[str, jax.Array]:
-    """Run ``n_episodes`` episodes with ``policy``; returns per-step positions ``pos [n, T+1, 3]``, ``alive
-    [n, T+1]`` (True while the episode runs, including its last state), ``reward [n, T]``, ``actions [n, T]``,
-    and the first and last ``EnvState`` (``first``, ``last``; their ``task`` holds goal/obstacles/outcome)."""
-    params = env.default_params if params is None else params
-    horizon = int(horizon or env.spec.max_episode_steps if env.spec else 100)
-
-    def episode(k):
-        k_reset, k_run = jax.random.split(k)
-        state = env.reset(k_reset, params)
-
-        def body(carry, k_step):
-            state, alive = carry
-            a = policy(k_step, state.obs)
-            nxt = env.step(state, a, params)
-            nxt = jax.tree.map(lambda n, o: jnp.where(alive, n, o), nxt, state)
-            pos = env.robot.read_sensors(nxt.pipeline_state)["pos"]
-            out = (pos, alive, jnp.where(alive, nxt.reward, 0.0), a)
-            return (nxt, alive & ~nxt.done), out
-
-        (last, _), (pos, alive, reward, actions) = jax.lax.scan(body, (state, jnp.bool_(True)),
-                                                               jax.random.split(k_run, horizon))
-        pos0 = env.robot.read_sensors(state.pipeline_state)["pos"]
-        pos = jnp.concatenate([pos0[None], pos])
-        alive = jnp.concatenate([jnp.ones(1, bool), alive])
-        return {"pos": pos, "alive": alive, "reward": reward, "actions": actions, "first": state, "last": last}
-
-    return jax.vmap(episode)(jax.random.split(key, n_episodes))
-
-
-def greedy_policy(q: jax.Array, discretiser: Callable[[jax.Array], jax.Array]) -> Policy:
-    """Greedy in one learner's tables ``q [n_tables, n_states, n_actions]`` (summed, as Double Q acts; ties at
-    random, as the trainer's evaluation)."""
-    from agents.tabular import greedy
-
-    q = jnp.asarray(q)
-    return lambda k, obs: greedy(k, jnp.sum(q[:, discretiser(obs), :], axis=0))
-
-
-def random_policy(n_actions: int) -> Policy:
-    return lambda k, obs: jax.random.randint(k, (), 0, n_actions, dtype=jnp.int32)
-
-
-def success_rate(env: QuadcopterGoto, policy: Policy, key: jax.Array, n_episodes: int = 200,
-                 params: Any = None) -> dict[str, float]:
-    """Fraction of episodes that arrive, crash (any failure) or run out of steps, and the mean episode length."""
-    out = jax.jit(lambda k: rollouts(env, policy, k, n_episodes, params=params))(key)
-    task = out["last"].task
-    arrived, crashed = np.asarray(task.arrived), np.asarray(task.crashed)
-    return {"success": float(arrived.mean()), "failure": float(crashed.mean()),
-            "timeout": float((~arrived & ~crashed).mean()), "mean_steps": float(np.asarray(out["last"].steps).mean())}
-
-
-__all__ = ["QuadcopterGoto", "Options", "Params", "TaskVars", "rollouts", "greedy_policy", "random_policy",
-           "success_rate", "EnvState"]
+__all__ = ["QuadcopterGoto", "Options", "Params", "TaskVars", "EnvState"]

@@ -89,7 +89,7 @@ def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int) -
     """Greedy flights of table ``q[table]`` (random flights when ``q`` is None) as host arrays."""
     import jax
 
-    from envs.quadcopter_goto import greedy_policy, random_policy, rollouts
+    from jaxrobo.rollout import greedy_policy, random_policy, rollout
     from jaxrobo.train import make_discretiser_for
 
     env = spec.env
@@ -97,9 +97,10 @@ def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int) -
         policy = random_policy(env.num_actions)
     else:
         policy = greedy_policy(np.asarray(q[table]), make_discretiser_for(env, spec.config))
-    out = jax.jit(lambda k: rollouts(env, policy, k, episodes))(jax.random.key(seed))
+    position = lambda state: env.robot.read_sensors(state.pipeline_state)["pos"]  # noqa: E731
+    out = jax.jit(lambda k: rollout(env, policy, k, episodes, observe=position))(jax.random.key(seed))
     task = out["first"].task
-    res = {"pos": np.asarray(out["pos"]), "alive": np.asarray(out["alive"])}
+    res = {"pos": np.asarray(out["trace"]), "alive": np.asarray(out["alive"])}
     res["return"] = np.asarray(out["reward"]).sum(axis=1)
     if hasattr(task, "goal"):
         res["goal"] = np.asarray(task.goal)

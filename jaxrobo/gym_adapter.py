@@ -131,11 +131,9 @@ class _Compiled:
             stepped = step_batch(env, states, actions, params, group)  # grouped on a GPU, as the trainer steps
 
             def with_resets(stepped):
-                keys = jax.vmap(next_key)(states.key)
-                fresh = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
-                pick = lambda new, old: jnp.where(  # noqa: E731
-                    needs_reset.reshape(needs_reset.shape + (1,) * (old.ndim - 1)), new, old)
-                return jax.tree.map(pick, fresh, stepped)
+                from jaxrobo.autoreset import autoreset
+
+                return autoreset(env, needs_reset, jax.vmap(next_key)(states.key), params, stepped)
 
             new = jax.lax.cond(jnp.any(needs_reset), with_resets, lambda s: s, stepped)
             return new, new.terminated | new.truncated, jax.vmap(_pack)(new)

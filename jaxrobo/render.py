@@ -424,12 +424,14 @@ def record_episode(env: Any, path: str, policy: Policy | None = None, seed: int 
     return {**info, "path": path, "frames": len(frames)}
 
 
-def q_policy(q: np.ndarray, discretiser: Callable[[Any], Any]) -> Policy:
-    """A greedy policy from a Q-table ``[n_tables, n_states, n_actions]`` (or ``[n_states, n_actions]``)."""
+def q_policy(q: np.ndarray, discretiser: Callable[[Any], Any], seed: int = 0) -> Policy:
+    """A greedy policy ``obs -> action`` from a Q-table ``[n_tables, n_states, n_actions]`` (or
+    ``[n_states, n_actions]``; Double Q-learning's tables act on their sum).
+
+    Ties are broken as everywhere else (:func:`jaxrobo.rollout.greedy_action`, as the trainer's evaluation):
+    uniformly at random among the maximal values, the ``t``-th call drawing from ``fold_in(key(seed), t)``.
+    ``discretiser`` must be traceable (a :class:`jaxrobo.discretise.Discretiser`)."""
+    from jaxrobo.rollout import greedy_policy, host_policy
+
     q = np.asarray(q)
-    values = q.sum(axis=0) if q.ndim == 3 else q
-
-    def policy(obs: np.ndarray) -> int:
-        return int(np.argmax(values[int(discretiser(obs))]))
-
-    return policy
+    return host_policy(greedy_policy(q if q.ndim == 3 else q[None], discretiser), seed)

@@ -30,7 +30,7 @@ import numpy as np
 import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
-from jaxrobo import budget, rng, rundir
+from jaxrobo import autoreset, budget, rng, rollout, rundir
 from jaxrobo.config import flat_keys
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState, default_env_group, step_batch
@@ -160,42 +160,19 @@ class Trainer:
         states = jax.vmap(self.env.reset, in_axes=(0, None))(keys, env_params)
         return states, jax.vmap(self.disc)(states.obs)
 
-    def _reset_done(self, done, keys, env_params, stepped, s2, agent, q_s2):
+    def _reset_done(self, done, keys, env_params, stepped, s2, agent, q_s2, capacity=None):
         """``(env_state, s, q_rows)`` with a fresh episode (its first state index and table rows) wherever ``done``.
 
-        A reset draws random numbers and builds a physics state, and under ``vmap`` a plain select would pay
-        for it in every env every step although few are done. So the done envs (at most ``capacity``, an
-        eighth of the batch by default: ``reset_capacity``) are gathered, reset and scattered back; a step with
-        more of them resets the whole batch. Both paths give the same values: each env resets from its own key
-        either way (tested). On 2 CPU cores this made cart-pole training 10-25 % faster. (Under an outer ``vmap``,
-        e.g. a sweep with several envs per row, the branch becomes a select that computes both paths.)"""
-        n, capacity = self.config.n_envs, self.reset_capacity
+        The shared autoreset (:func:`jaxrobo.autoreset.reset_where`): each env resets from its own key in
+        ``keys``; with ``capacity`` (default ``self.reset_capacity``) below the batch size, the done envs are
+        gathered, reset and scattered back (the same values as the select over the batch, tested)."""
+        capacity = self.reset_capacity if capacity is None else capacity
 
-        def everyone(_):
-            fresh, s_fresh = self._reset(keys, env_params)
-            pick = lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)  # noqa: E731
-            s_next = jnp.where(done, s_fresh, s2)
-            q_rows = None if q_s2 is None else pick(self._rows(agent, s_next), q_s2)
-            return jax.tree.map(pick, fresh, stepped), s_next, q_rows
+        def fresh(keys, envs):
+            states, s = self._reset(keys, env_params)
+            return states, s, None if q_s2 is None else self._rows(agent, s, envs)
 
-        if capacity >= n:
-            return everyone(None)
-
-        # Where each done env goes in the compacted list: one running count (``jnp.nonzero`` takes two and a
-        # histogram for the same list).
-        slot = jnp.cumsum(done, dtype=jnp.int32) - 1
-
-        def only_done(_):
-            # The done envs in order, padded with n (dropped by the scatters below).
-            rows = jnp.full(capacity, n, jnp.int32).at[jnp.where(done, slot, capacity)].set(
-                jnp.arange(n, dtype=jnp.int32), mode="drop")
-            envs = jnp.minimum(rows, n - 1)
-            fresh, s_fresh = self._reset(keys[envs], env_params)
-            put = lambda old, new: old.at[rows].set(new, mode="drop")  # noqa: E731
-            q_rows = None if q_s2 is None else put(q_s2, self._rows(agent, s_fresh, envs))
-            return jax.tree.map(put, stepped, fresh), put(s2, s_fresh), q_rows
-
-        return jax.lax.cond(slot[-1] >= capacity, everyone, only_done, None)
+        return autoreset.reset_where(fresh, done, keys, (stepped, s2, q_s2), capacity)
 
     # ---- public ----------------------------------------------------------------------------------------
     def init(self, key: jax.Array, agent_params: AgentParams, env_params: Any = None) -> Runner:
@@ -281,28 +258,13 @@ class Trainer:
 
     def evaluate(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
                  max_steps: int | None = None) -> tuple[jax.Array, jax.Array]:
-        """Greedy episodes with one table: ``(returns, lengths)``, each ``[n_episodes]``."""
+        """Greedy episodes with one table (:func:`jaxrobo.rollout.rollout` of
+        :func:`jaxrobo.rollout.greedy_policy`): ``(returns, lengths)``, each ``[n_episodes]``."""
         env_params = self.env.default_params if env_params is None else env_params
         horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
-
-        def episode(k):
-            k_reset, k_run = jax.random.split(k)
-            state = self.env.reset(k_reset, env_params)
-
-            def body(carry, k_step):
-                state, ret, length, alive = carry
-                a = tabular.greedy(k_step, tabular.action_values(agent, self.disc(state.obs)))
-                nxt = self.env.step(state, a, env_params)
-                ret = ret + jnp.where(alive, nxt.reward, 0.0)
-                length = length + alive.astype(jnp.int32)
-                alive = alive & ~nxt.done
-                return (nxt, ret, length, alive), None
-
-            init = (state, jnp.float32(0), jnp.int32(0), jnp.bool_(True))
-            (_, ret, length, _), _ = jax.lax.scan(body, init, jax.random.split(k_run, horizon))
-            return ret, length
-
-        return jax.vmap(episode)(jax.random.split(key, n_episodes))
+        out = rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes, horizon,
+                              env_params)
+        return out["return"], out["length"]
 
 
 @dataclasses.dataclass

@@ -1,16 +1,20 @@
 """Functional wrappers: same ``reset(key, params)`` / ``step(state, action, params)`` interface, added behaviour.
 
 Brax and MuJoCo Playground auto-reset to a cached first state, so every episode after the first starts the
-same way; :class:`AutoReset` draws a fresh random initial state from the key carried in the state instead.
+same way; :class:`AutoReset` draws a fresh random initial state from the key carried in the state instead
+(the single-env form of :mod:`jaxrobo.autoreset`, which the trainer and the Gymnasium vector env use batched).
+
+Public surface: subclass :class:`Wrapper` (override ``reset`` / ``step``; everything else is forwarded to the
+wrapped env); :class:`AutoReset`.
 """
 from __future__ import annotations
 
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
 from jaxrobo import rng
+from jaxrobo.autoreset import where_done
 from jaxrobo.env import Env, EnvState
 
 
@@ -55,12 +59,7 @@ class AutoReset(Wrapper):
         stepped = self.env.step(inner, action, params)
         key, reset_key = rng.split(stepped.key)
         fresh = self.env.reset(reset_key, params)
-        done = stepped.done
-
-        def pick(new, old):
-            return jnp.where(jnp.reshape(done, done.shape + (1,) * (jnp.ndim(old) - jnp.ndim(done))), new, old)
-
-        merged = jax.tree.map(pick, fresh.replace(info=stepped.info), stepped)
+        merged = where_done(stepped.done, fresh.replace(info=stepped.info), stepped)
         return merged.replace(reward=stepped.reward, terminated=stepped.terminated, truncated=stepped.truncated,
                               physics_nan=stepped.physics_nan, key=key,
                               info={**stepped.info, "final_obs": stepped.obs})

@@ -12,7 +12,7 @@ import pytest
 
 import jaxrobo
 from envs.quadcopter import BOX, CYLINDER, Obstacles
-from envs.quadcopter_goto import random_policy, success_rate
+from jaxrobo.rollout import random_policy, success_rate
 
 
 @pytest.fixture(scope="module")
