@@ -50,8 +50,8 @@ class Options:
 @pytree_dataclass
 class Params(BaseParams):
     pos_step: float = param(0.016, low=0.0, low_open=True, high=10.0, doc="command increment per action")
-    min_pole_angle: float = param(-0.7, low=-3.2, high=0.0, unit="rad")
-    max_pole_angle: float = param(0.7, low=0.0, high=3.2, unit="rad")
+    min_pole_angle: float = param(-0.7, low=-3.2, high=0.0, unit="rad", doc="-40 deg, the seed's limit")
+    max_pole_angle: float = param(0.7, low=0.0, high=3.2, unit="rad", doc="+40 deg, the seed's limit")
     min_base_pose_x: float = param(-2.5, low=-100.0, high=0.0, unit="m")
     max_base_pose_x: float = param(2.5, low=0.0, high=100.0, unit="m")
     max_base_velocity: float = param(50.0, low=0.0, low_open=True, unit="m/s", doc="clip of a velocity command")

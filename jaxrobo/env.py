@@ -65,7 +65,9 @@ class EnvSpec:
     """How an environment was registered: id, step limit and the default overrides it was made with."""
 
     id: str
-    max_episode_steps: int
+    #: None in a registration that leaves the step limit to its task's Params default (``jaxrobo.spec`` and
+    #: ``make`` fill it in).
+    max_episode_steps: int | None
     description: str = ""
     config: str | None = None  # YAML with the env parameters (the seed's split)
     agent_config: str | None = None  # YAML with the learner parameters
