@@ -27,7 +27,7 @@ import numpy as np
 
 from envs.cartpole import BACKENDS, CONTROL_TYPES, CartPoleRobot
 from jaxrobo import rng, spaces
-from jaxrobo.env import BaseParams, TaskEnv
+from jaxrobo.env import BaseParams, LearningTarget, TaskEnv
 from jaxrobo.struct import param, pytree_dataclass
 
 #: Action ``i`` adds ``ACTION_STEPS[i] * pos_step`` to the cart command (left, right, left big, right big).
@@ -72,6 +72,8 @@ class TaskVars:
 class CartPoleStayUp(TaskEnv):
     Options = Options
     Params = Params
+    #: Learned: greedy episodes keep the pole up for half of the seed's 1000 steps on average.
+    learning_target = LearningTarget("over_500", "mean_length", 500.0, "mean greedy episode length >= 500 steps")
 
     def __init__(self, options: Options | None = None, params: Params | None = None):
         super().__init__(options, params)

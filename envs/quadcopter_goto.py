@@ -37,7 +37,7 @@ import numpy as np
 from envs.quadcopter import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
 from jaxrobo import rng, spaces
-from jaxrobo.env import BaseParams, EnvState, TaskEnv
+from jaxrobo.env import BaseParams, EnvState, LearningTarget, TaskEnv
 from jaxrobo.struct import param, pytree_dataclass
 
 OBS_NAMES = ("goal_dist", "goal_bearing", "goal_dz", "sonar_forward", "sonar_left", "sonar_right", "sonar_down")
@@ -100,6 +100,9 @@ class TaskVars:
 class QuadcopterGoto(QuadcopterTask):
     Options = Options
     Params = Params
+    #: Learned: most greedy flights arrive (the arrival flag; measured by :func:`success_rate`).
+    learning_target = LearningTarget("arriving", "success_rate", 0.8,
+                                     "share of greedy episodes arriving at the goal >= 0.8 (success_rate)")
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         n = len(OBS_NAMES)
