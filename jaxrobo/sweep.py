@@ -48,10 +48,10 @@ import numpy as np
 
 from agents.tabular import AgentParams
 from jaxrobo import budget
-from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value, unknown_key
+from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value
 from jaxrobo.run import KeyRoute, resolve, route
 from jaxrobo.struct import INT32_MAX, rules
-from jaxrobo.train import Runner, TrainConfig, Trainer
+from jaxrobo.train import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
 METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
