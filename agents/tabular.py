@@ -28,7 +28,8 @@ from jaxrobo.struct import param, pytree_dataclass
 
 @pytree_dataclass
 class AgentParams:
-    """Learner hyper-parameters (traced: a sweep vmaps over them)."""
+    """Learner hyper-parameters (traced: a sweep vmaps over them). The defaults are the seed's cart-pole values
+    and the only home of each: the agent presets (``agents/configs/*.yaml``) list only what differs."""
 
     alpha: float = param(0.5, low=0.0, low_open=True, high=1.0, doc="learning rate")
     gamma: float = param(0.9, low=0.0, high=1.0, doc="discount factor")

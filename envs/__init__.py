@@ -40,20 +40,20 @@ def _cfg(name: str) -> str:
 
 def _register_builtin() -> None:
     # Cart-pole (seed 001). Agent YAML names are relative to agents/configs/.
-    register("CartPoleStayUp-v0", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
+    register("CartPoleStayUp-v0", "envs.cartpole_stay_up:CartPoleStayUp",
              config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
              description="seed 001: keep the pole up, 4 actions")
     # The seed's exercise 2.3 is a different task, not a newer CartPoleStayUp: an id of its own, so Gymnasium
     # never calls CartPoleStayUp-v0 "out of date". Its first name, CartPoleStayUp-v1, still works in jaxrobo.
-    register("CartPoleStayUpLeftRight-v0", "envs.cartpole_stay_up:CartPoleStayUp", 1000,
+    register("CartPoleStayUpLeftRight-v0", "envs.cartpole_stay_up:CartPoleStayUp",
              config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
              description="seed exercise 2.3: left/right only", n_actions=2)
     deprecated_alias("CartPoleStayUp-v1", "CartPoleStayUpLeftRight-v0")
     # Quadcopter (seed 000): the faithful live-show task and the seed's homework (goto with obstacles).
-    register("QuadcopterLiveShow-v0", "envs.quadcopter_live_show:QuadcopterLiveShow", 100,
+    register("QuadcopterLiveShow-v0", "envs.quadcopter_live_show:QuadcopterLiveShow",
              config=_cfg("quadcopter_live_show.yaml"), agent_config="quadcopter_live_show.yaml",
              description="seed 000: fly toward (14, 1, 0.7) observing x only (does not learn, as in the seed)")
-    register("QuadcopterGoto-v1", "envs.quadcopter_goto:QuadcopterGoto", 100,
+    register("QuadcopterGoto-v1", "envs.quadcopter_goto:QuadcopterGoto",
              config=_cfg("quadcopter_goto.yaml"), agent_config="quadcopter_goto.yaml",
              description="seed 000 homework: random goals, obstacles, sonar, discretised relative pose")
 

@@ -37,7 +37,7 @@ import numpy as np
 from envs.quadcopter import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
 from jaxrobo import rng, spaces
-from jaxrobo.env import BaseParams, EnvState
+from jaxrobo.env import BaseParams, EnvState, LearningTarget
 from jaxrobo.struct import param, pytree_dataclass
 
 OBS_NAMES = ("goal_dist", "goal_bearing", "goal_dz", "sonar_forward", "sonar_left", "sonar_right", "sonar_down")
@@ -65,15 +65,18 @@ class Params(BaseParams):
     max_incl: float = param(0.7, low=0.0, low_open=True, high=1.6, unit="rad", doc="roll/pitch limit")
     drone_radius: float = param(0.25, low=0.0, high=2.0, unit="m", doc="crash sphere")
     obstacle_size: float = param(0.4, low=0.0, high=10.0, unit="m", doc="cylinder radius / box half-width")
-    obstacle_height: float = param(3.0, low=0.0, high=100.0, unit="m")
+    obstacle_height: float = param(3.0, low=0.0, high=100.0, unit="m",
+                                   doc="taller than max_altitude: the drone must go round, not over")
     obstacle_t_min: float = param(0.35, low=0.0, high=1.0, doc="'between': fraction of the way, min")
     obstacle_t_max: float = param(0.65, low=0.0, high=1.0, doc="'between': fraction of the way, max")
     obstacle_lateral: float = param(0.5, low=0.0, high=100.0, unit="m", doc="'between': sideways shift, max")
     obstacle_clearance: float = param(1.0, low=0.0, high=100.0, unit="m", doc="'random': free radius at start/goal")
     sonar_range: float = param(4.0, low=0.0, low_open=True, high=100.0, unit="m")
-    progress_reward: float = param(10.0, low=0.0, high=1e4, unit="1/m")
-    step_cost: float = param(2.0, low=0.0, high=1e4)
-    altitude_cost: float = param(0.5, low=0.0, high=1e4, unit="1/m", doc="per step and metre of altitude")
+    progress_reward: float = param(10.0, low=0.0, high=1e4, unit="1/m", doc="per m closer to the goal")
+    step_cost: float = param(2.0, low=0.0, high=1e4,
+                             doc="per step: makes dithering loops worse than trying (greedy policies loop otherwise)")
+    altitude_cost: float = param(0.5, low=0.0, high=1e4, unit="1/m",
+                                 doc="per step and metre of altitude: the seed's 'fly as low as possible'")
     arrival_bonus: float = param(100.0, low=0.0, high=1e5)
     crash_penalty: float = param(50.0, low=0.0, high=1e5)
     dist_bound: float = param(3.0, low=0.0, low_open=True, high=100.0, unit="m", doc="discretiser range, distance")
@@ -97,6 +100,9 @@ class TaskVars:
 class QuadcopterGoto(QuadcopterTask):
     Options = Options
     Params = Params
+    #: Learned: most greedy flights arrive (the arrival flag; measured by :func:`success_rate`).
+    learning_target = LearningTarget("arriving", "success_rate", 0.8,
+                                     "share of greedy episodes arriving at the goal >= 0.8 (success_rate)")
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         n = len(OBS_NAMES)

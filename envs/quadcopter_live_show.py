@@ -72,6 +72,8 @@ class TaskVars:
 class QuadcopterLiveShow(QuadcopterTask):
     Options = Options
     Params = Params
+    #: None: with x alone observed the task cannot learn to reach the goal, as in the seed (docs/quadcopter.md).
+    learning_target = None
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         return spaces.Box(np.full(1, -np.inf, np.float32), np.full(1, np.inf, np.float32), ("x",))

@@ -65,10 +65,39 @@ class EnvSpec:
     """How an environment was registered: id, step limit and the default overrides it was made with."""
 
     id: str
-    max_episode_steps: int
+    #: None in a registration that leaves the step limit to its task's Params default (``jaxrobo.spec`` and
+    #: ``make`` fill it in).
+    max_episode_steps: int | None
     description: str = ""
     config: str | None = None  # YAML with the env parameters (the seed's split)
     agent_config: str | None = None  # YAML with the learner parameters
+
+
+@dataclasses.dataclass(frozen=True)
+class LearningTarget:
+    """What "has learned" means for a task, declared on the task class (:attr:`Env.learning_target`) and read by
+    the training summary (:meth:`jaxrobo.train.TrainResult.summary`), so the trainer knows no task's threshold.
+
+    A table reaches the target when its greedy evaluation's ``metric`` is ``>= threshold``. ``metric`` is one of
+    :data:`TARGET_METRICS`: ``"mean_length"`` / ``"mean_return"`` (mean greedy episode length / return, which the
+    trainer's evaluation records per table: the summary gives the share of evaluated tables that reach the
+    target as ``eval_share_of_tables_<name>``), or ``"success_rate"`` (share of greedy episodes the task counts as
+    a success; the trainer's evaluation does not record success, so the summary names the target only and the
+    task measures it itself).
+    """
+
+    name: str
+    metric: str
+    threshold: float
+    description: str
+
+    def __post_init__(self) -> None:
+        if self.metric not in TARGET_METRICS:
+            raise ValueError(f"LearningTarget metric={self.metric!r}: allowed values are {', '.join(TARGET_METRICS)}")
+
+
+#: The figures a :class:`LearningTarget` can be stated on.
+TARGET_METRICS = ("mean_length", "mean_return", "success_rate")
 
 
 class Env:
@@ -78,6 +107,8 @@ class Env:
     Options: ClassVar[type]
     Params: ClassVar[type]
     spec: EnvSpec | None = None
+    #: What learning this task means (None: the task declares no target, e.g. one that cannot be learned).
+    learning_target: ClassVar[LearningTarget | None] = None
 
     def __init__(self, options: Any = None, params: Any = None):
         self.options = options if options is not None else self.Options()

@@ -22,9 +22,10 @@ import dataclasses
 import importlib
 from typing import Any
 
-from jaxrobo.config import ConfigError, load_yaml, split_and_validate, unknown_key
+from jaxrobo.config import ConfigError, coerce, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env, EnvSpec
 from jaxrobo.precision import check_precision
+from jaxrobo.struct import rules
 
 #: The package whose import registers the built-in robots and tasks.
 BUILTIN_ENVS = "envs"
@@ -56,12 +57,18 @@ def deprecated_alias(old: str, new: str) -> None:
     ALIASES[old] = new
 
 
-def register(id: str, entry_point: str | type, max_episode_steps: int, *, config: str | None = None,
+def register(id: str, entry_point: str | type, max_episode_steps: int | None = None, *, config: str | None = None,
              agent_config: str | None = None, description: str = "", **defaults: Any) -> None:
-    """Register an environment class (or ``"module:Class"``) under ``id``; ``defaults`` override its defaults."""
+    """Register an environment class (or ``"module:Class"``) under ``id``; ``defaults`` override its defaults.
+
+    The step limit's home is the task's ``Params.max_episode_steps`` default: give ``max_episode_steps`` (or put
+    it in the env YAML) only for an id whose limit differs from it; it is then one more default override.
+    """
     if id in _REGISTRY:
         raise ValueError(f"environment id {id!r} is already registered")
-    spec = EnvSpec(id, int(max_episode_steps), description, config, agent_config)
+    if max_episode_steps is not None:
+        defaults["max_episode_steps"] = max_episode_steps
+    spec = EnvSpec(id, None, description, config, agent_config)
     _REGISTRY[id] = Registration(spec, entry_point, dict(defaults))
 
 
@@ -72,7 +79,14 @@ def registered() -> list[str]:
 
 
 def spec(id: str) -> EnvSpec:
-    return _lookup(id).spec
+    """How ``id`` was registered, with the step limit ``make(id)`` gives (:func:`max_episode_steps`). A broken env
+    YAML is reported when the env is made, not here (``import jaxrobo`` registers every id with Gymnasium): the
+    step limit is then the task's default."""
+    try:
+        steps = max_episode_steps(id)
+    except ConfigError:
+        steps = max_episode_steps(id, with_yaml=False)
+    return dataclasses.replace(_lookup(id).spec, max_episode_steps=steps)
 
 
 def registration(id: str) -> Registration:
@@ -96,17 +110,27 @@ def _lookup(id: str) -> Registration:
     return _REGISTRY[id]
 
 
-def env_config(id: str) -> dict[str, Any]:
-    """The env parameters from the id's YAML file, merged over the registration defaults."""
+def env_config(id: str, with_yaml: bool = True) -> dict[str, Any]:
+    """The env options and parameters the id sets (its env YAML over its registration's overrides): only what
+    differs from the task's ``Options``/``Params`` defaults, which are every default's one home."""
     reg = _lookup(id)
     values = dict(reg.defaults)
-    values.setdefault("max_episode_steps", reg.spec.max_episode_steps)
-    if reg.spec.config:
+    if reg.spec.config and with_yaml:
         env = load_yaml(reg.spec.config).get("env", {}) or {}
         if not isinstance(env, dict):
             raise ConfigError(f"{reg.spec.config}: env: expected a mapping of key: value, got {type(env).__name__}")
         values.update(env)
     return values
+
+
+def max_episode_steps(id: str, with_yaml: bool = True) -> int:
+    """The step limit of ``id``: its task's ``Params.max_episode_steps`` default unless the id's registration or
+    env YAML sets another (validated; :class:`ConfigError` otherwise). The same value as ``make(id).spec``."""
+    params = _lookup(id).env_class().Params
+    values = env_config(id, with_yaml)
+    if "max_episode_steps" not in values:
+        return int(next(f.default for f in dataclasses.fields(params) if f.name == "max_episode_steps"))
+    return int(coerce("max_episode_steps", values["max_episode_steps"], rules(params)["max_episode_steps"], id))
 
 
 def make(id: str, **overrides: Any) -> Env:

@@ -5,8 +5,12 @@ A task's agent YAML (``agents/configs/<name>.yaml``) holds presets; each preset 
 ``env:`` mapping of env overrides. ``default`` is the textbook setup that learns; ``seed`` is the seed's own
 values with its learners reproduced exactly.
 
-Overrides are ``{key: value}``; a bare key goes to whichever of learner, loop or env declares it (learner
-and loop first), ``env.KEY`` forces the env and ``agent.KEY`` the learner/loop.
+Overrides are ``{key: value}``; :func:`route` says where each key lives, for ``--set`` here and for the swept
+keys of :mod:`jaxrobo.sweep`: a bare key goes to whichever of learner, loop or env declares it (learner and
+loop first), ``env.KEY`` forces the env and ``agent.KEY`` the learner/loop.
+
+Every default has one home: the dataclasses (:class:`agents.tabular.AgentParams`, :class:`TrainConfig`, each
+task's ``Options`` and ``Params``). The env YAML and the agent presets hold only what differs from them.
 """
 from __future__ import annotations
 
@@ -22,10 +26,66 @@ from jaxrobo import discretise
 from jaxrobo.config import ConfigError, as_dict, flat_keys, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env
 from jaxrobo.registry import _lookup, make
-from jaxrobo.struct import INT32_MAX, rules
+from jaxrobo.struct import INT32_MAX, Rule, rules
 from jaxrobo.train import TrainConfig
 
 AGENT_CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "agents", "configs")
+
+
+# ---- where a key lives ----------------------------------------------------------------------------------------
+#: The four homes of a key, in the order a bare key looks for it: learner parameter (traced), loop setting
+#: (static), env option (static), env parameter (traced).
+HOMES = ("agent", "train", "option", "env")
+_PREFIXES = {"agent": ("agent", "train"), "env": ("option", "env")}
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyRoute:
+    """Where one override or swept key lives: ``name`` is the field (the key without its ``env.``/``agent.``
+    prefix), ``where`` one of :data:`HOMES`, ``rule`` the field's validation rule."""
+
+    key: str
+    name: str
+    where: str
+    rule: Rule
+
+    @property
+    def side(self) -> str:
+        """``"agent"`` (learner and loop: :class:`AgentParams`, :class:`TrainConfig`) or ``"env"``."""
+        return "agent" if self.where in _PREFIXES["agent"] else "env"
+
+    @property
+    def static(self) -> bool:
+        """True for loop settings and env options, which fix shapes and code (a sweep compiles per value);
+        False for learner and env parameters, which are traced (a sweep vmaps over them)."""
+        return self.where in ("train", "option")
+
+
+def _tables(env_cls: type) -> dict[str, dict[str, Rule]]:
+    return {"agent": rules(AgentParams), "train": rules(TrainConfig), "option": rules(env_cls.Options),
+            "env": rules(env_cls.Params)}
+
+
+def route(env_id: str, key: Any, where: str = "--set") -> KeyRoute:
+    """Where ``key`` lives for the env ``env_id``; :class:`ConfigError` naming the key and the allowed keys if
+    nowhere. The one router of ``--set`` (:func:`resolve`) and of swept keys (:func:`jaxrobo.sweep.classify`)."""
+    tables = _tables(_lookup(env_id).env_class())
+    homes: tuple[str, ...] = HOMES
+    name = key
+    if isinstance(key, str) and key.startswith(("env.", "agent.")):
+        side, name = key.split(".", 1)
+        homes = _PREFIXES[side]
+    if isinstance(name, str):
+        for home in homes:
+            if name in tables[home]:
+                return KeyRoute(key, name, home, tables[home][name])
+    known = {k for home in homes for k in tables[home]}
+    err = unknown_key(name if isinstance(name, str) else repr(name), known, where=where)
+    other = next((h for h in HOMES if h not in homes and isinstance(name, str) and name in tables[h]), None)
+    if other is not None:  # e.g. agent.backend: say where the key does live
+        side = "agent" if other in _PREFIXES["agent"] else "env"
+        err = ConfigError(f"{err} ({name} is {'a learner/loop' if side == 'agent' else 'an env'} key: {side}.{name})")
+    raise err
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,23 +209,13 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     chosen = dict(presets.get(preset, {}) or {})
     env_values = dict(chosen.pop("env", {}) or {})
     agent_values = chosen
-    env_cls = _lookup(env_id).env_class()
-    env_keys = set(rules(env_cls.Options)) | set(rules(env_cls.Params))
-    agent_keys = set(rules(AgentParams)) | set(rules(TrainConfig))
     given: dict[str, Any] = {}
     for key, value in (overrides or {}).items():
-        if not isinstance(key, str):
-            raise unknown_key(repr(key), agent_keys | env_keys, where="--set")
-        if key.startswith("env."):
-            env_values[key[4:]] = value
-        elif key.startswith("agent."):
-            agent_values[key[6:]] = given[key[6:]] = value
-        elif key in agent_keys:
-            agent_values[key] = given[key] = value
-        elif key in env_keys:
-            env_values[key] = value
+        r = route(env_id, key)
+        if r.side == "agent":
+            agent_values[r.name] = given[r.name] = value
         else:
-            raise unknown_key(key, agent_keys | env_keys, where="--set")
+            env_values[r.name] = value
     if agent is not None:
         agent_values["agent"] = agent
     where = f"{env_id} preset {preset}"

@@ -48,10 +48,10 @@ import numpy as np
 
 from agents.tabular import AgentParams
 from jaxrobo import budget
-from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value, unknown_key
-from jaxrobo.registry import _lookup
+from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value
+from jaxrobo.run import KeyRoute, resolve, route
 from jaxrobo.struct import INT32_MAX, rules
-from jaxrobo.train import Runner, TrainConfig, Trainer
+from jaxrobo.train import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
 METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
@@ -62,36 +62,18 @@ COMPILER_OPTIONS: dict[str, Any] | None = None
 
 
 # ---- what a key is -------------------------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True)
-class KeyKind:
-    name: str
-    where: str  # "agent" (traced learner param), "env" (traced env param), "train" / "option" (static)
-    rule: Any
-
-    @property
-    def static(self) -> bool:
-        return self.where in ("train", "option")
+#: A swept key as :func:`jaxrobo.run.route`, the router of ``--set``, places it: ``name`` (the field), ``where``
+#: (``"agent"``/``"env"``: a traced learner / env parameter, vmapped; ``"train"``/``"option"``: a static loop
+#: setting / env option, one compiled group per value) and ``static``.
+KeyKind = KeyRoute
 
 
 def classify(env_id: str, key: str) -> KeyKind:
-    """Where a swept key lives (learner and loop first, as ``--set`` does; ``env.``/``agent.`` force a side)."""
-    env_cls = _lookup(env_id).env_class()
-    agent, train = rules(AgentParams), rules(TrainConfig)
-    opts, params = rules(env_cls.Options), rules(env_cls.Params)
-    forced = None
-    if key.startswith(("env.", "agent.")):
-        forced, key = key.split(".", 1)
-    if key in NOT_SWEPT:
+    """Where a swept key lives: :func:`jaxrobo.run.route` (learner and loop first, as ``--set`` does;
+    ``env.``/``agent.`` force a side), the seed excepted (it is the ``--seeds`` axis)."""
+    if isinstance(key, str) and (key.split(".", 1)[1] if key.startswith(("env.", "agent.")) else key) in NOT_SWEPT:
         raise ConfigError(f"--grid {key}: the seed is not a swept parameter; use --seeds N (and --seed BASE)")
-    tables = []
-    if forced in (None, "agent"):
-        tables += [("agent", agent), ("train", train)]
-    if forced in (None, "env"):
-        tables += [("option", opts), ("env", params)]
-    for where, table in tables:
-        if key in table:
-            return KeyKind(key, where, table[key])
-    raise unknown_key(key, set(agent) | set(train) | set(opts) | set(params), where="sweep")
+    return route(env_id, key, where="sweep")
 
 
 # ---- which points ----------------------------------------------------------------------------------------------
@@ -332,8 +314,6 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
 
     Raises :class:`ConfigError` naming the key for any bad key or value, in whichever group it is.
     """
-    from jaxrobo.run import resolve
-
     overrides = dict(overrides or {})
     overrides.setdefault("record_episodes", True)
     if not seeds:
@@ -343,14 +323,14 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
     options = COMPILER_OPTIONS if compiler_options is None else compiler_options
     planned = []
     for g, (static, members) in enumerate(groups.items()):
-        spec = resolve(env_id, preset, {**overrides, **{_bare(k): v for k, v in static}}, agent=agent)
+        spec = resolve(env_id, preset, {**overrides, **dict(static)}, agent=agent)
         env, base_ap, base_ep = spec.env, spec.agent_params, spec.env.default_params
         bounds = [np.asarray(b) for b in env.state_bounds(base_ep)]
         agent_list, env_list, meta = [], [], []
         for i in members:
             point = checked[i]
-            ap = base_ap.replace(**{_bare(k): v for k, v in point.items() if kinds[k].where == "agent"})
-            ep = base_ep.replace(**{_bare(k): v for k, v in point.items() if kinds[k].where == "env"})
+            ap = base_ap.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "agent"})
+            ep = base_ep.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "env"})
             if spec.config.discretiser != "edges" and spec.config.state_low is None:
                 moved = [b for b, b0 in zip(env.state_bounds(ep), bounds) if not np.allclose(np.asarray(b), b0)]
                 if moved:
@@ -599,10 +579,6 @@ def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[i
                   "compile_seconds": float(data[f"g{g}_compile_seconds"]),
                   "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"])}
     return out
-
-
-def _bare(key: str) -> str:
-    return key.split(".", 1)[1] if key.startswith(("env.", "agent.")) else key
 
 
 # ---- output --------------------------------------------------------------------------------------------------

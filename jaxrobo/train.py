@@ -33,7 +33,7 @@ from agents.tabular import AgentParams, AgentState, Learner
 from jaxrobo import autoreset, budget, rng, rollout, rundir
 from jaxrobo.config import flat_keys
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
-from jaxrobo.env import Env, EnvState, default_env_group, step_batch
+from jaxrobo.env import Env, EnvState, LearningTarget, default_env_group, step_batch
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -291,13 +291,16 @@ class TrainResult:
     complete: bool = True
     chunks_done: int = 0
     episodes_done: np.ndarray | None = None  # [n_envs] finished episodes per env
+    #: The task's declared target (:class:`jaxrobo.env.LearningTarget`; None: no target), for :meth:`summary`.
+    learning_target: LearningTarget | None = None
 
     @property
     def steps_per_second(self) -> float:
         return self.env_steps / max(self.run_seconds, 1e-9)
 
     def summary(self) -> dict[str, Any]:
-        """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run."""
+        """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run, and
+        how many evaluated tables reach the task's declared learning target (``learning_target``)."""
         lengths = self.lengths.astype(np.float64)
         best100 = np.sort(lengths, axis=1)[:, -100:].mean(axis=1)
         out = {
@@ -316,11 +319,17 @@ class TrainResult:
             "run_seconds": round(self.run_seconds, 3),
             "env_steps_per_second": round(self.steps_per_second, 1),
         }
+        target = self.learning_target
+        if target is not None:
+            out["learning_target"] = target.description
         if self.eval_lengths is not None and self.eval_lengths.size:
             out["eval_mean_length"] = float(self.eval_lengths.mean())
             out["eval_mean_return"] = float(self.eval_returns.mean())
             out["eval_best_table_mean_length"] = float(self.eval_lengths.mean(axis=1).max())
-            out["eval_share_of_tables_over_500"] = float((self.eval_lengths.mean(axis=1) >= 500).mean())
+            per_table = {"mean_length": self.eval_lengths, "mean_return": self.eval_returns}
+            if target is not None and target.metric in per_table:
+                score = per_table[target.metric].astype(np.float64).mean(axis=1)
+                out[f"eval_share_of_tables_{target.name}"] = float((score >= target.threshold).mean())
         if self.selected is not None:
             out["selected_table"] = self.selected["table"]
             out["selected_table_fresh_mean_length"] = float(self.selected["lengths"].mean())
@@ -422,7 +431,7 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=run_seconds, eval_returns=eval_returns, eval_lengths=eval_lengths,
         selected=selected, complete=not stopped, chunks_done=chunks_done,
-        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes))
+        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes), learning_target=getattr(env, "learning_target", None))
 
 
 # ---- checkpoints -------------------------------------------------------------------------------------------------
