@@ -93,9 +93,9 @@ def estimate(env: Any, config: Any, n_states: int, exact_env: bool = False) -> d
     ``envs`` uses :data:`ENV_BOUND_BYTES` per env unless ``exact_env``, then the traced state size.
     On a CPU the tables and records are counted twice: the result is copied to host memory, the same RAM.
     """
-    import agents
+    from jaxrobo.registry import learner
 
-    n_tables = agents.get(config.agent).n_tables
+    n_tables = learner(config.agent).n_tables
     per_env = ENV_COPIES * env_state_bytes(env) if exact_env else ENV_BOUND_BYTES
     parts = {
         "tables": tables_bytes(config.n_envs, n_tables, n_states, env.num_actions, config.shared_table),

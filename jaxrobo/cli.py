@@ -252,8 +252,8 @@ def _plot(args: argparse.Namespace) -> int:
 
 
 def _list(args: argparse.Namespace) -> int:
-    import agents
     import jaxrobo
+    from jaxrobo import registry
     from jaxrobo.config import ConfigError
     from jaxrobo.run import agent_presets
 
@@ -269,7 +269,7 @@ def _list(args: argparse.Namespace) -> int:
     aliases = getattr(jaxrobo.registry, "ALIASES", {})
     for old, new in sorted(aliases.items()):
         print(f"  {old:28s} deprecated name of {new}")
-    print("agents: " + ", ".join(agents.LEARNERS))
+    print("agents: " + ", ".join(registry.learners()))
     return 0
 
 

@@ -25,7 +25,7 @@ from agents.tabular import AgentParams
 from jaxrobo import discretise
 from jaxrobo.config import ConfigError, as_dict, flat_keys, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env
-from jaxrobo.registry import _lookup, make
+from jaxrobo.registry import _lookup, learner, learners, make
 from jaxrobo.struct import INT32_MAX, Rule, rules
 from jaxrobo.train import TrainConfig
 
@@ -147,14 +147,12 @@ def check_combinations(config: TrainConfig, given: Mapping[str, Any], where: str
     discretiser mode does not use is refused unless it equals the default (a saved run's config lists every
     field, so it must resolve again).
     """
-    import agents
-
     loc = f"{where}: " if where else ""
     defaults = TrainConfig()
-    if config.seed_compat and agents.get(config.agent).n_tables > 1:
+    if config.seed_compat and learner(config.agent).n_tables > 1:
         raise ConfigError(f"{loc}agent={config.agent!r} with seed_compat=true: the seed's learners had one table "
                           f"and {config.agent} has no seed form; set seed_compat=false or agent to one of "
-                          + ", ".join(n for n, lr in agents.LEARNERS.items() if lr.n_tables == 1))
+                          + ", ".join(n for n, lr in learners().items() if lr.n_tables == 1))
     unused = list(_UNUSED_BY_MODE[config.discretiser])
     if config.discretiser == "bins" and config.bins is not None:
         unused.append("number_splits")

@@ -27,10 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import agents
 from agents import tabular
 from agents.tabular import AgentParams, AgentState, Learner
-from jaxrobo import autoreset, budget, rng, rollout, rundir
+from jaxrobo import autoreset, budget, registry, rng, rollout, rundir
 from jaxrobo.config import flat_keys
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState, LearningTarget, default_env_group, step_batch
@@ -41,7 +40,7 @@ from jaxrobo.struct import param, pytree_dataclass
 class TrainConfig:
     """How a run is shaped (static: these fix array shapes and code paths)."""
 
-    agent: str = param("qlearn", choices=tuple(agents.LEARNERS), static=True, doc="tabular learner")
+    agent: str = param("qlearn", choices=tuple(registry.learners()), static=True, doc="tabular learner")
     n_envs: int = param(64, low=1, static=True, doc="independent copies of the experiment run at once")
     nepisodes: int = param(1000, low=1, static=True, doc="episodes per environment")
     nsteps: int = param(1000, low=1, static=True, doc="step cap per episode in the training loop")
@@ -102,7 +101,7 @@ class Trainer:
                  learner: Learner | None = None):
         self.env = env
         self.config = config
-        self.learner = learner or agents.get(config.agent)
+        self.learner = learner or registry.learner(config.agent)
         self.disc = discretiser or make_discretiser_for(env, config)
         self.n_actions = env.num_actions
         #: Most envs reset per step by gathering them (see ``_reset_done``); a step with more resets them all.

@@ -43,15 +43,6 @@ LEARNER_PROTOCOL = "agents.tabular"
 #: Edges that break the rules today and are being removed by work on other modules; each names what removes it.
 #: Nothing else may be added here: a new forbidden edge fails the test.
 ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {
-    # The concrete learners through the registry: `agents.LEARNERS` / `agents.get(name)` become
-    # `jaxrobo.registry.learners()` / `jaxrobo.registry.learner(name)` at these call sites.
-    ("jaxrobo.train", "agents"): "TrainConfig.agent choices and Trainer.__init__: registry.learners()/learner()",
-    ("jaxrobo.run", "agents"): "run.resolve's seed_compat check: registry.learner()/learners()",
-    ("jaxrobo.budget", "agents"): "budget.check_memory's n_tables: registry.learner(config.agent)",
-    ("jaxrobo.cli", "agents"): "`jaxrobo list`: registry.learners()",
-    # Greedy rollouts move out of envs/quadcopter_goto.py into jaxrobo/rollout.py (rollout/evaluation module).
-    ("jaxrobo.flights", "envs.quadcopter_goto"): "flights' rollouts: from jaxrobo.rollout instead",
-    ("envs.quadcopter_goto", "agents.tabular"): "greedy_policy's tie-breaking: the rollout module's greedy rule",
     # Rendering's episode loop takes the adapter's jitted reset/step; the rollout/evaluation module gives it its own.
     ("jaxrobo.render", "jaxrobo.gym_adapter"): "render.rollout_frames: compiled reset/step from jaxrobo.rollout",
 }
