@@ -343,6 +343,7 @@ class TrainResult:
     complete: bool = True
     chunks_done: int = 0
     episodes_done: np.ndarray | None = None  # [n_envs] finished episodes per env
+    plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it)
 
     @property
     def steps_per_second(self) -> float:
@@ -368,6 +369,8 @@ class TrainResult:
             "run_seconds": round(self.run_seconds, 3),
             "env_steps_per_second": round(self.steps_per_second, 1),
         }
+        if self.plan is not None:
+            out["execution_plan"] = self.plan
         if self.eval_lengths is not None and self.eval_lengths.size:
             out["eval_mean_length"] = float(self.eval_lengths.mean())
             out["eval_mean_return"] = float(self.eval_returns.mean())
@@ -492,7 +495,7 @@ def _train(trainer: Trainer, agent_params: AgentParams | None, env_params: Any, 
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=run_seconds, eval_returns=eval_returns, eval_lengths=eval_lengths,
         selected=selected, complete=not stopped, chunks_done=chunks_done,
-        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes))
+        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes), plan=repr(trainer.plan))
 
 
 # ---- checkpoints -------------------------------------------------------------------------------------------------

@@ -145,6 +145,7 @@ def test_train_under_another_plan_gives_the_recorded_values(monkeypatch):
     monkeypatch.setattr(mjx_lean, "choose", spy_choose)
     r = train(spec.env, spec.config, spec.agent_params, plan=plan)
     assert built == [plan] and chosen and not any(chosen)
+    assert r.summary()["execution_plan"] == repr(plan)  # summary.json says how the run ran
     h = hashlib.sha256()
     for arr in (r.q, r.returns, r.lengths, r.terminated, r.nan_episodes, np.int64(r.env_steps),
                 r.eval_returns, r.eval_lengths):
