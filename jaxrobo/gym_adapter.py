@@ -326,6 +326,9 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
     returns its first observation with reward 0, ``terminated=truncated=False``, ignoring its action (Gymnasium's
     ``AutoresetMode.NEXT_STEP``, the default of ``SyncVectorEnv``). ``info`` holds ``steps`` and ``physics_nan``
     with their ``_steps`` / ``_physics_nan`` masks (False for envs that were reset on this step).
+
+    ``plan``: a :class:`jaxrobo.plan.ExecutionPlan` for how the batch is stepped and compiled (default: the plan
+    for this env on the default device); it changes the compiled program, never the values.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 25}
