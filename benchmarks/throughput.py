@@ -93,16 +93,16 @@ def steps_for(n: int, gpu: bool, requested: int | None) -> int:
 
 
 # ---- jaxrobo rows ----------------------------------------------------------------------------------------------
-def env_rollout(env: Any, n: int, steps: int):
-    """``(state, key) -> (state, checksum)``: ``steps`` random-action steps of ``n`` auto-resetting envs."""
+def env_rollout(env: Any, n: int, steps: int, plan: Any):
+    """``(state, key) -> (state, checksum)``: ``steps`` random-action steps of ``n`` auto-resetting envs, stepped
+    as ``plan`` (a :class:`jaxrobo.plan.ExecutionPlan`) says."""
     import jax
     import jax.numpy as jnp
 
-    from jaxrobo.env import default_env_group, step_batch
+    from jaxrobo.plan import step_batch
     from jaxrobo.wrappers import AutoReset
 
     wrapped = AutoReset(env)
-    group = default_env_group(env)
     params = env.default_params
     n_actions = env.num_actions
 
@@ -113,7 +113,7 @@ def env_rollout(env: Any, n: int, steps: int):
         def body(c, k):
             s, acc = c
             a = jax.random.randint(k, (n,), 0, n_actions)
-            s = step_batch(wrapped, s, a, params, group)  # as the trainer steps them
+            s = step_batch(wrapped, s, a, params, plan)  # as the trainer steps them
             return (s, acc + s.reward), None
 
         (state, acc), _ = jax.lax.scan(body, (state, jnp.zeros(n, jnp.float32)), keys[1:])
@@ -153,13 +153,15 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
     spec = resolve(env_id, "default", overrides, agent=learner)
     env = spec.env
     trainer = Trainer(env, spec.config)
+    plan = trainer.plan  # the run's execution plan, for env-only rows too (they step the envs as training does)
+    row["execution_plan"] = repr(plan)
     state_shape = jax.eval_shape(env.reset, jax.random.key(0), env.default_params)
     row["env_state_bytes"] = _common.tree_bytes(state_shape)
     row["qtable_bytes"] = trainer.disc.n_states * env.num_actions * trainer.learner.n_tables * 4
     row["n_states"] = trainer.disc.n_states
     key = jax.random.key(0)
     if learner is None:
-        init, rollout = env_rollout(env, n, steps)
+        init, rollout = env_rollout(env, n, steps, plan)
         carry_shape = jax.eval_shape(init, key)
     else:
         ap, ep = spec.agent_params, env.default_params
@@ -173,14 +175,14 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
 
     if learner is None:
         carry = jax.jit(init)(key)
-        fn, compile_s, hit = _common.compile_timed(jax.jit(rollout, donate_argnums=0), carry, 0,
-                                                   cache_dir=ctx["cache"])
+        jitted = jax.jit(plan.traced(rollout), donate_argnums=0, compiler_options=plan.xla_options)
+        fn, compile_s, hit = _common.compile_timed(jitted, carry, 0, cache_dir=ctx["cache"])
         seconds, carry = _common.time_carry(lambda c, z: fn(c, z), carry, 0, repeats=args.repeats,
                                             min_seconds=MIN_SAMPLE_SECONDS)
     else:
         runner = jax.jit(trainer.init)(key, ap, ep)
-        chunk, compile_s, hit = _common.compile_timed(jax.jit(trainer.run_chunk, donate_argnums=0), runner, ap, ep,
-                                                      cache_dir=ctx["cache"])
+        jitted = jax.jit(plan.traced(trainer.run_chunk), donate_argnums=0, compiler_options=plan.xla_options)
+        chunk, compile_s, hit = _common.compile_timed(jitted, runner, ap, ep, cache_dir=ctx["cache"])
         # The chunk returns the whole carry, so all of it is computed. The tables' checksum (a full read of
         # them: 126 MB at 16,384 cart-pole envs, ~40 % of a 10-step call on 2 cores) is taken once, untimed.
         seconds, runner = _common.time_carry(lambda r, _: (chunk(r, ap, ep), None), runner, 0,
@@ -591,7 +593,8 @@ def _line(r: dict[str, Any]) -> str:
     if r.get("status") != "ok":
         return f"{head} {r.get('status')}: {r.get('reason', '')}"
     comp = f"compile {r['compile_s']:.1f}s{' (cache)' if r.get('compile_cached') else ''}" if "compile_s" in r else ""
-    return f"{head} {_fmt_rate(r['steps_per_s'])} steps/s {comp}"
+    plan = f" {r['execution_plan']}" if "execution_plan" in r else ""
+    return f"{head} {_fmt_rate(r['steps_per_s'])} steps/s {comp}{plan}"
 
 
 def table(rows: list[dict[str, Any]]) -> str:
@@ -619,6 +622,9 @@ def table(rows: list[dict[str, Any]]) -> str:
     lines.append("compile: * = served from the persistent cache; B/env = training carry (env state + Q-table + "
                  "records) per env; x = steps/s ratio (x brax: to Brax inverted_pendulum/mjx at the same n_envs); "
                  "dt = physics step (s) where it differs from the default")
+    plans = list(dict.fromkeys(r["execution_plan"] for r in rows if r.get("execution_plan")))
+    if plans:
+        lines.append("jaxrobo rows ran under " + "; ".join(plans))
     parts = {r.get("part", 0) for r in rows}
     if len(parts) > 1:
         lines.append(f"rows from {len(parts)} runs merged with --append (the JSON's meta.parts has their commands)")

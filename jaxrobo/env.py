@@ -23,7 +23,7 @@ ends the episode, and flags it, if the physics produced a non-finite number, so 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -203,22 +203,7 @@ class TaskEnv(Env):
         return EnvState(pipeline_state, obs, reward, terminated, truncated, steps, task, state.key, ~ok)
 
 
-# ---- stepping a batch ------------------------------------------------------------------------------------------
-#: Envs that :func:`step_batch` steps together on a GPU when the env runs on MJX; larger batches run as groups
-#: of this size one after another (H100, MJX cart-pole with Q-learning, lean MJX, 100-step chunks: at 1,048,576
-#: envs 99.9 M env-steps/s as one batch, 110.6 M in groups of 262,144, 109.0 M of 131,072, 104.4 M of 65,536;
-#: at 262,144 envs 110.5 M as one batch, 104.4 M in groups of 65,536: benchmarks/results/h100/env_groups.txt).
-#: Most likely a step's intermediates fall out of the L2 cache beyond that size (a reading, not profiled).
-GPU_ENV_GROUP = 262_144
-#: Groups that :func:`map_groups` writes out one after another with static slices (more run in a loop over
-#: blocks of this many). Written out, XLA fuses each group's slicing into the code around it and needs no loop
-#: (H100, 262,144 cart-poles with Q-learning, stock MJX, in groups of 65,536: 86.1 M env-steps/s in a loop of
-#: dynamic slices, 91.4 M written out, same tables); each group written out is one more copy of the step to
-#: compile (1,048,576 envs in groups of 262,144, lean MJX: 110.6 M after 51 s of compile with 4 written out,
-#: 104.5 M after 12 s with 1).
-UNROLLED_GROUPS = 4
-
-
+# ---- the layers of a wrapped env ---------------------------------------------------------------------------
 def layers(env: Env) -> list[Env]:
     """The env and every env it wraps (wrappers hold theirs in ``.env``), outermost first."""
     out = [env]
@@ -231,74 +216,3 @@ def simulator_of(env: Env) -> Any:
     """The simulator under an env and its wrappers, or None for an env without a robot (e.g. a closed form)."""
     robot = getattr(layers(env)[-1], "robot", None)
     return None if robot is None else robot.sim
-
-
-def default_env_group(env: Env) -> int | None:
-    """How many envs :func:`step_batch` should step at once: :data:`GPU_ENV_GROUP` for MJX on a GPU, otherwise
-    None (the whole batch). Not for Brax's pipelines, which ran slower in groups (H100, cart-pole env steps at
-    1,048,576 envs, whole batch in session 12 against groups in session 13: generalized 56 -> 33 M/s, spring
-    103 -> 92 M/s, positional 51 -> 50 M/s), nor for a closed form (one fused kernel) or a CPU (nothing
-    measurable to gain)."""
-    sim = simulator_of(env)
-    if jax.default_backend() == "gpu" and sim is not None and sim.backend == "mjx":
-        return GPU_ENV_GROUP
-    return None
-
-
-def _rows_of(tree: Any) -> int:
-    return jax.tree.leaves(tree)[0].shape[0]
-
-
-def _written_out(fn: Callable[[Any], Any], tree: Any, group: int) -> Any:
-    """``fn`` over consecutive static slices of ``group`` rows (the last one shorter if need be), in order."""
-    n = _rows_of(tree)
-    for start in range(0, n, group):
-        rows = slice(start, min(n, start + group))
-        part = fn(jax.tree.map(lambda x, rows=rows: x[rows], tree))
-        tree = jax.tree.map(lambda x, y, rows=rows: x.at[rows].set(y), tree, part)
-    return tree
-
-
-def map_groups(fn: Callable[[Any], Any], tree: Any, group: int | None, unrolled: int | None = None) -> Any:
-    """``fn`` applied to consecutive slices of ``group`` rows of ``tree`` (its leaves share a leading axis), one
-    slice after another, each result written back in place; ``fn`` keeps the tree's structure and shapes. With
-    ``group`` None or not smaller than the batch, simply ``fn(tree)``. For work whose rows are independent (an
-    env step), so the values are those of ``fn(tree)``.
-
-    A batch of up to ``unrolled`` groups (default :data:`UNROLLED_GROUPS`) has them written out with static
-    slices; a larger one runs blocks of ``unrolled`` groups in a ``fori_loop`` of dynamic slices and updates,
-    then the rows left over written out. In place, not ``lax.map``, whose stacked output would hold the tree
-    twice (and which cannot reshape the zero-size leaves of an MJX state's ``act``)."""
-    n = _rows_of(tree)
-    if group is None or group >= n:
-        return fn(tree)
-    unrolled = UNROLLED_GROUPS if unrolled is None else unrolled
-    if unrolled < 1:
-        raise ValueError(f"unrolled={unrolled}: expected an integer >= 1")
-    block = group * unrolled  # rows per loop iteration
-    if n <= block:
-        return _written_out(fn, tree, group)
-    n_blocks = n // block
-
-    def one(i, t):
-        start = i * block
-        part = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, block), t)
-        done = _written_out(fn, part, group)
-        return jax.tree.map(lambda x, y: jax.lax.dynamic_update_slice_in_dim(x, y, start, 0), t, done)
-
-    tree = jax.lax.fori_loop(0, n_blocks, one, tree)
-    head = n_blocks * block
-    if head == n:
-        return tree
-    tail = _written_out(fn, jax.tree.map(lambda x: x[head:], tree), group)
-    return jax.tree.map(lambda x, y: x.at[head:].set(y), tree, tail)
-
-
-def step_batch(env: Env, states: EnvState, actions: jax.Array, params: Any = None,
-               group: int | None = None) -> EnvState:
-    """``env.step`` over a batch (the leading axis): vmapped over all of it, or with ``group`` set and smaller
-    than the batch, vmapped over ``group`` envs at a time (:func:`map_groups`). Each env's step does not depend
-    on the others, so the values are the same (bit for bit in the tests and on an H100; XLA may round a last bit
-    differently when it compiles the code around the step differently, as at optimisation level 0)."""
-    batch = jax.vmap(lambda s, a: env.step(s, a, params))
-    return map_groups(lambda sa: (batch(*sa), sa[1]), (states, actions), group)[0]

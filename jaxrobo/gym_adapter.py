@@ -97,18 +97,19 @@ def _pack(state: Any) -> Any:
 
 @dataclasses.dataclass
 class _Compiled:
-    """Jitted single and batched reset/step of one env; params are arguments, so one compile serves all."""
+    """Jitted single and batched reset/step of one env; params are arguments, so one compile serves all. Each
+    function is traced under ``plan`` (a :class:`jaxrobo.plan.ExecutionPlan`) and compiled with its options."""
 
     env: Any
+    plan: Any
 
     def __post_init__(self) -> None:
         import jax
         import jax.numpy as jnp
 
-        from jaxrobo.env import default_env_group, step_batch
+        from jaxrobo.plan import step_batch
 
-        env = self.env
-        group = default_env_group(env)
+        env, plan = self.env, self.plan
 
         def reset(key, params):
             state = env.reset(key, params)
@@ -128,7 +129,7 @@ class _Compiled:
         def vstep(states, needs_reset, actions, params):
             # Next-step autoreset: an env that finished on the previous step starts its next episode now, from the
             # key its state carried, and this step's action for it is ignored.
-            stepped = step_batch(env, states, actions, params, group)  # grouped on a GPU, as the trainer steps
+            stepped = step_batch(env, states, actions, params, plan)  # grouped on a GPU, as the trainer steps
 
             def with_resets(stepped):
                 from jaxrobo.autoreset import autoreset
@@ -138,27 +139,34 @@ class _Compiled:
             new = jax.lax.cond(jnp.any(needs_reset), with_resets, lambda s: s, stepped)
             return new, new.terminated | new.truncated, jax.vmap(_pack)(new)
 
-        self.reset = jax.jit(reset)
-        self.step = jax.jit(step)
-        self.next_key = jax.jit(next_key)
-        self.vnext_key = jax.jit(jax.vmap(next_key))
-        self.vreset = jax.jit(vreset)
-        self.vstep = jax.jit(vstep, donate_argnums=(0,))
+        def jit(fn, **kw):
+            return jax.jit(plan.traced(fn), compiler_options=plan.xla_options, **kw)
+
+        self.reset = jit(reset)
+        self.step = jit(step)
+        self.next_key = jit(next_key)
+        self.vnext_key = jit(jax.vmap(next_key))
+        self.vreset = jit(vreset)
+        self.vstep = jit(vstep, donate_argnums=(0,))
 
 
 _CACHE: dict[Any, _Compiled] = {}
 
 
-def compiled_for(env: Any) -> _Compiled:
-    """The shared jitted functions of ``env``: keyed by class and options (static), so every adapter of the same
-    env configuration reuses one compilation whatever its parameters."""
+def compiled_for(env: Any, plan: Any = None) -> _Compiled:
+    """The shared jitted functions of ``env`` under ``plan`` (default: ``ExecutionPlan.for_run(env)``): keyed by
+    class, options (static) and plan, so every adapter of the same env configuration and plan reuses one
+    compilation whatever its parameters."""
+    from jaxrobo.plan import ExecutionPlan
+
+    plan = ExecutionPlan.for_run(env) if plan is None else plan
     try:
-        key = (type(env), env.options)
+        key = (type(env), env.options, plan)
         hash(key)
     except (AttributeError, TypeError):
-        return _Compiled(env)  # unhashable options: compile per instance
+        return _Compiled(env, plan)  # unhashable options: compile per instance
     if key not in _CACHE:
-        _CACHE[key] = _Compiled(env)
+        _CACHE[key] = _Compiled(env, plan)
     return _CACHE[key]
 
 
@@ -316,13 +324,16 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
     returns its first observation with reward 0, ``terminated=truncated=False``, ignoring its action (Gymnasium's
     ``AutoresetMode.NEXT_STEP``, the default of ``SyncVectorEnv``). ``info`` holds ``steps`` and ``physics_nan``
     with their ``_steps`` / ``_physics_nan`` masks (False for envs that were reset on this step).
+
+    ``plan``: a :class:`jaxrobo.plan.ExecutionPlan` for how the batch is stepped and compiled (default: the plan
+    for this env on the default device); it changes the compiled program, never the values.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 25}
 
     def __init__(self, env_id: str | None = None, num_envs: int = 1, render_mode: str | None = None, *,
                  env: Any = None, overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
-                 camera: str | int | None = None, **kwargs: Any):
+                 camera: str | int | None = None, plan: Any = None, **kwargs: Any):
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r}: expected an integer >= 1")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -335,7 +346,12 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self._n = int(self.single_action_space.n)
         self._obs_size = int(np.prod(self.single_observation_space.shape))
-        self._fns = compiled_for(self.jax_env)
+        from jaxrobo.plan import ExecutionPlan
+
+        #: How the batch is stepped (:class:`jaxrobo.plan.ExecutionPlan`; default: the plan for this env on the
+        #: default device, which steps large MJX batches on a GPU in groups, as the trainer does).
+        self.plan = ExecutionPlan.for_run(self.jax_env) if plan is None else plan
+        self._fns = compiled_for(self.jax_env, self.plan)
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
         self._render_args = (int(width), int(height), camera)

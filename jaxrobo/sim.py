@@ -6,8 +6,9 @@ on-board controller would; the "pause/unpause" of Gazebo has no equivalent becau
 
 The MJX state between steps is :class:`MjxState` (time, ``qpos``, ``qvel``, ``act``, warm start), not the whole
 ``mjx.Data``: each step rebuilds the rest, so batches, resets and the training carry move only what matters.
-MJX steps are traced under :func:`lean_mjx`, which computes one stage of ``mjx.step`` in a form XLA compiles
-better (the same values bit for bit).
+MJX steps are traced under :func:`jaxrobo.mjx_lean.lean` where the plan being traced wants it
+(:func:`jaxrobo.mjx_lean.wanted`): one stage of ``mjx.step`` in a form XLA compiles better, the same values bit
+for bit.
 
 Backends are small classes on :class:`Simulator`, which owns the substep loop (:meth:`Simulator.advance`):
 :class:`MjxSim` (``mjx``: MuJoCo MJX, the maintained engine and the default) and :class:`BraxPipelineSim` (one of
@@ -30,7 +31,6 @@ from __future__ import annotations
 import abc
 import contextlib
 import dataclasses
-import functools
 import importlib
 import io
 import math
@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from jaxrobo import mjx_lean
 from jaxrobo.struct import pytree_dataclass
 
 Controller = Callable[[Any, jax.Array], jax.Array]
@@ -62,62 +63,6 @@ def quiet_imports():
 
 with quiet_imports():
     from mujoco import mjx  # noqa: E402
-
-    try:  # MJX internals that lean_mjx replaces a stage of; without them MJX runs as it is
-        from mujoco.mjx._src import math as _mjx_math
-        from mujoco.mjx._src import smooth as _mjx_smooth
-    except ImportError:  # pragma: no cover - another MJX layout
-        _mjx_math = _mjx_smooth = None
-    if not (hasattr(_mjx_smooth, "com_pos") and hasattr(_mjx_math, "matmul_unroll")):  # pragma: no cover
-        _mjx_math = _mjx_smooth = None
-
-#: Trace MJX steps under :func:`lean_mjx` (benchmarks turn it off to measure MJX as it is).
-LEAN_MJX = True
-#: The upper triangle of a 3x3 inertia, in the order of MJX's ``cinert`` (xx, yy, zz, xy, xz, yz).
-_TRIU = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-
-
-def _com_pos_static_triu(com_pos: Callable, m: Any, d: Any) -> Any:
-    """MJX's ``smooth.com_pos`` (``com_pos``), with the body inertias ``cinert`` computed again with their upper
-    triangle taken by static indices. MJX takes it with an index-array gather; XLA fuses the 3x3 matrix
-    products into that gather and recomputes them for each of the six entries it reads. On an H100 that gather
-    was ~20 % of a cart-pole step at 65,536 envs and ~40 % at 262,144, where its operands no longer fit
-    in the L2 cache. Here the same arithmetic in the same order (the same values bit for bit, tested), and
-    XLA drops MJX's own ``cinert`` as dead code. Models on another MJX implementation (Warp) pass through."""
-    d = com_pos(m, d)
-    if m.impl != mjx.Impl.JAX:
-        return d
-    offset = d.xipos - d.subtree_com[m.body_rootid]
-
-    def inert_com(inertia, ximat, off, mass):
-        h = jnp.cross(off, -jnp.eye(3))
-        inert = _mjx_math.matmul_unroll(ximat * inertia, ximat.T)
-        inert += _mjx_math.matmul_unroll(h, h.T) * mass
-        triu = jnp.stack([inert[i, j] for i, j in _TRIU])
-        return jnp.concatenate([triu, off * mass, mass[None]])
-
-    cinert = jax.vmap(inert_com)(m.body_inertia, d.ximat, offset, m.body_mass)
-    return d.tree_replace({"_impl.cinert": cinert})
-
-
-@contextlib.contextmanager
-def lean_mjx():
-    """While tracing MJX code inside this block, ``mjx.step``/``mjx.forward`` compute the body inertias with
-    :func:`_com_pos_static_triu` (H100, MJX cart-pole with Q-learning: 88.7 -> 104.2 M env-steps/s at 65,536
-    envs, 72 -> 111 M at 262,144; same Q-tables). It swaps MJX's ``smooth.com_pos`` for the block's duration,
-    so MJX code traced elsewhere (Brax's pipelines, the benchmarks' peers) is untouched; a thread tracing MJX
-    at the same time would get the same values. A no-op with :data:`LEAN_MJX` off or another MJX layout."""
-    if not LEAN_MJX or _mjx_smooth is None or getattr(_mjx_smooth.com_pos, "jaxrobo_lean", False):
-        yield
-        return
-    original = _mjx_smooth.com_pos
-    lean = functools.partial(_com_pos_static_triu, original)
-    lean.jaxrobo_lean = True
-    _mjx_smooth.com_pos = lean
-    try:
-        yield
-    finally:
-        _mjx_smooth.com_pos = original
 
 
 @pytree_dataclass
@@ -259,11 +204,11 @@ class MjxSim(Simulator):
         """The full ``mjx.Data`` of an MJX state, with every derived quantity (body poses, velocities, sensors)
         computed by ``mjx.forward`` on the integrated model (``physics_only``: no visual geoms): for tasks that
         read more than ``qpos``/``qvel``."""
-        with lean_mjx():
+        with mjx_lean.lean(mjx_lean.wanted()):
             return mjx.forward(self.model, self._data0.replace(**state.fields()))
 
     def physics_step(self, state: MjxState, ctrl: jax.Array) -> MjxState:
-        with lean_mjx():
+        with mjx_lean.lean(mjx_lean.wanted()):
             return MjxState.of(mjx.step(self.model, self._data0.replace(ctrl=ctrl, **state.fields())))
 
 

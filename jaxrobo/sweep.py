@@ -51,14 +51,13 @@ from jaxrobo import budget
 from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value
 from jaxrobo.run import KeyRoute, resolve, route
 from jaxrobo.struct import INT32_MAX, rules
+from jaxrobo.plan import ExecutionPlan
 from jaxrobo.train import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
 METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
            "episodes_done", "env_steps", "physics_nan_episodes", "eval_mean_length", "eval_mean_return")
 NOT_SWEPT = ("seed",)  # the seed axis is --seeds
-#: XLA options for the sweep's compiles (tests lower the optimisation level to compile faster).
-COMPILER_OPTIONS: dict[str, Any] | None = None
 
 
 # ---- what a key is -------------------------------------------------------------------------------------------
@@ -187,10 +186,11 @@ def _row_metrics(runner: Runner, n_last: int) -> dict[str, jax.Array]:
 
 
 class GroupRunner:
-    """The compiled sweep of one static group: ``init`` / ``run_chunk`` vmapped over the row axis."""
+    """The compiled sweep of one static group: ``init`` / ``run_chunk`` vmapped over the row axis, compiled
+    with the trainer's plan (``trainer.plan``: its compiler options, traced under it)."""
 
     def __init__(self, trainer: Trainer, n_rows: int, mesh: Any = None, eval_episodes: int = 0,
-                 n_last: int = 100, compiler_options: dict[str, Any] | None = None):
+                 n_last: int = 100):
         from jaxrobo import sharding
 
         if not trainer.config.record_episodes:
@@ -200,7 +200,6 @@ class GroupRunner:
         self.eval_episodes, self.n_last = eval_episodes, n_last
         self.compile_seconds = self.run_seconds = 0.0
         self.complete = False
-        self.options = COMPILER_OPTIONS if compiler_options is None else compiler_options
 
     def _init(self, key_data, agent_params, env_params):
         keys = jax.random.wrap_key_data(key_data)
@@ -233,13 +232,16 @@ class GroupRunner:
         host = sharding.pad_rows((key_data, agent_params, env_params), n)
         kd, ap, ep = sharding.put_batch(host, mesh)
         t0 = time.perf_counter()
-        opts = self.options
-        init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
-        runner = init.lower(kd, ap, ep).compile()(kd, ap, ep)
-        chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,), compiler_options=opts)
-        chunk = chunk.lower(runner, ap, ep).compile()
-        finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
-        finish = finish.lower(runner, kd, ep).compile()
+        plan = self.trainer.plan
+        opts = plan.xla_options
+        with plan.tracing():
+            init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
+            runner = init.lower(kd, ap, ep).compile()(kd, ap, ep)
+            chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,),
+                                         compiler_options=opts)
+            chunk = chunk.lower(runner, ap, ep).compile()
+            finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
+            finish = finish.lower(runner, kd, ep).compile()
         episodes = jax.jit(lambda r: jnp.min(r.episode))
         jax.block_until_ready(runner)
         self.compile_seconds = time.perf_counter() - t0
@@ -320,7 +322,7 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
         raise ConfigError("--seeds: need at least one seed")
     seeds = [int(s) for s in seeds]
     swept, kinds, checked, groups = plan_groups(env_id, points)
-    options = COMPILER_OPTIONS if compiler_options is None else compiler_options
+    options = None if compiler_options is None else dict(compiler_options)
     planned = []
     for g, (static, members) in enumerate(groups.items()):
         spec = resolve(env_id, preset, {**overrides, **dict(static)}, agent=agent)
@@ -413,8 +415,9 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
             if should_stop is not None and should_stop():
                 raise SweepInterrupted(len(saved), len(planned), state_dir)
             key_data = np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for (_, s, _) in meta])
-            trainer = Trainer(spec.env, spec.config)
-            group = GroupRunner(trainer, len(meta), mesh, plan.eval_episodes, plan.n_last, plan.compiler_options)
+            execution = ExecutionPlan.for_run(spec.env, spec.config, compiler_options=plan.compiler_options)
+            trainer = Trainer(spec.env, spec.config, plan=execution)
+            group = GroupRunner(trainer, len(meta), mesh, plan.eval_episodes, plan.n_last)
             log(f"group {g + 1}/{len(planned)} [{label}]: {len(p.configs)} configs × {len(plan.seeds)} seeds × "
                 f"{spec.config.n_envs} envs, {spec.config.nepisodes} episodes ≤ {spec.config.nsteps} steps")
             try:
@@ -812,17 +815,18 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
     return [{**g, **s} for g in grid for s in sample]
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, *, compiler_options: Mapping[str, Any] | None = None) -> int:
     """``jaxrobo sweep`` (see :func:`_run`); Ctrl-C before the sweep's own handlers are in place exits with 130
-    and one line (nothing is half-written: the state and the results are written atomically)."""
+    and one line (nothing is half-written: the state and the results are written atomically).
+    ``compiler_options``: XLA options for every group's plan (part of the sweep's saved settings)."""
     try:
-        return _run(args)
+        return _run(args, compiler_options)
     except KeyboardInterrupt:
         print("jaxrobo sweep: interrupted", file=sys.stderr)
         return 128 + signal.SIGINT
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = None) -> int:
     """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best.
 
     The sweep's state (``status.json``, ``sweep_state.json``, ``checkpoint.npz`` with the finished groups) lives
@@ -853,7 +857,8 @@ def _run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--seed {f.seed} --seeds {f.seeds}: the seeds run from --seed to --seed + --seeds - 1, "
                               f"which must lie in [0, {INT32_MAX}]")
         seeds = list(range(f.seed, f.seed + f.seeds))
-        plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes)
+        plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes,
+                          compiler_options=compiler_options)
         if args.resume is not None:
             open_state(live, plan)  # refuses a state of other settings or code before anything compiles
         mesh = None
@@ -940,10 +945,10 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, compiler_options: Mapping[str, Any] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="jaxrobo sweep", description=__doc__.split("\n\n")[0])
     configure_parser(parser)
-    return run(parser.parse_args(argv))
+    return run(parser.parse_args(argv), compiler_options=compiler_options)
 
 
 if __name__ == "__main__":

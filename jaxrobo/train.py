@@ -32,7 +32,8 @@ from agents.tabular import AgentParams, AgentState, Learner
 from jaxrobo import autoreset, budget, registry, rng, rollout, rundir
 from jaxrobo.config import flat_keys
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
-from jaxrobo.env import Env, EnvState, LearningTarget, default_env_group, step_batch
+from jaxrobo.env import Env, EnvState, LearningTarget
+from jaxrobo.plan import ExecutionPlan, step_batch
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -59,7 +60,7 @@ class TrainConfig:
     eval_episodes: int = param(100, low=0, static=True, doc="greedy evaluation episodes per evaluated table")
     eval_envs: int = param(8, low=1, static=True, doc="how many trained tables to evaluate")
     env_group: int = param(0, low=0, static=True,
-                           doc="envs stepped together, group after group (0: automatic, see Trainer.env_group)")
+                           doc="envs stepped together, group after group (0: automatic, see ExecutionPlan)")
 
 
 @pytree_dataclass
@@ -98,32 +99,45 @@ class Trainer:
     """Pure ``init`` / ``run_chunk`` / ``evaluate`` for one env, learner, discretiser and config."""
 
     def __init__(self, env: Env, config: TrainConfig, discretiser: Discretiser | None = None,
-                 learner: Learner | None = None):
+                 learner: Learner | None = None, *, plan: ExecutionPlan | None = None):
+        """``plan``: how the run is executed (:class:`jaxrobo.plan.ExecutionPlan`; default: the plan for this env
+        and config on the default device). It changes the compiled program, never the values."""
         self.env = env
         self.config = config
         self.learner = learner or registry.learner(config.agent)
         self.disc = discretiser or make_discretiser_for(env, config)
         self.n_actions = env.num_actions
-        #: Most envs reset per step by gathering them (see ``_reset_done``); a step with more resets them all.
-        #: On a CPU an eighth of the batch; on accelerators the whole batch, i.e. the plain select: there the
-        #: gather/scatter and the branch cost more than the resets they save (H100: 61 M vs 73 M env-steps/s).
-        cpu = jax.default_backend() == "cpu"
-        self.reset_capacity = -(-config.n_envs // 8) if cpu else config.n_envs
-        #: Carry each env's table rows at its state (``Runner.q_rows``): one table read a step instead of three,
-        #: which on a CPU are cache misses (2-core CPU: ~85 -> ~68 ns a step at 16 k cart-pole envs). Not on
-        #: accelerators, where the reads are cheap and XLA may copy the whole tables each step to keep the
-        #: pre-update rows (H100, 65 k envs: 1.3 G -> 89 M env-steps/s), nor with a shared table, whose rows
-        #: other envs change. Either way the values are the same (tested).
-        self.carry_rows = cpu and not config.shared_table
-        #: Envs stepped at once (:func:`jaxrobo.env.step_batch`; None: the whole batch): on a GPU an MJX batch
-        #: steps as groups of :data:`jaxrobo.env.GPU_ENV_GROUP` envs. Only the env step: training a group's whole
-        #: chunk of steps before the next group's (tried on an H100, 262,144 cart-poles with Q-learning, stock MJX
-        #: in groups of 65,536) gained 2 % with 100-step chunks (88 vs 86 M env-steps/s) but lost 5 % with the
-        #: 15-step chunks of throughput.py (83 M), as each group's 500 MB of Q-tables is copied out and back per
-        #: chunk.
-        self.env_group = config.env_group or default_env_group(env)
+        self.plan = ExecutionPlan.for_run(env, config) if plan is None else plan
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
+
+    # ---- the plan's choices the step reads (assigning one replaces the plan) --------------------------------
+    @property
+    def env_group(self) -> int | None:
+        """Envs stepped at once (``plan.env_group``; None: the whole batch)."""
+        return self.plan.env_group
+
+    @env_group.setter
+    def env_group(self, value: int | None) -> None:
+        self.plan = self.plan.replace(env_group=value)
+
+    @property
+    def reset_capacity(self) -> int:
+        """Most envs reset per step by gathering them (``plan.reset_capacity``; None there: every env)."""
+        return self.config.n_envs if self.plan.reset_capacity is None else self.plan.reset_capacity
+
+    @reset_capacity.setter
+    def reset_capacity(self, value: int | None) -> None:
+        self.plan = self.plan.replace(reset_capacity=value)
+
+    @property
+    def carry_rows(self) -> bool:
+        """Carry each env's table rows at its state (``plan.carry_rows``; never with a shared table)."""
+        return self.plan.carry_rows and not self.config.shared_table
+
+    @carry_rows.setter
+    def carry_rows(self, value: bool) -> None:
+        self.plan = self.plan.replace(carry_rows=value)
 
     # ---- building blocks -------------------------------------------------------------------------------
     def _rows(self, agent, s, envs=None):
@@ -206,7 +220,7 @@ class Trainer:
         q_s = self._rows(runner.agent, runner.s) if runner.q_rows is None else runner.q_rows
         a = runner.action if learner.on_policy else self._select(k_act, q_s, runner.epsilon)
 
-        stepped = step_batch(self.env, runner.env_state, a, env_params, self.env_group)
+        stepped = step_batch(self.env, runner.env_state, a, env_params, self.plan)
         s2 = jax.vmap(self.disc)(stepped.obs)
         done = stepped.terminated | stepped.truncated | (stepped.steps >= c.nsteps)
         q_s2 = self._rows(runner.agent, s2)  # before the update: what the targets (and Sarsa's next action) see
@@ -292,6 +306,7 @@ class TrainResult:
     episodes_done: np.ndarray | None = None  # [n_envs] finished episodes per env
     #: The task's declared target (:class:`jaxrobo.env.LearningTarget`; None: no target), for :meth:`summary`.
     learning_target: LearningTarget | None = None
+    plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it)
 
     @property
     def steps_per_second(self) -> float:
@@ -321,6 +336,8 @@ class TrainResult:
         target = self.learning_target
         if target is not None:
             out["learning_target"] = target.description
+        if self.plan is not None:
+            out["execution_plan"] = self.plan
         if self.eval_lengths is not None and self.eval_lengths.size:
             out["eval_mean_length"] = float(self.eval_lengths.mean())
             out["eval_mean_return"] = float(self.eval_returns.mean())
@@ -342,11 +359,15 @@ ProgressFn = Callable[[int, int, float], None]
 def _compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, env_params: Any) -> Callable:
     """``trainer.run_chunk`` traced, lowered and compiled for ``runner``.
 
-    Traced afresh in every process and every call, so training runs the code as it is now in this process (a
-    patched physics step, a flipped ``sim.LEAN_MJX``), exactly as evaluation does. A second start of the same
-    configuration still skips XLA: the persistent compilation cache (:mod:`jaxrobo.cache`) is keyed on the
-    lowered module, so it serves the executable only when the traced program is the same."""
-    return jax.jit(trainer.run_chunk, donate_argnums=0).lower(runner, agent_params, env_params).compile()
+    Traced afresh in every process and every call, under the trainer's plan (its compiler options, its
+    trace-time choices), so training runs the code as it is now in this process (a patched physics step, another
+    plan), exactly as evaluation does. A second start of the same configuration still skips XLA: the persistent
+    compilation cache (:mod:`jaxrobo.cache`) is keyed on the lowered module, so it serves the executable only
+    when the traced program is the same."""
+    plan = trainer.plan
+    with plan.tracing():
+        return jax.jit(trainer.run_chunk, donate_argnums=0, compiler_options=plan.xla_options).lower(
+            runner, agent_params, env_params).compile()
 
 
 CheckpointFn = Callable[[Runner, int], None]
@@ -355,7 +376,8 @@ CheckpointFn = Callable[[Runner, int], None]
 def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None, env_params: Any = None,
           progress: ProgressFn | None = None, *, initial: Runner | None = None, start_chunk: int = 0,
           checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
-          checkpoint_seconds: float | None = None, should_stop: Callable[[], bool] | None = None) -> TrainResult:
+          checkpoint_seconds: float | None = None, should_stop: Callable[[], bool] | None = None,
+          plan: ExecutionPlan | None = None) -> TrainResult:
     """Run a whole training; ``progress(episodes_done_min, nepisodes, mean_last_return)`` after each chunk.
 
     The host loop runs chunk after chunk from ``initial`` (a carry after ``start_chunk`` chunks, e.g. from
@@ -368,10 +390,23 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
     and when ``should_stop()`` says to stop: that is asked before each chunk, so a stop request finishes the
     current chunk, saves it through ``checkpoint`` and returns a result with ``complete=False`` (episodes so
     far, no evaluation). The library installs no signal handlers; the CLI's ``should_stop`` reads a flag its
-    SIGINT/SIGTERM handlers set. Evaluation runs only after the last chunk."""
+    SIGINT/SIGTERM handlers set. Evaluation runs only after the last chunk.
+
+    ``plan``: how the run is executed (default: :meth:`jaxrobo.plan.ExecutionPlan.for_run` of this env and
+    config); everything the run traces, training chunks and evaluation, is traced under it."""
+    trainer = Trainer(env, config, plan=plan)
+    with trainer.plan.tracing():
+        return _train(trainer, agent_params, env_params, progress, initial, start_chunk, checkpoint,
+                      checkpoint_every, checkpoint_seconds, should_stop)
+
+
+def _train(trainer: Trainer, agent_params: AgentParams | None, env_params: Any, progress: ProgressFn | None,
+           initial: Runner | None, start_chunk: int, checkpoint: CheckpointFn | None, checkpoint_every: int,
+           checkpoint_seconds: float | None, should_stop: Callable[[], bool] | None) -> TrainResult:
+    """:func:`train`'s body, run inside the plan's tracing block."""
+    env, config = trainer.env, trainer.config
     agent_params = agent_params or AgentParams()
     env_params = env.default_params if env_params is None else env_params
-    trainer = Trainer(env, config)
     # The CLI checked this in ``run.resolve``; a Python caller gets the same refusal before anything compiles.
     budget.check_memory(env, config, trainer.disc.n_states, where=env.name)
     key = jax.random.key(config.seed)
@@ -430,7 +465,8 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=run_seconds, eval_returns=eval_returns, eval_lengths=eval_lengths,
         selected=selected, complete=not stopped, chunks_done=chunks_done,
-        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes), learning_target=getattr(env, "learning_target", None))
+        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
+        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan))
 
 
 # ---- checkpoints -------------------------------------------------------------------------------------------------

@@ -166,48 +166,6 @@ def test_mjx_state_steps_like_the_full_data_and_forward_rebuilds_it():
         CartPoleRobot("effort", "analytic").sim.forward(state)
 
 
-@pytest.mark.parametrize("xml", ["cartpole.xml", "quadcopter.xml"])
-def test_lean_mjx_steps_bit_for_bit_like_mjx_and_only_inside_its_block(xml, monkeypatch):
-    """``lean_mjx`` (MJX's com_pos with cinert's upper triangle by static indices) gives what ``mjx.step`` gives,
-    bit for bit, body inertias included, on random states of both robots; outside the block, with LEAN_MJX off,
-    and nested, MJX's own ``com_pos`` is what runs."""
-    from jaxrobo import sim as sim_module
-
-    model = load_model(asset_path(xml), physics_only=True)
-    m, d0 = mjx.put_model(model), mjx.put_data(model, mujoco.MjData(model))
-    n = 16
-    qpos = d0.qpos + 0.3 * jax.random.normal(jax.random.key(1), (n, model.nq))
-    qvel = jax.random.normal(jax.random.key(2), (n, model.nv))
-    ctrl = jax.random.normal(jax.random.key(3), (n, model.nu))
-
-    def run(q, v, c):
-        d = d0.replace(qpos=q, qvel=v, ctrl=c)
-        for _ in range(10):
-            d = mjx.step(m, d)
-        return d.qpos, d.qvel, mjx.forward(m, d)._impl.cinert
-
-    stock = jax.jit(jax.vmap(run))(qpos, qvel, ctrl)
-    original = sim_module._mjx_smooth.com_pos
-
-    def lean_run(*args):
-        with sim_module.lean_mjx():
-            assert sim_module._mjx_smooth.com_pos is not original
-            with sim_module.lean_mjx():  # nested: one swap only
-                assert sim_module._mjx_smooth.com_pos.func is sim_module._com_pos_static_triu
-                assert sim_module._mjx_smooth.com_pos.args == (original,)
-            return run(*args)
-
-    lean = jax.jit(jax.vmap(lean_run))(qpos, qvel, ctrl)
-    assert sim_module._mjx_smooth.com_pos is original
-    assert np.abs(np.asarray(stock[2])).max() > 0.0
-    for a, b, name in zip(stock, lean, ("qpos", "qvel", "cinert")):
-        np.testing.assert_array_equal(np.asarray(b), np.asarray(a), name)
-
-    monkeypatch.setattr(sim_module, "LEAN_MJX", False)
-    with sim_module.lean_mjx():
-        assert sim_module._mjx_smooth.com_pos is original
-
-
 # ---- the closed-form backend --------------------------------------------------------------------------------
 def test_analytic_backend_matches_native_mujoco_to_float64_roundoff(x64_errors):
     for control_type in ("velocity", "position", "effort"):

@@ -68,13 +68,9 @@ def test_cli_rejects_bad_flags(tmp_path, capsys):
 def cli_sweep(tmp_path_factory):
     """A 2 × 2 grid (learner alpha × env pos_step) × 2 seeds through `jaxrobo sweep`, compiled once."""
     out = tmp_path_factory.mktemp("sweep")
-    old = sweep.COMPILER_OPTIONS
-    sweep.COMPILER_OPTIONS = FAST
-    try:
-        rc = sweep.main(["--env", ENV, "--agent", "qlearn", "--grid", "alpha=0.1,0.5", "--grid", "pos_step=0.016,0.03",
-                         "--seeds", "2", "--seed", "3", "--eval-episodes", "2", *TINY, "--out", str(out)])
-    finally:
-        sweep.COMPILER_OPTIONS = old
+    rc = sweep.main(["--env", ENV, "--agent", "qlearn", "--grid", "alpha=0.1,0.5", "--grid", "pos_step=0.016,0.03",
+                     "--seeds", "2", "--seed", "3", "--eval-episodes", "2", *TINY, "--out", str(out)],
+                    compiler_options=FAST)
     assert rc == 0
     with open(out / "sweep.csv") as f:
         rows = list(csv.DictReader(f))

@@ -27,9 +27,10 @@ ARGS = ["--env", ENV, "--agent", "qlearn", "--grid", "number_splits=4,6", "--gri
 TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds"}
 
 
-@pytest.fixture(autouse=True)
-def fast_compiles(monkeypatch):
-    monkeypatch.setattr(sweep, "COMPILER_OPTIONS", FAST)
+def _main(argv):
+    """``jaxrobo sweep`` with fast compiles (the options are part of the sweep's saved settings, so every call
+    passes the same)."""
+    return sweep.main(argv, compiler_options=FAST)
 
 
 def _untimed(obj):
@@ -60,12 +61,7 @@ def _finished_groups(path):
 def uninterrupted(tmp_path_factory):
     """The reference: the whole sweep in one go."""
     out = tmp_path_factory.mktemp("whole") / "sweep"
-    old = sweep.COMPILER_OPTIONS
-    sweep.COMPILER_OPTIONS = FAST
-    try:
-        assert sweep.main([*ARGS, "--out", str(out)]) == 0
-    finally:
-        sweep.COMPILER_OPTIONS = old
+    assert _main([*ARGS, "--out", str(out)]) == 0
     assert sorted(os.listdir(out)) == ["status.json", "summary.json", "sweep.csv"]  # no state, no staging left
     assert rundir.is_complete(str(out))
     assert not [p for p in os.listdir(out.parent) if p.endswith(".partial")]
@@ -84,7 +80,7 @@ def test_cli_interrupt_by_signal_then_resume(uninterrupted, tmp_path, monkeypatc
             signal.raise_signal(signal.SIGTERM)  # the handler only sets a flag; the sweep stops before group 2
 
     monkeypatch.setattr(sweep, "save_checkpoint", save_then_signal)
-    assert sweep.main([*ARGS, "--out", str(out)]) == 143
+    assert _main([*ARGS, "--out", str(out)]) == 143
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "SIGTERM" in err[0] and "1 of 2 groups" in err[0] and f"--resume {out}" in err[0]
     assert _finished_groups(out) == 1
@@ -97,18 +93,18 @@ def test_cli_interrupt_by_signal_then_resume(uninterrupted, tmp_path, monkeypatc
     for flags, name in ((["--seeds", "3"], "--seeds"), (["--grid", "alpha=0.2"], "--grid"),
                         (["--set", "chunk_steps=20"], "--set"), (["--overwrite"], "--overwrite"),
                         (["--out", str(tmp_path / "elsewhere")], "--out")):
-        assert sweep.main(["--resume", str(out), *flags]) == 2
+        assert _main(["--resume", str(out), *flags]) == 2
         assert name in capsys.readouterr().err
     assert _finished_groups(out) == 1 and not os.path.exists(tmp_path / "elsewhere")
 
     # Repeating a flag with its saved value is fine.
-    assert sweep.main(["--resume", str(out), "--seeds", "2", "--no-plots"]) == 0
+    assert _main(["--resume", str(out), "--seeds", "2", "--no-plots"]) == 0
     printed = capsys.readouterr().out
     assert "group 1/2 [number_splits=4]: finished before" in printed
     assert _outputs(out) == _outputs(uninterrupted)
     assert sorted(os.listdir(out)) == ["status.json", "summary.json", "sweep.csv"]
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
-    assert sweep.main(["--resume", str(out)]) == 2
+    assert _main(["--resume", str(out)]) == 2
     assert "complete, nothing to resume" in capsys.readouterr().err
 
 
@@ -121,8 +117,7 @@ def test_cli_sigint_in_a_subprocess(uninterrupted, tmp_path, capsys):
               f"jax.config.update('jax_compilation_cache_dir', {jax.config.jax_compilation_cache_dir!r})\n"
               "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.5)\n"
               "from jaxrobo import sweep\n"
-              f"sweep.COMPILER_OPTIONS = {FAST!r}\n"
-              f"sys.exit(sweep.main({[*ARGS, '--out', str(out)]!r}))\n")
+              f"sys.exit(sweep.main({[*ARGS, '--out', str(out)]!r}, compiler_options={FAST!r}))\n")
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
     proc = subprocess.Popen([sys.executable, "-c", script], cwd=root, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -142,7 +137,7 @@ def test_cli_sigint_in_a_subprocess(uninterrupted, tmp_path, capsys):
     assert len(lines) == 1 and "SIGINT" in lines[0] and "--resume" in lines[0], stderr
     assert "Traceback" not in stderr
     assert _finished_groups(out) == 1
-    assert sweep.main(["--resume", str(out)]) == 0  # with the saved --no-plots
+    assert _main(["--resume", str(out)]) == 0  # with the saved --no-plots
     assert sorted(os.listdir(out)) == sorted(os.listdir(uninterrupted))
     csv_text, summary = _outputs(out)
     ref_csv, ref_summary = _outputs(uninterrupted)
@@ -153,7 +148,7 @@ def test_cli_sigint_in_a_subprocess(uninterrupted, tmp_path, capsys):
 def _plan(**changes):
     kw = dict(points=[{"number_splits": s, "alpha": a} for s in (4, 6) for a in (0.1, 0.5)], seeds=[0, 1],
               agent="qlearn", overrides={"n_envs": 2, "nepisodes": 3, "nsteps": 30, "chunk_steps": 10,
-                                         "backend": "analytic", "bins": None}, eval_episodes=1)
+                                         "backend": "analytic", "bins": None}, eval_episodes=1, compiler_options=FAST)
     kw.update(changes)
     return sweep.plan_sweep(ENV, **kw)
 
@@ -208,10 +203,10 @@ def test_out_refused_before_compiling(uninterrupted, tmp_path, monkeypatch, caps
              (done, "--overwrite")]
     before = sorted(os.listdir(tmp_path))
     for out, why in cases:
-        assert sweep.main([*ARGS, "--out", str(out)]) == 2
+        assert _main([*ARGS, "--out", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"jaxrobo sweep: --out {out}") and why in err[0], err
-    assert sweep.main([*ARGS, "--resume", str(done)]) == 2
+    assert _main([*ARGS, "--resume", str(done)]) == 2
     assert "nothing to resume" in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path)) == before
     assert a_file.read_text() == "keep me" and os.listdir(foreign) == ["notes.txt"]
@@ -223,7 +218,7 @@ def test_overwrite_replaces_a_sweep(uninterrupted, tmp_path):
     out = tmp_path / "sweep"
     shutil.copytree(uninterrupted, out)
     one_group = [a if a != "number_splits=4,6" else "number_splits=4" for a in ARGS]
-    assert sweep.main([*one_group, "--out", str(out), "--overwrite"]) == 0
+    assert _main([*one_group, "--out", str(out), "--overwrite"]) == 0
     csv_text, summary = _outputs(out)
     assert summary["n_rows"] == 4 and len(csv_text.strip().splitlines()) == 5
     assert csv_text.splitlines()[1:] == _outputs(uninterrupted)[0].splitlines()[1:5]
@@ -248,10 +243,10 @@ def test_error_mid_group_keeps_finished_groups(error, uninterrupted, tmp_path, m
 
     monkeypatch.setattr(sweep.GroupRunner, "run", fail_second)
     if isinstance(error, KeyboardInterrupt):
-        assert sweep.main([*ARGS, "--out", str(out)]) == 130
+        assert _main([*ARGS, "--out", str(out)]) == 130
     else:
         with pytest.raises(RuntimeError, match="device lost"):
-            sweep.main([*ARGS, "--out", str(out)])
+            _main([*ARGS, "--out", str(out)])
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--resume {out}" in err[0]
     status = rundir.read_status(str(out))
@@ -259,7 +254,7 @@ def test_error_mid_group_keeps_finished_groups(error, uninterrupted, tmp_path, m
     assert isinstance(error, KeyboardInterrupt) or "device lost" in status["error"]
     assert _finished_groups(out) == 1
     monkeypatch.setattr(sweep.GroupRunner, "run", run)
-    assert sweep.main(["--resume", str(out)]) == 0
+    assert _main(["--resume", str(out)]) == 0
     assert _outputs(out) == _outputs(uninterrupted)
 
 
@@ -277,7 +272,7 @@ def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkey
             signal.raise_signal(signal.SIGINT)
 
     monkeypatch.setattr(sweep, "save_checkpoint", save_then_signal)
-    assert sweep.main([*ARGS, "--out", str(out), "--overwrite"]) == 130
+    assert _main([*ARGS, "--out", str(out), "--overwrite"]) == 130
     last = capsys.readouterr().err.strip().splitlines()[-1]
     (live,) = [p for p in os.listdir(tmp_path) if p.startswith(".sweep.") and p.endswith(".partial")]
     live = str(tmp_path / live)
@@ -285,6 +280,6 @@ def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkey
     assert json.loads((out / "summary.json").read_text()) == {"old": True}
     assert rundir.read_status(live)["out"] == str(out) and _finished_groups(live) == 1
     monkeypatch.setattr(sweep, "save_checkpoint", save)
-    assert sweep.main(["--resume", live]) == 0
+    assert _main(["--resume", live]) == 0
     assert _outputs(out) == _outputs(uninterrupted)
     assert not os.path.exists(live) and os.listdir(tmp_path) == ["sweep"]

@@ -74,42 +74,6 @@ def test_a_shared_table_run_steps_its_envs_in_groups_with_the_same_values():
     np.testing.assert_array_equal(grouped.q, whole.q)
 
 
-def test_map_groups_applies_fn_slice_by_slice():
-    import jax
-    import jax.numpy as jnp
-
-    from jaxrobo.env import map_groups
-
-    tree = {"x": jnp.arange(7.0), "y": jnp.arange(14).reshape(7, 2)}
-    # y grows by the number of rows fn saw at once, which shows the slicing
-    fn = lambda t: {"x": t["x"] * 2 + t["y"][:, 0], "y": t["y"] + t["x"].shape[0]}  # noqa: E731
-    for group, rows_seen in ((3, [3, 3, 3, 3, 3, 3, 1]), (7, [7] * 7), (8, [7] * 7), (None, [7] * 7)):
-        # groups written out (default 4 of them), in a loop of blocks of 1 or 2 groups, or all written out
-        for unrolled in (None, 1, 2, 8):
-            out = jax.jit(lambda t, g=group, u=unrolled: map_groups(fn, t, g, u))(tree)
-            np.testing.assert_array_equal(out["x"], fn(tree)["x"])
-            np.testing.assert_array_equal(out["y"], tree["y"] + np.array(rows_seen)[:, None])
-    with pytest.raises(ValueError, match="unrolled=0"):
-        map_groups(fn, tree, 3, unrolled=0)
-
-
-def test_env_group_defaults(monkeypatch):
-    import jax
-
-    from jaxrobo import env as env_module
-    from jaxrobo.config import ConfigError
-
-    mjx_env, closed_form, brax_env = (resolve("CartPoleStayUp-v0", overrides={"backend": b}).env
-                                      for b in ("mjx", "analytic", "generalized"))
-    assert env_module.default_env_group(mjx_env) is None  # CPU: the whole batch
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert env_module.default_env_group(mjx_env) == env_module.GPU_ENV_GROUP
-    assert env_module.default_env_group(closed_form) is None  # one fused kernel: no groups
-    assert env_module.default_env_group(brax_env) is None  # Brax's pipelines ran slower in groups
-    with pytest.raises(ConfigError, match="env_group"):
-        resolve("CartPoleStayUp-v0", overrides={"env_group": -1})
-
-
 @pytest.mark.parametrize("agent", ["sarsa", "expected_sarsa", "double_q"])
 def test_each_learner_trains(agent):
     r = _run(agent=agent)

@@ -1,0 +1,243 @@
+"""The execution plan: every choice that changes how fast a run goes and never what it computes.
+
+A run's speed choices (how many envs are stepped at once, whether MJX's inertia stage is replaced, how done
+envs are reset, whether table rows are carried, the XLA options) live in one frozen :class:`ExecutionPlan`,
+built once from the device and the run's config by :meth:`ExecutionPlan.for_run` and passed explicitly to
+whatever traces the run: :class:`jaxrobo.train.Trainer` (and so :func:`jaxrobo.train.train`), the sweep's
+compiled groups, :class:`jaxrobo.gym_adapter.JaxroboVectorEnv`, the benchmarks. Every choice gives the same
+values bit for bit (the tests compare them); what changes is the program XLA compiles. There are no
+module-global knobs: to measure another choice, build another plan (``plan.replace(lean_mjx=False)``).
+
+The plan acts while a program is traced: its fields are read by the code that builds the step
+(:func:`step_batch`, the trainer's step), and the one choice that sits deep under the pure
+``env.step(state, action, params)``, the MJX stage replacement, travels with :meth:`ExecutionPlan.tracing`, a
+block during which the simulator asks :func:`jaxrobo.mjx_lean.wanted` (see :mod:`jaxrobo.mjx_lean`). A jitted
+function traced once keeps the plan it was traced under, so build one jitted function per plan (a
+:class:`~jaxrobo.train.Trainer` per plan does that). ``repr(plan)`` is short, names every choice, and is the
+plan's tag in benchmark rows and run summaries. JAX's persistent compilation cache keys on the lowered program,
+so two plans never share a cached executable unless they lower to the same program. A checkpoint does not
+record the plan: the values do not depend on it (a carry written under one plan goes on under another, as
+long as the carry's structure, which ``carry_rows`` changes, is the same; the checkpoint checks that).
+
+Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
+:meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
+:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`step_batch` (``env.step`` over a batch, as
+the plan groups it) and :func:`map_groups` (any row-independent function, group after group). Names with a
+leading underscore are private.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+from typing import Any, Callable, Iterator, Mapping
+
+import jax
+
+from jaxrobo import mjx_lean
+from jaxrobo.env import Env, EnvState, simulator_of
+
+#: Envs stepped at once on a GPU when the env runs on MJX: beyond this size a step's intermediates no longer fit
+#: the GPU's L2 cache and larger batches ran slower as one batch than as groups of this size (a reading, not
+#: profiled; the measurements are in docs/benchmarks.md).
+_GPU_ENV_GROUP = 262_144
+
+
+def default_env_group(env: Env, backend: str | None = None) -> int | None:
+    """How many envs :func:`step_batch` steps at once when the config leaves it automatic: 262,144 for MJX on a
+    GPU, otherwise None (the whole batch). Not for Brax's pipelines, which ran slower in groups, nor for a closed
+    form (one fused kernel) or a CPU (nothing measurable to gain). ``backend``: JAX's platform name (default:
+    ``jax.default_backend()``)."""
+    backend = jax.default_backend() if backend is None else backend
+    sim = simulator_of(env)
+    if backend == "gpu" and sim is not None and sim.backend == "mjx":
+        return _GPU_ENV_GROUP
+    return None
+
+
+@dataclasses.dataclass(frozen=True, repr=False)
+class ExecutionPlan:
+    """How a run is executed; every choice keeps the values bit for bit.
+
+    ``env_group``: envs stepped at once by :func:`step_batch` (None: the whole batch as one ``vmap``); a larger
+    batch runs as consecutive groups of this many envs. Only the env step is grouped: the learner's work is cheap
+    per env and grouping it would copy each group's tables out and back.
+
+    ``unrolled_groups``: how many groups :func:`map_groups` writes out with static slices, which XLA fuses into
+    the code around them without a loop; more run in a loop over blocks of this many. Each group written out is
+    one more copy of the step to compile, so this trades compile time for speed.
+
+    ``lean_mjx``: trace MJX steps with the stage replacement of :mod:`jaxrobo.mjx_lean` (a no-op where it does
+    not apply).
+
+    ``reset_capacity``: most done envs a training step resets by gathering them, resetting them and scattering
+    them back; a step with more resets the whole batch. A reset under ``vmap`` costs a physics state and random
+    draws in every env although few are done, so gathering them pays where envs are expensive one by one (a CPU);
+    equal to ``n_envs`` (or None: every env) it is the plain select, cheaper where the gather/scatter and the
+    branch cost more than the resets they save (an accelerator).
+
+    ``carry_rows``: carry each env's table rows at its state in the training carry, so a step reads the tables
+    once instead of three times. That pays where the reads are cache misses (a CPU); on an accelerator the reads
+    are cheap and XLA may copy the whole tables each step to keep the rows from before the update, and with a
+    shared table other envs' updates would make the carried rows stale.
+
+    ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
+    accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
+    """
+
+    env_group: int | None = None
+    unrolled_groups: int = 4
+    lean_mjx: bool = True
+    reset_capacity: int | None = None
+    carry_rows: bool = False
+    compiler_options: tuple[tuple[str, Any], ...] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("env_group", "reset_capacity"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
+                raise ValueError(f"ExecutionPlan {name}={value!r}: expected None or an integer >= 1")
+        if not isinstance(self.unrolled_groups, int) or isinstance(self.unrolled_groups, bool) \
+                or self.unrolled_groups < 1:
+            raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
+        for name in ("lean_mjx", "carry_rows"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"ExecutionPlan {name}={getattr(self, name)!r}: expected True or False")
+        options = self.compiler_options
+        if options is not None:
+            pairs = options.items() if isinstance(options, Mapping) else options
+            try:
+                options = tuple(sorted((str(k), v) for k, v in pairs))
+                hash(options)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"ExecutionPlan compiler_options={self.compiler_options!r}: expected a mapping or "
+                                 f"(name, value) pairs of hashable values ({err})") from None
+            object.__setattr__(self, "compiler_options", options or None)
+
+    @classmethod
+    def for_run(cls, env: Env, config: Any = None, backend: str | None = None, *,
+                compiler_options: Mapping[str, Any] | None = None) -> "ExecutionPlan":
+        """The plan for training ``env`` with ``config`` (a :class:`jaxrobo.train.TrainConfig`: its ``n_envs``,
+        ``shared_table`` and ``env_group``) on ``backend`` (JAX's platform name; default
+        ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector
+        env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not
+        carried. ``compiler_options``: see the class docstring (XLA's defaults unless given)."""
+        backend = jax.default_backend() if backend is None else backend
+        cpu = backend == "cpu"
+        if config is None:
+            return cls(env_group=default_env_group(env, backend), compiler_options=compiler_options)
+        return cls(
+            # The config's env_group, 0 meaning automatic.
+            env_group=config.env_group or default_env_group(env, backend),
+            # Gather the done envs on a CPU (an eighth of the batch: few finish on any one step); the plain
+            # select on accelerators.
+            reset_capacity=-(-config.n_envs // 8) if cpu else config.n_envs,
+            # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
+            carry_rows=cpu and not config.shared_table,
+            compiler_options=compiler_options,
+        )
+
+    def replace(self, **changes: Any) -> "ExecutionPlan":
+        """A copy with some choices changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def xla_options(self) -> dict[str, Any] | None:
+        """``compiler_options`` as the dict ``jax.jit(..., compiler_options=...)`` takes (None: XLA's defaults)."""
+        return None if self.compiler_options is None else dict(self.compiler_options)
+
+    @contextlib.contextmanager
+    def tracing(self) -> Iterator["ExecutionPlan"]:
+        """A block whose traces follow this plan's trace-time choices (the MJX stage replacement); nests, and
+        is local to the thread or task that enters it."""
+        with mjx_lean.choose(self.lean_mjx):
+            yield self
+
+    def traced(self, fn: Callable) -> Callable:
+        """``fn``, run inside :meth:`tracing`: ``jax.jit(plan.traced(fn))`` traces ``fn`` under this plan."""
+
+        @functools.wraps(fn)
+        def under_plan(*args: Any, **kwargs: Any) -> Any:
+            with self.tracing():
+                return fn(*args, **kwargs)
+
+        return under_plan
+
+    def to_dict(self) -> dict[str, Any]:
+        """The choices as plain JSON values (``compiler_options`` as a dict)."""
+        out = dataclasses.asdict(self)
+        out["compiler_options"] = self.xla_options
+        return out
+
+    def __repr__(self) -> str:
+        def on(flag: bool) -> str:
+            return "on" if flag else "off"
+
+        parts = [f"env_group={'all' if self.env_group is None else self.env_group}",
+                 f"unrolled_groups={self.unrolled_groups}", f"lean_mjx={on(self.lean_mjx)}",
+                 f"reset_capacity={'all' if self.reset_capacity is None else self.reset_capacity}",
+                 f"carry_rows={on(self.carry_rows)}"]
+        if self.compiler_options is not None:
+            parts.append("compiler_options={" + ", ".join(f"{k}: {v!r}" for k, v in self.compiler_options) + "}")
+        return f"ExecutionPlan({', '.join(parts)})"
+
+
+# ---- stepping a batch ------------------------------------------------------------------------------------------
+def _rows_of(tree: Any) -> int:
+    return jax.tree.leaves(tree)[0].shape[0]
+
+
+def _written_out(fn: Callable[[Any], Any], tree: Any, group: int) -> Any:
+    """``fn`` over consecutive static slices of ``group`` rows (the last one shorter if need be), in order."""
+    n = _rows_of(tree)
+    for start in range(0, n, group):
+        rows = slice(start, min(n, start + group))
+        part = fn(jax.tree.map(lambda x, rows=rows: x[rows], tree))
+        tree = jax.tree.map(lambda x, y, rows=rows: x.at[rows].set(y), tree, part)
+    return tree
+
+
+def map_groups(fn: Callable[[Any], Any], tree: Any, group: int | None, unrolled: int) -> Any:
+    """``fn`` applied to consecutive slices of ``group`` rows of ``tree`` (its leaves share a leading axis), one
+    slice after another, each result written back in place; ``fn`` keeps the tree's structure and shapes. With
+    ``group`` None or not smaller than the batch, simply ``fn(tree)``. For work whose rows are independent (an
+    env step), so the values are those of ``fn(tree)``.
+
+    A batch of up to ``unrolled`` groups (:attr:`ExecutionPlan.unrolled_groups`) has them written out with
+    static slices; a larger one runs blocks of ``unrolled`` groups in a ``fori_loop`` of dynamic slices and
+    updates, then the rows left over written out. In place, not ``lax.map``, whose stacked output would hold the
+    tree twice (and which cannot reshape the zero-size leaves of an MJX state's ``act``)."""
+    n = _rows_of(tree)
+    if group is None or group >= n:
+        return fn(tree)
+    if unrolled < 1:
+        raise ValueError(f"unrolled={unrolled}: expected an integer >= 1")
+    block = group * unrolled  # rows per loop iteration
+    if n <= block:
+        return _written_out(fn, tree, group)
+    n_blocks = n // block
+
+    def one(i, t):
+        start = i * block
+        part = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, block), t)
+        done = _written_out(fn, part, group)
+        return jax.tree.map(lambda x, y: jax.lax.dynamic_update_slice_in_dim(x, y, start, 0), t, done)
+
+    tree = jax.lax.fori_loop(0, n_blocks, one, tree)
+    head = n_blocks * block
+    if head == n:
+        return tree
+    tail = _written_out(fn, jax.tree.map(lambda x: x[head:], tree), group)
+    return jax.tree.map(lambda x, y: x.at[head:].set(y), tree, tail)
+
+
+def step_batch(env: Env, states: EnvState, actions: jax.Array, params: Any, plan: ExecutionPlan) -> EnvState:
+    """``env.step`` over a batch (the leading axis), as ``plan`` says: vmapped over all of it, or with
+    ``plan.env_group`` set and smaller than the batch, vmapped over that many envs at a time (:func:`map_groups`),
+    traced under ``plan.tracing()``. Each env's step does not depend on the others, so the values are the same
+    (bit for bit in the tests and on an H100; XLA may round a last bit differently when it compiles the code
+    around the step differently, as at optimisation level 0)."""
+    batch = jax.vmap(lambda s, a: env.step(s, a, params))
+    with plan.tracing():
+        return map_groups(lambda sa: (batch(*sa), sa[1]), (states, actions), plan.env_group,
+                          plan.unrolled_groups)[0]

@@ -1,0 +1,125 @@
+"""The MJX stage replacement (jaxrobo.mjx_lean): bit for bit MJX as it is, scoped to its block, version-guarded."""
+from __future__ import annotations
+
+import threading
+import warnings
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from jaxrobo import mjx_lean
+from jaxrobo.sim import asset_path, load_model, mjx
+
+
+@pytest.mark.parametrize("xml", ["cartpole.xml", "quadcopter.xml"])
+def test_lean_steps_bit_for_bit_like_mjx_and_only_inside_its_block(xml):
+    """``lean()`` (MJX's com_pos with cinert's upper triangle by static indices) gives what ``mjx.step`` gives,
+    bit for bit, body inertias included, on random states of both robots; outside the block, disabled, and
+    nested, MJX's own ``com_pos`` is what runs (one swap only)."""
+    assert mjx_lean.unavailable() is None, mjx_lean.unavailable()  # the installed MJX is the one it was written for
+    model = load_model(asset_path(xml), physics_only=True)
+    m, d0 = mjx.put_model(model), mjx.put_data(model, mujoco.MjData(model))
+    n = 16
+    qpos = d0.qpos + 0.3 * jax.random.normal(jax.random.key(1), (n, model.nq))
+    qvel = jax.random.normal(jax.random.key(2), (n, model.nv))
+    ctrl = jax.random.normal(jax.random.key(3), (n, model.nu))
+
+    def run(q, v, c):
+        d = d0.replace(qpos=q, qvel=v, ctrl=c)
+        for _ in range(10):
+            d = mjx.step(m, d)
+        return d.qpos, d.qvel, mjx.forward(m, d)._impl.cinert
+
+    stock = jax.jit(jax.vmap(run))(qpos, qvel, ctrl)
+    original = mjx_lean._mjx_smooth.com_pos
+
+    def lean_run(*args):
+        with mjx_lean.lean():
+            assert mjx_lean._mjx_smooth.com_pos is not original
+            with mjx_lean.lean():  # nested: one swap only
+                assert mjx_lean._mjx_smooth.com_pos.func is mjx_lean._com_pos_static_triu
+                assert mjx_lean._mjx_smooth.com_pos.args == (original,)
+            assert mjx_lean._mjx_smooth.com_pos is not original  # the inner block left the outer swap alone
+            return run(*args)
+
+    lean = jax.jit(jax.vmap(lean_run))(qpos, qvel, ctrl)
+    assert mjx_lean._mjx_smooth.com_pos is original
+    assert np.abs(np.asarray(stock[2])).max() > 0.0
+    for a, b, name in zip(stock, lean, ("qpos", "qvel", "cinert")):
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(a), name)
+
+    with mjx_lean.lean(False):
+        assert mjx_lean._mjx_smooth.com_pos is original
+    with pytest.raises(RuntimeError, match="inside"):
+        with mjx_lean.lean():
+            raise RuntimeError("inside")
+    assert mjx_lean._mjx_smooth.com_pos is original  # restored after an error too
+
+
+def test_choose_sets_what_the_simulator_asks_for_per_block_and_thread():
+    assert mjx_lean.wanted() is True  # the default: lean
+    seen = []
+    with mjx_lean.choose(False):
+        assert mjx_lean.wanted() is False
+        with mjx_lean.choose(True):
+            assert mjx_lean.wanted() is True
+        assert mjx_lean.wanted() is False
+        thread = threading.Thread(target=lambda: seen.append(mjx_lean.wanted()))
+        thread.start()
+        thread.join()
+    assert mjx_lean.wanted() is True and seen == [True]  # another thread starts from the default
+
+
+def test_the_simulator_traces_mjx_under_the_choice(monkeypatch):
+    """``Simulator.physics_step`` swaps the stage exactly when the block being traced wants it."""
+    from envs.cartpole import CartPoleRobot
+
+    sim = CartPoleRobot("velocity", "mjx").sim
+    swapped = []
+    step = mjx.step
+
+    def spy(m, d):
+        swapped.append(getattr(mjx_lean._mjx_smooth.com_pos, "jaxrobo_lean", False))
+        return step(m, d)
+
+    monkeypatch.setattr(mjx, "step", spy)
+    state = sim.init(jax.numpy.zeros(2), jax.numpy.zeros(2))
+    ctrl = jax.numpy.zeros(1)
+    jax.eval_shape(sim.physics_step, state, ctrl)
+    with mjx_lean.choose(False):
+        jax.eval_shape(sim.physics_step, state, ctrl)
+    assert swapped == [True, False]
+
+
+@pytest.mark.parametrize("version,ok", [("3.17.0", True), ("3.17.5rc1", True), ("3.16.9", False), ("3.18.0", False),
+                                        ("4.0.0", False), ("dev", False), (None, False)])
+def test_outside_the_versions_it_was_written_for_it_is_a_no_op_that_says_why_once(monkeypatch, version, ok):
+    monkeypatch.setattr(mjx_lean, "installed_version", lambda: version)
+    monkeypatch.setattr(mjx_lean, "_WARNED", set())
+    original = mjx_lean._mjx_smooth.com_pos
+    reason = mjx_lean.unavailable()
+    assert (reason is None) == ok
+    if ok:
+        return
+    assert ("mujoco-mjx" in reason) and (version is None or version in reason)
+    for _ in range(2):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with mjx_lean.lean():
+                assert mjx_lean._mjx_smooth.com_pos is original
+        messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+        if _ == 0:
+            assert len(messages) == 1 and reason in messages[0]
+        else:
+            assert messages == []  # said once
+
+
+def test_another_layout_is_a_no_op(monkeypatch):
+    monkeypatch.setattr(mjx_lean, "_mjx_smooth", None)
+    monkeypatch.setattr(mjx_lean, "_WARNED", set())
+    assert "internals" in mjx_lean.unavailable()
+    with pytest.warns(RuntimeWarning, match="internals"):
+        with mjx_lean.lean():
+            pass

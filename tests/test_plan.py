@@ -1,0 +1,245 @@
+"""The execution plan: derived choices, repr, validation, how it reaches the trainer, the sweep and the vector env
+(without changing a value), grouped stepping, and that no module-global speed knob is left."""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxrobo import mjx_lean
+from jaxrobo.config import ConfigError
+from jaxrobo.plan import ExecutionPlan, default_env_group, map_groups
+from jaxrobo.run import resolve
+from jaxrobo.train import Trainer, train
+
+HERE = os.path.abspath(__file__)
+ROOT = os.path.dirname(os.path.dirname(HERE))
+TINY = dict(n_envs=12, nepisodes=4, nsteps=30, chunk_steps=25, eval_episodes=2, eval_envs=2,
+            bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
+FAST = {"xla_backend_optimization_level": 0}
+
+
+def _spec(backend="mjx", **overrides):
+    return resolve("CartPoleStayUp-v0", overrides={**TINY, "backend": backend, **overrides})
+
+
+# ---- derivation ------------------------------------------------------------------------------------------------
+def test_for_run_derives_the_choices_per_device():
+    spec = _spec()
+    cpu = ExecutionPlan.for_run(spec.env, spec.config, "cpu")
+    assert cpu == ExecutionPlan(env_group=None, unrolled_groups=4, lean_mjx=True, reset_capacity=2, carry_rows=True)
+    assert ExecutionPlan.for_run(spec.env, spec.config) == cpu  # the tests run on a CPU
+    assert Trainer(spec.env, spec.config).plan == cpu
+    shared = _spec(shared_table=True)
+    assert not ExecutionPlan.for_run(shared.env, shared.config, "cpu").carry_rows  # other envs change the rows
+    assert ExecutionPlan.for_run(spec.env, spec.config.replace(n_envs=17), "cpu").reset_capacity == 3  # ceil(17/8)
+    assert ExecutionPlan.for_run(spec.env, spec.config.replace(env_group=5), "cpu").env_group == 5
+
+    gpu = ExecutionPlan.for_run(spec.env, spec.config, "gpu")
+    assert gpu == ExecutionPlan(env_group=262_144, unrolled_groups=4, lean_mjx=True, reset_capacity=12,
+                                carry_rows=False)
+    assert ExecutionPlan.for_run(spec.env, spec.config.replace(env_group=5), "gpu").env_group == 5
+    for backend in ("analytic", "generalized"):  # a closed form, Brax's pipelines: the whole batch
+        other = _spec(backend)
+        assert ExecutionPlan.for_run(other.env, other.config, "gpu").env_group is None
+        assert default_env_group(other.env, "gpu") is None
+    assert default_env_group(spec.env, "gpu") == 262_144 and default_env_group(spec.env, "cpu") is None
+    # Without a training config (the Gymnasium vector env): grouping and the MJX stage only.
+    assert ExecutionPlan.for_run(spec.env, backend="gpu") == ExecutionPlan(env_group=262_144)
+    with pytest.raises(ConfigError, match="env_group"):
+        resolve("CartPoleStayUp-v0", overrides={"env_group": -1})
+
+
+def test_repr_is_short_and_names_every_choice():
+    spec = _spec()
+    plan = ExecutionPlan.for_run(spec.env, spec.config, "cpu")
+    assert repr(plan) == ("ExecutionPlan(env_group=all, unrolled_groups=4, lean_mjx=on, reset_capacity=2, "
+                          "carry_rows=on)")
+    fast = plan.replace(env_group=3, lean_mjx=False, compiler_options=FAST)
+    assert repr(fast) == ("ExecutionPlan(env_group=3, unrolled_groups=4, lean_mjx=off, reset_capacity=2, "
+                          "carry_rows=on, compiler_options={xla_backend_optimization_level: 0})")
+    assert json.loads(json.dumps(fast.to_dict())) == {
+        "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
+        "compiler_options": FAST}
+
+
+def test_plans_are_validated_frozen_and_hashable():
+    plan = ExecutionPlan(compiler_options={"b": 1, "a": "x"})
+    assert plan.compiler_options == (("a", "x"), ("b", 1)) and plan.xla_options == {"a": "x", "b": 1}
+    assert plan == ExecutionPlan(compiler_options=[("b", 1), ("a", "x")]) and len({plan, plan.replace()}) == 1
+    assert ExecutionPlan(compiler_options={}).compiler_options is None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plan.env_group = 3
+    for bad, field in (({"env_group": 0}, "env_group"), ({"reset_capacity": -1}, "reset_capacity"),
+                       ({"unrolled_groups": 0}, "unrolled_groups"), ({"lean_mjx": 1}, "lean_mjx"),
+                       ({"carry_rows": "yes"}, "carry_rows"), ({"compiler_options": {"a": []}}, "compiler_options"),
+                       ({"env_group": True}, "env_group")):
+        with pytest.raises(ValueError, match=f"ExecutionPlan {field}="):
+            ExecutionPlan(**bad)
+
+
+def test_tracing_sets_the_mjx_choice_for_its_block_only():
+    stock = ExecutionPlan(lean_mjx=False)
+    assert mjx_lean.wanted()
+    with stock.tracing() as entered:
+        assert entered is stock and not mjx_lean.wanted()
+        with ExecutionPlan().tracing():
+            assert mjx_lean.wanted()
+        assert not mjx_lean.wanted()
+    assert mjx_lean.wanted()
+    seen = stock.traced(lambda x: (mjx_lean.wanted(), x))(1)
+    assert seen == (False, 1) and mjx_lean.wanted()
+
+
+# ---- grouped stepping ------------------------------------------------------------------------------------------
+def test_map_groups_applies_fn_slice_by_slice():
+    tree = {"x": jnp.arange(7.0), "y": jnp.arange(14).reshape(7, 2)}
+    # y grows by the number of rows fn saw at once, which shows the slicing
+    fn = lambda t: {"x": t["x"] * 2 + t["y"][:, 0], "y": t["y"] + t["x"].shape[0]}  # noqa: E731
+    for group, rows_seen in ((3, [3, 3, 3, 3, 3, 3, 1]), (7, [7] * 7), (8, [7] * 7), (None, [7] * 7)):
+        # groups written out (the plan's default 4 of them), in a loop of blocks of 1 or 2 groups, or all written out
+        for unrolled in (ExecutionPlan.unrolled_groups, 1, 2, 8):
+            out = jax.jit(lambda t, g=group, u=unrolled: map_groups(fn, t, g, u))(tree)
+            np.testing.assert_array_equal(out["x"], fn(tree)["x"])
+            np.testing.assert_array_equal(out["y"], tree["y"] + np.array(rows_seen)[:, None])
+    with pytest.raises(ValueError, match="unrolled=0"):
+        map_groups(fn, tree, 3, unrolled=0)
+
+
+# ---- the plan reaches every consumer and changes no value -----------------------------------------------------
+def test_train_under_another_plan_gives_the_recorded_values(monkeypatch):
+    """Groups of 3 (one written out, then a loop), one gathered reset per step, no carried rows and stock MJX give
+    the values recorded before the plan existed (the fingerprint of the closed-form cart-pole case), and
+    ``train`` hands its plan to the trainer and traces under it."""
+    import importlib.util
+
+    path = os.path.join(ROOT, "scripts", "fingerprints.py")
+    module_spec = importlib.util.spec_from_file_location("fingerprints", path)
+    fingerprints = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(fingerprints)
+    with open(os.path.join(ROOT, "tests", "data", "fingerprints.json")) as f:
+        recorded = json.load(f)
+    case = next(c for c in fingerprints.cases() if fingerprints.name(c) ==
+                "CartPoleStayUp-v0/default/qlearn/env.backend=analytic")
+    spec = resolve(case["env_id"], case["preset"], {**fingerprints.SMALL, **case["extra"]}, agent=case["agent"])
+    plan = ExecutionPlan(env_group=3, unrolled_groups=1, lean_mjx=False, reset_capacity=1, carry_rows=False)
+    built, chosen = [], []
+    init, choose = Trainer.__init__, mjx_lean.choose
+
+    def spy_init(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        built.append(self.plan)
+
+    def spy_choose(enabled):
+        chosen.append(enabled)
+        return choose(enabled)
+
+    monkeypatch.setattr(Trainer, "__init__", spy_init)
+    monkeypatch.setattr(mjx_lean, "choose", spy_choose)
+    r = train(spec.env, spec.config, spec.agent_params, plan=plan)
+    assert built == [plan] and chosen and not any(chosen)
+    assert r.summary()["execution_plan"] == repr(plan)  # summary.json says how the run ran
+    h = hashlib.sha256()
+    for arr in (r.q, r.returns, r.lengths, r.terminated, r.nan_episodes, np.int64(r.env_steps),
+                r.eval_returns, r.eval_lengths):
+        a = np.ascontiguousarray(np.asarray(arr))
+        h.update(str((a.shape, a.dtype.str)).encode() + a.tobytes())
+    assert h.hexdigest() == recorded[fingerprints.name(case)]
+
+
+@pytest.mark.parametrize("lean", [True, False])
+def test_the_trainer_traces_mjx_steps_as_its_plan_says(monkeypatch, lean):
+    """Whoever traces the trainer's chunk (train, the sweep, a benchmark), its MJX steps follow the plan."""
+    from jaxrobo.sim import mjx
+
+    spec = _spec()
+    trainer = Trainer(spec.env, spec.config, plan=ExecutionPlan.for_run(spec.env, spec.config).replace(lean_mjx=lean))
+    swapped = []
+    step = mjx.step
+
+    def spy(m, d):
+        swapped.append(getattr(mjx_lean._mjx_smooth.com_pos, "jaxrobo_lean", False))
+        return step(m, d)
+
+    monkeypatch.setattr(mjx, "step", spy)
+    ap, ep = spec.agent_params, spec.env.default_params
+    runner = jax.eval_shape(trainer.init, jax.random.key(0), ap, ep)
+    jax.eval_shape(trainer.run_chunk, runner, ap, ep)  # traced outside any plan block
+    assert swapped and set(swapped) == {lean}
+
+
+def test_trainer_choices_read_the_plan():
+    spec = _spec("analytic")
+    plan = ExecutionPlan(env_group=3, reset_capacity=None, carry_rows=True)
+    trainer = Trainer(spec.env, spec.config, plan=plan)
+    assert (trainer.env_group, trainer.reset_capacity, trainer.carry_rows) == (3, 12, True)
+    trainer.env_group = None  # assigning a choice replaces the plan
+    assert trainer.plan == plan.replace(env_group=None)
+    shared = _spec("analytic", shared_table=True)
+    assert not Trainer(shared.env, shared.config, plan=plan).carry_rows  # never with a shared table
+
+
+def test_the_sweep_compiles_each_group_under_a_plan_with_its_compiler_options(monkeypatch):
+    from jaxrobo import sweep
+
+    seen = []
+
+    def record(self, *args, **kwargs):
+        seen.append(self.trainer.plan)
+        return {m: np.zeros(self.n_rows) for m in sweep.METRICS}
+
+    monkeypatch.setattr(sweep.GroupRunner, "run", record)
+    plan = sweep.plan_sweep("CartPoleStayUp-v0", [{"alpha": 0.1}, {"alpha": 0.5}], [0],
+                            overrides={"n_envs": 2, "nepisodes": 2, "nsteps": 10, "backend": "analytic"},
+                            compiler_options=FAST)
+    sweep.run_plan(plan)
+    spec = plan.groups[0].spec
+    assert seen == [ExecutionPlan.for_run(spec.env, spec.config, compiler_options=FAST)]
+    assert seen[0].xla_options == FAST and plan.settings["compiler_options"] == FAST
+
+
+def test_the_vector_env_steps_as_its_plan_says_with_the_same_values():
+    from jaxrobo.gym_adapter import JaxroboVectorEnv
+
+    kw = dict(num_envs=3, overrides={"max_episode_steps": 6})  # the size test_gym_adapter compiles
+    whole = JaxroboVectorEnv("CartPoleStayUp-v0", **kw)
+    plan = ExecutionPlan(env_group=2, unrolled_groups=1, lean_mjx=False)
+    grouped = JaxroboVectorEnv("CartPoleStayUp-v0", plan=plan, **kw)
+    assert whole.plan == ExecutionPlan.for_run(whole.jax_env) and grouped.plan is plan
+    assert whole._fns is not grouped._fns
+    outs = []
+    for venv in (whole, grouped):
+        obs, _ = venv.reset(seed=3)
+        rows = [obs]
+        for t in range(9):
+            obs, rew, term, trunc, _ = venv.step(np.arange(3) % venv.single_action_space.n)
+            rows += [obs, rew, term, trunc]
+        outs.append(rows)
+    for a, b in zip(*outs):
+        np.testing.assert_array_equal(a, b)
+
+
+# ---- no module-global speed knobs ------------------------------------------------------------------------------
+def test_no_module_global_speed_knob_is_left():
+    from jaxrobo import env, sim, sweep
+
+    for module, name in ((sim, "LEAN_MJX"), (sim, "lean_mjx"), (env, "UNROLLED_GROUPS"), (env, "GPU_ENV_GROUP"),
+                         (env, "step_batch"), (env, "map_groups"), (sweep, "COMPILER_OPTIONS")):
+        assert not hasattr(module, name), f"{module.__name__}.{name}"
+    pattern = re.compile(r"\b(LEAN_MJX|UNROLLED_GROUPS|GPU_ENV_GROUP|COMPILER_OPTIONS)\b")
+    found = []
+    for folder in ("jaxrobo", "envs", "agents", "benchmarks", "tests", "scripts"):
+        for base, _, files in os.walk(os.path.join(ROOT, folder)):
+            for f in files:
+                path = os.path.join(base, f)
+                if f.endswith(".py") and path not in (os.path.join(ROOT, "jaxrobo", "plan.py"), HERE):
+                    with open(path) as fh:
+                        found += [f"{path}: {m}" for m in pattern.findall(fh.read())]
+    assert found == []
