@@ -363,7 +363,7 @@ def rollout_frames(env: Any, policy: Policy | None = None, seed: int = 0, max_st
     """
     import jax
 
-    from jaxrobo.gym_adapter import compiled_for
+    from jaxrobo.compiled import compiled_for
 
     params = env.default_params if params is None else params
     fns = compiled_for(env)  # the Gymnasium adapter's jitted reset/step: compiled once per env configuration

@@ -1,7 +1,7 @@
 """The Gymnasium adapter: registration, check_env for every id, vector env semantics, seeding, invalid actions.
 
 Every registered jaxrobo id is covered (ids whose task module does not exist yet are skipped with the reason).
-Compiled functions are shared per env configuration (``gym_adapter.compiled_for``), so each id compiles its
+Compiled functions are shared per env configuration (``jaxrobo.compiled.compiled_for``), so each id compiles its
 reset/step once for the whole module whatever the parameters.
 """
 from __future__ import annotations
@@ -78,15 +78,18 @@ def test_every_id_is_registered_with_its_step_limit():
 def test_registration_is_cheap_and_namespace_needs_import():
     """In a fresh process: Gymnasium does not import a module named after the namespace (so ``gymnasium.make(
     "jaxrobo/...")`` needs ``import jaxrobo`` first, or the ``"jaxrobo:jaxrobo/<id>"`` form); ``import jaxrobo``
-    registers every id without importing any task module."""
+    registers every id without loading any model. (It imports the task modules: each id's step limit is its
+    task's ``Params`` default, the one home of that number.)"""
     code = (
-        "import sys, gymnasium as gym\n"
+        "import sys, gymnasium as gym, mujoco\n"
+        "loaded = []\n"
+        "real = mujoco.MjSpec.from_file\n"
+        "mujoco.MjSpec.from_file = lambda *a, **k: (loaded.append(a), real(*a, **k))[1]\n"
         "try:\n    gym.make('jaxrobo/CartPoleStayUpLeftRight-v0'); print('AUTO')\n"
         "except gym.error.Error as e:\n    print('NEEDS_IMPORT', type(e).__name__)\n"
         "import jaxrobo\n"
         "ids = [k for k in gym.registry if k.startswith('jaxrobo/')]\n"
-        "tasks = sorted(m for m in sys.modules if m.startswith('envs.'))\n"
-        "print('IDS', len(ids), 'TASKS', tasks)\n"
+        "print('IDS', len(ids), 'TASKS', loaded)\n"
     )
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)

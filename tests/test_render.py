@@ -85,7 +85,7 @@ def test_vector_env_renders_one_frame_per_env():
 @needs_gl
 @pytest.mark.parametrize("env_id", jaxrobo.registered())
 def test_every_registered_env_renders(env_id):
-    from jaxrobo.gym_adapter import compiled_for
+    from jaxrobo.compiled import compiled_for
 
     module = jaxrobo.registry._lookup(env_id).entry_point.partition(":")[0]
     try:

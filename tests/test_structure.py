@@ -40,12 +40,9 @@ ENTRY_POINTS = frozenset({"jaxrobo.registry"})
 #: The contract between the trainer and the learners; jaxrobo may import it directly (see the module docstring).
 LEARNER_PROTOCOL = "agents.tabular"
 
-#: Edges that break the rules today and are being removed by work on other modules; each names what removes it.
-#: Nothing else may be added here: a new forbidden edge fails the test.
-ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {
-    # Rendering's episode loop takes the adapter's jitted reset/step; the rollout/evaluation module gives it its own.
-    ("jaxrobo.render", "jaxrobo.gym_adapter"): "render.rollout_frames: compiled reset/step from jaxrobo.rollout",
-}
+#: Edges that break the rules and are waiting to be removed, each with what removes it. Empty: nothing is excused,
+#: and a new forbidden edge fails the test.
+ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {}
 
 
 class Edge(NamedTuple):
