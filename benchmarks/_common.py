@@ -96,11 +96,17 @@ def time_carry(fn: Callable, carry: Any, *args: Any, repeats: int = 3,
 
 def compile_timed(jitted: Callable, *args: Any, cache_dir: str | None = None) -> tuple[Callable, float, bool]:
     """AOT-compile; returns (compiled, seconds, from_cache). A compile that wrote no cache file was a hit."""
+    return timed(lambda: jitted.lower(*args).compile(), cache_dir)
+
+
+def timed(compile_fn: Callable[[], Callable], cache_dir: str | None = None) -> tuple[Callable, float, bool]:
+    """``compile_fn()`` (e.g. :func:`jaxrobo.driver.compiled_chunk`, the chunk ``jaxrobo train`` runs), timed;
+    returns (compiled, seconds, from_cache). A compile that wrote no cache file was a hit."""
     from jaxrobo.cache import entries
 
     before = entries(cache_dir)
     t0 = time.perf_counter()
-    compiled = jitted.lower(*args).compile()
+    compiled = compile_fn()
     seconds = time.perf_counter() - t0
     hit = cache_dir is not None and entries(cache_dir) == before
     return compiled, seconds, hit

@@ -48,9 +48,10 @@ def main(argv: list[str] | None = None) -> int:
     import jax
     import numpy as np
 
+    from jaxrobo import driver
     from jaxrobo.plan import ExecutionPlan
     from jaxrobo.run import resolve
-    from jaxrobo.train import Trainer
+    from jaxrobo.trainer import Trainer
 
     rows = []
     for n, token, variant in ((int(n), g, v) for n in args.n_envs.split(",") for g in args.groups.split(",")
@@ -67,8 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         ap, ep = spec.agent_params, spec.env.default_params
         runner = jax.jit(plan.traced(trainer.init))(jax.random.key(0), ap, ep)
         t0 = time.perf_counter()
-        chunk = jax.jit(plan.traced(trainer.run_chunk), compiler_options=plan.xla_options).lower(
-            runner, ap, ep).compile()
+        chunk = driver.compiled_chunk(trainer, runner, ap, ep)  # as ``jaxrobo train`` compiles it
         compile_s = time.perf_counter() - t0
         runner = chunk(runner, ap, ep)
         fingerprint = hashlib.sha256(np.asarray(runner.agent.q).tobytes()).hexdigest()[:12]

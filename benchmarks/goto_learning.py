@@ -25,9 +25,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxrobo import driver  # noqa: E402
 from jaxrobo.rollout import greedy_policy, random_policy, rollout  # noqa: E402
 from jaxrobo.run import resolve  # noqa: E402
-from jaxrobo.train import Trainer  # noqa: E402
+from jaxrobo.trainer import Trainer  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -44,14 +45,14 @@ def main(argv=None) -> int:
     trainer = Trainer(spec.env, spec.config)
     keys = jnp.stack([jax.random.key(s) for s in range(args.runs)])
     t0 = time.perf_counter()
-    runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, spec.agent_params, spec.env.default_params)
-    chunk = jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)), donate_argnums=0)
-    for _ in range(trainer.max_chunks()):
-        runner = chunk(runner, spec.agent_params, spec.env.default_params)
-        if int(jnp.min(runner.episode)) >= spec.config.nepisodes:
-            break
-    jax.block_until_ready(runner)
-    train_s = time.perf_counter() - t0
+    ap_, ep = spec.agent_params, spec.env.default_params
+    runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
+    plan = trainer.plan  # the runs' chunk vmapped, compiled and looped by the host driver as jaxrobo train's
+    chunk = driver.compile_under(plan, jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)), donate_argnums=0,
+                                               compiler_options=plan.xla_options), runner, ap_, ep)
+    runner = driver.run_chunks(lambda r: chunk(r, ap_, ep), runner, trainer.max_chunks(),
+                               read=driver.compiled_progress(runner), total=spec.config.nepisodes).carry
+    train_s = time.perf_counter() - t0  # compile included, as before
     q = np.asarray(runner.agent.q)  # [runs, n_tables, S, A] (shared table per run)
     env, disc = spec.env, trainer.disc
 

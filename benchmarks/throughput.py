@@ -140,8 +140,9 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
     that differ from the defaults (shown beside the backend, e.g. ``mjx dt=0.02``)."""
     import jax
 
+    from jaxrobo import driver
     from jaxrobo.run import resolve
-    from jaxrobo.train import Trainer
+    from jaxrobo.trainer import Trainer
 
     row = {"suite": "jaxrobo", "env": env_id, "backend": _backend_label(backend, options), "mode": learner or "env",
            "n_envs": n}
@@ -181,8 +182,8 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
                                             min_seconds=MIN_SAMPLE_SECONDS)
     else:
         runner = jax.jit(trainer.init)(key, ap, ep)
-        jitted = jax.jit(plan.traced(trainer.run_chunk), donate_argnums=0, compiler_options=plan.xla_options)
-        chunk, compile_s, hit = _common.compile_timed(jitted, runner, ap, ep, cache_dir=ctx["cache"])
+        # The chunk exactly as ``jaxrobo train`` compiles and runs it (the host driver's).
+        chunk, compile_s, hit = _common.timed(lambda: driver.compiled_chunk(trainer, runner, ap, ep), ctx["cache"])
         # The chunk returns the whole carry, so all of it is computed. The tables' checksum (a full read of
         # them: 126 MB at 16,384 cart-pole envs, ~40 % of a 10-step call on 2 cores) is taken once, untimed.
         seconds, runner = _common.time_carry(lambda r, _: (chunk(r, ap, ep), None), runner, 0,

@@ -33,20 +33,21 @@ GOTO_TARGET = 0.8  # share of greedy episodes that arrive at the goal
 
 
 def train_until(runner, chunk, score, target, args, max_chunks, label):
-    """Run ``--eval-every`` chunks at a time until ``score`` reaches ``target``, ``--budget`` seconds of training
-    pass or the run ends; only the chunks are timed. ``score(runner, chunks) -> (value, record, text)``.
-    Returns the runner, the training seconds, the evaluation records, the last score and whether it met."""
-    import jax
+    """Run ``--eval-every`` chunks at a time (the host driver's loop, :func:`jaxrobo.driver.run_chunks`, with
+    nothing read back between chunks) until ``score`` reaches ``target``, ``--budget`` seconds of training pass
+    or the run ends; only the chunks are timed (each stretch waited for with ``block_until_ready``).
+    ``score(runner, chunks) -> (value, record, text)``. Returns the runner, the training seconds, the evaluation
+    records, the last score and whether it met."""
     import numpy as np
+
+    from jaxrobo import driver
 
     train_s, evals, best, chunks, met = 0.0, [], 0.0, 0, False
     while train_s < args.budget and chunks < max_chunks:
-        t = time.perf_counter()
-        for _ in range(args.eval_every):
-            runner = chunk(runner)
-        jax.block_until_ready(runner)
-        train_s += time.perf_counter() - t
-        chunks += args.eval_every
+        stretch = driver.run_chunks(chunk, runner, chunks + args.eval_every, start_chunk=chunks)
+        runner = stretch.carry
+        train_s += stretch.seconds
+        chunks = stretch.chunks_done
         best, record, text = score(runner, chunks)
         steps = int(np.asarray(runner.env_steps, np.int64).sum())
         evals.append({"train_seconds": train_s, "env_steps": steps, **record,
@@ -62,8 +63,9 @@ def jaxrobo_cartpole(args) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
 
+    from jaxrobo import driver
     from jaxrobo.run import resolve
-    from jaxrobo.train import Trainer
+    from jaxrobo.trainer import Trainer
 
     overrides = {"n_envs": args.n_envs, "chunk_steps": args.chunk_steps, "seed": args.seed}
     if args.backend:
@@ -84,7 +86,7 @@ def jaxrobo_cartpole(args) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     runner = jax.jit(trainer.init)(jax.random.key(args.seed), ap, ep)
-    chunk = jax.jit(trainer.run_chunk, donate_argnums=0).lower(runner, ap, ep).compile()
+    chunk = driver.compiled_chunk(trainer, runner, ap, ep)  # as ``jaxrobo train`` compiles it
     ev = jax.jit(evaluate).lower(runner, jax.random.key(0)).compile()
     jax.block_until_ready(runner)
     compile_s = time.perf_counter() - t0
@@ -138,8 +140,9 @@ def goto_row(args) -> dict[str, Any]:
 
     import jaxrobo
     from jaxrobo.rollout import greedy_policy, rollout
+    from jaxrobo import driver
     from jaxrobo.run import resolve
-    from jaxrobo.train import Trainer
+    from jaxrobo.trainer import Trainer
 
     if GOTO_ID not in jaxrobo.registered():
         return {"side": "jaxrobo", "env": GOTO_ID, "status": "skipped", "reason": f"{GOTO_ID} is not registered"}
@@ -153,8 +156,9 @@ def goto_row(args) -> dict[str, Any]:
     t0 = time.perf_counter()
     keys = jnp.stack([jax.random.key(args.seed + i) for i in range(runs)])
     runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap, ep)
-    chunk = jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)), donate_argnums=0).lower(
-        runner, ap, ep).compile()
+    plan = trainer.plan  # the runs' chunk vmapped, compiled as the driver compiles the single-run one
+    chunk = driver.compile_under(plan, jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)), donate_argnums=0,
+                                               compiler_options=plan.xla_options), runner, ap, ep)
     select = jax.jit(jax.vmap(lambda t, k: success(t, k, 100))).lower(
         runner.agent.q, jax.random.split(jax.random.key(0), runs)).compile()
     compile_s = time.perf_counter() - t0

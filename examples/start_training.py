@@ -10,7 +10,7 @@ What changed from the seed (openai_ros, seed 001):
   :func:`jaxrobo.run.resolve`, instead of the ROS parameter server; ``--set KEY=VALUE`` overrides any of them.
 * ``gym.wrappers.Monitor`` no longer exists: results go to a run directory that ``jaxrobo plot`` reads
   (``config.yaml``, ``episodes.csv``, ``summary.json``, ``qtables.npz``).
-* States are integer bins (:func:`jaxrobo.train.make_discretiser_for`); ``--preset seed`` reproduces the seed's
+* States are integer bins (:func:`jaxrobo.trainer.make_discretiser_for`); ``--preset seed`` reproduces the seed's
   rounding to 0.1 and its learner rules exactly.
 
 This is the slow, classic path on purpose (one env, numpy ↔ JAX every step); ``jaxrobo train`` runs the same

@@ -1,7 +1,7 @@
 """Autoreset: a fresh episode, from fresh randomness, wherever an episode is done, and nothing else changed.
 
 One definition serves the three places that start new episodes inside a compiled loop: the trainer
-(:meth:`jaxrobo.train.Trainer.step`), the Gymnasium vector env (:class:`jaxrobo.gym_adapter.JaxroboVectorEnv`)
+(:meth:`jaxrobo.trainer.Trainer.step`), the Gymnasium vector env (:class:`jaxrobo.gym_adapter.JaxroboVectorEnv`)
 and the :class:`jaxrobo.wrappers.AutoReset` wrapper. Each passes the keys its envs reset from; this module only
 decides which envs take the fresh values and how they are computed.
 

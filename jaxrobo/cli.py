@@ -48,69 +48,77 @@ def _train(args: argparse.Namespace) -> int:
         return 130
 
 
-def _train_checked(args: argparse.Namespace) -> int:
-    import shlex
-    import signal
-    import threading
-
-    import jax
-    import numpy as np
+def _train_spec(args: argparse.Namespace):
+    """The run ``jaxrobo train`` is asked for and its directory: a new one from the flags (``--out`` checked),
+    or the interrupted run of ``--resume DIR`` with its own ``config.yaml``. Raises ConfigError naming the flag."""
     import yaml
 
     from jaxrobo import rundir
-    from jaxrobo import train as training
     from jaxrobo.config import ConfigError
-    from jaxrobo.results import save_run, write_config, write_episodes
     from jaxrobo.run import resolve, spec_from_config
 
     resume = args.resume
+    if args.checkpoint_every is not None and args.checkpoint_every < 0:
+        raise ConfigError(f"--checkpoint-every={args.checkpoint_every}: expected an integer >= 0 (chunks; 0: "
+                          "only when interrupted)")
+    if resume is None:
+        overrides = train_overrides(args)
+        spec = resolve(args.env or "CartPoleStayUp-v0", args.preset or "default", overrides, agent=args.agent)
+        out = args.out or os.path.join("training_results",
+                                       f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
+        rundir.check_out(out, overwrite=args.overwrite)
+        return spec, out
+    given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent), ("--preset", args.preset),
+                                      ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
+                                      ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
+             if value is not None]
+    given += ["--overwrite"] if args.overwrite else []
+    if given:
+        raise ConfigError(f"--resume {resume}: the run goes on with its own config.yaml and directory; "
+                          f"drop {', '.join(given)}")
+    rundir.check_out(resume, resume=True, flag="--resume")
     try:
-        if args.checkpoint_every is not None and args.checkpoint_every < 0:
-            raise ConfigError(f"--checkpoint-every={args.checkpoint_every}: expected an integer >= 0 (chunks; 0: "
-                              "only when interrupted)")
-        if resume is not None:
-            given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent), ("--preset", args.preset),
-                                              ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
-                                              ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
-                     if value is not None]
-            given += ["--overwrite"] if args.overwrite else []
-            if given:
-                raise ConfigError(f"--resume {resume}: the run goes on with its own config.yaml and directory; "
-                                  f"drop {', '.join(given)}")
-            rundir.check_out(resume, resume=True, flag="--resume")
-            out = resume
-            try:
-                with open(os.path.join(out, "config.yaml")) as f:
-                    saved = yaml.safe_load(f)
-            except (OSError, yaml.YAMLError) as err:
-                raise ConfigError(f"--resume {resume}: cannot read config.yaml ({err})") from err
-            spec = spec_from_config(saved if isinstance(saved, dict) else {})
-        else:
-            overrides = train_overrides(args)
-            spec = resolve(args.env or "CartPoleStayUp-v0", args.preset or "default", overrides, agent=args.agent)
-            out = args.out or os.path.join("training_results",
-                                           f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
-            rundir.check_out(out, overwrite=args.overwrite)
+        with open(os.path.join(resume, "config.yaml")) as f:
+            saved = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"--resume {resume}: cannot read config.yaml ({err})") from err
+    return spec_from_config(saved if isinstance(saved, dict) else {}), resume
+
+
+def _progress_bar(nepisodes: int, initial):
+    """A tqdm bar over episodes, starting where a resumed carry ``initial`` is."""
+    import jax
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    done0 = 0 if initial is None else int(np.min(np.asarray(jax.device_get(initial.episode))))
+    return tqdm(total=nepisodes, initial=min(done0, nepisodes), unit="ep", desc="training", dynamic_ncols=True)
+
+
+def _train_checked(args: argparse.Namespace) -> int:
+    import shlex
+
+    from jaxrobo import checkpoint, driver, rundir
+    from jaxrobo import train as training
+    from jaxrobo.config import ConfigError
+    from jaxrobo.results import save_run, write_config, write_episodes
+
+    resume = args.resume
+    try:
+        spec, out = _train_spec(args)
         cfg = spec.config
         trainer = training.Trainer(spec.env, cfg)
-        template = training.carry_template(trainer, spec.agent_params)
-        fingerprint = training.carry_fingerprint(template, spec.to_dict())
+        template = checkpoint.carry_template(trainer, spec.agent_params)
+        fingerprint = checkpoint.carry_fingerprint(template, spec.to_dict())
         initial, start_chunk = None, 0
         if resume is not None:
-            initial, start_chunk = training.load_checkpoint(os.path.join(out, rundir.CHECKPOINT), template,
-                                                            fingerprint)
-    except (ConfigError, training.CheckpointError) as err:
+            initial, start_chunk = checkpoint.load_checkpoint(os.path.join(out, rundir.CHECKPOINT), template,
+                                                              fingerprint)
+    except ConfigError as err:  # CheckpointError included
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
 
-    # Where the checkpoints go while training: the run directory itself (new, empty, or the run being resumed),
-    # so that a hard crash leaves it resumable; with --overwrite a hidden sibling, so that the old run stays
-    # whole until the new one replaces it.
-    if resume is None and os.path.isdir(out) and os.listdir(out):
-        live = rundir.staging(out)
-    else:
-        live = out
-        os.makedirs(out, exist_ok=True)
+    live = out if resume is not None else rundir.live_dir(out)
     if resume is None:
         write_config(live, spec.to_dict())
     n_chunks = trainer.max_chunks()
@@ -123,75 +131,52 @@ def _train_checked(args: argparse.Namespace) -> int:
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 
-    done0 = 0 if initial is None else int(np.min(np.asarray(jax.device_get(initial.episode))))
-    bar = None
-    if not args.no_progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=cfg.nepisodes, initial=min(done0, cfg.nepisodes), unit="ep", desc="training",
-                   dynamic_ncols=True)
+    bar = None if args.no_progress else _progress_bar(cfg.nepisodes, initial)
 
     def progress(done: int, total: int, last_return: float) -> None:
         if bar is not None:
             bar.update(done - bar.n)
             bar.set_postfix(mean_reward=f"{last_return:.1f}")
 
-    def checkpoint(runner, chunks_done: int) -> None:
-        training.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
+    def save(runner, chunks_done: int) -> None:
+        checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
         rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
                             chunks=n_chunks, resume=resume_cmd)
 
-    # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
-    received: list[int] = []
+    def notice(signum: int) -> None:
+        import signal
 
-    def on_signal(signum, frame):  # noqa: ARG001
-        if received:
-            raise SystemExit(128 + signum)
-        received.append(signum)
         print(f"\n{signal.Signals(signum).name}: finishing the current chunk, then saving a checkpoint "
               "(again to quit without saving)", file=sys.stderr)
 
-    handlers = {}
-    if threading.current_thread() is threading.main_thread():
-        handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
-    try:
+    # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
+    with driver.StopOnSignal(notice, second="exit") as stop:
+        every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
         result = training.train(spec.env, cfg, spec.agent_params, progress=progress, initial=initial,
-                                start_chunk=start_chunk, checkpoint=checkpoint,
+                                start_chunk=start_chunk, checkpoint=save,
                                 checkpoint_every=args.checkpoint_every or 0, checkpoint_seconds=every,
-                                should_stop=lambda: bool(received))
+                                should_stop=stop)
         if bar is not None:
             bar.close()
         if not result.complete:
-            # The checkpoint is saved (train called ``checkpoint``); the finished episodes and the status go
-            # with it, the status last, and a staging directory is moved into place.
+            # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
+            # the status last, and a staging directory is moved into place.
             write_episodes(live, result.returns, result.lengths, result.terminated, result.epsilon,
                            episodes_done=result.episodes_done)
-            name = signal.Signals(received[0]).name
             done_min = int(result.episodes_done.min())
-            rundir.write_status(live, rundir.INTERRUPTED, out=os.path.abspath(out), signal=name,
-                                chunks_done=result.chunks_done, chunks=n_chunks, episodes_done_min=done_min,
-                                nepisodes=cfg.nepisodes, resume=resume_cmd)
-            if live != out:
-                rundir.publish(live, out, overwrite=True)
-            print(f"jaxrobo train: {name}: stopped after chunk {result.chunks_done} of {n_chunks} ({done_min} of "
-                  f"{cfg.nepisodes} episodes in every env); to go on: {resume_cmd}", file=sys.stderr)
-            return 128 + received[0]
-        staged = rundir.staging(out)
-        try:
+            rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
+                               signal=stop.name, chunks_done=result.chunks_done, chunks=n_chunks,
+                               episodes_done_min=done_min, nepisodes=cfg.nepisodes,
+                               what=f"{stop.name}: stopped after chunk {result.chunks_done} of {n_chunks} "
+                                    f"({done_min} of {cfg.nepisodes} episodes in every env)")
+            return 128 + stop.signum
+
+        def write(staged: str) -> None:
             save_run(staged, result, spec.to_dict(), trainer.disc)
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
-            # ``out`` holds this run's own checkpoint, or an old run that --overwrite allows to replace.
-            rundir.publish(staged, out, overwrite=True)
-        except BaseException:
-            rundir.discard(staged)
-            raise
-        if live != out:
-            rundir.discard(live)
-    finally:
-        for s, h in handlers.items():
-            signal.signal(s, h)
+
+        rundir.publish_results(out, live, write)
     s = result.summary()
     print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps']:,} env steps in {s['run_seconds']:.1f} s "
           f"({s['env_steps_per_second']:,.0f} steps/s)")

@@ -76,7 +76,7 @@ class EnvSpec:
 @dataclasses.dataclass(frozen=True)
 class LearningTarget:
     """What "has learned" means for a task, declared on the task class (:attr:`Env.learning_target`) and read by
-    the training summary (:meth:`jaxrobo.train.TrainResult.summary`), so the trainer knows no task's threshold.
+    the training summary (:meth:`jaxrobo.summary.TrainResult.summary`), so the trainer knows no task's threshold.
 
     A table reaches the target when its greedy evaluation's ``metric`` is ``>= threshold``. ``metric`` is one of
     :data:`TARGET_METRICS`: ``"mean_length"`` / ``"mean_return"`` (mean greedy episode length / return, which the

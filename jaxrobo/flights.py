@@ -90,7 +90,7 @@ def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int) -
     import jax
 
     from jaxrobo.rollout import greedy_policy, random_policy, rollout
-    from jaxrobo.train import make_discretiser_for
+    from jaxrobo.trainer import make_discretiser_for
 
     env = spec.env
     if q is None:

@@ -3,7 +3,7 @@
 A run's speed choices (how many envs are stepped at once, whether MJX's inertia stage is replaced, how done
 envs are reset, whether table rows are carried, the XLA options) live in one frozen :class:`ExecutionPlan`,
 built once from the device and the run's config by :meth:`ExecutionPlan.for_run` and passed explicitly to
-whatever traces the run: :class:`jaxrobo.train.Trainer` (and so :func:`jaxrobo.train.train`), the sweep's
+whatever traces the run: :class:`jaxrobo.trainer.Trainer` (and so :func:`jaxrobo.train.train`), the sweep's
 compiled groups, :class:`jaxrobo.gym_adapter.JaxroboVectorEnv`, the benchmarks. Every choice gives the same
 values bit for bit (the tests compare them); what changes is the program XLA compiles. There are no
 module-global knobs: to measure another choice, build another plan (``plan.replace(lean_mjx=False)``).
@@ -13,7 +13,7 @@ The plan acts while a program is traced: its fields are read by the code that bu
 ``env.step(state, action, params)``, the MJX stage replacement, travels with :meth:`ExecutionPlan.tracing`, a
 block during which the simulator asks :func:`jaxrobo.mjx_lean.wanted` (see :mod:`jaxrobo.mjx_lean`). A jitted
 function traced once keeps the plan it was traced under, so build one jitted function per plan (a
-:class:`~jaxrobo.train.Trainer` per plan does that). ``repr(plan)`` is short, names every choice, and is the
+:class:`~jaxrobo.trainer.Trainer` per plan does that). ``repr(plan)`` is short, names every choice, and is the
 plan's tag in benchmark rows and run summaries. JAX's persistent compilation cache keys on the lowered program,
 so two plans never share a cached executable unless they lower to the same program. A checkpoint does not
 record the plan: the values do not depend on it (a carry written under one plan goes on under another, as
@@ -117,7 +117,7 @@ class ExecutionPlan:
     @classmethod
     def for_run(cls, env: Env, config: Any = None, backend: str | None = None, *,
                 compiler_options: Mapping[str, Any] | None = None) -> "ExecutionPlan":
-        """The plan for training ``env`` with ``config`` (a :class:`jaxrobo.train.TrainConfig`: its ``n_envs``,
+        """The plan for training ``env`` with ``config`` (a :class:`jaxrobo.trainer.TrainConfig`: its ``n_envs``,
         ``shared_table`` and ``env_group``) on ``backend`` (JAX's platform name; default
         ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector
         env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not

@@ -17,7 +17,7 @@ A run directory holds:
                          says how far it got (``chunks_done``, ``episodes_done_min``) and how to go on
                          (``resume``: the command line)
 ``checkpoint.npz``       only in an unfinished run: the whole training carry, from which ``jaxrobo train
-                         --resume DIR`` goes on (format: :func:`jaxrobo.train.save_checkpoint`)
+                         --resume DIR`` goes on (format: :func:`jaxrobo.checkpoint.save_checkpoint`)
 =======================  =====================================================================================
 
 A complete run is written into a hidden sibling and renamed into place (:mod:`jaxrobo.rundir`), so a directory
@@ -122,7 +122,7 @@ def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, ep
 
 
 def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None) -> str:
-    """Write everything a :class:`jaxrobo.train.TrainResult` holds into ``out_dir``; returns ``out_dir``.
+    """Write everything a :class:`jaxrobo.summary.TrainResult` holds into ``out_dir``; returns ``out_dir``.
 
     An interrupted result (``complete`` False) writes its config and the episodes finished so far only. The
     caller writes ``status.json`` (and, for an interrupted run, the checkpoint) and publishes the directory

@@ -1,7 +1,7 @@
 """Episodes of a policy, in one compiled computation: greedy evaluation of tables, random baselines, success rates.
 
 Every place that runs a policy's episodes goes through here: the trainer's evaluation
-(:meth:`jaxrobo.train.Trainer.evaluate`), the quadcopter flights (:mod:`jaxrobo.flights`, the benchmarks) and the
+(:meth:`jaxrobo.trainer.Trainer.evaluate`), the quadcopter flights (:mod:`jaxrobo.flights`, the benchmarks) and the
 greedy policy of a video (:func:`jaxrobo.render.q_policy`). So a greedy policy breaks ties one way everywhere:
 uniformly at random among the maximal action values, drawn from the step's key (:func:`greedy_action`, which is
 :func:`agents.tabular.greedy`).

@@ -1,7 +1,7 @@
 """Resolve a training run from the shipped YAML files and user overrides, validated before anything compiles.
 
 A task's agent YAML (``agents/configs/<name>.yaml``) holds presets; each preset maps learner parameters
-(:class:`agents.tabular.AgentParams`) and loop settings (:class:`jaxrobo.train.TrainConfig`), plus an optional
+(:class:`agents.tabular.AgentParams`) and loop settings (:class:`jaxrobo.trainer.TrainConfig`), plus an optional
 ``env:`` mapping of env overrides. ``default`` is the textbook setup that learns; ``seed`` is the seed's own
 values with its learners reproduced exactly.
 
@@ -27,7 +27,7 @@ from jaxrobo.config import ConfigError, as_dict, flat_keys, load_yaml, split_and
 from jaxrobo.env import Env
 from jaxrobo.registry import _lookup, learner, learners, make
 from jaxrobo.struct import INT32_MAX, Rule, rules
-from jaxrobo.train import TrainConfig
+from jaxrobo.trainer import TrainConfig
 
 AGENT_CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "agents", "configs")
 

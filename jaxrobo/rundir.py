@@ -13,6 +13,10 @@ The rules (``jaxrobo train``; ``jaxrobo sweep`` uses the same helpers):
   directory. A reader sees the old file or the new one, never a torn one.
 * ``status.json`` says what a directory holds: ``{"status": "running" | "interrupted" | "complete", ...}``
   (:func:`write_status` / :func:`read_status`); :func:`is_complete` and :func:`is_resumable` read it.
+* The life of a run directory, shared by ``jaxrobo train`` and ``jaxrobo sweep``: :func:`live_dir` is where a new
+  run keeps its state (checkpoint, status) while it runs; :func:`interrupted` marks it interrupted and says on
+  stderr how to go on; :func:`publish_results` writes the finished results into a staging directory and moves
+  them into place, then drops the state.
 """
 from __future__ import annotations
 
@@ -20,6 +24,7 @@ import ctypes
 import json
 import os
 import shutil
+import sys
 import tempfile
 from typing import IO, Any, Callable
 
@@ -27,7 +32,8 @@ import numpy as np
 
 from jaxrobo.config import ConfigError
 
-#: The training carry of an unfinished run (see :func:`jaxrobo.train.save_checkpoint`).
+#: The training carry of an unfinished run (see :func:`jaxrobo.checkpoint.save_checkpoint`), or a sweep's
+#: finished groups.
 CHECKPOINT = "checkpoint.npz"
 #: What the directory holds: ``running``, ``interrupted`` or ``complete``, and how to resume.
 STATUS = "status.json"
@@ -219,6 +225,47 @@ def publish(staging_dir: str, path: str, *, overwrite: bool = False) -> None:
 def discard(staging_dir: str) -> None:
     """Remove a staging directory that will not be published."""
     shutil.rmtree(staging_dir, ignore_errors=True)
+
+
+# ---- a run's life: where its state lives, interrupted, published ----------------------------------------------
+def live_dir(out: str) -> str:
+    """Where a new run (or sweep) keeps its state while it runs: ``out`` itself when it is new or empty (created
+    here), so that a hard crash leaves it resumable; else (an old run that ``--overwrite`` replaces, allowed by
+    :func:`check_out`) a hidden sibling (:func:`staging`), so that the old run stays whole until the new one
+    replaces it."""
+    if os.path.isdir(out) and os.listdir(out):
+        return staging(out)
+    os.makedirs(out, exist_ok=True)
+    return out
+
+
+def interrupted(live: str | None, *, out: str, resume: str, prog: str, what: str, publish_live: bool = False,
+                **fields: Any) -> None:
+    """Mark the run whose state is in ``live`` interrupted and say how to go on: ``status.json`` becomes
+    ``{"status": "interrupted", "out": ..., "resume": resume, **fields}`` (None ``live``: not written, another
+    process owns it), ``publish_live`` moves a ``live`` staging directory into place as ``out`` (replacing an old
+    run), and one line goes to stderr: ``"<prog>: <what>; to go on: <resume>"``."""
+    if live is not None:
+        write_status(live, INTERRUPTED, out=os.path.abspath(out), resume=resume, **fields)
+        if publish_live and os.path.abspath(live) != os.path.abspath(out):
+            publish(live, out, overwrite=True)
+    print(f"{prog}: {what}; to go on: {resume}", file=sys.stderr)
+
+
+def publish_results(out: str, live: str, write: Callable[[str], None]) -> None:
+    """The finished run: ``write(staged)`` fills a fresh staging directory (its ``status.json`` saying
+    ``complete`` included), which then replaces ``out`` in one step (``out`` holds this run's own state, or an
+    old run that ``--overwrite`` allowed to replace); a failure discards it and leaves ``out`` as it was. A
+    ``live`` state directory other than ``out`` is removed afterwards."""
+    staged = staging(out)
+    try:
+        write(staged)
+        publish(staged, out, overwrite=True)
+    except BaseException:
+        discard(staged)
+        raise
+    if os.path.abspath(live) != os.path.abspath(out):
+        discard(live)
 
 
 # ---- atomic single files -------------------------------------------------------------------------------------

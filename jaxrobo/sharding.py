@@ -140,7 +140,7 @@ def jit_batched(fn: Callable, mesh: Mesh | None, batch: int, example_args: tuple
 
 
 class ShardedTrainer:
-    """A :class:`jaxrobo.train.Trainer` whose ``n_envs`` environments are split over the devices of a mesh.
+    """A :class:`jaxrobo.trainer.Trainer` whose ``n_envs`` environments are split over the devices of a mesh.
 
     ``init`` / ``run_chunk`` are jitted with the Runner's env axis sharded (a shared table is replicated and
     its batched update becomes a cross-device reduction). ``n_envs`` must be a multiple of the device count.

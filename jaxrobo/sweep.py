@@ -3,7 +3,7 @@
 The seed's advice for tuning ("try several times with different parameters") becomes one command: a grid or a
 random sample over learner parameters (alpha, gamma, epsilon, epsilon_discount, epsilon_min) and traced env
 parameters (pos_step, limits, goals, ...), times seeds. Every (configuration, seed) row runs the whole training
-loop of :class:`jaxrobo.train.Trainer` with its own ``n_envs`` environments and tables; the rows become a
+loop of :class:`jaxrobo.trainer.Trainer` with its own ``n_envs`` environments and tables; the rows become a
 leading axis of the parameter pytrees, and ``Trainer.init`` / ``Trainer.run_chunk`` are vmapped over it, so
 the whole sweep is one compiled program (split over all devices when there are several, see
 :mod:`jaxrobo.sharding`). Settings that change array shapes or code (``number_splits``, ``agent``,
@@ -38,7 +38,6 @@ import os
 import shlex
 import signal
 import sys
-import threading
 import time
 from typing import Any, Callable, Mapping, Sequence
 
@@ -47,12 +46,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from agents.tabular import AgentParams
-from jaxrobo import budget
+from jaxrobo import budget, checkpoint, driver
 from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value
 from jaxrobo.run import KeyRoute, resolve, route
 from jaxrobo.struct import INT32_MAX, rules
 from jaxrobo.plan import ExecutionPlan
-from jaxrobo.train import Runner, Trainer
+from jaxrobo.trainer import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
 METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
@@ -224,8 +223,9 @@ class GroupRunner:
             progress: Callable[[int, int], None] | None = None,
             max_seconds: float | None = None, stop: Callable[[], bool] | None = None) -> dict[str, np.ndarray]:
         """Train every row to its last episode (or until ``max_seconds`` of running); per-row metrics as host
-        arrays of length ``n_rows``. ``self.complete`` says whether every row finished. ``stop`` is polled after
-        every chunk; when it returns True the group is abandoned with :class:`SweepInterrupted`."""
+        arrays of length ``n_rows``. ``self.complete`` says whether every row finished. The chunk loop is the
+        host driver's (:func:`jaxrobo.driver.run_chunks`): ``stop`` is polled before every chunk; when it returns
+        True the group is abandoned with :class:`SweepInterrupted`."""
         from jaxrobo import sharding
 
         mesh, n = self.mesh, self.n_padded
@@ -234,32 +234,24 @@ class GroupRunner:
         t0 = time.perf_counter()
         plan = self.trainer.plan
         opts = plan.xla_options
-        with plan.tracing():
-            init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
-            runner = init.lower(kd, ap, ep).compile()(kd, ap, ep)
-            chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,),
-                                         compiler_options=opts)
-            chunk = chunk.lower(runner, ap, ep).compile()
-            finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
-            finish = finish.lower(runner, kd, ep).compile()
-        episodes = jax.jit(lambda r: jnp.min(r.episode))
+        init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
+        runner = driver.compile_under(plan, init, kd, ap, ep)(kd, ap, ep)
+        chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,), compiler_options=opts)
+        chunk = driver.compile_under(plan, chunk, runner, ap, ep)
+        finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
+        finish = driver.compile_under(plan, finish, runner, kd, ep)
+        stats = driver.compiled_progress(runner)
         jax.block_until_ready(runner)
         self.compile_seconds = time.perf_counter() - t0
         t0 = time.perf_counter()
         nepisodes = self.trainer.config.nepisodes
-        for _ in range(self.trainer.max_chunks()):
-            runner = chunk(runner, ap, ep)
-            done = int(episodes(runner))
-            if progress is not None:
-                progress(done, nepisodes)
-            if done >= nepisodes:
-                break
-            if stop is not None and stop():
-                raise SweepInterrupted(0, 1, None)
-            if max_seconds is not None and time.perf_counter() - t0 > max_seconds:
-                break
-        self.complete = done >= nepisodes
-        out = finish(runner, kd, ep)
+        report = None if progress is None else (lambda done, total, _last: progress(done, total))
+        loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, self.trainer.max_chunks(), read=stats,
+                                 total=nepisodes, progress=report, should_stop=stop, max_seconds=max_seconds)
+        if loop.stopped:
+            raise SweepInterrupted(0, 1, None)
+        self.complete = loop.done >= nepisodes
+        out = finish(loop.carry, kd, ep)
         out = sharding.gather(out)
         self.run_seconds = time.perf_counter() - t0
         return {k: np.asarray(v)[: self.n_rows] for k, v in out.items()}
@@ -385,7 +377,7 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
     but not compared), and the row metrics of every finished group to ``state_dir/checkpoint.npz`` (rewritten
     atomically after each group; an empty one at the start). Running the same plan again on the same
     ``state_dir`` skips the saved groups and gives the same rows; a state saved by other settings or other code
-    raises :class:`ConfigError` before anything compiles. ``should_stop`` is polled before each group and after
+    raises :class:`ConfigError` before anything compiles. ``should_stop`` is polled before each group and before
     each training chunk; when it returns True the sweep abandons the group it is in (a compiled group cannot be
     split) and raises :class:`SweepInterrupted`, the finished groups staying saved. With several processes only
     process 0 writes; the others read ``state_dir`` if they are given it (a shared file system).
@@ -539,7 +531,7 @@ def open_state(state_dir: str, plan: SweepPlan, extra: Mapping[str, Any] | None 
 def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished: Mapping[int, Mapping[str, Any]]
                     ) -> None:
     """The row metrics of every finished group in ``state_dir/checkpoint.npz`` (plain arrays, no pickle),
-    written atomically: a crash leaves the previous checkpoint or this one."""
+    written atomically (:func:`jaxrobo.checkpoint.write_npz`): a crash leaves the previous checkpoint or this one."""
     from jaxrobo import rundir
 
     arrays: dict[str, np.ndarray] = {"fingerprint": np.asarray(fingerprint),
@@ -552,7 +544,7 @@ def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished:
             arrays[f"g{g}_{k}"] = np.asarray(done[k], np.float64)
         arrays[f"g{g}_complete"] = np.asarray(bool(done["complete"]))
         arrays.update({f"g{g}_metric_{k}": np.asarray(v) for k, v in done["metrics"].items()})
-    rundir.atomic_savez(os.path.join(state_dir, rundir.CHECKPOINT), **arrays)
+    checkpoint.write_npz(os.path.join(state_dir, rundir.CHECKPOINT), **arrays)
 
 
 def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[int, dict[str, Any]]:
@@ -563,11 +555,7 @@ def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[i
     path = os.path.join(state_dir, rundir.CHECKPOINT)
     if not os.path.exists(path):
         return {}
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as err:
-        raise ConfigError(f"{path}: unreadable sweep checkpoint ({err})") from None
+    data = checkpoint.read_npz(path, "the sweep checkpoint")
     if str(data.get("fingerprint")) != fingerprint:
         raise ConfigError(f"{path}: saved by another sweep than {os.path.join(state_dir, STATE_FILE)}; "
                           "start it again with --overwrite")
@@ -766,34 +754,6 @@ def _all_agree(ok: bool) -> bool:
     return bool(np.all(multihost_utils.process_allgather(np.asarray(ok))))
 
 
-class _StopOnSignal:
-    """SIGINT / SIGTERM ask the sweep to stop (polled as ``should_stop``); a second one acts as it would
-    without this handler (KeyboardInterrupt, termination)."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self._old: dict[int, Any] = {}
-
-    def __enter__(self) -> "_StopOnSignal":
-        if threading.current_thread() is threading.main_thread():
-            for sig in self.SIGNALS:
-                self._old[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum: int, _frame: Any) -> None:
-        self.signum = signum
-        signal.signal(signum, self._old.get(signum, signal.SIG_DFL))
-
-    def __call__(self) -> bool:
-        return self.signum is not None
-
-    def __exit__(self, *_exc: Any) -> None:
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-
-
 def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
     """The grid (product of --grid axes) times the --random sample (if any)."""
     axes = parse_grid(args.grid or [])
@@ -872,11 +832,7 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
     if main_process and live is None:
         # The state of a new sweep goes to --out itself (new or empty), so that a hard crash leaves it resumable;
         # with --overwrite (checked above) to a hidden sibling, so that the old run stays whole until the end.
-        if os.path.isdir(out) and os.listdir(out):
-            live = rundir.staging(out)
-        else:
-            os.makedirs(out, exist_ok=True)
-            live = out
+        live = rundir.live_dir(out)
     resume_hint = (f"jaxrobo sweep --resume {shlex.quote(live)}" if live is not None
                    else "jaxrobo sweep --resume DIR (DIR as process 0 says)")
     if main_process:
@@ -887,33 +843,29 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         print(f"state in {live} until the sweep is done", file=sys.stderr)
     # Other processes read the state only when resuming (a new sweep's state directory is process 0's choice).
     state_dir = live
-    with _StopOnSignal() as stop:
+    owned = live if main_process else None  # the directory whose status this process writes
+    with driver.StopOnSignal() as stop:
         # Processes stop together (a signal may reach only some of them): one more collective per chunk.
         should_stop = stop if jax.process_count() == 1 else (lambda: not _all_agree(not stop()))
+        saved_in = live or "process 0"
         try:
             result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
         except KeyboardInterrupt:  # a second Ctrl-C: the group in progress is dropped at once
-            if main_process:
-                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
-                                    resume=resume_hint)
-            print(f"jaxrobo sweep: interrupted by SIGINT: the finished groups are saved in {live or 'process 0'}; "
-                  f"go on with: {resume_hint}", file=sys.stderr)
+            rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
+                               what=f"interrupted by SIGINT: the finished groups are saved in {saved_in}")
             return 128 + signal.SIGINT
         except SweepInterrupted as err:
-            name = signal.Signals(stop.signum).name if stop.signum else "a signal to another process"
-            if main_process:
-                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
-                                    resume=resume_hint, finished_groups=err.done, groups=err.total)
-            print(f"jaxrobo sweep: interrupted by {name}: {err.done} of {err.total} groups finished, saved in "
-                  f"{live or 'process 0'}; go on with: {resume_hint}", file=sys.stderr)
+            name = stop.name or "a signal to another process"
+            rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
+                               finished_groups=err.done, groups=err.total,
+                               what=f"interrupted by {name}: {err.done} of {err.total} groups finished, saved in "
+                                    f"{saved_in}")
             return 128 + (stop.signum or signal.SIGINT)
         except Exception as err:  # the finished groups are saved: say how to go on, then fail as before
-            if main_process:
-                rundir.write_status(live, rundir.INTERRUPTED, command="sweep", out=os.path.abspath(out),
-                                    resume=resume_hint, error=f"{type(err).__name__}: {err}")
-            print(f"jaxrobo sweep: failed ({type(err).__name__}); the finished groups are saved in "
-                  f"{live or 'process 0'}; go on with: {resume_hint}", file=sys.stderr)
+            rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
+                               error=f"{type(err).__name__}: {err}",
+                               what=f"failed ({type(err).__name__}); the finished groups are saved in {saved_in}")
             raise
     if not main_process:
         return 0
@@ -923,19 +875,16 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
                "seeds": seeds, "n_rows": len(result.rows), "wall_seconds": result.wall_seconds,
                "env_steps": result.env_steps, "env_steps_per_second": result.env_steps / max(result.wall_seconds, 1e-9),
                "groups": result.groups, "best": best, "argv": argv}
-    staged = rundir.staging(out)
-    try:
+    plots: list[str] = []
+
+    def write(staged: str) -> None:
         write_csv(result, os.path.join(staged, "sweep.csv"))
         with open(os.path.join(staged, "summary.json"), "w") as fh:
             json.dump(summary, fh, indent=2, default=str)
-        plots = [] if f.no_plots else plot_sweep(result, staged, metric)
+        plots.extend([] if f.no_plots else plot_sweep(result, staged, metric))
         rundir.write_status(staged, rundir.COMPLETE, command="sweep")
-        rundir.publish(staged, out, overwrite=True)  # replaces the state (or the old run) in one step
-    except BaseException:
-        rundir.discard(staged)
-        raise
-    if os.path.abspath(live) != os.path.abspath(out):
-        rundir.discard(live)
+
+    rundir.publish_results(out, live, write)  # replaces the state (or the old run) in one step
     plots = [os.path.join(out, os.path.basename(p)) for p in plots]
     print(f"{len(result.rows)} rows, {result.env_steps:,} env steps in {result.wall_seconds:.1f} s "
           f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile)")

@@ -14,7 +14,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrobo import rundir
+from jaxrobo import checkpoint, rundir
 from jaxrobo import train as training
 from jaxrobo.cli import main
 from jaxrobo.config import ConfigError
@@ -134,7 +134,7 @@ def no_training(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("compiled or trained before refusing")
 
-    monkeypatch.setattr(training, "carry_template", boom)
+    monkeypatch.setattr(checkpoint, "carry_template", boom)
     monkeypatch.setattr(training, "train", boom)
 
 

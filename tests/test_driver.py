@@ -1,0 +1,97 @@
+"""The host driver: one chunk loop (done test, stop hook, checkpoint cadence, time limit) for train and the sweep,
+and the SIGINT/SIGTERM stop flag both command lines use."""
+from __future__ import annotations
+
+import signal
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxrobo import driver
+
+
+def _loop(n_chunks=10, per_chunk=1, total=5, **kw):
+    """A carry whose "episodes done" grows by ``per_chunk`` a chunk: nothing to compile."""
+    calls = []
+
+    def chunk(c):
+        calls.append(int(c))
+        return c + per_chunk
+
+    read = lambda c: (jnp.asarray(c, jnp.float32), jnp.asarray(-1.0))  # noqa: E731
+    run = driver.run_chunks(chunk, jnp.asarray(0), n_chunks, read=read, total=total, **kw)
+    return run, calls
+
+
+def test_runs_until_every_env_is_done_or_the_chunks_are_spent():
+    seen = []
+    run, calls = _loop(progress=lambda done, total, last: seen.append((done, total, last)))
+    assert (run.chunks_done, run.done, run.stopped, int(run.carry)) == (5, 5.0, False, 5)
+    assert seen == [(i, 5, -1.0) for i in range(1, 6)]
+    run, _ = _loop(n_chunks=3)
+    assert (run.chunks_done, run.done) == (3, 3.0)
+    run, calls = _loop(start_chunk=8)  # a resumed carry counts the chunks it already ran
+    assert (run.chunks_done, len(calls)) == (10, 2)
+    run = driver.run_chunks(lambda c: c + 1, jnp.asarray(0), 4)  # nothing read back between chunks
+    assert (run.chunks_done, run.done, int(run.carry)) == (4, None, 4)
+
+
+def test_checkpoint_cadence_skips_the_last_chunk_and_a_stop_saves_once_more():
+    saved = []
+    run, _ = _loop(total=7, checkpoint=lambda c, n: saved.append((int(c), n)), checkpoint_every=2)
+    assert saved == [(2, 2), (4, 4), (6, 6)] and run.chunks_done == 7  # not after chunk 7, the last
+    saved.clear()
+    answers = iter([False, False, True])  # a stop request after two chunks
+    run, calls = _loop(checkpoint=lambda c, n: saved.append((int(c), n)), should_stop=lambda: next(answers))
+    assert run.stopped and run.chunks_done == 2 and saved == [(2, 2)]  # asked before each chunk, saved at the end
+    run, calls = _loop(should_stop=lambda: True)
+    assert run.stopped and run.chunks_done == 0 and calls == []
+
+
+def test_max_seconds_ends_the_loop_after_at_least_one_chunk():
+    run, calls = _loop(max_seconds=0.0)
+    assert (run.chunks_done, run.stopped, len(calls)) == (1, False, 1)
+
+
+def test_stop_on_signal_sets_a_flag_then_quits_on_a_second_signal():
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    noticed = []
+    with driver.StopOnSignal(noticed.append, second="exit") as stop:
+        assert not stop() and stop.name is None
+        signal.raise_signal(signal.SIGTERM)
+        assert stop() and stop.name == "SIGTERM" and noticed == [signal.SIGTERM]
+        with pytest.raises(SystemExit) as exc:
+            signal.raise_signal(signal.SIGINT)
+        assert exc.value.code == 128 + signal.SIGINT
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
+    with driver.StopOnSignal() as stop:  # second="default": the next one meets the handler from before
+        signal.raise_signal(signal.SIGINT)
+        assert stop.signum == signal.SIGINT
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
+    with pytest.raises(ValueError, match="second="):
+        driver.StopOnSignal(second="ignore")
+
+
+def test_train_and_the_sweep_run_their_chunks_through_the_same_driver(monkeypatch):
+    from jaxrobo import sweep
+    from jaxrobo.run import resolve
+    from jaxrobo.train import train
+
+    loops = []
+    run_chunks = driver.run_chunks
+
+    def spy(chunk, carry, n_chunks, **kw):
+        run = run_chunks(chunk, carry, n_chunks, **kw)
+        loops.append((np.shape(carry.episode), run.chunks_done))
+        return run
+
+    monkeypatch.setattr(driver, "run_chunks", spy)
+    small = {"n_envs": 2, "nepisodes": 2, "nsteps": 10, "chunk_steps": 10, "backend": "analytic", "eval_episodes": 0}
+    spec = resolve("CartPoleStayUp-v0", overrides=small)
+    result = train(spec.env, spec.config, spec.agent_params)
+    assert result.complete and loops == [((2,), result.chunks_done)]
+    out = sweep.run_sweep("CartPoleStayUp-v0", [{"alpha": 0.1}, {"alpha": 0.5}], [0], overrides=small)
+    assert len(out.rows) == 2 and len(loops) == 2 and loops[1][0] == (2, 2)  # rows × envs
