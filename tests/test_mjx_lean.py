@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from jaxrobo import mjx_lean
-from jaxrobo.sim import asset_path, load_model, mjx
+from envs import asset_path
+from jaxrobo.sim import load_model, mjx
 
 
 @pytest.mark.parametrize("xml", ["cartpole.xml", "quadcopter.xml"])
