@@ -128,6 +128,7 @@ def _train_checked(args: argparse.Namespace) -> int:
     checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
     print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {cfg.n_envs} envs × {cfg.nepisodes} episodes "
           f"≤ {cfg.nsteps} steps → {out}" + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
+    print(f"running as {trainer.plan!r}")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 
@@ -155,7 +156,7 @@ def _train_checked(args: argparse.Namespace) -> int:
         result = training.train(spec.env, cfg, spec.agent_params, progress=progress, initial=initial,
                                 start_chunk=start_chunk, checkpoint=save,
                                 checkpoint_every=args.checkpoint_every or 0, checkpoint_seconds=every,
-                                should_stop=stop)
+                                should_stop=stop, plan=trainer.plan)
         if bar is not None:
             bar.close()
         if not result.complete:
