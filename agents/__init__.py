@@ -1,8 +1,8 @@
-"""Tabular learners, each a small module of pure functions (see :mod:`agents.tabular`)."""
+"""Tabular learners, each a small module of pure functions (see :mod:`jaxrobo.tabular`)."""
 from __future__ import annotations
 
 from agents import double_q, expected_sarsa, qlearning, sarsa
-from agents.tabular import AgentParams, AgentState, Learner
+from jaxrobo.tabular import AgentParams, AgentState, Learner
 
 LEARNERS: dict[str, Learner] = {m.LEARNER.name: m.LEARNER for m in (qlearning, sarsa, expected_sarsa, double_q)}
 

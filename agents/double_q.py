@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agents.tabular import Learner, epsilon_greedy, row_argmax
+from jaxrobo.tabular import Learner, epsilon_greedy, row_argmax
 from jaxrobo import rng
 
 

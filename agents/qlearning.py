@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from agents.tabular import Learner, argmax_random_ties, epsilon_greedy, row_max, row_min
+from jaxrobo.tabular import Learner, argmax_random_ties, epsilon_greedy, row_max, row_min
 from jaxrobo import rng
 
 

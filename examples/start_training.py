@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import agents  # noqa: E402
 import jaxrobo  # noqa: E402,F401  (registers the jaxrobo/<id> environments with Gymnasium)
-from agents import tabular  # noqa: E402
+from jaxrobo import tabular  # noqa: E402
 from jaxrobo import results  # noqa: E402
 from jaxrobo.config import ConfigError, parse_overrides  # noqa: E402
 from jaxrobo.run import resolve  # noqa: E402

@@ -25,7 +25,7 @@ from jaxrobo import rundir
 from jaxrobo.config import ConfigError, flat_keys
 
 if TYPE_CHECKING:
-    from agents.tabular import AgentParams
+    from jaxrobo.tabular import AgentParams
     from jaxrobo.trainer import Runner, Trainer
 
 #: Bumped when the checkpoint layout changes.

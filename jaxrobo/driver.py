@@ -28,8 +28,8 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from agents import tabular
-from agents.tabular import AgentParams
+from jaxrobo import tabular
+from jaxrobo.tabular import AgentParams
 from jaxrobo import budget
 from jaxrobo.plan import ExecutionPlan
 from jaxrobo.summary import TrainResult

@@ -157,7 +157,7 @@ def make(id: str, **overrides: Any) -> Env:
 
 
 def learners() -> dict[str, Any]:
-    """The tabular learners, ``{name: agents.tabular.Learner}``, in their listed order."""
+    """The tabular learners, ``{name: jaxrobo.tabular.Learner}``, in their listed order."""
     return importlib.import_module(LEARNERS_MODULE).LEARNERS
 
 

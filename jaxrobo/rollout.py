@@ -4,7 +4,7 @@ Every place that runs a policy's episodes goes through here: the trainer's evalu
 (:meth:`jaxrobo.trainer.Trainer.evaluate`), the quadcopter flights (:mod:`jaxrobo.flights`, the benchmarks) and the
 greedy policy of a video (:func:`jaxrobo.render.q_policy`). So a greedy policy breaks ties one way everywhere:
 uniformly at random among the maximal action values, drawn from the step's key (:func:`greedy_action`, which is
-:func:`agents.tabular.greedy`).
+:func:`jaxrobo.tabular.greedy`).
 
 Public surface:
 
@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import tabular
+from jaxrobo import tabular
 
 __all__ = ["Policy", "greedy_action", "greedy_policy", "random_policy", "rollout", "success_rate", "host_policy"]
 
@@ -53,7 +53,7 @@ def greedy_action(key: jax.Array, values: jax.Array) -> jax.Array:
 def greedy_policy(q: jax.Array, discretiser: Callable[[jax.Array], jax.Array]) -> Policy:
     """Greedy in one learner's tables ``q [n_tables, n_states, n_actions]``: the action values of the state
     ``discretiser(obs)`` are the table's row, or the sum of both rows for Double Q-learning
-    (:func:`agents.tabular.policy_values`, as the learner acts); ties at random (:func:`greedy_action`).
+    (:func:`jaxrobo.tabular.policy_values`, as the learner acts); ties at random (:func:`greedy_action`).
     ``discretiser`` must be traceable (a :class:`jaxrobo.discretise.Discretiser`)."""
     q = jnp.asarray(q)
     if q.ndim != 3:

@@ -1,7 +1,7 @@
 """Resolve a training run from the shipped YAML files and user overrides, validated before anything compiles.
 
 A task's agent YAML (``agents/configs/<name>.yaml``) holds presets; each preset maps learner parameters
-(:class:`agents.tabular.AgentParams`) and loop settings (:class:`jaxrobo.trainer.TrainConfig`), plus an optional
+(:class:`jaxrobo.tabular.AgentParams`) and loop settings (:class:`jaxrobo.trainer.TrainConfig`), plus an optional
 ``env:`` mapping of env overrides. ``default`` is the textbook setup that learns; ``seed`` is the seed's own
 values with its learners reproduced exactly.
 
@@ -9,7 +9,7 @@ Overrides are ``{key: value}``; :func:`route` says where each key lives, for ``-
 keys of :mod:`jaxrobo.sweep`: a bare key goes to whichever of learner, loop or env declares it (learner and
 loop first), ``env.KEY`` forces the env and ``agent.KEY`` the learner/loop.
 
-Every default has one home: the dataclasses (:class:`agents.tabular.AgentParams`, :class:`TrainConfig`, each
+Every default has one home: the dataclasses (:class:`jaxrobo.tabular.AgentParams`, :class:`TrainConfig`, each
 task's ``Options`` and ``Params``). The env YAML and the agent presets hold only what differs from them.
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from agents.tabular import AgentParams
+from jaxrobo.tabular import AgentParams
 from jaxrobo import discretise
 from jaxrobo.config import ConfigError, as_dict, flat_keys, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.tabular import AgentParams
+from jaxrobo.tabular import AgentParams
 from jaxrobo.env import LearningTarget
 from jaxrobo.trainer import TrainConfig
 

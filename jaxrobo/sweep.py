@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents.tabular import AgentParams
+from jaxrobo.tabular import AgentParams
 from jaxrobo import budget, checkpoint, driver
 from jaxrobo.config import ConfigError, coerce, merge_flags, parse_overrides, parse_value
 from jaxrobo.run import KeyRoute, resolve, route

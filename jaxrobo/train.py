@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from agents.tabular import AgentParams
+from jaxrobo.tabular import AgentParams
 from jaxrobo.checkpoint import (CHECKPOINT_FORMAT, CheckpointError, carry_fingerprint, carry_template,
                                 fingerprint_mismatch, load_checkpoint, read_fingerprint, save_checkpoint)
 from jaxrobo.driver import CheckpointFn, ProgressFn, compiled_chunk, run_training

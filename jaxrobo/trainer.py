@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agents import tabular
-from agents.tabular import AgentParams, AgentState, Learner
+from jaxrobo import tabular
+from jaxrobo.tabular import AgentParams, AgentState, Learner
 from jaxrobo import autoreset, registry, rng, rollout
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState

@@ -12,9 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import agents
-from agents import tabular
+from jaxrobo import tabular
 from agents.qlearning import noisy_greedy
-from agents.tabular import AgentParams
+from jaxrobo.tabular import AgentParams
 
 N_S, N_A = 5, 4
 PARAMS = AgentParams(alpha=0.3, gamma=0.9, epsilon=0.2)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from agents import tabular
+from jaxrobo import tabular
 from jaxrobo import autoreset, rollout
 
 HORIZON = 30

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from agents.tabular import AgentParams
+from jaxrobo.tabular import AgentParams
 from jaxrobo import registry, sweep
 from jaxrobo.config import ConfigError, load_yaml, split_and_validate
 from jaxrobo.env import LearningTarget

@@ -13,9 +13,9 @@ The layers (the public surface each may use is written down in the docstrings of
 * ``agents/`` (tabular learners) builds on pure helpers only: :data:`AGENTS_MAY_IMPORT`. ``envs`` and ``agents``
   never import each other.
 * ``jaxrobo/`` reaches ``envs`` and the learners only through the registry's entry points
-  (:data:`ENTRY_POINTS`: ``jaxrobo.registry`` imports them by name with importlib). The one exception is the
-  learner protocol :data:`LEARNER_PROTOCOL` (``agents.tabular``: what a learner implements and the trainer
-  calls), which imports nothing but ``jaxrobo.rng``/``jaxrobo.struct``, so using it makes no circle.
+  (:data:`ENTRY_POINTS`: ``jaxrobo.registry`` imports them by name with importlib). The learner protocol
+  (``jaxrobo.tabular``: what a learner implements and the trainer calls) lives in ``jaxrobo/``, so the learners
+  build on it like envs build on the task API.
 
 Run ``python tests/test_structure.py`` to print the graph (every edge into or out of envs/agents, and circles).
 """
@@ -34,11 +34,9 @@ PACKAGES = ("jaxrobo", "envs", "agents")
 ENVS_MAY_IMPORT = frozenset({"jaxrobo.env", "jaxrobo.robot", "jaxrobo.sim", "jaxrobo.spaces", "jaxrobo.struct",
                              "jaxrobo.rng", "jaxrobo.registry", "jaxrobo.rollout"})
 #: What a learner may import from jaxrobo: pure helpers with no knowledge of envs or training.
-AGENTS_MAY_IMPORT = frozenset({"jaxrobo.struct", "jaxrobo.rng"})
+AGENTS_MAY_IMPORT = frozenset({"jaxrobo.struct", "jaxrobo.rng", "jaxrobo.tabular"})
 #: The jaxrobo modules that may import envs/agents (by entry-point name, with importlib, in practice).
 ENTRY_POINTS = frozenset({"jaxrobo.registry"})
-#: The contract between the trainer and the learners; jaxrobo may import it directly (see the module docstring).
-LEARNER_PROTOCOL = "agents.tabular"
 
 #: Edges that break the rules and are waiting to be removed, each with what removes it. Empty: nothing is excused,
 #: and a new forbidden edge fails the test.
@@ -159,9 +157,8 @@ def forbidden(edge: Edge) -> str | None:
         return f"envs may import only {', '.join(sorted(ENVS_MAY_IMPORT))} from jaxrobo"
     if src == "agents" and dst == "jaxrobo" and edge.dst not in AGENTS_MAY_IMPORT:
         return f"agents may import only {', '.join(sorted(AGENTS_MAY_IMPORT))} from jaxrobo"
-    if src == "jaxrobo" and dst in ("envs", "agents") and edge.src not in ENTRY_POINTS and edge.dst != LEARNER_PROTOCOL:
-        return (f"jaxrobo reaches {dst} only through the registry's entry points ({', '.join(sorted(ENTRY_POINTS))}"
-                f"{'' if dst == 'envs' else ', or the learner protocol ' + LEARNER_PROTOCOL})")
+    if src == "jaxrobo" and dst in ("envs", "agents") and edge.src not in ENTRY_POINTS:
+        return f"jaxrobo reaches {dst} only through the registry's entry points ({', '.join(sorted(ENTRY_POINTS))})"
     return None
 
 
@@ -175,7 +172,7 @@ def test_every_package_is_parsed():
     known = modules()
     for pkg in PACKAGES:
         assert pkg in known, f"{pkg}/__init__.py not found under {ROOT}"
-    assert {"jaxrobo.sim", "jaxrobo.registry", "envs.cartpole", "agents.tabular"} <= set(known)
+    assert {"jaxrobo.sim", "jaxrobo.registry", "envs.cartpole", "jaxrobo.tabular"} <= set(known)
     assert any(e.src == "envs.cartpole" and e.dst == "jaxrobo.robot" for e in import_edges())
 
 
@@ -207,10 +204,11 @@ def test_the_checker_finds_circles_and_forbidden_edges():
     assert circles([e("jaxrobo.a", "jaxrobo.b"), e("jaxrobo.b", "jaxrobo.c"), e("jaxrobo.c", "jaxrobo.a"),
                     e("jaxrobo.c", "jaxrobo.d")]) == [["jaxrobo.a", "jaxrobo.b", "jaxrobo.c"]]
     assert forbidden(e("jaxrobo.sim", "envs")) and forbidden(e("jaxrobo.train", "agents.qlearning"))
-    assert forbidden(e("envs.x", "agents.tabular")) and forbidden(e("agents.sarsa", "envs.cartpole"))
+    assert forbidden(e("envs.x", "jaxrobo.tabular")) and forbidden(e("agents.sarsa", "envs.cartpole"))
     assert forbidden(e("envs.x", "jaxrobo.train")) and forbidden(e("agents.sarsa", "jaxrobo.env"))
-    assert not forbidden(e("jaxrobo.registry", "envs")) and not forbidden(e("jaxrobo.train", "agents.tabular"))
+    assert not forbidden(e("jaxrobo.registry", "envs")) and not forbidden(e("jaxrobo.train", "jaxrobo.tabular"))
     assert not forbidden(e("envs.cartpole", "jaxrobo.sim")) and not forbidden(e("agents.sarsa", "jaxrobo.rng"))
+    assert not forbidden(e("agents.sarsa", "jaxrobo.tabular")) and forbidden(e("jaxrobo.trainer", "agents.tabular"))
 
 
 def report() -> str:
