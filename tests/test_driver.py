@@ -54,7 +54,16 @@ def test_max_seconds_ends_the_loop_after_at_least_one_chunk():
     assert (run.chunks_done, run.stopped, len(calls)) == (1, False, 1)
 
 
-def test_stop_on_signal_sets_a_flag_then_quits_on_a_second_signal():
+@pytest.fixture
+def python_sigint_handler():
+    """Python's own SIGINT handler as the one from before, whatever this process inherited (a shell's background
+    job starts with SIGINT ignored, and then a second SIGINT would meet that)."""
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, inherited)
+
+
+def test_stop_on_signal_sets_a_flag_then_quits_on_a_second_signal(python_sigint_handler):
     before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
     noticed = []
     with driver.StopOnSignal(noticed.append, second="exit") as stop:
