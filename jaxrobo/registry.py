@@ -147,9 +147,10 @@ def _import_user_module(module: str, where: str) -> None:
         raise ConfigError(f"{where}: importing module {module!r} failed: {type(err).__name__}: {err}") from err
 
 
-def find(id: str, where: str = "environment id") -> Registration:
-    """The registration of ``id`` or ``"module:Id"`` (importing ``module`` first); a :class:`ConfigError` that
-    starts with ``where`` (e.g. ``"--env"``) for a missing module or id."""
+def find(id: str, where: str | None = None) -> Registration:
+    """The registration of ``id`` or ``"module:Id"`` (importing ``module`` first); for a missing module or id, a
+    :class:`ConfigError` that starts with ``where`` (e.g. ``"--env ID"``), then ``environment id``."""
+    where = "environment id" if where is None else f"{where}: environment id"
     if not isinstance(id, str):
         raise ConfigError(f"{where}: expected an environment id string, got {type(id).__name__} {id!r}")
     if ":" in id:
@@ -205,7 +206,7 @@ def _load_builtin() -> None:
 
 def _lookup(id: str, where: str = "environment id") -> Registration:
     if isinstance(id, str) and ":" in id:
-        return find(id, where)
+        return find(id)
     _load_builtin()
     if id in ALIASES and id not in _REGISTRY:
         import warnings

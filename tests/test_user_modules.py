@@ -117,11 +117,11 @@ def test_register_paths_beside_the_module_or_absolute(example_dir, tmp_path):
 
 
 @pytest.mark.parametrize("env_id, message", [
-    ("no_such_module_xyz:MyPendulum-v0", r"--env no_such_module_xyz:MyPendulum-v0: no module named "
-                                          r"'no_such_module_xyz'"),
-    ("my_task:NoSuchId-v0", r"--env my_task:NoSuchId-v0: module 'my_task' does not register 'NoSuchId-v0'; it "
-                            r"registers MyPendulum-v0"),
-    ("NoSuchId-v0", r"--env NoSuchId-v0: unknown key 'NoSuchId-v0'"),
+    ("no_such_module_xyz:MyPendulum-v0", r"--env no_such_module_xyz:MyPendulum-v0: environment id: no module "
+                                          r"named 'no_such_module_xyz'"),
+    ("my_task:NoSuchId-v0", r"--env my_task:NoSuchId-v0: environment id: module 'my_task' does not register "
+                            r"'NoSuchId-v0'; it registers MyPendulum-v0"),
+    ("NoSuchId-v0", r"--env NoSuchId-v0: environment id: unknown key 'NoSuchId-v0'"),
 ])
 @pytest.mark.parametrize("command", ["train", "sweep"])
 def test_a_missing_module_or_id_is_refused_before_anything_is_written(example_dir, tmp_path, capsys, env_id,
