@@ -55,6 +55,7 @@ def _train_spec(args: argparse.Namespace):
 
     from jaxrobo import rundir
     from jaxrobo.config import ConfigError
+    from jaxrobo.registry import find
     from jaxrobo.run import resolve, spec_from_config
 
     resume = args.resume
@@ -63,7 +64,9 @@ def _train_spec(args: argparse.Namespace):
                           "only when interrupted)")
     if resume is None:
         overrides = train_overrides(args)
-        spec = resolve(args.env or "CartPoleStayUp-v0", args.preset or "default", overrides, agent=args.agent)
+        env_id = args.env or "CartPoleStayUp-v0"
+        find(env_id, where=f"--env {env_id}")  # imports the module of a 'module:Id'; a missing one names --env
+        spec = resolve(env_id, args.preset or "default", overrides, agent=args.agent)
         out = args.out or os.path.join("training_results",
                                        f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
         rundir.check_out(out, overwrite=args.overwrite)

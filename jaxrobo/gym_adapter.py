@@ -345,28 +345,47 @@ def gym_id(env_id: str) -> str:
 
 
 def register_gymnasium_envs() -> list[str]:
-    """Register every jaxrobo id with Gymnasium as ``jaxrobo/<id>`` (idempotent; call again after
-    :func:`jaxrobo.register` adds ids). Records strings only: no env, model or JAX function is built."""
-    from jaxrobo.registry import env_config, registered, spec
+    """Register every jaxrobo id with Gymnasium as ``jaxrobo/<id>`` (idempotent). :func:`jaxrobo.register` calls
+    :func:`register_gymnasium_id` for each id it adds after ``import jaxrobo``, so ``gymnasium.make("jaxrobo/<id>")``
+    works after importing the user's module that registers it. Records strings only: no env, model or JAX
+    function is built."""
+    from jaxrobo.registry import registered
 
-    added = []
-    for env_id in registered():
-        gid = gym_id(env_id)
-        if gid in gymnasium.registry:
-            continue
+    return [gid for gid in (register_gymnasium_id(env_id) for env_id in registered()) if gid]
+
+
+def register_gymnasium_id(env_id: str) -> str | None:
+    """Register ``jaxrobo/<env_id>`` with Gymnasium; its id, or ``None`` if it was already registered."""
+    from jaxrobo.registry import env_config, max_episode_steps
+
+    gid = gym_id(env_id)
+    if gid in gymnasium.registry:
+        return None
+    try:
+        steps = int(env_config(env_id).get("max_episode_steps", max_episode_steps(env_id, with_yaml=False)))
+    except Exception:  # noqa: BLE001 - a broken YAML shows up when the env is made, not at import
         try:
-            steps = int(env_config(env_id).get("max_episode_steps", spec(env_id).max_episode_steps))
-        except Exception:  # noqa: BLE001 - a broken YAML shows up when the env is made, not at import
-            steps = spec(env_id).max_episode_steps
-        gymnasium.register(
-            id=gid,
-            entry_point=f"{__name__}:JaxroboEnv",
-            vector_entry_point=f"{__name__}:JaxroboVectorEnv",
-            max_episode_steps=steps,
-            kwargs={"env_id": env_id},
-        )
-        added.append(gid)
-    return added
+            steps = max_episode_steps(env_id, with_yaml=False)
+        except Exception:  # noqa: BLE001 - the task class is not importable yet (its module is still importing
+            steps = None  # the register call): the task truncates by itself at its own limit
+    gymnasium.register(
+        id=gid,
+        entry_point=f"{__name__}:JaxroboEnv",
+        vector_entry_point=f"{__name__}:JaxroboVectorEnv",
+        max_episode_steps=steps,
+        kwargs={"env_id": env_id},
+    )
+    return gid
 
 
 register_gymnasium_envs()
+
+
+def _install_hook() -> None:
+    from jaxrobo.registry import REGISTER_HOOKS
+
+    if register_gymnasium_id not in REGISTER_HOOKS:
+        REGISTER_HOOKS.append(register_gymnasium_id)
+
+
+_install_hook()  # after the built-in ids: every id registered from now on becomes a Gymnasium id at once

@@ -9,7 +9,11 @@ Public surface:
 
 * :func:`make` - build an env by id with keyword overrides of its options and parameters (``jaxrobo.make``);
 * :func:`register` - add an id: a :class:`jaxrobo.env.TaskEnv` subclass or ``"module:Class"``, its step limit
-  and optional YAML files; :func:`deprecated_alias` keeps an old id working;
+  and optional YAML files (a relative path is relative to the directory of the module that calls ``register``,
+  so a user's task finds the YAML files beside it); :func:`deprecated_alias` keeps an old id working;
+* ids from a user's own module: every function taking an id also takes Gymnasium's ``"module:Id"`` form, which
+  imports ``module`` (from ``sys.path``, then the current directory) so that its ``register`` calls run, then looks
+  up ``Id``; :func:`qualified_id` is the form a run records so that ``--resume`` can import the module again;
 * :func:`registered`, :func:`spec`, :func:`registration`, :func:`env_config` - what is registered (an id's
   :class:`Registration`: its spec, its class, its registered defaults) and with which values;
 * :func:`learners`, :func:`learner` - the tabular learners by name (``qlearn``, ``sarsa``, ...).
@@ -20,7 +24,9 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-from typing import Any
+import os
+import sys
+from typing import Any, Callable
 
 from jaxrobo.config import ConfigError, coerce, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env, EnvSpec
@@ -38,6 +44,9 @@ class Registration:
     spec: EnvSpec
     entry_point: str | type  # a class, or "module:Class" imported on first use (keeps `import envs` light)
     defaults: dict[str, Any]
+    #: The module whose ``register`` call added the id (``None``: the built-in package, or no importable module,
+    #: e.g. a script run as ``__main__``): ``"module:Id"`` imports it again.
+    module: str | None = None
 
     def env_class(self) -> type:
         if isinstance(self.entry_point, str):
@@ -47,6 +56,9 @@ class Registration:
 
 
 _REGISTRY: dict[str, Registration] = {}
+#: Called with each id :func:`register` adds (the Gymnasium adapter registers ``jaxrobo/<id>`` this way, so an id
+#: a user's module registers after ``import jaxrobo`` is a Gymnasium id too; the registry never imports it).
+REGISTER_HOOKS: list[Callable[[str], None]] = []
 #: Old ids that still work in jaxrobo (with a FutureWarning) but are not registered ids of their own, nor
 #: Gymnasium ids: ``{old: new}``.
 ALIASES: dict[str, str] = {}
@@ -63,13 +75,107 @@ def register(id: str, entry_point: str | type, max_episode_steps: int | None = N
 
     The step limit's home is the task's ``Params.max_episode_steps`` default: give ``max_episode_steps`` (or put
     it in the env YAML) only for an id whose limit differs from it; it is then one more default override.
+
+    ``config`` (the env YAML) and ``agent_config`` (the agent presets) may be absolute, or relative to the
+    directory of the module calling ``register`` (the built-in package's agent YAML names are relative to
+    ``agents/configs``).
     """
+    if not isinstance(id, str) or not id or ":" in id:
+        raise ValueError(f"environment id {id!r}: expected a non-empty string without ':' (':' separates a module "
+                         "from an id in 'module:Id')")
     if id in _REGISTRY:
         raise ValueError(f"environment id {id!r} is already registered")
     if max_episode_steps is not None:
         defaults["max_episode_steps"] = max_episode_steps
+    module, directory = _caller()
+    builtin = module is not None and (module == BUILTIN_ENVS or module.startswith(BUILTIN_ENVS + "."))
+    if not builtin:
+        config, agent_config = (_beside(directory, path) for path in (config, agent_config))
     spec = EnvSpec(id, None, description, config, agent_config)
-    _REGISTRY[id] = Registration(spec, entry_point, dict(defaults))
+    _REGISTRY[id] = Registration(spec, entry_point, dict(defaults),
+                                 None if builtin or module in (None, "__main__") else module)
+    for hook in REGISTER_HOOKS:
+        hook(id)
+
+
+def _caller() -> tuple[str | None, str]:
+    """The module (name, directory) of the first caller outside jaxrobo: the module whose ``register`` call this
+    is, also when it goes through ``jaxrobo.register``. The directory is the current one without a file."""
+    frame = sys._getframe(1)
+    while frame is not None and str(frame.f_globals.get("__name__", "")).split(".")[0] == "jaxrobo":
+        frame = frame.f_back
+    if frame is None:
+        return None, os.getcwd()
+    name, path = frame.f_globals.get("__name__"), frame.f_globals.get("__file__")
+    return name, os.path.dirname(os.path.abspath(path)) if path else os.getcwd()
+
+
+def _beside(directory: str, path: str | None) -> str | None:
+    if path is None or os.path.isabs(path):
+        return path
+    return os.path.normpath(os.path.join(directory, os.path.expanduser(path)))
+
+
+def _import_user_module(module: str, where: str) -> None:
+    """Import ``module`` (its import registers its ids), from ``sys.path`` or else the current directory, which
+    then stays on ``sys.path`` (a console script's ``sys.path`` lacks it; a later import, e.g. of the task class
+    by its entry point, must find the module again)."""
+    def missing(err: ModuleNotFoundError) -> bool:  # the module itself, not something it imports
+        return err.name is not None and (module == err.name or module.startswith(err.name + "."))
+
+    try:
+        importlib.import_module(module)
+        return
+    except ModuleNotFoundError as err:
+        if not missing(err):
+            raise ConfigError(f"{where}: importing module {module!r} failed: {err}") from err
+    cwd = os.getcwd()
+    if cwd in sys.path or "" in sys.path:
+        raise ConfigError(f"{where}: no module named {module!r} (looked in the current directory {cwd} and "
+                          "sys.path; in 'module:Id' the module is a Python module that registers Id)")
+    sys.path.insert(0, cwd)
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError as err:
+        sys.path.remove(cwd)
+        if missing(err):
+            raise ConfigError(f"{where}: no module named {module!r} (looked in the current directory {cwd} and "
+                              "sys.path; in 'module:Id' the module is a Python module that registers Id)") from err
+        raise ConfigError(f"{where}: importing module {module!r} failed: {err}") from err
+    except Exception as err:
+        sys.path.remove(cwd)
+        raise ConfigError(f"{where}: importing module {module!r} failed: {type(err).__name__}: {err}") from err
+
+
+def find(id: str, where: str | None = None) -> Registration:
+    """The registration of ``id`` or ``"module:Id"`` (importing ``module`` first); for a missing module or id, a
+    :class:`ConfigError` that starts with ``where`` (e.g. ``"--env ID"``), then ``environment id``."""
+    where = "environment id" if where is None else f"{where}: environment id"
+    if not isinstance(id, str):
+        raise ConfigError(f"{where}: expected an environment id string, got {type(id).__name__} {id!r}")
+    if ":" in id:
+        module, _, name = id.partition(":")
+        if not module or not name:
+            raise ConfigError(f"{where}: {id!r}: expected 'module:Id' (e.g. my_task:MyTask-v0) or a registered id")
+        try:
+            _import_user_module(module, where)
+        except ConfigError:
+            raise
+        except Exception as err:  # an error inside the user's module: name it, at the boundary
+            raise ConfigError(f"{where}: importing module {module!r} failed: {type(err).__name__}: {err}") from err
+        if name not in _REGISTRY and name not in ALIASES:
+            _load_builtin()
+            mine = sorted(k for k, r in _REGISTRY.items() if r.module == module)
+            raise ConfigError(f"{where}: module {module!r} does not register {name!r}; it registers "
+                              f"{', '.join(mine) or 'no environment id'}")
+        id = name
+    return _lookup(id, where)
+
+
+def qualified_id(id: str) -> str:
+    """``"module:Id"`` for an id a user's module registered (so a saved run can import it again), else the id."""
+    reg = find(id)
+    return f"{reg.module}:{reg.spec.id}" if reg.module else reg.spec.id
 
 
 def registered() -> list[str]:
@@ -98,7 +204,9 @@ def _load_builtin() -> None:
     importlib.import_module(BUILTIN_ENVS)  # registers the built-in robots and tasks (once: Python caches it)
 
 
-def _lookup(id: str) -> Registration:
+def _lookup(id: str, where: str = "environment id") -> Registration:
+    if isinstance(id, str) and ":" in id:
+        return find(id)
     _load_builtin()
     if id in ALIASES and id not in _REGISTRY:
         import warnings
@@ -106,7 +214,7 @@ def _lookup(id: str) -> Registration:
         warnings.warn(f"environment id {id!r} is deprecated: it is {ALIASES[id]!r}", FutureWarning, stacklevel=3)
         id = ALIASES[id]
     if not isinstance(id, str) or id not in _REGISTRY:
-        raise unknown_key(id, _REGISTRY, where="environment id")
+        raise unknown_key(id, _REGISTRY, where=where)
     return _REGISTRY[id]
 
 

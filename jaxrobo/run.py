@@ -1,6 +1,7 @@
 """Resolve a training run from the shipped YAML files and user overrides, validated before anything compiles.
 
-A task's agent YAML (``agents/configs/<name>.yaml``) holds presets; each preset maps learner parameters
+A task's agent YAML (``agents/configs/<name>.yaml`` for a built-in task; for a task in a user's module, the path
+its ``register`` call gives, relative to that module's directory or absolute) holds presets; each preset maps learner parameters
 (:class:`jaxrobo.tabular.AgentParams`) and loop settings (:class:`jaxrobo.trainer.TrainConfig`), plus an optional
 ``env:`` mapping of env overrides. ``default`` is the textbook setup that learns; ``seed`` is the seed's own
 values with its learners reproduced exactly.
@@ -25,7 +26,7 @@ from jaxrobo.tabular import AgentParams
 from jaxrobo import discretise
 from jaxrobo.config import ConfigError, as_dict, flat_keys, load_yaml, split_and_validate, unknown_key
 from jaxrobo.env import Env
-from jaxrobo.registry import _lookup, learner, learners, make
+from jaxrobo.registry import _lookup, find, learner, learners, make, qualified_id
 from jaxrobo.struct import INT32_MAX, Rule, rules
 from jaxrobo.trainer import TrainConfig
 
@@ -98,9 +99,10 @@ class RunSpec:
     env_overrides: dict[str, Any]
 
     def to_dict(self) -> dict[str, Any]:
-        """The resolved configuration, as written to ``config.yaml`` of a run."""
+        """The resolved configuration, as written to ``config.yaml`` of a run. An id a user's module registered
+        is written ``module:Id``, so that ``--resume`` (another process) imports the module again."""
         return {
-            "env_id": self.env_id,
+            "env_id": qualified_id(self.env_id),
             "preset": self.preset,
             "env_options": as_dict(self.env.options),
             "env_params": as_dict(self.env.default_params),
@@ -238,6 +240,7 @@ def spec_from_config(run_config: dict[str, Any]):
         overrides.update({f"agent.{k}": v for part in ("agent_params", "train") for k, v in run_config[part].items()})
     except (KeyError, TypeError, AttributeError) as err:
         raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
+    find(env_id, where=f"config.yaml: env_id {env_id}")  # a 'module:Id' imports its module (run from its folder)
     spec = resolve(env_id, preset, overrides)
     again = json.loads(json.dumps(spec.to_dict()))
     if again != json.loads(json.dumps(run_config)):

@@ -716,10 +716,13 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
     directory (DIR itself, or the run an ``--overwrite`` sweep replaces). Raises :class:`ConfigError` naming the
     flag."""
     from jaxrobo import rundir
+    from jaxrobo.registry import find
 
     given = {k: getattr(args, k, None) for k in SWEEP_FLAGS}
     if args.resume is None:
-        out = args.out or os.path.join("sweep_results", f"{given['env'] or SWEEP_FLAGS['env']}_"
+        env_id = given["env"] or SWEEP_FLAGS["env"]
+        find(env_id, where=f"--env {env_id}")  # imports the module of a 'module:Id'; a missing one names --env
+        out = args.out or os.path.join("sweep_results", f"{env_id.rpartition(':')[2]}_"
                                                         f"{time.strftime('%Y%m%d-%H%M%S')}")
         if check_out:
             rundir.check_out(out, overwrite=args.overwrite)
@@ -740,6 +743,7 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
         if v is not None and _canonical(v) != saved[k]:
             raise ConfigError(f"--resume {live}: {_flag(k)} {_show(v)} differs from the saved sweep's "
                               f"{_flag(k)} {_show(saved[k])}; a resumed sweep keeps its settings (drop the flag)")
+    find(saved["env"], where=f"--resume {live}: env {saved['env']}")  # a 'module:Id' imports its module again
     out = (rundir.read_status(live) or {}).get("out") or live
     return out, dict(saved), list(extra.get("argv") or [])
 
