@@ -307,7 +307,8 @@ class _Checker:
         keys = _keys(self.seed + 2, 4)
         states = [env.reset(k, p) for k in keys]
         if not _same(states[0], env.reset(keys[0], p)):
-            raise _Fail("reset: the same key gave two different states")
+            raise _Fail("reset: the same key gave two different states (a hook draws from numpy or Python random "
+                        "state instead of the key?)")
         # Does the task's reset read its key? Judged on a fresh copy of the env, jitted (one trace, run on every
         # key), so a hook that caches its first result on the env cannot hide it.
         fresh = _fresh(env)
