@@ -145,6 +145,10 @@ class _Checker:
         self.env, self.env_id, self.quick, self.seed = env, env_id, quick, seed
         self.params = env.default_params if params is None else params
         self.task = _is_task_env(env)
+        # One jitted reset/step and one jitted vmap of each (two envs), shared by the checks: each compiles once.
+        self.jreset, self.jstep = jax.jit(env.reset), jax.jit(env.step)
+        self.vreset = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
+        self.vstep = jax.jit(jax.vmap(env.step, in_axes=(0, 0, None)))
 
     # -- spaces
     def spaces(self) -> str:
@@ -216,16 +220,16 @@ class _Checker:
         env, p = self.env, self.params
         keys = _keys(self.seed, 2)
         try:
-            state = jax.jit(env.reset)(keys[0], p)
+            state = self.jreset(keys[0], p)
         except Exception as err:  # noqa: BLE001 - reported with the hook at fault
             raise _Fail(_traced_error("jit(reset)", err)) from err
         try:
-            jax.block_until_ready(jax.jit(env.step)(state, jnp.int32(0), p))
+            jax.block_until_ready(self.jstep(state, jnp.int32(0), p))
         except Exception as err:  # noqa: BLE001
             raise _Fail(_traced_error("jit(step)", err)) from err
         try:
-            states = jax.vmap(env.reset, in_axes=(0, None))(keys, p)
-            jax.block_until_ready(jax.vmap(env.step, in_axes=(0, 0, None))(states, jnp.zeros(2, jnp.int32), p))
+            states = self.vreset(keys, p)
+            jax.block_until_ready(self.vstep(states, jnp.zeros(2, jnp.int32), p))
         except Exception as err:  # noqa: BLE001
             raise _Fail(_traced_error("vmap(reset/step)", err)) from err
         # Run the plain call after the traced ones: a hook that cached a traced value now leaks it.
@@ -285,17 +289,17 @@ class _Checker:
         n = int(env.action_space(p).n)
         acts = jnp.arange(2, dtype=jnp.int32) % n
         plain = [env.reset(k, p) for k in keys]
-        jitted = jax.jit(env.reset)(keys[0], p)
+        jitted = self.jreset(keys[0], p)
         if not _close(plain[0], jitted):
             raise _Fail("jit(reset) differs from reset (a hook reads Python state that tracing froze?)")
-        batch = jax.vmap(env.reset, in_axes=(0, None))(keys, p)
+        batch = self.vreset(keys, p)
         for i in range(2):
             if not _close(plain[i], jax.tree.map(lambda x: x[i], batch)):
                 raise _Fail(f"vmap(reset) differs from reset for env {i}")
         nplain = [env.step(s, acts[i], p) for i, s in enumerate(plain)]
-        if not _close(nplain[0], jax.jit(env.step)(plain[0], acts[0], p)):
+        if not _close(nplain[0], self.jstep(plain[0], acts[0], p)):
             raise _Fail("jit(step) differs from step (a hook reads Python state that tracing froze?)")
-        nbatch = jax.vmap(env.step, in_axes=(0, 0, None))(batch, acts, p)
+        nbatch = self.vstep(batch, acts, p)
         for i in range(2):
             if not _close(nplain[i], jax.tree.map(lambda x: x[i], nbatch)):
                 raise _Fail(f"vmap(step) differs from step for env {i}")
