@@ -262,6 +262,24 @@ def _list(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check(args: argparse.Namespace) -> int:
+    """``jaxrobo check ID``: one line per check of the env; exit 1 if any fails, 2 for an unknown id."""
+    from jaxrobo.check import check_env
+    from jaxrobo.config import ConfigError
+
+    try:
+        results = check_env(args.env_id, quick=args.quick, seed=args.seed)
+    except ConfigError as err:
+        print(f"jaxrobo check: {err}", file=sys.stderr)
+        return 2
+    for r in results:
+        print(r.line())
+    failed = [r.name for r in results if not r.ok]
+    print(f"{args.env_id}: " + (f"{len(failed)} of {len(results)} checks failed ({', '.join(failed)})" if failed
+                                else f"all {len(results)} checks pass (or skip)"))
+    return 1 if failed else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxrobo", description="Train tabular agents on MJX robots, fast.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -296,6 +314,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("list", help="registered environments, presets and agents")
     p.set_defaults(func=_list)
+
+    p = sub.add_parser("check", help="check an environment: spaces, purity, jit/vmap, keys, bounds, NaN guard")
+    p.add_argument("env_id", metavar="ID", help="environment id (see `jaxrobo list`)")
+    p.add_argument("--quick", action="store_true", help="shorter rollout; skip the MJX-vs-MuJoCo and Gymnasium checks")
+    p.add_argument("--seed", type=int, default=0, help="seed of the keys the checks use")
+    p.set_defaults(func=_check)
 
     for name, (module, help_text) in PLUGINS.items():
         try:

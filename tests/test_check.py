@@ -1,0 +1,156 @@
+"""``jaxrobo check``: the shipped envs pass, and envs broken in each of the ways the checker knows fail with a
+message naming the problem (built by subclassing CartPoleStayUp on its analytic backend, fast to compile)."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrobo
+from envs.cartpole_stay_up import CartPoleStayUp
+from jaxrobo import spaces
+from jaxrobo.check import check_env
+from jaxrobo.cli import main
+
+# The checks a broken env is run through (the MJX and Gymnasium ones are for shipped ids, below).
+FAST = ("spaces", "actions", "trace", "pure", "jit_vmap", "reset_keys", "rollout", "nan_guard")
+
+
+def _make(cls):
+    base = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
+    return cls(base.options, base.default_params)
+
+
+def _failures(cls) -> dict[str, str]:
+    return {r.name: r.message for r in check_env(_make(cls), quick=True, checks=FAST) if not r.ok}
+
+
+def test_the_analytic_cartpole_passes_every_fast_check():
+    results = check_env(_make(CartPoleStayUp), quick=True, checks=FAST)
+    assert [r.name for r in results] == list(FAST)
+    assert all(r.status == "ok" for r in results), [r.line() for r in results]
+
+
+_COUNTER = [0]
+
+
+class GlobalCounterReward(CartPoleStayUp):
+    def _compute_reward(self, obs, done, action, pipeline_state, task, params):
+        _COUNTER[0] += 1
+        return jnp.asarray(float(_COUNTER[0] % 3), jnp.float32), task
+
+
+class NumpyRandomReset(CartPoleStayUp):
+    def _set_init_pose(self, key, params):
+        noise = np.random.uniform(-0.05, 0.05, 4)
+        return self.robot.init_pose(noise[0], noise[2], noise[1], noise[3])
+
+
+class PythonBranchDone(CartPoleStayUp):
+    def _is_done(self, obs, pipeline_state, task, params):
+        if obs[2] > params.max_pole_angle:  # a Python branch on a traced value
+            return jnp.bool_(True)
+        return jnp.bool_(False)
+
+
+class Float64Obs(CartPoleStayUp):
+    def _get_obs(self, pipeline_state, task, params):
+        return np.asarray(super()._get_obs(pipeline_state, task, params), np.float64)
+
+
+class IntObs(CartPoleStayUp):
+    def _get_obs(self, pipeline_state, task, params):
+        return super()._get_obs(pipeline_state, task, params).astype(jnp.int32)
+
+
+class TightObsBounds(CartPoleStayUp):
+    def observation_space(self, params=None):
+        return spaces.Box(np.full(4, -1e-3, np.float32), np.full(4, 1e-3, np.float32))
+
+
+class CachedReset(CartPoleStayUp):
+    _pose = None
+
+    def _set_init_pose(self, key, params):
+        if self._pose is None:
+            self._pose = super()._set_init_pose(key, params)
+        return self._pose
+
+
+class NanObs(CartPoleStayUp):
+    def _get_obs(self, pipeline_state, task, params):
+        return super()._get_obs(pipeline_state, task, params).at[3].set(jnp.nan)
+
+
+class TooManyActions(CartPoleStayUp):
+    def action_space(self, params=None):
+        return spaces.Discrete(6)  # _set_action knows 4: indices 4 and 5 clamp to action 3
+
+
+class BoxActions(CartPoleStayUp):
+    def action_space(self, params=None):
+        return spaces.Box(np.full(1, -1.0, np.float32), np.full(1, 1.0, np.float32))
+
+
+class LateTruncation(CartPoleStayUp):
+    def step(self, state, action, params=None):
+        out = super().step(state, action, params)
+        return out.replace(truncated=out.steps >= 10_000)
+
+
+@pytest.mark.parametrize("cls,check,words", [
+    (GlobalCounterReward, "pure", ["_compute_reward", "same inputs"]),
+    (NumpyRandomReset, "pure", ["_set_init_pose", "same inputs"]),
+    (PythonBranchDone, "trace", ["Python control flow", "_is_done", "jit(step)"]),
+    (Float64Obs, "spaces", ["_get_obs", "float64", "float32"]),
+    (IntObs, "spaces", ["_get_obs", "int32", "float32"]),
+    (TightObsBounds, "rollout", ["outside observation_space()"]),
+    (CachedReset, "reset_keys", ["_set_init_pose", "distinct", "cached"]),
+    (NanObs, "rollout", ["_get_obs", "non-finite observation"]),
+    (TooManyActions, "actions", ["_set_action", "Discrete(6)", "same command"]),
+    (BoxActions, "spaces", ["Box", "Discrete"]),
+    (LateTruncation, "rollout", ["truncated", "max_episode_steps"]),
+])
+def test_a_broken_env_fails_with_a_message_naming_the_problem(cls, check, words):
+    failures = _failures(cls)
+    assert check in failures, f"{cls.__name__}: expected {check} to fail; failures: {failures}"
+    for word in words:
+        assert word in failures[check], f"{cls.__name__}: {word!r} not in {failures[check]!r}"
+
+
+def test_numpy_random_reset_also_fails_the_key_check():
+    """Without the purity check in front, the key check still sees a reset that does not follow its key."""
+    results = {r.name: r for r in check_env(_make(NumpyRandomReset), quick=True, checks=("spaces", "reset_keys"))}
+    assert results["reset_keys"].status == "FAIL" and "numpy" in results["reset_keys"].message
+
+
+def test_a_deterministic_reset_passes_the_key_check():
+    base = jaxrobo.make("CartPoleStayUp-v0", backend="analytic", init_noise=0.0)
+    (result,) = check_env(base, checks=("reset_keys",))
+    assert result.status == "ok" and "deterministic" in result.message
+
+
+@pytest.mark.parametrize("env_id", jaxrobo.registered())
+def test_every_shipped_id_passes_quick(env_id, capsys):
+    # MJX compiles are slow on a CPU: the cart-pole ids run on the analytic backend (same task code and model);
+    # the CLI test below runs one MJX id end to end.
+    backend = {"backend": "analytic"} if env_id.startswith("CartPole") else {}
+    results = check_env(env_id, quick=True, checks=FAST, **backend)
+    assert all(r.ok for r in results), [r.line() for r in results]
+
+
+def test_cli_check_prints_one_line_per_check_and_exits_by_result(capsys):
+    assert main(["check", "QuadcopterLiveShow-v0", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "ok   spaces" in out and "skip gymnasium   --quick" in out and "all 10 checks pass" in out
+    assert main(["check", "NoSuchEnv-v0"]) == 2
+    assert "NoSuchEnv-v0" in capsys.readouterr().err
+
+
+def test_gymnasium_and_mjx_checks_on_a_made_env():
+    """The two slow checks, on the analytic cart-pole: Gymnasium's check_env runs through the adapter; the MJX
+    comparison skips with its reason."""
+    results = {r.name: r for r in check_env(_make(CartPoleStayUp), checks=("gymnasium", "mjx_native"))}
+    assert results["gymnasium"].status == "ok", results["gymnasium"].message
+    assert results["mjx_native"].status == "skip" and "analytic" in results["mjx_native"].message
