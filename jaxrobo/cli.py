@@ -156,10 +156,11 @@ def _train_checked(args: argparse.Namespace) -> int:
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
     with driver.StopOnSignal(notice, second="exit") as stop:
         every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
-        result = training.train(spec.env, cfg, spec.agent_params, progress=progress, initial=initial,
-                                start_chunk=start_chunk, checkpoint=save,
-                                checkpoint_every=args.checkpoint_every or 0, checkpoint_seconds=every,
-                                should_stop=stop, plan=trainer.plan)
+        with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
+            result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
+                                         start_chunk=start_chunk, checkpoint=save,
+                                         checkpoint_every=args.checkpoint_every or 0, checkpoint_seconds=every,
+                                         should_stop=stop)
         if bar is not None:
             bar.close()
         if not result.complete:
