@@ -120,7 +120,9 @@ def compiled_for(env: Any, plan: Any = None) -> _Compiled:
     class, options (static) and plan, so every adapter of the same env configuration and plan reuses one
     compilation whatever its parameters."""
     from jaxrobo.plan import ExecutionPlan
+    from jaxrobo.precision import check_precision
 
+    check_precision(getattr(env, "name", type(env).__name__))  # x64 may have been switched on since the env was built
     plan = ExecutionPlan.for_run(env) if plan is None else plan
     try:
         key = (type(env), env.options, plan)

@@ -32,6 +32,7 @@ from jaxrobo import tabular
 from jaxrobo.tabular import AgentParams
 from jaxrobo import budget
 from jaxrobo.plan import ExecutionPlan
+from jaxrobo.precision import check_precision
 from jaxrobo.summary import TrainResult
 from jaxrobo.trainer import Runner, Trainer, progress_stats
 
@@ -142,6 +143,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     ``trainer.init``), then evaluate (unless stopped): the body of :func:`jaxrobo.train.train`, which runs it
     inside the trainer's plan's tracing block. The hooks are :func:`run_chunks`'s."""
     env, config = trainer.env, trainer.config
+    check_precision(env.name)  # x64 may have been switched on since the env was built; nothing is traced yet
     agent_params = agent_params or AgentParams()
     env_params = env.default_params if env_params is None else env_params
     # The CLI checked this in ``run.resolve``; a Python caller gets the same refusal before anything compiles.
