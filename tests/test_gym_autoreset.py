@@ -202,3 +202,24 @@ def test_vector_contract_in_every_mode():
             if mode == AutoresetMode.DISABLED and (term | trunc).any():
                 venv.reset(options={"reset_mask": term | trunc})
         venv.close()
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.DISABLED], ids=lambda m: m.name)
+def test_gymnasium_episode_statistics_wrapper_counts_our_episodes(mode):
+    """Gymnasium's ``RecordEpisodeStatistics`` vector wrapper over the env (it reads ``reset_mask`` from the
+    options after the env's reset: jaxrobo leaves the caller's options as they were) counts each episode as long
+    as the env's own step counter says."""
+    venv = gym.wrappers.vector.RecordEpisodeStatistics(
+        JaxroboVectorEnv(ID, num_envs=N, overrides=SHORT, autoreset_mode=mode))
+    venv.reset(seed=4)
+    rng = np.random.default_rng(2)
+    episodes = 0
+    for _ in range(20):
+        _, rew, term, trunc, info = venv.step(rng.integers(2, size=N))
+        done = term | trunc
+        if done.any():
+            episodes += int(done.sum())
+            np.testing.assert_array_equal(info["episode"]["l"][done], info["steps"][done])
+            if mode == AutoresetMode.DISABLED:
+                venv.reset(options={"reset_mask": done})
+    assert episodes >= N and venv.episode_count == episodes
