@@ -6,7 +6,7 @@ traced and compiled under the run's execution plan (:func:`compile_under`, :func
 (:func:`run_chunks`) only dispatches compiled chunks and, between them, reads two numbers (fewest episodes done,
 mean last return) for the done test and the progress bar, so the hot loop never syncs with the host inside a
 chunk. Between chunks it asks a stop hook (``should_stop``: a chunk boundary is the only place a run stops) and
-hands the carry to a checkpoint hook at its cadence (every N chunks and/or every T seconds, and when stopped).
+hands the carry to a checkpoint hook at its cadence (every N chunks and/or every T seconds), and at the end.
 
 :func:`run_training` is a whole training run: compile, loop from a fresh or saved carry, greedy evaluation at the
 end (:func:`evaluate_tables`), a :class:`~jaxrobo.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT /
@@ -32,6 +32,7 @@ from jaxrobo import tabular
 from jaxrobo.tabular import AgentParams
 from jaxrobo import budget
 from jaxrobo.plan import ExecutionPlan
+from jaxrobo.precision import check_precision
 from jaxrobo.summary import TrainResult
 from jaxrobo.trainer import Runner, Trainer, progress_stats
 
@@ -92,8 +93,10 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     is asked before each chunk: True ends the loop (``stopped``) after the chunk in flight. ``max_seconds`` ends
     it (not ``stopped``) before a chunk once that much time has passed, at least one chunk run.
     ``checkpoint(carry, chunks_done)`` is called every ``checkpoint_every`` chunks and/or at the first chunk
-    boundary ``checkpoint_seconds`` after the last call (neither: never), except after the last chunk, and once
-    more when the loop was stopped."""
+    boundary ``checkpoint_seconds`` after the last call (neither: none on the way), and once more with the carry
+    the loop ends with (stopped, finished or out of time) unless that one was just saved: what the caller does
+    after the loop (evaluating, writing results and plots) may fail, and a resume then starts from the finished
+    carry instead of running chunks again."""
     done = last = None
     if read is not None:
         done = float(jax.device_get(read(carry))[0])
@@ -103,6 +106,7 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
 
     t0 = last_saved = time.perf_counter()
     chunks_done, stopped = start_chunk, False
+    saved_at = None  # the chunk count of the last checkpoint written by this loop
     while not finished(chunks_done):
         if should_stop is not None and should_stop():
             stopped = True
@@ -117,12 +121,14 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
                 progress(int(done), total, last)
         due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
             checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
-        if checkpoint is not None and due and not finished(chunks_done):
+        if checkpoint is not None and due:
             checkpoint(carry, chunks_done)
-            last_saved = time.perf_counter()
+            saved_at, last_saved = chunks_done, time.perf_counter()
     jax.block_until_ready(carry)
     seconds = time.perf_counter() - t0
-    if stopped and checkpoint is not None:
+    # A resumed carry that ran no chunk is its checkpoint already, unless a stop asks for one explicitly.
+    unsaved = saved_at != chunks_done and (chunks_done > start_chunk or stopped)
+    if checkpoint is not None and unsaved:
         checkpoint(carry, chunks_done)
     return ChunkRun(carry, chunks_done, done, stopped, seconds)
 
@@ -137,6 +143,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     ``trainer.init``), then evaluate (unless stopped): the body of :func:`jaxrobo.train.train`, which runs it
     inside the trainer's plan's tracing block. The hooks are :func:`run_chunks`'s."""
     env, config = trainer.env, trainer.config
+    check_precision(env.name)  # x64 may have been switched on since the env was built; nothing is traced yet
     agent_params = agent_params or AgentParams()
     env_params = env.default_params if env_params is None else env_params
     # The CLI checked this in ``run.resolve``; a Python caller gets the same refusal before anything compiles.

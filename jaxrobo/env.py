@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxrobo import rng, spaces
+from jaxrobo.precision import check_precision
 from jaxrobo.robot import Robot
 from jaxrobo.struct import param, pytree_dataclass
 
@@ -111,6 +112,9 @@ class Env:
     learning_target: ClassVar[LearningTarget | None] = None
 
     def __init__(self, options: Any = None, params: Any = None):
+        # An env built without jaxrobo.make (the task class called directly) meets make's x64 refusal here,
+        # before a task's __init__ builds its model.
+        check_precision(f"{type(self).__name__}(...)")
         self.options = options if options is not None else self.Options()
         self.default_params = params if params is not None else self.Params()
 

@@ -7,7 +7,8 @@ and libraries that expect Gymnasium, over the same pure functions the vectorised
   separate ``terminated`` / ``truncated``, reproducible ``reset(seed=...)``, exact spaces, one jitted call per
   ``step`` and one device→host transfer of its results. ``render_mode="rgb_array"`` draws MuJoCo frames.
 * :class:`JaxroboVectorEnv` - a :class:`gymnasium.vector.VectorEnv` stepping ``num_envs`` copies as one vmapped
-  jitted call, with next-step autoreset (``AutoresetMode.NEXT_STEP``), numpy batches out.
+  jitted call, numpy batches out, with any of Gymnasium's autoreset modes (``AutoresetMode.NEXT_STEP`` by
+  default, ``SAME_STEP`` with ``final_obs``/``final_info``, ``DISABLED`` with ``reset(options={"reset_mask": m})``).
 * :func:`register_gymnasium_envs` - every jaxrobo id as ``jaxrobo/<id>`` for ``gymnasium.make`` and
   ``gymnasium.make_vec``. It runs on ``import jaxrobo`` and only records strings (no env is built).
 
@@ -231,13 +232,52 @@ class JaxroboEnv(gymnasium.Env):
 
 
 # ---- the vector environment ----------------------------------------------------------------------------------
-class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
-    """``num_envs`` copies of a jaxrobo env stepped as one vmapped jitted call, with next-step autoreset.
+def autoreset_mode_of(value: Any) -> AutoresetMode:
+    """``value`` as an :class:`AutoresetMode`: the enum, its value (``"NextStep"``, as ``SyncVectorEnv`` takes) or its
+    name (``"NEXT_STEP"``); anything else is a ``ValueError`` naming the allowed values."""
+    if isinstance(value, AutoresetMode):
+        return value
+    if isinstance(value, str):
+        for mode in AutoresetMode:
+            if value in (mode.value, mode.name):
+                return mode
+    allowed = ", ".join(f"AutoresetMode.{m.name} (or {m.value!r})" for m in AutoresetMode)
+    raise ValueError(f"autoreset_mode={value!r}: allowed values are {allowed}")
 
-    After a step that ends an env's episode (terminated or truncated), the next ``step`` resets that env and
-    returns its first observation with reward 0, ``terminated=truncated=False``, ignoring its action (Gymnasium's
-    ``AutoresetMode.NEXT_STEP``, the default of ``SyncVectorEnv``). ``info`` holds ``steps`` and ``physics_nan``
-    with their ``_steps`` / ``_physics_nan`` masks (False for envs that were reset on this step).
+
+def _check_reset_mask(mask: Any, num_envs: int) -> np.ndarray:
+    """The ``reset_mask`` option as ``bool[num_envs]`` with at least one True (Gymnasium's own conditions), or a
+    ``ValueError`` naming what is wrong."""
+    arr = np.asarray(mask)
+    if arr.dtype != np.bool_:
+        raise ValueError(f"reset_mask has dtype {arr.dtype}; expected a boolean array of shape ({num_envs},)")
+    if arr.shape != (num_envs,):
+        raise ValueError(f"reset_mask has shape {arr.shape}; expected ({num_envs},), one flag per env")
+    if not arr.any():
+        raise ValueError("reset_mask selects no env; it needs at least one True (skip the reset instead)")
+    return arr
+
+
+class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
+    """``num_envs`` copies of a jaxrobo env stepped as one vmapped jitted call, with Gymnasium's autoreset modes.
+
+    ``autoreset_mode`` (``metadata["autoreset_mode"]``; the enum or its string value, as ``SyncVectorEnv`` takes):
+
+    * ``AutoresetMode.NEXT_STEP`` (default, as ``SyncVectorEnv``'s): after a step that ends an env's episode
+      (terminated or truncated), the next ``step`` resets that env and returns its first observation with reward 0,
+      ``terminated=truncated=False``, ignoring its action. ``info`` holds ``steps`` and ``physics_nan`` with their
+      ``_steps`` / ``_physics_nan`` masks (False for envs that were reset on this step).
+    * ``AutoresetMode.SAME_STEP``: a step that ends an env's episode also resets it; it returns that step's reward
+      and flags with the next episode's first observation, and the final observation and info in
+      ``info["final_obs"]`` (an object array, None for the other envs) and ``info["final_info"]``, with the
+      ``_final_obs`` / ``_final_info`` masks (both keys only on steps where some env finished). ``steps`` and
+      ``physics_nan`` are masked out for the envs that were reset.
+    * ``AutoresetMode.DISABLED``: envs never reset by themselves; ``reset(options={"reset_mask": mask})`` resets the
+      envs where ``mask`` is True and keeps the others. Stepping a batch that holds a finished env raises
+      :class:`gymnasium.error.ResetNeeded`.
+
+    In every mode the step, and the resets it does, are one jitted call; a reset starts from fresh randomness: the
+    key the env's state carries (or the seed's key), never a cached first state. ``reset_mask`` works in every mode.
 
     ``plan``: a :class:`jaxrobo.plan.ExecutionPlan` for how the batch is stepped and compiled (default: the plan
     for this env on the default device); it changes the compiled program, never the values.
@@ -247,9 +287,11 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
 
     def __init__(self, env_id: str | None = None, num_envs: int = 1, render_mode: str | None = None, *,
                  env: Any = None, overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
-                 camera: str | int | None = None, plan: Any = None, **kwargs: Any):
+                 camera: str | int | None = None, plan: Any = None,
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, **kwargs: Any):
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r}: expected an integer >= 1")
+        self.autoreset_mode = autoreset_mode_of(autoreset_mode)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array'")
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
@@ -267,15 +309,24 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         self.plan = ExecutionPlan.for_run(self.jax_env) if plan is None else plan
         self._fns = compiled_for(self.jax_env, self.plan)
         self.render_mode = render_mode
-        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
+        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env),
+                         "autoreset_mode": self.autoreset_mode}
         self._render_args = (int(width), int(height), camera)
         self._renderer: Any = None
         self.states: Any = None
         self._needs_reset: Any = None
+        self._done = np.zeros(self.num_envs, bool)  # envs whose episode ended on the last step (host copy)
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset every env; ``seed=s`` seeds env ``i`` with ``s + i`` (as ``SyncVectorEnv`` does), a list seeds each."""
+        """Reset every env; ``seed=s`` seeds env ``i`` with ``s + i`` (as ``SyncVectorEnv`` does), a list seeds each.
+
+        ``options={"reset_mask": mask}`` (``bool[num_envs]``, as Gymnasium's vector envs take it) resets only the
+        envs where ``mask`` is True, from their seed if one is given, else from the key their state carries; the
+        others keep their state and observation."""
+        if options and "reset_mask" in options:
+            rest = {k: v for k, v in options.items() if k != "reset_mask"}
+            return self._reset_where(_check_reset_mask(options["reset_mask"], self.num_envs), seed, rest)
         if isinstance(seed, (list, tuple)):
             if len(seed) != self.num_envs:
                 raise ValueError(f"{len(seed)} seeds for {self.num_envs} envs")
@@ -291,6 +342,29 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
             seeds = [int(self.np_random.integers(2**32)) if s is None else int(s) for s in seeds]
             keys = _seed_keys(seeds)
         self.states, self._needs_reset, packed = self._fns.vreset(keys, self.params)
+        self._done = np.zeros(self.num_envs, bool)
+        obs, *_ = self._unpack(np.asarray(packed))
+        return obs, {}
+
+    def _reset_where(self, mask: np.ndarray, seed: int | Sequence[int | None] | None, options: dict[str, Any]
+                     ) -> tuple[np.ndarray, dict[str, Any]]:
+        if self.states is None:
+            raise gymnasium.error.ResetNeeded("reset(options={'reset_mask': ...}) resets some envs of a running "
+                                              "batch: call reset() without a mask first")
+        if options:
+            raise ValueError(f"reset options {sorted(options)} given with reset_mask: task parameters are shared by "
+                             "every env of the batch; set them in a reset() without reset_mask")
+        if isinstance(seed, (list, tuple)):
+            if len(seed) != self.num_envs:
+                raise ValueError(f"{len(seed)} seeds for {self.num_envs} envs")
+            seeds = list(seed)
+        else:
+            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        seeded = np.array([s is not None for s in seeds])
+        keys = _seed_keys([0 if s is None else int(s) for s in seeds])
+        self.states, self._needs_reset, packed = self._fns.vreset_where(
+            self.states, self._needs_reset, mask, seeded, keys, self.params)
+        self._done = self._done & ~mask
         obs, *_ = self._unpack(np.asarray(packed))
         return obs, {}
 
@@ -298,12 +372,46 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         if self.states is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         a = check_actions(actions, self._n, self.num_envs)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            return self._step_same(a)
+        if self.autoreset_mode == AutoresetMode.DISABLED:
+            return self._step_disabled(a)
         self.states, self._needs_reset, packed = self._fns.vstep(self.states, self._needs_reset, a, self.params)
         obs, rewards, terms, truncs, nan, steps = self._unpack(np.asarray(packed))
         was_reset = steps == 0
         info = {"steps": np.where(was_reset, 0, steps).astype(np.int64), "_steps": ~was_reset,
                 "physics_nan": nan & ~was_reset, "_physics_nan": ~was_reset}
         return obs, rewards, terms, truncs, info
+
+    def _step_same(self, a: np.ndarray):
+        self.states, packed = self._fns.vstep_same(self.states, a, self.params)
+        rows = np.asarray(packed)
+        final, rewards, terms, truncs, nan, steps = self._unpack(rows)
+        obs = rows[:, self._obs_size + N_EXTRA:].reshape(final.shape)
+        done = terms | truncs
+        info: dict[str, Any] = {"steps": np.where(done, 0, steps), "_steps": ~done,
+                                "physics_nan": nan & ~done, "_physics_nan": ~done}
+        if done.any():
+            final_obs = np.full(self.num_envs, None, dtype=object)
+            for i in np.flatnonzero(done):
+                final_obs[i] = final[i]
+            info["final_obs"], info["_final_obs"] = final_obs, done
+            info["final_info"] = {"steps": np.where(done, steps, 0), "_steps": done.copy(),
+                                  "physics_nan": nan & done, "_physics_nan": done.copy()}
+            info["_final_info"] = done.copy()
+        return obs, rewards, terms, truncs, info
+
+    def _step_disabled(self, a: np.ndarray):
+        if self._done.any():
+            raise gymnasium.error.ResetNeeded(
+                f"envs {np.flatnonzero(self._done).tolist()} finished their episodes and autoreset_mode is DISABLED:"
+                " reset them with reset(options={'reset_mask': mask}) before the next step")
+        self.states, packed = self._fns.vstep_plain(self.states, a, self.params)
+        obs, rewards, terms, truncs, nan, steps = self._unpack(np.asarray(packed))
+        self._done = terms | truncs
+        every = np.ones(self.num_envs, bool)
+        return obs, rewards, terms, truncs, {"steps": steps, "_steps": every, "physics_nan": nan,
+                                             "_physics_nan": every.copy()}
 
     def _unpack(self, rows: np.ndarray):
         d = self._obs_size
@@ -335,7 +443,8 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
             self._renderer = None
 
     def __repr__(self) -> str:
-        return f"<JaxroboVectorEnv {self.jax_env.name} x{self.num_envs}>"
+        mode = "" if self.autoreset_mode == AutoresetMode.NEXT_STEP else f" {self.autoreset_mode.name}"
+        return f"<JaxroboVectorEnv {self.jax_env.name} x{self.num_envs}{mode}>"
 
 
 # ---- registration --------------------------------------------------------------------------------------------

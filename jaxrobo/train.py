@@ -46,8 +46,9 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
     the first chunk (its buffers are reused).
 
     ``checkpoint(runner, chunks_done)`` is called with the carry every ``checkpoint_every`` chunks and/or at the
-    first chunk boundary ``checkpoint_seconds`` after the last one (neither: never), except after the last chunk,
-    and when ``should_stop()`` says to stop: that is asked before each chunk, so a stop request finishes the
+    first chunk boundary ``checkpoint_seconds`` after the last one (neither: none on the way), once more after the
+    last chunk (before the evaluation, so a late failure never loses the finished carry), and when
+    ``should_stop()`` says to stop: that is asked before each chunk, so a stop request finishes the
     current chunk, saves it through ``checkpoint`` and returns a result with ``complete=False`` (episodes so
     far, no evaluation). The library installs no signal handlers; the CLI's ``should_stop`` is a
     :class:`jaxrobo.driver.StopOnSignal`. Evaluation runs only after the last chunk.

@@ -36,3 +36,21 @@ def cartpole():
     """CartPoleStayUp-v0 with its jitted reset and step."""
     env = jaxrobo.make("CartPoleStayUp-v0")
     return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+@pytest.fixture
+def mjx_step_spy(monkeypatch):
+    """A list that gets, for each ``mjx.step`` traced while the test runs, whether jaxrobo's lean MJX stage
+    (:mod:`jaxrobo.mjx_lean`) was swapped in for it: one bool per traced step, in order."""
+    from jaxrobo import mjx_lean
+    from jaxrobo.sim import mjx
+
+    swapped = []
+    step = mjx.step
+
+    def spy(m, d):
+        swapped.append(getattr(mjx_lean._mjx_smooth.com_pos, "jaxrobo_lean", False))
+        return step(m, d)
+
+    monkeypatch.setattr(mjx, "step", spy)
+    return swapped

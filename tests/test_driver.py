@@ -37,10 +37,18 @@ def test_runs_until_every_env_is_done_or_the_chunks_are_spent():
     assert (run.chunks_done, run.done, int(run.carry)) == (4, None, 4)
 
 
-def test_checkpoint_cadence_skips_the_last_chunk_and_a_stop_saves_once_more():
+def test_checkpoint_cadence_then_the_end_and_a_stop_save_once_more():
     saved = []
     run, _ = _loop(total=7, checkpoint=lambda c, n: saved.append((int(c), n)), checkpoint_every=2)
-    assert saved == [(2, 2), (4, 4), (6, 6)] and run.chunks_done == 7  # not after chunk 7, the last
+    assert saved == [(2, 2), (4, 4), (6, 6), (7, 7)] and run.chunks_done == 7  # the finished carry is saved
+    saved.clear()
+    run, _ = _loop(total=6, checkpoint=lambda c, n: saved.append((int(c), n)), checkpoint_every=2)
+    assert saved == [(2, 2), (4, 4), (6, 6)]  # the cadence saved the last chunk: not twice
+    saved.clear()
+    run, calls = _loop(start_chunk=10, checkpoint=lambda c, n: saved.append((int(c), n)))
+    assert calls == [] and saved == []  # a finished carry resumed runs nothing and is its checkpoint already
+    run, _ = _loop(total=3, checkpoint=lambda c, n: saved.append((int(c), n)))
+    assert saved == [(3, 3)]  # no cadence: saved once, at the end
     saved.clear()
     answers = iter([False, False, True])  # a stop request after two chunks
     run, calls = _loop(checkpoint=lambda c, n: saved.append((int(c), n)), should_stop=lambda: next(answers))

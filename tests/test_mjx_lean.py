@@ -73,19 +73,12 @@ def test_choose_sets_what_the_simulator_asks_for_per_block_and_thread():
     assert mjx_lean.wanted() is True and seen == [True]  # another thread starts from the default
 
 
-def test_the_simulator_traces_mjx_under_the_choice(monkeypatch):
+def test_the_simulator_traces_mjx_under_the_choice(mjx_step_spy):
     """``Simulator.physics_step`` swaps the stage exactly when the block being traced wants it."""
     from envs.cartpole import CartPoleRobot
 
     sim = CartPoleRobot("velocity", "mjx").sim
-    swapped = []
-    step = mjx.step
-
-    def spy(m, d):
-        swapped.append(getattr(mjx_lean._mjx_smooth.com_pos, "jaxrobo_lean", False))
-        return step(m, d)
-
-    monkeypatch.setattr(mjx, "step", spy)
+    swapped = mjx_step_spy
     state = sim.init(jax.numpy.zeros(2), jax.numpy.zeros(2))
     ctrl = jax.numpy.zeros(1)
     jax.eval_shape(sim.physics_step, state, ctrl)

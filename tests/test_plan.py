@@ -155,20 +155,11 @@ def test_train_under_another_plan_gives_the_recorded_values(monkeypatch):
 
 
 @pytest.mark.parametrize("lean", [True, False])
-def test_the_trainer_traces_mjx_steps_as_its_plan_says(monkeypatch, lean):
+def test_the_trainer_traces_mjx_steps_as_its_plan_says(mjx_step_spy, lean):
     """Whoever traces the trainer's chunk (train, the sweep, a benchmark), its MJX steps follow the plan."""
-    from jaxrobo.sim import mjx
-
     spec = _spec()
     trainer = Trainer(spec.env, spec.config, plan=ExecutionPlan.for_run(spec.env, spec.config).replace(lean_mjx=lean))
-    swapped = []
-    step = mjx.step
-
-    def spy(m, d):
-        swapped.append(getattr(mjx_lean._mjx_smooth.com_pos, "jaxrobo_lean", False))
-        return step(m, d)
-
-    monkeypatch.setattr(mjx, "step", spy)
+    swapped = mjx_step_spy
     ap, ep = spec.agent_params, spec.env.default_params
     runner = jax.eval_shape(trainer.init, jax.random.key(0), ap, ep)
     jax.eval_shape(trainer.run_chunk, runner, ap, ep)  # traced outside any plan block

@@ -235,6 +235,42 @@ def test_a_real_signal_leaves_a_resumable_run_that_resumes_to_the_uninterrupted_
     _assert_same_run(out, full)
 
 
+def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunning_chunks(tmp_path, monkeypatch):
+    """The finished carry is checkpointed after the last chunk, before the evaluation and the writes (even with
+    ``--checkpoint-every 0``): a write that fails then (a full disk under the TensorBoard log) leaves a run that
+    ``--resume`` finishes without running any chunk again, to the run that never failed."""
+    from jaxrobo import driver, results
+
+    out, full = str(tmp_path / "run"), str(tmp_path / "full")
+
+    def full_disk(*_a, **_k):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(results, "write_tensorboard", full_disk)
+        with pytest.raises(OSError, match="No space left"):
+            main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", out])
+    status = rundir.read_status(out)
+    assert rundir.is_resumable(out) and status["status"] == rundir.RUNNING and status["chunks_done"] > 0
+    assert not os.path.exists(os.path.join(out, "summary.json"))  # nothing half-written was published
+
+    chunks_run = []
+    real = driver.compiled_chunk
+
+    def counting(*args, **kwargs):
+        chunk = real(*args, **kwargs)
+        return lambda *a: (chunks_run.append(1), chunk(*a))[1]
+
+    monkeypatch.setattr(driver, "compiled_chunk", counting)
+    assert main(["train", "--resume", out, "--no-progress"]) == 0
+    assert chunks_run == []
+    final = rundir.read_status(out)
+    assert final["status"] == rundir.COMPLETE and final["resumed_after_chunk"] == status["chunks_done"]
+    assert main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", full]) == 0
+    assert len(chunks_run) == status["chunks_done"]  # the same run from the start: every chunk
+    _assert_same_run(out, full)
+
+
 def test_changed_config_message(tmp_path, capsys):
     """The refusal of an edited config.yaml names what differs."""
     out = str(tmp_path / "run")

@@ -77,3 +77,32 @@ def test_x64_switched_on_in_code_is_refused_too(monkeypatch):
     finally:
         jax.config.update("jax_enable_x64", False)
     check_precision("here")  # 32-bit again: accepted
+
+
+def test_an_env_built_without_make_is_refused_too(monkeypatch):
+    """The task class called directly (no ``jaxrobo.make``) meets the same refusal when it is built, and an env
+    built before x64 was switched on meets it where it is first compiled: training, the Gymnasium adapters."""
+    import jax
+
+    from envs.cartpole_stay_up import CartPoleStayUp
+    from jaxrobo.gym_adapter import JaxroboEnv, JaxroboVectorEnv
+    from jaxrobo.run import resolve
+    from jaxrobo.train import train
+
+    monkeypatch.delenv("JAX_ENABLE_X64", raising=False)
+    spec = resolve("CartPoleStayUp-v0", overrides={"n_envs": 2, "nepisodes": 2, "nsteps": 5, "backend": "analytic"})
+    built = CartPoleStayUp(CartPoleStayUp.Options(backend="analytic"))
+    jax.config.update("jax_enable_x64", True)
+    try:
+        message = r"JAX 64-bit mode is on \(jax_enable_x64=True, from jax.config.update"
+        with pytest.raises(jaxrobo.ConfigError, match=r"CartPoleStayUp\(\.\.\.\): " + message):
+            CartPoleStayUp()
+        with pytest.raises(jaxrobo.ConfigError, match=message):
+            train(built, spec.config, spec.agent_params)
+        with pytest.raises(jaxrobo.ConfigError, match=message):
+            JaxroboEnv(env=built)
+        with pytest.raises(jaxrobo.ConfigError, match=message):
+            JaxroboVectorEnv(env=built, num_envs=2)
+    finally:
+        jax.config.update("jax_enable_x64", False)
+    CartPoleStayUp(CartPoleStayUp.Options(backend="analytic"))  # 32-bit again: accepted
