@@ -503,11 +503,16 @@ def _skip(suite, env, backend, mode, n, reason) -> dict[str, Any]:
             "reason": reason}
 
 
+#: the pip extra that installs each peer (default ``bench``)
+EXTRA_OF = {"crazyflow": "bench-quad"}
+
+
 def _guard(fn, skip_row, *a) -> dict[str, Any]:
     try:
         return fn(*a)
     except ImportError as err:
-        return {**skip_row, "reason": f"not installed ({err.name or err}); pip install 'jaxrobo[bench]'"}
+        extra = EXTRA_OF.get(skip_row["suite"], "bench")
+        return {**skip_row, "reason": f"not installed ({err.name or err}); pip install 'jaxrobo[{extra}]'"}
     except Exception as err:  # noqa: BLE001 - a failing row is reported, not fatal
         traceback.print_exc(limit=3, file=sys.stderr)
         return {**skip_row, "status": "error", "reason": f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"}
