@@ -36,8 +36,8 @@ def test_throughput_smoke(tmp_path):
         assert len(list(csv.DictReader(f))) == len(data["rows"])
     assert (tmp_path / "out" / "throughput.png").stat().st_size > 0
     assert "x phys" in proc.stdout and rows[("l2f", "quadrotor", "env")]["status"] == "published"
-    for name in ("throughput_cartpole.png", "throughput_quadcopter.png"):  # the quadcopter one: L2F's figure
-        assert (tmp_path / "out" / name).stat().st_size > 0
+    assert (tmp_path / "out" / "throughput_cartpole.png").stat().st_size > 0
+    assert not (tmp_path / "out" / "throughput_quadcopter.png").exists()  # L2F's figure has no batch size to plot
     backends = {r["backend"] for r in data["rows"] if r["suite"] == "jaxrobo" and r["status"] == "ok"}
     assert backends == {"mjx", "analytic"}
 
