@@ -15,13 +15,18 @@ with the compile time (and whether it came from the persistent cache), memory pe
 state bytes, the whole training carry per env; device memory where the backend reports it) and, for every
 row, physics steps per second (env steps × substeps) and simulated seconds per wall second.
 
-Peers, when the ``bench`` extra is installed: gymnax ``CartPole-v1`` (random-policy lax.scan), Brax
-``inverted_pendulum`` on ``mjx``, Gymnasium ``CartPole-v1`` (numpy) single env, ``SyncVectorEnv`` and its
-numpy-vectorised ``CartPoleVectorEnv``, and the seed-style loop (dict-based tabular Q-learning in plain Python
-over Gymnasium ``CartPole-v1``). Anything missing is a ``skipped`` row with its reason.
+Peers, when the ``bench`` extra is installed (``bench-quad`` for crazyflow): gymnax ``CartPole-v1``
+(random-policy lax.scan), Brax ``inverted_pendulum`` on ``mjx``, MuJoCo Playground ``CartpoleBalance`` on MJX,
+crazyflow's quadrotor sim (random attitude commands around hover), Gymnasium ``CartPole-v1`` (numpy) single env,
+``SyncVectorEnv`` and its numpy-vectorised ``CartPoleVectorEnv``, and the seed-style loop (dict-based tabular
+Q-learning in plain Python over Gymnasium ``CartPole-v1``). Anything missing is a ``skipped`` row with its reason;
+figures published by peers that cannot run here (crazyflow on an RTX 4090, L2F) are ``published`` rows.
 
-Output: a table on stdout (each jaxrobo row's ratio to the best peer row and to the seed-style loop), and
-``benchmarks/results/<device>/throughput.{json,csv,png}``.
+Output: a table on stdout (each row's physics step and substeps; each jaxrobo row's ratio per env step, per
+physics step and per simulated second to the fastest peer of its family at the same n_envs, to Brax and to the
+seed-style loop), ``throughput.{json,csv}`` and the figures of ``figures.py`` under
+``benchmarks/results/local/<device>/`` (git-ignored; ``--out benchmarks/results/h100`` updates a committed table
+on purpose). ``--replot JSON`` redraws the table and figures of a results file without measuring.
 """
 from __future__ import annotations
 
