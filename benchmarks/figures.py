@@ -27,9 +27,10 @@ PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e
            "#7f7f7f", "#393b79", "#ad494a", "#637939", "#e7ba52", "#7b4173", "#3182bd", "#31a354", "#756bb1",
            "#fd8d3c", "#636363")  # 20 distinct colours: no two series of one plot share one
 MARKERS = "osD^v<>phP*X8dH+x1234"
-MAX_SERIES = len(PALETTE)
-#: jaxrobo series kept in a scaling plot when a family has more series than colours
+MAX_SERIES = 12  # per scaling plot: a legend one reads at a glance
+#: jaxrobo series a scaling plot shows first
 MAIN_MODES = ("env", "qlearn")
+MAIN_BACKENDS = ("mjx", "analytic", "-")
 
 
 #: The family (the task a user would compare) of each peer suite and of jaxrobo env ids by prefix: ratios compare
@@ -145,11 +146,12 @@ def headline(rows: list[dict[str, Any]], path: str, device: str) -> bool:
 
 
 def scaling_series(rows: list[dict[str, Any]], fam: str) -> dict[str, list[tuple[int, float]]]:
-    """``label -> [(n_envs, rate)]`` of ``fam``, at most ``MAX_SERIES``: when there are more, jaxrobo series
-    other than env-only and the first learner, and then single-point jaxrobo series, are left out."""
+    """``label -> [(n_envs, rate)]`` of ``fam``: every peer, and the jaxrobo series that show scaling (measured at
+    several sizes, when any is), env-only and the first learner on the main backends first, up to
+    ``MAX_SERIES`` in all. The rest stay in the table and the headline."""
     key = FAMILY_MEASURE[fam][0]
     series: dict[str, list[tuple[int, float]]] = {}
-    kinds: dict[str, tuple[bool, str]] = {}
+    rank: dict[str, tuple[bool, bool]] = {}
     for r in rows:
         if family(r) != fam or not _usable(r, key) or r.get("n_envs") is None:
             continue
@@ -157,14 +159,15 @@ def scaling_series(rows: list[dict[str, Any]], fam: str) -> dict[str, list[tuple
         if r["status"] == "published":
             name += f" (published, {r.get('hardware', '?')})"
         series.setdefault(name, []).append((r["n_envs"], r[key]))
-        kinds[name] = (r["suite"] == "jaxrobo", r["mode"])
-    if len(series) > MAX_SERIES:
-        series = {k: v for k, v in series.items() if not kinds[k][0] or kinds[k][1] in MAIN_MODES}
-    if len(series) > MAX_SERIES:
-        series = {k: v for k, v in series.items() if not kinds[k][0] or len(v) > 1}
-    if len(series) > MAX_SERIES:
-        series = dict(list(series.items())[:MAX_SERIES])
-    return {k: sorted(v) for k, v in series.items()}
+        if r["suite"] == "jaxrobo":
+            rank[name] = (r["mode"] not in MAIN_MODES, r["backend"] not in MAIN_BACKENDS)
+    ours = [k for k in series if k in rank]
+    peers = [k for k in series if k not in rank]
+    if any(len(series[k]) > 1 for k in ours):
+        ours = [k for k in ours if len(series[k]) > 1]
+    ours = sorted(ours, key=lambda k: rank[k])[:max(0, MAX_SERIES - len(peers))]
+    keep = [k for k in series if k in ours or k in peers][:MAX_SERIES]
+    return {k: sorted(series[k]) for k in keep}
 
 
 def scaling(rows: list[dict[str, Any]], fam: str, path: str, device: str) -> bool:
@@ -173,6 +176,8 @@ def scaling(rows: list[dict[str, Any]], fam: str, path: str, device: str) -> boo
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from matplotlib.ticker import NullFormatter
 
     series = scaling_series(rows, fam)
     if not series:
@@ -184,9 +189,10 @@ def scaling(rows: list[dict[str, Any]], fam: str, path: str, device: str) -> boo
                 color=PALETTE[i], label=name, markersize=6, linewidth=1.6)
     ax.set_xscale("log")
     ax.set_yscale("log")
+    ax.xaxis.set_minor_formatter(NullFormatter())  # a narrow span of sizes would label every minor tick
     ax.set_xlabel("n_envs (parallel environments)")
     ax.set_ylabel(FAMILY_MEASURE[fam][1])
-    ax.set_title(f"{fam} throughput against batch size on {device} (solid: jaxrobo, dashed: peers)")
+    ax.set_title(f"{fam} on {device}\nsolid: jaxrobo, dashed: peers, dotted: published", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()

@@ -656,9 +656,16 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     earlier = load_earlier(out_dir, jax.devices()[0].device_kind) if args.append else None
 
+    partial = os.path.join(out_dir, "throughput.partial.json")
+
     def add(row: dict[str, Any]) -> None:
         rows.append(row)
         print("  " + _line(row), flush=True)
+        # Every row measured so far, on disk at once: a run stopped by a time limit keeps them (--replot it).
+        os.makedirs(out_dir, exist_ok=True)
+        with open(partial, "w") as f:
+            json.dump({"meta": {"device": jax.devices()[0].device_kind, "argv": sys.argv, "partial": True},
+                       "rows": rows}, f, indent=1, default=str)
 
     for item in jaxrobo_plan(args, n_list, gpu):
         if item[0] == "skip":
@@ -687,6 +694,8 @@ def main(argv: list[str] | None = None) -> int:
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "throughput.json"), "w") as f:
         json.dump({"meta": meta, "rows": rows}, f, indent=2, default=str)
+    if os.path.exists(partial):
+        os.remove(partial)
     keys = list(dict.fromkeys(k for r in rows for k in r))
     with open(os.path.join(out_dir, "throughput.csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)

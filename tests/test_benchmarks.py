@@ -37,6 +37,7 @@ def test_throughput_smoke(tmp_path):
     assert (tmp_path / "out" / "throughput.png").stat().st_size > 0
     assert "x phys" in proc.stdout and rows[("l2f", "quadrotor", "env")]["status"] == "published"
     assert (tmp_path / "out" / "throughput_cartpole.png").stat().st_size > 0
+    assert not (tmp_path / "out" / "throughput.partial.json").exists()  # the rows-so-far file, gone once complete
     assert not (tmp_path / "out" / "throughput_quadcopter.png").exists()  # L2F's figure has no batch size to plot
     backends = {r["backend"] for r in data["rows"] if r["suite"] == "jaxrobo" and r["status"] == "ok"}
     assert backends == {"mjx", "analytic"}

@@ -121,11 +121,21 @@ def test_figures_are_a_function_of_the_results_json(tmp_path, capsys):
 
     series = figures.scaling_series(rows, "cart-pole")
     assert series["jaxrobo: CartPoleStayUp-v0 [mjx] env"] == [(64, 6400.0), (1024, 102400.0)]
-    many = rows + [_row("jaxrobo", "CartPoleStayUp-v0", n, 1.0 + i, mode=f"learner{i}", backend="mjx")
-                   for i in range(30) for n in (64,)]
+    assert set(series) == {"jaxrobo: CartPoleStayUp-v0 [mjx] env", "jaxrobo: CartPoleStayUp-v0 [mjx] qlearn",
+                           "jaxrobo: CartPoleStayUp-v0 [analytic] qlearn", "gymnax: CartPole-v1",
+                           "playground: CartpoleBalance [mjx-jax]", "brax: inverted_pendulum/mjx",
+                           "seed-loop: CartPole-v1 qlearn"}
+    many = rows + [_row("jaxrobo", "CartPoleStayUp-v0", n, 1.0 + i, mode=f"learner{i}", backend=b)
+                   for i in range(10) for b in ("mjx", "spring") for n in (64, 1024)]
+    many += [_row("jaxrobo", "CartPoleStayUp-v0", 1024, 5.0, mode="sarsa", backend="mjx")]  # one size: no curve
     capped = figures.scaling_series(many, "cart-pole")
-    assert len(capped) <= figures.MAX_SERIES and not any("learner" in k for k in capped)
-    assert len(set(figures.PALETTE)) == figures.MAX_SERIES  # one colour per series, never repeated
+    assert len(capped) == figures.MAX_SERIES and "jaxrobo: CartPoleStayUp-v0 [mjx] sarsa" not in capped
+    assert {k for k in series if not k.startswith("jaxrobo")} <= set(capped)  # every peer stays
+    assert [k for k in capped if "learner" in k][:2] == ["jaxrobo: CartPoleStayUp-v0 [mjx] learner0",
+                                                          "jaxrobo: CartPoleStayUp-v0 [mjx] learner1"]
+    assert len(set(figures.PALETTE)) >= figures.MAX_SERIES  # one colour per series, never repeated
+    quad = figures.scaling_series(rows, "quadcopter")  # single sizes only: shown as points
+    assert "jaxrobo: QuadcopterGoto-v1 qlearn" in quad and len(quad) == 3  # + crazyflow measured and published
 
     path = tmp_path / "throughput.json"
     path.write_text(json.dumps({"meta": {"device": "fake"}, "rows": rows}))
