@@ -15,13 +15,18 @@ with the compile time (and whether it came from the persistent cache), memory pe
 state bytes, the whole training carry per env; device memory where the backend reports it) and, for every
 row, physics steps per second (env steps × substeps) and simulated seconds per wall second.
 
-Peers, when the ``bench`` extra is installed: gymnax ``CartPole-v1`` (random-policy lax.scan), Brax
-``inverted_pendulum`` on ``mjx``, Gymnasium ``CartPole-v1`` (numpy) single env, ``SyncVectorEnv`` and its
-numpy-vectorised ``CartPoleVectorEnv``, and the seed-style loop (dict-based tabular Q-learning in plain Python
-over Gymnasium ``CartPole-v1``). Anything missing is a ``skipped`` row with its reason.
+Peers, when the ``bench`` extra is installed (``bench-quad`` for crazyflow): gymnax ``CartPole-v1``
+(random-policy lax.scan), Brax ``inverted_pendulum`` on ``mjx``, MuJoCo Playground ``CartpoleBalance`` on MJX,
+crazyflow's quadrotor sim (random attitude commands around hover), Gymnasium ``CartPole-v1`` (numpy) single env,
+``SyncVectorEnv`` and its numpy-vectorised ``CartPoleVectorEnv``, and the seed-style loop (dict-based tabular
+Q-learning in plain Python over Gymnasium ``CartPole-v1``). Anything missing is a ``skipped`` row with its reason;
+figures published by peers that cannot run here (crazyflow on an RTX 4090, L2F) are ``published`` rows.
 
-Output: a table on stdout (each jaxrobo row's ratio to the best peer row and to the seed-style loop), and
-``benchmarks/results/<device>/throughput.{json,csv,png}``.
+Output: a table on stdout (each row's physics step and substeps; each jaxrobo row's ratio per env step, per
+physics step and per simulated second to the fastest peer of its family at the same n_envs, to Brax and to the
+seed-style loop), ``throughput.{json,csv}`` and the figures of ``figures.py`` under
+``benchmarks/results/local/<device>/`` (git-ignored; ``--out benchmarks/results/h100`` updates a committed table
+on purpose). ``--replot JSON`` redraws the table and figures of a results file without measuring.
 """
 from __future__ import annotations
 
@@ -37,6 +42,8 @@ from typing import Any
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common  # noqa: E402
+import figures  # noqa: E402
+from figures import family  # noqa: E402  (the families ratios and figures group rows by)
 
 QUICK_N = (64, 1024, 16384)
 FULL_N_CPU = (1, 16, 256, 4096)
@@ -44,6 +51,8 @@ FULL_N_GPU = (1024, 8192, 65536, 262144, 1048576)
 ALL_LEARNERS = ("qlearn", "sarsa", "expected_sarsa", "double_q")
 QUADCOPTERS = ("QuadcopterLiveShow-v0", "QuadcopterGoto-v1")
 MIN_SAMPLE_SECONDS = 0.25  # a timed sample repeats a short call back to back until it lasts this long
+#: where a plain run writes (git-ignored); the committed tables are written on purpose with --out
+LOCAL_RESULTS = ("benchmarks", "results", "local")
 MEMORY_FRACTION = 0.8  # skip sizes whose carry (+25 % for temporaries) needs more than this share of device memory
 
 
@@ -61,16 +70,25 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="comma list of cartpole backends (default: mjx, the three Brax pipelines and analytic)")
     p.add_argument("--learners", default=None,
                    help="comma list of learners, or 'none' (default quick: qlearn,sarsa; full: all four)")
-    p.add_argument("--peers", default="gymnax,brax,gymnasium,gymnasium-sync,gymnasium-vec,seed-loop",
-                   help="comma list of peers to run, or 'none'")
+    p.add_argument("--peers", default=",".join(PEER_NAMES),
+                   help=f"comma list of peers to run, or 'none' (default: all of {', '.join(PEER_NAMES)})")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per row (the minimum is kept)")
-    p.add_argument("--out", default=None, help="output folder (default benchmarks/results/<device-name>)")
+    p.add_argument("--out", default=None,
+                   help="output folder (default benchmarks/results/local/<device-name>, git-ignored; the committed "
+                        "tables are updated on purpose, e.g. --out benchmarks/results/h100)")
+    p.add_argument("--replot", metavar="JSON", default=None,
+                   help="measure nothing: print the table and write the figures of this throughput.json (into "
+                        "--out, default its folder)")
     p.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     p.add_argument("--no-plot", action="store_true")
     p.add_argument("--append", action="store_true",
                    help="merge into the throughput.json already in the output folder (same device; a row measured "
                         "again replaces the old one), so a long matrix can run in parts")
     args = p.parse_args(argv)
+    args.peers = [] if args.peers == "none" else [x for x in args.peers.split(",") if x.strip()]
+    for peer in args.peers:
+        if peer not in PEER_NAMES:
+            p.error(f"--peers {peer!r}: allowed values are {', '.join(PEER_NAMES)} or none")
     if args.repeats < 1:
         p.error(f"--repeats {args.repeats}: must be >= 1")
     if args.steps is not None and args.steps < 1:
@@ -263,6 +281,130 @@ def peer_brax(n: int, args, ctx) -> dict[str, Any]:
                           int(base._n_frames), float(base.dt))
 
 
+def peer_playground(n: int, args, ctx) -> dict[str, Any]:
+    """MuJoCo Playground's ``CartpoleBalance`` (dm_control's cart-pole on MJX), random actions, auto-reset by
+    Playground's own Brax training wrapper, on MJX's JAX implementation (Playground defaults to MJX-Warp, which
+    needs ``warp-lang`` and a CUDA GPU; the JAX one runs everywhere and is what our rows use too)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxrobo.sim import quiet_imports
+
+    with quiet_imports():
+        from mujoco_playground import registry, wrapper
+
+        base = registry.load("CartpoleBalance", config_overrides={"impl": "jax"})
+    env = wrapper.wrap_for_brax_training(base, episode_length=1000, action_repeat=1)
+    steps = steps_for(n, ctx["gpu"], args.steps)
+    n_act = base.action_size
+
+    def init(key):  # Playground's wrapper wants raw uint32 keys, one per env
+        return env.reset(jax.random.key_data(jax.random.split(key, n))), key
+
+    def rollout(carry, _):
+        state, key = carry
+        keys = jax.random.split(key, steps + 1)
+
+        def body(c, k):
+            s, acc = c
+            a = jax.random.uniform(k, (n, n_act), minval=-1.0, maxval=1.0)
+            s = env.step(s, a)
+            return (s, acc + s.reward), None
+
+        (state, acc), _ = jax.lax.scan(body, (state, jnp.zeros(n, jnp.float32)), keys[1:])
+        return (state, keys[0]), _common.checksum(state.data) + jnp.sum(acc)
+
+    n_sub = int(base.n_substeps)
+    return _time_jax_peer("playground", "CartpoleBalance", n, steps, init, rollout, args, ctx, n_sub,
+                          float(base.dt), backend="mjx-jax")
+
+
+#: crazyflow's quadrotor as a gym-style task: attitude commands at 100 Hz on its 500 Hz first-principles sim
+CRAZYFLOW_FREQ, CRAZYFLOW_CONTROL_FREQ = 500, 100
+
+
+def peer_crazyflow(n: int, args, ctx) -> dict[str, Any]:
+    """crazyflow's vectorised quadrotor sim (first-principles dynamics, one drone per world), driven like an
+    env: every control step a random attitude command around hover ([roll, pitch, yaw] within +-0.1 rad,
+    thrust within +-10 % of the hover thrust), 5 sim steps, and the worlds whose drone left the 1 m box around
+    its start (or hit the floor) reset by crazyflow's own masked reset."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxrobo.sim import quiet_imports
+
+    with quiet_imports():
+        import crazyflow.sim.functional as cf_functional
+        from crazyflow.control import Control
+        from crazyflow.sim import Sim
+
+        sim = Sim(n_worlds=n, n_drones=1, control=Control.attitude, freq=CRAZYFLOW_FREQ,
+                  attitude_freq=CRAZYFLOW_CONTROL_FREQ, device="gpu" if ctx["gpu"] else "cpu")
+    sim_step, sim_reset = sim.build_step_fn(), sim.build_reset_fn()
+    n_sub = CRAZYFLOW_FREQ // CRAZYFLOW_CONTROL_FREQ
+    steps = steps_for(n * n_sub, ctx["gpu"], args.steps)  # a sim step is the unit of work here
+
+    def lift(d):  # start 1 m above the floor (crazyflow's default pose rests on it)
+        return d.replace(states=d.states.replace(pos=d.states.pos.at[..., 2].set(1.0)))
+
+    data0, default = lift(sim.data), lift(sim.default_data)
+    hover = float(jnp.ravel(sim.data.params.mass)[0]) * 9.81
+    start = data0.states.pos[:, 0]
+
+    def init(key):
+        return data0, key
+
+    def rollout(carry, _):
+        data, key = carry
+        keys = jax.random.split(key, steps + 1)
+
+        def body(c, k):
+            d, acc = c
+            u = jax.random.uniform(k, (n, 1, 4), minval=-1.0, maxval=1.0)
+            cmd = jnp.concatenate([0.1 * u[..., :3], hover * (1.0 + 0.1 * u[..., 3:])], axis=-1)
+            d = sim_step(cf_functional.attitude_control(d, cmd), n_steps=n_sub)
+            pos = d.states.pos[:, 0]
+            out = (pos[:, 2] < 0.05) | jnp.any(jnp.abs(pos - start) > 1.0, axis=-1)
+            d = sim_reset(d, default, out)
+            return (d, acc + out.astype(jnp.float32)), None
+
+        (data, acc), _ = jax.lax.scan(body, (data, jnp.zeros(n, jnp.float32)), keys[1:])
+        return (data, keys[0]), _common.checksum(data.states) + jnp.sum(acc)
+
+    return _time_jax_peer("crazyflow", "quadrotor cf21B_500", n, steps, init, rollout, args, ctx, n_sub,
+                          1.0 / CRAZYFLOW_CONTROL_FREQ, backend="first-principles")
+
+
+#: Figures published by peers that cannot run here (other hardware, or no installable package): shown as rows
+#: marked ``published``, never part of a measured ratio.
+PUBLISHED = (
+    {"suite": "crazyflow", "env": "quadrotor cf21B_500", "backend": "first-principles", "mode": "env",
+     "n_envs": 262144, "physics_steps_per_s": 914e6, "physics_dt": 1 / 500, "n_substeps": 1,
+     "hardware": "RTX 4090",
+     "source": "crazyflow 0.4.0 README, Performance (first-principles dynamics, one drone, sim steps/s)"},
+    {"suite": "l2f", "env": "quadrotor", "backend": "CUDA", "mode": "env", "n_envs": None,
+     "physics_steps_per_s": 20e9, "physics_dt": None, "n_substeps": 1, "hardware": "laptop RTX 4090",
+     "source": "RLtools L2F (Eschmann et al., Learning to Fly in Seconds): ~20 G quadrotor sim steps/s, "
+               "hand-written CUDA"},
+)
+
+
+def published_rows(names) -> list[dict[str, Any]]:
+    """The published figures of the peers in ``names`` (the physics-step rate is what their authors report; the
+    env-step rate is derived only where the control step is known)."""
+    rows = []
+    for fig in PUBLISHED:
+        if fig["suite"] not in names:
+            continue
+        row = {**fig, "status": "published"}
+        row["steps_per_s"] = fig["physics_steps_per_s"] / fig["n_substeps"]
+        dt = fig["physics_dt"]
+        row["sim_seconds_per_s"] = fig["physics_steps_per_s"] * dt if dt else None
+        row["reason"] = f"published, {fig['hardware']}: {fig['source']}"
+        rows.append(row)
+    return rows
+
+
 def brax_physics_dt() -> float | str:
     """Brax ``inverted_pendulum``'s physics step on ``mjx`` (s), or why it cannot be read."""
     try:
@@ -283,7 +425,8 @@ def _backend_label(backend: str | None, options: dict[str, Any] | None) -> str:
     return label
 
 
-def _time_jax_peer(suite, env_id, n, steps, init, rollout, args, ctx, n_sub, control_dt) -> dict[str, Any]:
+def _time_jax_peer(suite, env_id, n, steps, init, rollout, args, ctx, n_sub, control_dt,
+                   backend: str = "-") -> dict[str, Any]:
     import jax
 
     carry = jax.jit(init)(jax.random.key(0))
@@ -291,16 +434,17 @@ def _time_jax_peer(suite, env_id, n, steps, init, rollout, args, ctx, n_sub, con
     seconds, _ = _common.time_carry(lambda c, z: fn(c, z), carry, 0, repeats=args.repeats,
                                     min_seconds=MIN_SAMPLE_SECONDS)
     sps = n * steps / seconds
-    return {"suite": suite, "env": env_id, "backend": "-", "mode": "env", "n_envs": n, "status": "ok",
+    return {"suite": suite, "env": env_id, "backend": backend, "mode": "env", "n_envs": n, "status": "ok",
             "steps": steps, "seconds": seconds, "steps_per_s": sps, "compile_s": compile_s, "compile_cached": hit,
-            "n_substeps": n_sub, "physics_steps_per_s": sps * n_sub, "sim_seconds_per_s": sps * control_dt}
+            "n_substeps": n_sub, "control_dt": control_dt, "physics_dt": control_dt / n_sub,
+            "physics_steps_per_s": sps * n_sub, "sim_seconds_per_s": sps * control_dt}
 
 
 def _numpy_row(suite, mode, n, steps, seconds, extra=None) -> dict[str, Any]:
     sps = steps / seconds
     row = {"suite": suite, "env": "CartPole-v1", "backend": "numpy", "mode": mode, "n_envs": n, "status": "ok",
-           "steps": steps, "seconds": seconds, "steps_per_s": sps, "n_substeps": 1, "physics_steps_per_s": sps,
-           "sim_seconds_per_s": sps * 0.02}
+           "steps": steps, "seconds": seconds, "steps_per_s": sps, "n_substeps": 1, "control_dt": 0.02,
+           "physics_dt": 0.02, "physics_steps_per_s": sps, "sim_seconds_per_s": sps * 0.02}
     row.update(extra or {})
     return row
 
@@ -364,14 +508,19 @@ def _skip(suite, env, backend, mode, n, reason) -> dict[str, Any]:
             "reason": reason}
 
 
+#: the pip extra that installs each peer (default ``bench``)
+EXTRA_OF = {"crazyflow": "bench-quad"}
+
+
 def _guard(fn, skip_row, *a) -> dict[str, Any]:
     try:
         return fn(*a)
     except ImportError as err:
-        return {**skip_row, "reason": f"not installed ({err.name or err}); pip install 'jaxrobo[bench]'"}
+        extra = EXTRA_OF.get(skip_row["suite"], "bench")
+        return {**skip_row, "reason": f"not installed ({err.name or err}); pip install 'jaxrobo[{extra}]'"}
     except Exception as err:  # noqa: BLE001 - a failing row is reported, not fatal
         traceback.print_exc(limit=3, file=sys.stderr)
-        return {**skip_row, "status": "error", "reason": f"{type(err).__name__}: {str(err)[:200]}"}
+        return {**skip_row, "status": "error", "reason": f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"}
 
 
 def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
@@ -420,9 +569,44 @@ def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
             for name, sizes in learner_sizes.items():
                 for n in sizes:
                     plan.append(("run", env_id, backend, name, n, None))
-            if main and backend == "mjx" and "brax" in args.peers.split(","):
+            if main and backend == "mjx" and "brax" in args.peers:
                 plan.extend(_matched_rows(env_id, learners, _brax_sizes(args, n_list, gpu)))
     return plan
+
+
+#: Every peer ``--peers`` accepts, in the order they run; ``l2f`` is a published figure only (no package).
+PEER_NAMES = ("gymnax", "brax", "playground", "crazyflow", "l2f", "gymnasium", "gymnasium-sync", "gymnasium-vec",
+              "seed-loop")
+
+
+def peer_plan(peer: str, args, n_list, gpu: bool) -> list[tuple]:
+    """``(fn, skip_row, n, extra_args)`` for each row of ``peer``; ``fn`` None: the row is ``skip_row`` itself
+    (a published figure)."""
+    if peer == "gymnax":
+        return [(peer_gymnax, _skip("gymnax", "CartPole-v1", "-", "env", n, ""), n, ()) for n in n_list]
+    if peer == "brax":
+        return [(peer_brax, _skip("brax", "inverted_pendulum/mjx", "-", "env", n, ""), n, ())
+                for n in _brax_sizes(args, n_list, gpu)]
+    if peer == "playground":  # MJX like Brax: the same sizes
+        return [(peer_playground, _skip("playground", "CartpoleBalance", "mjx-jax", "env", n, ""), n, ())
+                for n in _brax_sizes(args, n_list, gpu)]
+    if peer == "crazyflow":  # beside the quadcopter rows: every size on a GPU (or with --full), else the largest
+        sizes = n_list if (gpu or args.full) else n_list[-1:]
+        rows = [(peer_crazyflow, _skip("crazyflow", "quadrotor cf21B_500", "first-principles", "env", n, ""), n, ())
+                for n in sizes]
+        return rows + [(None, r, r["n_envs"], ()) for r in published_rows(("crazyflow",))]
+    if peer == "l2f":
+        return [(None, r, r["n_envs"], ()) for r in published_rows(("l2f",))]
+    if peer == "gymnasium":
+        return [(peer_gymnasium, _skip("gymnasium", "CartPole-v1", "numpy", "env", 1, ""), 1, ())]
+    if peer in ("gymnasium-sync", "gymnasium-vec"):
+        sync = peer == "gymnasium-sync"
+        cap = 256 if sync else 65536
+        return [(peer_gymnasium_vec, _skip(peer, "CartPole-v1", "numpy", "env", n, ""), n, (sync,))
+                for n in sorted({min(n, cap) for n in n_list})]
+    if peer == "seed-loop":
+        return [(peer_seed_loop, _skip("seed-loop", "CartPole-v1", "numpy", "qlearn", 1, ""), 1, ())]
+    raise ValueError(f"unknown peer {peer!r}")  # parse_args has checked the names
 
 
 def _matched_rows(env_id: str, learners: tuple, sizes) -> list[tuple]:
@@ -448,6 +632,10 @@ def _brax_sizes(args, n_list, gpu: bool):
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.replot:
+        return replot(args.replot, args.out)
+    if "crazyflow" in args.peers:  # crazyflow uses scipy's array-API mode, which scipy reads once, at its import
+        os.environ.setdefault("SCIPY_ARRAY_API", "1")
     _common.select_device(args.device)
     import jax
 
@@ -460,7 +648,7 @@ def main(argv: list[str] | None = None) -> int:
     n_list = args.n_envs or (FULL_N_GPU if (gpu and not args.quick) else FULL_N_CPU if args.full else QUICK_N)
     ctx = {"gpu": gpu, "cache": cache, "memory": _common.device_memory()}
     dev = _common.device_name()
-    out_dir = args.out or os.path.join(_common.ROOT, "benchmarks", "results", dev)
+    out_dir = args.out or os.path.join(_common.ROOT, *LOCAL_RESULTS, dev)
     print(f"device {jax.devices()[0].device_kind} ({jax.default_backend()}, {jax.device_count()} device(s)); "
           f"n_envs {list(n_list)}; compile cache {cache or 'off'}", flush=True)
 
@@ -468,9 +656,16 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     earlier = load_earlier(out_dir, jax.devices()[0].device_kind) if args.append else None
 
+    partial = os.path.join(out_dir, "throughput.partial.json")
+
     def add(row: dict[str, Any]) -> None:
         rows.append(row)
         print("  " + _line(row), flush=True)
+        # Every row measured so far, on disk at once: a run stopped by a time limit keeps them (--replot it).
+        os.makedirs(out_dir, exist_ok=True)
+        with open(partial, "w") as f:
+            json.dump({"meta": {"device": jax.devices()[0].device_kind, "argv": sys.argv, "partial": True},
+                       "rows": rows}, f, indent=1, default=str)
 
     for item in jaxrobo_plan(args, n_list, gpu):
         if item[0] == "skip":
@@ -480,26 +675,9 @@ def main(argv: list[str] | None = None) -> int:
         add(_guard(measure_jaxrobo, _skip("jaxrobo", env_id, _backend_label(backend, options), learner or "env", n, ""),
                    env_id, backend, learner, n, args, ctx, options))
 
-    peers = [] if args.peers == "none" else args.peers.split(",")
-    for peer in peers:
-        if peer == "gymnax":
-            for n in n_list:
-                add(_guard(peer_gymnax, _skip("gymnax", "CartPole-v1", "-", "env", n, ""), n, args, ctx))
-        elif peer == "brax":
-            for n in _brax_sizes(args, n_list, gpu):
-                add(_guard(peer_brax, _skip("brax", "inverted_pendulum/mjx", "-", "env", n, ""), n, args, ctx))
-        elif peer == "gymnasium":
-            add(_guard(peer_gymnasium, _skip("gymnasium", "CartPole-v1", "numpy", "env", 1, ""), 1, args, ctx))
-        elif peer in ("gymnasium-sync", "gymnasium-vec"):
-            sync = peer == "gymnasium-sync"
-            cap = 256 if sync else 65536
-            for n in sorted({min(n, cap) for n in n_list}):
-                add(_guard(peer_gymnasium_vec, _skip(peer, "CartPole-v1", "numpy", "env", n, ""), n, args, ctx, sync))
-        elif peer == "seed-loop":
-            add(_guard(peer_seed_loop, _skip("seed-loop", "CartPole-v1", "numpy", "qlearn", 1, ""), 1, args, ctx))
-        else:
-            raise SystemExit(f"--peers {peer!r}: allowed values are gymnax, brax, gymnasium, gymnasium-sync, "
-                             "gymnasium-vec, seed-loop, none")
+    for peer in args.peers:
+        for fn, skip, n, extra in peer_plan(peer, args, n_list, gpu):
+            add(_guard(fn, skip, n, args, ctx, *extra) if fn is not None else skip)
 
     meta = {"device": jax.devices()[0].device_kind, "device_name": dev, "backend": jax.default_backend(),
             "device_count": jax.device_count(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
@@ -516,14 +694,16 @@ def main(argv: list[str] | None = None) -> int:
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "throughput.json"), "w") as f:
         json.dump({"meta": meta, "rows": rows}, f, indent=2, default=str)
+    if os.path.exists(partial):
+        os.remove(partial)
     keys = list(dict.fromkeys(k for r in rows for k in r))
     with open(os.path.join(out_dir, "throughput.csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-    if not args.no_plot:
-        plot(rows, os.path.join(out_dir, "throughput.png"), meta["device"])
-    print(f"\nwrote {out_dir}/throughput.{{json,csv{',png' if not args.no_plot else ''}}} "
+    written = [] if args.no_plot else figures.write_figures({"meta": meta, "rows": rows}, out_dir)
+    pngs = ",".join(os.path.basename(w)[:-4] for w in written)
+    print(f"\nwrote {out_dir}/throughput.{{json,csv}}{f' and {{{pngs}}}.png' if pngs else ''} "
           f"in {meta['total_seconds']:.0f} s")
     return 0
 
@@ -559,25 +739,46 @@ def merge_rows(earlier: dict[str, Any], rows: list[dict[str, Any]], meta: dict[s
     return sorted(merged, key=lambda r: r["suite"] != "jaxrobo"), parts  # stable: jaxrobo rows, then the peers
 
 
+#: The three like-for-like measures: (row key, ratio key, what one unit is)
+MEASURES = (("steps_per_s", "x_env", "env step"), ("physics_steps_per_s", "x_phys", "physics step"),
+            ("sim_seconds_per_s", "x_sim", "simulated second"))
+RATIO_KEYS = ("x_env", "x_phys", "x_sim", "peer", "x_seed_loop", "x_brax")
+
+
 def _ratios(rows: list[dict[str, Any]]) -> None:
+    """Each jaxrobo row against the fastest measured peer of its family at the same ``n_envs``, once per measure
+    (env steps, physics steps, simulated seconds per wall second; ``peer`` names the peer(s) used); against
+    Brax ``inverted_pendulum`` at the same ``n_envs`` and against the seed-style loop (cart-pole rows).
+    Published figures (other hardware) never enter a ratio."""
     for r in rows:  # recomputed from the rows at hand (with --append, earlier ratios may be stale)
-        for k in ("x_best_peer", "best_peer", "x_seed_loop", "x_brax"):
+        for k in RATIO_KEYS + ("x_best_peer", "best_peer"):
             r.pop(k, None)
     peers = [r for r in rows if r["suite"] != "jaxrobo" and r.get("status") == "ok"]
-    best = max(peers, key=lambda r: r["steps_per_s"], default=None)
     seed = next((r for r in peers if r["suite"] == "seed-loop"), None)
     brax_at = {r["n_envs"]: r for r in peers if r["suite"] == "brax"}
     for r in rows:
         if r["suite"] != "jaxrobo" or r.get("status") != "ok":
             continue
-        if best is not None:
-            r["x_best_peer"] = r["steps_per_s"] / best["steps_per_s"]
-            r["best_peer"] = f"{best['suite']} n={best['n_envs']}"
-        if seed is not None:
-            r["x_seed_loop"] = r["steps_per_s"] / seed["steps_per_s"]
-        brax = brax_at.get(r["n_envs"])
-        if brax is not None and r["env"].startswith("CartPole"):
-            r["x_brax"] = r["steps_per_s"] / brax["steps_per_s"]
+        fam = family(r)
+        if fam is None:
+            continue
+        same = [p for p in peers if family(p) == fam and p["n_envs"] == r["n_envs"] and p["suite"] != "seed-loop"]
+        names = []
+        for key, ratio, _ in MEASURES:
+            cands = [p for p in same if p.get(key) and r.get(key)]
+            if not cands:
+                continue
+            best = max(cands, key=lambda p: p[key])
+            r[ratio] = r[key] / best[key]
+            names.append(best["suite"])
+        if names:
+            r["peer"] = "/".join(dict.fromkeys(names)) + f" n={r['n_envs']}"
+        if fam == "cart-pole":
+            if seed is not None:
+                r["x_seed_loop"] = r["steps_per_s"] / seed["steps_per_s"]
+            brax = brax_at.get(r["n_envs"])
+            if brax is not None:
+                r["x_brax"] = r["steps_per_s"] / brax["steps_per_s"]
 
 
 def _fmt_rate(x: float | None) -> str:
@@ -590,7 +791,10 @@ def _fmt_rate(x: float | None) -> str:
 
 
 def _line(r: dict[str, Any]) -> str:
-    head = f"{r['suite']:14s} {r['env']:22s} {r['backend']:14s} {r['mode']:14s} n={r['n_envs']:<8}"
+    n = "-" if r.get("n_envs") is None else r["n_envs"]
+    head = f"{r['suite']:14s} {r['env']:22s} {r['backend']:14s} {r['mode']:14s} n={n:<8}"
+    if r.get("status") == "published":
+        return f"{head} {_fmt_rate(r['physics_steps_per_s'])} physics steps/s {r['reason']}"
     if r.get("status") != "ok":
         return f"{head} {r.get('status')}: {r.get('reason', '')}"
     comp = f"compile {r['compile_s']:.1f}s{' (cache)' if r.get('compile_cached') else ''}" if "compile_s" in r else ""
@@ -598,31 +802,50 @@ def _line(r: dict[str, Any]) -> str:
     return f"{head} {_fmt_rate(r['steps_per_s'])} steps/s {comp}{plan}"
 
 
+def _fmt_x(x: float | None) -> str:
+    if x is None:
+        return "-"
+    return f"{x:.0f}" if x >= 100 else f"{x:.1f}" if x >= 10 else f"{x:.2f}"
+
+
+def _fmt_dt(dt: float | None) -> str:
+    return f"{dt:g}" if dt else "-"
+
+
 def table(rows: list[dict[str, Any]]) -> str:
-    """The stdout table: one line per row, ratios for jaxrobo rows."""
-    hdr = (f"{'suite':14s} {'env':22s} {'backend':14s} {'mode':14s} {'n_envs':>8s} {'steps/s':>9s} "
-           f"{'phys/s':>9s} {'sim s/s':>9s} {'compile':>8s} {'B/env':>9s} {'x best peer':>11s} {'x brax':>7s} "
-           f"{'x seed':>8s}")
+    """The stdout table: one line per row (physics step and substeps named), like-for-like ratios for jaxrobo
+    rows."""
+    head = f"{'suite':14s} {'env':22s} {'backend':16s} {'mode':14s} {'n_envs':>8s}"
+    hdr = (f"{head} {'dt':>6s} {'sub':>3s} {'steps/s':>9s} {'phys/s':>9s} {'sim s/s':>9s} {'compile':>8s} "
+           f"{'B/env':>9s} {'x env':>6s} {'x phys':>6s} {'x sim':>6s} {'x brax':>6s} {'x seed':>7s}  peer")
     lines = [hdr, "-" * len(hdr)]
     for r in rows:
-        if r.get("status") != "ok":
-            lines.append(f"{r['suite']:14s} {r['env']:22s} {r['backend']:14s} {r['mode']:14s} {r['n_envs']:>8} "
-                         f"{r.get('status')}: {r.get('reason', '')}")
+        n = "-" if r.get("n_envs") is None else r["n_envs"]
+        lead = f"{r['suite']:14s} {r['env'][:22]:22s} {r['backend'][:16]:16s} {r['mode']:14s} {n:>8}"
+        status = r.get("status")
+        if status not in ("ok", "published"):
+            lines.append(f"{lead} {status}: {r.get('reason', '')}")
+            continue
+        phys = f"{_fmt_dt(r.get('physics_dt')):>6s} {r.get('n_substeps', '-'):>3}"
+        rates = (f"{_fmt_rate(r.get('steps_per_s')):>9s} {_fmt_rate(r.get('physics_steps_per_s')):>9s} "
+                 f"{_fmt_rate(r.get('sim_seconds_per_s')):>9s}")
+        if status == "published":
+            lines.append(f"{lead} {phys} {rates} {r['reason']}")
             continue
         comp = f"{r['compile_s']:.1f}s{'*' if r.get('compile_cached') else ''}" if "compile_s" in r else "-"
         kib = (r.get("carry_bytes_per_env") or 0) / 1024
         bpe = (f"{kib:.0f}KiB" if kib >= 10 else f"{kib:.1f}KiB") if kib else "-"
-        xb = f"{r['x_best_peer']:.2f}" if "x_best_peer" in r else "-"
-        xs = (f"{r['x_seed_loop']:.0f}" if r["x_seed_loop"] >= 10 else f"{r['x_seed_loop']:.2f}") \
-            if "x_seed_loop" in r else "-"
-        xbrax = f"{r['x_brax']:.2f}" if "x_brax" in r else "-"
-        lines.append(f"{r['suite']:14s} {r['env']:22s} {r['backend']:14s} {r['mode']:14s} {r['n_envs']:>8} "
-                     f"{_fmt_rate(r['steps_per_s']):>9s} {_fmt_rate(r.get('physics_steps_per_s')):>9s} "
-                     f"{_fmt_rate(r.get('sim_seconds_per_s')):>9s} {comp:>8s} {bpe:>9s} {xb:>11s} {xbrax:>7s} "
-                     f"{xs:>8s}")
+        xs = " ".join(f"{_fmt_x(r.get(k)):>6s}" for k in ("x_env", "x_phys", "x_sim", "x_brax"))
+        lines.append(f"{lead} {phys} {rates} {comp:>8s} {bpe:>9s} {xs} {_fmt_x(r.get('x_seed_loop')):>7s}  "
+                     f"{r.get('peer', '')}")
+    lines.append("dt = physics step (s), sub = physics steps per env step; steps/s, phys/s, sim s/s = env steps, "
+                 "physics steps and simulated seconds per wall second")
+    lines.append("x env, x phys, x sim = the row's rate per env step, per physics step and per simulated second "
+                 "over the fastest measured peer of the same family (cart-pole, quadcopter) at the same n_envs, "
+                 "per measure (peer names it); x brax = env steps/s over Brax inverted_pendulum/mjx at the same "
+                 "n_envs; x seed = env steps/s over the seed-style loop (cart-pole rows)")
     lines.append("compile: * = served from the persistent cache; B/env = training carry (env state + Q-table + "
-                 "records) per env; x = steps/s ratio (x brax: to Brax inverted_pendulum/mjx at the same n_envs); "
-                 "dt = physics step (s) where it differs from the default")
+                 "records) per env; published = a peer's own figure on its hardware, never in a ratio")
     plans = list(dict.fromkeys(r["execution_plan"] for r in rows if r.get("execution_plan")))
     if plans:
         lines.append("jaxrobo rows ran under " + "; ".join(plans))
@@ -632,37 +855,15 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def plot(rows: list[dict[str, Any]], path: str, device: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    series: dict[str, list[tuple[int, float]]] = {}
-    for r in rows:
-        if r.get("status") != "ok":
-            continue
-        name = f"{r['suite']}: {r['env']}" + (f" [{r['backend']}]" if r["backend"] not in ("-", "numpy") else "")
-        name += f" {r['mode']}"
-        series.setdefault(name, []).append((r["n_envs"], r["steps_per_s"]))
-    fig, ax = plt.subplots(figsize=(10, 6.5))
-    colours = plt.cm.tab20.colors  # 20 distinct colours; markers cycle too, so no two series look alike
-    markers = "osD^v<>ph*"
-    for i, (name, pts) in enumerate(sorted(series.items())):
-        pts.sort()
-        line = "-" if name.startswith("jaxrobo") else "--"
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], line, marker=markers[i % len(markers)],
-                color=colours[i % len(colours)], label=name, markersize=5)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("n_envs (parallel environments)")
-    ax.set_ylabel("env steps per second")
-    ax.set_title(f"throughput on {device}")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+def replot(path: str, out_dir: str | None) -> int:
+    """``--replot``: the table and the figures again from a results JSON alone (nothing is measured)."""
+    with open(path) as f:
+        data = json.load(f)
+    _ratios(data["rows"])
+    print(table(data["rows"]))
+    for written in figures.write_figures(data, out_dir or os.path.dirname(os.path.abspath(path))):
+        print(f"wrote {written}")
+    return 0
 
 
 if __name__ == "__main__":

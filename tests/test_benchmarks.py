@@ -17,7 +17,7 @@ def test_throughput_smoke(tmp_path):
            "XLA_FLAGS": "--xla_backend_optimization_level=0"}
     cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "throughput.py"), "--n-envs", "4", "--steps", "10",
            "--repeats", "1", "--envs", "CartPoleStayUp-v0,NoSuchEnv-v0", "--backends", "mjx,analytic",
-           "--learners", "qlearn", "--peers", "gymnasium,seed-loop,gymnax", "--out", str(tmp_path / "out")]
+           "--learners", "qlearn", "--peers", "gymnasium,seed-loop,gymnax,l2f", "--out", str(tmp_path / "out")]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads((tmp_path / "out" / "throughput.json").read_text())
@@ -35,7 +35,10 @@ def test_throughput_smoke(tmp_path):
     with open(tmp_path / "out" / "throughput.csv") as f:
         assert len(list(csv.DictReader(f))) == len(data["rows"])
     assert (tmp_path / "out" / "throughput.png").stat().st_size > 0
-    assert "x best peer" in proc.stdout
+    assert "x phys" in proc.stdout and rows[("l2f", "quadrotor", "env")]["status"] == "published"
+    assert (tmp_path / "out" / "throughput_cartpole.png").stat().st_size > 0
+    assert not (tmp_path / "out" / "throughput.partial.json").exists()  # the rows-so-far file, gone once complete
+    assert not (tmp_path / "out" / "throughput_quadcopter.png").exists()  # L2F's figure has no batch size to plot
     backends = {r["backend"] for r in data["rows"] if r["suite"] == "jaxrobo" and r["status"] == "ok"}
     assert backends == {"mjx", "analytic"}
 
