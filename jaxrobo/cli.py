@@ -348,7 +348,7 @@ def _plot(args: argparse.Namespace) -> int:
             raise ConfigError(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs; give one per run")
         out = args.out or os.path.join(args.runs[0], "rewards.png")
         check_image_path(out)
-        plot_runs(args.runs, out, labels=args.labels, window=args.window)
+        plot_runs(args.runs, out, labels=args.labels, window=args.window, x=args.x)
     except (FileNotFoundError, ValueError) as err:
         print(f"jaxrobo plot: {err}", file=sys.stderr)
         return 2
@@ -430,6 +430,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="PNG path (default <first run>/rewards.png)")
     p.add_argument("--labels", nargs="*", default=None, help="legend labels, one per run")
     p.add_argument("--window", type=int, default=10, help="moving-average window in episodes")
+    p.add_argument("--x", default="auto", choices=("auto", "episode", "env_steps"),
+                   help="x axis: episodes, or env steps of training (all envs; the common axis of a tabular and a "
+                        "ppo/sac run); auto: env steps when a ppo/sac run is given")
     p.set_defaults(func=_plot)
 
     p = sub.add_parser("list", help="registered environments, presets and agents")
