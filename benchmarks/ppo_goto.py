@@ -64,9 +64,16 @@ def main(argv: list[str] | None = None) -> int:
     from jaxrobo import deep
     from jaxrobo.config import parse_overrides
 
+    try:
+        from jaxrobo.cache import enable_compilation_cache
+
+        enable_compilation_cache()  # seeds after the first reuse the first one's executables
+    except ImportError:
+        pass
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     overrides = parse_overrides(args.set)
-    runs = []
+    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "ppo_goto.json")
+    runs: list[dict] = []
     for seed in seeds:
         spec = deep.resolve(ENV_ID, "ppo", args.preset, {**overrides, "seed": seed,
                                                           "eval_episodes": args.eval_episodes})
@@ -88,6 +95,30 @@ def main(argv: list[str] | None = None) -> int:
         print(f"seed {seed}: final arrivals {final:.3f}; target {args.target} "
               + (f"reached at {hit['env_steps']:,} steps, {hit['seconds']:.1f} s" if hit else "not reached"),
               flush=True)
+        write(path, summarize(args, overrides, seeds[:len(runs)], runs, argv))
+    out = summarize(args, overrides, seeds, runs, argv)
+    write(path, out)
+    to_target = out["median_seconds_to_target"]
+    print(f"median final arrival rate {out['median_final_arrival_rate']:.3f} over seeds {seeds} "
+          f"(min {out['min_final_arrival_rate']:.3f}, max {out['max_final_arrival_rate']:.3f}); median time to "
+          f"{args.target}: " + (f"{to_target:.1f} s ({out['times_l2f']}x L2F's {L2F_SECONDS:.0f} s)"
+                                if to_target is not None else "not reached"))
+    print(path)
+    return 0
+
+
+def write(path: str, out: dict) -> None:
+    """The JSON so far (after each seed, so that a run cut short keeps the seeds it finished)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(out, f, indent=2)
+
+
+def summarize(args, overrides: dict, seeds: list[int], runs: list[dict], argv) -> dict:
+    import numpy as np
+
+    from jaxrobo import deep
+
     finals = [r["final_arrival_rate"] for r in runs]
     to_target = median_or_none([r["seconds_to_target"] for r in runs])
     out = {
@@ -103,16 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         "times_l2f": None if to_target is None else round(to_target / L2F_SECONDS, 2),
         "command": "python benchmarks/ppo_goto.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "ppo_goto.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f, indent=2)
-    print(f"median final arrival rate {out['median_final_arrival_rate']:.3f} over seeds {seeds} "
-          f"(min {out['min_final_arrival_rate']:.3f}, max {out['max_final_arrival_rate']:.3f}); median time to "
-          f"{args.target}: " + (f"{to_target:.1f} s ({out['times_l2f']}x L2F's {L2F_SECONDS:.0f} s)"
-                                if to_target is not None else "not reached"))
-    print(path)
-    return 0
+    return out
 
 
 if __name__ == "__main__":
