@@ -19,7 +19,8 @@ Public surface:
     * ``done``: float32, 1 on termination or truncation (Brax's trainers take ``discount = 1 - done``);
     * ``info['truncation']``: 1 where the episode hit its step limit without terminating, 0 on termination
       (Brax's PPO and SAC mask truncated transitions out of bootstrapping); ``info['time_out']`` the same
-      (read by PPO's ``bootstrap_on_timeout``); ``info['steps']``: the episode's step count;
+      (read by PPO's ``bootstrap_on_timeout``); the step count is ``pipeline_state.steps`` (``info['steps']``
+      belongs to the training wrapper, as in Brax, where its ``EpisodeWrapper`` keeps it);
     * ``metrics``: ``terminated``, ``truncated``, ``physics_nan`` (per step, 0/1) and whatever the task's
       optional ``step_metrics(state, params)`` adds (e.g. ``arrived`` for the Goto Twist task), each a float32
       whose sum over an episode means something: Brax's evaluator reports it as ``eval/episode_<name>``.
@@ -42,6 +43,8 @@ Public surface:
       ``max_episode_steps``, so truncation (``info['truncation']``) and the trainer's evaluation agree;
     * ``action_repeat`` env steps per call, rewards summed, stopping at the first done step (Brax's
       ``EpisodeWrapper`` keeps stepping a finished episode);
+    * ``info['steps']``: the episode's step count (float32, as Brax's ``EpisodeWrapper`` keeps it; its
+      evaluator reads it);
     * the returned state of a finished step carries that step's ``reward``, ``done``, ``truncation``,
       ``steps`` and ``metrics``, and the next episode's first ``obs`` (Brax's convention: ``next_observation``
       of a done transition is the new episode's; PPO and SAC never bootstrap through it);
@@ -50,6 +53,11 @@ Public surface:
 
     ``randomization_fn`` (Brax's domain randomisation edits a Brax ``System``) is refused: a jaxrobo env has
     no ``System``; vary its ``Params`` instead (``BraxEnv(env, params)``).
+
+:func:`install_jax_compat` ``()``
+    Brax 0.14's trainers call ``jax.device_put_replicated`` / ``device_put_sharded``, which JAX 0.10 removed;
+    this installs the drop-in replacements of JAX's pmap migration guide where they are missing (importing this
+    module does it once), so ``ppo.train`` and ``sac.train`` run unchanged.
 
 Why Brax's ``wrap_env_fn=None`` path must not be used: ``brax.envs.training.wrap`` adds ``AutoResetWrapper``
 (the cached first state above; every training episode would start from the same goal and obstacle) and its
@@ -71,10 +79,36 @@ from jaxrobo.autoreset import autoreset
 from jaxrobo.config import ConfigError
 from jaxrobo.env import Env, EnvState
 
-__all__ = ["BraxEnv", "make", "wrap_for_training", "TrainingWrapper"]
+__all__ = ["BraxEnv", "make", "wrap_for_training", "TrainingWrapper", "install_jax_compat"]
 
 #: The per-step metrics every BraxEnv reports (tasks add theirs through ``step_metrics``).
 BASE_METRICS = ("terminated", "truncated", "physics_nan")
+
+
+def install_jax_compat() -> None:
+    """Give JAX back ``device_put_replicated`` / ``device_put_sharded`` (removed in JAX 0.10, still called by
+    Brax 0.14's trainers) as JAX's pmap migration guide writes them: a leading device axis, one shard per device.
+    Does nothing where JAX still has them."""
+    def sharding(devices):
+        mesh = jax.sharding.Mesh(np.asarray(devices), ("devices",))
+        return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("devices"))
+
+    def device_put_replicated(x, devices):
+        s = sharding(devices)
+        return jax.tree.map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), s), x)
+
+    def device_put_sharded(shards, devices):
+        s = sharding(devices)
+        return jax.tree.map(lambda *xs: jax.device_put(jnp.stack([jnp.asarray(a) for a in xs]), s), *shards)
+
+    for name, fn in (("device_put_replicated", device_put_replicated), ("device_put_sharded", device_put_sharded)):
+        try:
+            getattr(jax, name)
+        except AttributeError:
+            setattr(jax, name, fn)
+
+
+install_jax_compat()
 
 
 def _key(rng_key: jax.Array) -> jax.Array:
@@ -127,7 +161,7 @@ class BraxEnv(brax_base.Env):
         es = self.env.reset(_key(rng), self.params)
         zero = jnp.zeros((), jnp.float32)
         metrics = {name: zero for name in self._metric_names}
-        info = {"truncation": zero, "time_out": zero, "steps": es.steps}
+        info = {"truncation": zero, "time_out": zero}
         return brax_base.State(es, es.obs, zero, zero, metrics, info)
 
     def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
@@ -172,7 +206,7 @@ class BraxEnv(brax_base.Env):
 
     def _state(self, es: EnvState, info: dict) -> brax_base.State:
         truncation = es.truncated.astype(jnp.float32)
-        info = {**info, "truncation": truncation, "time_out": truncation, "steps": es.steps}
+        info = {**info, "truncation": truncation, "time_out": truncation}
         return brax_base.State(es, es.obs, es.reward, es.done.astype(jnp.float32), self.metrics(es), info)
 
     def __repr__(self) -> str:
@@ -209,6 +243,7 @@ class TrainingWrapper(brax_base.Wrapper):
         state = jax.vmap(self.single.reset)(rng)
         zeros = jnp.zeros(state.reward.shape, jnp.float32)
         names = ("sum_reward", "length") + tuple(state.metrics)
+        state.info["steps"] = zeros
         state.info["episode_done"] = zeros
         state.info["episode_metrics"] = {name: zeros for name in names}
         return state
@@ -251,7 +286,8 @@ class TrainingWrapper(brax_base.Wrapper):
         episode["length"] = episode["length"] * (1 - prev_done) + taken
         for k, v in sums.items():
             episode[k] = episode[k] * (1 - prev_done) + v
-        info = {**state.info, "truncation": truncation, "time_out": truncation, "steps": stepped.steps,
+        info = {**state.info, "truncation": truncation, "time_out": truncation,
+                "steps": stepped.steps.astype(jnp.float32),
                 "episode_done": donef, "episode_metrics": episode}
         return brax_base.State(nxt, nxt.obs, reward, donef, sums, info)
 
