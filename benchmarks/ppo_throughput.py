@@ -66,9 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     _common.select_device(args.device)
     import brax.envs
 
-    from jaxrobo import brax_env, deep
+    from jaxrobo import brax_env  # its import gives Brax 0.14's trainers the JAX calls they need
 
-    deep._jax_compat()
     settings = dict(num_timesteps=args.num_timesteps, num_envs=args.num_envs, batch_size=args.batch_size,
                     num_minibatches=args.num_minibatches, unroll_length=args.unroll_length,
                     episode_length=args.episode_length, num_evals=args.num_evals, num_updates_per_batch=4,

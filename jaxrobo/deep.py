@@ -207,28 +207,14 @@ def check_combinations(config: Any, where: str = "") -> None:
 
 
 def check_action_space(env: Any, agent: str, env_id: str) -> None:
-    """Brax's trainers act in a continuous (Box) action space: a Discrete id is refused, naming the ids that fit."""
-    from jaxrobo import spaces
+    """Brax's trainers act in a continuous (Box) action space: the env's Brax face refuses a Discrete id (naming
+    the continuous id of the same task where there is one); said here as the ``--agent``'s refusal."""
+    from jaxrobo.brax_env import BraxEnv
 
-    if not isinstance(env.action_space(), spaces.Box):
-        raise ConfigError(f"--agent {agent}: {env_id} has a Discrete action space; {agent} (Brax's trainer) needs "
-                          f"continuous (Box) actions: use one of {', '.join(continuous_ids()) or 'the Box ids'}, "
-                          f"or a tabular agent on {env_id}")
-
-
-def continuous_ids() -> list[str]:
-    """Registered ids whose action space is a Box (what ``--agent ppo|sac`` accepts)."""
-    from jaxrobo import spaces
-    from jaxrobo.registry import make, registered
-
-    out = []
-    for env_id in registered():
-        try:
-            if isinstance(make(env_id).action_space(), spaces.Box):
-                out.append(env_id)
-        except Exception:  # noqa: BLE001 - a broken user id must not hide the others from a message
-            continue
-    return out
+    try:
+        BraxEnv(env)
+    except ConfigError as err:
+        raise ConfigError(f"--agent {agent} on {env_id}: {err} (or train {env_id} with a tabular agent)") from None
 
 
 def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping[str, Any] | None = None
@@ -488,32 +474,6 @@ def evaluate(env: Any, benv: Any, make_policy: Callable, n_episodes: int, horizo
 
 
 # ---- training ----------------------------------------------------------------------------------------------------
-def _jax_compat() -> None:
-    """Brax 0.14's trainers call ``jax.device_put_replicated`` / ``device_put_sharded``, which JAX 0.10 removed;
-    install the drop-in replacements of JAX's pmap migration guide (a leading device axis, one shard per
-    device) when they are missing, so the trainers run unchanged."""
-    import jax
-    import jax.numpy as jnp
-
-    def sharding(devices):
-        mesh = jax.sharding.Mesh(np.asarray(devices), ("devices",))
-        return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("devices"))
-
-    def device_put_replicated(x, devices):
-        s = sharding(devices)
-        return jax.tree.map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), s), x)
-
-    def device_put_sharded(shards, devices):
-        s = sharding(devices)
-        return jax.tree.map(lambda *xs: jax.device_put(jnp.stack([jnp.asarray(a) for a in xs]), s), *shards)
-
-    for name, fn in (("device_put_replicated", device_put_replicated), ("device_put_sharded", device_put_sharded)):
-        try:
-            getattr(jax, name)
-        except AttributeError:
-            setattr(jax, name, fn)
-
-
 @dataclasses.dataclass
 class DeepResult:
     """What a deep run produced (host values)."""
@@ -569,9 +529,8 @@ def train(spec: DeepRunSpec, progress: Callable[[dict[str, Any]], None] | None =
     :func:`evaluate` on fresh episodes of the jaxrobo env."""
     import jax
 
-    from jaxrobo import brax_env
+    from jaxrobo import brax_env  # its import gives Brax 0.14's trainers the JAX calls they need
 
-    _jax_compat()
     c = spec.config
     benv = brax_env.BraxEnv(spec.env)
     length = spec.episode_length
