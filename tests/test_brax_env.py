@@ -161,13 +161,19 @@ def _small_ppo_networks():
 def test_brax_ppo_trains_on_continuous_id(env_id):
     from brax.training.agents.ppo import train as ppo
 
-    progress = []
+    progress, wrapped = [], []
+
+    def wrap(env, **kwargs):  # Brax's trainer must build its train and eval envs through jaxrobo's wrapper
+        wrapped.append(kwargs)
+        return brax_env.wrap_for_training(env, **kwargs)
+
     make_policy, params, metrics = ppo.train(
-        _env(env_id), num_timesteps=640, episode_length=20, wrap_env_fn=brax_env.wrap_for_training,
+        _env(env_id), num_timesteps=640, episode_length=20, wrap_env_fn=wrap,
         num_envs=4, batch_size=4, num_minibatches=2, unroll_length=5, num_updates_per_batch=1,
         num_evals=2, num_eval_envs=2, network_factory=_small_ppo_networks(), seed=0,
         progress_fn=lambda step, m: progress.append((step, m)))
     assert len(progress) == 2 and progress[-1][0] >= 640
+    assert [(k["episode_length"], k["action_repeat"]) for k in wrapped] == [(20, 1), (20, 1)]  # train, eval
     assert np.isfinite(metrics["eval/episode_reward"])
     assert 0 < metrics["eval/avg_episode_length"] <= 20
     policy = make_policy(params, deterministic=True)
