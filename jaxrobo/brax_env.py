@@ -66,9 +66,10 @@ episodes but resets ``info`` with the state on the done step, so a time-limit st
 ``info['truncation'] = 0`` and is bootstrapped as a termination.
 
 Why Brax's ``wrap_env_fn=None`` path must not be used: ``brax.envs.training.wrap`` adds ``AutoResetWrapper``
-(the cached first state above; every training episode would start from the same goal and obstacle) and its
-``EpisodeWrapper`` counts steps beside the env's own, so the env's time limit and Brax's disagree.
-``tests/test_brax_env.py`` shows both.
+(the cached first state above; every training episode would start from the same goal and obstacle), and its
+``EpisodeWrapper`` counts steps beside the env's own and rewrites ``info['truncation']`` from its count alone, so
+an episode the env truncates at its own ``max_episode_steps`` reaches the trainer as a termination.
+``tests/test_brax_env.py`` shows the cached state, and that ``ppo.train`` builds its envs with the wrapper given.
 """
 from __future__ import annotations
 
