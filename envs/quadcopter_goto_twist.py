@@ -42,7 +42,7 @@ class QuadcopterGotoTwist(QuadcopterGoto):
     Params = Params
     action_dtype = jnp.float32
     #: The discrete ids this task is the continuous counterpart of (named by the Brax adapter's refusal).
-    continuous_of: ClassVar[tuple[str, ...]] = ("QuadcopterGoto-v1", "QuadcopterLiveShow-v0")
+    continuous_of: ClassVar[tuple[str, ...]] = ("QuadcopterGoto-v1",)
 
     def action_space(self, params: Params | None = None) -> spaces.Box:
         one = np.ones(len(TWIST_NAMES), np.float32)

@@ -59,13 +59,21 @@ Public surface:
     this installs the drop-in replacements of JAX's pmap migration guide where they are missing (importing this
     module does it once), so ``ppo.train`` and ``sac.train`` run unchanged.
 
+MuJoCo Playground (optional extra ``playground``): its ``wrapper.wrap_for_brax_training`` drives a BraxEnv too
+(the states answer to Playground's ``state.data``), but train with :func:`wrap_for_training`: Playground's default
+(``full_reset=False``) returns to a cached first state, as Brax's wrapper does, and ``full_reset=True`` draws fresh
+episodes but resets ``info`` with the state on the done step, so a time-limit step reaches the trainer with
+``info['truncation'] = 0`` and is bootstrapped as a termination.
+
 Why Brax's ``wrap_env_fn=None`` path must not be used: ``brax.envs.training.wrap`` adds ``AutoResetWrapper``
-(the cached first state above; every training episode would start from the same goal and obstacle) and its
-``EpisodeWrapper`` counts steps beside the env's own, so the env's time limit and Brax's disagree.
-``tests/test_brax_env.py`` shows both.
+(the cached first state above; every training episode would start from the same goal and obstacle), and its
+``EpisodeWrapper`` counts steps beside the env's own and rewrites ``info['truncation']`` from its count alone, so
+an episode the env truncates at its own ``max_episode_steps`` reaches the trainer as a termination.
+``tests/test_brax_env.py`` shows the cached state, and that ``ppo.train`` builds its envs with the wrapper given.
 """
 from __future__ import annotations
 
+import dataclasses
 import operator
 from typing import Any, Callable
 
@@ -73,13 +81,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from brax.envs import base as brax_base
+from flax import struct
 
 from jaxrobo import registry, rng, spaces
 from jaxrobo.autoreset import autoreset
 from jaxrobo.config import ConfigError
 from jaxrobo.env import Env, EnvState
 
-__all__ = ["BraxEnv", "make", "wrap_for_training", "TrainingWrapper", "install_jax_compat"]
+__all__ = ["BraxEnv", "State", "make", "wrap_for_training", "TrainingWrapper", "install_jax_compat"]
 
 #: The per-step metrics every BraxEnv reports (tasks add theirs through ``step_metrics``).
 BASE_METRICS = ("terminated", "truncated", "physics_nan")
@@ -109,6 +118,26 @@ def install_jax_compat() -> None:
 
 
 install_jax_compat()
+
+
+@struct.dataclass
+class State(brax_base.State):
+    """Brax's ``State`` that MuJoCo Playground's wrappers can also drive: they name the simulation state ``data``
+    (``state.data``, ``state.replace(data=...)``), Brax ``pipeline_state``; here both name the jaxrobo
+    :class:`jaxrobo.env.EnvState`. Still a ``brax.envs.base.State`` for Brax's trainers and wrappers."""
+
+    @property
+    def data(self) -> Any:
+        return self.pipeline_state
+
+
+def _replace(self: State, **updates: Any) -> State:
+    if "data" in updates:
+        updates["pipeline_state"] = updates.pop("data")
+    return dataclasses.replace(self, **updates)
+
+
+State.replace = _replace  # after the decorator, which installs its own replace
 
 
 def _key(rng_key: jax.Array) -> jax.Array:
@@ -162,7 +191,7 @@ class BraxEnv(brax_base.Env):
         zero = jnp.zeros((), jnp.float32)
         metrics = {name: zero for name in self._metric_names}
         info = {"truncation": zero, "time_out": zero}
-        return brax_base.State(es, es.obs, zero, zero, metrics, info)
+        return State(es, es.obs, zero, zero, metrics, info)
 
     def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
         es = self.env.step(state.pipeline_state, self.scale_action(action), self.params)
@@ -207,7 +236,7 @@ class BraxEnv(brax_base.Env):
     def _state(self, es: EnvState, info: dict) -> brax_base.State:
         truncation = es.truncated.astype(jnp.float32)
         info = {**info, "truncation": truncation, "time_out": truncation}
-        return brax_base.State(es, es.obs, es.reward, es.done.astype(jnp.float32), self.metrics(es), info)
+        return State(es, es.obs, es.reward, es.done.astype(jnp.float32), self.metrics(es), info)
 
     def __repr__(self) -> str:
         return f"<BraxEnv {self.env.name} backend={self.backend}>"
@@ -289,7 +318,7 @@ class TrainingWrapper(brax_base.Wrapper):
         info = {**state.info, "truncation": truncation, "time_out": truncation,
                 "steps": stepped.steps.astype(jnp.float32),
                 "episode_done": donef, "episode_metrics": episode}
-        return brax_base.State(nxt, nxt.obs, reward, donef, sums, info)
+        return State(nxt, nxt.obs, reward, donef, sums, info)
 
 
 def wrap_for_training(env: BraxEnv, episode_length: int = 1000, action_repeat: int = 1,

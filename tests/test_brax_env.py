@@ -161,13 +161,19 @@ def _small_ppo_networks():
 def test_brax_ppo_trains_on_continuous_id(env_id):
     from brax.training.agents.ppo import train as ppo
 
-    progress = []
+    progress, wrapped = [], []
+
+    def wrap(env, **kwargs):  # Brax's trainer must build its train and eval envs through jaxrobo's wrapper
+        wrapped.append(kwargs)
+        return brax_env.wrap_for_training(env, **kwargs)
+
     make_policy, params, metrics = ppo.train(
-        _env(env_id), num_timesteps=640, episode_length=20, wrap_env_fn=brax_env.wrap_for_training,
+        _env(env_id), num_timesteps=640, episode_length=20, wrap_env_fn=wrap,
         num_envs=4, batch_size=4, num_minibatches=2, unroll_length=5, num_updates_per_batch=1,
         num_evals=2, num_eval_envs=2, network_factory=_small_ppo_networks(), seed=0,
         progress_fn=lambda step, m: progress.append((step, m)))
     assert len(progress) == 2 and progress[-1][0] >= 640
+    assert [(k["episode_length"], k["action_repeat"]) for k in wrapped] == [(20, 1), (20, 1)]  # train, eval
     assert np.isfinite(metrics["eval/episode_reward"])
     assert 0 < metrics["eval/avg_episode_length"] <= 20
     policy = make_policy(params, deterministic=True)
@@ -188,3 +194,30 @@ def test_brax_sac_trains_on_continuous_cartpole():
         min_replay_size=16, grad_updates_per_step=1, seed=0,
         network_factory=functools.partial(sac_networks.make_sac_networks, hidden_layer_sizes=(8,)))
     assert np.isfinite(metrics["eval/episode_reward"]) and 0 < metrics["eval/avg_episode_length"] <= 20
+
+
+def test_playground_training_wrapper_drives_a_brax_env():
+    """MuJoCo Playground's own training wrapper drives a BraxEnv. Its default replays a cached first state (like
+    Brax's); full_reset=True draws fresh episodes but also resets info on the done step, so the time-limit step
+    loses info['truncation'] there: jaxrobo's wrap_for_training keeps both."""
+    wrapper = pytest.importorskip("mujoco_playground._src.wrapper",
+                                  reason="MuJoCo Playground is not installed (pip install jaxrobo[playground])")
+    env = _env("QuadcopterGotoTwist-v0")
+    hover = jnp.zeros((2, 4))
+    out = {}
+    for full_reset in (True, False):
+        w = wrapper.wrap_for_brax_training(env, episode_length=3, action_repeat=1, full_reset=full_reset)
+        state = jax.jit(w.reset)(_keys(2))
+        first = np.asarray(state.obs)
+        step = jax.jit(w.step)
+        for _ in range(3):
+            state = step(state, hover)
+        np.testing.assert_array_equal(state.done, 1.0)
+        out[full_reset] = (first, np.asarray(state.obs), np.asarray(state.info["truncation"]))
+    first, nxt, truncation = out[False]
+    np.testing.assert_array_equal(nxt, first)  # cached first state
+    np.testing.assert_array_equal(truncation, 1.0)
+    first, nxt, truncation = out[True]
+    assert np.all(np.abs(nxt - first).max(axis=1) > 1e-3)  # fresh episodes
+    np.testing.assert_array_equal(truncation, 0.0)  # Playground's full reset wiped the flag with the info
+    # jaxrobo's wrapper: fresh episodes and the flag (test_autoreset_draws_fresh_randomness_not_a_cached_first_state).
