@@ -125,7 +125,7 @@ def _deep_spec(args: argparse.Namespace, agent: str):
     from jaxrobo.config import ConfigError, merge_flags, parse_overrides
     from jaxrobo.registry import find
 
-    if agent == "resume":
+    if args.resume is not None:
         raise ConfigError(f"--resume {args.resume}: a ppo/sac run cannot be resumed (Brax's trainers keep their state "
                           "inside one call); start it again with --out")
     if args.checkpoint_every is not None:

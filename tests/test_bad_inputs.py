@@ -544,6 +544,7 @@ DEEP = [
     D("unknown-preset", "preset='fast': allowed values are default, tiny", "--preset", "fast"),
     D("replay-too-large", "min_replay_size=10 must be < num_timesteps=5", "--set", "min_replay_size=10",
       "--set", "num_timesteps=5", agent="sac"),
+    D("resume", "a ppo/sac run cannot be resumed", "--resume", "{tmp}"),
     D("sac-tau-range", "tau=0.0: expected a number > 0.0 and <= 1.0", "--set", "tau=0", agent="sac"),
 ]
 
