@@ -56,6 +56,12 @@ def _register_builtin() -> None:
     register("QuadcopterGoto-v1", "envs.quadcopter_goto:QuadcopterGoto",
              config=_cfg("quadcopter_goto.yaml"), agent_config="quadcopter_goto.yaml",
              description="seed 000 homework: random goals, obstacles, sonar, discretised relative pose")
+    # Continuous actions (Box(-1, 1)) for Brax's PPO/SAC (jaxrobo.brax_env): a task module each, beside its
+    # discrete task, so the discrete ids stay exactly as they are.
+    register("CartPoleContinuous-v0", "envs.cartpole_continuous:CartPoleContinuous",
+             description="keep the pole up with a continuous force on the cart (Box(-1, 1) x 10 N)")
+    register("QuadcopterGotoTwist-v0", "envs.quadcopter_goto_twist:QuadcopterGotoTwist",
+             description="Goto with a continuous Twist [vx, vy, vz, yaw_rate] bounded by speed_value")
 
 
 _register_builtin()

@@ -5,10 +5,13 @@ hand) and returns one :class:`CheckResult` per check; ``jaxrobo check ID [--quic
 the task hook at fault where it can (``_set_init_pose``, ``_init_env_variables``, ``_set_action``, ``_get_obs``,
 ``_is_done``, ``_compute_reward``):
 
-* ``spaces``      - a ``Discrete(n>0)`` action space, an observation ``Box`` of the observation's shape, float32
-  observations, a float32 scalar reward, bool ``terminated``/``truncated``, finite ``state_bounds`` with low < high;
+* ``spaces``      - a ``Discrete(n>0)`` action space, or a 1-D ``Box`` with finite bounds for a task that declares
+  continuous actions (``action_dtype = jnp.float32``; a Box on a task whose ``step`` casts actions to int32 fails),
+  an observation ``Box`` of the observation's shape, float32 observations, a float32 scalar reward, bool
+  ``terminated``/``truncated``, finite ``state_bounds`` with low < high;
 * ``actions``     - every declared action gives ``_set_action`` a command of its own (an ``n`` larger than the task
-  handles shows up as two actions with one command);
+  handles shows up as two actions with one command); for a Box, moving each action dimension from the middle of
+  the Box to its upper bound changes the command (a dimension the task ignores fails);
 * ``trace``       - ``reset``/``step`` trace under ``jax.jit`` and ``jax.vmap`` (Python control flow on a traced
   value, or a traced value kept between calls, fails here);
 * ``pure``        - the same inputs give the same outputs bit for bit, hook by hook, and the input state is left
@@ -150,16 +153,58 @@ class _Checker:
         self.vreset = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
         self.vstep = jax.jit(jax.vmap(env.step, in_axes=(0, 0, None)))
 
+    # -- actions of either kind of space (the checks below step with these)
+    def _box(self) -> spaces.Box | None:
+        act = self.env.action_space(self.params)
+        return act if isinstance(act, spaces.Box) else None
+
+    def _action(self, i: int) -> jax.Array:
+        """A fixed action ``i``: ``i % n`` of a Discrete space; of a Box, its middle (``i = 0``) or a point a
+        quarter of the way from the middle towards the upper (odd ``i``) or lower (even ``i``) bounds."""
+        box = self._box()
+        if box is None:
+            return jnp.int32(i % int(self.env.action_space(self.params).n))
+        low, high = np.asarray(box.low, np.float32), np.asarray(box.high, np.float32)
+        frac = 0.0 if i == 0 else (0.25 if i % 2 else -0.25)
+        return jnp.asarray(0.5 * (low + high) + frac * (high - low), jnp.float32)
+
+    def _actions(self, n: int) -> jax.Array:
+        return jnp.stack([self._action(i) for i in range(n)])
+
+    def _random_action(self, key: jax.Array) -> jax.Array:
+        box = self._box()
+        if box is None:
+            return jax.random.randint(key, (), 0, int(self.env.action_space(self.params).n), jnp.int32)
+        return jax.random.uniform(key, box.shape, jnp.float32, np.asarray(box.low, np.float32),
+                                  np.asarray(box.high, np.float32))
+
+    def _describe_actions(self) -> str:
+        act = self.env.action_space(self.params)
+        if isinstance(act, spaces.Box):
+            return f"Box{act.shape} actions in [{np.min(act.low):g}, {np.max(act.high):g}]"
+        return f"Discrete({act.n}) actions"
+
     # -- spaces
     def spaces(self) -> str:
         env, p = self.env, self.params
         act = env.action_space(p)
         if isinstance(act, spaces.Box):
-            raise _Fail(f"action_space() is a Box{act.shape}: step() casts actions to int32 and the learners and "
-                        "the Gymnasium adapter take Discrete actions; declare spaces.Discrete(n)")
-        if not isinstance(act, spaces.Discrete):
-            raise _Fail(f"action_space() returned {type(act).__name__}; expected jaxrobo.spaces.Discrete(n)")
-        if not isinstance(act.n, (int, np.integer)) or act.n <= 0:
+            dtype = getattr(env, "action_dtype", jnp.int32)
+            if not jnp.issubdtype(dtype, jnp.floating):
+                raise _Fail(f"action_space() is a Box{act.shape} but step() casts actions to {jnp.dtype(dtype)}: "
+                            "declare spaces.Discrete(n), or set action_dtype = jnp.float32 on a task with "
+                            "continuous actions")
+            low, high = np.asarray(act.low), np.asarray(act.high)
+            if low.ndim != 1 or low.shape != high.shape or low.size == 0:
+                raise _Fail(f"action_space(): a continuous action Box must be 1-D and non-empty with low and high "
+                            f"of one shape, got low {low.shape}, high {high.shape}")
+            if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low < high)):
+                raise _Fail(f"action_space(): the action Box needs finite bounds with low < high, got low={low}, "
+                            f"high={high}")
+        elif not isinstance(act, spaces.Discrete):
+            raise _Fail(f"action_space() returned {type(act).__name__}; expected jaxrobo.spaces.Discrete(n) or "
+                        "jaxrobo.spaces.Box")
+        elif not isinstance(act.n, (int, np.integer)) or act.n <= 0:
             raise _Fail(f"action_space().n={act.n!r}: expected an integer > 0")
         obs_space = env.observation_space(p)
         if not isinstance(obs_space, spaces.Box):
@@ -175,7 +220,7 @@ class _Checker:
                         f"shape {obs_space.shape}")
         if obs.dtype != jnp.float32:
             raise _Fail(f"{hook}: observation dtype {obs.dtype}; expected float32 (cast with .astype(jnp.float32))")
-        state = env.step(state, jnp.int32(0), p)
+        state = env.step(state, self._action(0), p)
         if state.obs.dtype != jnp.float32 or tuple(state.obs.shape) != tuple(obs_space.shape):
             raise _Fail(f"step: observation {state.obs.dtype}{tuple(state.obs.shape)}; expected float32"
                         f"{obs_space.shape}")
@@ -190,15 +235,17 @@ class _Checker:
         try:
             blow, bhigh = (np.asarray(b) for b in env.state_bounds(p))
         except NotImplementedError:
-            return f"Discrete({act.n}) actions, float32 obs {obs_space.shape} (no state_bounds)"
+            return f"{self._describe_actions()}, float32 obs {obs_space.shape} (no state_bounds)"
         if blow.shape != obs_space.shape or bhigh.shape != obs_space.shape:
             raise _Fail(f"state_bounds(): shapes {blow.shape}/{bhigh.shape}; expected {obs_space.shape} each")
         if not (np.all(np.isfinite(blow)) and np.all(np.isfinite(bhigh)) and np.all(blow < bhigh)):
             raise _Fail(f"state_bounds(): expected finite ranges with low < high, got low={blow}, high={bhigh}")
-        return f"Discrete({act.n}) actions, float32 obs {obs_space.shape}, state_bounds finite"
+        return f"{self._describe_actions()}, float32 obs {obs_space.shape}, state_bounds finite"
 
     # -- every action its own command
     def actions(self) -> str:
+        if self._box() is not None:
+            return self._box_actions()
         env, p = self.env, self.params
         n = int(env.action_space(p).n)
         state = env.reset(_keys(self.seed, 1)[0], p)
@@ -215,6 +262,27 @@ class _Checker:
                                 "handle that many actions?")
         return f"{n} actions, {n} distinct commands"
 
+    def _box_actions(self) -> str:
+        env, p, box = self.env, self.params, self._box()
+        state = env.reset(_keys(self.seed, 1)[0], p)
+        middle = self._action(0)
+        high = np.asarray(box.high, np.float32)
+
+        def out(a):
+            if self.task:
+                return env._set_action(jnp.asarray(a, env.action_dtype), state.task, p)
+            return env.step(state, a, p).pipeline_state
+
+        base = out(middle)
+        hook = "_set_action" if self.task else "step"
+        for d in range(box.shape[0]):
+            if _same(base, out(middle.at[d].set(high[d]))):
+                name = box.names[d] if len(box.names) > d else f"action[{d}]"
+                raise _Fail(f"{hook}: moving {name} from the middle of the action Box to its upper bound "
+                            f"{high[d]:g} leaves the command unchanged: action_space() declares Box{box.shape}; "
+                            "does the task use every dimension?")
+        return f"Box{box.shape}: each of the {box.shape[0]} action dimensions changes the command"
+
     # -- tracing
     def trace(self) -> str:
         env, p = self.env, self.params
@@ -224,17 +292,17 @@ class _Checker:
         except Exception as err:  # noqa: BLE001 - reported with the hook at fault
             raise _Fail(_traced_error("jit(reset)", err)) from err
         try:
-            jax.block_until_ready(self.jstep(state, jnp.int32(0), p))
+            jax.block_until_ready(self.jstep(state, self._action(0), p))
         except Exception as err:  # noqa: BLE001
             raise _Fail(_traced_error("jit(step)", err)) from err
         try:
             states = self.vreset(keys, p)
-            jax.block_until_ready(self.vstep(states, jnp.zeros(2, jnp.int32), p))
+            jax.block_until_ready(self.vstep(states, jnp.stack([self._action(0)] * 2), p))
         except Exception as err:  # noqa: BLE001
             raise _Fail(_traced_error("vmap(reset/step)", err)) from err
         # Run the plain call after the traced ones: a hook that cached a traced value now leaks it.
         try:
-            env.step(env.reset(keys[1], p), jnp.int32(0), p)
+            env.step(env.reset(keys[1], p), self._action(0), p)
         except Exception as err:  # noqa: BLE001
             raise _Fail(_traced_error("reset/step after jit", err)) from err
         return "reset and step trace under jit and vmap"
@@ -243,7 +311,7 @@ class _Checker:
     def pure(self) -> str:
         env, p = self.env, self.params
         key = _keys(self.seed, 1)[0]
-        a = jnp.int32(min(1, int(env.action_space(p).n) - 1))
+        a = self._action(1) if self._box() is not None else jnp.int32(min(1, int(env.action_space(p).n) - 1))
         if self.task:
             self._pure_hooks(key, a)
         s1, s2 = env.reset(key, p), env.reset(key, p)
@@ -286,8 +354,7 @@ class _Checker:
     def jit_vmap(self) -> str:
         env, p = self.env, self.params
         keys = _keys(self.seed + 1, 2)
-        n = int(env.action_space(p).n)
-        acts = jnp.arange(2, dtype=jnp.int32) % n
+        acts = self._actions(2)
         plain = [env.reset(k, p) for k in keys]
         jitted = self.jreset(keys[0], p)
         if not _close(plain[0], jitted):
@@ -346,7 +413,6 @@ class _Checker:
         n_envs, n_steps = (3, 25) if self.quick else (4, 50)
         limit = max(2, n_steps // 2)
         p = self.params.replace(max_episode_steps=limit) if hasattr(self.params, "max_episode_steps") else self.params
-        n = int(env.action_space(p).n)
         obs_space = env.observation_space(p)
         low, high = np.asarray(obs_space.low, np.float32), np.asarray(obs_space.high, np.float32)
 
@@ -355,7 +421,7 @@ class _Checker:
             s0 = env.reset(k0, p)
 
             def body(s, k):
-                s = env.step(s, jax.random.randint(k, (), 0, n, jnp.int32), p)
+                s = env.step(s, self._random_action(k), p)
                 finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(s.pipeline_state)
                                             if jnp.issubdtype(x.dtype, jnp.floating)]))
                 return s, (s.obs, s.reward, s.terminated, s.truncated, s.physics_nan, s.steps, finite)
@@ -401,7 +467,7 @@ class _Checker:
         state = env.reset(_keys(self.seed, 1)[0], p)
         ps = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan) if jnp.issubdtype(x.dtype, jnp.floating) else x,
                           state.pipeline_state)
-        out = env.step(state.replace(pipeline_state=ps), jnp.int32(0), p)
+        out = env.step(state.replace(pipeline_state=ps), self._action(0), p)
         if not bool(out.physics_nan) or not bool(out.terminated):
             raise _Fail("step: a non-finite physics state must end the episode with terminated and physics_nan set")
         if bool(out.truncated):
@@ -426,14 +492,14 @@ class _Checker:
 
         env, p = self.env, self.params
         robot = env.robot
-        n = int(env.action_space(p).n)
         step = jax.jit(sim.physics_step)
         controller = jax.jit(robot.controller)
         state = env.reset(_keys(self.seed + 4, 1)[0], p)
         ps, task, worst = state.pipeline_state, state.task, 0.0
         m = sim.mj_model
         for t in range(3):
-            command, task = env._set_action(jnp.int32(t % n), task, p)
+            action = jnp.asarray(self._action(t), getattr(env, "action_dtype", jnp.int32))
+            command, task = env._set_action(action, task, p)
             for _ in range(min(sim.n_substeps, 4)):
                 ctrl = controller(ps, command)
                 d = mujoco.MjData(m)

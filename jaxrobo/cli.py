@@ -98,6 +98,118 @@ def _progress_bar(nepisodes: int, initial):
     return tqdm(total=nepisodes, initial=min(done0, nepisodes), unit="ep", desc="training", dynamic_ncols=True)
 
 
+def _deep_agent(args: argparse.Namespace) -> str | None:
+    """``ppo`` or ``sac`` when the run asked for is one of Brax's trainers (``--agent``, ``--set agent=``, or a
+    ``--resume`` of such a run), else None."""
+    from jaxrobo import deep
+    from jaxrobo.config import parse_overrides
+
+    if deep.is_deep(args.agent):
+        return args.agent
+    if args.agent is None:
+        try:
+            sets = parse_overrides(args.set or [])
+        except ValueError:  # the tabular path reports a malformed --set
+            return None
+        for key in ("agent", "agent.agent"):
+            if deep.is_deep(sets.get(key)):
+                return sets[key]
+    if args.resume is not None and deep.is_deep_run(args.resume):
+        return "resume"
+    return None
+
+
+def _deep_spec(args: argparse.Namespace, agent: str):
+    """The deep run asked for and its directory; ConfigError naming the flag."""
+    from jaxrobo import deep, rundir
+    from jaxrobo.config import ConfigError, merge_flags, parse_overrides
+    from jaxrobo.registry import find
+
+    if args.resume is not None:
+        raise ConfigError(f"--resume {args.resume}: a ppo/sac run cannot be resumed (Brax's trainers keep their state "
+                          "inside one call); start it again with --out")
+    if args.checkpoint_every is not None:
+        raise ConfigError(f"--checkpoint-every: --agent {agent} runs do not checkpoint (Brax's trainer runs as one "
+                          "call); drop the flag")
+    if args.nepisodes is not None:
+        raise ConfigError(f"--nepisodes: --agent {agent} trains for a number of env steps, not episodes; use "
+                          "--set num_timesteps=N")
+    overrides = parse_overrides(args.set or [])
+    for key in ("agent", "agent.agent"):
+        value = overrides.pop(key, agent)
+        if value != agent:
+            raise ConfigError(f"agent given twice: --agent {agent} and --set {key}={value!r}; give it once")
+    merge_flags(overrides, [("num_envs", "--n-envs", args.n_envs), ("seed", "--seed", args.seed)])
+    env_id = args.env or "CartPoleContinuous-v0"
+    find(env_id, where=f"--env {env_id}")
+    spec = deep.resolve(env_id, agent, args.preset or "default", overrides)
+    out = args.out or os.path.join("training_results", f"{spec.env_id}_{agent}_{time.strftime('%Y%m%d-%H%M%S')}")
+    rundir.check_out(out, overwrite=args.overwrite)
+    return spec, out
+
+
+def _train_deep(args: argparse.Namespace, agent: str) -> int:
+    """``jaxrobo train --agent ppo|sac``: Brax's trainer on the env's Brax face, into a run directory that is
+    checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.rundir`)."""
+    import numpy as np
+
+    from jaxrobo import deep, rundir
+    from jaxrobo.config import ConfigError
+    from jaxrobo.results import write_config
+
+    try:
+        spec, out = _deep_spec(args, agent)
+    except ConfigError as err:
+        print(f"jaxrobo train: {err}", file=sys.stderr)
+        return 2
+    live = rundir.live_dir(out)
+    write_config(live, spec.to_dict())
+    rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out))
+    c = spec.config
+    print(f"{spec.env_id} · {agent} ({spec.preset}) · {c.num_envs} envs × {c.num_timesteps:,} env steps, episodes "
+          f"≤ {spec.episode_length} steps → {out}")
+
+    def progress(row: dict) -> None:
+        if args.no_progress:
+            return
+        line = (f"  {row['env_steps']:>12,} env steps  {row['seconds']:7.1f} s  return {np.mean(row['return']):9.2f}"
+                f"  length {np.mean(row['length']):7.1f}")
+        if "success" in row:
+            line += f"  success {np.mean(row['success']):.3f}"
+        print(line, flush=True)
+
+    def stopped(what: str, code: int) -> int:
+        rundir.interrupted(live, out=out, resume=f"(a {agent} run does not resume) jaxrobo train ... --overwrite",
+                           prog="jaxrobo train", what=what, publish_live=True)
+        return code
+
+    try:
+        result = deep.train(spec, progress)
+    except KeyboardInterrupt:
+        return stopped("interrupted during training; nothing trained was kept", 130)
+    # The trained policy goes to disk first, so that no later error loses it.
+    deep.save_policy(live, result.params, result.net)
+
+    def write(staged: str) -> None:
+        deep.write_run(staged, result)
+        rundir.write_status(staged, rundir.COMPLETE, env_steps=result.env_steps)
+
+    try:
+        rundir.publish_results(out, live, write)
+    except Exception as err:  # noqa: BLE001 - the policy is saved in the live directory; say where
+        return stopped(f"writing the results failed ({type(err).__name__}: {err}); the trained policy is in "
+                       f"{live}/{deep.POLICY_NPZ}", 1)
+    s = result.summary()
+    print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s, "
+          f"compile included; evaluations {s['eval_seconds']:.1f} s more)")
+    line = f"final evaluation: mean return {s['final_eval_mean_return']:.2f}, mean length {s['final_eval_mean_length']:.1f}"
+    if "final_eval_success_rate" in s:
+        line += f", success {s['final_eval_success_rate']:.3f}"
+    print(line + f" over {c.eval_episodes} fresh episodes")
+    print(f"results in {out}")
+    return 0
+
+
 def _train_checked(args: argparse.Namespace) -> int:
     import shlex
 
@@ -107,6 +219,9 @@ def _train_checked(args: argparse.Namespace) -> int:
     from jaxrobo.results import save_run, write_config, write_episodes
 
     resume = args.resume
+    agent = _deep_agent(args)
+    if agent is not None:
+        return _train_deep(args, agent)
     try:
         spec, out = _train_spec(args)
         cfg = spec.config
@@ -233,7 +348,7 @@ def _plot(args: argparse.Namespace) -> int:
             raise ConfigError(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs; give one per run")
         out = args.out or os.path.join(args.runs[0], "rewards.png")
         check_image_path(out)
-        plot_runs(args.runs, out, labels=args.labels, window=args.window)
+        plot_runs(args.runs, out, labels=args.labels, window=args.window, x=args.x)
     except (FileNotFoundError, ValueError) as err:
         print(f"jaxrobo plot: {err}", file=sys.stderr)
         return 2
@@ -259,7 +374,10 @@ def _list(args: argparse.Namespace) -> int:
     aliases = getattr(jaxrobo.registry, "ALIASES", {})
     for old, new in sorted(aliases.items()):
         print(f"  {old:28s} deprecated name of {new}")
-    print("agents: " + ", ".join(registry.learners()))
+    print("agents: " + ", ".join(registry.learners()) + " (tabular: Discrete actions)")
+    from jaxrobo import deep
+
+    print("        " + ", ".join(deep.AGENTS) + " (Brax's trainers: Box actions; presets in agents/configs/<agent>.yaml)")
     return 0
 
 
@@ -287,7 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train a tabular agent on many envs at once")
     p.add_argument("--env", default=None, help="environment id (see `jaxrobo list`; default CartPoleStayUp-v0)")
-    p.add_argument("--agent", default=None, help="qlearn | sarsa | expected_sarsa | double_q")
+    p.add_argument("--agent", default=None,
+                   help="qlearn | sarsa | expected_sarsa | double_q (Discrete ids); ppo | sac (Box ids, Brax)")
     p.add_argument("--preset", default=None,
                    help="parameter preset of the env's agent YAML: default | seed (default: default)")
     p.add_argument("--n-envs", type=int, default=None, help="environments (independent learners) run at once")
@@ -311,6 +430,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="PNG path (default <first run>/rewards.png)")
     p.add_argument("--labels", nargs="*", default=None, help="legend labels, one per run")
     p.add_argument("--window", type=int, default=10, help="moving-average window in episodes")
+    p.add_argument("--x", default="auto", choices=("auto", "episode", "env_steps"),
+                   help="x axis: episodes, or env steps of training (all envs; the common axis of a tabular and a "
+                        "ppo/sac run); auto: env steps when a ppo/sac run is given")
     p.set_defaults(func=_plot)
 
     p = sub.add_parser("list", help="registered environments, presets and agents")

@@ -155,6 +155,9 @@ class TaskEnv(Env):
     """An environment built from a robot and the seed's six task hooks."""
 
     robot: Robot
+    #: The dtype ``step`` casts an action to before ``_set_action``: int32 for a ``Discrete`` task (every built-in
+    #: tabular id), float32 for a task declaring a ``spaces.Box`` action space (the continuous ids).
+    action_dtype: ClassVar[Any] = jnp.int32
 
     # ---- the seed's hooks (pure; override in tasks) ---------------------------------------------------
     def _set_init_pose(self, key: jax.Array, params: Any) -> tuple[jax.Array, jax.Array]:
@@ -190,7 +193,7 @@ class TaskEnv(Env):
 
     def step(self, state: EnvState, action: jax.Array, params: Any = None) -> EnvState:
         params = self.default_params if params is None else params
-        action = jnp.asarray(action, jnp.int32)
+        action = jnp.asarray(action, self.action_dtype)
         command, task = self._set_action(action, state.task, params)
         pipeline_state = self.robot.advance(state.pipeline_state, command)
         ok = self.robot._check_all_systems_ready(pipeline_state)

@@ -1,7 +1,10 @@
 """``jaxrobo show``: top and side views of greedy quadcopter flights (path, start, goal, obstacles) to PNG.
 
 Reads a training run directory (``config.yaml`` + ``qtables.npz``, as :mod:`jaxrobo.results` writes them) and
-flies the greedy policy of one trained table; or, with ``--env ID``, flies an untrained (random) policy.
+flies the greedy policy of one trained table; or, with ``--env ID``, flies an untrained (random) policy. A
+``--agent ppo|sac`` run (``policy.npz`` + ``policy.json``, :mod:`jaxrobo.deep`) flies its saved deterministic
+policy; for a task that does not fly (the continuous cart-pole) the figure shows each observation over the
+episodes instead.
 Obstacles and goals are task data (never physics bodies), so they are drawn from each episode's task state.
 """
 from __future__ import annotations
@@ -24,7 +27,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 #: Task modules whose episodes ``fly`` can draw (they have a position and a goal): the quadcopter tasks.
-FLYING_MODULES = ("envs.quadcopter_goto", "envs.quadcopter_live_show")
+FLYING_MODULES = ("envs.quadcopter_goto", "envs.quadcopter_live_show", "envs.quadcopter_goto_twist")
 #: Most flights one figure draws (each is a path and its obstacles in one picture).
 MAX_EPISODES = 100
 
@@ -85,15 +88,19 @@ def check_table(q: np.ndarray, table: int, source: str) -> None:
                           "it cannot be flown")
 
 
-def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int) -> dict[str, np.ndarray]:
-    """Greedy flights of table ``q[table]`` (random flights when ``q`` is None) as host arrays."""
+def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int,
+        policy: Any = None) -> dict[str, np.ndarray]:
+    """Greedy flights of table ``q[table]`` (random flights when ``q`` is None; ``policy``, a
+    :data:`jaxrobo.rollout.Policy`, flies that policy instead) as host arrays."""
     import jax
 
     from jaxrobo.rollout import greedy_policy, random_policy, rollout
     from jaxrobo.trainer import make_discretiser_for
 
     env = spec.env
-    if q is None:
+    if policy is not None:
+        pass
+    elif q is None:
         policy = random_policy(env.num_actions)
     else:
         policy = greedy_policy(np.asarray(q[table]), make_discretiser_for(env, spec.config))
@@ -192,6 +199,63 @@ def check_args(args: argparse.Namespace) -> None:
     check_image_path(args.out)
 
 
+def _load_deep_run(run_dir: str, table: int) -> tuple[Any, Any]:
+    """A ``--agent ppo|sac`` run's spec and its saved policy as a :data:`jaxrobo.rollout.Policy` of the env."""
+    from jaxrobo import deep
+    from jaxrobo.brax_env import BraxEnv
+    from jaxrobo.config import ConfigError
+    from jaxrobo.results import load_config
+
+    where = os.path.join(run_dir, "config.yaml")
+    spec = deep.spec_from_config(load_config(run_dir), where)
+    if table != 0:
+        raise ConfigError(f"--table {table}: a {spec.agent} run has one policy (table 0)")
+    loaded = deep.load_policy(run_dir)
+    benv = BraxEnv(spec.env)
+    sizes = (loaded.net["observation_size"], loaded.net["action_size"])
+    if sizes != (benv.observation_size, benv.action_size):
+        raise ConfigError(f"{os.path.join(run_dir, deep.POLICY_JSON)}: a policy of {sizes[0]} observations -> "
+                          f"{sizes[1]} actions, but {spec.env_id} has {benv.observation_size} -> {benv.action_size}")
+    return spec, deep.env_policy(benv, loaded.make_policy, loaded.params)
+
+
+def trace(spec: Any, policy: Any, episodes: int, seed: int) -> dict[str, np.ndarray]:
+    """Episodes of ``policy`` with every observation recorded (for a task that does not fly)."""
+    import jax
+
+    from jaxrobo.rollout import rollout
+
+    out = jax.jit(lambda k: rollout(spec.env, policy, k, episodes, observe=lambda st: st.obs))(jax.random.key(seed))
+    return {"obs": np.asarray(out["trace"]), "alive": np.asarray(out["alive"]), "return": np.asarray(out["return"]),
+            "length": np.asarray(out["length"])}
+
+
+def draw_traces(res: dict[str, np.ndarray], names: Any, title: str, out: str) -> None:
+    """One panel per observation dimension, one line per episode, over the episode's steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n_obs = res["obs"].shape[-1]
+    fig, axes = plt.subplots(n_obs, 1, figsize=(9, 1.8 * n_obs + 1), sharex=True, squeeze=False)
+    for i in range(res["obs"].shape[0]):
+        alive = res["alive"][i]
+        for d in range(n_obs):
+            axes[d, 0].plot(np.flatnonzero(alive), res["obs"][i][alive, d], lw=1.2,
+                            label=f"episode {i}: {int(res['length'][i])} steps" if d == 0 else None)
+    for d in range(n_obs):
+        axes[d, 0].set_ylabel(names[d] if names is not None and d < len(names) else f"obs[{d}]", fontsize=8)
+        axes[d, 0].grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="best")
+    axes[-1, 0].set_xlabel("step")
+    fig.suptitle(title)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
 def run(args: argparse.Namespace) -> int:
     """Draw flights from a run directory (greedy) or an env id (random policy); returns a process exit code."""
     import sys
@@ -199,9 +263,24 @@ def run(args: argparse.Namespace) -> int:
     from jaxrobo.config import ConfigError
     from jaxrobo.run import resolve
 
+    from jaxrobo import deep
+
+    policy = None
     try:
         check_args(args)
-        if args.run_dir:
+        if args.run_dir and deep.is_deep_run(args.run_dir):
+            spec, policy = _load_deep_run(args.run_dir, args.table)
+            q = None
+            what = f"{spec.agent} policy, {args.run_dir}"
+            if type(spec.env).__module__ not in FLYING_MODULES:
+                res = trace(spec, policy, args.episodes, args.seed)
+                space = spec.env.observation_space()
+                draw_traces(res, getattr(space, "names", None),
+                            f"{spec.env_id}: {what} - mean return {res['return'].mean():.1f}, mean length "
+                            f"{res['length'].mean():.1f}", args.out)
+                print(f"wrote {args.out}")
+                return 0
+        elif args.run_dir:
             spec, cfg, q = _load_run(args.run_dir)
             check_table(q, args.table, os.path.join(args.run_dir, "qtables.npz"))
             what = f"greedy flights of table {args.table}, {args.run_dir}"
@@ -212,7 +291,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as err:
         print(f"jaxrobo show: {err}", file=sys.stderr)
         return 2
-    res = fly(spec, q, args.table, args.episodes, args.seed)
+    res = fly(spec, q, args.table, args.episodes, args.seed, policy=policy)
     p = spec.env.default_params
     summary = ""
     if "arrived" in res:

@@ -34,6 +34,7 @@ from gymnasium import spaces as gspaces
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
+from jaxrobo import spaces
 from jaxrobo.compiled import N_EXTRA, compiled_for
 
 NAMESPACE = "jaxrobo"
@@ -45,8 +46,31 @@ class InvalidActionError(ValueError, AssertionError):
 
 
 # ---- action checks (host side, before any JAX call) ----------------------------------------------------------
-def check_action(action: Any, n: int) -> np.int32:
-    """``action`` as an ``int32`` in ``0 .. n-1``, or :class:`InvalidActionError` naming what is wrong."""
+def check_box_actions(actions: Any, box: gspaces.Box, shape: tuple[int, ...]) -> np.ndarray:
+    """Continuous actions of ``shape`` (``box.shape``, with a leading ``num_envs`` axis for a batch) as float32,
+    finite and inside ``box``; otherwise :class:`InvalidActionError` naming the first bad entry and the range."""
+    try:
+        arr = np.asarray(actions, dtype=np.float32)
+    except Exception as err:  # noqa: BLE001 - anything numpy cannot read as floats is not an action
+        raise InvalidActionError(f"action={actions!r} cannot be read as a float array of shape {shape}") from err
+    if arr.shape != shape:
+        raise InvalidActionError(f"action has shape {arr.shape}; expected {shape} (a Box{box.shape} action"
+                                 + (" per env)" if len(shape) > len(box.shape) else ")"))
+    bad = ~np.isfinite(arr) | (arr < box.low) | (arr > box.high)
+    if bad.any():
+        i = tuple(int(k) for k in np.unravel_index(int(np.argmax(bad)), arr.shape))
+        j = i[len(i) - len(box.shape):]
+        what = "is not finite" if not np.isfinite(arr[i]) else "is outside the Box"
+        raise InvalidActionError(f"action{list(i)}={float(arr[i])!r} {what}: allowed range "
+                                 f"[{float(box.low[j])}, {float(box.high[j])}]")
+    return arr
+
+
+def check_action(action: Any, n: int | gspaces.Box) -> np.int32 | np.ndarray:
+    """``action`` as an ``int32`` in ``0 .. n-1``, or :class:`InvalidActionError` naming what is wrong; for a
+    continuous task ``n`` is its action Box and the action a float32 array inside it."""
+    if isinstance(n, gspaces.Box):
+        return check_box_actions(action, n, n.shape)
     if isinstance(action, (bool, np.bool_)):
         raise InvalidActionError(f"action={action!r}: a boolean is not an action; expected an integer in [0, {n})")
     if isinstance(action, (int, np.integer)):
@@ -67,8 +91,11 @@ def check_action(action: Any, n: int) -> np.int32:
     return np.int32(value)
 
 
-def check_actions(actions: Any, n: int, num_envs: int) -> np.ndarray:
-    """A batch of actions as ``int32[num_envs]`` in ``0 .. n-1``, or :class:`InvalidActionError`."""
+def check_actions(actions: Any, n: int | gspaces.Box, num_envs: int) -> np.ndarray:
+    """A batch of actions as ``int32[num_envs]`` in ``0 .. n-1``, or :class:`InvalidActionError`; for a continuous
+    task ``n`` is its action Box and the batch ``float32[num_envs, *shape]`` inside it."""
+    if isinstance(n, gspaces.Box):
+        return check_box_actions(actions, n, (num_envs,) + n.shape)
     try:
         arr = np.asarray(actions)
     except Exception as err:  # noqa: BLE001
@@ -86,8 +113,9 @@ def check_actions(actions: Any, n: int, num_envs: int) -> np.ndarray:
 
 
 # ---- spaces --------------------------------------------------------------------------------------------------
-def gym_spaces(env: Any, params: Any = None) -> tuple[gspaces.Discrete, gspaces.Box]:
-    """The Gymnasium action and observation spaces of a jaxrobo env (Box with the task's own bounds).
+def gym_spaces(env: Any, params: Any = None) -> tuple[gspaces.Discrete | gspaces.Box, gspaces.Box]:
+    """The Gymnasium action and observation spaces of a jaxrobo env (Box with the task's own bounds; a continuous
+    task's action Box is float32 with its own bounds).
 
     An unbounded dimension (``±inf`` in the task) becomes ``±float32 max``, as Gymnasium's own CartPole does:
     every finite float32 observation is inside it, and ``check_env`` does not warn about infinite bounds.
@@ -96,7 +124,16 @@ def gym_spaces(env: Any, params: Any = None) -> tuple[gspaces.Discrete, gspaces.
     big = np.finfo(np.float32).max
     low = np.nan_to_num(np.asarray(obs.low, np.float32), neginf=-big, posinf=big)
     high = np.nan_to_num(np.asarray(obs.high, np.float32), neginf=-big, posinf=big)
-    return gspaces.Discrete(int(act.n)), gspaces.Box(low, high, shape=low.shape, dtype=np.float32)
+    observation = gspaces.Box(low, high, shape=low.shape, dtype=np.float32)
+    if isinstance(act, spaces.Box):
+        a_low, a_high = np.asarray(act.low, np.float32), np.asarray(act.high, np.float32)
+        return gspaces.Box(a_low, a_high, shape=a_low.shape, dtype=np.float32), observation
+    return gspaces.Discrete(int(act.n)), observation
+
+
+def _action_limit(space: gspaces.Discrete | gspaces.Box) -> int | gspaces.Box:
+    """What :func:`check_action` checks against: ``n`` of a Discrete space, the Box itself otherwise."""
+    return space if isinstance(space, gspaces.Box) else int(space.n)
 
 
 def _make_env(env_id: str | None, env: Any, overrides: Mapping[str, Any] | None, kwargs: Mapping[str, Any]) -> Any:
@@ -167,7 +204,7 @@ class JaxroboEnv(gymnasium.Env):
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
         self.params = self.jax_env.default_params
         self.action_space, self.observation_space = gym_spaces(self.jax_env, self.params)
-        self._n = int(self.action_space.n)
+        self._n = _action_limit(self.action_space)
         self._obs_size = int(np.prod(self.observation_space.shape))
         self._fns = compiled_for(self.jax_env)
         self.render_mode = render_mode
@@ -300,7 +337,7 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         self.single_action_space, self.single_observation_space = gym_spaces(self.jax_env, self.params)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self._n = int(self.single_action_space.n)
+        self._n = _action_limit(self.single_action_space)
         self._obs_size = int(np.prod(self.single_observation_space.shape))
         from jaxrobo.plan import ExecutionPlan
 

@@ -2,6 +2,11 @@
 
 The seed's ``plot_results`` drew the reward per episode of one run; comparing Q-learning with Sarsa "under the
 exact same conditions" (seed exercise 2.2) means overlaying runs trained with the same seeds.
+
+A deep-RL run (``--agent ppo|sac``) records evaluations, not training episodes: its ``episode_stats.csv`` has one
+row per evaluation and an ``env_steps`` column. Runs of both kinds share one x axis, the env steps of training
+(all envs together): a tabular run's are the cumulated mean episode length times its ``n_envs``
+(:func:`env_steps_axis`). ``x="auto"`` uses env steps as soon as one run is a deep run, else episodes.
 """
 from __future__ import annotations
 
@@ -23,6 +28,23 @@ def run_label(run_dir: str) -> str:
         return os.path.basename(os.path.normpath(run_dir))
 
 
+#: The x axes ``plot_runs`` draws on.
+X_AXES = ("auto", "episode", "env_steps")
+
+
+def env_steps_axis(run_dir: str, stats: dict[str, np.ndarray]) -> np.ndarray:
+    """Env steps of training (all envs) at each row of a run's stats: the ``env_steps`` column of a deep run;
+    for a tabular run, the cumulated mean episode length times ``n_envs`` (every env runs its episodes side by
+    side, so after episode ``i`` the envs have stepped about ``n_envs * sum(mean length up to i)`` times)."""
+    if "env_steps" in stats:
+        return np.asarray(stats["env_steps"], np.float64)
+    cfg = load_config(run_dir)
+    n_envs = (cfg.get("train") or {}).get("n_envs")
+    if not isinstance(n_envs, int) or isinstance(n_envs, bool) or n_envs < 1:
+        raise ValueError(f"{run_dir}: config.yaml has no train.n_envs (an integer >= 1) for the env-steps axis")
+    return np.cumsum(np.asarray(stats["length_mean"], np.float64)) * n_envs
+
+
 def smooth(x: np.ndarray, window: int) -> np.ndarray:
     """Trailing moving average (window 1 = unchanged), the same length as ``x``."""
     if window <= 1 or x.size == 0:
@@ -36,8 +58,10 @@ def smooth(x: np.ndarray, window: int) -> np.ndarray:
 
 
 def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | None = None, window: int = 10,
-              title: str | None = None) -> str:
-    """Draw reward and length per episode of each run into one PNG; returns its path."""
+              title: str | None = None, x: str = "auto") -> str:
+    """Draw reward and length per episode (or per evaluation, for a deep run) of each run into one PNG, against
+    ``x``: ``"episode"``, ``"env_steps"`` or ``"auto"`` (env steps when one run is a deep run); returns its path.
+    A deep run's rows are evaluations: they are never smoothed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -50,18 +74,23 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
         raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
     if not (isinstance(window, int) and window >= 1):
         raise ValueError(f"window={window!r}: must be an integer >= 1 (episodes averaged)")
+    if x not in X_AXES:
+        raise ValueError(f"x={x!r}: allowed values are {', '.join(X_AXES)}")
     all_stats = [load_stats(d) for d in run_dirs]  # every run read (and checked) before anything is drawn
+    if x == "auto":
+        x = "env_steps" if any("env_steps" in s for s in all_stats) else "episode"
+    xs = [env_steps_axis(d, s) if x == "env_steps" else s["episode"] for d, s in zip(run_dirs, all_stats)]
     fig, (ax_r, ax_l) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
-    for s, label in zip(all_stats, labels):
-        ep = s["episode"]
+    for s, label, ep in zip(all_stats, labels, xs):
+        w = 1 if "env_steps" in s else window
         for ax, name in ((ax_r, "return"), (ax_l, "length")):
-            mean = smooth(s[f"{name}_mean"], window)
-            (line,) = ax.plot(ep, mean, label=label, lw=1.6)
-            ax.fill_between(ep, smooth(s[f"{name}_p10"], window), smooth(s[f"{name}_p90"], window),
+            mean = smooth(s[f"{name}_mean"], w)
+            (line,) = ax.plot(ep, mean, label=label, lw=1.6, marker="o" if "env_steps" in s else None, ms=3)
+            ax.fill_between(ep, smooth(s[f"{name}_p10"], w), smooth(s[f"{name}_p90"], w),
                             color=line.get_color(), alpha=0.18, lw=0)
     ax_r.set_ylabel("reward per episode")
     ax_l.set_ylabel("episode length (steps)")
-    ax_l.set_xlabel("episode")
+    ax_l.set_xlabel("env steps of training (all envs)" if x == "env_steps" else "episode")
     ax_r.legend(loc="best", fontsize=8)
     ax_r.set_title(title or f"mean over envs, band 10-90 %, moving average {window}")
     for ax in (ax_r, ax_l):

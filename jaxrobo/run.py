@@ -223,6 +223,11 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     config = TrainConfig(**train_kw)
     check_combinations(config, given, where)
     env = make(env_id, **env_values)
+    from jaxrobo import spaces
+
+    if isinstance(env.action_space(), spaces.Box):  # before the discretiser: its message would mislead
+        raise ConfigError(f"{where}: agent={config.agent!r} is a tabular learner (a table of Discrete actions) and "
+                          f"{env_id} has continuous (Box) actions; use --agent ppo or --agent sac (Brax's trainers)")
     n_states = check_discretiser(env, config, where)
     if check_memory:
         from jaxrobo.budget import check_memory as fits

@@ -521,7 +521,34 @@ API = [
     A("yaml-missing-file", "config file not found", lambda tmp: load_yaml(os.path.join(tmp, "absent.yaml"))),
 ]
 
-CASES = TRAIN + SWEEP + PLOT + SHOW + LIST + API
+CPC, TWIST = "CartPoleContinuous-v0", "QuadcopterGotoTwist-v0"
+
+
+def D(id: str, fragment: str, *argv: str, agent: str = "ppo", env: str = CPC) -> Case:  # noqa: N802 - a table row
+    """A ``--agent ppo|sac`` row (Brax's trainers): refused before anything compiles, like the tabular rows."""
+    return Case(f"train-{agent}-{id}", "train", ("--env", env, "--agent", agent) + argv, fragment)
+
+
+DEEP = [
+    D("on-discrete-id", "QuadcopterGoto-v1 has a Discrete(5) action space", env=GOTO),
+    Case("train-tabular-on-box-id", "train", ("--env", TWIST, "--agent", "qlearn"),
+         "has continuous (Box) actions; use --agent ppo or --agent sac"),
+    D("learning-rate-range", "learning_rate=2.0: expected a number > 0.0 and <= 1.0", "--set", "learning_rate=2"),
+    D("discounting-range", "discounting=1.5: expected a number >= 0.0 and <= 1.0", "--set", "discounting=1.5"),
+    D("num-envs-zero", "num_envs=0: expected an integer >= 1", "--n-envs", "0"),
+    D("batch-not-multiple", "must be a multiple of num_envs=2048", "--set", "batch_size=100"),
+    D("layers-bad", "policy_hidden_layer_sizes=[0]: expected a non-empty list of integers >= 1",
+      "--set", "policy_hidden_layer_sizes=[0]"),
+    D("unknown-key", "unknown key 'tau'", "--set", "tau=0.1"),
+    D("nepisodes", "--nepisodes: --agent ppo trains for a number of env steps", "--nepisodes", "3"),
+    D("unknown-preset", "preset='fast': allowed values are default, tiny", "--preset", "fast"),
+    D("replay-too-large", "min_replay_size=10 must be < num_timesteps=5", "--set", "min_replay_size=10",
+      "--set", "num_timesteps=5", agent="sac"),
+    D("resume", "a ppo/sac run cannot be resumed", "--resume", "{tmp}"),
+    D("sac-tau-range", "tau=0.0: expected a number > 0.0 and <= 1.0", "--set", "tau=0", agent="sac"),
+]
+
+CASES = TRAIN + SWEEP + PLOT + SHOW + LIST + API + DEEP
 
 
 # ---- the runner -------------------------------------------------------------------------------------------------
@@ -536,6 +563,10 @@ def nothing_runs(monkeypatch):
         def fail(*_a, **_kw):
             raise AssertionError(f"{what} was reached: the input was not refused at validation")
         return fail
+
+    from jaxrobo import deep
+
+    monkeypatch.setattr(deep, "train", forbidden("deep.train (Brax's trainer)"))
 
     monkeypatch.setattr(train, "train", forbidden("train()"))
     monkeypatch.setattr(train.Trainer, "init", forbidden("Trainer.init"))

@@ -119,6 +119,30 @@ def test_a_broken_env_fails_with_a_message_naming_the_problem(cls, check, words)
         assert word in failures[check], f"{cls.__name__}: {word!r} not in {failures[check]!r}"
 
 
+class IgnoredTwistDimension:
+    """A continuous task that declares a 4-D Twist but drops yaw_rate (built lazily: the class imports the task)."""
+
+    @staticmethod
+    def make():
+        from envs.quadcopter_goto_twist import QuadcopterGotoTwist
+
+        class Ignored(QuadcopterGotoTwist):
+            def _set_action(self, action, task, params):
+                command, task = super()._set_action(action, task, params)
+                return command.at[3].set(0.0), task
+
+        base = jaxrobo.make("QuadcopterGotoTwist-v0")
+        return Ignored(base.options, base.default_params)
+
+
+def test_continuous_task_checks_each_action_dimension():
+    """A Box task is accepted when it declares continuous actions, and a dimension it ignores fails ``actions``."""
+    results = {r.name: r for r in check_env(IgnoredTwistDimension.make(), quick=True, checks=("spaces", "actions"))}
+    assert results["spaces"].status == "ok" and "Box(4,)" in results["spaces"].message
+    assert results["actions"].status == "FAIL"
+    assert "yaw_rate" in results["actions"].message and "_set_action" in results["actions"].message
+
+
 def test_numpy_random_reset_also_fails_the_key_check():
     """Without the purity check in front, the key check still sees a reset that does not follow its key."""
     results = {r.name: r for r in check_env(_make(NumpyRandomReset), quick=True, checks=("spaces", "reset_keys"))}

@@ -59,7 +59,11 @@ def single(env_id) -> JaxroboEnv:
     return JaxroboEnv(env_id)
 
 
-def _actions(n: int, count: int, seed: int = 0) -> list[int]:
+def _actions(n: int | gym.spaces.Box, count: int, seed: int = 0) -> list:
+    """``count`` random actions: integers below ``n``, or float32 arrays inside a continuous task's Box."""
+    if isinstance(n, gym.spaces.Box):
+        u = np.random.default_rng(seed).uniform(size=(count,) + n.shape)
+        return list((n.low + u * (n.high - n.low)).astype(np.float32))
     return [int(a) for a in np.random.default_rng(seed).integers(n, size=count)]
 
 
@@ -118,7 +122,11 @@ def test_make_passes_overrides_and_rejects_bad_ones():
 # ---- the single env ------------------------------------------------------------------------------------------
 def test_spaces_are_exact(env_id, single):
     jenv = jaxrobo.make(env_id)
-    assert single.action_space == gym.spaces.Discrete(jenv.action_space().n)
+    act = jenv.action_space()
+    if isinstance(act, jaxrobo.spaces.Box):  # a continuous task: its own bounds, float32
+        assert single.action_space == gym.spaces.Box(act.low, act.high, dtype=np.float32)
+    else:
+        assert single.action_space == gym.spaces.Discrete(act.n)
     box = jenv.observation_space()
     big = np.finfo(np.float32).max
     np.testing.assert_array_equal(single.observation_space.low, np.where(np.isfinite(box.low), box.low, -big))
@@ -143,7 +151,7 @@ def test_check_env_passes_without_warnings(env_id, single):
 def test_same_seed_same_trajectory_as_functional_api(env_id, single):
     jenv = jaxrobo.make(env_id)
     reset, step = jax.jit(jenv.reset), jax.jit(jenv.step)
-    actions = _actions(single.action_space.n, 12, seed=3)
+    actions = _actions(getattr(single.action_space, "n", single.action_space), 12, seed=3)
     obs, _ = single.reset(seed=7)
     state = reset(jax.random.key(7))
     np.testing.assert_array_equal(obs, np.asarray(state.obs))
