@@ -221,3 +221,44 @@ def test_playground_training_wrapper_drives_a_brax_env():
     assert np.all(np.abs(nxt - first).max(axis=1) > 1e-3)  # fresh episodes
     np.testing.assert_array_equal(truncation, 0.0)  # Playground's full reset wiped the flag with the info
     # jaxrobo's wrapper: fresh episodes and the flag (test_autoreset_draws_fresh_randomness_not_a_cached_first_state).
+
+
+def _closed_loop(env, policy, n: int, steps: int):
+    """``n`` episodes of a jaxrobo env under ``policy(obs)``, each frozen at its first done step."""
+    def one(key):
+        def body(s, _):
+            nxt = env.step(s, policy(s.obs))
+            return jax.tree.map(lambda new, old: jnp.where(s.done, old, new), nxt, s), None
+
+        return jax.lax.scan(body, env.reset(key), None, steps)[0]
+
+    return jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(0), n))
+
+
+def test_continuous_cartpole_is_balanced_by_linear_feedback_inside_the_box():
+    """The action Box is wide enough: pushing the cart towards the side the pole leans (a linear feedback,
+    clipped to [-1, 1]) keeps the pole up for the whole 1000-step episode."""
+    import jaxrobo
+
+    env = jaxrobo.make("CartPoleContinuous-v0")
+    s = _closed_loop(env, lambda o: jnp.clip(2.0 * o[2] + 0.5 * o[3] + 0.1 * o[0] + 0.2 * o[1], -1, 1)[None], 3,
+                     1000)
+    np.testing.assert_array_equal(s.steps, 1000)
+    np.testing.assert_array_equal(s.truncated, True)
+
+
+def test_twist_reaches_goals_without_the_obstacle_and_the_obstacle_is_in_the_way():
+    """The Twist's axes and signs: turning towards the bearing (+ = left) while flying forward and climbing to the
+    goal altitude arrives every time without an obstacle; with the default obstacle between start and goal the
+    same straight-line flight crashes into it (the task needs avoiding, as in QuadcopterGoto-v1)."""
+    import jaxrobo
+
+    def straight(o):
+        dist, bearing, dz = o[0], o[1], o[2]
+        forward = 2.0 * dist * jnp.cos(bearing) * (jnp.abs(bearing) < 0.6)
+        return jnp.clip(jnp.stack([forward, 0.0, 2.0 * dz, 3.0 * bearing]), -1.0, 1.0)
+
+    free = _closed_loop(jaxrobo.make("QuadcopterGotoTwist-v0", n_obstacles=0), straight, 8, 100)
+    assert bool(jnp.all(free.task.arrived)) and not bool(jnp.any(free.task.crashed))
+    blocked = _closed_loop(jaxrobo.make("QuadcopterGotoTwist-v0"), straight, 8, 100)
+    assert bool(jnp.all(blocked.task.crashed)) and not bool(jnp.any(blocked.task.arrived))
