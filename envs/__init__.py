@@ -56,6 +56,10 @@ def _register_builtin() -> None:
     register("QuadcopterGoto-v1", "envs.quadcopter_goto:QuadcopterGoto",
              config=_cfg("quadcopter_goto.yaml"), agent_config="quadcopter_goto.yaml",
              description="seed 000 homework: random goals, obstacles, sonar, discretised relative pose")
+    # Planar two-joint arm (openai_ros' reach tasks): two position servos, a random goal each episode.
+    register("ArmReach-v0", "envs.arm_reach:ArmReach",
+             config=_cfg("arm_reach.yaml"), agent_config="arm_reach.yaml",
+             description="planar 2-joint arm under position control: reach a random goal, 4 actions")
 
 
 _register_builtin()
