@@ -118,6 +118,16 @@ class ArmReach(TaskEnv):
         high = jnp.stack([p.elbow_bound, p.goal_bound, p.goal_bound])
         return low.astype(jnp.float32), high.astype(jnp.float32)
 
+    # ---- rendering (optional hooks read by jaxrobo.render) --------------------------------------------------
+    #: The MJCF's camera looking down on the arm's plane.
+    render_camera = "top"
+
+    def render_extras(self, state: Any, params: Params) -> list[dict]:
+        """The goal (task data, not MJCF): a translucent red sphere of radius ``goal_tolerance``."""
+        x, y = (float(v) for v in np.asarray(state.task.goal))
+        r = float(np.asarray(params.goal_tolerance))
+        return [{"type": "sphere", "size": [r, r, r], "pos": [x, y, 0.0], "rgba": [0.9, 0.1, 0.1, 0.6]}]
+
     # ---- helpers ----------------------------------------------------------------------------------------
     def _random_pose(self, key: jax.Array, shape: tuple[int, ...], params: Params) -> jax.Array:
         k1, k2 = rng.split(key)
