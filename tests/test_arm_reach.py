@@ -72,7 +72,8 @@ def test_mjx_matches_native_mujoco_over_300_steps(robot):
     assert np.ptp(native[:, 0]) > 2.0 and native[:, 1].max() > 2.5, "the trajectory should move both joints far"
     assert native[:, 1].max() < ELBOW_MAX + 0.1  # the clamp holds the elbow near its range
     err = np.abs(np.asarray(traj) - native)
-    assert err[:, :2].max() < 1e-3 and err[:, 2:].max() < 1e-2, err.max(axis=0)
+    # Observed: 3e-7 rad and 1e-5 rad/s (float32 round-off, over velocities up to 7 rad/s).
+    assert err[:, :2].max() < 1e-5 and err[:, 2:].max() < 1e-4, err.max(axis=0)
 
 
 def test_fingertip_sensor_is_the_mjcf_site(robot):
