@@ -62,6 +62,10 @@ def _register_builtin() -> None:
              description="keep the pole up with a continuous force on the cart (Box(-1, 1) x 10 N)")
     register("QuadcopterGotoTwist-v0", "envs.quadcopter_goto_twist:QuadcopterGotoTwist",
              description="Goto with a continuous Twist [vx, vy, vz, yaw_rate] bounded by speed_value")
+    # Planar two-joint arm (openai_ros' reach tasks): two position servos, a random goal each episode.
+    register("ArmReach-v0", "envs.arm_reach:ArmReach",
+             config=_cfg("arm_reach.yaml"), agent_config="arm_reach.yaml",
+             description="planar 2-joint arm under position control: reach a random goal, 4 actions")
 
 
 _register_builtin()
