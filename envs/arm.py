@@ -22,7 +22,7 @@ import mujoco
 
 from envs import asset_path
 from jaxrobo.robot import Robot
-from jaxrobo.sim import MjxSim, MjxState, backend_choices, load_model, make_simulator
+from jaxrobo.sim import backend_choices, load_model, make_simulator
 
 MJCF = "arm.xml"
 JOINTS = ("shoulder", "elbow")
@@ -31,28 +31,6 @@ UPPER, FORE = 0.5, 0.4
 #: The elbow servo's set-point range (rad), the MJCF's ``ctrlrange``.
 ELBOW_MAX = 2.8
 BACKENDS = backend_choices()
-
-
-class ConstraintFreeMjxSim(MjxSim):
-    """MJX for a model that can have no constraint rows (no contacts, joint limits, equalities or friction loss):
-    its state carries no solver warm start (zeros), since the constraint solver, its only reader, never runs.
-
-    Why: MJX stores every step's accelerations as the next warm start. Under the arm's stiff servos an
-    acceleration carries float32 round-off times ``kp / inertia`` (~1e3 /s^2), so the same step compiled alone
-    and batched leaves warm starts up to ~1e-3 apart while positions and velocities agree to 1e-6; ``jaxrobo
-    check`` compares the whole state and would fail ``jit_vmap`` on a value nothing reads.
-    """
-
-    def __init__(self, mj_model: mujoco.MjModel, running_step: float | None = None, physics_model: Any = None):
-        super().__init__(mj_model, running_step, physics_model)
-        m = mj_model
-        contact = not (m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT)
-        if contact or m.jnt_limited.any() or m.neq or m.dof_frictionloss.any() or m.tendon_limited.any():
-            raise ValueError("ConstraintFreeMjxSim: the model can have constraint rows; use make_simulator")
-
-    def physics_step(self, state: MjxState, ctrl: jax.Array) -> MjxState:
-        out = super().physics_step(state, ctrl)
-        return out.replace(qacc_warmstart=jnp.zeros_like(out.qacc_warmstart))
 
 
 def fingertip(q: jax.Array) -> jax.Array:
@@ -69,11 +47,7 @@ class ArmRobot(Robot):
         mj_model = load_model(asset_path(MJCF), timestep=timestep)
         # MJX integrates the model without its light, camera, floor and base (same dynamics, less work).
         physics = lambda: load_model(asset_path(MJCF), timestep=timestep, physics_only=True)  # noqa: E731
-        if backend == "mjx":
-            sim = ConstraintFreeMjxSim(mj_model, running_step, physics)
-        else:
-            sim = make_simulator(mj_model, backend, running_step, physics)
-        super().__init__(sim)
+        super().__init__(make_simulator(mj_model, backend, running_step, physics))
         ids = [mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, n) for n in JOINTS]
         self.q = tuple(int(mj_model.jnt_qposadr[i]) for i in ids)
         self.v = tuple(int(mj_model.jnt_dofadr[i]) for i in ids)
