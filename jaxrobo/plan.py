@@ -34,6 +34,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 import jax
 
+from jaxrobo import fused as _fused
 from jaxrobo import mjx_lean
 from jaxrobo.env import Env, EnvState, simulator_of
 
@@ -81,6 +82,12 @@ class ExecutionPlan:
     are cheap and XLA may copy the whole tables each step to keep the rows from before the update, and with a
     shared table other envs' updates would make the carried rows stale.
 
+    ``fused``: ``"off"`` or ``"xla"``, the fused training path of :mod:`jaxrobo.fused`: a closed form's physics
+    substeps all written out (one kernel per control step), and with ``fused_block`` the chunk's steps run inside
+    blocks of that many envs (a block's carry stays in cache across its steps). ``fused_block``: envs per block
+    (None: the whole batch, no blocking); read only with ``fused="xla"`` and per-env tables (a shared table mixes
+    every env each step, so it runs unblocked).
+
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
     """
@@ -90,10 +97,14 @@ class ExecutionPlan:
     lean_mjx: bool = True
     reset_capacity: int | None = None
     carry_rows: bool = False
+    fused: str = "off"
+    fused_block: int | None = None
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
-        for name in ("env_group", "reset_capacity"):
+        if self.fused not in _fused.CHOICES:
+            raise ValueError(f"ExecutionPlan fused={self.fused!r}: allowed values are {', '.join(_fused.CHOICES)}")
+        for name in ("env_group", "reset_capacity", "fused_block"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
                 raise ValueError(f"ExecutionPlan {name}={value!r}: expected None or an integer >= 1")
@@ -148,9 +159,10 @@ class ExecutionPlan:
 
     @contextlib.contextmanager
     def tracing(self) -> Iterator["ExecutionPlan"]:
-        """A block whose traces follow this plan's trace-time choices (the MJX stage replacement); nests, and
+        """A block whose traces follow this plan's trace-time choices (the MJX stage replacement, a closed form's
+        substeps written out under ``fused``); nests, and
         is local to the thread or task that enters it."""
-        with mjx_lean.choose(self.lean_mjx):
+        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused):
             yield self
 
     def traced(self, fn: Callable) -> Callable:
@@ -177,6 +189,9 @@ class ExecutionPlan:
                  f"unrolled_groups={self.unrolled_groups}", f"lean_mjx={on(self.lean_mjx)}",
                  f"reset_capacity={'all' if self.reset_capacity is None else self.reset_capacity}",
                  f"carry_rows={on(self.carry_rows)}"]
+        if self.fused != "off":  # named only when on, so plans from before the choice read as they did
+            block = "all" if self.fused_block is None else self.fused_block
+            parts.append(f"fused={self.fused}, fused_block={block}")
         if self.compiler_options is not None:
             parts.append("compiler_options={" + ", ".join(f"{k}: {v!r}" for k, v in self.compiler_options) + "}")
         return f"ExecutionPlan({', '.join(parts)})"
