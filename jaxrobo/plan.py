@@ -21,7 +21,7 @@ long as the carry's structure, which ``carry_rows`` changes, is the same; the ch
 
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
-:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`step_batch` (``env.step`` over a batch, as
+:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`step_batch` (``env.step`` over a batch, as
 the plan groups it) and :func:`map_groups` (any row-independent function, group after group). Names with a
 leading underscore are private.
 """
@@ -54,6 +54,17 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
     if backend == "gpu" and sim is not None and sim.backend == "mjx":
         return _GPU_ENV_GROUP
     return None
+
+
+def default_fused(env: Env) -> str:
+    """``"xla"`` for a closed form with more substeps per control step than the plain path writes out (8): the
+    quadcopter's 30 rigid-body substeps written out ran 1.3x the Q-learning env steps/s of the rolled loop on an
+    H100 (16 k-262 k envs) and ~2x on 2 CPU cores; ``"off"`` otherwise (the same program, or a loop XLA must
+    keep). Blocks of envs (``fused_block``) lost on both (docs/benchmarks.md, "Fused path"), so never by
+    default."""
+    sim = simulator_of(env)
+    many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
+    return "xla" if many else "off"
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -135,8 +146,9 @@ class ExecutionPlan:
         carried. ``compiler_options``: see the class docstring (XLA's defaults unless given)."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
+        fused = default_fused(env)
         if config is None:
-            return cls(env_group=default_env_group(env, backend), compiler_options=compiler_options)
+            return cls(env_group=default_env_group(env, backend), fused=fused, compiler_options=compiler_options)
         return cls(
             # The config's env_group, 0 meaning automatic.
             env_group=config.env_group or default_env_group(env, backend),
@@ -145,6 +157,7 @@ class ExecutionPlan:
             reset_capacity=-(-config.n_envs // 8) if cpu else config.n_envs,
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
+            fused=fused,
             compiler_options=compiler_options,
         )
 
