@@ -9,7 +9,9 @@ under one plan: ``off`` (the plain path), ``xla`` (substeps written out) or ``xl
 run block of BLOCK envs after block). Columns: env steps/s, physics steps/s, simulated s/s, the compiled
 program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
 the training carry per env, and the tables' checksum after one chunk (equal across plans: the same values). ``--gymnax`` adds
-gymnax's CartPole random rollout at the same sizes (benchmarks/throughput.py's peer row).
+gymnax's CartPole random rollout at the same sizes (benchmarks/throughput.py's peer row). ``--learning SEEDS``
+trains each env's default preset under each plan instead, and prints what it learned (the plans' values can
+differ in the last bits on a GPU, where XLA rounds written-out substeps differently; learning must not).
 """
 from __future__ import annotations
 
@@ -35,6 +37,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=None, help="steps per timed chunk (default: by size)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--gymnax", action="store_true", help="also gymnax CartPole-v1 random rollout per size")
+    p.add_argument("--learning", type=int, default=0, metavar="SEEDS",
+                   help="instead: train each env's default preset under each plan from seeds 0..SEEDS-1 and "
+                        "report its learning results (greedy evaluation, last training returns)")
     p.add_argument("--out", default=None, help="write the rows as JSON here")
     return p.parse_args(argv)
 
@@ -90,6 +95,25 @@ def measure(env_spec: str, n: int, choice: str, args) -> dict[str, Any]:
     return row
 
 
+def learning(env_spec: str, choice: str, seed: int) -> dict[str, Any]:
+    """One training run of the env's default preset under a plan: what it learned, not how fast."""
+    import numpy as np
+
+    from jaxrobo.plan import ExecutionPlan
+    from jaxrobo.run import resolve
+    from jaxrobo.train import train
+
+    env_id, _, backend = env_spec.partition(":")
+    spec = resolve(env_id, "default", {"seed": seed, **({"backend": backend} if backend else {})})
+    plan = plan_of(ExecutionPlan.for_run(spec.env, spec.config), choice)
+    t0 = time.perf_counter()
+    r = train(spec.env, spec.config, spec.agent_params, plan=plan)
+    returns = np.asarray(r.returns)
+    return {"env": env_spec, "plan": choice, "seed": seed, "seconds": time.perf_counter() - t0,
+            "eval_return": float(np.mean(r.eval_returns)), "eval_length": float(np.mean(r.eval_lengths)),
+            "last_returns": float(returns[..., -max(1, returns.shape[-1] // 10):].mean())}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     _common.select_device(args.device)
@@ -97,6 +121,19 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"device {jax.devices()[0].device_kind} ({jax.default_backend()}), jax {jax.__version__}", flush=True)
     rows = []
+    if args.learning:
+        for env_spec in args.envs.split(","):
+            for seed in range(args.learning):
+                for choice in args.plans.split(","):
+                    row = learning(env_spec, choice, seed)
+                    rows.append(row)
+                    print(f"{env_spec:28s} seed {seed} {choice:10s} greedy return {row['eval_return']:9.3f} "
+                          f"length {row['eval_length']:7.2f}  last 10 % training returns {row['last_returns']:9.3f}"
+                          f"  ({row['seconds']:.1f}s)", flush=True)
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump(rows, f, indent=2)
+        return 0
     sizes = [int(x) for x in args.n_envs.split(",")]
     for env_spec in args.envs.split(","):
         for n in sizes:
