@@ -56,15 +56,17 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
     return None
 
 
-def default_fused(env: Env) -> str:
-    """``"xla"`` for a closed form with more substeps per control step than the plain path writes out (8): the
-    quadcopter's 30 rigid-body substeps written out ran 1.3x the Q-learning env steps/s of the rolled loop on an
-    H100 (16 k-262 k envs) and ~2x on 2 CPU cores; ``"off"`` otherwise (the same program, or a loop XLA must
-    keep). Blocks of envs (``fused_block``) lost on both (docs/benchmarks.md, "Fused path"), so never by
-    default."""
+def default_fused(env: Env, backend: str | None = None) -> str:
+    """``"xla"`` on a GPU for a closed form with more substeps per control step than the plain path writes out
+    (8): the quadcopter's 30 rigid-body substeps written out ran 1.3-1.6x the Q-learning env steps/s of the rolled
+    loop on an H100 (262 k-1 M envs). ``"off"`` otherwise: on 2 CPU cores they ran at the same speed and took
+    longer to compile, and with 8 substeps or fewer the program is the same. Blocks of envs (``fused_block``)
+    lost on both, so never by default (docs/benchmarks.md, "Fused path"). ``backend``: JAX's platform name
+    (default: ``jax.default_backend()``)."""
+    backend = jax.default_backend() if backend is None else backend
     sim = simulator_of(env)
     many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
-    return "xla" if many else "off"
+    return "xla" if many and backend == "gpu" else "off"
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -146,7 +148,7 @@ class ExecutionPlan:
         carried. ``compiler_options``: see the class docstring (XLA's defaults unless given)."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
-        fused = default_fused(env)
+        fused = default_fused(env, backend)
         if config is None:
             return cls(env_group=default_env_group(env, backend), fused=fused, compiler_options=compiler_options)
         return cls(
