@@ -4,7 +4,8 @@ per env, over batch sizes, in one process on one device.
     python benchmarks/fused.py --device gpu --n-envs 1024,16384,262144,1048576 --plans off,xla,xla:65536
     python benchmarks/fused.py --device cpu --n-envs 16384 --plans off,xla:2048 --envs CartPoleStayUp-v0:analytic
 
-Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles: :func:`jaxrobo.driver.compiled_chunk`)
+Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
+:func:`jaxrobo.driver.compiled_chunk`)
 under one plan: ``off`` (the plain path), ``xla`` (substeps written out) or ``xla:BLOCK`` (and the chunk's steps
 run block of BLOCK envs after block). Columns: env steps/s, physics steps/s, simulated s/s, the compiled
 program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
@@ -147,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{env_spec:28s} n={n:<8d} {choice:10s} ERROR {row['error']}", flush=True)
                     continue
                 print(f"{env_spec:28s} n={n:<8d} {choice:10s} {row['steps_per_s'] / 1e6:10.2f} M steps/s "
-                      f"{row['physics_steps_per_s'] / 1e9:8.3f} G phys/s {row['sim_seconds_per_s'] / 1e3:10.1f} k sim s/s "
+                      f"{row['physics_steps_per_s'] / 1e9:8.3f} G phys/s "
+                      f"{row['sim_seconds_per_s'] / 1e3:10.1f} k sim s/s "
                       f"kernels {row['kernels']:4d}  {row['ns_per_step_per_batch'] / 1e3:9.1f} us/step  "
                       f"carry {row['carry_bytes_per_env']:7.0f} B/env  compile {row['compile_s']:5.1f}s  "
                       f"q {row['q_checksum']:.6g}", flush=True)

@@ -21,9 +21,9 @@ long as the carry's structure, which ``carry_rows`` changes, is the same; the ch
 
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
-:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`step_batch` (``env.step`` over a batch, as
-the plan groups it) and :func:`map_groups` (any row-independent function, group after group). Names with a
-leading underscore are private.
+:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`step_batch` (``env.step``
+over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after group).
+Names with a leading underscore are private.
 """
 from __future__ import annotations
 
