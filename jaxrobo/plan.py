@@ -56,17 +56,25 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
     return None
 
 
-def default_fused(env: Env, backend: str | None = None) -> str:
-    """``"xla"`` on a GPU for a closed form with more substeps per control step than the plain path writes out
-    (8): the quadcopter's 30 rigid-body substeps written out ran 1.3-1.6x the Q-learning env steps/s of the rolled
-    loop on an H100 (262 k-1 M envs). ``"off"`` otherwise: on 2 CPU cores they ran at the same speed and took
-    longer to compile, and with 8 substeps or fewer the program is the same. Blocks of envs (``fused_block``)
-    lost on both, so never by default (docs/benchmarks.md, "Fused path"). ``backend``: JAX's platform name
-    (default: ``jax.default_backend()``)."""
+#: Fewest envs a GPU run has for :func:`default_fused` to write out many substeps: from 1,024 envs it ran faster
+#: per step (measured); the default Goto preset's 64 envs took twice the wall time (the written-out physics
+#: compiles ~9 s longer, which a run that small does not earn back).
+_FUSED_MIN_ENVS = 1024
+
+
+def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None) -> str:
+    """``"xla"`` for training ``n_envs`` >= 1,024 envs on a GPU with a closed form with more substeps per control
+    step than the plain path writes out (8): the quadcopter's 30 rigid-body substeps written out ran 1.3x the
+    Q-learning env steps/s of the rolled loop on an H100 at 1 k-262 k envs and 1.6x at 1 M. ``"off"`` otherwise:
+    on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back the longer
+    compile, and with 8 substeps or fewer the program is the same. Blocks of envs (``fused_block``) lost on both
+    devices, so never by default (docs/benchmarks.md, "Fused path"). ``backend``: JAX's platform name (default:
+    ``jax.default_backend()``); ``n_envs`` None (stepping envs outside training): ``"off"``."""
     backend = jax.default_backend() if backend is None else backend
     sim = simulator_of(env)
     many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
-    return "xla" if many and backend == "gpu" else "off"
+    big = n_envs is not None and n_envs >= _FUSED_MIN_ENVS
+    return "xla" if many and big and backend == "gpu" else "off"
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -148,9 +156,8 @@ class ExecutionPlan:
         carried. ``compiler_options``: see the class docstring (XLA's defaults unless given)."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
-        fused = default_fused(env, backend)
         if config is None:
-            return cls(env_group=default_env_group(env, backend), fused=fused, compiler_options=compiler_options)
+            return cls(env_group=default_env_group(env, backend), compiler_options=compiler_options)
         return cls(
             # The config's env_group, 0 meaning automatic.
             env_group=config.env_group or default_env_group(env, backend),
@@ -159,7 +166,7 @@ class ExecutionPlan:
             reset_capacity=-(-config.n_envs // 8) if cpu else config.n_envs,
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
-            fused=fused,
+            fused=default_fused(env, backend, config.n_envs),
             compiler_options=compiler_options,
         )
 

@@ -42,15 +42,18 @@ def test_the_choice_is_validated_and_named():
 
 
 def test_the_plan_fuses_where_it_measured_faster():
-    """On a GPU a closed form with more than 8 substeps (the quadcopter's 30) runs fused; on a CPU, the
-    cart-pole's 4 (written out either way) and MJX it does not; no plan blocks envs by default."""
-    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4))
+    """Training 1,024 envs or more on a GPU, a closed form with more than 8 substeps (the quadcopter's 30) runs
+    fused; fewer envs, a CPU, the cart-pole's 4 substeps (written out either way), MJX and envs stepped outside
+    training do not; no plan blocks envs by default."""
+    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=1024))
     assert ExecutionPlan.for_run(goto.env, goto.config, "gpu").fused == "xla"
-    assert ExecutionPlan.for_run(goto.env, backend="gpu").fused == "xla"  # the vector env's plan too
-    assert ExecutionPlan.for_run(goto.env, goto.config, "cpu").fused == "off"
-    for cartpole in (_cartpole(), _cartpole(backend="mjx")):
-        assert ExecutionPlan.for_run(cartpole.env, cartpole.config, "gpu").fused == "off"
     assert ExecutionPlan.for_run(goto.env, goto.config, "gpu").fused_block is None
+    assert ExecutionPlan.for_run(goto.env, goto.config, "cpu").fused == "off"
+    assert ExecutionPlan.for_run(goto.env, backend="gpu").fused == "off"
+    small = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=1023))
+    assert ExecutionPlan.for_run(small.env, small.config, "gpu").fused == "off"
+    for cartpole in (_cartpole(n_envs=4096), _cartpole(backend="mjx", n_envs=4096)):
+        assert ExecutionPlan.for_run(cartpole.env, cartpole.config, "gpu").fused == "off"
 
 
 def test_blocks_of_envs_give_the_plain_values_whatever_the_chunking():
