@@ -1,27 +1,30 @@
 """The fused training path: an execution-plan choice (:attr:`jaxrobo.plan.ExecutionPlan.fused`) that keeps an
 env's work together instead of moving the whole batch through memory at every stage of every step.
 
-The plain path (``fused="off"``) runs a chunk as one ``lax.scan`` over steps of the whole batch: every step is a
-dozen batch-wide kernels (act, physics substeps, discretise, table reads, update, records, resets), each reading
-and writing every env's state, and a closed form with more than 8 physics substeps per control step (the
+The plain path (``fused="off"``) runs a chunk as one ``lax.scan`` over steps of the whole batch: every step is
+20-30 batch-wide kernels on a GPU (act, physics, discretise, table reads, update, records, resets), each reading
+and writing part of every env's state, and a closed form with more than 8 physics substeps per control step (the
 quadcopter's 30) runs them as a rolled loop, one round trip of the whole state through memory per substep.
 
-``fused="xla"`` changes two things, neither of which changes a value:
+``fused="xla"`` changes two things:
 
 * **Substeps written out.** A closed-form backend (``Simulator.cheap_step``) unrolls all its physics substeps
-  whatever their count, so XLA fuses a control step's physics into one kernel and the state stays in registers
-  from the first substep to the last (:func:`unroll_all_substeps`, read by :meth:`jaxrobo.sim.Simulator.advance`
-  while tracing under the plan).
+  whatever their count (:func:`unroll_all_substeps`, read by :meth:`jaxrobo.sim.Simulator.advance` while tracing
+  under the plan), so XLA fuses across substeps instead of keeping a loop. On an H100 it still splits the
+  written-out physics into several kernels, but the step ran 1.3-1.6x faster for the quadcopter (the plan's
+  default there: :func:`jaxrobo.plan.default_fused`).
 * **Steps inside blocks of envs** (``fused_block``). The chunk runs block after block of ``fused_block`` envs,
   each block doing all ``chunk_steps`` steps before the next starts (:func:`run_chunk_blocked`): the loop over
-  steps moves inside the loop over envs, so a block's carry (its states, keys, records and tables) stays in cache
-  across its steps instead of being streamed from memory once per step. Envs with their own tables are
-  independent, so the values are those of the plain path bit for bit; with a shared table they are not (each
-  step's update mixes every env), so a shared table always runs unblocked.
+  steps moves inside the loop over envs, so a block's carry can stay in cache across its steps. Envs with their
+  own tables are independent, so the values are those of the plain path bit for bit; with a shared table they
+  are not (each step's update mixes every env), so a shared table always runs unblocked. Measured slower on both
+  an H100 and 2 CPU cores (docs/benchmarks.md, "Fused path"): an option to measure, never a default.
 
 What stays the same: the step itself (:meth:`jaxrobo.trainer.Trainer.step`), its random keys (each env's own),
 its records, its resets: the fused path is that step rearranged, which is how the tests hold it to the plain
-path as its oracle (same tables and records bit for bit, whatever the chunking).
+path as its oracle (same tables and records bit for bit on a CPU, whatever the blocks and the chunking). On a GPU
+XLA may contract the written-out substeps' multiply-adds differently, so values can differ in the last bits
+there, and a tabular run then takes another path (within the seed-to-seed spread in the runs measured).
 
 Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`choose`, :func:`run_chunk_blocked`.
 """
@@ -87,4 +90,3 @@ def run_chunk_blocked(trainer: Any, runner: Any, agent_params: Any, env_params: 
     # One block per loop iteration (not written out: each written-out block is another copy of the whole
     # chunk to compile).
     return map_groups(one_block, runner, block, unrolled=1)
-

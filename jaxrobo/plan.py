@@ -104,10 +104,10 @@ class ExecutionPlan:
     shared table other envs' updates would make the carried rows stale.
 
     ``fused``: ``"off"`` or ``"xla"``, the fused training path of :mod:`jaxrobo.fused`: a closed form's physics
-    substeps all written out (one kernel per control step), and with ``fused_block`` the chunk's steps run inside
-    blocks of that many envs (a block's carry stays in cache across its steps). ``fused_block``: envs per block
-    (None: the whole batch, no blocking); read only with ``fused="xla"`` and per-env tables (a shared table mixes
-    every env each step, so it runs unblocked).
+    substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks of that many envs.
+    ``fused_block``: envs per block (None: the whole batch, no blocking); read only with ``fused="xla"`` and
+    per-env tables (a shared table mixes every env each step, so it runs unblocked). Bit for bit on a CPU; on a
+    GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.fused`).
 
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
@@ -182,8 +182,7 @@ class ExecutionPlan:
     @contextlib.contextmanager
     def tracing(self) -> Iterator["ExecutionPlan"]:
         """A block whose traces follow this plan's trace-time choices (the MJX stage replacement, a closed form's
-        substeps written out under ``fused``); nests, and
-        is local to the thread or task that enters it."""
+        substeps written out under ``fused``); nests, and is local to the thread or task that enters it."""
         with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused):
             yield self
 

@@ -167,7 +167,7 @@ class Simulator(abc.ABC):
         short = self.n_substeps <= 8
         unroll = self.n_substeps if short and (self.cheap_step or jax.default_backend() == "gpu") else 1
         if self.cheap_step and fused.unroll_all_substeps():
-            # The fused plan: every substep written out, so a control step's physics is one kernel.
+            # The fused plan: every substep written out, so XLA fuses across them instead of keeping a loop.
             unroll = True
         return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
 
