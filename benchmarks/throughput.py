@@ -72,6 +72,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="comma list of learners, or 'none' (default quick: qlearn,sarsa; full: all four)")
     p.add_argument("--peers", default=",".join(PEER_NAMES),
                    help=f"comma list of peers to run, or 'none' (default: all of {', '.join(PEER_NAMES)})")
+    p.add_argument("--fused", default=None, metavar="CHOICE[:BLOCK]",
+                   help="jaxrobo rows under ExecutionPlan.fused=CHOICE (off, xla) and fused_block=BLOCK envs "
+                        "(default: the plan's own choice)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per row (the minimum is kept)")
     p.add_argument("--out", default=None,
                    help="output folder (default benchmarks/results/local/<device-name>, git-ignored; the committed "
@@ -152,6 +155,17 @@ def sim_info(env: Any) -> tuple[int, float]:
     return n_sub, running
 
 
+def fused_plan(env: Any, config: Any, fused: str | None) -> Any:
+    """The run's plan, with ``--fused CHOICE[:BLOCK]`` applied when given."""
+    from jaxrobo.plan import ExecutionPlan
+
+    plan = ExecutionPlan.for_run(env, config)
+    if fused is None:
+        return plan
+    choice, _, block = fused.partition(":")
+    return plan.replace(fused=choice, fused_block=int(block) if block else None)
+
+
 def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: int, args, ctx,
                     options: dict[str, Any] | None = None) -> dict[str, Any]:
     """One row: env-only (learner None) or training with ``learner``, at ``n`` envs; ``options`` are env options
@@ -171,7 +185,7 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
     overrides["chunk_steps"] = steps
     spec = resolve(env_id, "default", overrides, agent=learner)
     env = spec.env
-    trainer = Trainer(env, spec.config)
+    trainer = Trainer(env, spec.config, plan=fused_plan(env, spec.config, args.fused))
     plan = trainer.plan  # the run's execution plan, for env-only rows too (they step the envs as training does)
     row["execution_plan"] = repr(plan)
     state_shape = jax.eval_shape(env.reset, jax.random.key(0), env.default_params)

@@ -21,9 +21,9 @@ long as the carry's structure, which ``carry_rows`` changes, is the same; the ch
 
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
-:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`step_batch` (``env.step`` over a batch, as
-the plan groups it) and :func:`map_groups` (any row-independent function, group after group). Names with a
-leading underscore are private.
+:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`step_batch` (``env.step``
+over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after group).
+Names with a leading underscore are private.
 """
 from __future__ import annotations
 
@@ -34,6 +34,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 import jax
 
+from jaxrobo import fused as _fused
 from jaxrobo import mjx_lean
 from jaxrobo.env import Env, EnvState, simulator_of
 
@@ -53,6 +54,27 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
     if backend == "gpu" and sim is not None and sim.backend == "mjx":
         return _GPU_ENV_GROUP
     return None
+
+
+#: Fewest envs a GPU run has for :func:`default_fused` to write out many substeps: from 1,024 envs it ran faster
+#: per step (measured); the default Goto preset's 64 envs took twice the wall time (the written-out physics
+#: compiles ~9 s longer, which a run that small does not earn back).
+_FUSED_MIN_ENVS = 1024
+
+
+def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None) -> str:
+    """``"xla"`` for training ``n_envs`` >= 1,024 envs on a GPU with a closed form with more substeps per control
+    step than the plain path writes out (8): the quadcopter's 30 rigid-body substeps written out ran 1.3x the
+    Q-learning env steps/s of the rolled loop on an H100 at 1 k-262 k envs and 1.6x at 1 M. ``"off"`` otherwise:
+    on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back the longer
+    compile, and with 8 substeps or fewer the program is the same. Blocks of envs (``fused_block``) lost on both
+    devices, so never by default (docs/benchmarks.md, "Fused path"). ``backend``: JAX's platform name (default:
+    ``jax.default_backend()``); ``n_envs`` None (stepping envs outside training): ``"off"``."""
+    backend = jax.default_backend() if backend is None else backend
+    sim = simulator_of(env)
+    many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
+    big = n_envs is not None and n_envs >= _FUSED_MIN_ENVS
+    return "xla" if many and big and backend == "gpu" else "off"
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -81,6 +103,12 @@ class ExecutionPlan:
     are cheap and XLA may copy the whole tables each step to keep the rows from before the update, and with a
     shared table other envs' updates would make the carried rows stale.
 
+    ``fused``: ``"off"`` or ``"xla"``, the fused training path of :mod:`jaxrobo.fused`: a closed form's physics
+    substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks of that many envs.
+    ``fused_block``: envs per block (None: the whole batch, no blocking); read only with ``fused="xla"`` and
+    per-env tables (a shared table mixes every env each step, so it runs unblocked). Bit for bit on a CPU; on a
+    GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.fused`).
+
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
     """
@@ -90,10 +118,14 @@ class ExecutionPlan:
     lean_mjx: bool = True
     reset_capacity: int | None = None
     carry_rows: bool = False
+    fused: str = "off"
+    fused_block: int | None = None
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
-        for name in ("env_group", "reset_capacity"):
+        if self.fused not in _fused.CHOICES:
+            raise ValueError(f"ExecutionPlan fused={self.fused!r}: allowed values are {', '.join(_fused.CHOICES)}")
+        for name in ("env_group", "reset_capacity", "fused_block"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
                 raise ValueError(f"ExecutionPlan {name}={value!r}: expected None or an integer >= 1")
@@ -134,6 +166,7 @@ class ExecutionPlan:
             reset_capacity=-(-config.n_envs // 8) if cpu else config.n_envs,
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
+            fused=default_fused(env, backend, config.n_envs),
             compiler_options=compiler_options,
         )
 
@@ -148,9 +181,9 @@ class ExecutionPlan:
 
     @contextlib.contextmanager
     def tracing(self) -> Iterator["ExecutionPlan"]:
-        """A block whose traces follow this plan's trace-time choices (the MJX stage replacement); nests, and
-        is local to the thread or task that enters it."""
-        with mjx_lean.choose(self.lean_mjx):
+        """A block whose traces follow this plan's trace-time choices (the MJX stage replacement, a closed form's
+        substeps written out under ``fused``); nests, and is local to the thread or task that enters it."""
+        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused):
             yield self
 
     def traced(self, fn: Callable) -> Callable:
@@ -177,6 +210,9 @@ class ExecutionPlan:
                  f"unrolled_groups={self.unrolled_groups}", f"lean_mjx={on(self.lean_mjx)}",
                  f"reset_capacity={'all' if self.reset_capacity is None else self.reset_capacity}",
                  f"carry_rows={on(self.carry_rows)}"]
+        if self.fused != "off":  # named only when on, so plans from before the choice read as they did
+            block = "all" if self.fused_block is None else self.fused_block
+            parts.append(f"fused={self.fused}, fused_block={block}")
         if self.compiler_options is not None:
             parts.append("compiler_options={" + ", ".join(f"{k}: {v!r}" for k, v in self.compiler_options) + "}")
         return f"ExecutionPlan({', '.join(parts)})"

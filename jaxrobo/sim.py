@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxrobo import mjx_lean
+from jaxrobo import fused, mjx_lean
 from jaxrobo.struct import pytree_dataclass
 
 Controller = Callable[[Any, jax.Array], jax.Array]
@@ -166,6 +166,9 @@ class Simulator(abc.ABC):
         # moment either way, so it is unrolled everywhere.
         short = self.n_substeps <= 8
         unroll = self.n_substeps if short and (self.cheap_step or jax.default_backend() == "gpu") else 1
+        if self.cheap_step and fused.unroll_all_substeps():
+            # The fused plan: every substep written out, so XLA fuses across them instead of keeping a loop.
+            unroll = True
         return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxrobo import tabular
 from jaxrobo.tabular import AgentParams, AgentState, Learner
-from jaxrobo import autoreset, registry, rng, rollout
+from jaxrobo import autoreset, fused, registry, rng, rollout
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState
 from jaxrobo.plan import ExecutionPlan, step_batch
@@ -256,8 +256,14 @@ class Trainer:
             env_steps=runner.env_steps + active.astype(jnp.int32))
 
     def run_chunk(self, runner: Runner, agent_params: AgentParams, env_params: Any = None) -> Runner:
-        """``chunk_steps`` training steps as one ``lax.scan``."""
+        """``chunk_steps`` training steps as one ``lax.scan`` (under a fused plan with ``fused_block``, one scan per
+        block of envs: :func:`jaxrobo.fused.run_chunk_blocked`)."""
         env_params = self.env.default_params if env_params is None else env_params
+        plan = self.plan
+        if plan.fused != "off" and plan.fused_block is not None and not self.config.shared_table \
+                and plan.fused_block < self.config.n_envs:
+            # The plan's fused path: the same steps, block of envs after block (see jaxrobo.fused).
+            return fused.run_chunk_blocked(self, runner, agent_params, env_params, plan.fused_block)
         body = lambda r, _: (self.step(r, agent_params, env_params), None)  # noqa: E731
         return jax.lax.scan(body, runner, None, length=self.config.chunk_steps)[0]
 

@@ -67,7 +67,7 @@ def test_repr_is_short_and_names_every_choice():
                           "carry_rows=on, compiler_options={xla_backend_optimization_level: 0})")
     assert json.loads(json.dumps(fast.to_dict())) == {
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
-        "compiler_options": FAST}
+        "fused": "off", "fused_block": None, "compiler_options": FAST}
 
 
 def test_plans_are_validated_frozen_and_hashable():

@@ -1,0 +1,176 @@
+"""The fused path (``ExecutionPlan.fused``) against the plain one: training throughput, kernels per step and memory
+per env, over batch sizes, in one process on one device.
+
+    python benchmarks/fused.py --device gpu --n-envs 1024,16384,262144,1048576 --plans off,xla,xla:65536
+    python benchmarks/fused.py --device cpu --n-envs 16384 --plans off,xla:2048 --envs CartPoleStayUp-v0:analytic
+
+Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
+:func:`jaxrobo.driver.compiled_chunk`)
+under one plan: ``off`` (the plain path), ``xla`` (substeps written out) or ``xla:BLOCK`` (and the chunk's steps
+run block of BLOCK envs after block). Columns: env steps/s, physics steps/s, simulated s/s, the compiled
+program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
+the training carry per env, and the tables' checksum after one chunk (equal across plans: the same values). ``--gymnax`` adds
+gymnax's CartPole random rollout at the same sizes (benchmarks/throughput.py's peer row). ``--learning SEEDS``
+trains each env's default preset under each plan instead, and prints what it learned (the plans' values can
+differ in the last bits on a GPU, where XLA rounds written-out substeps differently; learning must not).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+import time
+from typing import Any
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common  # noqa: E402
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", choices=("cpu", "gpu"), default=None)
+    p.add_argument("--n-envs", default="1024,16384", help="comma list of batch sizes")
+    p.add_argument("--plans", default="off,xla", help="comma list of off, xla, xla:BLOCK")
+    p.add_argument("--envs", default="CartPoleStayUp-v0:analytic,QuadcopterGoto-v1",
+                   help="comma list of env ids, each with :backend where it has a choice")
+    p.add_argument("--steps", type=int, default=None, help="steps per timed chunk (default: by size)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--gymnax", action="store_true", help="also gymnax CartPole-v1 random rollout per size")
+    p.add_argument("--learning", type=int, default=0, metavar="SEEDS",
+                   help="instead: train each env's default preset under each plan from seeds 0..SEEDS-1 and "
+                        "report its learning results (greedy evaluation, last training returns)")
+    p.add_argument("--out", default=None, help="write the rows as JSON here")
+    return p.parse_args(argv)
+
+
+def kernels(compiled: Any) -> int:
+    """Fusions and library calls in a compiled program's HLO: on a GPU, each is one kernel launch (or more)."""
+    text = compiled.as_text()
+    return len(re.findall(r"\b(?:fusion|custom-call)\(", text))
+
+
+def plan_of(base: Any, choice: str) -> Any:
+    fused, _, block = choice.partition(":")
+    return base.replace(fused=fused, fused_block=int(block) if block else None)
+
+
+def measure(env_spec: str, n: int, choice: str, args) -> dict[str, Any]:
+    import jax
+
+    from jaxrobo import driver
+    from jaxrobo.plan import ExecutionPlan
+    from jaxrobo.run import resolve
+    from jaxrobo.env import simulator_of
+    from jaxrobo.trainer import Trainer
+
+    env_id, _, backend = env_spec.partition(":")
+    gpu = jax.default_backend() == "gpu"
+    steps = args.steps or int(min(1000, max(10, (4_000_000 if gpu else 60_000) // n)))
+    overrides = {"n_envs": n, "chunk_steps": steps, **_common.TIMED_TRAINING}
+    if backend:
+        overrides["backend"] = backend
+    spec = resolve(env_id, "default", overrides, agent="qlearn")
+    env, ap, ep = spec.env, spec.agent_params, spec.env.default_params
+    plan = plan_of(ExecutionPlan.for_run(env, spec.config), choice)
+    trainer = Trainer(env, spec.config, plan=plan)
+    runner = jax.jit(trainer.init)(jax.random.key(0), ap, ep)
+    row = {"env": env_spec, "n_envs": n, "plan": choice, "execution_plan": repr(plan), "steps": steps,
+           "carry_bytes_per_env": _common.tree_bytes(runner) / n}
+    t0 = time.perf_counter()
+    chunk = driver.compiled_chunk(trainer, runner, ap, ep)
+    row["compile_s"] = time.perf_counter() - t0
+    row["kernels"] = kernels(chunk)
+    # The tables after one chunk from the same start: equal across plans (the timed calls below run as many
+    # chunks as fill the sample, which differs).
+    runner = chunk(runner, ap, ep)
+    row["q_checksum"] = float(jax.jit(_common.checksum)(runner.agent.q))
+    seconds, runner = _common.time_carry(lambda r, _: (chunk(r, ap, ep), None), runner, 0, repeats=args.repeats,
+                                         min_seconds=0.25)
+    sim = simulator_of(env)
+    n_sub, running = int(getattr(sim, "n_substeps", 1) or 1), float(getattr(sim, "running_step", 0.0) or 0.0)
+    sps = n * steps / seconds
+    row.update(seconds=seconds, steps_per_s=sps, physics_steps_per_s=sps * n_sub, sim_seconds_per_s=sps * running,
+               ns_per_step_per_batch=seconds / steps * 1e9)
+    return row
+
+
+def learning(env_spec: str, choice: str, seed: int) -> dict[str, Any]:
+    """One training run of the env's default preset under a plan: what it learned, not how fast."""
+    import numpy as np
+
+    from jaxrobo.plan import ExecutionPlan
+    from jaxrobo.run import resolve
+    from jaxrobo.train import train
+
+    env_id, _, backend = env_spec.partition(":")
+    spec = resolve(env_id, "default", {"seed": seed, **({"backend": backend} if backend else {})})
+    plan = plan_of(ExecutionPlan.for_run(spec.env, spec.config), choice)
+    t0 = time.perf_counter()
+    r = train(spec.env, spec.config, spec.agent_params, plan=plan)
+    returns = np.asarray(r.returns)
+    return {"env": env_spec, "plan": choice, "seed": seed, "seconds": time.perf_counter() - t0,
+            "eval_return": float(np.mean(r.eval_returns)), "eval_length": float(np.mean(r.eval_lengths)),
+            "last_returns": float(returns[..., -max(1, returns.shape[-1] // 10):].mean())}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    _common.select_device(args.device)
+    import jax
+
+    print(f"device {jax.devices()[0].device_kind} ({jax.default_backend()}), jax {jax.__version__}", flush=True)
+    rows = []
+    if args.learning:
+        for env_spec in args.envs.split(","):
+            for seed in range(args.learning):
+                for choice in args.plans.split(","):
+                    row = learning(env_spec, choice, seed)
+                    rows.append(row)
+                    print(f"{env_spec:28s} seed {seed} {choice:10s} greedy return {row['eval_return']:9.3f} "
+                          f"length {row['eval_length']:7.2f}  last 10 % training returns {row['last_returns']:9.3f}"
+                          f"  ({row['seconds']:.1f}s)", flush=True)
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump(rows, f, indent=2)
+        return 0
+    sizes = [int(x) for x in args.n_envs.split(",")]
+    for env_spec in args.envs.split(","):
+        for n in sizes:
+            for choice in args.plans.split(","):
+                try:
+                    row = measure(env_spec, n, choice, args)
+                except Exception as err:  # noqa: BLE001 - one failed row (memory) must not lose the others
+                    row = {"env": env_spec, "n_envs": n, "plan": choice, "error": f"{type(err).__name__}: {err}"[:300]}
+                rows.append(row)
+                if "error" in row:
+                    print(f"{env_spec:28s} n={n:<8d} {choice:10s} ERROR {row['error']}", flush=True)
+                    continue
+                print(f"{env_spec:28s} n={n:<8d} {choice:10s} {row['steps_per_s'] / 1e6:10.2f} M steps/s "
+                      f"{row['physics_steps_per_s'] / 1e9:8.3f} G phys/s "
+                      f"{row['sim_seconds_per_s'] / 1e3:10.1f} k sim s/s "
+                      f"kernels {row['kernels']:4d}  {row['ns_per_step_per_batch'] / 1e3:9.1f} us/step  "
+                      f"carry {row['carry_bytes_per_env']:7.0f} B/env  compile {row['compile_s']:5.1f}s  "
+                      f"q {row['q_checksum']:.6g}", flush=True)
+    if args.gymnax:
+        import throughput
+
+        targs = argparse.Namespace(steps=args.steps, repeats=args.repeats, full=False)
+        ctx = {"gpu": jax.default_backend() == "gpu", "cache": None}
+        for n in sizes:
+            try:
+                row = throughput.peer_gymnax(n, targs, ctx)
+            except Exception as err:  # noqa: BLE001
+                row = {"suite": "gymnax", "n_envs": n, "error": str(err)[:300]}
+            rows.append(row)
+            print(f"gymnax CartPole-v1 random     n={n:<8d} {row.get('steps_per_s', 0) / 1e6:10.2f} M steps/s "
+                  f"{row.get('status', '')} {row.get('reason', row.get('error', ''))}", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(rows, f, indent=2, default=str)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,92 @@
+"""The fused training path: an execution-plan choice (:attr:`jaxrobo.plan.ExecutionPlan.fused`) that keeps an
+env's work together instead of moving the whole batch through memory at every stage of every step.
+
+The plain path (``fused="off"``) runs a chunk as one ``lax.scan`` over steps of the whole batch: every step is
+20-30 batch-wide kernels on a GPU (act, physics, discretise, table reads, update, records, resets), each reading
+and writing part of every env's state, and a closed form with more than 8 physics substeps per control step (the
+quadcopter's 30) runs them as a rolled loop, one round trip of the whole state through memory per substep.
+
+``fused="xla"`` changes two things:
+
+* **Substeps written out.** A closed-form backend (``Simulator.cheap_step``) unrolls all its physics substeps
+  whatever their count (:func:`unroll_all_substeps`, read by :meth:`jaxrobo.sim.Simulator.advance` while tracing
+  under the plan), so XLA fuses across substeps instead of keeping a loop. On an H100 it still splits the
+  written-out physics into several kernels, but the step ran 1.3-1.6x faster for the quadcopter (the plan's
+  default there: :func:`jaxrobo.plan.default_fused`).
+* **Steps inside blocks of envs** (``fused_block``). The chunk runs block after block of ``fused_block`` envs,
+  each block doing all ``chunk_steps`` steps before the next starts (:func:`run_chunk_blocked`): the loop over
+  steps moves inside the loop over envs, so a block's carry can stay in cache across its steps. Envs with their
+  own tables are independent, so the values are those of the plain path bit for bit; with a shared table they
+  are not (each step's update mixes every env), so a shared table always runs unblocked. Measured slower on both
+  an H100 and 2 CPU cores (docs/benchmarks.md, "Fused path"): an option to measure, never a default.
+
+What stays the same: the step itself (:meth:`jaxrobo.trainer.Trainer.step`), its random keys (each env's own),
+its records, its resets: the fused path is that step rearranged, which is how the tests hold it to the plain
+path as its oracle (same tables and records bit for bit on a CPU, whatever the blocks and the chunking). On a GPU
+XLA may contract the written-out substeps' multiply-adds differently, so values can differ in the last bits
+there, and a tabular run then takes another path (within the seed-to-seed spread in the runs measured).
+
+Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`choose`, :func:`run_chunk_blocked`.
+"""
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import dataclasses
+from typing import Any, Iterator
+
+import jax
+
+#: The values of ``ExecutionPlan.fused``.
+CHOICES = ("off", "xla")
+
+_UNROLL_ALL: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_unroll_all_substeps", default=False)
+
+
+def unroll_all_substeps() -> bool:
+    """Whether a closed-form simulator traced now writes out all its physics substeps (the innermost
+    :func:`choose` block's choice; False outside any)."""
+    return _UNROLL_ALL.get()
+
+
+@contextlib.contextmanager
+def choose(fused: str) -> Iterator[None]:
+    """Within this block (this thread or task), traces follow the fused choice ``fused`` (one of
+    :data:`CHOICES`)."""
+    token = _UNROLL_ALL.set(fused != "off")
+    try:
+        yield
+    finally:
+        _UNROLL_ALL.reset(token)
+
+
+def _block_trainer(trainer: Any, size: int) -> Any:
+    """A trainer for ``size`` of ``trainer``'s envs: the same env, learner, discretiser and plan, unfused (it is
+    the block's body), with the plan's reset capacity scaled to the block."""
+    from jaxrobo.trainer import Trainer
+
+    c, plan = trainer.config, trainer.plan
+    capacity = None
+    if plan.reset_capacity is not None and plan.reset_capacity < c.n_envs:
+        capacity = max(1, -(-plan.reset_capacity * size // c.n_envs))
+    return Trainer(trainer.env, dataclasses.replace(c, n_envs=size), trainer.disc, trainer.learner,
+                   plan=plan.replace(fused="off", fused_block=None, reset_capacity=capacity))
+
+
+def run_chunk_blocked(trainer: Any, runner: Any, agent_params: Any, env_params: Any, block: int) -> Any:
+    """``trainer.run_chunk`` with the loop over steps inside a loop over blocks of ``block`` envs (the last block
+    shorter if need be): each block runs all ``chunk_steps`` steps, its carry updated in place. Only for
+    per-env tables (the caller checks): the envs are then independent and the values are the unblocked ones."""
+    from jaxrobo.plan import map_groups
+
+    bodies: dict[int, Any] = {}
+
+    def one_block(part: Any) -> Any:
+        size = jax.tree.leaves(part)[0].shape[0]
+        if size not in bodies:
+            bodies[size] = _block_trainer(trainer, size)
+        return bodies[size].run_chunk(part, agent_params, env_params)
+
+    # One block per loop iteration (not written out: each written-out block is another copy of the whole
+    # chunk to compile).
+    return map_groups(one_block, runner, block, unrolled=1)
