@@ -1,0 +1,80 @@
+"""QuadcopterGoto-v2: the Goto homework (random goal, obstacle, sonar) made learnable by every tabular run.
+
+Environment card
+----------------
+Same task as ``QuadcopterGoto-v1`` (:mod:`envs.quadcopter_goto`: actions, reset, obstacles, sonar, termination,
+success), with these differences, each fixing a reason why most v1 runs plateaued (docs/quadcopter.md):
+
+Observation  v1's seven values plus ``goal_clear`` (m): how far the straight flight towards the goal is free,
+             i.e. the level ray from the drone towards the goal against the obstacles *grown by*
+             ``drone_radius + clear_margin`` (so "free" means the drone's whole body passes), clipped to
+             ``sonar_range``; an obstacle beyond the goal does not count (free up to the goal reads
+             ``sonar_range``). v1's forward sonar looks along the heading only: whether to head for the goal or
+             go round the obstacle depended on where the drone had been, which a memoryless table cannot hold;
+             ``goal_clear`` makes that choice a function of the state.
+Reward       as v1 with ``crash_penalty`` 150 (v1: 50). At 50 a crash cost less than the steps of a detour
+             (``step_cost`` 2 per step): diving into the obstacle or the ground was the cheap way out of a hard
+             start, and many runs learned it.
+Discretiser  ``state_bounds`` cover the eighth value like the sonars (``sonar_bound``); the agent preset
+             (``agents/configs/quadcopter_goto_v2.yaml``) cuts every dimension at explicit edges.
+Parameters   :class:`Params` adds ``clear_margin``; everything else as :class:`envs.quadcopter_goto.Params`.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.quadcopter import ray_obstacles
+from envs.quadcopter_goto import OBS_NAMES as V1_OBS_NAMES
+from envs.quadcopter_goto import Options, QuadcopterGoto, TaskVars
+from envs.quadcopter_goto import Params as V1Params
+from jaxrobo import spaces
+from jaxrobo.env import EnvState
+from jaxrobo.struct import param, pytree_dataclass
+
+OBS_NAMES = V1_OBS_NAMES + ("goal_clear",)
+
+
+@pytree_dataclass
+class Params(V1Params):
+    crash_penalty: float = param(150.0, low=0.0, high=1e5,
+                                 doc="above a detour's step costs, so crashing is never the cheap way out")
+    clear_margin: float = param(0.1, low=0.0, high=10.0, unit="m",
+                                doc="goal_clear: obstacles grown by drone_radius + this")
+
+
+class QuadcopterGoto2(QuadcopterGoto):
+    Options = Options
+    Params = Params
+
+    def observation_space(self, params: Params | None = None) -> spaces.Box:
+        n = len(OBS_NAMES)
+        return spaces.Box(np.full(n, -np.inf, np.float32), np.full(n, np.inf, np.float32), OBS_NAMES)
+
+    def state_bounds(self, params: Params | None = None) -> tuple[jax.Array, jax.Array]:
+        p = self.default_params if params is None else params
+        low, high = super().state_bounds(p)
+        return (jnp.concatenate([low, jnp.zeros(1, jnp.float32)]),
+                jnp.concatenate([high, jnp.reshape(p.sonar_bound, (1,)).astype(jnp.float32)]))
+
+    def _goal_clear(self, pos: jax.Array, task: TaskVars, params: Params) -> jax.Array:
+        """Free length of the level flight towards the goal: the ray against the grown obstacles."""
+        delta = (task.goal - pos).at[2].set(0.0)
+        direction = delta / jnp.maximum(jnp.linalg.norm(delta), 1e-6)
+        grow = params.drone_radius + params.clear_margin
+        obs = task.obstacles
+        grown = obs.replace(size=obs.size + jnp.stack([grow, grow, 0.0 * grow]).astype(obs.size.dtype))
+        ray = ray_obstacles(pos, direction, grown)
+        # An obstacle beyond the goal does not block it: free up to the goal reads as free (sonar_range).
+        return jnp.where(ray < jnp.linalg.norm(delta), jnp.minimum(ray, params.sonar_range), params.sonar_range)
+
+    def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
+        head = super()._get_obs(pipeline_state, task, params)
+        pos = self.robot.read_sensors(pipeline_state)["pos"]
+        return jnp.concatenate([head, self._goal_clear(pos, task, params)[None]]).astype(jnp.float32)
+
+
+__all__ = ["QuadcopterGoto2", "Options", "Params", "TaskVars", "EnvState", "OBS_NAMES"]
