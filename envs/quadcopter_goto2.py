@@ -21,6 +21,7 @@ Parameters   :class:`Params` adds ``clear_margin``; everything else as :class:`e
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import jax
@@ -40,10 +41,25 @@ OBS_NAMES = V1_OBS_NAMES + ("goal_clear",)
 
 @pytree_dataclass
 class Params(V1Params):
+    altitude_cost: float = param(0.0, low=0.0, high=1e4, unit="1/m",
+                                 doc="0: the table sees altitude only as goal_dz and a low/high bin, so paying for "
+                                     "it made sinking inside a bin pay and flights cycle up and down")
     crash_penalty: float = param(150.0, low=0.0, high=1e5,
                                  doc="above a detour's step costs, so crashing is never the cheap way out")
     clear_margin: float = param(0.1, low=0.0, high=10.0, unit="m",
                                 doc="goal_clear: obstacles grown by drone_radius + this")
+    heading_reward: float = param(5.0, low=0.0, high=1e4, unit="1/rad",
+                                  doc="per rad the goal bearing |shrank| this step: turning towards the goal pays")
+    climb_reward: float = param(5.0, low=0.0, high=1e4, unit="1/m",
+                                doc="per m the goal altitude difference |shrank| this step: climbing towards it pays")
+
+
+@pytree_dataclass
+class TaskVars2(TaskVars):
+    """v1's per-episode variables and the last goal bearing and altitude difference (for the shaping terms)."""
+
+    prev_bearing: jax.Array
+    prev_dz: jax.Array
 
 
 class QuadcopterGoto2(QuadcopterGoto):
@@ -71,10 +87,24 @@ class QuadcopterGoto2(QuadcopterGoto):
         # An obstacle beyond the goal does not block it: free up to the goal reads as free (sonar_range).
         return jnp.where(ray < jnp.linalg.norm(delta), jnp.minimum(ray, params.sonar_range), params.sonar_range)
 
+    def _init_env_variables(self, key: jax.Array, pipeline_state: Any, params: Params) -> TaskVars2:
+        task = super()._init_env_variables(key, pipeline_state, params)
+        obs = super()._get_obs(pipeline_state, task, params)
+        fields = {f.name: getattr(task, f.name) for f in dataclasses.fields(task)}
+        return TaskVars2(**fields, prev_bearing=jnp.abs(obs[1]), prev_dz=jnp.abs(obs[2]))
+
+    def _compute_reward(self, obs, done, action, pipeline_state, task, params) -> tuple[jax.Array, TaskVars2]:
+        """v1's reward plus the two shaping terms; both are differences of a potential (|bearing|, |goal_dz|),
+        so over any loop they sum to zero and a loop still costs its steps."""
+        reward, task = super()._compute_reward(obs, done, action, pipeline_state, task, params)
+        bearing, dz = jnp.abs(obs[1]), jnp.abs(obs[2])
+        shaping = params.heading_reward * (task.prev_bearing - bearing) + params.climb_reward * (task.prev_dz - dz)
+        return (reward + shaping).astype(jnp.float32), task.replace(prev_bearing=bearing, prev_dz=dz)
+
     def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
         head = super()._get_obs(pipeline_state, task, params)
         pos = self.robot.read_sensors(pipeline_state)["pos"]
         return jnp.concatenate([head, self._goal_clear(pos, task, params)[None]]).astype(jnp.float32)
 
 
-__all__ = ["QuadcopterGoto2", "Options", "Params", "TaskVars", "EnvState", "OBS_NAMES"]
+__all__ = ["QuadcopterGoto2", "Options", "Params", "TaskVars", "TaskVars2", "EnvState", "OBS_NAMES"]
