@@ -12,12 +12,19 @@ Observation  v1's seven values plus ``goal_clear`` (m): how far the straight fli
              ``sonar_range``). v1's forward sonar looks along the heading only: whether to head for the goal or
              go round the obstacle depended on where the drone had been, which a memoryless table cannot hold;
              ``goal_clear`` makes that choice a function of the state.
-Reward       as v1 with ``crash_penalty`` 150 (v1: 50). At 50 a crash cost less than the steps of a detour
-             (``step_cost`` 2 per step): diving into the obstacle or the ground was the cheap way out of a hard
-             start, and many runs learned it.
-Discretiser  ``state_bounds`` cover the eighth value like the sonars (``sonar_bound``); the agent preset
+Reward       v1's terms with three changes. ``crash_penalty`` 150 (v1 50): at 50 a crash cost less than the
+             steps of a detour (``step_cost`` 2 each), so diving into the obstacle or the ground was the cheap way
+             out of a hard start. ``altitude_cost`` 0 (v1 0.5 per m and step): the table sees altitude only as
+             ``goal_dz`` and a low/high bin, so paying for altitude made sinking inside a bin pay and greedy
+             flights cycled up and down. Two shaping terms, each the change of a potential (so over any loop
+             they sum to zero and a loop still costs its steps): ``heading_reward`` per rad the goal bearing's
+             magnitude shrank and ``climb_reward`` per m ``|goal_dz|`` shrank: turning or climbing towards the
+             goal pays at once, instead of only through the progress a later forward step makes, which aliased
+             bins blurred into left/right and up/down cycles.
+Discretiser  ``state_bounds`` cover ``goal_clear`` like the sonars (``sonar_bound``); the agent preset
              (``agents/configs/quadcopter_goto_v2.yaml``) cuts every dimension at explicit edges.
-Parameters   :class:`Params` adds ``clear_margin``; everything else as :class:`envs.quadcopter_goto.Params`.
+Parameters   :class:`Params` adds ``clear_margin``, ``heading_reward``, ``climb_reward``; the rest (and
+             :class:`Options`) as v1's.
 """
 from __future__ import annotations
 

@@ -9,9 +9,9 @@ chunk. Between chunks it asks a stop hook (``should_stop``: a chunk boundary is 
 hands the carry to a checkpoint hook at its cadence (every N chunks and/or every T seconds, and when stopped).
 
 :func:`run_training` is a whole training run: compile, loop from a fresh or saved carry, greedy evaluation at the
-end (:func:`evaluate_tables`; :func:`success_of_tables` for a task whose target is a success rate), a :class:`~jaxrobo.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT /
-SIGTERM into a stop request for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself
-installs no signal handlers.
+end (:func:`evaluate_tables`; :func:`success_of_tables` for a task whose target is a success rate), a
+:class:`~jaxrobo.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT / SIGTERM into a stop request for both
+command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
 its :class:`ChunkRun`, :func:`run_training`, :func:`evaluate_tables`, :func:`success_of_tables`,
@@ -168,7 +168,8 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_returns=eval_returns,
-        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped, chunks_done=loop.chunks_done,
+        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
+        chunks_done=loop.chunks_done,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
         learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan))
 
