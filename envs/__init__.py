@@ -56,6 +56,9 @@ def _register_builtin() -> None:
     register("QuadcopterGoto-v1", "envs.quadcopter_goto:QuadcopterGoto",
              config=_cfg("quadcopter_goto.yaml"), agent_config="quadcopter_goto.yaml",
              description="seed 000 homework: random goals, obstacles, sonar, discretised relative pose")
+    register("QuadcopterGoto-v2", "envs.quadcopter_goto2:QuadcopterGoto2",
+             config=_cfg("quadcopter_goto_v2.yaml"), agent_config="quadcopter_goto_v2.yaml",
+             description="Goto homework redesigned to learn: goal_clear feature, crash penalty 150, potential shaping")
     # Continuous actions (Box(-1, 1)) for Brax's PPO/SAC (jaxrobo.brax_env): a task module each, beside its
     # discrete task, so the discrete ids stay exactly as they are.
     register("CartPoleContinuous-v0", "envs.cartpole_continuous:CartPoleContinuous",

@@ -305,6 +305,8 @@ def _train_checked(args: argparse.Namespace) -> int:
     if "eval_mean_length" in s:
         print(f"greedy evaluation: mean length {s['eval_mean_length']:.1f}, mean return {s['eval_mean_return']:.1f} "
               f"over {result.eval_lengths.shape[0]} tables × {result.eval_lengths.shape[1]} episodes")
+    if "eval_success_rate" in s:
+        print(f"greedy arrival rate {s['eval_success_rate']:.1%} (best table {s['eval_best_table_success_rate']:.1%})")
     if "selected_table" in s:
         print(f"best table ({s['selected_table']}) on fresh episodes: mean length "
               f"{s['selected_table_fresh_mean_length']:.1f}, mean return {s['selected_table_fresh_mean_return']:.1f}")

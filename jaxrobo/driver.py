@@ -9,12 +9,13 @@ chunk. Between chunks it asks a stop hook (``should_stop``: a chunk boundary is 
 hands the carry to a checkpoint hook at its cadence (every N chunks and/or every T seconds), and at the end.
 
 :func:`run_training` is a whole training run: compile, loop from a fresh or saved carry, greedy evaluation at the
-end (:func:`evaluate_tables`), a :class:`~jaxrobo.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT /
-SIGTERM into a stop request for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself
-installs no signal handlers.
+end (:func:`evaluate_tables`; :func:`success_of_tables` for a task whose target is a success rate), a
+:class:`~jaxrobo.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT / SIGTERM into a stop request for both
+command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
-its :class:`ChunkRun`, :func:`run_training`, :func:`evaluate_tables`, :class:`StopOnSignal`, the hook types
+its :class:`ChunkRun`, :func:`run_training`, :func:`evaluate_tables`, :func:`success_of_tables`,
+:class:`StopOnSignal`, the hook types
 :data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
 """
 from __future__ import annotations
@@ -28,7 +29,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from jaxrobo import tabular
+from jaxrobo import rollout, tabular
 from jaxrobo.tabular import AgentParams
 from jaxrobo import budget
 from jaxrobo.plan import ExecutionPlan
@@ -161,9 +162,10 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                       should_stop=should_stop, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
                       checkpoint_seconds=checkpoint_seconds)
     runner = loop.carry
-    eval_returns = eval_lengths = selected = None
+    eval_returns = eval_lengths = selected = eval_success = None
     if config.eval_episodes > 0 and not loop.stopped:
         eval_returns, eval_lengths, selected = evaluate_tables(trainer, runner, key, env_params)
+        eval_success = success_of_tables(trainer, runner, key, env_params)
 
     host = jax.device_get(runner.replace(key=None, env_state=None))
     q = np.asarray(host.agent.q)
@@ -173,7 +175,8 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_returns=eval_returns,
-        eval_lengths=eval_lengths, selected=selected, complete=not loop.stopped, chunks_done=loop.chunks_done,
+        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
+        chunks_done=loop.chunks_done,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
         learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan))
 
@@ -199,6 +202,30 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
             jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)
         selected = {"table": best, "returns": np.asarray(sel_returns), "lengths": np.asarray(sel_lengths)}
     return eval_returns, eval_lengths, selected
+
+
+def success_of_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any) -> np.ndarray | None:
+    """For a task whose learning target is a ``success_rate`` and whose task variables carry an ``arrived`` flag
+    (QuadcopterGoto): whether each greedy evaluation episode of :func:`evaluate_tables` arrived,
+    ``[tables, eval_episodes]`` (the same tables, keys and so the same episodes); None for any other task."""
+    env, config = trainer.env, trainer.config
+    target = getattr(env, "learning_target", None)
+    if target is None or target.metric != "success_rate":
+        return None
+    probe = jax.eval_shape(lambda k: env.reset(k, env_params), jax.random.key(0))
+    if not hasattr(getattr(probe, "task", None), "arrived"):
+        return None
+    n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
+    tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
+    horizon = int(env.spec.max_episode_steps if env.spec else 1000)
+
+    def arrived(k, agent):
+        out = rollout.rollout(env, rollout.greedy_policy(agent.q, trainer.disc), k, config.eval_episodes, horizon,
+                              env_params)
+        return out["last"].task.arrived
+
+    keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)  # evaluate_tables' keys: its episodes
+    return np.asarray(jax.jit(jax.vmap(arrived, in_axes=(0, 0 if not config.shared_table else None)))(keys, tables))
 
 
 # ---- stopping on a signal ----------------------------------------------------------------------------------------

@@ -83,8 +83,9 @@ class LearningTarget:
     :data:`TARGET_METRICS`: ``"mean_length"`` / ``"mean_return"`` (mean greedy episode length / return, which the
     trainer's evaluation records per table: the summary gives the share of evaluated tables that reach the
     target as ``eval_share_of_tables_<name>``), or ``"success_rate"`` (share of greedy episodes the task counts as
-    a success; the trainer's evaluation does not record success, so the summary names the target only and the
-    task measures it itself).
+    a success: for a task whose task variables carry an ``arrived`` flag the evaluation records it too
+    (:func:`jaxrobo.driver.success_of_tables`) and the summary adds ``eval_success_rate`` and the share; for
+    any other task the summary names the target only and the task measures it itself).
     """
 
     name: str

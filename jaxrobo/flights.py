@@ -27,7 +27,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 #: Task modules whose episodes ``fly`` can draw (they have a position and a goal): the quadcopter tasks.
-FLYING_MODULES = ("envs.quadcopter_goto", "envs.quadcopter_live_show", "envs.quadcopter_goto_twist")
+FLYING_MODULES = ("envs.quadcopter_goto", "envs.quadcopter_goto2", "envs.quadcopter_live_show",
+                  "envs.quadcopter_goto_twist")
 #: Most flights one figure draws (each is a path and its obstacles in one picture).
 MAX_EPISODES = 100
 
@@ -39,7 +40,7 @@ def check_flying(spec: Any, source: str) -> None:
     module = type(spec.env).__module__
     if module not in FLYING_MODULES:
         raise ConfigError(f"{source}: env_id={spec.env_id!r} is not a quadcopter task; `jaxrobo show` draws flights "
-                          f"of QuadcopterGoto-v1 or QuadcopterLiveShow-v0 (use `jaxrobo plot` for other runs)")
+                          f"of QuadcopterGoto-v1/-v2 or QuadcopterLiveShow-v0 (use `jaxrobo plot` for other runs)")
 
 
 def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:

@@ -37,6 +37,9 @@ class TrainResult:
     run_seconds: float
     eval_returns: np.ndarray | None = None  # [eval_envs, eval_episodes]
     eval_lengths: np.ndarray | None = None
+    #: Whether each of those episodes arrived (``[eval_envs, eval_episodes]``), for a task whose learning target
+    #: is a ``success_rate`` (:func:`jaxrobo.driver.success_of_tables`); None otherwise.
+    eval_success: np.ndarray | None = None
     selected: dict[str, Any] | None = None  # the best evaluated table, re-evaluated on fresh episodes
     #: False when ``should_stop`` ended the run early: the records hold the episodes finished so far
     #: (``episodes_done`` per env), there is no evaluation, and the carry at ``chunks_done`` goes on from there.
@@ -82,6 +85,10 @@ class TrainResult:
             out["eval_mean_return"] = float(self.eval_returns.mean())
             out["eval_best_table_mean_length"] = float(self.eval_lengths.mean(axis=1).max())
             per_table = {"mean_length": self.eval_lengths, "mean_return": self.eval_returns}
+            if self.eval_success is not None and self.eval_success.size:
+                per_table["success_rate"] = self.eval_success
+                out["eval_success_rate"] = float(self.eval_success.mean())
+                out["eval_best_table_success_rate"] = float(self.eval_success.mean(axis=1).max())
             if target is not None and target.metric in per_table:
                 score = per_table[target.metric].astype(np.float64).mean(axis=1)
                 out[f"eval_share_of_tables_{target.name}"] = float((score >= target.threshold).mean())

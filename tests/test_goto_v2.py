@@ -1,0 +1,107 @@
+"""QuadcopterGoto-v2: registered, its goal_clear feature, the quick check, a tiny train whose summary carries the
+greedy arrival rate, and benchmarks/goto_learning.py's median over runs (tiny sizes; the figures are a benchmark)."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrobo
+from envs.quadcopter import Obstacles
+from envs.quadcopter_goto2 import OBS_NAMES
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TINY = {"n_envs": 2, "nepisodes": 2, "nsteps": 12, "chunk_steps": 12}
+
+
+def test_v2_is_registered_with_v1_task_and_its_own_presets():
+    assert {"QuadcopterGoto-v1", "QuadcopterGoto-v2"} <= set(jaxrobo.registered())
+    v1, v2 = jaxrobo.make("QuadcopterGoto-v1"), jaxrobo.make("QuadcopterGoto-v2")
+    assert v2.observation_space().shape == (8,) and OBS_NAMES[-1] == "goal_clear"
+    assert v2.num_actions == v1.num_actions == 5
+    assert float(v2.default_params.crash_penalty) == 150.0 and float(v1.default_params.crash_penalty) == 50.0
+    low, high = v2.state_bounds()
+    assert low.shape == high.shape == (8,) and float(high[-1]) == float(v2.default_params.sonar_bound)
+    from jaxrobo.run import resolve
+
+    spec = resolve("QuadcopterGoto-v2", overrides=TINY)
+    assert spec.config.discretiser == "edges" and len(spec.config.edges) == 8
+
+
+def test_goal_clear_sees_the_grown_obstacle_on_the_way_and_ignores_one_beyond_the_goal():
+    env = jaxrobo.make("QuadcopterGoto-v2")
+    p = env.default_params
+    state = env.reset(jax.random.key(3), p)
+    pos = jnp.array([0.0, 0.0, 1.0])
+
+    def clear(goal, cx, cy, radius=0.4):
+        obstacles = Obstacles(jnp.array([1], jnp.int32), jnp.array([[cx, cy, 1.5]]), jnp.array([[radius, radius, 1.5]]),
+                              jnp.array([True]))
+        task = state.task.replace(goal=jnp.asarray(goal, jnp.float32), obstacles=obstacles)
+        return float(env._goal_clear(pos, task, p))
+
+    grow = float(p.drone_radius + p.clear_margin)
+    assert clear([4.0, 0.0, 1.0], 2.0, 0.0) == pytest.approx(2.0 - 0.4 - grow, abs=1e-4)
+    # Beside the line by more than the radius but less than radius + grow: the body would clip it.
+    assert clear([4.0, 0.0, 1.0], 2.0, 0.6) < 2.0
+    assert clear([4.0, 0.0, 1.0], 2.0, 1.2) == float(p.sonar_range)  # clear of the grown obstacle
+    assert clear([1.0, 0.0, 1.0], 2.5, 0.0) == float(p.sonar_range)  # beyond the goal: does not block it
+    obs = env.reset(jax.random.key(0), p).obs
+    assert obs.shape == (8,) and bool(jnp.all(jnp.isfinite(obs)))
+
+
+def test_check_quick_passes_for_v2(capsys):
+    from jaxrobo.cli import main
+
+    assert main(["check", "QuadcopterGoto-v2", "--quick"]) == 0
+    assert "all" in capsys.readouterr().out
+
+
+def test_tiny_train_summary_has_the_greedy_arrival_rate():
+    from jaxrobo.run import resolve
+    from jaxrobo.train import train
+
+    spec = resolve("QuadcopterGoto-v2", overrides={**TINY, "eval_episodes": 4})
+    res = train(spec.env, spec.config, spec.agent_params)
+    assert np.all(np.isfinite(res.returns)) and res.q.shape[-1] == 5
+    assert res.eval_success.shape == (1, 4) and res.eval_success.dtype == bool
+    s = res.summary()
+    assert s["eval_success_rate"] == pytest.approx(res.eval_success.mean())
+    assert s["eval_share_of_tables_arriving"] == float(res.eval_success.mean() >= 0.8)
+    assert "eval_success_rate" in s and 0.0 <= s["eval_best_table_success_rate"] <= 1.0
+
+
+def test_benchmark_spread_is_the_median_over_runs():
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import goto_learning
+
+    s = goto_learning.spread([0.9, 0.1, 0.85, 0.5])
+    assert s["median"] == pytest.approx(0.675) and s["min"] == 0.1 and s["max"] == 0.9
+    assert s["share_of_runs_at_target"] == 0.5
+    with pytest.raises(ValueError, match="one rate per run"):
+        goto_learning.spread([])
+
+
+def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys):
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import goto_learning
+
+    out = tmp_path / "goto.json"
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--runs", "3", "--episodes", "5",
+                               "--select-episodes", "3", "--out", str(out), *sets]) == 0
+    data = json.loads(out.read_text())
+    per_run = data["fresh_success_per_run"]
+    assert data["env"] == "QuadcopterGoto-v2" and data["runs"] == 3 and len(per_run) == 3
+    assert all(r * 5 == pytest.approx(round(r * 5)) for r in per_run)  # whole episodes out of 5
+    assert data["fresh_success"]["median"] == pytest.approx(float(np.median(per_run)), abs=1e-3)
+    assert data["fresh_success"]["min"] == min(per_run) and data["fresh_success"]["max"] == max(per_run)
+    assert data["best_of_population"]["fresh_success"] == per_run[data["best_of_population"]["run"]]
+    assert data["train_seconds"] > 0
+    printed = capsys.readouterr().out
+    assert "MEDIAN" in printed and "secondary, best of population" in printed
