@@ -155,8 +155,12 @@ def test_mjx_state_steps_like_the_full_data_and_forward_rebuilds_it():
     for _ in range(3):
         state = jax.jit(sim.physics_step)(state, ctrl)
         full = jax.jit(lambda d: mjx.step(sim.model, d.replace(ctrl=ctrl)))(full)
-    for name in ("time", "qpos", "qvel", "qacc_warmstart"):
+    for name in ("time", "qpos", "qvel"):
         np.testing.assert_array_equal(np.asarray(getattr(state, name)), np.asarray(getattr(full, name)), name)
+    # The cart-pole can have no constraint rows (contacts off, no limits), so nothing reads the solver's warm
+    # start: the carried state keeps it at zero (MjxSim.physics_step), and the integration above is unchanged.
+    assert sim.constraint_free and not np.asarray(state.qacc_warmstart).any()
+    assert np.asarray(full.qacc_warmstart).any()
     m = sim.mj_model
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:] = np.asarray(state.qpos), np.asarray(state.qvel)
@@ -164,6 +168,21 @@ def test_mjx_state_steps_like_the_full_data_and_forward_rebuilds_it():
     np.testing.assert_allclose(np.asarray(jax.jit(sim.forward)(state).xpos), d.xpos, atol=1e-5)
     with pytest.raises(ValueError, match="forward"):
         CartPoleRobot("effort", "analytic").sim.forward(state)
+
+
+def test_constraint_free_is_false_where_a_constraint_row_can_exist():
+    """Only a model whose constraint solver can never run drops the warm start: contacts on, a joint limit, an
+    equality or friction loss each make it keep MJX's value."""
+    from jaxrobo.sim import constraint_free
+
+    m = load_model(asset_path("cartpole.xml"))
+    assert constraint_free(m)
+    for edit in (lambda m: setattr(m.opt, "disableflags", 0),
+                 lambda m: m.jnt_limited.__setitem__(0, 1),
+                 lambda m: m.dof_frictionloss.__setitem__(0, 0.1)):
+        changed = load_model(asset_path("cartpole.xml"))
+        edit(changed)
+        assert not constraint_free(changed)
 
 
 # ---- the closed-form backend --------------------------------------------------------------------------------
