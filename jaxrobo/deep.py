@@ -581,33 +581,25 @@ def _train_sac(common: dict[str, Any], c: SACConfig, on_params: Callable[[int, A
     """``sac.train`` with the run's evaluation at each of its evaluation points.
 
     Brax's SAC takes no ``policy_params_fn``: it hands the parameters at each point to the
-    ``acting.Evaluator`` it builds, then calls ``progress_fn(step, metrics)``. For the length of the call its
-    evaluator is one that keeps those parameters (and skips Brax's own evaluation rollout), and ``progress_fn``
-    runs the run's evaluation with them at that step; the trainer itself runs unchanged."""
-    from brax.training import acting
+    ``acting.Evaluator`` it builds, then calls ``progress_fn(step, metrics)``. For the length of the call
+    :func:`jaxrobo.brax_compat.keep_evaluator_params` makes that evaluator one that keeps those parameters (and
+    skips Brax's own evaluation rollout), and ``progress_fn`` runs the run's evaluation with them at that step;
+    the trainer itself runs unchanged."""
     from brax.training.agents.sac import train as sac
 
-    seen: dict[str, Any] = {}
+    from jaxrobo.brax_compat import keep_evaluator_params
+
     progress = common["progress_fn"]
+    with keep_evaluator_params() as hook:
+        def on_progress(step: int, metrics: Mapping[str, Any]) -> None:
+            progress(step, metrics)
+            if hook.has_params:
+                on_params(step, hook.pop())
 
-    class KeepParams(acting.Evaluator):
-        def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
-            seen["params"] = policy_params
-            return dict(training_metrics)
-
-    def on_progress(step: int, metrics: Mapping[str, Any]) -> None:
-        progress(step, metrics)
-        if "params" in seen:
-            on_params(step, seen.pop("params"))
-
-    original = acting.Evaluator
-    acting.Evaluator = KeepParams
-    try:
         _, params, _ = sac.train(**{**common, "progress_fn": on_progress}, tau=c.tau,
                                  min_replay_size=c.min_replay_size, max_replay_size=c.max_replay_size,
                                  grad_updates_per_step=c.grad_updates_per_step, num_eval_envs=1)
-    finally:
-        acting.Evaluator = original
+    hook.check()
     return params
 
 
