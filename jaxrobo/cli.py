@@ -151,6 +151,8 @@ def _deep_spec(args: argparse.Namespace, agent: str):
 def _train_deep(args: argparse.Namespace, agent: str) -> int:
     """``jaxrobo train --agent ppo|sac``: Brax's trainer on the env's Brax face, into a run directory that is
     checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.rundir`)."""
+    import shlex
+
     import numpy as np
 
     from jaxrobo import deep, rundir
@@ -178,15 +180,32 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
             line += f"  success {np.mean(row['success']):.3f}"
         print(line, flush=True)
 
-    def stopped(what: str, code: int) -> int:
-        rundir.interrupted(live, out=out, resume=f"(a {agent} run does not resume) jaxrobo train ... --overwrite",
-                           prog="jaxrobo train", what=what, publish_live=True)
-        return code
+    again = f"(a {agent} run does not resume) jaxrobo train ... --out {shlex.quote(out)} --overwrite"
+
+    def stopped(what: str, code: int, **fields) -> int:
+        return _deep_stopped(live, out, again, what, code, **fields)
+
+    def notice(signum: int) -> None:
+        import signal
+
+        print(f"\n{signal.Signals(signum).name}: stopping at the trainer's next evaluation point; nothing trained "
+              "is kept (again to quit at once)", file=sys.stderr)
+
+    # SIGINT/SIGTERM: Brax's trainer cannot be paused, so it is stopped where it hands control back (its next
+    # evaluation point); a second signal exits at once. Either way the run directory says "interrupted".
+    from jaxrobo import driver
 
     try:
-        result = deep.train(spec, progress)
+        with driver.StopOnSignal(notice, second="exit") as stop:
+            result = deep.train(spec, progress, should_stop=stop)
+    except deep.TrainingStopped as err:
+        return stopped(f"{stop.name}: {err}; nothing trained was kept", 128 + stop.signum, signal=stop.name)
+    except SystemExit as err:  # the second signal (StopOnSignal's second="exit")
+        name = stop.name or "signal"
+        return stopped(f"{name} twice: quit during training; nothing trained was kept", int(err.code or 1),
+                       signal=name)
     except KeyboardInterrupt:
-        return stopped("interrupted during training; nothing trained was kept", 130)
+        return stopped("interrupted during training; nothing trained was kept", 130, signal="SIGINT")
     # The trained policy goes to disk first, so that no later error loses it.
     deep.save_policy(live, result.params, result.net)
 
@@ -197,8 +216,10 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
     try:
         rundir.publish_results(out, live, write)
     except Exception as err:  # noqa: BLE001 - the policy is saved in the live directory; say where
-        return stopped(f"writing the results failed ({type(err).__name__}: {err}); the trained policy is in "
-                       f"{live}/{deep.POLICY_NPZ}", 1)
+        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", publish_live=True,
+                           what=f"writing the results failed ({type(err).__name__}: {err}); the trained policy is "
+                                f"in {live}/{deep.POLICY_NPZ}")
+        return 1
     s = result.summary()
     print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s, "
           f"compile included; evaluations {s['eval_seconds']:.1f} s more)")
@@ -208,6 +229,22 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
     print(line + f" over {c.eval_episodes} fresh episodes")
     print(f"results in {out}")
     return 0
+
+
+def _deep_stopped(live: str, out: str, again: str, what: str, code: int, **fields) -> int:
+    """A ppo/sac run stopped before it finished training: nothing trained exists to keep. A new directory
+    (``live`` is ``out``) is marked ``interrupted``; an old run that ``--overwrite`` was to replace stays as it was
+    (a stopped deep run cannot be resumed, so it must not replace a finished one) and the new run's staging
+    directory is removed. Returns ``code``."""
+    from jaxrobo import rundir
+
+    if os.path.abspath(live) == os.path.abspath(out):
+        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", what=what, **fields)
+    else:
+        rundir.discard(live)
+        print(f"jaxrobo train: {what}; {out} still holds the run it had (not replaced); to go on: {again}",
+              file=sys.stderr)
+    return code
 
 
 def _train_checked(args: argparse.Namespace) -> int:
