@@ -61,7 +61,7 @@ def _train_spec(args: argparse.Namespace):
     resume = args.resume
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         raise ConfigError(f"--checkpoint-every={args.checkpoint_every}: expected an integer >= 0 (chunks; 0: "
-                          "only when interrupted)")
+                          "no saves on the way; still saved at the end and when interrupted)")
     if resume is None:
         overrides = train_overrides(args)
         env_id = args.env or "CartPoleStayUp-v0"
@@ -457,8 +457,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="go on with the interrupted run in DIR, from its config.yaml and checkpoint (no other "
                         "config flags)")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
-                   help="save the training carry every N chunks (default: every ~5 minutes; 0: only when "
-                        "interrupted); SIGINT/SIGTERM always save one")
+                   help="save the training carry every N chunks (default: every ~5 minutes; 0: no saves on the "
+                        "way); it is also always saved at the end of training, before the evaluation (a late "
+                        "error then loses no training: --resume continues from it), and on SIGINT/SIGTERM")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_train)
 
