@@ -9,11 +9,12 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import sys
 import time
-from typing import Sequence
+from typing import Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
 PLUGINS = {"show": ("jaxrobo.flights", "draw greedy flights of a trained quadcopter (top and side views)"),
@@ -247,6 +248,32 @@ def _deep_stopped(live: str, out: str, again: str, what: str, code: int, **field
     return code
 
 
+@contextlib.contextmanager
+def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
+    """An error after a checkpoint was saved (evaluating or writing the results of a finished run) leaves a run
+    that ``resume_cmd`` (``jaxrobo train --resume OUT``) continues, and says so. The state of a run that replaces
+    an old one (``--overwrite``) lives in a hidden staging sibling (:func:`jaxrobo.rundir.live_dir`): it is moved
+    into place as OUT first, as an interrupted run is, so that ``--resume OUT`` finds the new run, not the old one.
+    The error is raised again."""
+    from jaxrobo import rundir
+
+    try:
+        yield
+    except Exception:
+        if rundir.is_resumable(live):
+            if os.path.abspath(live) != os.path.abspath(out):
+                try:
+                    rundir.publish(live, out, overwrite=True)
+                except OSError as err:
+                    print(f"jaxrobo train: the run failed after saving its checkpoint in {live}, which could not be "
+                          f"moved to {out} ({err}); move it there (the old run's place), then: {resume_cmd}",
+                          file=sys.stderr)
+                    raise
+            print(f"jaxrobo train: the run failed after saving its checkpoint; {out} holds it; to go on: "
+                  f"{resume_cmd}", file=sys.stderr)
+        raise
+
+
 def _train_checked(args: argparse.Namespace) -> int:
     import shlex
 
@@ -306,7 +333,7 @@ def _train_checked(args: argparse.Namespace) -> int:
               "(again to quit without saving)", file=sys.stderr)
 
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
-    with driver.StopOnSignal(notice, second="exit") as stop:
+    with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
         every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
         with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
