@@ -11,7 +11,12 @@ Layout, and how to add your own robot or task (in this package or in your own):
   controller and sensors;
 * a **task** (``cartpole_stay_up.py``, ``quadcopter_goto.py``, ``quadcopter_live_show.py``) subclasses
   :class:`jaxrobo.env.TaskEnv` with its ``Options``/``Params`` and is registered here with
-  :func:`jaxrobo.registry.register` (``"module:Class"``, its step limit, its YAML files under ``configs/``).
+  :func:`jaxrobo.registry.register` (``"module:Class"``, its step limit, its YAML files under ``configs/``);
+* a **continuous-action task** (``cartpole_continuous.py``: ``CartPoleContinuous-v0``, a bounded force on the
+  cart; ``quadcopter_goto_twist.py``: ``QuadcopterGotoTwist-v0``, the Goto task flown with a Twist
+  ``[vx, vy, vz, yaw_rate]`` bounded by ``speed_value``) has a ``Box`` action space and an observation without
+  discretisation, for Brax's PPO/SAC through :mod:`jaxrobo.brax_env` (``jaxrobo train --agent ppo|sac``); it sits
+  beside its discrete task, whose id stays exactly as it is.
 
 What a module here may import from jaxrobo is the task API: ``jaxrobo.env``, ``jaxrobo.robot``, ``jaxrobo.sim``,
 ``jaxrobo.spaces``, ``jaxrobo.struct``, ``jaxrobo.rng``, ``jaxrobo.registry`` and the rollout/evaluation module

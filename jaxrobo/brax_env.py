@@ -56,8 +56,8 @@ Public surface:
 
 :func:`install_jax_compat` ``()``
     Brax 0.14's trainers call ``jax.device_put_replicated`` / ``device_put_sharded``, which JAX 0.10 removed;
-    this installs the drop-in replacements of JAX's pmap migration guide where they are missing (importing this
-    module does it once), so ``ppo.train`` and ``sac.train`` run unchanged.
+    importing this module installs JAX's documented replacements where they are missing, so ``ppo.train`` and
+    ``sac.train`` run unchanged. It lives, version-guarded, in :mod:`jaxrobo.brax_compat`.
 
 MuJoCo Playground (optional extra ``playground``): its ``wrapper.wrap_for_brax_training`` drives a BraxEnv too
 (the states answer to Playground's ``state.data``), but train with :func:`wrap_for_training`: Playground's default
@@ -85,6 +85,7 @@ from flax import struct
 
 from jaxrobo import registry, rng, spaces
 from jaxrobo.autoreset import autoreset
+from jaxrobo.brax_compat import install_jax_compat
 from jaxrobo.config import ConfigError
 from jaxrobo.env import Env, EnvState
 
@@ -94,30 +95,7 @@ __all__ = ["BraxEnv", "State", "make", "wrap_for_training", "TrainingWrapper", "
 BASE_METRICS = ("terminated", "truncated", "physics_nan")
 
 
-def install_jax_compat() -> None:
-    """Give JAX back ``device_put_replicated`` / ``device_put_sharded`` (removed in JAX 0.10, still called by
-    Brax 0.14's trainers) as JAX's pmap migration guide writes them: a leading device axis, one shard per device.
-    Does nothing where JAX still has them."""
-    def sharding(devices):
-        mesh = jax.sharding.Mesh(np.asarray(devices), ("devices",))
-        return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("devices"))
-
-    def device_put_replicated(x, devices):
-        s = sharding(devices)
-        return jax.tree.map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), s), x)
-
-    def device_put_sharded(shards, devices):
-        s = sharding(devices)
-        return jax.tree.map(lambda *xs: jax.device_put(jnp.stack([jnp.asarray(a) for a in xs]), s), *shards)
-
-    for name, fn in (("device_put_replicated", device_put_replicated), ("device_put_sharded", device_put_sharded)):
-        try:
-            getattr(jax, name)
-        except AttributeError:
-            setattr(jax, name, fn)
-
-
-install_jax_compat()
+install_jax_compat()  # Brax's trainers, driving these envs, call the JAX functions it restores
 
 
 @struct.dataclass

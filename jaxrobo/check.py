@@ -520,10 +520,16 @@ class _Checker:
         import gymnasium
         from gymnasium.utils.env_checker import check_env as gym_check_env
 
-        from jaxrobo.gym_adapter import JaxroboEnv, gym_id
+        from jaxrobo.gym_adapter import JaxroboEnv, gym_id, register_gymnasium_id
+        from jaxrobo.registry import registration
 
         if self.env_id is not None:
-            gid = gym_id(self.env_id)
+            # A user's "module:Id" is registered with Gymnasium under its bare id once its module is imported
+            # (make() above imported it); register it here if that registration was missed.
+            bare = registration(self.env_id).spec.id
+            gid = gym_id(bare)
+            if gid not in gymnasium.registry:
+                register_gymnasium_id(bare)
             if gid not in gymnasium.registry:
                 return _skip(f"{gid} is not registered with Gymnasium (call "
                              "jaxrobo.gym_adapter.register_gymnasium_envs() after registering it)")

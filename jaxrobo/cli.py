@@ -9,11 +9,12 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import sys
 import time
-from typing import Sequence
+from typing import Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
 PLUGINS = {"show": ("jaxrobo.flights", "draw greedy flights of a trained quadcopter (top and side views)"),
@@ -61,7 +62,7 @@ def _train_spec(args: argparse.Namespace):
     resume = args.resume
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         raise ConfigError(f"--checkpoint-every={args.checkpoint_every}: expected an integer >= 0 (chunks; 0: "
-                          "only when interrupted)")
+                          "no saves on the way; still saved at the end and when interrupted)")
     if resume is None:
         overrides = train_overrides(args)
         env_id = args.env or "CartPoleStayUp-v0"
@@ -151,6 +152,8 @@ def _deep_spec(args: argparse.Namespace, agent: str):
 def _train_deep(args: argparse.Namespace, agent: str) -> int:
     """``jaxrobo train --agent ppo|sac``: Brax's trainer on the env's Brax face, into a run directory that is
     checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.rundir`)."""
+    import shlex
+
     import numpy as np
 
     from jaxrobo import deep, rundir
@@ -178,15 +181,32 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
             line += f"  success {np.mean(row['success']):.3f}"
         print(line, flush=True)
 
-    def stopped(what: str, code: int) -> int:
-        rundir.interrupted(live, out=out, resume=f"(a {agent} run does not resume) jaxrobo train ... --overwrite",
-                           prog="jaxrobo train", what=what, publish_live=True)
-        return code
+    again = f"(a {agent} run does not resume) jaxrobo train ... --out {shlex.quote(out)} --overwrite"
+
+    def stopped(what: str, code: int, **fields) -> int:
+        return _deep_stopped(live, out, again, what, code, **fields)
+
+    def notice(signum: int) -> None:
+        import signal
+
+        print(f"\n{signal.Signals(signum).name}: stopping at the trainer's next evaluation point; nothing trained "
+              "is kept (again to quit at once)", file=sys.stderr)
+
+    # SIGINT/SIGTERM: Brax's trainer cannot be paused, so it is stopped where it hands control back (its next
+    # evaluation point); a second signal exits at once. Either way the run directory says "interrupted".
+    from jaxrobo import driver
 
     try:
-        result = deep.train(spec, progress)
+        with driver.StopOnSignal(notice, second="exit") as stop:
+            result = deep.train(spec, progress, should_stop=stop)
+    except deep.TrainingStopped as err:
+        return stopped(f"{stop.name}: {err}; nothing trained was kept", 128 + stop.signum, signal=stop.name)
+    except SystemExit as err:  # the second signal (StopOnSignal's second="exit")
+        name = stop.name or "signal"
+        return stopped(f"{name} twice: quit during training; nothing trained was kept", int(err.code or 1),
+                       signal=name)
     except KeyboardInterrupt:
-        return stopped("interrupted during training; nothing trained was kept", 130)
+        return stopped("interrupted during training; nothing trained was kept", 130, signal="SIGINT")
     # The trained policy goes to disk first, so that no later error loses it.
     deep.save_policy(live, result.params, result.net)
 
@@ -197,8 +217,10 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
     try:
         rundir.publish_results(out, live, write)
     except Exception as err:  # noqa: BLE001 - the policy is saved in the live directory; say where
-        return stopped(f"writing the results failed ({type(err).__name__}: {err}); the trained policy is in "
-                       f"{live}/{deep.POLICY_NPZ}", 1)
+        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", publish_live=True,
+                           what=f"writing the results failed ({type(err).__name__}: {err}); the trained policy is "
+                                f"in {live}/{deep.POLICY_NPZ}")
+        return 1
     s = result.summary()
     print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s, "
           f"compile included; evaluations {s['eval_seconds']:.1f} s more)")
@@ -208,6 +230,48 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
     print(line + f" over {c.eval_episodes} fresh episodes")
     print(f"results in {out}")
     return 0
+
+
+def _deep_stopped(live: str, out: str, again: str, what: str, code: int, **fields) -> int:
+    """A ppo/sac run stopped before it finished training: nothing trained exists to keep. A new directory
+    (``live`` is ``out``) is marked ``interrupted``; an old run that ``--overwrite`` was to replace stays as it was
+    (a stopped deep run cannot be resumed, so it must not replace a finished one) and the new run's staging
+    directory is removed. Returns ``code``."""
+    from jaxrobo import rundir
+
+    if os.path.abspath(live) == os.path.abspath(out):
+        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", what=what, **fields)
+    else:
+        rundir.discard(live)
+        print(f"jaxrobo train: {what}; {out} still holds the run it had (not replaced); to go on: {again}",
+              file=sys.stderr)
+    return code
+
+
+@contextlib.contextmanager
+def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
+    """An error after a checkpoint was saved (evaluating or writing the results of a finished run) leaves a run
+    that ``resume_cmd`` (``jaxrobo train --resume OUT``) continues, and says so. The state of a run that replaces
+    an old one (``--overwrite``) lives in a hidden staging sibling (:func:`jaxrobo.rundir.live_dir`): it is moved
+    into place as OUT first, as an interrupted run is, so that ``--resume OUT`` finds the new run, not the old one.
+    The error is raised again."""
+    from jaxrobo import rundir
+
+    try:
+        yield
+    except Exception:
+        if rundir.is_resumable(live):
+            if os.path.abspath(live) != os.path.abspath(out):
+                try:
+                    rundir.publish(live, out, overwrite=True)
+                except OSError as err:
+                    print(f"jaxrobo train: the run failed after saving its checkpoint in {live}, which could not be "
+                          f"moved to {out} ({err}); move it there (the old run's place), then: {resume_cmd}",
+                          file=sys.stderr)
+                    raise
+            print(f"jaxrobo train: the run failed after saving its checkpoint; {out} holds it; to go on: "
+                  f"{resume_cmd}", file=sys.stderr)
+        raise
 
 
 def _train_checked(args: argparse.Namespace) -> int:
@@ -269,7 +333,7 @@ def _train_checked(args: argparse.Namespace) -> int:
               "(again to quit without saving)", file=sys.stderr)
 
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
-    with driver.StopOnSignal(notice, second="exit") as stop:
+    with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
         every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
         with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
@@ -422,8 +486,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="go on with the interrupted run in DIR, from its config.yaml and checkpoint (no other "
                         "config flags)")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
-                   help="save the training carry every N chunks (default: every ~5 minutes; 0: only when "
-                        "interrupted); SIGINT/SIGTERM always save one")
+                   help="save the training carry every N chunks (default: every ~5 minutes; 0: no saves on the "
+                        "way); it is also always saved at the end of training, before the evaluation (a late "
+                        "error then loses no training: --resume continues from it), and on SIGINT/SIGTERM")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_train)
 

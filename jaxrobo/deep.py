@@ -22,7 +22,7 @@ termination). jaxrobo adds what a run needs around them:
 
 Public surface: :data:`AGENTS`, :class:`PPOConfig`, :class:`SACConfig`, :class:`DeepRunSpec`, :func:`is_deep`,
 :func:`config_class`, :func:`presets`, :func:`resolve`, :func:`check_combinations`, :func:`train`,
-:class:`DeepResult`, :func:`evaluate`, :func:`save_policy`, :func:`load_policy`, :class:`LoadedPolicy`,
+:class:`TrainingStopped`, :class:`DeepResult`, :func:`evaluate`, :func:`save_policy`, :func:`load_policy`, :class:`LoadedPolicy`,
 :func:`write_run`, :func:`spec_from_config`.
 """
 from __future__ import annotations
@@ -521,12 +521,22 @@ class DeepResult:
         return out
 
 
-def train(spec: DeepRunSpec, progress: Callable[[dict[str, Any]], None] | None = None) -> DeepResult:
+class TrainingStopped(Exception):
+    """:func:`train` stopped at one of the trainer's evaluation points because ``should_stop()`` said so."""
+
+
+def train(spec: DeepRunSpec, progress: Callable[[dict[str, Any]], None] | None = None,
+          should_stop: Callable[[], bool] | None = None) -> DeepResult:
     """Train with Brax's trainer on the env's Brax face; evaluate at each of its ``num_evals`` points.
 
     ``progress(evaluation)`` is called with each evaluation's dict (host arrays). Brax's own evaluator is not
     run (``run_evals=False`` for PPO; SAC's ``num_eval_envs`` is kept minimal): the run's evaluation is
-    :func:`evaluate` on fresh episodes of the jaxrobo env."""
+    :func:`evaluate` on fresh episodes of the jaxrobo env.
+
+    Brax's trainer runs as one call with no way to pause it: ``should_stop()`` (e.g. a
+    :class:`jaxrobo.driver.StopOnSignal`) is asked each time the trainer hands control back (its progress and
+    parameter callbacks, at each evaluation point), and :class:`TrainingStopped` is raised out of the trainer
+    there when it says so; nothing of the unfinished training is returned."""
     import jax
 
     from jaxrobo import brax_env  # its import gives Brax 0.14's trainers the JAX calls they need
@@ -540,7 +550,12 @@ def train(spec: DeepRunSpec, progress: Callable[[dict[str, Any]], None] | None =
     key = jax.random.fold_in(jax.random.key(c.seed), 7)
     net = network_config(spec, int(benv.observation_size), int(benv.action_size))
 
+    def stop_here() -> None:
+        if should_stop is not None and should_stop():
+            raise TrainingStopped(f"stopped at {len(evaluations)} of {c.num_evals} evaluation points")
+
     def on_params(step: int, make_policy: Callable, params: Any) -> None:
+        stop_here()
         t0 = time.perf_counter()
         if timer["evaluate"] is None:
             timer["evaluate"] = evaluate(spec.env, benv, make_policy, c.eval_episodes, length)
@@ -554,6 +569,7 @@ def train(spec: DeepRunSpec, progress: Callable[[dict[str, Any]], None] | None =
             progress(row)
 
     def on_progress(step: int, metrics: Mapping[str, Any]) -> None:
+        stop_here()
         if metrics:
             metrics_log.append({"env_steps": int(step), **{k: float(np.asarray(v)) for k, v in metrics.items()
                                                             if np.size(v) == 1}})
@@ -581,33 +597,25 @@ def _train_sac(common: dict[str, Any], c: SACConfig, on_params: Callable[[int, A
     """``sac.train`` with the run's evaluation at each of its evaluation points.
 
     Brax's SAC takes no ``policy_params_fn``: it hands the parameters at each point to the
-    ``acting.Evaluator`` it builds, then calls ``progress_fn(step, metrics)``. For the length of the call its
-    evaluator is one that keeps those parameters (and skips Brax's own evaluation rollout), and ``progress_fn``
-    runs the run's evaluation with them at that step; the trainer itself runs unchanged."""
-    from brax.training import acting
+    ``acting.Evaluator`` it builds, then calls ``progress_fn(step, metrics)``. For the length of the call
+    :func:`jaxrobo.brax_compat.keep_evaluator_params` makes that evaluator one that keeps those parameters (and
+    skips Brax's own evaluation rollout), and ``progress_fn`` runs the run's evaluation with them at that step;
+    the trainer itself runs unchanged."""
     from brax.training.agents.sac import train as sac
 
-    seen: dict[str, Any] = {}
+    from jaxrobo.brax_compat import keep_evaluator_params
+
     progress = common["progress_fn"]
+    with keep_evaluator_params() as hook:
+        def on_progress(step: int, metrics: Mapping[str, Any]) -> None:
+            progress(step, metrics)
+            if hook.has_params:
+                on_params(step, hook.pop())
 
-    class KeepParams(acting.Evaluator):
-        def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
-            seen["params"] = policy_params
-            return dict(training_metrics)
-
-    def on_progress(step: int, metrics: Mapping[str, Any]) -> None:
-        progress(step, metrics)
-        if "params" in seen:
-            on_params(step, seen.pop("params"))
-
-    original = acting.Evaluator
-    acting.Evaluator = KeepParams
-    try:
         _, params, _ = sac.train(**{**common, "progress_fn": on_progress}, tau=c.tau,
                                  min_replay_size=c.min_replay_size, max_replay_size=c.max_replay_size,
                                  grad_updates_per_step=c.grad_updates_per_step, num_eval_envs=1)
-    finally:
-        acting.Evaluator = original
+    hook.check()
     return params
 
 

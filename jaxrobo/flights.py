@@ -4,7 +4,8 @@ Reads a training run directory (``config.yaml`` + ``qtables.npz``, as :mod:`jaxr
 flies the greedy policy of one trained table; or, with ``--env ID``, flies an untrained (random) policy. A
 ``--agent ppo|sac`` run (``policy.npz`` + ``policy.json``, :mod:`jaxrobo.deep`) flies its saved deterministic
 policy; for a task that does not fly (the continuous cart-pole) the figure shows each observation over the
-episodes instead.
+episodes instead. ``--video PATH`` renders one episode of the same policy to a GIF/MP4 instead
+(:func:`jaxrobo.render.record_episode`; Discrete and Box actions).
 Obstacles and goals are task data (never physics bodies), so they are drawn from each episode's task state.
 """
 from __future__ import annotations
@@ -24,6 +25,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=int, default=6, help="flights to draw")
     parser.add_argument("--table", type=int, default=0, help="which trained table (env index) to fly")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the flights")
+    parser.add_argument("--video", metavar="PATH", default=None,
+                        help="render one episode of the run's policy (a trained table, a saved ppo/sac policy, or "
+                             "random with --env) to this .gif or .mp4 instead of drawing the figure; needs an "
+                             "offscreen OpenGL (EGL or OSMesa). A ppo/sac run of any task renders, not only "
+                             "quadcopter flights")
 
 
 #: Task modules whose episodes ``fly`` can draw (they have a position and a goal): the quadcopter tasks.
@@ -198,6 +204,42 @@ def check_args(args: argparse.Namespace) -> None:
     if args.table < 0:
         raise ConfigError(f"--table {args.table}: must be an integer >= 0")
     check_image_path(args.out)
+    if args.video is not None:
+        ext = os.path.splitext(args.video)[1].lower()
+        if ext not in VIDEO_EXTENSIONS:
+            raise ConfigError(f"--video {args.video!r}: expected a file ending in {', '.join(VIDEO_EXTENSIONS)}")
+        if os.path.isdir(args.video):
+            raise ConfigError(f"--video {args.video!r} is a directory; give a file name")
+
+
+#: What ``--video`` writes (``.gif`` needs only imageio; the others imageio-ffmpeg).
+VIDEO_EXTENSIONS = (".gif", ".mp4", ".mov", ".avi", ".mkv")
+
+
+def video(spec: Any, path: str, seed: int, policy: Any = None, q: np.ndarray | None = None, table: int = 0) -> int:
+    """Render one episode to ``path``: of ``policy`` (a :data:`jaxrobo.rollout.Policy` ``(key, obs) -> action``,
+    a saved ppo/sac policy), of the greedy table ``q[table]``, or random; an exit code (1 with the reason where
+    no offscreen OpenGL can be had)."""
+    import sys
+
+    from jaxrobo import render
+
+    if policy is not None:
+        host = render.jax_policy(policy, seed)
+    elif q is not None:
+        from jaxrobo.trainer import make_discretiser_for
+
+        host = render.q_policy(np.asarray(q[table]), make_discretiser_for(spec.env, spec.config), seed)
+    else:
+        host = None
+    try:
+        info = render.record_episode(spec.env, path, host, seed=seed)
+    except render.RenderUnavailable as err:
+        print(f"jaxrobo show: --video: cannot render: {err}", file=sys.stderr)
+        return 1
+    print(f"wrote {path} ({info['frames']} frames: return {info['return']:.2f}, {info['length']} steps"
+          f"{', terminated' if info['terminated'] else ''})")
+    return 0
 
 
 def _load_deep_run(run_dir: str, table: int) -> tuple[Any, Any]:
@@ -273,6 +315,8 @@ def run(args: argparse.Namespace) -> int:
             spec, policy = _load_deep_run(args.run_dir, args.table)
             q = None
             what = f"{spec.agent} policy, {args.run_dir}"
+            if args.video is not None:
+                return video(spec, args.video, args.seed, policy=policy)
             if type(spec.env).__module__ not in FLYING_MODULES:
                 res = trace(spec, policy, args.episodes, args.seed)
                 space = spec.env.observation_space()
@@ -292,6 +336,8 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as err:
         print(f"jaxrobo show: {err}", file=sys.stderr)
         return 2
+    if args.video is not None:
+        return video(spec, args.video, args.seed, q=q, table=args.table)
     res = fly(spec, q, args.table, args.episodes, args.seed, policy=policy)
     p = spec.env.default_params
     summary = ""

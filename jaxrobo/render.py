@@ -351,13 +351,33 @@ def render_frame(env: Any, state: Any, width: int = 320, height: int = 240, came
         return r.render(state, params)
 
 
-Policy = Callable[[np.ndarray], int]
+#: A host policy: observation -> action (an int for a Discrete action space, an array of the Box's shape for a
+#: continuous one).
+Policy = Callable[[np.ndarray], Any]
+
+
+def _host_action(space: Any, policy: Policy | None, obs: np.ndarray, rng: np.random.Generator) -> Any:
+    """The action to step with: the policy's (random if None), as the action space's type and shape."""
+    from jaxrobo import spaces
+
+    if isinstance(space, spaces.Discrete):
+        return np.int32(int(rng.integers(space.n)) if policy is None else int(policy(obs)))
+    if policy is None:  # uniform in the Box; an unbounded side draws from [-1, 1] as Box.sample does
+        low = np.where(np.isfinite(space.low), space.low, -1.0)
+        high = np.where(np.isfinite(space.high), space.high, 1.0)
+        return rng.uniform(low, high).astype(space.dtype)
+    action = np.asarray(policy(obs), space.dtype)
+    if action.shape != space.shape:
+        raise ValueError(f"the policy returned an action of shape {action.shape}; the env's Box action space has "
+                         f"shape {space.shape}")
+    return action
 
 
 def rollout_frames(env: Any, policy: Policy | None = None, seed: int = 0, max_steps: int | None = None,
                    width: int = 320, height: int = 240, camera: str | int | None = None,
                    params: Any = None) -> tuple[list[np.ndarray], dict[str, Any]]:
-    """Run one episode of ``policy`` (observation → action; random if None) and draw every state.
+    """Run one episode of ``policy`` (observation → action; random if None) and draw every state. Discrete and
+    Box action spaces (a saved PPO/SAC policy: :func:`jax_policy` of :func:`jaxrobo.deep.env_policy`).
 
     Returns ``(frames, {"return", "length", "terminated", "truncated"})``.
     """
@@ -370,14 +390,13 @@ def rollout_frames(env: Any, policy: Policy | None = None, seed: int = 0, max_st
     state, _ = fns.reset(jax.random.key(seed), params)
     limit = int(max_steps if max_steps is not None else params.max_episode_steps)
     rng = np.random.default_rng(seed)
-    n_actions = env.action_space(params).n
+    space = env.action_space(params)
     frames, total, length = [], 0.0, 0
     with Renderer(env, width, height, camera) as r:
         frames.append(r.render(state, params))
         while length < limit:
-            obs = np.asarray(state.obs)
-            action = int(rng.integers(n_actions)) if policy is None else int(policy(obs))
-            state, _ = fns.step(state, np.int32(action), params)
+            action = _host_action(space, policy, np.asarray(state.obs), rng)
+            state, _ = fns.step(state, action, params)
             total += float(state.reward)
             length += 1
             frames.append(r.render(state, params))
@@ -385,6 +404,25 @@ def rollout_frames(env: Any, policy: Policy | None = None, seed: int = 0, max_st
                 break
     return frames, {"return": total, "length": length, "terminated": bool(state.terminated),
                     "truncated": bool(state.truncated)}
+
+
+def jax_policy(policy: Callable[[Any, Any], Any], seed: int = 0) -> Policy:
+    """A :data:`jaxrobo.rollout.Policy` ``(key, obs) -> action`` (e.g. :func:`jaxrobo.deep.env_policy` of a saved
+    PPO/SAC policy) as a host :data:`Policy` ``obs -> action array``: jitted once, the ``t``-th call acting with
+    ``fold_in(key(seed), t)`` as :class:`jaxrobo.rollout.host_policy` does for a Discrete policy."""
+    import jax
+    import jax.numpy as jnp
+
+    act = jax.jit(policy)
+    key = jax.random.key(seed)
+    t = [0]
+
+    def host(obs: np.ndarray) -> np.ndarray:
+        k = jax.random.fold_in(key, t[0])
+        t[0] += 1
+        return np.asarray(act(k, jnp.asarray(obs)))
+
+    return host
 
 
 def write_video(path: str, frames: Sequence[np.ndarray], fps: float = 25.0) -> str:

@@ -68,3 +68,32 @@ def test_list_names_envs_and_agents(capsys):
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     assert "CartPoleStayUp-v0" in out and "qlearn" in out
+
+
+def test_train_help_and_readme_say_what_a_new_user_needs(capsys):
+    """`jaxrobo train --help`: the carry is also saved at the end of training; the README's "Use it" links the
+    deep-RL guide with a PPO example; the envs package lists its continuous-action task modules."""
+    import re
+
+    import envs
+    from jaxrobo import registry, spaces
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    entry = help_text[help_text.index("--checkpoint-every N save"):]
+    assert "also always saved at the end of training, before the evaluation" in entry[:400]
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with open(os.path.join(root, "README.md")) as f:
+        readme = f.read()
+    use_it = readme[readme.index("## Use it"):readme.index("\n## ", readme.index("## Use it") + 1)]
+    assert "(docs/deep_rl.md)" in use_it and os.path.isfile(os.path.join(root, "docs", "deep_rl.md"))
+    assert "jaxrobo train --env QuadcopterGotoTwist-v0 --agent ppo --out runs/goto_ppo" in use_it
+    assert re.search(r"^jaxrobo show runs/goto_ppo\b", use_it, re.M)
+
+    for env_id in registry.registered():
+        reg = registry.registration(env_id)
+        if reg.module is None and isinstance(registry.make(env_id).action_space(), spaces.Box):
+            module = reg.env_class().__module__.split(".")[-1]
+            assert f"``{module}.py``" in envs.__doc__ and f"``{env_id}``" in envs.__doc__, env_id

@@ -200,3 +200,84 @@ print("ok")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stdout + proc.stderr
+
+
+# -- videos of Box-action envs and of saved PPO/SAC policies ------------------------------------------------------
+def _saved_deep_run(root, agent: str, env_id: str = "CartPoleContinuous-v0", steps: int = 6) -> str:
+    """A ppo/sac run directory (config.yaml + a saved policy of non-trivial parameters) without training."""
+    from jaxrobo import deep
+    from jaxrobo.brax_env import BraxEnv
+    from jaxrobo.results import write_config
+
+    spec = deep.resolve(env_id, agent, "tiny", {"env.max_episode_steps": steps})
+    benv = BraxEnv(spec.env)
+    net = deep.network_config(spec, benv.observation_size, benv.action_size)
+    leaves, treedef = jax.tree.flatten(deep._template(net))
+    rng = np.random.default_rng(0)
+    params = jax.tree.unflatten(treedef, [np.asarray(rng.uniform(0.5, 1.5, np.shape(x)), np.asarray(x).dtype)
+                                          for x in leaves])
+    out = os.path.join(str(root), f"{agent}_{env_id}")
+    os.makedirs(out)
+    write_config(out, spec.to_dict())
+    deep.save_policy(out, params, net)
+    return out
+
+
+@needs_gl
+def test_rollout_frames_of_a_box_action_env_random_and_with_a_policy():
+    env = jaxrobo.make("CartPoleContinuous-v0")
+    frames, info = render.rollout_frames(env, None, seed=2, max_steps=4, width=48, height=36)
+    assert len(frames) == info["length"] + 1 and frames[0].shape == (36, 48, 3)
+    pushed = []
+    frames, info = render.rollout_frames(env, lambda obs: pushed.append(obs) or np.ones(1, np.float32),
+                                         seed=2, max_steps=4, width=48, height=36)
+    assert len(pushed) == info["length"] and not np.array_equal(frames[0], frames[-1])
+    with pytest.raises(ValueError, match=r"shape \(2,\).*shape \(1,\)"):
+        render.rollout_frames(env, lambda obs: np.zeros(2), max_steps=2, width=48, height=36)
+
+
+@needs_gl
+@pytest.mark.parametrize("agent", ["ppo", "sac"])
+def test_show_video_renders_a_saved_deep_policy(tmp_path, capsys, agent):
+    pytest.importorskip("imageio", reason="imageio (the test extra) writes the GIF")
+    import imageio.v2 as imageio
+
+    from jaxrobo import deep
+    from jaxrobo.cli import main
+
+    run = _saved_deep_run(tmp_path, agent)
+    gif = str(tmp_path / "episode.gif")
+    assert main(["show", run, "--video", gif, "--seed", "3"]) == 0
+    frames = imageio.mimread(gif)
+    assert f"wrote {gif} ({len(frames)} frames" in capsys.readouterr().out
+    assert 2 <= len(frames) <= 7  # the run's 6-step episodes, first state included
+
+    # The episode is the saved policy's: the same actions as the policy acting on the same observations.
+    from jaxrobo.brax_env import BraxEnv
+    from jaxrobo.results import load_config
+
+    spec = deep.spec_from_config(load_config(run))
+    loaded = deep.load_policy(run)
+
+    host = render.jax_policy(deep.env_policy(BraxEnv(spec.env), loaded.make_policy, loaded.params), 3)
+    seen = []
+    _, info = render.rollout_frames(spec.env, lambda obs: seen.append(host(obs)) or seen[-1], seed=3,
+                                    width=32, height=24)
+    assert info["length"] == len(frames) - 1 and all(a.shape == (1,) and abs(a[0]) <= 1 for a in seen)
+
+
+def test_show_video_says_why_without_gl_and_checks_the_path(tmp_path, monkeypatch, capsys):
+    from jaxrobo.cli import main
+
+    run = _saved_deep_run(tmp_path, "ppo", steps=2)
+    assert main(["show", run, "--video", str(tmp_path / "x.png")]) == 2
+    assert "--video" in capsys.readouterr().err
+
+    class NoGL:
+        def __init__(self, *args, **kwargs):
+            raise render.RenderUnavailable("no display and no offscreen OpenGL: test")
+
+    monkeypatch.setattr(render, "Renderer", NoGL)
+    assert main(["show", run, "--video", str(tmp_path / "x.gif")]) == 1
+    assert "cannot render: no display and no offscreen OpenGL: test" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "x.gif")

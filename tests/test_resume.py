@@ -271,6 +271,42 @@ def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunnin
     _assert_same_run(out, full)
 
 
+def test_a_late_write_failure_of_an_overwrite_is_resumed_from_out(tmp_path, monkeypatch, capsys):
+    """--overwrite keeps the new run's state in a hidden sibling while it runs; a late write failure moves that
+    state into place, so that ``--resume OUT`` continues the new run (not the old one it replaces) without
+    running a chunk again, and the failure says so."""
+    from jaxrobo import driver, results
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "status.json").write_text(json.dumps({"status": "complete"}))  # an old finished run
+    (out / "summary.json").write_text("{}")
+
+    def full_disk(*_a, **_k):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(results, "write_tensorboard", full_disk)
+        with pytest.raises(OSError, match="No space left"):
+            main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", str(out), "--overwrite"])
+    assert f"to go on: jaxrobo train --resume {out}" in capsys.readouterr().err
+    assert sorted(n for n in os.listdir(tmp_path) if n.startswith(".")) == []  # no state left in a sibling
+    status = rundir.read_status(str(out))
+    assert rundir.is_resumable(str(out)) and status["status"] == rundir.RUNNING and status["chunks_done"] > 0
+    assert not os.path.exists(out / "summary.json")  # the old run is replaced, nothing half-written published
+
+    chunks_run = []
+    real = driver.compiled_chunk
+
+    def counting(*args, **kwargs):
+        chunk = real(*args, **kwargs)
+        return lambda *a: (chunks_run.append(1), chunk(*a))[1]
+
+    monkeypatch.setattr(driver, "compiled_chunk", counting)
+    assert main(["train", "--resume", str(out), "--no-progress"]) == 0
+    assert chunks_run == [] and rundir.read_status(str(out))["status"] == rundir.COMPLETE
+
+
 def test_changed_config_message(tmp_path, capsys):
     """The refusal of an edited config.yaml names what differs."""
     out = str(tmp_path / "run")

@@ -140,3 +140,17 @@ def test_make_names_the_missing_module(example_dir):
         jaxrobo.make("no_such_module_xyz:X-v0")
     with pytest.raises(ConfigError, match=r"expected 'module:Id'"):
         jaxrobo.make("my_task:")
+
+
+def test_check_runs_gymnasium_on_a_user_module_id(example_dir):
+    """`jaxrobo check my_task:MyPendulum-v0`: Gymnasium's checker runs on the bare id the module registered
+    (jaxrobo/MyPendulum-v0), also when that Gymnasium registration is missing."""
+    from jaxrobo.check import check_env
+
+    for forget in (False, True):
+        if forget:
+            gymnasium.registry.pop(f"jaxrobo/{ID}", None)
+        (result,) = check_env(f"my_task:{ID}", checks=("gymnasium",))
+        assert result.status == "ok", result.message
+        assert f"gymnasium.make('jaxrobo/{ID}')" in result.message
+    assert f"jaxrobo/{ID}" in gymnasium.registry

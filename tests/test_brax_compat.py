@@ -1,0 +1,103 @@
+"""jaxrobo.brax_compat: the JAX shim for Brax's trainers and the SAC evaluator swap, and their Brax version guard."""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+from brax.training import acting
+
+from jaxrobo import brax_compat
+
+
+@pytest.fixture(autouse=True)
+def fresh_warnings(monkeypatch):
+    monkeypatch.setattr(brax_compat, "_WARNED", set())  # each test sees its own once-only warnings
+
+
+def test_installed_brax_is_in_range_and_the_guard_trips_outside_it():
+    assert brax_compat.unavailable() is None, brax_compat.unavailable()
+    low, high = brax_compat.WRITTEN_FOR
+    assert brax_compat.unavailable(f"{low[0]}.{low[1]}.0") is None
+    for version in (f"{high[0]}.{high[1]}.0", "0.13.9", "1.0.0", "nightly"):
+        reason = brax_compat.unavailable(version)
+        assert reason is not None and version in reason and "written for" in reason
+
+
+def test_jax_shim_is_a_no_op_where_jax_has_the_functions(monkeypatch):
+    def mine(*args):
+        raise AssertionError("not to be called")
+
+    for name in brax_compat.JAX_FUNCTIONS:
+        monkeypatch.setattr(jax, name, mine, raising=False)
+    assert brax_compat.install_jax_compat() == []
+    assert brax_compat.install_jax_compat("0.99.0") == []  # nothing to do, so no guard either
+    assert all(getattr(jax, name) is mine for name in brax_compat.JAX_FUNCTIONS)
+
+
+def test_jax_shim_fills_in_what_jax_lacks_and_warns_outside_the_range(monkeypatch):
+    for name in brax_compat.JAX_FUNCTIONS:
+        monkeypatch.delattr(jax, name, raising=False)
+    assert brax_compat.install_jax_compat() == list(brax_compat.JAX_FUNCTIONS)
+    devices = jax.devices()[:1]
+    rep = jax.device_put_replicated({"a": np.arange(3.0)}, devices)
+    np.testing.assert_array_equal(np.asarray(rep["a"]), [[0.0, 1.0, 2.0]])
+    sharded = jax.device_put_sharded([np.full(2, 5.0)], devices)
+    np.testing.assert_array_equal(np.asarray(sharded), [[5.0, 5.0]])
+
+    for name in brax_compat.JAX_FUNCTIONS:
+        monkeypatch.delattr(jax, name)
+    with pytest.warns(RuntimeWarning, match=r"brax 0\.99\.0 is outside the versions"):
+        assert brax_compat.install_jax_compat("0.99.0") == list(brax_compat.JAX_FUNCTIONS)
+    assert callable(jax.device_put_replicated)
+
+
+def test_evaluator_swap_keeps_params_and_restores_the_original_even_when_training_raises():
+    original = acting.Evaluator
+    with pytest.raises(KeyboardInterrupt):
+        with brax_compat.keep_evaluator_params() as hook:
+            assert acting.Evaluator is not original and issubclass(acting.Evaluator, original)
+            out = acting.Evaluator.run_evaluation(None, "params-1", {"loss": 1.0})
+            assert out == {"loss": 1.0} and hook.has_params and hook.pop() == "params-1" and not hook.has_params
+            raise KeyboardInterrupt
+    assert acting.Evaluator is original
+    assert hook.calls == 1
+    hook.check()  # it saw parameters
+
+
+def test_sac_training_restores_the_evaluator_when_the_trainer_raises(monkeypatch):
+    """deep._train_sac through the swap, with a fake sac.train that evaluates once and then fails."""
+    from brax.training.agents.sac import train as sac
+
+    from jaxrobo import deep
+
+    original = acting.Evaluator
+    seen = []
+
+    def fake_train(progress_fn, **kwargs):
+        acting.Evaluator.run_evaluation(None, "params-at-0", {})
+        progress_fn(0, {})
+        raise RuntimeError("trainer failed")
+
+    monkeypatch.setattr(sac, "train", fake_train)
+    with pytest.raises(RuntimeError, match="trainer failed"):
+        deep._train_sac({"progress_fn": lambda step, m: None}, deep.SACConfig(),
+                        lambda step, p: seen.append((step, p)))
+    assert seen == [(0, "params-at-0")]
+    assert acting.Evaluator is original
+
+
+def test_evaluator_swap_guard_trips(monkeypatch):
+    with pytest.warns(RuntimeWarning, match=r"brax 0\.99\.0 is outside"):
+        with brax_compat.keep_evaluator_params("0.99.0") as hook:
+            pass
+    with pytest.raises(brax_compat.BraxCompatError, match=r"brax 0\.99\.0: sac\.train never handed"):
+        hook.check()  # a trainer that no longer builds acting.Evaluator leaves no evaluations: said, not an IndexError
+
+    class NotAnEvaluator:
+        pass
+
+    monkeypatch.setattr(acting, "Evaluator", NotAnEvaluator)
+    with pytest.raises(brax_compat.BraxCompatError, match="has no run_evaluation"):
+        with brax_compat.keep_evaluator_params():
+            pass
+    assert acting.Evaluator is NotAnEvaluator
