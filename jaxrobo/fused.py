@@ -14,7 +14,8 @@ quadcopter's 30) runs them as a rolled loop, one round trip of the whole state t
   written-out physics into several kernels, but the step ran 1.3-1.6x faster for the quadcopter (the plan's
   default there: :func:`jaxrobo.plan.default_fused`).
 * **Steps inside blocks of envs** (``fused_block``). The chunk runs block after block of ``fused_block`` envs,
-  each block doing all ``chunk_steps`` steps before the next starts (:func:`run_chunk_blocked`): the loop over
+  each block doing all ``chunk_steps`` steps before the next starts (:meth:`jaxrobo.trainer.Trainer.run_chunk`):
+  the loop over
   steps moves inside the loop over envs, so a block's carry can stay in cache across its steps. Envs with their
   own tables are independent, so the values are those of the plain path bit for bit; with a shared table they
   are not (each step's update mixes every env), so a shared table always runs unblocked. Measured slower on both
@@ -26,16 +27,15 @@ path as its oracle (same tables and records bit for bit on a CPU, whatever the b
 XLA may contract the written-out substeps' multiply-adds differently, so values can differ in the last bits
 there, and a tabular run then takes another path (within the seed-to-seed spread in the runs measured).
 
-Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`choose`, :func:`run_chunk_blocked`.
+Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`choose`. The module imports nothing of
+jaxrobo's: the simulators read its flag and the plan its choices, and the trainer runs the blocks.
 """
 from __future__ import annotations
 
 import contextlib
 import contextvars
-import dataclasses
-from typing import Any, Iterator
+from typing import Iterator
 
-import jax
 
 #: The values of ``ExecutionPlan.fused``.
 CHOICES = ("off", "xla")
@@ -58,35 +58,3 @@ def choose(fused: str) -> Iterator[None]:
         yield
     finally:
         _UNROLL_ALL.reset(token)
-
-
-def _block_trainer(trainer: Any, size: int) -> Any:
-    """A trainer for ``size`` of ``trainer``'s envs: the same env, learner, discretiser and plan, unfused (it is
-    the block's body), with the plan's reset capacity scaled to the block."""
-    from jaxrobo.trainer import Trainer
-
-    c, plan = trainer.config, trainer.plan
-    capacity = None
-    if plan.reset_capacity is not None and plan.reset_capacity < c.n_envs:
-        capacity = max(1, -(-plan.reset_capacity * size // c.n_envs))
-    return Trainer(trainer.env, dataclasses.replace(c, n_envs=size), trainer.disc, trainer.learner,
-                   plan=plan.replace(fused="off", fused_block=None, reset_capacity=capacity))
-
-
-def run_chunk_blocked(trainer: Any, runner: Any, agent_params: Any, env_params: Any, block: int) -> Any:
-    """``trainer.run_chunk`` with the loop over steps inside a loop over blocks of ``block`` envs (the last block
-    shorter if need be): each block runs all ``chunk_steps`` steps, its carry updated in place. Only for
-    per-env tables (the caller checks): the envs are then independent and the values are the unblocked ones."""
-    from jaxrobo.plan import map_groups
-
-    bodies: dict[int, Any] = {}
-
-    def one_block(part: Any) -> Any:
-        size = jax.tree.leaves(part)[0].shape[0]
-        if size not in bodies:
-            bodies[size] = _block_trainer(trainer, size)
-        return bodies[size].run_chunk(part, agent_params, env_params)
-
-    # One block per loop iteration (not written out: each written-out block is another copy of the whole
-    # chunk to compile).
-    return map_groups(one_block, runner, block, unrolled=1)

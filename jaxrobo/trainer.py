@@ -18,6 +18,7 @@ underscore are private.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import jax
@@ -26,10 +27,10 @@ import numpy as np
 
 from jaxrobo import tabular
 from jaxrobo.tabular import AgentParams, AgentState, Learner
-from jaxrobo import autoreset, fused, registry, rng, rollout
+from jaxrobo import autoreset, registry, rng, rollout
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState
-from jaxrobo.plan import ExecutionPlan, step_batch
+from jaxrobo.plan import ExecutionPlan, map_groups, step_batch
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -257,15 +258,42 @@ class Trainer:
 
     def run_chunk(self, runner: Runner, agent_params: AgentParams, env_params: Any = None) -> Runner:
         """``chunk_steps`` training steps as one ``lax.scan`` (under a fused plan with ``fused_block``, one scan per
-        block of envs: :func:`jaxrobo.fused.run_chunk_blocked`)."""
+        block of envs: :meth:`run_chunk_blocked`)."""
         env_params = self.env.default_params if env_params is None else env_params
         plan = self.plan
         if plan.fused != "off" and plan.fused_block is not None and not self.config.shared_table \
                 and plan.fused_block < self.config.n_envs:
             # The plan's fused path: the same steps, block of envs after block (see jaxrobo.fused).
-            return fused.run_chunk_blocked(self, runner, agent_params, env_params, plan.fused_block)
+            return self.run_chunk_blocked(runner, agent_params, env_params, plan.fused_block)
         body = lambda r, _: (self.step(r, agent_params, env_params), None)  # noqa: E731
         return jax.lax.scan(body, runner, None, length=self.config.chunk_steps)[0]
+
+    def _block_trainer(self, size: int) -> "Trainer":
+        """A trainer for ``size`` of this trainer's envs: the same env, learner, discretiser and plan, unfused (it
+        is the block's body), with the plan's reset capacity scaled to the block."""
+        c, plan = self.config, self.plan
+        capacity = None
+        if plan.reset_capacity is not None and plan.reset_capacity < c.n_envs:
+            capacity = max(1, -(-plan.reset_capacity * size // c.n_envs))
+        return Trainer(self.env, dataclasses.replace(c, n_envs=size), self.disc, self.learner,
+                       plan=plan.replace(fused="off", fused_block=None, reset_capacity=capacity))
+
+    def run_chunk_blocked(self, runner: Runner, agent_params: AgentParams, env_params: Any, block: int) -> Runner:
+        """``run_chunk`` with the loop over steps inside a loop over blocks of ``block`` envs (the last block
+        shorter if need be): each block runs all ``chunk_steps`` steps, its carry updated in place. Only for
+        per-env tables (``run_chunk`` checks): the envs are then independent and the values are the unblocked
+        ones (the fused plan of :mod:`jaxrobo.fused`)."""
+        bodies: dict[int, Trainer] = {}
+
+        def one_block(part: Runner) -> Runner:
+            size = jax.tree.leaves(part)[0].shape[0]
+            if size not in bodies:
+                bodies[size] = self._block_trainer(size)
+            return bodies[size].run_chunk(part, agent_params, env_params)
+
+        # One block per loop iteration (not written out: each written-out block is another copy of the whole
+        # chunk to compile).
+        return map_groups(one_block, runner, block, unrolled=1)
 
     def max_chunks(self) -> int:
         c = self.config
