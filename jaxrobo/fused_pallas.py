@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-#: Envs per Pallas program (a power of two; smaller where ``n_envs`` has fewer factors of two).
+#: Envs per Pallas program (a power of two; smaller where ``n_envs`` has fewer factors of two), one per GPU thread.
 BLOCK = 256
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
@@ -317,6 +317,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     """``trainer.run_chunk`` as one Pallas kernel (the values of :meth:`jaxrobo.trainer.Trainer.step`, scanned
     ``chunk_steps`` times). Interpreted on a CPU, compiled through Triton on a GPU."""
     from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
 
     from jaxrobo.env import EnvState
     from jaxrobo.sim import JointState
@@ -378,8 +379,11 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
                 [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in big]
     aliases = {2 + n_cols + i: n_cols + i for i in range(len(big))}
     interpret = jax.default_backend() != "gpu"
+    # Triton, not Mosaic GPU: the kernel gathers and scatters single words by computed index, which Triton's
+    # pointer arithmetic does and Mosaic GPU's bulk copies do not.
+    params = None if interpret else plgpu.CompilerParams(num_warps=max(1, min(8, block // 32)), num_stages=1)
     outs = pl.pallas_call(kernel, out_shape=out_shape, grid=(n // block,), in_specs=in_specs, out_specs=out_specs,
-                          input_output_aliases=aliases, interpret=interpret,
+                          input_output_aliases=aliases, interpret=interpret, compiler_params=params,
                           name="cartpole_qlearn_chunk")(fp, ip, *col_in, *big)
     o = dict(zip(_NAMES, outs[:n_cols]))
     big_out = outs[n_cols:]
