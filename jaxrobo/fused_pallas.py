@@ -11,9 +11,12 @@ goes back to memory once, at the end of the chunk.
 It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
 (Threefry-2x32, JAX's partitionable layout: uint32 add, rotate, xor), so the draws are ``jax.random``'s own. On a
-CPU (``interpret=True``, what the tests run) the tables, records and counters equal the plain path's bit for
-bit; on a GPU the kernel's ``sin``/``cos`` and multiply-adds are compiled by another compiler (Triton) than XLA's,
-so values may differ in the last bit there, after which tabular learning takes another path.
+CPU (``interpret=True``, what the tests run) keys, actions, updates, resets and records follow the plain path bit
+for bit while the physics state agrees to its last bits: the physics is written per coordinate over ``[block]``
+vectors (the env's own step stacks the coordinates and slices them, and the Triton lowering has no slice), which
+XLA rounds differently in the last bit. Once such a bit moves a state across a bin edge the runs part ways, as
+any last-bit change does in tabular learning; on a GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so
+the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
 
 Supported (:func:`unsupported` says why not, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the
 ``analytic`` backend with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not
