@@ -21,7 +21,8 @@ the same holds there. Learning results stay within the seed-to-seed spread (docs
 Supported (:func:`unsupported` says why not, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the
 ``analytic`` backend with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not
 ``seed_compat``), one table per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys
-with ``jax_threefry_partitionable`` (JAX's default); a sweep's vmapped run is not.
+with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
+the call (tested interpreted; not run on a GPU).
 
 Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`.
 """
@@ -68,6 +69,8 @@ def unsupported(trainer: Any) -> str | None:
         return "only JAX's default threefry keys with jax_threefry_partitionable"
     if c.n_envs * trainer.disc.n_states * trainer.n_actions >= 2**31:
         return "the tables hold 2**31 entries or more (int32 indices)"
+    if c.record_episodes and c.n_envs * c.nepisodes >= 2**31:
+        return "the episode records hold 2**31 entries or more (int32 indices); set record_episodes=False"
     return None
 
 

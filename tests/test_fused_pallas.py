@@ -105,6 +105,24 @@ def test_the_kernel_is_chunking_invariant():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
+def test_a_sweep_vmaps_the_kernel():
+    """Two learning rates vmapped over the chunk (as a sweep runs it): the plain path's tables."""
+    import jax.numpy as jnp
+
+    spec = _cartpole(n_envs=4, chunk_steps=10)
+    params = jax.tree.map(lambda x: jnp.asarray([x, x * 0.5], jnp.float32), spec.agent_params)
+    tables = []
+    for fused in ("off", "pallas"):
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused=fused))
+        runner = jax.vmap(trainer.init, in_axes=(None, 0, None))(jax.random.key(0), params, spec.env.default_params)
+        chunk = jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, 0, None)))
+        for _ in range(3):
+            runner = chunk(runner, params, spec.env.default_params)
+        tables.append(np.asarray(runner.agent.q))
+    np.testing.assert_array_equal(tables[0], tables[1])
+    assert np.abs(tables[0]).sum() > 0
+
+
 def test_it_lowers_for_the_gpu_through_triton(monkeypatch):
     """The kernel the GPU would run (not interpreted) lowers to a Triton call: the ops it uses (in-kernel loop,
     gathers and masked scatters by computed index, uint32 hashing) all have Triton lowerings."""
