@@ -59,7 +59,7 @@ def unsupported(trainer: Any) -> str | None:
     if not isinstance(env.robot.sim, CartPoleSim):
         return f"backend={o.backend!r}; only backend='analytic'"
     if o.control_type != "velocity" or o.round_obs:
-        return "only control_type='velocity' without round_obs"
+        return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
     if trainer.learner.name != "qlearn" or c.seed_compat or c.shared_table:
         return f"agent={trainer.learner.name!r} (seed_compat={c.seed_compat}, shared_table={c.shared_table}); " \
                "only agent='qlearn' with per-env tables, not seed_compat"
