@@ -3,11 +3,14 @@ per env, over batch sizes, in one process on one device.
 
     python benchmarks/fused.py --device gpu --n-envs 1024,16384,262144,1048576 --plans off,xla,xla:65536
     python benchmarks/fused.py --device cpu --n-envs 16384 --plans off,xla:2048 --envs CartPoleStayUp-v0:analytic
+    python benchmarks/fused.py --device gpu --n-envs 65536,262144,1048576 --plans off,xla,pallas \
+        --envs CartPoleStayUp-v0:analytic --gymnax
 
 Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
 :func:`jaxrobo.driver.compiled_chunk`)
-under one plan: ``off`` (the plain path), ``xla`` (substeps written out) or ``xla:BLOCK`` (and the chunk's steps
-run block of BLOCK envs after block). Columns: env steps/s, physics steps/s, simulated s/s, the compiled
+under one plan: ``off`` (the plain path), ``xla`` (substeps written out), ``xla:BLOCK`` (and the chunk's steps
+run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas kernel: :mod:`jaxrobo.fused_pallas`,
+the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing about the GPU kernel). Columns: env steps/s, physics steps/s, simulated s/s, the compiled
 program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
 the training carry per env, and the tables' checksum after one chunk (equal across plans: the same values). ``--gymnax`` adds
 gymnax's CartPole random rollout at the same sizes (benchmarks/throughput.py's peer row). ``--learning SEEDS``
@@ -32,7 +35,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", choices=("cpu", "gpu"), default=None)
     p.add_argument("--n-envs", default="1024,16384", help="comma list of batch sizes")
-    p.add_argument("--plans", default="off,xla", help="comma list of off, xla, xla:BLOCK")
+    p.add_argument("--plans", default="off,xla", help="comma list of off, xla, xla:BLOCK, pallas")
     p.add_argument("--envs", default="CartPoleStayUp-v0:analytic,QuadcopterGoto-v1",
                    help="comma list of env ids, each with :backend where it has a choice")
     p.add_argument("--steps", type=int, default=None, help="steps per timed chunk (default: by size)")

@@ -62,6 +62,10 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
 _FUSED_MIN_ENVS = 1024
 
 
+#: The values of ``ExecutionPlan.fused``: :mod:`jaxrobo.fused`'s, and the Pallas kernel of :mod:`jaxrobo.fused_pallas`.
+FUSED_CHOICES = _fused.CHOICES + ("pallas",)
+
+
 def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None) -> str:
     """``"xla"`` for training ``n_envs`` >= 1,024 envs on a GPU with a closed form with more substeps per control
     step than the plain path writes out (8): the quadcopter's 30 rigid-body substeps written out ran 1.3x the
@@ -103,8 +107,10 @@ class ExecutionPlan:
     are cheap and XLA may copy the whole tables each step to keep the rows from before the update, and with a
     shared table other envs' updates would make the carried rows stale.
 
-    ``fused``: ``"off"`` or ``"xla"``, the fused training path of :mod:`jaxrobo.fused`: a closed form's physics
-    substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks of that many envs.
+    ``fused``: ``"off"``, ``"xla"`` or ``"pallas"``. ``"xla"``: the fused training path of :mod:`jaxrobo.fused`: a
+    closed form's physics substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks
+    of that many envs. ``"pallas"``: the chunk as one Pallas kernel (:mod:`jaxrobo.fused_pallas`), only for the
+    analytic cart-pole with Q-learning and per-env tables (``Trainer`` refuses other runs, naming the field).
     ``fused_block``: envs per block (None: the whole batch, no blocking); read only with ``fused="xla"`` and
     per-env tables (a shared table mixes every env each step, so it runs unblocked). Bit for bit on a CPU; on a
     GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.fused`).
@@ -123,8 +129,8 @@ class ExecutionPlan:
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
-        if self.fused not in _fused.CHOICES:
-            raise ValueError(f"ExecutionPlan fused={self.fused!r}: allowed values are {', '.join(_fused.CHOICES)}")
+        if self.fused not in FUSED_CHOICES:
+            raise ValueError(f"ExecutionPlan fused={self.fused!r}: allowed values are {', '.join(FUSED_CHOICES)}")
         for name in ("env_group", "reset_capacity", "fused_block"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):

@@ -107,6 +107,10 @@ class Trainer:
         self.plan = ExecutionPlan.for_run(env, config) if plan is None else plan
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
+        if self.plan.fused == "pallas":
+            from jaxrobo import fused_pallas
+
+            fused_pallas.check(self)
 
     # ---- the plan's choices the step reads (assigning one replaces the plan) --------------------------------
     @property
@@ -261,6 +265,10 @@ class Trainer:
         block of envs: :meth:`run_chunk_blocked`)."""
         env_params = self.env.default_params if env_params is None else env_params
         plan = self.plan
+        if plan.fused == "pallas":  # the whole chunk as one kernel (see jaxrobo.fused_pallas)
+            from jaxrobo import fused_pallas
+
+            return fused_pallas.run_chunk(self, runner, agent_params, env_params)
         if plan.fused != "off" and plan.fused_block is not None and not self.config.shared_table \
                 and plan.fused_block < self.config.n_envs:
             # The plan's fused path: the same steps, block of envs after block (see jaxrobo.fused).

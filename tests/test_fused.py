@@ -29,8 +29,8 @@ def _same(a, b):
 
 
 def test_the_choice_is_validated_and_named():
-    with pytest.raises(ValueError, match=r"fused='pallas': allowed values are off, xla"):
-        ExecutionPlan(fused="pallas")
+    with pytest.raises(ValueError, match=r"fused='triton': allowed values are off, xla, pallas"):
+        ExecutionPlan(fused="triton")
     with pytest.raises(ValueError, match=r"fused_block=0: expected None or an integer >= 1"):
         ExecutionPlan(fused="xla", fused_block=0)
     plan = ExecutionPlan(fused="xla", fused_block=5)

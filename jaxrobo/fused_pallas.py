@@ -1,0 +1,419 @@
+"""``ExecutionPlan.fused = "pallas"``: the closed-form cart-pole with Q-learning as one Pallas kernel per chunk.
+
+The plain path runs a training step as ~20-30 batch-wide kernels, each reading and writing part of every env's
+state (~1.5 KB of memory traffic per env step on an H100, docs/benchmarks.md "Fused path"). Here one
+``pallas_call`` runs the whole chunk: each program takes a block of envs and loops over the chunk's steps
+in-kernel, the env's state, keys, epsilon, counters and its current table row in registers; per step it touches
+memory only to gather the next state's table row and scatter the one updated entry (the env's own table, by
+computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
+goes back to memory once, at the end of the chunk.
+
+It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
+random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
+(Threefry-2x32, JAX's partitionable layout: uint32 add, rotate, xor), so the draws are ``jax.random``'s own. On a
+CPU (``interpret=True``, what the tests run) keys, actions, updates, resets and records follow the plain path bit
+for bit while the physics state agrees to its last bits: the physics is written per coordinate over ``[block]``
+vectors (the env's own step stacks the coordinates and slices them, and the Triton lowering has no slice), which
+XLA rounds differently in the last bit. Once such a bit moves a state across a bin edge the runs part ways, as
+any last-bit change does in tabular learning; on a GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so
+the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
+
+Supported (:func:`unsupported` says why not, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the
+``analytic`` backend with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not
+``seed_compat``), one table per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys
+with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
+the call (tested interpreted; not run on a GPU).
+
+Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: Envs per Pallas program (a power of two; smaller where ``n_envs`` has fewer factors of two), one per GPU thread.
+BLOCK = 256
+
+_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
+_PARITY = 0x1BD11BDA
+# The float parameters, in the order of the kernel's parameter vector.
+_F = ("pos_step", "max_base_velocity", "min_pole_angle", "max_pole_angle", "min_base_pose_x", "max_base_pose_x",
+      "init_pos", "init_pole_angle", "init_noise", "alpha", "gamma", "epsilon_discount", "epsilon_min",
+      "low0", "low1", "low2", "low3", "width0", "width1", "width2", "width3")
+_PARAMS = 32
+
+
+def unsupported(trainer: Any) -> str | None:
+    """Why ``trainer``'s run cannot take the Pallas path (None: it can)."""
+    from envs.cartpole_dynamics import CartPoleSim
+    from envs.cartpole_stay_up import CartPoleStayUp
+
+    env, c = trainer.env, trainer.config
+    if not isinstance(env, CartPoleStayUp):
+        return f"the env is {type(env).__name__}; only CartPoleStayUp"
+    o = env.options
+    if not isinstance(env.robot.sim, CartPoleSim):
+        return f"backend={o.backend!r}; only backend='analytic'"
+    if o.control_type != "velocity" or o.round_obs:
+        return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
+    if trainer.learner.name != "qlearn" or c.seed_compat or c.shared_table:
+        return f"agent={trainer.learner.name!r} (seed_compat={c.seed_compat}, shared_table={c.shared_table}); " \
+               "only agent='qlearn' with per-env tables, not seed_compat"
+    if trainer.disc.edges is not None:
+        return "discretiser='edges'; only 'bins' or 'round'"
+    if not jax.config.jax_threefry_partitionable or jax.config.jax_default_prng_impl != "threefry2x32":
+        return "only JAX's default threefry keys with jax_threefry_partitionable"
+    if c.n_envs * trainer.disc.n_states * trainer.n_actions >= 2**31:
+        return "the tables hold 2**31 entries or more (int32 indices)"
+    if c.record_episodes and c.n_envs * c.nepisodes >= 2**31:
+        return "the episode records hold 2**31 entries or more (int32 indices); set record_episodes=False"
+    return None
+
+
+def check(trainer: Any) -> None:
+    """Refuse, naming the field and what is allowed, a run the Pallas path cannot take."""
+    why = unsupported(trainer)
+    if why is not None:
+        raise ValueError(f"ExecutionPlan fused='pallas': {why}. It supports the analytic CartPoleStayUp with "
+                         "Q-learning; use fused='off' or 'xla' otherwise")
+
+
+# ---- in-kernel random numbers: jaxrobo.rng's hash on [block] uint32 vectors ------------------------------
+def _threefry(k1, k2, x1, x2):
+    u = lambda v: jnp.uint32(v)  # noqa: E731
+    ks = (k1, k2, k1 ^ k2 ^ u(_PARITY))
+    x1, x2 = x1 + ks[0], x2 + ks[1]
+    for block in range(5):
+        for r in _ROTATIONS[block % 2]:
+            x1 = x1 + x2
+            x2 = jax.lax.shift_left(x2, u(r)) | jax.lax.shift_right_logical(x2, u(32 - r))
+            x2 = x1 ^ x2
+        x1 = x1 + ks[(block + 1) % 3]
+        x2 = x2 + ks[(block + 2) % 3] + u(block + 1)
+    return x1, x2
+
+
+def _subkey(key, index):
+    """``split(key, num)[index]`` (any ``num``): the hash of counter ``(0, index)``."""
+    zero = jnp.zeros_like(key[0])
+    return _threefry(key[0], key[1], zero, zero + jnp.uint32(index))
+
+
+def _unit(words):
+    return jax.lax.bitcast_convert_type(jax.lax.shift_right_logical(words, jnp.uint32(9)) | jnp.uint32(0x3F800000),
+                                        jnp.float32) - 1.0
+
+
+# ---- the kernel --------------------------------------------------------------------------------------------
+_COLS = (  # per-env carry columns: name, dtype
+    ("x", jnp.float32), ("th", jnp.float32), ("xd", jnp.float32), ("thd", jnp.float32),
+    ("o0", jnp.float32), ("o1", jnp.float32), ("o2", jnp.float32), ("o3", jnp.float32),
+    ("reward", jnp.float32), ("term", jnp.int32), ("trunc", jnp.int32), ("steps", jnp.int32),
+    ("command", jnp.float32), ("ek0", jnp.uint32), ("ek1", jnp.uint32), ("pnan", jnp.int32),
+    ("s", jnp.int32), ("r0", jnp.float32), ("r1", jnp.float32), ("r2", jnp.float32), ("r3", jnp.float32),
+    ("action", jnp.int32), ("epsilon", jnp.float32), ("episode", jnp.int32), ("ep_return", jnp.float32),
+    ("k0", jnp.uint32), ("k1", jnp.uint32), ("nan_episodes", jnp.int32), ("env_steps", jnp.int32),
+    ("ret_sum", jnp.float32), ("len_sum", jnp.int32), ("term_any", jnp.int32))
+_NAMES = tuple(name for name, _ in _COLS)
+
+
+def _make_kernel(static):
+    (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
+     timestep, n_substeps) = static
+    n_cols = len(_COLS)
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+
+    from envs.cartpole_stay_up import ACTION_STEPS
+
+    def kernel(fp_ref, ip_ref, *refs):
+        ins = refs[:n_cols]
+        rest = refs[n_cols:]
+        n_big = 4 if records else 1
+        outs = rest[n_big:n_big + n_cols]
+        q_ref = rest[n_big + n_cols]
+        rec_refs = rest[n_big + n_cols + 1:n_big + n_cols + 4] if records else None
+        fvals = {name: fp_ref[i] for i, name in enumerate(_F)}  # read once, kept in registers
+        f = fvals.__getitem__
+        max_episode_steps = ip_ref[0]
+        env0 = pl.program_id(0) * block
+        env = env0 + jax.lax.iota(jnp.int32, block)
+        base = env * (n_states * n_actions)
+        carry = {name: ref[...] for name, ref in zip(_NAMES, ins)}
+
+        def row(s, mask=None):
+            at = base + s * n_actions
+            return [plgpu.load(q_ref.at[at + k], mask=mask, other=0.0 if mask is not None else None)
+                    for k in range(n_actions)]
+
+        def discretise(o):
+            idx = []
+            for d in range(4):
+                i = jnp.floor((o[d] - f(f"low{d}")) / f(f"width{d}")).astype(jnp.int32)
+                idx.append(jnp.minimum(jnp.maximum(i, 0), bins[d] - 1))
+            total = idx[0] * strides[0]
+            for d in range(1, 4):
+                total = total + idx[d] * strides[d]
+            return total
+
+        def row_max(r):
+            return functools.reduce(jnp.maximum, r)
+
+        def epsilon_greedy(key, r, epsilon):
+            x1, x2 = _threefry(key[0], key[1], jnp.zeros_like(key[0]), jnp.zeros_like(key[0]))
+            coin, u = _unit(x1), _unit(x2)
+            random_action = jnp.minimum(jnp.floor(u * n_actions), n_actions - 1).astype(jnp.int32)
+            best = row_max(r)
+            is_max = [ri == best for ri in r]
+            count = is_max[0].astype(jnp.int32)
+            for m in is_max[1:]:
+                count = count + m.astype(jnp.int32)
+            wanted = jnp.minimum(jnp.floor(u * count.astype(jnp.float32)).astype(jnp.int32), count - 1)
+            choice, seen = jnp.zeros_like(count), jnp.zeros_like(count)
+            for i, m in enumerate(is_max):
+                choice = jnp.where(m & (seen == wanted), jnp.int32(i), choice)
+                seen = seen + m.astype(jnp.int32)
+            return jnp.where(coin < epsilon, random_action, choice)
+
+        def physics(x, th, xd, thd, ctrl):
+            # CartPoleSim.physics_step term by term (same constants, same order).
+            c = consts
+            generalized = [0.0, 0.0]
+            for j in range(c.gain.shape[0]):
+                gear = c.transmission[:, j]
+                length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
+                velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
+                u = ctrl
+                if np.isfinite(c.ctrl_low[j]):
+                    u = jnp.maximum(u, float(c.ctrl_low[j]))
+                if np.isfinite(c.ctrl_high[j]):
+                    u = jnp.minimum(u, float(c.ctrl_high[j]))
+                force = float(c.gain[j]) * u + float(c.bias[0, j])
+                force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
+                force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
+                if np.isfinite(c.force_low[j]):
+                    force = jnp.maximum(force, float(c.force_low[j]))
+                if np.isfinite(c.force_high[j]):
+                    force = jnp.minimum(force, float(c.force_high[j]))
+                generalized = [gf + float(g) * force if g else gf for gf, g in zip(generalized, gear)]
+            sin, cos = jnp.sin(th), jnp.cos(th)
+            coupling = c.pole_mass_length * cos
+            rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
+            rhs_th = generalized[1] + c.pole_mass_length * c.gravity * sin
+            inv_det = 1.0 / (c.total_mass * c.pole_inertia - coupling * coupling)
+            acc_x = c.pole_inertia * rhs_x - coupling * rhs_th
+            acc_th = c.total_mass * rhs_th - coupling * rhs_x
+            xd = xd + timestep * (acc_x * inv_det)
+            thd = thd + timestep * (acc_th * inv_det)
+            return x + timestep * xd, th + timestep * thd, xd, thd
+
+        def finite(v):
+            return jnp.abs(v) < jnp.inf
+
+        def step(_, cr):
+            cr = dict(cr)
+            key = (cr["k0"], cr["k1"])
+            k_next, k_act, k_reset = _subkey(key, 0), _subkey(key, 1), _subkey(key, 4)
+            active = cr["episode"] < nepisodes
+            r_s = [cr[f"r{k}"] for k in range(n_actions)]
+            a = epsilon_greedy(k_act, r_s, cr["epsilon"])
+            # env.step: the command, the physics, the guard, the observation, termination, truncation.
+            delta = jnp.zeros_like(cr["command"])
+            for i, v in enumerate(ACTION_STEPS[:n_actions]):
+                delta = jnp.where(a == i, jnp.float32(v), delta)
+            command = cr["command"] + delta * f("pos_step")
+            command = jnp.minimum(jnp.maximum(command, -f("max_base_velocity")), f("max_base_velocity"))
+            x, th, xd, thd = cr["x"], cr["th"], cr["xd"], cr["thd"]
+            for _sub in range(n_substeps):
+                x, th, xd, thd = physics(x, th, xd, thd, command)
+            ok = finite(x) & finite(th) & finite(xd) & finite(thd)
+            obs = (x, xd, th, thd)
+            ok = ok & finite(obs[0]) & finite(obs[1]) & finite(obs[2]) & finite(obs[3])
+            term = ((obs[0] <= f("min_base_pose_x")) | (obs[0] >= f("max_base_pose_x"))
+                    | (obs[2] <= f("min_pole_angle")) | (obs[2] >= f("max_pole_angle")))
+            obs = tuple(jnp.where(ok, o, cr[f"o{d}"]) for d, o in enumerate(obs))
+            reward = jnp.where(ok, jnp.float32(1.0), jnp.float32(0.0))
+            term = term | ~ok
+            env_steps_now = cr["steps"] + 1
+            trunc = (env_steps_now >= max_episode_steps) & ~term
+            pnan = ~ok
+            s2 = discretise(obs)
+            done = term | trunc | (env_steps_now >= nsteps)
+            r_s2 = row(s2)
+            # Q-learning's update of (s, a), the rows carried across the step.
+            discount = f("gamma") * (1.0 - term.astype(jnp.float32))
+            target = reward + discount * row_max(r_s2)
+            old = r_s[0]
+            for i in range(1, n_actions):
+                old = jnp.where(a == i, r_s[i], old)
+            new = old + f("alpha") * (target - old)
+            written = jnp.where(active & ~pnan, new, old)
+            hit_s = s2 == cr["s"]
+            r_s2 = [jnp.where(hit_s & (a == k), written, r_s2[k]) for k in range(n_actions)]
+            # Records.
+            ep_return = cr["ep_return"] + reward
+            record = done & active
+            if records:
+                slot = jnp.minimum(cr["episode"], nepisodes - 1)
+                at = env * n_rec + slot
+                plgpu.store(rec_refs[0].at[at], ep_return, mask=record)
+                plgpu.store(rec_refs[1].at[at], env_steps_now, mask=record)
+                plgpu.store(rec_refs[2].at[at], term.astype(jnp.int32), mask=record)
+            else:
+                cr["ret_sum"] = cr["ret_sum"] + jnp.where(record, ep_return, 0.0)
+                cr["len_sum"] = cr["len_sum"] + jnp.where(record, env_steps_now, 0)
+                cr["term_any"] = cr["term_any"] | (record & term).astype(jnp.int32)
+            # The fresh episode wherever done (env.reset from k_reset), its rows from the updated table.
+            rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
+            zero = jnp.zeros_like(pose_key[0])
+            lo = -f("init_noise")
+            span = f("init_noise") - lo
+            noise = []
+            for j in range(4):
+                w1, w2 = _threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))
+                noise.append(_unit(w1 ^ w2) * span + lo)
+            fresh = (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3])
+            s_fresh = discretise((fresh[0], fresh[2], fresh[1], fresh[3]))
+            r_fresh = row(s_fresh, done)
+            r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
+            plgpu.store(q_ref.at[base + cr["s"] * n_actions + a], written)
+            w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
+            cr["x"], cr["th"], cr["xd"], cr["thd"] = w(fresh[0], x), w(fresh[1], th), w(fresh[2], xd), w(fresh[3], thd)
+            cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(fresh[0], obs[0]), w(fresh[2], obs[1]), w(fresh[1], obs[2]),
+                                                      w(fresh[3], obs[3]))
+            cr["reward"] = w(jnp.float32(0.0), reward)
+            cr["term"] = w(0, term.astype(jnp.int32))
+            cr["trunc"] = w(0, trunc.astype(jnp.int32))
+            cr["steps"] = w(0, env_steps_now)
+            cr["command"] = w(jnp.float32(0.0), command)
+            cr["ek0"], cr["ek1"] = w(rk[0], cr["ek0"]), w(rk[1], cr["ek1"])
+            cr["pnan"] = w(0, pnan.astype(jnp.int32))
+            cr["s"] = w(s_fresh, s2)
+            for k in range(n_actions):
+                cr[f"r{k}"] = w(r_fresh[k], r_s2[k])
+            eps = cr["epsilon"]
+            cr["epsilon"] = w(jnp.where(eps > f("epsilon_min"), eps * f("epsilon_discount"), eps), eps)
+            cr["action"] = a
+            cr["episode"] = cr["episode"] + record.astype(jnp.int32)
+            cr["ep_return"] = w(jnp.float32(0.0), ep_return)
+            cr["k0"], cr["k1"] = k_next
+            cr["nan_episodes"] = cr["nan_episodes"] + (record & pnan).astype(jnp.int32)
+            cr["env_steps"] = cr["env_steps"] + active.astype(jnp.int32)
+            return cr
+
+        carry = jax.lax.fori_loop(0, steps_per_chunk, step, carry)
+        for name, ref in zip(_NAMES, outs):
+            ref[...] = carry[name].astype(ref.dtype)
+
+    return kernel
+
+
+def _block_for(n: int) -> int:
+    block = 1
+    while block < BLOCK and n % (2 * block) == 0:
+        block *= 2
+    return block
+
+
+def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> Any:
+    """``trainer.run_chunk`` as one Pallas kernel (the values of :meth:`jaxrobo.trainer.Trainer.step`, scanned
+    ``chunk_steps`` times). Interpreted on a CPU, compiled through Triton on a GPU."""
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+
+    from jaxrobo.env import EnvState
+    from jaxrobo.sim import JointState
+    from jaxrobo.tabular import AgentState
+    from jaxrobo.trainer import Runner
+
+    check(trainer)
+    c, env, disc = trainer.config, trainer.env, trainer.disc
+    n, n_states, n_actions = c.n_envs, disc.n_states, trainer.n_actions
+    sim = env.robot.sim
+    records = c.record_episodes
+    n_rec = runner.returns.shape[1]
+    ep = env_params
+    f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+    fvals = [f32(getattr(ep, name)) for name in _F[:9]]
+    fvals += [f32(getattr(agent_params, name)) for name in ("alpha", "gamma", "epsilon_discount", "epsilon_min")]
+    fvals += [disc.low[d] for d in range(4)] + [disc.width[d] for d in range(4)]
+    fvals += [jnp.float32(0.0)] * (_PARAMS - len(fvals))  # Triton blocks are powers of two long
+    fp = jnp.stack([jnp.reshape(v, ()).astype(jnp.float32) for v in fvals])
+    ip = jnp.reshape(jnp.asarray(ep.max_episode_steps, jnp.int32), (1,))
+
+    es = runner.env_state
+    ps = es.pipeline_state
+    ekey = jax.random.key_data(es.key)
+    key = jax.random.key_data(runner.key)
+    if runner.q_rows is None:
+        rows = runner.agent.q[jnp.arange(n), 0, runner.s, :]
+    else:
+        rows = runner.q_rows[:, 0, :]
+    i32 = lambda v: jnp.asarray(v).astype(jnp.int32)  # noqa: E731
+    cols = dict(x=ps.qpos[:, 0], th=ps.qpos[:, 1], xd=ps.qvel[:, 0], thd=ps.qvel[:, 1],
+                o0=es.obs[:, 0], o1=es.obs[:, 1], o2=es.obs[:, 2], o3=es.obs[:, 3], reward=es.reward,
+                term=i32(es.terminated), trunc=i32(es.truncated), steps=es.steps, command=es.task.command,
+                ek0=ekey[:, 0], ek1=ekey[:, 1], pnan=i32(es.physics_nan), s=runner.s,
+                action=runner.action, epsilon=runner.epsilon, episode=runner.episode, ep_return=runner.ep_return,
+                k0=key[:, 0], k1=key[:, 1], nan_episodes=runner.nan_episodes, env_steps=runner.env_steps)
+    for k in range(4):
+        cols[f"r{k}"] = rows[:, k] if k < n_actions else jnp.zeros(n, jnp.float32)
+    if records:
+        cols.update(ret_sum=jnp.zeros(n, jnp.float32), len_sum=jnp.zeros(n, jnp.int32), term_any=jnp.zeros(n, jnp.int32))
+    else:
+        cols.update(ret_sum=runner.returns[:, 0], len_sum=runner.lengths[:, 0], term_any=i32(runner.terminated[:, 0]))
+    col_in = [jnp.asarray(cols[name]).astype(dtype) for name, dtype in _COLS]
+    big = [runner.agent.q.reshape(-1)]
+    if records:
+        big += [runner.returns.reshape(-1), runner.lengths.reshape(-1), i32(runner.terminated).reshape(-1)]
+
+    block = _block_for(n)
+    strides = tuple(int(v) for v in np.cumprod((disc.bins[1:] + (1,))[::-1])[::-1])
+    static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
+              tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps))
+    kernel = _make_kernel(static)
+    col_spec = pl.BlockSpec((block,), lambda i: (i,))
+    whole = pl.BlockSpec(memory_space=pl.ANY)
+    n_cols = len(_COLS)
+    in_specs = [pl.BlockSpec((_PARAMS,), lambda i: (0,)), pl.BlockSpec((1,), lambda i: (0,))] + [col_spec] * n_cols + [whole] * len(big)
+    out_specs = [col_spec] * n_cols + [whole] * len(big)
+    out_shape = [jax.ShapeDtypeStruct((n,), dtype) for _, dtype in _COLS] + \
+                [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in big]
+    aliases = {2 + n_cols + i: n_cols + i for i in range(len(big))}
+    interpret = jax.default_backend() != "gpu"
+    # Triton, not Mosaic GPU: the kernel gathers and scatters single words by computed index, which Triton's
+    # pointer arithmetic does and Mosaic GPU's bulk copies do not.
+    params = None if interpret else plgpu.CompilerParams(num_warps=max(1, min(8, block // 32)), num_stages=1)
+    outs = pl.pallas_call(kernel, out_shape=out_shape, grid=(n // block,), in_specs=in_specs, out_specs=out_specs,
+                          input_output_aliases=aliases, interpret=interpret, compiler_params=params,
+                          name="cartpole_qlearn_chunk")(fp, ip, *col_in, *big)
+    o = dict(zip(_NAMES, outs[:n_cols]))
+    big_out = outs[n_cols:]
+    boolean = lambda v: v.astype(bool)  # noqa: E731
+    impl = jax.random.key_impl(runner.key)
+    env_state = EnvState(
+        JointState(jnp.stack([o["x"], o["th"]], 1), jnp.stack([o["xd"], o["thd"]], 1)),
+        jnp.stack([o["o0"], o["o1"], o["o2"], o["o3"]], 1), o["reward"], boolean(o["term"]), boolean(o["trunc"]),
+        o["steps"], type(es.task)(command=o["command"]),
+        jax.random.wrap_key_data(jnp.stack([o["ek0"], o["ek1"]], 1), impl=impl), boolean(o["pnan"]))
+    q = big_out[0].reshape(runner.agent.q.shape)
+    q_rows = None
+    if runner.q_rows is not None:
+        q_rows = jnp.stack([o[f"r{k}"] for k in range(n_actions)], 1)[:, None, :]
+    if records:
+        returns = big_out[1].reshape(runner.returns.shape)
+        lengths = big_out[2].reshape(runner.lengths.shape)
+        terminated = boolean(big_out[3].reshape(runner.terminated.shape))
+    else:
+        returns = runner.returns.at[:, 0].set(o["ret_sum"])
+        lengths = runner.lengths.at[:, 0].set(o["len_sum"])
+        terminated = runner.terminated.at[:, 0].set(boolean(o["term_any"]))
+    return Runner(env_state=env_state, agent=AgentState(q, runner.agent.visited), s=o["s"], q_rows=q_rows,
+                  action=o["action"], epsilon=o["epsilon"], episode=o["episode"], ep_return=o["ep_return"],
+                  key=jax.random.wrap_key_data(jnp.stack([o["k0"], o["k1"]], 1), impl=impl),
+                  returns=returns, lengths=lengths, terminated=terminated, nan_episodes=o["nan_episodes"],
+                  env_steps=o["env_steps"])

@@ -1,0 +1,137 @@
+"""``ExecutionPlan.fused = "pallas"``: the analytic cart-pole + Q-learning chunk as one Pallas kernel, run here in
+interpret mode on CPU and held to the plain path as its oracle.
+
+What is exact and what is not: the kernel draws JAX's own threefry numbers and writes the same step in the same
+order, so keys, actions, table updates, resets, records and counters follow the plain path bit for bit. The
+physics is written per coordinate (the env's step stacks the coordinates, which needs slices Pallas's Triton
+lowering lacks), and XLA rounds the two forms differently in the last bit, so the continuous state is compared
+with a tolerance. For these seeds no such difference moves a state across a bin edge, so the tables and records
+are equal; in a long run one does, after which tabular learning takes another path (docs/benchmarks.md, "Pallas").
+"""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from jaxrobo.plan import ExecutionPlan
+from jaxrobo.run import resolve
+from jaxrobo.train import Trainer, train
+
+TINY = dict(n_envs=12, nepisodes=4, nsteps=30, chunk_steps=25, eval_episodes=2, eval_envs=2,
+            bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
+FIELDS = ("q", "returns", "lengths", "terminated", "nan_episodes", "env_steps", "eval_returns", "eval_lengths")
+
+
+def _cartpole(**overrides):
+    return resolve("CartPoleStayUp-v0", overrides={**TINY, "backend": "analytic", **overrides})
+
+
+def _plan(spec, **changes):
+    return ExecutionPlan.for_run(spec.env, spec.config).replace(**changes)
+
+
+def _leaves(runner):
+    as_data = lambda x: jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x  # noqa: E731
+    return jax.tree_util.tree_flatten_with_path(jax.tree.map(as_data, runner))[0]
+
+
+def test_the_choice_is_validated_and_refused_where_it_does_not_apply():
+    with pytest.raises(ValueError, match=r"fused='triton': allowed values are off, xla, pallas"):
+        ExecutionPlan(fused="triton")
+    assert repr(ExecutionPlan(fused="pallas")).endswith("fused=pallas, fused_block=all)")
+    spec = _cartpole()
+    Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))  # accepted
+    for overrides, why in ((dict(agent="sarsa"), "agent='sarsa'"), (dict(shared_table=True), "shared_table=True"),
+                           (dict(seed_compat=True), "seed_compat=True"), (dict(backend="mjx"), "backend='mjx'")):
+        other = _cartpole(**overrides)
+        with pytest.raises(ValueError, match=rf"ExecutionPlan fused='pallas': .*{why}"):
+            Trainer(other.env, other.config, plan=_plan(other, fused="pallas"))
+    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4))
+    with pytest.raises(ValueError, match=r"fused='pallas': the env is QuadcopterGoto"):
+        Trainer(goto.env, goto.config, plan=_plan(goto, fused="pallas"))
+
+
+def test_training_gives_the_plain_path_tables_and_records():
+    """12 envs (blocks of 4), 4 episodes of at most 30 steps, chunks of 25: tables, records and evaluation equal."""
+    spec = _cartpole()
+    plain = train(spec.env, spec.config, spec.agent_params, plan=_plan(spec))
+    fused = train(spec.env, spec.config, spec.agent_params, plan=_plan(spec, fused="pallas"))
+    assert fused.summary()["execution_plan"] == repr(_plan(spec, fused="pallas"))
+    for name in FIELDS:
+        np.testing.assert_array_equal(np.asarray(getattr(plain, name)), np.asarray(getattr(fused, name)),
+                                      err_msg=name)
+    assert int(np.asarray(plain.lengths).min()) > 0  # every env recorded its episodes
+
+
+@pytest.mark.parametrize("changes", [dict(record_episodes=False, carry_rows=True), dict(chunk_steps=7)])
+def test_the_carry_follows_the_plain_path_whatever_the_chunking(changes):
+    """The whole carry after 75 steps (records off with carried rows) or 77 (chunks of 7): discrete parts bit for bit,
+    the physics state within float tolerance; and the kernel's own result does not depend on the chunking."""
+    carry_rows = changes.pop("carry_rows", False)
+    spec = _cartpole(n_envs=6, **changes)
+    steps = 75
+    carries = {}
+    for fused in ("off", "pallas"):
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused=fused, carry_rows=carry_rows))
+        runner = jax.jit(trainer.init)(jax.random.key(3), spec.agent_params, spec.env.default_params)
+        chunk = jax.jit(trainer.run_chunk)
+        for _ in range(-(-steps // spec.config.chunk_steps)):
+            runner = chunk(runner, spec.agent_params, spec.env.default_params)
+        carries[fused] = runner
+    assert (carries["off"].q_rows is None) != carry_rows
+    for (path, a), (_, b) in zip(_leaves(carries["off"]), _leaves(carries["pallas"])):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.dtype == b.dtype and a.shape == b.shape, jax.tree_util.keystr(path)
+        if jax.tree_util.keystr(path).split(".")[-1] in ("qpos", "qvel", "obs"):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=jax.tree_util.keystr(path))
+    assert int(np.asarray(carries["off"].episode).sum()) > 0
+
+
+def test_the_kernel_is_chunking_invariant():
+    """75 steps as 3 chunks of 25 or 5 chunks of 15: the kernel's carries agree bit for bit."""
+    out = {}
+    for chunk_steps, n_chunks in ((25, 3), (15, 5)):
+        spec = _cartpole(n_envs=4, chunk_steps=chunk_steps)
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
+        runner = jax.jit(trainer.init)(jax.random.key(5), spec.agent_params, spec.env.default_params)
+        chunk = jax.jit(trainer.run_chunk)
+        for _ in range(n_chunks):
+            runner = chunk(runner, spec.agent_params, spec.env.default_params)
+        out[chunk_steps] = runner
+    for (path, a), (_, b) in zip(_leaves(out[25]), _leaves(out[15])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
+
+
+def test_a_sweep_vmaps_the_kernel():
+    """Two learning rates vmapped over the chunk (as a sweep runs it): the plain path's tables."""
+    import jax.numpy as jnp
+
+    spec = _cartpole(n_envs=4, chunk_steps=10)
+    params = jax.tree.map(lambda x: jnp.asarray([x, x * 0.5], jnp.float32), spec.agent_params)
+    tables = []
+    for fused in ("off", "pallas"):
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused=fused))
+        runner = jax.vmap(trainer.init, in_axes=(None, 0, None))(jax.random.key(0), params, spec.env.default_params)
+        chunk = jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, 0, None)))
+        for _ in range(3):
+            runner = chunk(runner, params, spec.env.default_params)
+        tables.append(np.asarray(runner.agent.q))
+    np.testing.assert_array_equal(tables[0], tables[1])
+    assert np.abs(tables[0]).sum() > 0
+
+
+def test_it_lowers_for_the_gpu_through_triton(monkeypatch):
+    """The kernel the GPU would run (not interpreted) lowers to a Triton call: the ops it uses (in-kernel loop,
+    gathers and masked scatters by computed index, uint32 hashing) all have Triton lowerings."""
+    from jaxrobo import fused_pallas
+
+    spec = _cartpole(n_envs=512, record_episodes=True)
+    trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
+    runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
+    monkeypatch.setattr(fused_pallas.jax, "default_backend", lambda: "gpu")
+    lowered = jax.jit(trainer.run_chunk).trace(runner, spec.agent_params, spec.env.default_params).lower(
+        lowering_platforms=("cuda",))
+    assert "__gpu$xla.gpu.triton" in lowered.as_text()
