@@ -73,8 +73,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--peers", default=",".join(PEER_NAMES),
                    help=f"comma list of peers to run, or 'none' (default: all of {', '.join(PEER_NAMES)})")
     p.add_argument("--fused", default=None, metavar="CHOICE[:BLOCK]",
-                   help="jaxrobo rows under ExecutionPlan.fused=CHOICE (off, xla) and fused_block=BLOCK envs "
-                        "(default: the plan's own choice)")
+                   help="jaxrobo training rows under ExecutionPlan.fused=CHOICE (off, xla, pallas) and "
+                        "fused_block=BLOCK envs (default: the plan's own choice)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per row (the minimum is kept)")
     p.add_argument("--out", default=None,
                    help="output folder (default benchmarks/results/local/<device-name>, git-ignored; the committed "
@@ -176,8 +176,10 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
     from jaxrobo.run import resolve
     from jaxrobo.trainer import Trainer
 
-    row = {"suite": "jaxrobo", "env": env_id, "backend": _backend_label(backend, options), "mode": learner or "env",
-           "n_envs": n}
+    label = _backend_label(backend, options)
+    if learner and args.fused:  # a training row of another plan is another row (env-only rows never fuse)
+        label += f" fused={args.fused}"
+    row = {"suite": "jaxrobo", "env": env_id, "backend": label, "mode": learner or "env", "n_envs": n}
     overrides: dict[str, Any] = {"n_envs": n, **_common.TIMED_TRAINING, **(options or {})}
     if backend is not None:
         overrides["backend"] = backend

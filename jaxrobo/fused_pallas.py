@@ -49,14 +49,12 @@ _PARAMS = 32
 
 def unsupported(trainer: Any) -> str | None:
     """Why ``trainer``'s run cannot take the Pallas path (None: it can)."""
-    from envs.cartpole_dynamics import CartPoleSim
-    from envs.cartpole_stay_up import CartPoleStayUp
-
+    # By class name, not isinstance: jaxrobo reaches the envs only through the registry (tests/test_structure.py).
     env, c = trainer.env, trainer.config
-    if not isinstance(env, CartPoleStayUp):
+    if "CartPoleStayUp" not in {k.__name__ for k in type(env).__mro__}:
         return f"the env is {type(env).__name__}; only CartPoleStayUp"
     o = env.options
-    if not isinstance(env.robot.sim, CartPoleSim):
+    if type(env.robot.sim).__name__ != "CartPoleSim":
         return f"backend={o.backend!r}; only backend='analytic'"
     if o.control_type != "velocity" or o.round_obs:
         return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
@@ -123,12 +121,10 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
-     timestep, n_substeps) = static
+     timestep, n_substeps, action_steps) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
-
-    from envs.cartpole_stay_up import ACTION_STEPS
 
     def kernel(fp_ref, ip_ref, *refs):
         ins = refs[:n_cols]
@@ -223,7 +219,7 @@ def _make_kernel(static):
             a = epsilon_greedy(k_act, r_s, cr["epsilon"])
             # env.step: the command, the physics, the guard, the observation, termination, truncation.
             delta = jnp.zeros_like(cr["command"])
-            for i, v in enumerate(ACTION_STEPS[:n_actions]):
+            for i, v in enumerate(action_steps):
                 delta = jnp.where(a == i, jnp.float32(v), delta)
             command = cr["command"] + delta * f("pos_step")
             command = jnp.minimum(jnp.maximum(command, -f("max_base_velocity")), f("max_base_velocity"))
@@ -328,7 +324,6 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     from jaxrobo.env import EnvState
     from jaxrobo.sim import JointState
     from jaxrobo.tabular import AgentState
-    from jaxrobo.trainer import Runner
 
     check(trainer)
     c, env, disc = trainer.config, trainer.env, trainer.disc
@@ -374,7 +369,8 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     block = _block_for(n)
     strides = tuple(int(v) for v in np.cumprod((disc.bins[1:] + (1,))[::-1])[::-1])
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
-              tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps))
+              tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
+              tuple(float(v) for v in np.asarray(env._steps)))  # the task's command step per action
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)
@@ -412,7 +408,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
         returns = runner.returns.at[:, 0].set(o["ret_sum"])
         lengths = runner.lengths.at[:, 0].set(o["len_sum"])
         terminated = runner.terminated.at[:, 0].set(boolean(o["term_any"]))
-    return Runner(env_state=env_state, agent=AgentState(q, runner.agent.visited), s=o["s"], q_rows=q_rows,
+    return runner.replace(env_state=env_state, agent=AgentState(q, runner.agent.visited), s=o["s"], q_rows=q_rows,
                   action=o["action"], epsilon=o["epsilon"], episode=o["episode"], ep_return=o["ep_return"],
                   key=jax.random.wrap_key_data(jnp.stack([o["k0"], o["k1"]], 1), impl=impl),
                   returns=returns, lengths=lengths, terminated=terminated, nan_episodes=o["nan_episodes"],
