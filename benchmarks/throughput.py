@@ -539,6 +539,15 @@ def _guard(fn, skip_row, *a) -> dict[str, Any]:
         return {**skip_row, "status": "error", "reason": f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"}
 
 
+def continuous(env_id: str) -> bool:
+    """Whether ``env_id``'s actions are a Box: its task declares float actions (nothing is built)."""
+    import jax.numpy as jnp
+
+    from jaxrobo.registry import _lookup
+
+    return jnp.issubdtype(_lookup(env_id).env_class().action_dtype, jnp.floating)
+
+
 def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
     """("run", env_id, backend, learner, n, options) rows, plus ("skip", env_id, reason) for ids not there."""
     import jaxrobo
@@ -564,6 +573,10 @@ def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
     for env_id in wanted:
         if env_id not in ids:
             plan.append(("skip", env_id, f"{env_id} is not registered in this checkout"))
+            continue
+        if continuous(env_id):  # tabular rows need Discrete actions; PPO's throughput: benchmarks/ppo_throughput.py
+            plan.append(("skip", env_id, f"{env_id} has continuous (Box) actions: no tabular rows; "
+                                         "benchmarks/ppo_throughput.py measures PPO on it"))
             continue
         cartpole = env_id.startswith("CartPoleStayUp")
         env_backends = (backends if env_id == "CartPoleStayUp-v0" else ("mjx",)) if cartpole else (None,)
