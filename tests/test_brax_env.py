@@ -157,7 +157,7 @@ def _small_ppo_networks():
                              value_hidden_layer_sizes=(8,))
 
 
-@pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("env_id", ["QuadcopterGotoTwist-v0"])  # the cart-pole and SAC: tests/test_deep.py (CLI)
 def test_brax_ppo_trains_on_continuous_id(env_id):
     from brax.training.agents.ppo import train as ppo
 
@@ -182,18 +182,6 @@ def test_brax_ppo_trains_on_continuous_id(env_id):
     assert action.shape == (1, env.action_size) and bool(jnp.all(jnp.abs(action) <= 1.0))
     if env_id == "QuadcopterGotoTwist-v0":
         assert 0.0 <= metrics["eval/episode_arrived"] <= 1.0
-
-
-def test_brax_sac_trains_on_continuous_cartpole():
-    from brax.training.agents.sac import networks as sac_networks
-    from brax.training.agents.sac import train as sac
-
-    make_policy, params, metrics = sac.train(
-        _env("CartPoleContinuous-v0"), num_timesteps=256, episode_length=20,
-        wrap_env_fn=brax_env.wrap_for_training, num_envs=4, num_eval_envs=2, batch_size=8, num_evals=2,
-        min_replay_size=16, grad_updates_per_step=1, seed=0,
-        network_factory=functools.partial(sac_networks.make_sac_networks, hidden_layer_sizes=(8,)))
-    assert np.isfinite(metrics["eval/episode_reward"]) and 0 < metrics["eval/avg_episode_length"] <= 20
 
 
 def test_playground_training_wrapper_drives_a_brax_env():

@@ -55,13 +55,6 @@ def test_goal_clear_sees_the_grown_obstacle_on_the_way_and_ignores_one_beyond_th
     assert obs.shape == (8,) and bool(jnp.all(jnp.isfinite(obs)))
 
 
-def test_check_quick_passes_for_v2(capsys):
-    from jaxrobo.cli import main
-
-    assert main(["check", "QuadcopterGoto-v2", "--quick"]) == 0
-    assert "all" in capsys.readouterr().out
-
-
 def test_tiny_train_summary_has_the_greedy_arrival_rate():
     from jaxrobo.run import resolve
     from jaxrobo.train import train
