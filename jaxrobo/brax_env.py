@@ -140,19 +140,33 @@ def continuous_ids(discrete_id: str | None = None) -> list[str]:
 class BraxEnv(brax_base.Env):
     """A jaxrobo env with a ``Box`` action space as a Brax ``Env`` (see the module docstring)."""
 
-    def __init__(self, env: Env, params: Any = None):
+    def __init__(self, env: Env, params: Any = None, discrete: str = "refuse"):
+        """``discrete``: what a ``Discrete(n)`` action space becomes. ``"refuse"`` (default): a ConfigError naming
+        the continuous id to use. ``"argmax"``: Brax acts with ``n`` real outputs and the env takes the largest
+        one's index, so Brax's PPO and SAC train any id, unchanged (a relaxation for experiments: the ids with
+        continuous actions are the ones tuned for them)."""
         if not isinstance(env, Env):
             raise TypeError(f"BraxEnv(env): expected a jaxrobo Env (jaxrobo.make(id)), got {type(env).__name__}")
+        if discrete not in ("refuse", "argmax"):
+            raise ConfigError(f"BraxEnv discrete={discrete!r}: allowed values are 'refuse', 'argmax'")
         self.env = env
         self.params = env.default_params if params is None else params
         act = env.action_space(self.params)
+        self.discrete = discrete
+        self._n_discrete = None
+        if isinstance(act, spaces.Discrete) and discrete == "argmax":
+            self._n_discrete = int(act.n)
+            self._unit, self._low, self._high = True, -np.ones(act.n, np.float32), np.ones(act.n, np.float32)
+            self._metric_names = BASE_METRICS + tuple(self._task_metrics(None).keys())
+            return
         if isinstance(act, spaces.Discrete):
             spec_id = env.spec.id if env.spec is not None else None
             others = continuous_ids(spec_id) if spec_id is not None else []
             hint = (f"use its continuous counterpart {' or '.join(repr(i) for i in others)}" if others else
                     f"use an id with continuous actions ({', '.join(continuous_ids()) or 'none registered'})")
             raise ConfigError(f"BraxEnv: {env.name} has a Discrete({act.n}) action space; Brax's PPO and SAC act "
-                              f"with real vectors in [-1, 1]: {hint}")
+                              f"with real vectors in [-1, 1]: {hint}, or pass discrete='argmax' (the env takes the "
+                              "index of the largest of n outputs)")
         if not isinstance(act, spaces.Box) or len(act.shape) != 1:
             raise ConfigError(f"BraxEnv: {env.name}: action_space() must be a 1-D jaxrobo.spaces.Box, got {act!r}")
         low, high = np.asarray(act.low, np.float32), np.asarray(act.high, np.float32)
@@ -189,8 +203,11 @@ class BraxEnv(brax_base.Env):
 
     # ---- helpers ----------------------------------------------------------------------------------------
     def scale_action(self, action: jax.Array) -> jax.Array:
-        """Brax's action in [-1, 1] per dimension as the task's action (affine onto the Box bounds)."""
+        """Brax's action in [-1, 1] per dimension as the task's action (affine onto the Box bounds; with
+        ``discrete="argmax"``, the index of the largest output)."""
         a = jnp.asarray(action, jnp.float32)
+        if self._n_discrete is not None:
+            return jnp.argmax(a, axis=-1).astype(jnp.int32)
         if self._unit:
             return a
         return jnp.asarray(self._low) + (a + 1.0) * 0.5 * jnp.asarray(self._high - self._low)
@@ -220,10 +237,10 @@ class BraxEnv(brax_base.Env):
         return f"<BraxEnv {self.env.name} backend={self.backend}>"
 
 
-def make(env_id: str, **overrides: Any) -> BraxEnv:
-    """``BraxEnv(jaxrobo.make(env_id, **overrides))``: any registered id (or ``"module:Id"``) with a Box action
-    space; a Discrete one is refused with the continuous id to use."""
-    return BraxEnv(registry.make(env_id, **overrides))
+def make(env_id: str, discrete: str = "refuse", **overrides: Any) -> BraxEnv:
+    """``BraxEnv(jaxrobo.make(env_id, **overrides), discrete=discrete)``: any registered id (or ``"module:Id"``);
+    a Discrete one is refused with the continuous id to use, unless ``discrete="argmax"``."""
+    return BraxEnv(registry.make(env_id, **overrides), discrete=discrete)
 
 
 def _positive_int(name: str, value: Any) -> int:
@@ -244,7 +261,8 @@ class TrainingWrapper(brax_base.Wrapper):
         super().__init__(env)
         self.episode_length, self.action_repeat = episode_length, action_repeat
         # The trainer's episode length is the step limit (checked like any max_episode_steps override).
-        self.single = BraxEnv(env.env, env.params.replace(max_episode_steps=episode_length))
+        self.single = BraxEnv(env.env, env.params.replace(max_episode_steps=episode_length),
+                              discrete=env.discrete)
 
     def reset(self, rng: jax.Array) -> brax_base.State:
         state = jax.vmap(self.single.reset)(rng)

@@ -250,3 +250,34 @@ def test_twist_reaches_goals_without_the_obstacle_and_the_obstacle_is_in_the_way
     assert bool(jnp.all(free.task.arrived)) and not bool(jnp.any(free.task.crashed))
     blocked = _closed_loop(jaxrobo.make("QuadcopterGotoTwist-v0"), straight, 8, 100)
     assert bool(jnp.all(blocked.task.crashed)) and not bool(jnp.any(blocked.task.arrived))
+
+
+@pytest.mark.parametrize("env_id", ["CartPoleStayUp-v0", "ArmReach-v0"])
+def test_a_discrete_id_takes_the_argmax_of_braxs_outputs(env_id):
+    """discrete="argmax": every id is a Brax Env; the env steps with the index of the largest output."""
+    kw = {"backend": "analytic"} if env_id.startswith("CartPole") else {}
+    benv = brax_env.make(env_id, discrete="argmax", **kw)
+    n = benv.env.num_actions
+    assert benv.action_size == n
+    np.testing.assert_array_equal(benv.scale_action(jnp.eye(n)), np.arange(n))
+    state = jax.jit(benv.reset)(jax.random.PRNGKey(0))
+    direct = benv.env.step(state.pipeline_state, jnp.int32(n - 1), benv.params)
+    stepped = jax.jit(benv.step)(state, jnp.eye(n)[n - 1])
+    np.testing.assert_array_equal(stepped.obs, direct.obs)
+    batch = jax.jit(jax.vmap(benv.reset))(jax.random.split(jax.random.PRNGKey(1), 3))
+    assert batch.obs.shape == (3, benv.observation_size)
+    with pytest.raises(ConfigError, match="discrete='argmax'"):
+        brax_env.make(env_id, **kw)
+    with pytest.raises(ConfigError, match="discrete='nearest'"):
+        brax_env.make(env_id, discrete="nearest", **kw)
+
+
+def test_brax_ppo_trains_on_a_discrete_id_through_argmax():
+    from brax.training.agents.ppo import train as ppo
+
+    env = brax_env.make("CartPoleStayUp-v0", discrete="argmax", backend="analytic")
+    make_policy, params, metrics = ppo.train(
+        env, num_timesteps=320, episode_length=20, wrap_env_fn=brax_env.wrap_for_training,
+        num_envs=4, batch_size=4, num_minibatches=2, unroll_length=5, num_updates_per_batch=1,
+        num_evals=2, num_eval_envs=2, network_factory=_small_ppo_networks(), seed=0)
+    assert np.isfinite(metrics["eval/episode_reward"]) and 0 < metrics["eval/avg_episode_length"] <= 20
