@@ -9,13 +9,12 @@ chunk. Between chunks it asks a stop hook (``should_stop``: a chunk boundary is 
 hands the carry to a checkpoint hook at its cadence (every N chunks and/or every T seconds), and at the end.
 
 :func:`run_training` is a whole training run: compile, loop from a fresh or saved carry, greedy evaluation at the
-end (:func:`evaluate_tables`; :func:`success_of_tables` for a task whose target is a success rate), a
-:class:`~jaxrobo.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT / SIGTERM into a stop request for both
-command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
+end (:func:`evaluate_tables`, whose one flight also counts the arrivals of a task whose target is a success
+rate), a :class:`~jaxrobo.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT / SIGTERM into a stop request
+for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
-its :class:`ChunkRun`, :func:`run_training`, :func:`evaluate_tables`, :func:`success_of_tables`,
-:class:`StopOnSignal`, the hook types
+its :class:`ChunkRun`, :func:`run_training`, :func:`evaluate_tables`, :class:`StopOnSignal`, the hook types
 :data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
 """
 from __future__ import annotations
@@ -29,7 +28,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from jaxrobo import rollout, tabular
+from jaxrobo import tabular
 from jaxrobo.tabular import AgentParams
 from jaxrobo import budget
 from jaxrobo.plan import ExecutionPlan
@@ -164,8 +163,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     runner = loop.carry
     eval_returns = eval_lengths = selected = eval_success = None
     if config.eval_episodes > 0 and not loop.stopped:
-        eval_returns, eval_lengths, selected = evaluate_tables(trainer, runner, key, env_params)
-        eval_success = success_of_tables(trainer, runner, key, env_params)
+        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params)
 
     host = jax.device_get(runner.replace(key=None, env_state=None))
     q = np.asarray(host.agent.q)
@@ -182,18 +180,26 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
 
 
 def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any
-                    ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None]:
+                    ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, np.ndarray | None]:
     """Greedy evaluation of the first ``eval_envs`` trained tables (the shared one: once), ``eval_episodes``
-    each: ``(returns, lengths, selected)``, the first two ``[tables, eval_episodes]``. With several tables the
-    best one (by mean return) is evaluated again on fresh episodes (``selected``: its index, returns and
-    lengths), so its figure is not the maximum of noisy estimates. ``key`` is the run's key."""
+    each: ``(returns, lengths, selected, success)``, the first two ``[tables, eval_episodes]``. With several tables
+    the best one (by mean return) is evaluated again on fresh episodes (``selected``: its index, returns and
+    lengths), so its figure is not the maximum of noisy estimates. ``key`` is the run's key.
+
+    ``success``: for a task whose learning target is a ``success_rate`` and whose task variables carry an
+    ``arrived`` flag (QuadcopterGoto, ArmReach), whether each of those episodes arrived, ``[tables,
+    eval_episodes]``, read from the same flight as the returns; None for any other task."""
     config = trainer.config
     n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
     tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
-    evaluate = jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0 if not config.shared_table else None, None, None)),
-                       static_argnums=2)
+    evaluate = jax.jit(jax.vmap(trainer.evaluate_episodes,
+                                in_axes=(0, 0 if not config.shared_table else None, None, None)), static_argnums=2)
     keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)
-    eval_returns, eval_lengths = (np.asarray(x) for x in evaluate(keys, tables, config.eval_episodes, env_params))
+    out = jax.device_get(evaluate(keys, tables, config.eval_episodes, env_params))
+    eval_returns, eval_lengths = np.asarray(out["return"]), np.asarray(out["length"])
+    target = getattr(trainer.env, "learning_target", None)
+    counts_success = target is not None and target.metric == "success_rate" and "arrived" in out
+    success = np.asarray(out["arrived"]) if counts_success else None
     selected = None
     if n_eval > 1:
         best = int(np.argmax(eval_returns.mean(axis=1)))
@@ -201,31 +207,7 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
         sel_returns, sel_lengths = jax.jit(trainer.evaluate, static_argnums=2)(
             jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)
         selected = {"table": best, "returns": np.asarray(sel_returns), "lengths": np.asarray(sel_lengths)}
-    return eval_returns, eval_lengths, selected
-
-
-def success_of_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any) -> np.ndarray | None:
-    """For a task whose learning target is a ``success_rate`` and whose task variables carry an ``arrived`` flag
-    (QuadcopterGoto): whether each greedy evaluation episode of :func:`evaluate_tables` arrived,
-    ``[tables, eval_episodes]`` (the same tables, keys and so the same episodes); None for any other task."""
-    env, config = trainer.env, trainer.config
-    target = getattr(env, "learning_target", None)
-    if target is None or target.metric != "success_rate":
-        return None
-    probe = jax.eval_shape(lambda k: env.reset(k, env_params), jax.random.key(0))
-    if not hasattr(getattr(probe, "task", None), "arrived"):
-        return None
-    n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
-    tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
-    horizon = int(env.spec.max_episode_steps if env.spec else 1000)
-
-    def arrived(k, agent):
-        out = rollout.rollout(env, rollout.greedy_policy(agent.q, trainer.disc), k, config.eval_episodes, horizon,
-                              env_params)
-        return out["last"].task.arrived
-
-    keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)  # evaluate_tables' keys: its episodes
-    return np.asarray(jax.jit(jax.vmap(arrived, in_axes=(0, 0 if not config.shared_table else None)))(keys, tables))
+    return eval_returns, eval_lengths, selected, success
 
 
 # ---- stopping on a signal ----------------------------------------------------------------------------------------

@@ -84,7 +84,7 @@ class LearningTarget:
     trainer's evaluation records per table: the summary gives the share of evaluated tables that reach the
     target as ``eval_share_of_tables_<name>``), or ``"success_rate"`` (share of greedy episodes the task counts as
     a success: for a task whose task variables carry an ``arrived`` flag the evaluation records it too
-    (:func:`jaxrobo.driver.success_of_tables`) and the summary adds ``eval_success_rate`` and the share; for
+    (:func:`jaxrobo.driver.evaluate_tables`) and the summary adds ``eval_success_rate`` and the share; for
     any other task the summary names the target only and the task measures it itself).
     """
 

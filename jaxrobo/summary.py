@@ -38,7 +38,7 @@ class TrainResult:
     eval_returns: np.ndarray | None = None  # [eval_envs, eval_episodes]
     eval_lengths: np.ndarray | None = None
     #: Whether each of those episodes arrived (``[eval_envs, eval_episodes]``), for a task whose learning target
-    #: is a ``success_rate`` (:func:`jaxrobo.driver.success_of_tables`); None otherwise.
+    #: is a ``success_rate`` (:func:`jaxrobo.driver.evaluate_tables`); None otherwise.
     eval_success: np.ndarray | None = None
     selected: dict[str, Any] | None = None  # the best evaluated table, re-evaluated on fresh episodes
     #: False when ``should_stop`` ended the run early: the records hold the episodes finished so far

@@ -13,8 +13,8 @@ parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`
 runs a host loop: :mod:`jaxrobo.driver` compiles the chunk and runs it chunk after chunk.
 
 Public surface: :class:`TrainConfig`, :class:`Runner`, :class:`Trainer` (``init``, ``step``, ``run_chunk``,
-``max_chunks``, ``evaluate``), :func:`make_discretiser_for`, :func:`progress_stats`. Names with a leading
-underscore are private.
+``max_chunks``, ``evaluate``, ``evaluate_episodes``), :func:`make_discretiser_for`, :func:`progress_stats`. Names
+with a leading underscore are private.
 """
 from __future__ import annotations
 
@@ -311,11 +311,24 @@ class Trainer:
                  max_steps: int | None = None) -> tuple[jax.Array, jax.Array]:
         """Greedy episodes with one table (:func:`jaxrobo.rollout.rollout` of
         :func:`jaxrobo.rollout.greedy_policy`): ``(returns, lengths)``, each ``[n_episodes]``."""
+        out = self.evaluate_episodes(key, agent, n_episodes, env_params, max_steps)
+        return out["return"], out["length"]
+
+    def evaluate_episodes(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
+                          max_steps: int | None = None) -> dict[str, jax.Array]:
+        """The episodes of :meth:`evaluate` (the same keys, so the same episodes) with how each ended, from the
+        one rollout: ``return``, ``length``, ``terminated`` and, for a task whose task variables carry an
+        ``arrived`` flag (QuadcopterGoto, ArmReach), ``arrived``; each ``[n_episodes]``."""
         env_params = self.env.default_params if env_params is None else env_params
         horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
         out = rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes, horizon,
                               env_params)
-        return out["return"], out["length"]
+        last = out["last"]
+        res = {"return": out["return"], "length": out["length"], "terminated": last.terminated}
+        arrived = getattr(last.task, "arrived", None)
+        if arrived is not None:
+            res["arrived"] = jnp.asarray(arrived, bool)
+        return res
 
 
 def progress_stats(runner: Runner) -> tuple[jax.Array, jax.Array]:

@@ -116,6 +116,24 @@ def test_a_policy_that_does_not_match_its_networks_is_refused(tmp_path):
         deep.load_policy(str(tmp_path))
 
 
+def test_the_fields_both_trainers_take_are_declared_once_on_their_base():
+    """Each shared field's type, range and doc live on DeepConfig; each trainer's config keeps them (its own
+    default where the trainers differ) and a bad value is refused naming the field and its range."""
+    import dataclasses
+
+    from jaxrobo import deep
+    from jaxrobo.config import ConfigError
+    from jaxrobo.struct import rules
+
+    shared = {f.name for f in dataclasses.fields(deep.DeepConfig)} - {"agent"}
+    assert {"num_timesteps", "num_envs", "episode_length", "learning_rate", "batch_size", "seed"} <= shared
+    for cls in (deep.PPOConfig, deep.SACConfig):
+        assert issubclass(cls, deep.DeepConfig)
+        assert all(rules(cls)[name] is rules(deep.DeepConfig)[name] for name in shared)
+    with pytest.raises(ConfigError, match=r"learning_rate=0\.0: expected a number > 0\.0 and <= 1\.0"):
+        deep.resolve(CPC, "sac", "tiny", {"learning_rate": 0})
+
+
 def test_show_flies_a_saved_ppo_policy(runs, tmp_path, capsys):
     for env_id in (CPC, TWIST):
         png = str(tmp_path / f"{env_id}.png")

@@ -112,3 +112,40 @@ def test_train_and_the_sweep_run_their_chunks_through_the_same_driver(monkeypatc
     assert result.complete and loops == [((2,), result.chunks_done)]
     out = sweep.run_sweep("CartPoleStayUp-v0", [{"alpha": 0.1}, {"alpha": 0.5}], [0], overrides=small)
     assert len(out.rows) == 2 and len(loops) == 2 and loops[1][0] == (2, 2)  # rows × envs
+
+
+# The sizes of the tiny runs of tests/test_goto_v2.py and tests/test_arm_reach.py (their compiled chunks are reused);
+# a wide arrival radius (a traced parameter: the same programs), so that some episodes arrive and some do not.
+@pytest.mark.parametrize("env_id, overrides", [
+    ("QuadcopterGoto-v2", {"nsteps": 12, "chunk_steps": 12, "eval_episodes": 4, "goal_tolerance": 5.0}),
+    ("ArmReach-v0", {"nsteps": 10, "chunk_steps": 10, "eval_episodes": 8, "goal_tolerance": 0.3})])
+def test_the_greedy_evaluation_flies_once_and_counts_arrivals_as_a_second_flight_would(env_id, overrides,
+                                                                                       monkeypatch):
+    """The arrivals come from the evaluation's own flight: one rollout traced, and the same flags a second flight
+    of the same tables on the same keys (how they used to be counted, the oracle here) finds."""
+    import jax
+
+    from jaxrobo import rollout
+    from jaxrobo.run import resolve
+    from jaxrobo.train import make_discretiser_for, train
+
+    spec = resolve(env_id, overrides={"n_envs": 2, "nepisodes": 2, "eval_envs": 1, **overrides})
+    env, config = spec.env, spec.config
+    flown = rollout.rollout
+    flights = []
+    monkeypatch.setattr(rollout, "rollout", lambda *a, **kw: flights.append(a[3]) or flown(*a, **kw))
+    res = train(env, config, spec.agent_params)
+    assert flights == [config.eval_episodes]  # one table evaluated: one flight, none more for the arrivals
+
+    disc, params, horizon = make_discretiser_for(env, config), env.default_params, env.spec.max_episode_steps
+
+    def second_flight(k, q):
+        out = flown(env, rollout.greedy_policy(q, disc), k, config.eval_episodes, horizon, params)
+        return out["last"].task.arrived, out["return"]
+
+    keys = jax.random.split(jax.random.fold_in(jax.random.key(config.seed), 1), 1)
+    arrived, returns = (np.asarray(x) for x in jax.jit(jax.vmap(second_flight))(keys, res.q[:1]))
+    np.testing.assert_array_equal(returns, res.eval_returns)  # the same episodes
+    assert res.eval_success.dtype == bool and 0.0 < arrived.mean() < 1.0
+    np.testing.assert_array_equal(res.eval_success, arrived)
+    assert res.summary()["eval_success_rate"] == float(arrived.mean())

@@ -1,0 +1,47 @@
+"""Deep RL on jaxrobo envs through Brax's own trainers: ``jaxrobo train --agent ppo|sac``.
+
+The trainers are ``brax.training.agents.ppo.train`` and ``brax.training.agents.sac.train``, called unchanged on
+the env's Brax face (:class:`jaxrobo.brax_env.BraxEnv`) with jaxrobo's training wrapper
+(:func:`jaxrobo.brax_env.wrap_for_training`: fresh randomness at every auto-reset, truncation kept apart from
+termination). jaxrobo adds what a run needs around them, one concern per module:
+
+* :mod:`jaxrobo.deep.config`: one home for every default: :class:`DeepConfig` (the fields both trainers take,
+  each with its allowed range), :class:`PPOConfig` and :class:`SACConfig` (each trainer's own); the presets in
+  ``agents/configs/<agent>.yaml`` and the per-task presets in ``agents/configs/<agent>/<env id>.yaml`` hold only
+  what differs from them (the task file: what differs from the agent file). :func:`resolve` validates
+  everything, and refuses a Discrete-action id, before anything compiles;
+* :mod:`jaxrobo.deep.training`: Brax's trainer with the evaluation of the deterministic policy on
+  ``eval_episodes`` fresh episodes of the jaxrobo env itself at each of the trainer's ``num_evals`` points
+  (:func:`evaluate`), through :func:`jaxrobo.rollout.rollout`, so a task's success flags (the Goto's
+  ``arrived``) are counted exactly as for the tabular learners;
+* :mod:`jaxrobo.deep.output`: the run directory (:func:`write_run`: ``config.yaml``, ``evaluations.csv``,
+  ``episode_stats.csv`` with an ``env_steps`` column, ``summary.json``, TensorBoard scalars, ``rewards.png``, the
+  policy) written through :mod:`jaxrobo.rundir`;
+* :mod:`jaxrobo.deep.policy`: the policy saved without pickle (:func:`save_policy`: the parameter pytree
+  flattened to ``policy.npz`` by key path, the network's configuration in ``policy.json``) and loaded back
+  (:func:`load_policy`) for ``jaxrobo show`` and rendering.
+
+Public surface (all importable from ``jaxrobo.deep``): :data:`AGENTS`, :class:`DeepConfig`, :class:`PPOConfig`,
+:class:`SACConfig`, :class:`DeepRunSpec`, :func:`is_deep`, :func:`config_class`, :func:`presets`,
+:func:`resolve`, :func:`check_combinations`, :func:`train`, :class:`TrainingStopped`, :class:`DeepResult`,
+:func:`evaluate`, :func:`save_policy`, :func:`load_policy`, :class:`LoadedPolicy`, :func:`write_run`,
+:func:`spec_from_config`.
+"""
+from __future__ import annotations
+
+from jaxrobo.deep.config import (AGENT_CONFIG_DIR, AGENTS, MAX_LAYER, DeepConfig, DeepRunSpec, PPOConfig, SACConfig,
+                                 check_action_space, check_combinations, config_class, is_deep, preset_paths, presets,
+                                 resolve, spec_from_config)
+from jaxrobo.deep.output import EVAL_COLUMNS, STAT_COLUMNS, is_deep_run, write_run
+from jaxrobo.deep.policy import (POLICY_JSON, POLICY_NPZ, LoadedPolicy, env_policy, load_policy, network_config,
+                                 save_policy)
+from jaxrobo.deep.training import DeepResult, TrainingStopped, evaluate, train
+# Private helpers the tests call directly (``deep._networks``, ``deep._template``, ``deep._train_sac``).
+from jaxrobo.deep.policy import _networks, _template  # noqa: F401
+from jaxrobo.deep.training import _train_sac  # noqa: F401
+
+__all__ = ["AGENTS", "AGENT_CONFIG_DIR", "DeepConfig", "DeepResult", "DeepRunSpec", "EVAL_COLUMNS", "LoadedPolicy",
+           "MAX_LAYER", "POLICY_JSON", "POLICY_NPZ", "PPOConfig", "SACConfig", "STAT_COLUMNS", "TrainingStopped",
+           "check_action_space", "check_combinations", "config_class", "env_policy", "evaluate", "is_deep",
+           "is_deep_run", "load_policy", "network_config", "preset_paths", "presets", "resolve", "save_policy",
+           "spec_from_config", "train", "write_run"]
