@@ -127,8 +127,8 @@ def measure(env_spec: str, n: int, choice: str, args) -> dict[str, Any]:
                                          min_seconds=0.25)
     # Steps per finished episode over the whole run so far: how often an env resets (the Pallas kernel's reset
     # branch is taken in a step where any env of a program is done).
-    episodes = int(jax.numpy.sum(runner.episode))
-    row["mean_episode_steps"] = int(jax.numpy.sum(runner.env_steps)) / max(1, episodes)
+    episodes = float(jax.numpy.sum(runner.episode.astype(jax.numpy.float32)))
+    row["mean_episode_steps"] = float(jax.numpy.sum(runner.env_steps.astype(jax.numpy.float32))) / max(1.0, episodes)
     sim = simulator_of(env)
     n_sub, running = int(getattr(sim, "n_substeps", 1) or 1), float(getattr(sim, "running_step", 0.0) or 0.0)
     sps = n * steps / seconds
