@@ -125,6 +125,15 @@ def measure(env_spec: str, n: int, choice: str, args) -> dict[str, Any]:
     row["q_checksum"] = float(jax.jit(_common.checksum)(runner.agent.q))
     seconds, runner = _common.time_carry(lambda r, _: (chunk(r, ap, ep), None), runner, 0, repeats=args.repeats,
                                          min_seconds=0.25)
+    # The host's side of one call (it returns once the chunk is queued): where it is as long as the call itself,
+    # the run is bound by dispatch, not by the device, and a longer chunk (--steps) measures the device.
+    dispatch = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        runner = chunk(runner, ap, ep)
+        dispatch.append(time.perf_counter() - t0)
+    jax.block_until_ready(runner)
+    row["dispatch_s"] = sorted(dispatch)[2]
     # Steps per finished episode over the whole run so far: how often an env resets (the Pallas kernel's reset
     # branch is taken in a step where any env of a program is done).
     episodes = float(jax.numpy.sum(runner.episode.astype(jax.numpy.float32)))
@@ -203,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"{row['sim_seconds_per_s'] / 1e3:10.1f} k sim s/s "
                       f"kernels {row['kernels']:4d}  {row['ns_per_step_per_batch'] / 1e3:9.1f} us/step  "
                       f"carry {row['carry_bytes_per_env']:7.0f} B/env  compile {row['compile_s']:5.1f}s  "
-                      f"q {row['q_checksum']:.6g}  episode {row['mean_episode_steps']:.1f} steps", flush=True)
+                      f"q {row['q_checksum']:.6g}  episode {row['mean_episode_steps']:.1f} steps  "
+                      f"call {row['seconds'] * 1e3:.3f} ms, dispatch {row['dispatch_s'] * 1e3:.3f} ms", flush=True)
         if args.gymnax:
             import throughput
 
