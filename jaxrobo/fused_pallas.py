@@ -6,7 +6,9 @@ state (~1.5 KB of memory traffic per env step on an H100, docs/benchmarks.md "Fu
 in-kernel, the env's state, keys, epsilon, counters and its current table row in registers; per step it touches
 memory only to gather the next state's table row and scatter the one updated entry (the env's own table, by
 computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
-goes back to memory once, at the end of the chunk.
+goes back to memory once, at the end of the chunk. A program is one warp of 32 envs by default (:data:`BLOCK`):
+seven of a step's ten threefry hashes serve only the reset, and a program computes them only in a step where one
+of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would.
 
 It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
@@ -24,7 +26,8 @@ Supported (:func:`unsupported` says why not, and the plan's boundary refuses the
 with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
 the call (tested interpreted; not run on a GPU).
 
-Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`.
+Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
+:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS` (read when a chunk is traced).
 """
 from __future__ import annotations
 
@@ -38,15 +41,16 @@ import numpy as np
 #: Envs per Pallas program when the plan's ``fused_block`` is None (a power of two; smaller where ``n_envs`` has
 #: fewer factors of two), one per GPU thread: ``num_warps`` is ``block / 32`` (1 to 8) unless :data:`NUM_WARPS`
 #: says otherwise. ``ExecutionPlan(fused="pallas", fused_block=B)`` asks for B (a power of two up to 1024).
-BLOCK = 256
+BLOCK = 32
 #: Warps per program (None: one thread per env, ``block / 32`` clamped to 1..8). A tuning knob for benchmarks.
 NUM_WARPS: int | None = None
 #: True: a program hashes the reset's random numbers and gathers the fresh rows only in a step where one of its
 #: envs is done (a scalar branch per program). False: in every env every step, selected away where not done
 #: (the same values; kept to measure the branch against and to test that it changes nothing).
 SKIP_RESETS = True
-#: True: on a GPU the physics' ``sin``/``cos`` are the hardware's approximations (PTX ``sin.approx.f32``, absolute
-#: error below 1e-6 on the pole's angles) instead of libdevice's correctly rounded ones. A benchmark knob, off.
+#: True: on a GPU the physics' ``sin``/``cos`` are the hardware's approximations (PTX ``sin.approx.f32`` and
+#: ``cos.approx.f32``, absolute error about 5e-7 on [-pi, pi]) instead of libdevice's. A benchmark knob, off: it
+#: changes the GPU's values in the last bits, and a CPU (interpret mode, no inline assembly) cannot test it.
 APPROX_SINCOS = False
 _MAX_BLOCK = 1024
 
