@@ -10,7 +10,10 @@ Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
 :func:`jaxrobo.driver.compiled_chunk`)
 under one plan: ``off`` (the plain path), ``xla`` (substeps written out), ``xla:BLOCK`` (and the chunk's steps
 run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas kernel: :mod:`jaxrobo.fused_pallas`,
-the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing about the GPU kernel). Columns: env steps/s, physics steps/s, simulated s/s, the compiled
+the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing about the GPU kernel);
+``pallas:BLOCK[:wWARPS][:always][:sincos]`` sets its envs per program and its tuning knobs (:func:`plan_of`). The
+default chunk (4 M env steps per call, at least 10 steps) is short enough that a fast kernel's calls time the
+fixed cost per call (the host's dispatch); ``--steps 1000`` times the chunk ``jaxrobo train`` runs by default. Columns: env steps/s, physics steps/s, simulated s/s, the compiled
 program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
 the training carry per env, and the tables' checksum after one chunk (equal across plans: the same values). ``--gymnax`` adds
 gymnax's CartPole random rollout at the same sizes (benchmarks/throughput.py's peer row). ``--learning SEEDS``

@@ -238,7 +238,7 @@ def _make_kernel(static):
         def step(_, cr):
             cr = dict(cr)
             key = (cr["k0"], cr["k1"])
-            k_next, k_act, k_reset = _subkey(key, 0), _subkey(key, 1), _subkey(key, 4)
+            k_next, k_act = _subkey(key, 0), _subkey(key, 1)
             active = cr["episode"] < nepisodes
             r_s = [cr[f"r{k}"] for k in range(n_actions)]
             a = epsilon_greedy(k_act, r_s, cr["epsilon"])
@@ -289,8 +289,8 @@ def _make_kernel(static):
                 cr["len_sum"] = cr["len_sum"] + jnp.where(record, env_steps_now, 0)
                 cr["term_any"] = cr["term_any"] | (record & term).astype(jnp.int32)
             # The fresh episode wherever done (env.reset from k_reset), its rows from the updated table. Seven of
-            # the step's ten hashes serve only the reset, and most steps reset no env of a block: under
-            # skip_resets the program computes them only when one of its envs is done (a scalar branch, scf.if in
+            # the step's ten hashes serve only the reset, and in many steps no env of a program is done: under
+            # skip_resets the program computes them only when one of its envs is (a scalar branch, scf.if in
             # Triton); where none is, the fresh values would be discarded by the selects below anyway.
             def fresh_episode(_):
                 k_reset = _subkey(key, 4)
