@@ -6,7 +6,9 @@ state (~1.5 KB of memory traffic per env step on an H100, docs/benchmarks.md "Fu
 in-kernel, the env's state, keys, epsilon, counters and its current table row in registers; per step it touches
 memory only to gather the next state's table row and scatter the one updated entry (the env's own table, by
 computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
-goes back to memory once, at the end of the chunk.
+goes back to memory once, at the end of the chunk. A program is one warp of 32 envs by default (:data:`BLOCK`):
+seven of a step's ten threefry hashes serve only the reset, and a program computes them only in a step where one
+of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would.
 
 It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
@@ -24,7 +26,8 @@ Supported (:func:`unsupported` says why not, and the plan's boundary refuses the
 with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
 the call (tested interpreted; not run on a GPU).
 
-Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`.
+Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
+:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS` (read when a chunk is traced).
 """
 from __future__ import annotations
 
@@ -35,8 +38,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-#: Envs per Pallas program (a power of two; smaller where ``n_envs`` has fewer factors of two), one per GPU thread.
-BLOCK = 256
+#: Envs per Pallas program when the plan's ``fused_block`` is None (a power of two; smaller where ``n_envs`` has
+#: fewer factors of two), one per GPU thread: ``num_warps`` is ``block / 32`` (1 to 8) unless :data:`NUM_WARPS`
+#: says otherwise. ``ExecutionPlan(fused="pallas", fused_block=B)`` asks for B (a power of two up to 1024).
+BLOCK = 32
+#: Warps per program (None: one thread per env, ``block / 32`` clamped to 1..8). A tuning knob for benchmarks.
+NUM_WARPS: int | None = None
+#: True: a program hashes the reset's random numbers and gathers the fresh rows only in a step where one of its
+#: envs is done (a scalar branch per program). False: in every env every step, selected away where not done
+#: (the same values; kept to measure the branch against and to test that it changes nothing).
+SKIP_RESETS = True
+#: True: on a GPU the physics' ``sin``/``cos`` are the hardware's approximations (PTX ``sin.approx.f32`` and
+#: ``cos.approx.f32``, absolute error about 5e-7 on [-pi, pi]) instead of libdevice's. A benchmark knob, off: it
+#: changes the GPU's values in the last bits, and a CPU (interpret mode, no inline assembly) cannot test it.
+APPROX_SINCOS = False
+_MAX_BLOCK = 1024
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 _PARITY = 0x1BD11BDA
@@ -65,6 +81,9 @@ def unsupported(trainer: Any) -> str | None:
         return "discretiser='edges'; only 'bins' or 'round'"
     if not jax.config.jax_threefry_partitionable or jax.config.jax_default_prng_impl != "threefry2x32":
         return "only JAX's default threefry keys with jax_threefry_partitionable"
+    b = trainer.plan.fused_block
+    if b is not None and (b > _MAX_BLOCK or b & (b - 1)):
+        return f"fused_block={b}; with fused='pallas' the envs per program, a power of two up to {_MAX_BLOCK}"
     if c.n_envs * trainer.disc.n_states * trainer.n_actions >= 2**31:
         return "the tables hold 2**31 entries or more (int32 indices)"
     if c.record_episodes and c.n_envs * c.nepisodes >= 2**31:
@@ -121,7 +140,7 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
-     timestep, n_substeps, action_steps) = static
+     timestep, n_substeps, action_steps, skip_resets, approx_sincos) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
@@ -196,7 +215,13 @@ def _make_kernel(static):
                 if np.isfinite(c.force_high[j]):
                     force = jnp.minimum(force, float(c.force_high[j]))
                 generalized = [gf + float(g) * force if g else gf for gf, g in zip(generalized, gear)]
-            sin, cos = jnp.sin(th), jnp.cos(th)
+            if approx_sincos:
+                shape = [jax.ShapeDtypeStruct(th.shape, jnp.float32)]
+                sin, cos = (plgpu.elementwise_inline_asm(f"{op}.approx.f32 $0, $1;", args=[th], constraints="=r,r",
+                                                         pack=1, result_shape_dtypes=shape)[0]
+                            for op in ("sin", "cos"))
+            else:
+                sin, cos = jnp.sin(th), jnp.cos(th)
             coupling = c.pole_mass_length * cos
             rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
             rhs_th = generalized[1] + c.pole_mass_length * c.gravity * sin
@@ -213,7 +238,7 @@ def _make_kernel(static):
         def step(_, cr):
             cr = dict(cr)
             key = (cr["k0"], cr["k1"])
-            k_next, k_act, k_reset = _subkey(key, 0), _subkey(key, 1), _subkey(key, 4)
+            k_next, k_act = _subkey(key, 0), _subkey(key, 1)
             active = cr["episode"] < nepisodes
             r_s = [cr[f"r{k}"] for k in range(n_actions)]
             a = epsilon_greedy(k_act, r_s, cr["epsilon"])
@@ -263,19 +288,36 @@ def _make_kernel(static):
                 cr["ret_sum"] = cr["ret_sum"] + jnp.where(record, ep_return, 0.0)
                 cr["len_sum"] = cr["len_sum"] + jnp.where(record, env_steps_now, 0)
                 cr["term_any"] = cr["term_any"] | (record & term).astype(jnp.int32)
-            # The fresh episode wherever done (env.reset from k_reset), its rows from the updated table.
-            rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
-            zero = jnp.zeros_like(pose_key[0])
-            lo = -f("init_noise")
-            span = f("init_noise") - lo
-            noise = []
-            for j in range(4):
-                w1, w2 = _threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))
-                noise.append(_unit(w1 ^ w2) * span + lo)
-            fresh = (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3])
-            s_fresh = discretise((fresh[0], fresh[2], fresh[1], fresh[3]))
-            r_fresh = row(s_fresh, done)
-            r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
+            # The fresh episode wherever done (env.reset from k_reset), its rows from the updated table. Seven of
+            # the step's ten hashes serve only the reset, and in many steps no env of a program is done: under
+            # skip_resets the program computes them only when one of its envs is (a scalar branch, scf.if in
+            # Triton); where none is, the fresh values would be discarded by the selects below anyway.
+            def fresh_episode(_):
+                k_reset = _subkey(key, 4)
+                rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
+                zero = jnp.zeros_like(pose_key[0])
+                lo = -f("init_noise")
+                span = f("init_noise") - lo
+                noise = []
+                for j in range(4):
+                    w1, w2 = _threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))
+                    noise.append(_unit(w1 ^ w2) * span + lo)
+                fresh = (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3])
+                s_fresh = discretise((fresh[0], fresh[2], fresh[1], fresh[3]))
+                r_fresh = row(s_fresh, done)
+                r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
+                return (*fresh, rk[0], rk[1], s_fresh, *r_fresh)
+
+            if skip_resets:
+                def none_done(_):
+                    zf, zu = jnp.zeros_like(x), jnp.zeros_like(key[0])
+                    return (zf, zf, zf, zf, zu, zu, jnp.zeros_like(s2), *([zf] * n_actions))
+
+                any_done = jnp.max(done.astype(jnp.int32)) > 0
+                reset = jax.lax.cond(any_done, fresh_episode, none_done, None)
+            else:
+                reset = fresh_episode(None)
+            fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:]
             plgpu.store(q_ref.at[base + cr["s"] * n_actions + a], written)
             w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
             cr["x"], cr["th"], cr["xd"], cr["thd"] = w(fresh[0], x), w(fresh[1], th), w(fresh[2], xd), w(fresh[3], thd)
@@ -308,9 +350,11 @@ def _make_kernel(static):
     return kernel
 
 
-def _block_for(n: int) -> int:
+def _block_for(n: int, cap: int | None = None) -> int:
+    """The largest power of two that divides ``n``, at most ``cap`` (default :data:`BLOCK`)."""
+    cap = BLOCK if cap is None else cap
     block = 1
-    while block < BLOCK and n % (2 * block) == 0:
+    while block < cap and n % (2 * block) == 0:
         block *= 2
     return block
 
@@ -366,11 +410,12 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     if records:
         big += [runner.returns.reshape(-1), runner.lengths.reshape(-1), i32(runner.terminated).reshape(-1)]
 
-    block = _block_for(n)
+    block = _block_for(n, trainer.plan.fused_block)
     strides = tuple(int(v) for v in np.cumprod((disc.bins[1:] + (1,))[::-1])[::-1])
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
               tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
-              tuple(float(v) for v in np.asarray(env._steps)))  # the task's command step per action
+              tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
+              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu")
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)
@@ -383,7 +428,8 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     interpret = jax.default_backend() != "gpu"
     # Triton, not Mosaic GPU: the kernel gathers and scatters single words by computed index, which Triton's
     # pointer arithmetic does and Mosaic GPU's bulk copies do not.
-    params = None if interpret else plgpu.CompilerParams(num_warps=max(1, min(8, block // 32)), num_stages=1)
+    warps = NUM_WARPS or max(1, min(8, block // 32))
+    params = None if interpret else plgpu.CompilerParams(num_warps=warps, num_stages=1)
     outs = pl.pallas_call(kernel, out_shape=out_shape, grid=(n // block,), in_specs=in_specs, out_specs=out_specs,
                           input_output_aliases=aliases, interpret=interpret, compiler_params=params,
                           name="cartpole_qlearn_chunk")(fp, ip, *col_in, *big)

@@ -47,6 +47,8 @@ def test_the_choice_is_validated_and_refused_where_it_does_not_apply():
         other = _cartpole(**overrides)
         with pytest.raises(ValueError, match=rf"ExecutionPlan fused='pallas': .*{why}"):
             Trainer(other.env, other.config, plan=_plan(other, fused="pallas"))
+    with pytest.raises(ValueError, match=r"fused='pallas': fused_block=48; .* a power of two up to 1024"):
+        Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=48))
     goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4))
     with pytest.raises(ValueError, match=r"fused='pallas': the env is QuadcopterGoto"):
         Trainer(goto.env, goto.config, plan=_plan(goto, fused="pallas"))
@@ -102,6 +104,29 @@ def test_the_kernel_is_chunking_invariant():
             runner = chunk(runner, spec.agent_params, spec.env.default_params)
         out[chunk_steps] = runner
     for (path, a), (_, b) in zip(_leaves(out[25]), _leaves(out[15])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
+
+
+@pytest.mark.parametrize("case", ["none", "all", "some"])
+def test_the_reset_branch_changes_nothing(case, monkeypatch):
+    """A program hashes the reset's numbers only in a step where one of its envs is done: in a chunk where no env
+    resets (3 steps of fresh episodes), where every env resets every step (nsteps=1) and where some do, the carry
+    equals the unbranched kernel's (the reset computed in every env every step) bit for bit. 8 envs in programs
+    of 4."""
+    from jaxrobo import fused_pallas
+
+    overrides = {"none": dict(chunk_steps=3), "all": dict(nsteps=1, chunk_steps=3), "some": dict(nsteps=200, chunk_steps=40)}
+    spec = _cartpole(n_envs=8, **overrides[case])
+    out = {}
+    for skip in (True, False):
+        monkeypatch.setattr(fused_pallas, "SKIP_RESETS", skip)
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4))
+        runner = jax.jit(trainer.init)(jax.random.key(7), spec.agent_params, spec.env.default_params)
+        out[skip] = jax.jit(trainer.run_chunk)(runner, spec.agent_params, spec.env.default_params)
+    episodes, steps = np.asarray(out[True].episode), np.asarray(out[True].env_state.steps)
+    assert {"none": episodes.max() == 0, "all": (episodes == 3).all(),  # "some": resets at different steps
+            "some": episodes.max() > 0 and len(set(steps.tolist())) > 1}[case], (episodes, steps)
+    for (path, a), (_, b) in zip(_leaves(out[True]), _leaves(out[False])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
