@@ -31,6 +31,7 @@ on purpose). ``--replot JSON`` redraws the table and figures of a results file w
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import csv
 import json
 import os
@@ -64,7 +65,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     size.add_argument("--full", action="store_true", help="every env × backend × learner at every size")
     p.add_argument("--n-envs", default=None, help="comma list of batch sizes (default by --quick/--full/device)")
     p.add_argument("--steps", type=int, default=None,
-                   help="env steps per timed call (default: enough for ~0.1-1 s per call, 10..1000)")
+                   help="env steps per timed call (default: 10..1000, enough that a call times the path, not its "
+                        "fixed cost; 1,000 for closed forms on a GPU)")
     p.add_argument("--envs", default=None, help="comma list of env ids (default: every registered id)")
     p.add_argument("--backends", default=None,
                    help="comma list of cartpole backends (default: mjx, the three Brax pipelines and analytic)")
@@ -106,9 +108,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def steps_for(n: int, gpu: bool, requested: int | None) -> int:
+def steps_for(n: int, gpu: bool, requested: int | None, cheap: bool = False) -> int:
+    """Env steps per timed call: ``requested``, else enough work that the call times the path rather than the
+    host's fixed cost of a call (about a millisecond on a GPU: dispatch, arguments, the sync), 10..1000.
+
+    ``cheap``: a closed-form step (jaxrobo's ``analytic``/``rigid`` backends, gymnax, crazyflow), where a GPU runs
+    tens of G env steps/s, so the MJX-sized budget of 4 M env steps per call would time mostly that fixed cost.
+    These take the longest chunk, 1,000 steps (``jaxrobo train``'s default ``chunk_steps``), whatever the batch."""
     if requested is not None:
         return requested
+    if gpu and cheap:
+        return 1000
     budget = 4_000_000 if gpu else 60_000  # env steps per timed call
     return int(min(1000, max(10, budget // n)))
 
@@ -183,10 +193,10 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
     overrides: dict[str, Any] = {"n_envs": n, **_common.TIMED_TRAINING, **(options or {})}
     if backend is not None:
         overrides["backend"] = backend
-    steps = steps_for(n, ctx["gpu"], args.steps)
-    overrides["chunk_steps"] = steps
     spec = resolve(env_id, "default", overrides, agent=learner)
     env = spec.env
+    steps = steps_for(n, ctx["gpu"], args.steps, cheap=env.robot.sim.cheap_step)
+    spec = dataclasses.replace(spec, config=spec.config.replace(chunk_steps=steps))
     trainer = Trainer(env, spec.config, plan=fused_plan(env, spec.config, args.fused))
     plan = trainer.plan  # the run's execution plan, for env-only rows too (they step the envs as training does)
     row["execution_plan"] = repr(plan)
@@ -239,7 +249,7 @@ def peer_gymnax(n: int, args, ctx) -> dict[str, Any]:
     import jax.numpy as jnp
 
     env, params = gymnax.make("CartPole-v1")
-    steps = steps_for(n, ctx["gpu"], args.steps)
+    steps = steps_for(n, ctx["gpu"], args.steps, cheap=True)
 
     def init(key):
         _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n), params)
@@ -358,7 +368,7 @@ def peer_crazyflow(n: int, args, ctx) -> dict[str, Any]:
                   attitude_freq=CRAZYFLOW_CONTROL_FREQ, device="gpu" if ctx["gpu"] else "cpu")
     sim_step, sim_reset = sim.build_step_fn(), sim.build_reset_fn()
     n_sub = CRAZYFLOW_FREQ // CRAZYFLOW_CONTROL_FREQ
-    steps = steps_for(n * n_sub, ctx["gpu"], args.steps)  # a sim step is the unit of work here
+    steps = steps_for(n * n_sub, ctx["gpu"], args.steps, cheap=True)  # a sim step is the unit of work here
 
     def lift(d):  # start 1 m above the floor (crazyflow's default pose rests on it)
         return d.replace(states=d.states.replace(pos=d.states.pos.at[..., 2].set(1.0)))
