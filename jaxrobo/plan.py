@@ -21,7 +21,8 @@ long as the carry's structure, which ``carry_rows`` changes, is the same; the ch
 
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
-:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`step_batch` (``env.step``
+:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`physics_kernel`,
+:func:`check_pallas`, :func:`step_batch` (``env.step``
 over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after group).
 Names with a leading underscore are private.
 """
@@ -36,7 +37,7 @@ import jax
 
 from jaxrobo import fused as _fused
 from jaxrobo import mjx_lean
-from jaxrobo.env import Env, EnvState, simulator_of
+from jaxrobo.env import Env, EnvState, layers, simulator_of
 
 #: Envs stepped at once on a GPU when the env runs on MJX: beyond this size a step's intermediates no longer fit
 #: the GPU's L2 cache and larger batches ran slower as one batch than as groups of this size (a reading, not
@@ -62,8 +63,31 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
 _FUSED_MIN_ENVS = 1024
 
 
-#: The values of ``ExecutionPlan.fused``: :mod:`jaxrobo.fused`'s, and the Pallas kernel of :mod:`jaxrobo.fused_pallas`.
+#: The values of ``ExecutionPlan.fused``: :mod:`jaxrobo.fused`'s, and ``"pallas"`` (:func:`check_pallas`).
 FUSED_CHOICES = _fused.CHOICES + ("pallas",)
+
+
+def physics_kernel(env: Env) -> bool:
+    """Whether ``env``'s robot offers its control step as a kernel (:attr:`jaxrobo.robot.Robot.advance_kernel`:
+    the quadcopter on backend ``rigid``), which ``fused="pallas"`` runs while the rest of the step stays XLA's."""
+    robot = getattr(layers(env)[-1], "robot", None)
+    return getattr(robot, "advance_kernel", None) is not None
+
+
+def check_pallas(trainer: Any) -> None:
+    """Refuse, naming the field and the runs it supports, a :class:`jaxrobo.trainer.Trainer` whose run
+    ``fused="pallas"`` cannot take. Two runs can: a robot with a physics kernel (:func:`physics_kernel`), with
+    any learner, and the analytic cart-pole with Q-learning, whose whole chunk is one kernel
+    (:mod:`jaxrobo.fused_pallas`)."""
+    if physics_kernel(trainer.env):
+        return
+    from jaxrobo import fused_pallas
+
+    why = fused_pallas.unsupported(trainer)
+    if why is not None:
+        raise ValueError(f"ExecutionPlan fused='pallas': {why}. It supports the quadcopter tasks on backend='rigid' "
+                         "(the control step as one kernel, any learner) and the analytic CartPoleStayUp with "
+                         "Q-learning (the whole chunk as one kernel); use fused='off' or 'xla' otherwise")
 
 
 def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None) -> str:
@@ -109,8 +133,10 @@ class ExecutionPlan:
 
     ``fused``: ``"off"``, ``"xla"`` or ``"pallas"``. ``"xla"``: the fused training path of :mod:`jaxrobo.fused`: a
     closed form's physics substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks
-    of that many envs. ``"pallas"``: the chunk as one Pallas kernel (:mod:`jaxrobo.fused_pallas`), only for the
-    analytic cart-pole with Q-learning and per-env tables (``Trainer`` refuses other runs, naming the field).
+    of that many envs. ``"pallas"``: a Pallas kernel, for two kinds of run (``Trainer`` refuses the others, naming
+    the field: :func:`check_pallas`): the rigid quadcopter's control step (controller and physics substeps) as
+    one kernel over the batch (:mod:`envs.quadcopter_kernel`, any learner; the rest of the step is XLA's), and the
+    analytic cart-pole's whole chunk with Q-learning and per-env tables (:mod:`jaxrobo.fused_pallas`).
     ``fused_block``: envs per block (None: the whole batch, no blocking); read only with ``fused="xla"`` and
     per-env tables (a shared table mixes every env each step, so it runs unblocked). Bit for bit on a CPU; on a
     GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.fused`).

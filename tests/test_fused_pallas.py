@@ -47,7 +47,7 @@ def test_the_choice_is_validated_and_refused_where_it_does_not_apply():
         other = _cartpole(**overrides)
         with pytest.raises(ValueError, match=rf"ExecutionPlan fused='pallas': .*{why}"):
             Trainer(other.env, other.config, plan=_plan(other, fused="pallas"))
-    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4))
+    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4, backend="mjx"))  # rigid: tests/test_quadcopter_kernel.py
     with pytest.raises(ValueError, match=r"fused='pallas': the env is QuadcopterGoto"):
         Trainer(goto.env, goto.config, plan=_plan(goto, fused="pallas"))
 
