@@ -32,8 +32,10 @@ import numpy as np
 
 from jaxrobo.sim import JointState
 
-#: Envs per Pallas program (a power of two, as Triton's blocks are).
-BLOCK = 256
+#: Envs per Pallas program (a power of two, as Triton's blocks are). On an H100 one env per thread ran fastest
+#: (blocks of 32-128 envs at 1-4 warps alike; two envs per thread 0.67-0.95x), and 128 fills more SMs than 256
+#: at small batches (1.15x at 1,024 envs, 0.97x at 65,536, 1.0x at 1 M; docs/benchmarks.md, "Pallas: quadcopter").
+BLOCK = 128
 #: Warps per program (None: one thread per env, ``BLOCK // 32``).
 NUM_WARPS: int | None = None
 
