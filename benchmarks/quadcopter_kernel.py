@@ -5,11 +5,16 @@ step (``off``: the substep loop rolled; ``xla``: written out) against the Pallas
     python benchmarks/quadcopter_kernel.py --device gpu --n-envs 1024,65536,1048576 \
         --variants off,xla,pallas,pallas:128:4,pallas:512:8
 
+    python benchmarks/quadcopter_kernel.py --device gpu --n-envs 262144,1048576 --variants off,pallas \
+        --env QuadcopterGoto-v2                      # the whole env step, random actions, no learner
+
 ``pallas`` runs the kernel through the robot's hook under ``fused="pallas"`` (as training does);
 ``pallas:BLOCK:WARPS`` calls it directly with that many envs and warps per program. Each timed call runs
 ``--steps`` control steps of the whole batch in one loop from random states (fixed random commands); columns:
-control steps/s and physics steps/s (x ``n_substeps``). On a CPU the kernel runs interpreted, which measures
-nothing about the GPU kernel.
+control steps/s and physics steps/s (x ``n_substeps``). ``--env ID`` times that env's whole step instead (its
+rigid backend, ``--running-step`` as its option, random actions, no learner; ``off`` and ``pallas`` only): what
+the task's own XLA step adds to the physics. On a CPU the kernel runs interpreted, which measures nothing about
+the GPU kernel.
 """
 from __future__ import annotations
 
@@ -30,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variants", default="off,xla,pallas", help="comma list: off, xla, pallas, pallas:BLOCK:WARPS")
     p.add_argument("--steps", type=int, default=20, help="control steps per timed call")
     p.add_argument("--running-step", type=float, default=0.3, help="control step (s): 0.3 = 30 substeps")
+    p.add_argument("--env", default=None, help="time this env id's whole step instead of the control step")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
@@ -46,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     robot = Quadcopter("rigid", running_step=args.running_step)
     n_sub = robot.sim.n_substeps
     rows = []
+    if args.env:
+        return env_steps(args)
     for n in (int(x) for x in args.n_envs.split(",")):
         k = jax.random.split(jax.random.key(0), 3)
         yaw = jax.random.uniform(k[0], (n,), minval=-3.0, maxval=3.0)
@@ -76,6 +84,42 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(f"n={n:<8d} {variant:16s} {sps / 1e6:10.1f} M control steps/s {sps * n_sub / 1e9:8.2f} G phys/s "
                   f"compile {compile_s:5.1f}s", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(rows, f, indent=2)
+    return 0
+
+
+def env_steps(args: argparse.Namespace) -> int:
+    import jax
+
+    from jaxrobo import fused
+    from jaxrobo.run import resolve
+
+    rows = []
+    for n in (int(x) for x in args.n_envs.split(",")):
+        spec = resolve(args.env, overrides=dict(n_envs=n, backend="rigid", running_step=args.running_step))
+        env, params = spec.env, spec.env.default_params
+        n_sub = env.robot.sim.n_substeps
+        states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(jax.random.key(0), n), params)
+        actions = jax.random.randint(jax.random.key(1), (args.steps, n), 0, env.num_actions)
+        for choice in args.variants.split(","):
+            def loop(s, a, choice=choice):
+                with fused.choose(choice):
+                    step = jax.vmap(env.step, in_axes=(0, 0, None))
+                    s = jax.lax.fori_loop(0, args.steps, lambda i, x: step(x, a[i], params), s)
+                return s, s.reward.sum()
+
+            t0 = time.perf_counter()
+            compiled = jax.jit(loop).lower(states, actions).compile()
+            compile_s = time.perf_counter() - t0
+            seconds, _ = _common.time_carry(lambda s, a: compiled(s, a), states, actions, repeats=args.repeats,
+                                            min_seconds=0.25)
+            sps = n * args.steps / seconds
+            rows.append({"env": args.env, "n_envs": n, "variant": choice, "n_substeps": n_sub, "env_steps_per_s": sps,
+                         "physics_steps_per_s": sps * n_sub, "ns_per_env_step": 1e9 / sps, "compile_s": compile_s})
+            print(f"{args.env} n={n:<8d} {choice:8s} {sps / 1e6:9.1f} M env steps/s {sps * n_sub / 1e9:7.2f} G phys/s "
+                  f"{1e9 / sps:7.3f} ns/env step  compile {compile_s:4.1f}s", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=2)

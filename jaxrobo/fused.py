@@ -12,7 +12,8 @@ quadcopter's 30) runs them as a rolled loop, one round trip of the whole state t
   whatever their count (:func:`unroll_all_substeps`, read by :meth:`jaxrobo.sim.Simulator.advance` while tracing
   under the plan), so XLA fuses across substeps instead of keeping a loop. On an H100 it still splits the
   written-out physics into several kernels, but the step ran 1.3-1.6x faster for the quadcopter (the plan's
-  default there: :func:`jaxrobo.plan.default_fused`).
+  default for a closed form of many substeps without a kernel: :func:`jaxrobo.plan.default_fused`; the rigid
+  quadcopter's default is now its kernel, ``"pallas"``).
 * **Steps inside blocks of envs** (``fused_block``). The chunk runs block after block of ``fused_block`` envs,
   each block doing all ``chunk_steps`` steps before the next starts (:meth:`jaxrobo.trainer.Trainer.run_chunk`):
   the loop over

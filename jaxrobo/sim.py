@@ -21,7 +21,9 @@ cart-pole's ``analytic``).
 Public surface: call :func:`load_model` (compile an MJCF file: the robot owns its path) and
 :func:`make_simulator` (the one place a backend name is resolved and checked; :func:`backend_choices` gives a
 robot's names for its task option); subclass :class:`ClosedFormSim` for a hand-written backend (implement
-``physics_step``), or :class:`Simulator` for another engine. Tasks and robots read a simulator through ``init``,
+``physics_step``), or :class:`Simulator` for another engine. A robot with a batch kernel for its control step
+passes it to ``advance`` (``kernel=``), which runs a vmapped step through it under ``fused="pallas"``
+(:func:`through_kernel`). Tasks and robots read a simulator through ``init``,
 ``qpos``, ``qvel``, ``advance``, ``forward`` (MJX), and the attributes ``backend`` (its name), ``mj_model``,
 ``timestep``, ``running_step`` and ``n_substeps``. Everything named with a leading underscore is private. This
 module imports nothing from ``envs`` or ``agents``.
