@@ -94,19 +94,22 @@ def default_fused(env: Env, backend: str | None = None, n_envs: int | None = Non
     """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, with a
     closed form of more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot
     offers its control step as a kernel (:func:`physics_kernel`: the rigid quadcopter, whose Goto + Q-learning ran
-    2.9-3.5x the env steps/s of ``"xla"`` on an H100 at 65 k-1 M envs and compiled faster), else ``"xla"`` (the
-    substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"`` otherwise: on 2 CPU
-    cores they ran at the same speed and took longer to compile, small runs do not earn back the longer compile,
-    and with 8 substeps or fewer the program is the same. The cart-pole's whole-chunk kernel and blocks of envs
-    (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path"). ``backend``: JAX's platform name
-    (default: ``jax.default_backend()``); ``n_envs`` None (stepping envs outside training): ``"off"``."""
+    2.9-3.9x the env steps/s of ``"xla"`` on an H100 at 1 k-1 M envs and compiled faster) and JAX sees one device,
+    else ``"xla"`` (the substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"``
+    otherwise: on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back
+    the longer compile, and with 8 substeps or fewer the program is the same. The cart-pole's whole-chunk kernel
+    and blocks of envs (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path"). ``backend``: JAX's
+    platform name (default: ``jax.default_backend()``); ``n_envs`` None (stepping envs outside training):
+    ``"off"``."""
     backend = jax.default_backend() if backend is None else backend
     sim = simulator_of(env)
     many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
     big = n_envs is not None and n_envs >= _FUSED_MIN_ENVS
     if not (many and big and backend == "gpu"):
         return "off"
-    return "pallas" if physics_kernel(env) else "xla"
+    # One device only: a run sharded over several (a sweep's automatic mesh) would hand the kernel, a custom call
+    # XLA cannot partition, a sharded batch; not measured on several GPUs, so they keep the written-out substeps.
+    return "pallas" if physics_kernel(env) and jax.device_count() == 1 else "xla"
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
