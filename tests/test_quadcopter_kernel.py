@@ -76,8 +76,9 @@ def test_the_kernel_agrees_with_the_xla_control_step(kwargs):
 
 def test_nested_vmaps_and_a_single_env_make_one_batch():
     """A vmap over configurations around the env batch (as a sweep runs it), with the commands batched or
-    shared, gives the flat batch's values, and the whole nest is one kernel call; an unbatched step agrees to
-    round-off (a batch of one runs unvectorised here, which rounds a last bit differently)."""
+    shared, and around a scan of steps, gives the flat batch's values, and the whole nest is one kernel call; an
+    unbatched step agrees to round-off (a batch of one runs unvectorised here, which rounds a last bit
+    differently)."""
     robot = _robot()
     states, commands = _random_states(12, seed=1)
     commands = jnp.tile(commands[:4], (3, 1))  # the same commands in each configuration
@@ -96,6 +97,16 @@ def test_nested_vmaps_and_a_single_env_make_one_batch():
     with fused.choose("pallas"):
         program = str(jax.make_jaxpr(nested_fn)(jax.tree.map(split, states), split(commands)))
     assert program.count("pallas_call") == 1
+
+    # A scan of batched steps, vmapped as a sweep vmaps a training chunk: the scan's body is batched as a jaxpr.
+    def two_steps(s, c):
+        return jax.lax.scan(lambda x, _: (jax.vmap(robot.advance)(x, c), None), s, None, length=2)[0]
+
+    swept = _under("pallas", jax.vmap(two_steps))(jax.tree.map(split, states), split(commands))
+    flat_twice = _under("pallas", two_steps)(states, commands)
+    for name in ("qpos", "qvel"):
+        a = np.asarray(getattr(flat_twice, name))
+        np.testing.assert_array_equal(np.asarray(getattr(swept, name)).reshape(a.shape), a)
 
 
 def test_a_non_finite_state_stays_non_finite_so_the_nan_guard_still_ends_the_episode():
