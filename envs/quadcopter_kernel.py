@@ -18,8 +18,8 @@ How it is used: :func:`make_advance` builds the batch function the robot offers 
 runs a vmapped control step through it, one kernel call for the whole batch. On a CPU it runs interpreted (the
 tests' oracle checks), on a GPU through Triton.
 
-Public surface: :func:`make_advance`, :func:`control_step` (the per-coordinate step, for any array shape),
-:data:`BLOCK`, :data:`NUM_WARPS`.
+Public surface: :func:`make_advance`, :func:`control_step` (the per-coordinate step, for any array shape) with
+its :class:`Constants` (:func:`constants_of`), :data:`BLOCK`.
 """
 from __future__ import annotations
 
@@ -36,8 +36,6 @@ from jaxrobo.sim import JointState
 #: (blocks of 32-128 envs at 1-4 warps alike; two envs per thread 0.67-0.95x), and 128 fills more SMs than 256
 #: at small batches (1.15x at 1,024 envs, 0.97x at 65,536, 1.0x at 1 M; docs/benchmarks.md, "Pallas: quadcopter").
 BLOCK = 128
-#: Warps per program (None: one thread per env, ``BLOCK // 32``).
-NUM_WARPS: int | None = None
 
 
 def _f32(v: Any) -> float:
@@ -209,8 +207,8 @@ def _kernel(c: Constants, n: int, block: int) -> Callable:
 def make_advance(robot: Any, block: int | None = None, num_warps: int | None = None,
                  interpret: bool | None = None) -> Callable[[JointState, jax.Array], JointState]:
     """The robot's control step over a batch: ``(JointState [n], command [n, 4]) -> JointState [n]``, one
-    Pallas call. ``block``/``num_warps``: envs and warps per program (defaults :data:`BLOCK`,
-    :data:`NUM_WARPS`); ``interpret``: run the kernel interpreted (default: unless JAX's default backend is a
+    Pallas call. ``block``/``num_warps``: envs and warps per program (defaults :data:`BLOCK` and one
+    thread per env); ``interpret``: run the kernel interpreted (default: unless JAX's default backend is a
     GPU)."""
     c = constants_of(robot)
 
@@ -223,8 +221,7 @@ def make_advance(robot: Any, block: int | None = None, num_warps: int | None = N
             return state
         size = BLOCK if block is None else block
         size = min(size, max(1, 1 << (n - 1).bit_length()))  # a batch smaller than a block: one short program
-        warps = NUM_WARPS if num_warps is None else num_warps
-        warps = max(1, min(8, size // 32)) if warps is None else warps
+        warps = max(1, min(8, size // 32)) if num_warps is None else num_warps  # default: one thread per env
         run_interpreted = jax.default_backend() != "gpu" if interpret is None else interpret
         params = None if run_interpreted else plgpu.CompilerParams(num_warps=warps, num_stages=1)
         whole = pl.BlockSpec(memory_space=pl.ANY)

@@ -33,8 +33,9 @@ control step (:attr:`jaxrobo.robot.Robot.advance_kernel`, the rigid quadcopter's
 on the whole batch (:func:`physics_kernels`, read by :meth:`jaxrobo.sim.Simulator.advance`); the rest of the step
 stays XLA's. The cart-pole's whole-chunk kernel is :mod:`jaxrobo.fused_pallas`, which the trainer runs itself.
 
-Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`physics_kernels`, :func:`choose`. The module imports nothing of
-jaxrobo's: the simulators read its flag and the plan its choices, and the trainer runs the blocks.
+Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`physics_kernels`, :func:`choose`. The
+module imports nothing of jaxrobo's: the simulators read its flags and the plan its choices, and the trainer runs
+the blocks.
 """
 from __future__ import annotations
 
