@@ -3,7 +3,9 @@
 * **Model** - ``assets/quadcopter.xml``: a 0.42 kg X-quadrotor on a free joint, four site-thrust actuators each
   with its reaction yaw torque, contacts disabled (crashes are exact geometry, see :func:`sphere_hits`).
 * **Backends** - ``mjx`` (MuJoCo MJX) or ``rigid`` (:mod:`envs.rigid_body`: Newton–Euler for the one free body,
-  every constant read from the same compiled model; agrees with MJX to round-off and is much faster).
+  every constant read from the same compiled model; agrees with MJX to round-off and is much faster). On
+  ``rigid`` the robot also offers its control step as a Pallas kernel (:mod:`envs.quadcopter_kernel`), which
+  ``ExecutionPlan(fused="pallas")`` runs.
 * **On-board controller** (:meth:`Quadcopter.controller`, every physics substep) - the seed's ``cmd_vel`` Twist
   ``[vx, vy, vz, yaw_rate]`` in the heading frame (body frame with roll and pitch removed) is tracked by a
   cascade: velocity error → desired acceleration (tilt-limited) → desired roll/pitch and collective thrust →
@@ -218,6 +220,10 @@ class Quadcopter(Robot):
         self.unmix = np.linalg.inv(mix).astype(np.float32)
         self.ctrl_low, self.ctrl_high = af.ctrl_low.astype(np.float32), af.ctrl_high.astype(np.float32)
         self.hover_thrust = self.mass * self.g / mix[0].sum()
+        if backend == "rigid":  # the control step as one Pallas kernel, for ExecutionPlan(fused="pallas")
+            from envs.quadcopter_kernel import make_advance
+
+            self.advance_kernel = make_advance(self)
 
     def init_pose(self, pos: jax.Array, yaw: jax.Array = 0.0) -> tuple[jax.Array, jax.Array]:
         """``(qpos, qvel)`` hovering at rest at ``pos`` (m) with heading ``yaw`` (rad)."""

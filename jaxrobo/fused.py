@@ -12,7 +12,8 @@ quadcopter's 30) runs them as a rolled loop, one round trip of the whole state t
   whatever their count (:func:`unroll_all_substeps`, read by :meth:`jaxrobo.sim.Simulator.advance` while tracing
   under the plan), so XLA fuses across substeps instead of keeping a loop. On an H100 it still splits the
   written-out physics into several kernels, but the step ran 1.3-1.6x faster for the quadcopter (the plan's
-  default there: :func:`jaxrobo.plan.default_fused`).
+  default for a closed form of many substeps without a kernel: :func:`jaxrobo.plan.default_fused`; the rigid
+  quadcopter's default is now its kernel, ``"pallas"``).
 * **Steps inside blocks of envs** (``fused_block``). The chunk runs block after block of ``fused_block`` envs,
   each block doing all ``chunk_steps`` steps before the next starts (:meth:`jaxrobo.trainer.Trainer.run_chunk`):
   the loop over
@@ -27,8 +28,14 @@ path as its oracle (same tables and records bit for bit on a CPU, whatever the b
 XLA may contract the written-out substeps' multiply-adds differently, so values can differ in the last bits
 there, and a tabular run then takes another path (within the seed-to-seed spread in the runs measured).
 
-Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`choose`. The module imports nothing of
-jaxrobo's: the simulators read its flag and the plan its choices, and the trainer runs the blocks.
+``fused="pallas"`` (a choice :mod:`jaxrobo.plan` adds) is read here too: a robot that offers a kernel for its
+control step (:attr:`jaxrobo.robot.Robot.advance_kernel`, the rigid quadcopter's) has a vmapped step call it once
+on the whole batch (:func:`physics_kernels`, read by :meth:`jaxrobo.sim.Simulator.advance`); the rest of the step
+stays XLA's. The cart-pole's whole-chunk kernel is :mod:`jaxrobo.fused_pallas`, which the trainer runs itself.
+
+Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`physics_kernels`, :func:`choose`. The
+module imports nothing of jaxrobo's: the simulators read its flags and the plan its choices, and the trainer runs
+the blocks.
 """
 from __future__ import annotations
 
@@ -41,6 +48,7 @@ from typing import Iterator
 CHOICES = ("off", "xla")
 
 _UNROLL_ALL: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_unroll_all_substeps", default=False)
+_KERNELS: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_physics_kernels", default=False)
 
 
 def unroll_all_substeps() -> bool:
@@ -49,12 +57,20 @@ def unroll_all_substeps() -> bool:
     return _UNROLL_ALL.get()
 
 
+def physics_kernels() -> bool:
+    """Whether a control step traced now runs through its robot's kernel where it has one (the innermost
+    :func:`choose` block's choice is ``"pallas"``; False outside any)."""
+    return _KERNELS.get()
+
+
 @contextlib.contextmanager
 def choose(fused: str) -> Iterator[None]:
     """Within this block (this thread or task), traces follow the fused choice ``fused`` (one of
-    :data:`CHOICES`)."""
+    :data:`CHOICES`, or ``"pallas"``)."""
     token = _UNROLL_ALL.set(fused != "off")
+    kernels = _KERNELS.set(fused == "pallas")
     try:
         yield
     finally:
+        _KERNELS.reset(kernels)
         _UNROLL_ALL.reset(token)

@@ -21,7 +21,8 @@ long as the carry's structure, which ``carry_rows`` changes, is the same; the ch
 
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
-:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`step_batch` (``env.step``
+:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`physics_kernel`,
+:func:`check_pallas`, :func:`step_batch` (``env.step``
 over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after group).
 Names with a leading underscore are private.
 """
@@ -36,7 +37,7 @@ import jax
 
 from jaxrobo import fused as _fused
 from jaxrobo import mjx_lean
-from jaxrobo.env import Env, EnvState, simulator_of
+from jaxrobo.env import Env, EnvState, layers, simulator_of
 
 #: Envs stepped at once on a GPU when the env runs on MJX: beyond this size a step's intermediates no longer fit
 #: the GPU's L2 cache and larger batches ran slower as one batch than as groups of this size (a reading, not
@@ -62,23 +63,53 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
 _FUSED_MIN_ENVS = 1024
 
 
-#: The values of ``ExecutionPlan.fused``: :mod:`jaxrobo.fused`'s, and the Pallas kernel of :mod:`jaxrobo.fused_pallas`.
+#: The values of ``ExecutionPlan.fused``: :mod:`jaxrobo.fused`'s, and ``"pallas"`` (:func:`check_pallas`).
 FUSED_CHOICES = _fused.CHOICES + ("pallas",)
 
 
+def physics_kernel(env: Env) -> bool:
+    """Whether ``env``'s robot offers its control step as a kernel (:attr:`jaxrobo.robot.Robot.advance_kernel`:
+    the quadcopter on backend ``rigid``), which ``fused="pallas"`` runs while the rest of the step stays XLA's."""
+    robot = getattr(layers(env)[-1], "robot", None)
+    return getattr(robot, "advance_kernel", None) is not None
+
+
+def check_pallas(trainer: Any) -> None:
+    """Refuse, naming the field and the runs it supports, a :class:`jaxrobo.trainer.Trainer` whose run
+    ``fused="pallas"`` cannot take. Two runs can: a robot with a physics kernel (:func:`physics_kernel`), with
+    any learner, and the analytic cart-pole with Q-learning, whose whole chunk is one kernel
+    (:mod:`jaxrobo.fused_pallas`)."""
+    if physics_kernel(trainer.env):
+        return
+    from jaxrobo import fused_pallas
+
+    why = fused_pallas.unsupported(trainer)
+    if why is not None:
+        raise ValueError(f"ExecutionPlan fused='pallas': {why}. It supports the quadcopter tasks on backend='rigid' "
+                         "(the control step as one kernel, any learner) and the analytic CartPoleStayUp with "
+                         "Q-learning (the whole chunk as one kernel); use fused='off' or 'xla' otherwise")
+
+
 def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None) -> str:
-    """``"xla"`` for training ``n_envs`` >= 1,024 envs on a GPU with a closed form with more substeps per control
-    step than the plain path writes out (8): the quadcopter's 30 rigid-body substeps written out ran 1.3x the
-    Q-learning env steps/s of the rolled loop on an H100 at 1 k-262 k envs and 1.6x at 1 M. ``"off"`` otherwise:
-    on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back the longer
-    compile, and with 8 substeps or fewer the program is the same. Blocks of envs (``fused_block``) lost on both
-    devices, so never by default (docs/benchmarks.md, "Fused path"). ``backend``: JAX's platform name (default:
-    ``jax.default_backend()``); ``n_envs`` None (stepping envs outside training): ``"off"``."""
+    """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, with a
+    closed form of more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot
+    offers its control step as a kernel (:func:`physics_kernel`: the rigid quadcopter, whose Goto + Q-learning ran
+    2.9-3.9x the env steps/s of ``"xla"`` on an H100 at 1 k-1 M envs and compiled faster) and JAX sees one device,
+    else ``"xla"`` (the substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"``
+    otherwise: on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back
+    the longer compile, and with 8 substeps or fewer the program is the same. The cart-pole's whole-chunk kernel
+    and blocks of envs (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path"). ``backend``: JAX's
+    platform name (default: ``jax.default_backend()``); ``n_envs`` None (stepping envs outside training):
+    ``"off"``."""
     backend = jax.default_backend() if backend is None else backend
     sim = simulator_of(env)
     many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
     big = n_envs is not None and n_envs >= _FUSED_MIN_ENVS
-    return "xla" if many and big and backend == "gpu" else "off"
+    if not (many and big and backend == "gpu"):
+        return "off"
+    # One device only: a run sharded over several (a sweep's automatic mesh) would hand the kernel, a custom call
+    # XLA cannot partition, a sharded batch; not measured on several GPUs, so they keep the written-out substeps.
+    return "pallas" if physics_kernel(env) and jax.device_count() == 1 else "xla"
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -109,8 +140,10 @@ class ExecutionPlan:
 
     ``fused``: ``"off"``, ``"xla"`` or ``"pallas"``. ``"xla"``: the fused training path of :mod:`jaxrobo.fused`: a
     closed form's physics substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks
-    of that many envs. ``"pallas"``: the chunk as one Pallas kernel (:mod:`jaxrobo.fused_pallas`), only for the
-    analytic cart-pole with Q-learning and per-env tables (``Trainer`` refuses other runs, naming the field).
+    of that many envs. ``"pallas"``: a Pallas kernel, for two kinds of run (``Trainer`` refuses the others, naming
+    the field: :func:`check_pallas`): the rigid quadcopter's control step (controller and physics substeps) as
+    one kernel over the batch (:mod:`envs.quadcopter_kernel`, any learner; the rest of the step is XLA's), and the
+    analytic cart-pole's whole chunk with Q-learning and per-env tables (:mod:`jaxrobo.fused_pallas`).
     ``fused_block``: envs per block (None: the whole batch, no blocking); read only with ``fused="xla"`` and
     per-env tables (a shared table mixes every env each step, so it runs unblocked). Bit for bit on a CPU; on a
     GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.fused`).

@@ -17,11 +17,17 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxrobo.sim import Simulator
+from jaxrobo.sim import BatchedAdvance, Simulator
 
 
 class Robot:
     """Base robot: actuators take the task's command directly; subclasses add controllers and sensors."""
+
+    #: The control step (controller and physics substeps) over a batch of envs as one kernel, where the robot
+    #: has one for its backend (the rigid quadcopter's Pallas kernel): ``(states [n], commands [n]) -> states``.
+    #: Under ``ExecutionPlan(fused="pallas")`` a vmapped :meth:`advance` calls it once on the whole batch (see
+    #: :meth:`jaxrobo.sim.Simulator.advance`); None: the simulator's own substep loop always.
+    advance_kernel: BatchedAdvance | None = None
 
     def __init__(self, sim: Simulator):
         self.sim = sim
@@ -32,7 +38,7 @@ class Robot:
 
     def advance(self, pipeline_state: Any, command: jax.Array) -> Any:
         """Apply ``command`` for one control step (the seed's unpause → move → wait → pause)."""
-        return self.sim.advance(pipeline_state, command, self.controller)
+        return self.sim.advance(pipeline_state, command, self.controller, kernel=self.advance_kernel)
 
     def read_sensors(self, pipeline_state: Any) -> Any:
         """What the robot senses; subclasses return named quantities."""

@@ -21,7 +21,9 @@ cart-pole's ``analytic``).
 Public surface: call :func:`load_model` (compile an MJCF file: the robot owns its path) and
 :func:`make_simulator` (the one place a backend name is resolved and checked; :func:`backend_choices` gives a
 robot's names for its task option); subclass :class:`ClosedFormSim` for a hand-written backend (implement
-``physics_step``), or :class:`Simulator` for another engine. Tasks and robots read a simulator through ``init``,
+``physics_step``), or :class:`Simulator` for another engine. A robot with a batch kernel for its control step
+passes it to ``advance`` (``kernel=``), which runs a vmapped step through it under ``fused="pallas"``
+(:func:`through_kernel`). Tasks and robots read a simulator through ``init``,
 ``qpos``, ``qvel``, ``advance``, ``forward`` (MJX), and the attributes ``backend`` (its name), ``mj_model``,
 ``timestep``, ``running_step`` and ``n_substeps``. Everything named with a leading underscore is private. This
 module imports nothing from ``envs`` or ``agents``.
@@ -48,6 +50,8 @@ from jaxrobo import fused, mjx_lean
 from jaxrobo.struct import pytree_dataclass
 
 Controller = Callable[[Any, jax.Array], jax.Array]
+#: A control step over a batch of envs: ``(states, commands) -> states``, every leaf with a leading env axis.
+BatchedAdvance = Callable[[Any, jax.Array], Any]
 
 
 @contextlib.contextmanager
@@ -152,8 +156,16 @@ class Simulator(abc.ABC):
     def physics_step(self, state: Any, ctrl: jax.Array) -> Any:
         """One physics step of ``timestep`` seconds with actuator controls ``ctrl``."""
 
-    def advance(self, state: Any, command: jax.Array, controller: Controller | None = None) -> Any:
-        """One control step: ``n_substeps`` physics steps, the controller mapping (state, command) to ctrl each time."""
+    def advance(self, state: Any, command: jax.Array, controller: Controller | None = None,
+                kernel: BatchedAdvance | None = None) -> Any:
+        """One control step: ``n_substeps`` physics steps, the controller mapping (state, command) to ctrl each time.
+
+        ``kernel``: the same control step over a batch (every leaf with a leading env axis), e.g. a robot's Pallas
+        kernel (:attr:`jaxrobo.robot.Robot.advance_kernel`). Traced under ``ExecutionPlan(fused="pallas")``
+        (:func:`jaxrobo.fused.physics_kernels`), a vmapped ``advance`` calls it once on the whole batch
+        (:func:`through_kernel`); otherwise it is not used."""
+        if kernel is not None and fused.physics_kernels():
+            return through_kernel(kernel, state, command)
 
         def substep(s, _):
             ctrl = command if controller is None else controller(s, command)
@@ -170,6 +182,46 @@ class Simulator(abc.ABC):
             # The fused plan: every substep written out, so XLA fuses across them instead of keeping a loop.
             unroll = True
         return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
+
+
+def _on_batch(kernel: BatchedAdvance, state: Any, command: jax.Array) -> Any:
+    """``kernel(state, command)`` on a batch; vmapped again (a sweep over configurations around the env batch),
+    it flattens the new axis into the batch and still makes one call."""
+
+    @jax.custom_batching.custom_vmap
+    def batch(state: Any, command: jax.Array) -> Any:
+        return kernel(state, command)
+
+    @batch.def_vmap
+    def batch_of_batches(axis_size: int, in_batched: list, state: Any, command: jax.Array) -> tuple[Any, Any]:
+        def merged(x: jax.Array, batched: bool) -> jax.Array:
+            x = x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
+            return x.reshape((axis_size * x.shape[1],) + x.shape[2:])
+
+        out = _on_batch(kernel, jax.tree.map(merged, state, in_batched[0]), merged(command, in_batched[1]))
+        out = jax.tree.map(lambda x: x.reshape((axis_size, -1) + x.shape[1:]), out)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return batch(state, command)
+
+
+def through_kernel(kernel: BatchedAdvance, state: Any, command: jax.Array) -> Any:
+    """One env's control step computed by ``kernel``, a function of a batch: under ``vmap`` (an env batch, and
+    any vmap around it) one call on the whole batch, instead of the kernel traced per env; unbatched, a batch of
+    one."""
+
+    @jax.custom_batching.custom_vmap
+    def one(state: Any, command: jax.Array) -> Any:
+        out = _on_batch(kernel, jax.tree.map(lambda x: x[None], state), command[None])
+        return jax.tree.map(lambda x: x[0], out)
+
+    @one.def_vmap
+    def batched(axis_size: int, in_batched: list, state: Any, command: jax.Array) -> tuple[Any, Any]:
+        spread = lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)  # noqa: E731
+        out = _on_batch(kernel, jax.tree.map(spread, state, in_batched[0]), spread(command, in_batched[1]))
+        return out, jax.tree.map(lambda _: True, out)
+
+    return one(state, command)
 
 
 def constraint_free(m: mujoco.MjModel) -> bool:

@@ -30,7 +30,7 @@ from jaxrobo.tabular import AgentParams, AgentState, Learner
 from jaxrobo import autoreset, registry, rng, rollout
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser
 from jaxrobo.env import Env, EnvState
-from jaxrobo.plan import ExecutionPlan, map_groups, step_batch
+from jaxrobo.plan import ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -108,9 +108,7 @@ class Trainer:
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
         if self.plan.fused == "pallas":
-            from jaxrobo import fused_pallas
-
-            fused_pallas.check(self)
+            check_pallas(self)
 
     # ---- the plan's choices the step reads (assigning one replaces the plan) --------------------------------
     @property
@@ -265,11 +263,11 @@ class Trainer:
         block of envs: :meth:`run_chunk_blocked`)."""
         env_params = self.env.default_params if env_params is None else env_params
         plan = self.plan
-        if plan.fused == "pallas":  # the whole chunk as one kernel (see jaxrobo.fused_pallas)
+        if plan.fused == "pallas" and not physics_kernel(self.env):  # the whole chunk as one kernel (fused_pallas)
             from jaxrobo import fused_pallas
 
             return fused_pallas.run_chunk(self, runner, agent_params, env_params)
-        if plan.fused != "off" and plan.fused_block is not None and not self.config.shared_table \
+        if plan.fused == "xla" and plan.fused_block is not None and not self.config.shared_table \
                 and plan.fused_block < self.config.n_envs:
             # The plan's fused path: the same steps, block of envs after block (see jaxrobo.fused).
             return self.run_chunk_blocked(runner, agent_params, env_params, plan.fused_block)

@@ -46,7 +46,9 @@ def test_the_plan_fuses_where_it_measured_faster():
     fused; fewer envs, a CPU, the cart-pole's 4 substeps (written out either way), MJX and envs stepped outside
     training do not; no plan blocks envs by default."""
     goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=1024))
-    assert ExecutionPlan.for_run(goto.env, goto.config, "gpu").fused == "xla"
+    assert ExecutionPlan.for_run(goto.env, goto.config, "gpu").fused == "pallas"  # its robot has a kernel
+    mjx = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=1024, backend="mjx"))
+    assert ExecutionPlan.for_run(mjx.env, mjx.config, "gpu").fused == "off"
     assert ExecutionPlan.for_run(goto.env, goto.config, "gpu").fused_block is None
     assert ExecutionPlan.for_run(goto.env, goto.config, "cpu").fused == "off"
     assert ExecutionPlan.for_run(goto.env, backend="gpu").fused == "off"

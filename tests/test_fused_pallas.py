@@ -49,7 +49,7 @@ def test_the_choice_is_validated_and_refused_where_it_does_not_apply():
             Trainer(other.env, other.config, plan=_plan(other, fused="pallas"))
     with pytest.raises(ValueError, match=r"fused='pallas': fused_block=48; .* a power of two up to 1024"):
         Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=48))
-    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4))
+    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4, backend="mjx"))  # rigid: tests/test_quadcopter_kernel.py
     with pytest.raises(ValueError, match=r"fused='pallas': the env is QuadcopterGoto"):
         Trainer(goto.env, goto.config, plan=_plan(goto, fused="pallas"))
 

@@ -1,0 +1,180 @@
+"""``ExecutionPlan.fused = "pallas"`` for the rigid quadcopter: its control step (controller + physics, every
+substep) as one Pallas kernel (:mod:`envs.quadcopter_kernel`), run here interpreted on a CPU and held to the XLA
+step as its oracle.
+
+What is exact and what is not: the kernel writes the same equations per coordinate, which XLA rounds differently
+in the last bits (as it rounds the rolled and the written-out substep loops differently), so a control step
+agrees to float32 round-off; a training run's tables and records follow the plain path exactly until such a bit
+moves a state across a bin edge, and for the tiny runs here none does.
+"""
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs.quadcopter import Quadcopter
+from envs.quadcopter_kernel import make_advance
+from jaxrobo import fused
+from jaxrobo.plan import ExecutionPlan
+from jaxrobo.run import resolve
+from jaxrobo.sim import JointState
+from jaxrobo.train import Trainer
+
+TINY = dict(n_envs=6, nepisodes=3, nsteps=20, chunk_steps=15, eval_episodes=2, eval_envs=2, backend="rigid")
+
+
+@functools.lru_cache(maxsize=None)
+def _robot(**kwargs) -> Quadcopter:
+    return Quadcopter("rigid", **kwargs)
+
+
+def _random_states(n: int, seed: int = 0) -> tuple[JointState, jax.Array]:
+    """States over a wide envelope (tilted, spinning, moving) and commands over every Twist the tasks send."""
+    k = jax.random.split(jax.random.key(seed), 5)
+    pos = jax.random.uniform(k[0], (n, 3), minval=-3.0, maxval=3.0)
+    quat = jax.random.normal(k[1], (n, 4))
+    quat = quat / jnp.linalg.norm(quat, axis=1, keepdims=True)
+    vel = jax.random.normal(k[2], (n, 3))
+    omega = 2.0 * jax.random.normal(k[3], (n, 3))
+    command = jax.random.uniform(k[4], (n, 4), minval=-1.5, maxval=1.5)
+    return JointState(jnp.concatenate([pos, quat], 1), jnp.concatenate([vel, omega], 1)), command
+
+
+def _under(choice: str, fn):
+    def traced(*args):
+        with fused.choose(choice):
+            return fn(*args)
+
+    return jax.jit(traced)
+
+
+def _close(a: JointState, b: JointState) -> None:
+    # Round-off of 30 substeps: measured |kernel - XLA| / (1 + |x|) <= 7e-7 (qpos) and 4e-6 (qvel), the size of
+    # XLA's own rolled-vs-written-out loop difference (2e-7, 2e-6).
+    for name in ("qpos", "qvel"):
+        np.testing.assert_allclose(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), rtol=2e-5, atol=2e-5,
+                                   err_msg=name)
+
+
+@pytest.mark.parametrize("kwargs", [{}, dict(running_step=0.05, min_altitude=0.5)])
+def test_the_kernel_agrees_with_the_xla_control_step(kwargs):
+    """300 random states and commands (not a multiple of the block: the last program is masked), one control
+    step (30 substeps; or 5 with the altitude floor on): the kernel's states are the XLA step's to round-off."""
+    robot = _robot(**kwargs)
+    states, commands = _random_states(300)
+    xla = _under("off", jax.vmap(robot.advance))(states, commands)
+    kernel = _under("pallas", jax.vmap(robot.advance))(states, commands)
+    _close(xla, kernel)
+    direct = jax.jit(make_advance(robot, block=64))(states, commands)  # another block size, same values
+    for name in ("qpos", "qvel"):
+        np.testing.assert_array_equal(np.asarray(getattr(direct, name)), np.asarray(getattr(kernel, name)))
+
+
+def test_nested_vmaps_and_a_single_env_make_one_batch():
+    """A vmap over configurations around the env batch (as a sweep runs it), with the commands batched or
+    shared, and around a scan of steps, gives the flat batch's values, and the whole nest is one kernel call; an
+    unbatched step agrees to round-off (a batch of one runs unvectorised here, which rounds a last bit
+    differently)."""
+    robot = _robot()
+    states, commands = _random_states(12, seed=1)
+    commands = jnp.tile(commands[:4], (3, 1))  # the same commands in each configuration
+    flat = _under("pallas", jax.vmap(robot.advance))(states, commands)
+    split = lambda x: x.reshape((3, 4) + x.shape[1:])  # noqa: E731
+    nested_fn = jax.vmap(jax.vmap(robot.advance))
+    nested = _under("pallas", nested_fn)(jax.tree.map(split, states), split(commands))
+    shared = _under("pallas", jax.vmap(jax.vmap(robot.advance), in_axes=(0, None)))(
+        jax.tree.map(split, states), commands[:4])
+    one = _under("pallas", robot.advance)(jax.tree.map(lambda x: x[5], states), commands[5])
+    for name in ("qpos", "qvel"):
+        a = np.asarray(getattr(flat, name))
+        np.testing.assert_array_equal(np.asarray(getattr(nested, name)).reshape(a.shape), a)
+        np.testing.assert_array_equal(np.asarray(getattr(shared, name)).reshape(a.shape), a)
+        np.testing.assert_allclose(np.asarray(getattr(one, name)), a[5], rtol=1e-6, atol=1e-6)
+    with fused.choose("pallas"):
+        program = str(jax.make_jaxpr(nested_fn)(jax.tree.map(split, states), split(commands)))
+    assert program.count("pallas_call") == 1
+
+    # A scan of batched steps, vmapped as a sweep vmaps a training chunk: the scan's body is batched as a jaxpr.
+    def two_steps(s, c):
+        return jax.lax.scan(lambda x, _: (jax.vmap(robot.advance)(x, c), None), s, None, length=2)[0]
+
+    swept = _under("pallas", jax.vmap(two_steps))(jax.tree.map(split, states), split(commands))
+    flat_twice = _under("pallas", two_steps)(states, commands)
+    for name in ("qpos", "qvel"):
+        a = np.asarray(getattr(flat_twice, name))
+        np.testing.assert_array_equal(np.asarray(getattr(swept, name)).reshape(a.shape), a)
+
+
+def test_a_non_finite_state_stays_non_finite_so_the_nan_guard_still_ends_the_episode():
+    """A NaN in one env's state gives a non-finite state there (the env step's guard then ends the episode),
+    and leaves the other envs' states as they would be."""
+    robot = _robot()
+    states, commands = _random_states(4, seed=2)
+    bad = states.replace(qvel=states.qvel.at[1, 4].set(jnp.nan))
+    xla = _under("off", jax.vmap(robot.advance))(bad, commands)
+    kernel = _under("pallas", jax.vmap(robot.advance))(bad, commands)
+    finite = lambda s: np.isfinite(np.asarray(s.qpos)).all(1) & np.isfinite(np.asarray(s.qvel)).all(1)  # noqa: E731
+    np.testing.assert_array_equal(finite(kernel), [True, False, True, True])
+    np.testing.assert_array_equal(finite(kernel), finite(xla))
+
+
+def _goto(env_id: str = "QuadcopterGoto-v2", **overrides):
+    return resolve(env_id, overrides={**TINY, **overrides})
+
+
+def _plan(spec, **changes):
+    return ExecutionPlan.for_run(spec.env, spec.config).replace(**changes)
+
+
+def test_the_choice_is_accepted_for_the_rigid_quadcopter_with_any_learner_and_refused_elsewhere():
+    for env_id, overrides in (("QuadcopterGoto-v2", {}), ("QuadcopterGoto-v1", dict(agent="sarsa")),
+                              ("QuadcopterLiveShow-v0", dict(shared_table=True))):
+        spec = _goto(env_id, **overrides)
+        Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))  # accepted
+    spec = _goto(backend="mjx")
+    with pytest.raises(ValueError, match=r"ExecutionPlan fused='pallas': .*backend='rigid'.*CartPoleStayUp"):
+        Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
+
+
+def _carry(spec, fused_choice: str, n_chunks: int):
+    trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused=fused_choice))
+    runner = jax.jit(trainer.init)(jax.random.key(5), spec.agent_params, spec.env.default_params)
+    chunk = jax.jit(trainer.run_chunk)
+    for _ in range(n_chunks):
+        runner = chunk(runner, spec.agent_params, spec.env.default_params)
+    as_data = lambda x: jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x  # noqa: E731
+    return jax.tree_util.tree_flatten_with_path(jax.tree.map(as_data, runner))[0]
+
+
+def test_training_follows_the_plain_path_whatever_the_chunking():
+    """Goto-v2, 4 envs feeding the preset's shared table, 45 training steps (episodes of at most 20): the
+    kernel's run takes the plain path's actions, episodes and resets (every discrete part of the carry equal),
+    its states, rewards, returns and table values equal to round-off (the reward reads continuous distances);
+    and as 3 chunks of 15 or 5 chunks of 9 the kernel's carries are equal bit for bit."""
+    plain = _carry(_goto(n_envs=4), "off", 3)
+    kernel = _carry(_goto(n_envs=4), "pallas", 3)
+    rechunked = _carry(_goto(n_envs=4, chunk_steps=9), "pallas", 5)
+    for (path, a), (_, b), (_, c) in zip(plain, kernel, rechunked):
+        name = jax.tree_util.keystr(path)
+        a, b, c = np.asarray(a), np.asarray(b), np.asarray(c)
+        np.testing.assert_array_equal(b, c, err_msg=name)
+        if np.issubdtype(a.dtype, np.floating):
+            np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-4, err_msg=name)
+        else:
+            np.testing.assert_array_equal(b, a, err_msg=name)
+    episodes = dict((jax.tree_util.keystr(p), np.asarray(x)) for p, x in plain)[".episode"]
+    assert episodes.sum() > 0  # episodes ended (and were reset) within the run
+
+
+def test_it_lowers_for_the_gpu_through_triton(monkeypatch):
+    """The kernel the GPU would run (not interpreted) lowers to a Triton call: atan2, asin, sin, cos, sqrt, the
+    in-kernel substep loop and the masked word loads and stores all have Triton lowerings."""
+    robot = _robot()
+    states, commands = _random_states(1000)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    lowered = jax.jit(make_advance(robot)).trace(states, commands).lower(lowering_platforms=("cuda",))
+    assert "__gpu$xla.gpu.triton" in lowered.as_text()
