@@ -80,6 +80,10 @@ def check_pallas(trainer: Any) -> None:
     any learner, and the analytic cart-pole with Q-learning, whose whole chunk is one kernel
     (:mod:`jaxrobo.fused_pallas`)."""
     if physics_kernel(trainer.env):
+        if trainer.plan.fused_block is not None:
+            raise ValueError(f"ExecutionPlan fused='pallas': fused_block={trainer.plan.fused_block}; the "
+                             f"{type(trainer.env).__name__} control-step kernel sets its own envs per program: "
+                             "leave fused_block None")
         return
     from jaxrobo import fused_pallas
 
@@ -144,9 +148,11 @@ class ExecutionPlan:
     the field: :func:`check_pallas`): the rigid quadcopter's control step (controller and physics substeps) as
     one kernel over the batch (:mod:`envs.quadcopter_kernel`, any learner; the rest of the step is XLA's), and the
     analytic cart-pole's whole chunk with Q-learning and per-env tables (:mod:`jaxrobo.fused_pallas`).
-    ``fused_block``: envs per block (None: the whole batch, no blocking); read only with ``fused="xla"`` and
-    per-env tables (a shared table mixes every env each step, so it runs unblocked). Bit for bit on a CPU; on a
-    GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.fused`).
+    ``fused_block``: with ``fused="xla"``, envs per block (None: the whole batch, no blocking), read only with
+    per-env tables (a shared table mixes every env each step, so it runs unblocked); bit for bit on a CPU, while
+    on a GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.fused`). With
+    ``fused="pallas"`` on the cart-pole, envs per Pallas program (a power of two up to 1024; None: one warp's
+    32, :data:`jaxrobo.fused_pallas.BLOCK`); the quadcopter's kernel sets its own block, so it refuses one.
 
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.

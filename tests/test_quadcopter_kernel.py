@@ -135,6 +135,8 @@ def test_the_choice_is_accepted_for_the_rigid_quadcopter_with_any_learner_and_re
                               ("QuadcopterLiveShow-v0", dict(shared_table=True))):
         spec = _goto(env_id, **overrides)
         Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))  # accepted
+    with pytest.raises(ValueError, match=r"fused='pallas': fused_block=64; .*leave fused_block None"):
+        Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=64))
     spec = _goto(backend="mjx")
     with pytest.raises(ValueError, match=r"ExecutionPlan fused='pallas': .*backend='rigid'.*CartPoleStayUp"):
         Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
