@@ -27,7 +27,8 @@ with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk ove
 the call (tested interpreted; not run on a GPU).
 
 Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
-:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS` (read when a chunk is traced).
+:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is
+traced).
 """
 from __future__ import annotations
 
@@ -52,6 +53,12 @@ SKIP_RESETS = True
 #: ``cos.approx.f32``, absolute error about 5e-7 on [-pi, pi]) instead of libdevice's. A benchmark knob, off: it
 #: changes the GPU's values in the last bits, and a CPU (interpret mode, no inline assembly) cannot test it.
 APPROX_SINCOS = False
+#: True: the kernel sees the tables tiled by program, ``[program, state, env of the program, action]``, instead of
+#: the runner's ``[env, state, action]``: lanes of a warp whose envs sit in the same state (cart-pole envs crowd
+#: into a few bins near upright) gather and scatter neighbouring words, i.e. share 32 B sectors, where the runner's
+#: layout puts every env's row 7.7 KB from its neighbour's. The chunk transposes the tables in before the kernel and
+#: back after (a full read and write of the tables each way); the values are the same.
+TILED_TABLES = False
 _MAX_BLOCK = 1024
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
@@ -140,7 +147,7 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
-     timestep, n_substeps, action_steps, skip_resets, approx_sincos) = static
+     timestep, n_substeps, action_steps, skip_resets, approx_sincos, tiled) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
@@ -157,11 +164,18 @@ def _make_kernel(static):
         max_episode_steps = ip_ref[0]
         env0 = pl.program_id(0) * block
         env = env0 + jax.lax.iota(jnp.int32, block)
-        base = env * (n_states * n_actions)
         carry = {name: ref[...] for name, ref in zip(_NAMES, ins)}
+        if tiled:  # [program, state, env of the program, action]
+            # program_id read here, not in the reset's branch (interpret mode cannot discharge it inside a cond).
+            tile = block * n_actions
+            base = pl.program_id(0) * (n_states * tile) + jax.lax.iota(jnp.int32, block) * n_actions
+            row_at = lambda s: base + s * tile  # noqa: E731
+        else:  # [env, state, action]
+            base = env * (n_states * n_actions)
+            row_at = lambda s: base + s * n_actions  # noqa: E731
 
         def row(s, mask=None):
-            at = base + s * n_actions
+            at = row_at(s)
             return [plgpu.load(q_ref.at[at + k], mask=mask, other=0.0 if mask is not None else None)
                     for k in range(n_actions)]
 
@@ -318,7 +332,7 @@ def _make_kernel(static):
             else:
                 reset = fresh_episode(None)
             fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:]
-            plgpu.store(q_ref.at[base + cr["s"] * n_actions + a], written)
+            plgpu.store(q_ref.at[row_at(cr["s"]) + a], written)
             w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
             cr["x"], cr["th"], cr["xd"], cr["thd"] = w(fresh[0], x), w(fresh[1], th), w(fresh[2], xd), w(fresh[3], thd)
             cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(fresh[0], obs[0]), w(fresh[2], obs[1]), w(fresh[1], obs[2]),
@@ -406,16 +420,20 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     else:
         cols.update(ret_sum=runner.returns[:, 0], len_sum=runner.lengths[:, 0], term_any=i32(runner.terminated[:, 0]))
     col_in = [jnp.asarray(cols[name]).astype(dtype) for name, dtype in _COLS]
-    big = [runner.agent.q.reshape(-1)]
+    block = _block_for(n, trainer.plan.fused_block)
+    tiled = bool(TILED_TABLES)
+    q_in = runner.agent.q.reshape(n, n_states, n_actions)
+    if tiled:
+        q_in = q_in.reshape(n // block, block, n_states, n_actions).transpose(0, 2, 1, 3)
+    big = [q_in.reshape(-1)]
     if records:
         big += [runner.returns.reshape(-1), runner.lengths.reshape(-1), i32(runner.terminated).reshape(-1)]
 
-    block = _block_for(n, trainer.plan.fused_block)
     strides = tuple(int(v) for v in np.cumprod((disc.bins[1:] + (1,))[::-1])[::-1])
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
               tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
-              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu")
+              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu", tiled)
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)
@@ -442,7 +460,10 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
         jnp.stack([o["o0"], o["o1"], o["o2"], o["o3"]], 1), o["reward"], boolean(o["term"]), boolean(o["trunc"]),
         o["steps"], type(es.task)(command=o["command"]),
         jax.random.wrap_key_data(jnp.stack([o["ek0"], o["ek1"]], 1), impl=impl), boolean(o["pnan"]))
-    q = big_out[0].reshape(runner.agent.q.shape)
+    q = big_out[0]
+    if tiled:
+        q = q.reshape(n // block, n_states, block, n_actions).transpose(0, 2, 1, 3)
+    q = q.reshape(runner.agent.q.shape)
     q_rows = None
     if runner.q_rows is not None:
         q_rows = jnp.stack([o[f"r{k}"] for k in range(n_actions)], 1)[:, None, :]

@@ -130,10 +130,39 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
-def test_a_sweep_vmaps_the_kernel():
-    """Two learning rates vmapped over the chunk (as a sweep runs it): the plain path's tables."""
+@pytest.mark.parametrize("changes", [dict(), dict(record_episodes=False, carry_rows=True)])
+def test_the_tiled_tables_change_nothing(changes, monkeypatch):
+    """The tables tiled by program for the kernel ([program, state, env of the program, action]) and back: the
+    carry, tables and records equal the runner-layout kernel's bit for bit over two chunks of 40 steps in which envs
+    reset at different steps (8 envs in programs of 4, records on; records off with carried rows)."""
+    from jaxrobo import fused_pallas
+
+    carry_rows = changes.pop("carry_rows", False)
+    spec = _cartpole(n_envs=8, nsteps=200, chunk_steps=40, **changes)
+    out = {}
+    for tiled in (False, True):
+        monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4, carry_rows=carry_rows))
+        runner = jax.jit(trainer.init)(jax.random.key(11), spec.agent_params, spec.env.default_params)
+        chunk = jax.jit(trainer.run_chunk)
+        for _ in range(2):
+            runner = chunk(runner, spec.agent_params, spec.env.default_params)
+        out[tiled] = runner
+    q = np.asarray(out[True].agent.q)
+    assert (q != 0).any(axis=(1, 2, 3)).all() and np.asarray(out[True].episode).max() > 0  # every env learned
+    for (path, a), (_, b) in zip(_leaves(out[False]), _leaves(out[True])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_a_sweep_vmaps_the_kernel(tiled, monkeypatch):
+    """Two learning rates vmapped over the chunk (as a sweep runs it): the plain path's tables, with the kernel's
+    tables in the runner's layout or tiled by program."""
     import jax.numpy as jnp
 
+    from jaxrobo import fused_pallas
+
+    monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
     spec = _cartpole(n_envs=4, chunk_steps=10)
     params = jax.tree.map(lambda x: jnp.asarray([x, x * 0.5], jnp.float32), spec.agent_params)
     tables = []
@@ -148,11 +177,14 @@ def test_a_sweep_vmaps_the_kernel():
     assert np.abs(tables[0]).sum() > 0
 
 
-def test_it_lowers_for_the_gpu_through_triton(monkeypatch):
+@pytest.mark.parametrize("tiled", [False, True])
+def test_it_lowers_for_the_gpu_through_triton(tiled, monkeypatch):
     """The kernel the GPU would run (not interpreted) lowers to a Triton call: the ops it uses (in-kernel loop,
-    gathers and masked scatters by computed index, uint32 hashing) all have Triton lowerings."""
+    gathers and masked scatters by computed index, uint32 hashing) all have Triton lowerings, in either layout of
+    the tables."""
     from jaxrobo import fused_pallas
 
+    monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
     spec = _cartpole(n_envs=512, record_episodes=True)
     trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
     runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
