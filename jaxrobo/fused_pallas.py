@@ -57,7 +57,8 @@ APPROX_SINCOS = False
 #: the runner's ``[env, state, action]``: lanes of a warp whose envs sit in the same state (cart-pole envs crowd
 #: into a few bins near upright) gather and scatter neighbouring words, i.e. share 32 B sectors, where the runner's
 #: layout puts every env's row 7.7 KB from its neighbour's. The chunk transposes the tables in before the kernel and
-#: back after (a full read and write of the tables each way); the values are the same.
+#: back after (a full read and write of the tables each way); the values are the same. Off: on an H100 the kernel
+#: gains less than the two transposes cost, at every size measured (docs/benchmarks.md, "Pallas").
 TILED_TABLES = False
 _MAX_BLOCK = 1024
 
