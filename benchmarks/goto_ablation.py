@@ -7,8 +7,10 @@ Each row trains QuadcopterGoto-v2 (rigid, Q-learning, the preset's shared table 
 records off: the chunk ``jaxrobo train`` compiles, :func:`jaxrobo.driver.compiled_chunk`) under
 ``ExecutionPlan.for_run``'s plan with one change (``--variants``, comma list):
 
-``base``                   the plan as built (on a GPU: ``fused=pallas``, the reset a select over the batch)
-``rc:N`` / ``rc:/K``       ``reset_capacity`` N, or the batch over K (done envs gathered, reset, scattered back)
+``base``                   the plan as built (on a GPU: ``fused=pallas``, done envs gathered, an eighth of the
+                           batch at most)
+``rc:N`` / ``rc:/K``       ``reset_capacity`` N, or the batch over K (done envs gathered, reset, scattered back);
+                           ``rc:all`` the plain select (every env reset, the done ones kept)
 ``group:G[:U]``            ``env_group`` G envs stepped at once (``unrolled_groups`` U, default 4)
 ``records``                ``record_episodes`` on (a table of ``--record-episodes`` slots per env)
 ``bins``                   the ``bins`` discretiser (3 per dimension: 6,561 states against the edges' 3,888)
@@ -107,7 +109,8 @@ def measure(n: int, variant: str, args: argparse.Namespace) -> dict[str, Any]:
     for m in mods:
         if m.startswith("rc:"):
             v = m[3:]
-            plan_changes["reset_capacity"] = -(-n // int(v[1:])) if v.startswith("/") else int(v)
+            plan_changes["reset_capacity"] = (None if v == "all" else -(-n // int(v[1:])) if v.startswith("/")
+                                              else int(v))
         elif m.startswith("group:"):
             g, _, u = m[6:].partition(":")
             plan_changes["env_group"] = int(g)
