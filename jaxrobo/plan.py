@@ -63,6 +63,11 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
 _FUSED_MIN_ENVS = 1024
 
 
+#: Fewest envs a GPU run under ``fused="pallas"`` has for :meth:`ExecutionPlan.for_run` to gather its done envs
+#: for the reset: the smallest batch where that was measured faster (docs/benchmarks.md, "Pallas: quadcopter").
+_GATHER_MIN_ENVS = 262_144
+
+
 #: The values of ``ExecutionPlan.fused``: :mod:`jaxrobo.fused`'s, and ``"pallas"`` (:func:`check_pallas`).
 FUSED_CHOICES = _fused.CHOICES + ("pallas",)
 
@@ -135,7 +140,9 @@ class ExecutionPlan:
     them back; a step with more resets the whole batch. A reset under ``vmap`` costs a physics state and random
     draws in every env although few are done, so gathering them pays where envs are expensive one by one (a CPU);
     equal to ``n_envs`` (or None: every env) it is the plain select, cheaper where the gather/scatter and the
-    branch cost more than the resets they save (an accelerator).
+    branch cost more than the resets they save (an accelerator whose env step is itself batch-wide XLA work). With
+    the physics in a kernel (``fused="pallas"``) the task's reset is a large share of what is left, and gathering
+    pays on a GPU too at large batches.
 
     ``carry_rows``: carry each env's table rows at its state in the training carry, so a step reads the tables
     once instead of three times. That pays where the reads are cache misses (a CPU); on an accelerator the reads
@@ -198,20 +205,26 @@ class ExecutionPlan:
         ``shared_table`` and ``env_group``) on ``backend`` (JAX's platform name; default
         ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector
         env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not
-        carried. ``compiler_options``: see the class docstring (XLA's defaults unless given)."""
+        carried. With a config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"``
+        from 262,144 envs, the whole batch (the plain select) otherwise. ``compiler_options``: see the class docstring (XLA's defaults unless given)."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
         if config is None:
             return cls(env_group=default_env_group(env, backend), compiler_options=compiler_options)
+        fused = default_fused(env, backend, config.n_envs)
+        # Gather the done envs (an eighth of the batch: few finish on any one step) on a CPU, and on a GPU where
+        # the physics runs as a kernel and the batch is large: there the plain select's reset of every env (goal,
+        # obstacles, a first observation with its ray tests) cost up to a fifth of the step (Goto-v2 on an H100,
+        # 262 k and 1 M envs). Smaller GPU batches are latency-bound and the gather adds ~50 kernels a step (not
+        # measured there); elsewhere on an accelerator the plain select.
+        gather = cpu or (fused == "pallas" and config.n_envs >= _GATHER_MIN_ENVS)
         return cls(
             # The config's env_group, 0 meaning automatic.
             env_group=config.env_group or default_env_group(env, backend),
-            # Gather the done envs on a CPU (an eighth of the batch: few finish on any one step); the plain
-            # select on accelerators.
-            reset_capacity=-(-config.n_envs // 8) if cpu else config.n_envs,
+            reset_capacity=-(-config.n_envs // 8) if gather else config.n_envs,
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
-            fused=default_fused(env, backend, config.n_envs),
+            fused=fused,
             compiler_options=compiler_options,
         )
 

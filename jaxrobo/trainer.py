@@ -231,9 +231,11 @@ class Trainer:
         record = done & active
         returns, lengths, terminated = runner.returns, runner.lengths, runner.terminated
         if c.record_episodes:
-            slot = jnp.minimum(runner.episode, c.nepisodes - 1)
+            # Only the envs that finished an episode write: the others' slot is out of range and their write is
+            # dropped, which leaves their entry as it was without reading it first.
+            slot = jnp.where(record, jnp.minimum(runner.episode, c.nepisodes - 1), c.nepisodes)
             rows = jnp.arange(c.n_envs)
-            put = lambda table, value: table.at[rows, slot].set(jnp.where(record, value, table[rows, slot]))  # noqa: E731
+            put = lambda table, value: table.at[rows, slot].set(value, mode="drop")  # noqa: E731
             returns = put(returns, ep_return)
             lengths = put(lengths, stepped.steps)
             terminated = put(terminated, stepped.terminated)

@@ -57,6 +57,19 @@ def test_for_run_derives_the_choices_per_device():
         resolve("CartPoleStayUp-v0", overrides={"env_group": -1})
 
 
+def test_gpu_gathers_the_resets_where_the_physics_is_a_kernel():
+    """Under ``fused="pallas"`` (the rigid quadcopter on a GPU) from 262,144 envs done envs are gathered and reset,
+    an eighth of the batch at most per step, as on a CPU; smaller batches and other GPU runs keep the plain
+    select."""
+    goto = resolve("QuadcopterGoto-v2", overrides={"n_envs": 262_144, "backend": "rigid"})
+    plan = ExecutionPlan.for_run(goto.env, goto.config, "gpu")
+    assert (plan.fused, plan.reset_capacity) == ("pallas", 32_768)
+    smaller = goto.config.replace(n_envs=262_143)  # pallas, but below the measured batch sizes
+    assert ExecutionPlan.for_run(goto.env, smaller, "gpu").reset_capacity == 262_143
+    mjx = resolve("QuadcopterGoto-v2", overrides={"n_envs": 262_144, "backend": "mjx"})
+    assert ExecutionPlan.for_run(mjx.env, mjx.config, "gpu").reset_capacity == 262_144
+
+
 def test_repr_is_short_and_names_every_choice():
     spec = _spec()
     plan = ExecutionPlan.for_run(spec.env, spec.config, "cpu")
