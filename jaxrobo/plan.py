@@ -63,6 +63,10 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
 _FUSED_MIN_ENVS = 1024
 
 
+#: XLA's option for scatters (and other reductions) in a fixed order on a GPU: set by
+#: :meth:`ExecutionPlan.for_run` for a shared table, whose updates meet in a scatter-add.
+_DETERMINISTIC_GPU = {"xla_gpu_deterministic_ops": True}
+
 #: Fewest envs a GPU run under ``fused="pallas"`` has for :meth:`ExecutionPlan.for_run` to gather its done envs
 #: for the reset: the smallest batch where that was measured faster (docs/benchmarks.md, "Pallas: quadcopter").
 _GATHER_MIN_ENVS = 262_144
@@ -206,7 +210,9 @@ class ExecutionPlan:
         ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector
         env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not
         carried. With a config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"``
-        from 262,144 envs, the whole batch (the plain select) otherwise. ``compiler_options``: see the class docstring (XLA's defaults unless given)."""
+        from 262,144 envs, the whole batch (the plain select) otherwise. ``compiler_options``: see the class docstring
+        (XLA's defaults unless given; a shared table on a GPU adds ``xla_gpu_deterministic_ops``, so that the same
+        seed gives the same tables there, unless given otherwise here)."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
         if config is None:
@@ -218,6 +224,12 @@ class ExecutionPlan:
         # 262 k and 1 M envs). Smaller GPU batches are latency-bound and the gather adds ~50 kernels a step (not
         # measured there); elsewhere on an accelerator the plain select.
         gather = cpu or (fused == "pallas" and config.n_envs >= _GATHER_MIN_ENVS)
+        if backend == "gpu" and config.shared_table:
+            # A shared table sums the step's updates of one entry with a scatter-add, which a GPU runs with float
+            # atomics in no fixed order: the same seed then gave other tables run after run (an H100, 65 k envs).
+            # XLA's deterministic scatter keeps the promise (same seed, same device, same result) at a price
+            # (docs/benchmarks.md, "Reproducible on a GPU"); a caller's own value of the option wins.
+            compiler_options = {**_DETERMINISTIC_GPU, **dict(compiler_options or {})}
         return cls(
             # The config's env_group, 0 meaning automatic.
             env_group=config.env_group or default_env_group(env, backend),

@@ -70,6 +70,24 @@ def test_gpu_gathers_the_resets_where_the_physics_is_a_kernel():
     assert ExecutionPlan.for_run(mjx.env, mjx.config, "gpu").reset_capacity == 262_144
 
 
+def test_a_shared_table_on_a_gpu_compiles_with_deterministic_scatters():
+    """A shared table's updates meet in a float scatter-add, which a GPU sums in no fixed order (the same seed gave
+    other tables run after run on an H100): on a GPU such a plan asks XLA for its deterministic ops; per-env tables,
+    a CPU and a caller's own value of the option are left alone."""
+    shared = _spec(shared_table=True)
+    gpu = ExecutionPlan.for_run(shared.env, shared.config, "gpu")
+    assert gpu.xla_options == {"xla_gpu_deterministic_ops": True}
+    assert "xla_gpu_deterministic_ops: True" in repr(gpu)  # printed, and part of the plan that keys the cache
+    assert ExecutionPlan.for_run(shared.env, shared.config, "cpu").compiler_options is None
+    spec = _spec()
+    assert ExecutionPlan.for_run(spec.env, spec.config, "gpu").compiler_options is None
+    mine = ExecutionPlan.for_run(shared.env, shared.config, "gpu",
+                                 compiler_options={"xla_gpu_deterministic_ops": False, **FAST})
+    assert mine.xla_options == {"xla_gpu_deterministic_ops": False, **FAST}
+    # The option compiles on a CPU too (a plan made for a GPU never breaks a CPU compile).
+    assert float(jax.jit(lambda x: x + 1.0, compiler_options=gpu.xla_options)(1.0)) == 2.0
+
+
 def test_repr_is_short_and_names_every_choice():
     spec = _spec()
     plan = ExecutionPlan.for_run(spec.env, spec.config, "cpu")
