@@ -63,10 +63,6 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
 _FUSED_MIN_ENVS = 1024
 
 
-#: XLA's option for scatters (and other reductions) in a fixed order on a GPU: set by
-#: :meth:`ExecutionPlan.for_run` for a shared table, whose updates meet in a scatter-add.
-_DETERMINISTIC_GPU = {"xla_gpu_deterministic_ops": True}
-
 #: Fewest envs a GPU run under ``fused="pallas"`` has for :meth:`ExecutionPlan.for_run` to gather its done envs
 #: for the reset: the smallest batch where that was measured faster (docs/benchmarks.md, "Pallas: quadcopter").
 _GATHER_MIN_ENVS = 262_144
@@ -165,6 +161,12 @@ class ExecutionPlan:
     ``fused="pallas"`` on the cart-pole, envs per Pallas program (a power of two up to 1024; None: one warp's
     32, :data:`jaxrobo.fused_pallas.BLOCK`); the quadcopter's kernel sets its own block, so it refuses one.
 
+    ``ordered_sums``: a shared table sums the updates that meet in one entry in a fixed order
+    (:func:`jaxrobo.tabular.sum_in_order`: sort, segmented scan) instead of a scatter-add, which a GPU runs as
+    float atomics in no fixed order: there the same seed gave other tables run after run. The default on a GPU
+    with a shared table; elsewhere the scatter-add, which a CPU runs in order (its rounding is the one the
+    fingerprints hold). The one plan choice that may change values: it rounds the sums in another order.
+
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
     """
@@ -176,6 +178,7 @@ class ExecutionPlan:
     carry_rows: bool = False
     fused: str = "off"
     fused_block: int | None = None
+    ordered_sums: bool = False
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
@@ -188,7 +191,7 @@ class ExecutionPlan:
         if not isinstance(self.unrolled_groups, int) or isinstance(self.unrolled_groups, bool) \
                 or self.unrolled_groups < 1:
             raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
-        for name in ("lean_mjx", "carry_rows"):
+        for name in ("lean_mjx", "carry_rows", "ordered_sums"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ExecutionPlan {name}={getattr(self, name)!r}: expected True or False")
         options = self.compiler_options
@@ -211,8 +214,7 @@ class ExecutionPlan:
         env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not
         carried. With a config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"``
         from 262,144 envs, the whole batch (the plain select) otherwise. ``compiler_options``: see the class docstring
-        (XLA's defaults unless given; a shared table on a GPU adds ``xla_gpu_deterministic_ops``, so that the same
-        seed gives the same tables there, unless given otherwise here)."""
+        (XLA's defaults unless given). ``ordered_sums`` is on for a shared table on a GPU."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
         if config is None:
@@ -224,12 +226,6 @@ class ExecutionPlan:
         # 262 k and 1 M envs). Smaller GPU batches are latency-bound and the gather adds ~50 kernels a step (not
         # measured there); elsewhere on an accelerator the plain select.
         gather = cpu or (fused == "pallas" and config.n_envs >= _GATHER_MIN_ENVS)
-        if backend == "gpu" and config.shared_table:
-            # A shared table sums the step's updates of one entry with a scatter-add, which a GPU runs with float
-            # atomics in no fixed order: the same seed then gave other tables run after run (an H100, 65 k envs).
-            # XLA's deterministic scatter keeps the promise (same seed, same device, same result) at a price
-            # (docs/benchmarks.md, "Reproducible on a GPU"); a caller's own value of the option wins.
-            compiler_options = {**_DETERMINISTIC_GPU, **dict(compiler_options or {})}
         return cls(
             # The config's env_group, 0 meaning automatic.
             env_group=config.env_group or default_env_group(env, backend),
@@ -237,6 +233,8 @@ class ExecutionPlan:
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
             fused=fused,
+            # A GPU sums a shared table's updates as float atomics in no fixed order: sum them in order there.
+            ordered_sums=backend == "gpu" and config.shared_table,
             compiler_options=compiler_options,
         )
 
@@ -283,6 +281,8 @@ class ExecutionPlan:
         if self.fused != "off":  # named only when on, so plans from before the choice read as they did
             block = "all" if self.fused_block is None else self.fused_block
             parts.append(f"fused={self.fused}, fused_block={block}")
+        if self.ordered_sums:  # likewise
+            parts.append("ordered_sums=on")
         if self.compiler_options is not None:
             parts.append("compiler_options={" + ", ".join(f"{k}: {v!r}" for k, v in self.compiler_options) + "}")
         return f"ExecutionPlan({', '.join(parts)})"

@@ -233,18 +233,47 @@ def learn(learner: Learner, key: jax.Array, agent: AgentState, s, a, r, s2, a2, 
     return write(agent, table, s, a, jnp.where(active, new, old), active)
 
 
+def sum_in_order(index: jax.Array, values: jax.Array, size: int) -> jax.Array:
+    """``zeros(size).at[index].add(values)`` with the additions in one fixed order on every device.
+
+    A scatter-add of floats runs on a GPU as atomic additions in whatever order the threads arrive, so the
+    rounding, and then a tabular run, changes from run to run. Here the values are sorted by index (stably), each
+    run of one index is summed by a segmented scan, and each index's total is written once."""
+    order = jnp.argsort(index, stable=True)
+    index, values = index[order], values[order]
+    change = index[1:] != index[:-1]
+    first = jnp.concatenate([jnp.ones((1,), bool), change])
+    last = jnp.concatenate([change, jnp.ones((1,), bool)])
+
+    def combine(x, y):
+        (vx, fx), (vy, fy) = x, y
+        return jnp.where(fy, vy, vx + vy), fx | fy
+
+    sums, _ = jax.lax.associative_scan(combine, (values, first))
+    return jnp.zeros((size,), values.dtype).at[jnp.where(last, index, size)].set(sums, mode="drop")
+
+
 def learn_shared(learner: Learner, keys: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,
-                 params: AgentParams, seed_compat: bool = False, active: jax.Array | None = None) -> AgentState:
+                 params: AgentParams, seed_compat: bool = False, active: jax.Array | None = None,
+                 ordered: bool = False) -> AgentState:
     """Update one table shared by a batch of environments from one transition each.
 
     Every environment computes its new entry value from the same table; where several hit the same entry,
-    the entry takes the mean of their new values (a synchronous, batched TD update).
+    the entry takes the mean of their new values (a synchronous, batched TD update). ``ordered``: sum the new
+    values with :func:`sum_in_order` instead of a scatter-add (reproducible on a GPU; rounds in another order
+    than the scatter-add where an entry has several).
     """
     active = jnp.ones(s.shape, bool) if active is None else active
     table, _, new = jax.vmap(new_entry, in_axes=(None, 0, None, 0, 0, 0, 0, 0, 0, 0, None, None))(
         learner, keys, agent, s, a, r, s2, a2, terminated, epsilon, params, seed_compat)
     w = active.astype(jnp.float32)
-    total = jnp.zeros_like(agent.q).at[table, s, a].add(w * new)
+    if ordered:
+        _, n_states, n_actions = agent.q.shape
+        flat = (table * n_states + s) * n_actions + a
+        total = sum_in_order(flat, w * new, agent.q.size).reshape(agent.q.shape)
+    else:
+        total = jnp.zeros_like(agent.q).at[table, s, a].add(w * new)
+    # Counts are whole numbers, exact in float32 in any order of addition.
     count = jnp.zeros_like(agent.q).at[table, s, a].add(w)
     q = jnp.where(count > 0, total / jnp.maximum(count, 1.0), agent.q)
     visited = None

@@ -157,7 +157,7 @@ class Trainer:
         c, learner = self.config, self.learner
         if c.shared_table:
             return tabular.learn_shared(learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params,
-                                        c.seed_compat, active), q_s2
+                                        c.seed_compat, active, ordered=self.plan.ordered_sums), q_s2
         visited_sa = jax.vmap(lambda v, s, a: v[s, a])(agent.visited, s, a) if c.seed_compat else None
         table, old, new = jax.vmap(tabular.update, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, None, None, 0))(
             learner, key, q_s, q_s2, a, r, a2, terminated, epsilon, params, c.seed_compat, visited_sa)

@@ -70,22 +70,43 @@ def test_gpu_gathers_the_resets_where_the_physics_is_a_kernel():
     assert ExecutionPlan.for_run(mjx.env, mjx.config, "gpu").reset_capacity == 262_144
 
 
-def test_a_shared_table_on_a_gpu_compiles_with_deterministic_scatters():
-    """A shared table's updates meet in a float scatter-add, which a GPU sums in no fixed order (the same seed gave
-    other tables run after run on an H100): on a GPU such a plan asks XLA for its deterministic ops; per-env tables,
-    a CPU and a caller's own value of the option are left alone."""
+def test_a_shared_table_on_a_gpu_sums_its_updates_in_order():
+    """A shared table's updates meet in a float scatter-add, which a GPU sums as atomics in no fixed order (the same
+    seed gave other tables run after run on an H100): on a GPU such a plan sums them in order; per-env tables and a
+    CPU keep the scatter-add."""
     shared = _spec(shared_table=True)
     gpu = ExecutionPlan.for_run(shared.env, shared.config, "gpu")
-    assert gpu.xla_options == {"xla_gpu_deterministic_ops": True}
-    assert "xla_gpu_deterministic_ops: True" in repr(gpu)  # printed, and part of the plan that keys the cache
-    assert ExecutionPlan.for_run(shared.env, shared.config, "cpu").compiler_options is None
+    assert gpu.ordered_sums and repr(gpu).endswith("ordered_sums=on)")  # printed, part of the plan that keys the cache
+    assert not ExecutionPlan.for_run(shared.env, shared.config, "cpu").ordered_sums
     spec = _spec()
-    assert ExecutionPlan.for_run(spec.env, spec.config, "gpu").compiler_options is None
-    mine = ExecutionPlan.for_run(shared.env, shared.config, "gpu",
-                                 compiler_options={"xla_gpu_deterministic_ops": False, **FAST})
-    assert mine.xla_options == {"xla_gpu_deterministic_ops": False, **FAST}
-    # The option compiles on a CPU too (a plan made for a GPU never breaks a CPU compile).
-    assert float(jax.jit(lambda x: x + 1.0, compiler_options=gpu.xla_options)(1.0)) == 2.0
+    assert not ExecutionPlan.for_run(spec.env, spec.config, "gpu").ordered_sums
+    with pytest.raises(ValueError, match="ordered_sums=1: expected True or False"):
+        ExecutionPlan(ordered_sums=1)
+
+
+def test_sum_in_order_is_the_scatter_add_summed_in_one_order():
+    """Whole numbers (exact in any order): equal to the scatter-add bit for bit; fractions: equal to a float64 sum
+    within float32 rounding; a training run with a shared table under ordered sums learns what the scatter-add's
+    run learns within rounding, and the same seed gives the same tables."""
+    from jaxrobo.tabular import sum_in_order
+
+    rng = np.random.default_rng(0)
+    index = jnp.asarray(rng.integers(0, 7, 50), jnp.int32)
+    whole = jnp.asarray(rng.integers(-5, 6, 50), jnp.float32)
+    expected = jnp.zeros(9).at[index].add(whole)
+    assert np.array_equal(np.asarray(sum_in_order(index, whole, 9)), np.asarray(expected))
+    frac = jnp.asarray(rng.normal(size=50), jnp.float32)
+    exact = np.zeros(9)
+    np.add.at(exact, np.asarray(index), np.asarray(frac, np.float64))
+    np.testing.assert_allclose(np.asarray(sum_in_order(index, frac, 9)), exact, rtol=1e-5, atol=1e-6)
+    assert np.asarray(jax.vmap(lambda v: sum_in_order(index, v, 9))(jnp.stack([whole, frac])))[0].tolist() == \
+        np.asarray(expected).tolist()
+    spec = _spec("analytic", shared_table=True)
+    base = ExecutionPlan.for_run(spec.env, spec.config, "cpu", compiler_options=FAST)
+    plain = train(spec.env, spec.config, spec.agent_params, plan=base)
+    ordered = [train(spec.env, spec.config, spec.agent_params, plan=base.replace(ordered_sums=True)) for _ in range(2)]
+    assert np.array_equal(ordered[0].q, ordered[1].q)
+    np.testing.assert_allclose(ordered[0].q, plain.q, rtol=1e-4, atol=1e-4)
 
 
 def test_repr_is_short_and_names_every_choice():
@@ -98,7 +119,7 @@ def test_repr_is_short_and_names_every_choice():
                           "carry_rows=on, compiler_options={xla_backend_optimization_level: 0})")
     assert json.loads(json.dumps(fast.to_dict())) == {
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
-        "fused": "off", "fused_block": None, "compiler_options": FAST}
+        "fused": "off", "fused_block": None, "ordered_sums": False, "compiler_options": FAST}
 
 
 def test_plans_are_validated_frozen_and_hashable():
