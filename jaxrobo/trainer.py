@@ -98,7 +98,8 @@ class Trainer:
     def __init__(self, env: Env, config: TrainConfig, discretiser: Discretiser | None = None,
                  learner: Learner | None = None, *, plan: ExecutionPlan | None = None):
         """``plan``: how the run is executed (:class:`jaxrobo.plan.ExecutionPlan`; default: the plan for this env
-        and config on the default device). It changes the compiled program, never the values."""
+        and config on the default device). It changes the compiled program; the values only in their last bits, where
+        a GPU rounds the Pallas kernels or a shared table's ordered sums otherwise (see the plan's fields)."""
         self.env = env
         self.config = config
         self.learner = learner or registry.learner(config.agent)
