@@ -112,6 +112,18 @@ def timed(compile_fn: Callable[[], Callable], cache_dir: str | None = None) -> t
     return compiled, seconds, hit
 
 
+def write_json(out: dict[str, Any], path: str | None, name: str) -> str:
+    """Write ``out`` as indented JSON to ``path``, or by default to ``benchmarks/results/<device>/<name>``
+    (folders made as needed); returns the path written."""
+    import json
+
+    path = path or os.path.join(ROOT, "benchmarks", "results", device_name(), name)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(out, f, indent=2)
+    return path
+
+
 def device_memory() -> dict[str, int]:
     """Device memory statistics where the backend has them (GPU), else {}."""
     import jax

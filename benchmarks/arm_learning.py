@@ -89,10 +89,7 @@ def main(argv=None) -> int:
            "target": target.description, "median_meets_target": bool(median >= target.threshold),
            "random_policy": {k: round(v, 4) for k, v in rand.items()}, "overrides": args.set}
     print(json.dumps(out, indent=2))
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "arm_learning.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f, indent=2)
+    _common.write_json(out, args.out, "arm_learning.json")
     return 0
 
 

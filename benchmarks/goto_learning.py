@@ -13,7 +13,6 @@ fresh goals), which says what selection can reach, not what one run does.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -119,11 +118,7 @@ def main(argv=None) -> int:
     print(f"secondary, best of population: run {best} ({out['best_of_population']['selection_success']:.3f} on "
           f"{args.select_episodes} selection goals) -> {out['best_of_population']['fresh_success']:.3f} on the fresh "
           f"goals; random policy {out['random_policy_fresh_success']:.3f}")
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(),
-                                    f"goto_learning_{args.env}.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f, indent=2)
+    _common.write_json(out, args.out, f"goto_learning_{args.env}.json")
     return 0
 
 

@@ -39,7 +39,7 @@ import platform
 import sys
 import time
 import traceback
-from typing import Any
+from typing import Any, Callable
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common  # noqa: E402
@@ -273,10 +273,33 @@ def peer_gymnax(n: int, args, ctx) -> dict[str, Any]:
     return _time_jax_peer("gymnax", "CartPole-v1", n, steps, init, rollout, args, ctx, 1, 0.02)
 
 
-def peer_brax(n: int, args, ctx) -> dict[str, Any]:
+def _brax_style_rollout(env: Any, action_size: int, n: int, steps: int, physics: Callable[[Any], Any]):
+    """(init, rollout) of a Brax-style training env (``reset(keys)``/``step(state, action)`` over a batch of
+    ``n``, auto-reset by its wrapper; Brax's own and Playground's): ``steps`` uniform random actions in [-1, 1]
+    of ``action_size`` per env, the checksum over ``physics(state)`` and the summed rewards."""
     import jax
     import jax.numpy as jnp
 
+    def init(key):  # the wrappers want raw uint32 keys, one per env
+        return env.reset(jax.random.key_data(jax.random.split(key, n))), key
+
+    def rollout(carry, _):
+        state, key = carry
+        keys = jax.random.split(key, steps + 1)
+
+        def body(c, k):
+            s, acc = c
+            a = jax.random.uniform(k, (n, action_size), minval=-1.0, maxval=1.0)
+            s = env.step(s, a)
+            return (s, acc + s.reward), None
+
+        (state, acc), _ = jax.lax.scan(body, (state, jnp.zeros(n, jnp.float32)), keys[1:])
+        return (state, keys[0]), _common.checksum(physics(state)) + jnp.sum(acc)
+
+    return init, rollout
+
+
+def peer_brax(n: int, args, ctx) -> dict[str, Any]:
     from jaxrobo.sim import quiet_imports
 
     with quiet_imports():
@@ -286,23 +309,7 @@ def peer_brax(n: int, args, ctx) -> dict[str, Any]:
         base = envs.get_environment("inverted_pendulum", backend="mjx")
     env = training.wrap(base, episode_length=1000)
     steps = steps_for(n, ctx["gpu"], args.steps)
-
-    def init(key):  # Brax wants raw uint32 keys
-        return env.reset(jax.random.key_data(jax.random.split(key, n))), key
-
-    def rollout(carry, _):
-        state, key = carry
-        keys = jax.random.split(key, steps + 1)
-
-        def body(c, k):
-            s, acc = c
-            a = jax.random.uniform(k, (n, env.action_size), minval=-1.0, maxval=1.0)
-            s = env.step(s, a)
-            return (s, acc + s.reward), None
-
-        (state, acc), _ = jax.lax.scan(body, (state, jnp.zeros(n, jnp.float32)), keys[1:])
-        return (state, keys[0]), _common.checksum(state.pipeline_state) + jnp.sum(acc)
-
+    init, rollout = _brax_style_rollout(env, env.action_size, n, steps, lambda s: s.pipeline_state)
     return _time_jax_peer("brax", "inverted_pendulum/mjx", n, steps, init, rollout, args, ctx,
                           int(base._n_frames), float(base.dt))
 
@@ -311,9 +318,6 @@ def peer_playground(n: int, args, ctx) -> dict[str, Any]:
     """MuJoCo Playground's ``CartpoleBalance`` (dm_control's cart-pole on MJX), random actions, auto-reset by
     Playground's own Brax training wrapper, on MJX's JAX implementation (Playground defaults to MJX-Warp, which
     needs ``warp-lang`` and a CUDA GPU; the JAX one runs everywhere and is what our rows use too)."""
-    import jax
-    import jax.numpy as jnp
-
     from jaxrobo.sim import quiet_imports
 
     with quiet_imports():
@@ -322,24 +326,7 @@ def peer_playground(n: int, args, ctx) -> dict[str, Any]:
         base = registry.load("CartpoleBalance", config_overrides={"impl": "jax"})
     env = wrapper.wrap_for_brax_training(base, episode_length=1000, action_repeat=1)
     steps = steps_for(n, ctx["gpu"], args.steps)
-    n_act = base.action_size
-
-    def init(key):  # Playground's wrapper wants raw uint32 keys, one per env
-        return env.reset(jax.random.key_data(jax.random.split(key, n))), key
-
-    def rollout(carry, _):
-        state, key = carry
-        keys = jax.random.split(key, steps + 1)
-
-        def body(c, k):
-            s, acc = c
-            a = jax.random.uniform(k, (n, n_act), minval=-1.0, maxval=1.0)
-            s = env.step(s, a)
-            return (s, acc + s.reward), None
-
-        (state, acc), _ = jax.lax.scan(body, (state, jnp.zeros(n, jnp.float32)), keys[1:])
-        return (state, keys[0]), _common.checksum(state.data) + jnp.sum(acc)
-
+    init, rollout = _brax_style_rollout(env, base.action_size, n, steps, lambda s: s.data)
     n_sub = int(base.n_substeps)
     return _time_jax_peer("playground", "CartpoleBalance", n, steps, init, rollout, args, ctx, n_sub,
                           float(base.dt), backend="mjx-jax")

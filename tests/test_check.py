@@ -155,13 +155,23 @@ def test_a_deterministic_reset_passes_the_key_check():
     assert result.status == "ok" and "deterministic" in result.message
 
 
-@pytest.mark.parametrize("env_id", jaxrobo.registered())
+#: Ids whose quick check runs through ``jaxrobo check ID --quick`` in another test (the same checks, the same
+#: compiles): the test below leaves them to it rather than compile them twice.
+CHECKED_BY_THE_CLI = {"QuadcopterLiveShow-v0": "test_cli_check_prints_one_line_per_check_and_exits_by_result",
+                      "ArmReach-v0": "tests/test_arm_reach.py::test_jaxrobo_check_quick_passes"}
+
+
+@pytest.mark.parametrize("env_id", [i for i in jaxrobo.registered() if i not in CHECKED_BY_THE_CLI])
 def test_every_shipped_id_passes_quick(env_id, capsys):
     # MJX compiles are slow on a CPU: the cart-pole ids run on the analytic backend (same task code and model);
     # the CLI test below runs one MJX id end to end.
     backend = {"backend": "analytic"} if env_id.startswith("CartPole") else {}
     results = check_env(env_id, quick=True, checks=FAST, **backend)
     assert all(r.ok for r in results), [r.line() for r in results]
+
+
+def test_the_ids_left_to_the_cli_are_shipped_ids():
+    assert set(CHECKED_BY_THE_CLI) <= set(jaxrobo.registered())
 
 
 def test_cli_check_prints_one_line_per_check_and_exits_by_result(capsys):

@@ -235,24 +235,9 @@ def test_a_real_signal_leaves_a_resumable_run_that_resumes_to_the_uninterrupted_
     _assert_same_run(out, full)
 
 
-def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunning_chunks(tmp_path, monkeypatch):
-    """The finished carry is checkpointed after the last chunk, before the evaluation and the writes (even with
-    ``--checkpoint-every 0``): a write that fails then (a full disk under the TensorBoard log) leaves a run that
-    ``--resume`` finishes without running any chunk again, to the run that never failed."""
-    from jaxrobo import driver, results
-
-    out, full = str(tmp_path / "run"), str(tmp_path / "full")
-
-    def full_disk(*_a, **_k):
-        raise OSError(28, "No space left on device")
-
-    with monkeypatch.context() as patch:
-        patch.setattr(results, "write_tensorboard", full_disk)
-        with pytest.raises(OSError, match="No space left"):
-            main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", out])
-    status = rundir.read_status(out)
-    assert rundir.is_resumable(out) and status["status"] == rundir.RUNNING and status["chunks_done"] > 0
-    assert not os.path.exists(os.path.join(out, "summary.json"))  # nothing half-written was published
+def _counting_chunks(patch: pytest.MonkeyPatch) -> list:
+    """A list that gets one item per compiled chunk run from now on (``driver.compiled_chunk`` wrapped)."""
+    from jaxrobo import driver
 
     chunks_run = []
     real = driver.compiled_chunk
@@ -261,26 +246,36 @@ def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunnin
         chunk = real(*args, **kwargs)
         return lambda *a: (chunks_run.append(1), chunk(*a))[1]
 
-    monkeypatch.setattr(driver, "compiled_chunk", counting)
-    assert main(["train", "--resume", out, "--no-progress"]) == 0
-    assert chunks_run == []
-    final = rundir.read_status(out)
-    assert final["status"] == rundir.COMPLETE and final["resumed_after_chunk"] == status["chunks_done"]
-    assert main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", full]) == 0
-    assert len(chunks_run) == status["chunks_done"]  # the same run from the start: every chunk
-    _assert_same_run(out, full)
+    patch.setattr(driver, "compiled_chunk", counting)
+    return chunks_run
 
 
-def test_a_late_write_failure_of_an_overwrite_is_resumed_from_out(tmp_path, monkeypatch, capsys):
-    """--overwrite keeps the new run's state in a hidden sibling while it runs; a late write failure moves that
-    state into place, so that ``--resume OUT`` continues the new run (not the old one it replaces) without
-    running a chunk again, and the failure says so."""
-    from jaxrobo import driver, results
+@pytest.fixture(scope="module")
+def never_failed(tmp_path_factory):
+    """The tiny CLI run that never failed, and how many chunks it ran."""
+    full = str(tmp_path_factory.mktemp("never_failed") / "run")
+    with pytest.MonkeyPatch.context() as patch:
+        chunks_run = _counting_chunks(patch)
+        assert main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", full]) == 0
+    return full, len(chunks_run)
+
+
+@pytest.mark.parametrize("overwrite", [False, True], ids=["new-out", "overwrite"])
+def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunning_chunks(tmp_path, monkeypatch,
+                                                                                          capsys, never_failed,
+                                                                                          overwrite):
+    """The finished carry is checkpointed after the last chunk, before the evaluation and the writes (even with
+    ``--checkpoint-every 0``): a write that fails then (a full disk under the TensorBoard log) leaves a run that
+    ``--resume OUT`` finishes without running any chunk again, to the run that never failed, and the failure
+    says so. With ``--overwrite`` the new run's state lives in a hidden sibling while it runs; the failure moves
+    that state into place, so that ``--resume OUT`` continues the new run, not the old one it replaces."""
+    from jaxrobo import results
 
     out = tmp_path / "run"
-    out.mkdir()
-    (out / "status.json").write_text(json.dumps({"status": "complete"}))  # an old finished run
-    (out / "summary.json").write_text("{}")
+    if overwrite:
+        out.mkdir()
+        (out / "status.json").write_text(json.dumps({"status": "complete"}))  # an old finished run
+        (out / "summary.json").write_text("{}")
 
     def full_disk(*_a, **_k):
         raise OSError(28, "No space left on device")
@@ -288,23 +283,22 @@ def test_a_late_write_failure_of_an_overwrite_is_resumed_from_out(tmp_path, monk
     with monkeypatch.context() as patch:
         patch.setattr(results, "write_tensorboard", full_disk)
         with pytest.raises(OSError, match="No space left"):
-            main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", str(out), "--overwrite"])
+            main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", str(out),
+                  *(["--overwrite"] if overwrite else [])])
     assert f"to go on: jaxrobo train --resume {out}" in capsys.readouterr().err
     assert sorted(n for n in os.listdir(tmp_path) if n.startswith(".")) == []  # no state left in a sibling
     status = rundir.read_status(str(out))
     assert rundir.is_resumable(str(out)) and status["status"] == rundir.RUNNING and status["chunks_done"] > 0
-    assert not os.path.exists(out / "summary.json")  # the old run is replaced, nothing half-written published
+    assert not os.path.exists(out / "summary.json")  # nothing half-written (nor the replaced run) published
 
-    chunks_run = []
-    real = driver.compiled_chunk
-
-    def counting(*args, **kwargs):
-        chunk = real(*args, **kwargs)
-        return lambda *a: (chunks_run.append(1), chunk(*a))[1]
-
-    monkeypatch.setattr(driver, "compiled_chunk", counting)
+    chunks_run = _counting_chunks(monkeypatch)
     assert main(["train", "--resume", str(out), "--no-progress"]) == 0
-    assert chunks_run == [] and rundir.read_status(str(out))["status"] == rundir.COMPLETE
+    assert chunks_run == []
+    final = rundir.read_status(str(out))
+    assert final["status"] == rundir.COMPLETE and final["resumed_after_chunk"] == status["chunks_done"]
+    full, full_chunks = never_failed
+    assert full_chunks == status["chunks_done"]  # the same run from the start: every chunk
+    _assert_same_run(str(out), full)
 
 
 def test_changed_config_message(tmp_path, capsys):
