@@ -28,6 +28,23 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common  # noqa: E402
 
 
+def _compile_and_time(loop, carry, xs, repeats: int) -> tuple[float, float]:
+    """``(compile seconds, seconds per call)`` of ``jax.jit(loop)`` on ``(carry, xs)`` (the fastest of ``repeats``)."""
+    import jax
+
+    t0 = time.perf_counter()
+    compiled = jax.jit(loop).lower(carry, xs).compile()
+    compile_s = time.perf_counter() - t0
+    seconds, _ = _common.time_carry(lambda c, x: compiled(c, x), carry, xs, repeats=repeats, min_seconds=0.25)
+    return compile_s, seconds
+
+
+def _write(rows: list[dict], out: str | None) -> None:
+    if out:
+        with open(out, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", choices=("cpu", "gpu"), default=None)
@@ -73,20 +90,14 @@ def main(argv: list[str] | None = None) -> int:
                     s = jax.lax.fori_loop(0, args.steps, lambda _, x: step(x, c), s)
                 return s, s.qpos[0, 0]
 
-            t0 = time.perf_counter()
-            compiled = jax.jit(loop).lower(state, command).compile()
-            compile_s = time.perf_counter() - t0
-            seconds, _ = _common.time_carry(lambda s, c: compiled(s, c), state, command, repeats=args.repeats,
-                                            min_seconds=0.25)
+            compile_s, seconds = _compile_and_time(loop, state, command, args.repeats)
             sps = n * args.steps / seconds
             row = {"n_envs": n, "variant": variant, "n_substeps": n_sub, "control_steps_per_s": sps,
                    "physics_steps_per_s": sps * n_sub, "compile_s": compile_s}
             rows.append(row)
             print(f"n={n:<8d} {variant:16s} {sps / 1e6:10.1f} M control steps/s {sps * n_sub / 1e9:8.2f} G phys/s "
                   f"compile {compile_s:5.1f}s", flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(rows, f, indent=2)
+    _write(rows, args.out)
     return 0
 
 
@@ -110,19 +121,13 @@ def env_steps(args: argparse.Namespace) -> int:
                     s = jax.lax.fori_loop(0, args.steps, lambda i, x: step(x, a[i], params), s)
                 return s, s.reward.sum()
 
-            t0 = time.perf_counter()
-            compiled = jax.jit(loop).lower(states, actions).compile()
-            compile_s = time.perf_counter() - t0
-            seconds, _ = _common.time_carry(lambda s, a: compiled(s, a), states, actions, repeats=args.repeats,
-                                            min_seconds=0.25)
+            compile_s, seconds = _compile_and_time(loop, states, actions, args.repeats)
             sps = n * args.steps / seconds
             rows.append({"env": args.env, "n_envs": n, "variant": choice, "n_substeps": n_sub, "env_steps_per_s": sps,
                          "physics_steps_per_s": sps * n_sub, "ns_per_env_step": 1e9 / sps, "compile_s": compile_s})
             print(f"{args.env} n={n:<8d} {choice:8s} {sps / 1e6:9.1f} M env steps/s {sps * n_sub / 1e9:7.2f} G phys/s "
                   f"{1e9 / sps:7.3f} ns/env step  compile {compile_s:4.1f}s", flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(rows, f, indent=2)
+    _write(rows, args.out)
     return 0
 
 

@@ -19,6 +19,8 @@ Public surface:
 :func:`rollout` ``(env, policy, key, n_episodes, horizon=None, params=None, observe=None)``
     ``n_episodes`` episodes of at most ``horizon`` steps, vmapped: returns, lengths, the first and last states,
     and with ``observe`` a per-step record (for flight plots).
+:func:`outcomes` ``(out)``
+    How each episode of a ``rollout`` ended: returns, lengths, ``terminated`` and, where the task has one, ``arrived``.
 :func:`success_rate` ``(env, policy, key, n_episodes=200, params=None, horizon=None)``
     For tasks whose task variables carry ``arrived`` / ``crashed`` flags (QuadcopterGoto): the fractions of
     episodes that arrive, fail or time out, and the mean episode length, as Python floats.
@@ -121,6 +123,17 @@ def rollout(env: Any, policy: Policy, key: jax.Array, n_episodes: int, horizon: 
         return out
 
     return jax.vmap(episode)(jax.random.split(key, n_episodes))
+
+
+def outcomes(out: dict[str, Any]) -> dict[str, jax.Array]:
+    """How each episode of a :func:`rollout` ended: ``return``, ``length``, ``terminated`` and, for a task whose
+    task variables carry an ``arrived`` flag (QuadcopterGoto, ArmReach), ``arrived``; each ``[n_episodes]``."""
+    last = out["last"]
+    res = {"return": out["return"], "length": out["length"], "terminated": last.terminated}
+    arrived = getattr(last.task, "arrived", None)
+    if arrived is not None:
+        res["arrived"] = jnp.asarray(arrived, bool)
+    return res
 
 
 def success_rate(env: Any, policy: Policy, key: jax.Array, n_episodes: int = 200, params: Any = None,

@@ -318,18 +318,11 @@ class Trainer:
     def evaluate_episodes(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
                           max_steps: int | None = None) -> dict[str, jax.Array]:
         """The episodes of :meth:`evaluate` (the same keys, so the same episodes) with how each ended, from the
-        one rollout: ``return``, ``length``, ``terminated`` and, for a task whose task variables carry an
-        ``arrived`` flag (QuadcopterGoto, ArmReach), ``arrived``; each ``[n_episodes]``."""
+        one rollout (:func:`jaxrobo.rollout.outcomes`)."""
         env_params = self.env.default_params if env_params is None else env_params
         horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
-        out = rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes, horizon,
-                              env_params)
-        last = out["last"]
-        res = {"return": out["return"], "length": out["length"], "terminated": last.terminated}
-        arrived = getattr(last.task, "arrived", None)
-        if arrived is not None:
-            res["arrived"] = jnp.asarray(arrived, bool)
-        return res
+        return rollout.outcomes(rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes,
+                                                horizon, env_params))
 
 
 def progress_stats(runner: Runner) -> tuple[jax.Array, jax.Array]:

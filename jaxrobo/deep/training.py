@@ -18,20 +18,16 @@ def evaluate(env: Any, benv: Any, make_policy: Callable, n_episodes: int, horizo
     jaxrobo env (:func:`jaxrobo.rollout.rollout`): ``return``, ``length``, ``terminated`` and, for a task with an
     ``arrived`` flag, ``success``."""
     import jax
-    import jax.numpy as jnp
 
-    from jaxrobo.rollout import rollout
+    from jaxrobo.rollout import outcomes, rollout
 
     # The step limit of training (the wrapper's episode_length) is the evaluation's too.
     env_params = benv.params.replace(max_episode_steps=horizon)
 
     def run(params, key):
-        out = rollout(env, env_policy(benv, make_policy, params), key, n_episodes, horizon, env_params)
-        last = out["last"]
-        res = {"return": out["return"], "length": out["length"], "terminated": last.terminated}
-        arrived = getattr(last.task, "arrived", None)
-        if arrived is not None:
-            res["success"] = jnp.asarray(arrived, bool)
+        res = outcomes(rollout(env, env_policy(benv, make_policy, params), key, n_episodes, horizon, env_params))
+        if "arrived" in res:
+            res["success"] = res.pop("arrived")
         return res
 
     return jax.jit(run)
