@@ -112,15 +112,18 @@ def timed(compile_fn: Callable[[], Callable], cache_dir: str | None = None) -> t
     return compiled, seconds, hit
 
 
-def write_json(out: dict[str, Any], path: str | None, name: str) -> str:
+def write_json(out: Any, path: str | None, name: str | None = None, default: Callable[[Any], Any] | None = None) -> str:
     """Write ``out`` as indented JSON to ``path``, or by default to ``benchmarks/results/<device>/<name>``
-    (folders made as needed); returns the path written."""
+    (folders made as needed); returns the path written. ``default`` is :func:`json.dump`'s (e.g. ``str`` for rows
+    that may hold values JSON has no type for)."""
     import json
 
+    if path is None and name is None:
+        raise ValueError("write_json needs a path or a default file name")
     path = path or os.path.join(ROOT, "benchmarks", "results", device_name(), name)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as f:
-        json.dump(out, f, indent=2)
+        json.dump(out, f, indent=2, default=default)
     return path
 
 

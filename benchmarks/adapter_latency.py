@@ -18,7 +18,6 @@ Compile time is measured separately (first call) and never counted in a timed ro
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -143,15 +142,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {r['api']} | {r['n_envs']} | {lat} | {r['steps_per_s']:,.0f} | {ratio} |")
 
     out_dir = args.out or os.path.join(_common.ROOT, "benchmarks", "results", "cpu" if args.device == "cpu" else device)
-    os.makedirs(out_dir, exist_ok=True)
-    path = os.path.join(out_dir, "adapter_latency.json")
     meta = {"env": args.env, "device": device, "cpu_count": os.cpu_count(), "platform": platform.platform(),
             "python": platform.python_version(), "jax": jax.__version__, "gymnasium": gym.__version__,
             "steps": args.steps, "vector_seconds": args.vector_seconds, "compile_cache": cache,
             "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
             "command": " ".join([os.path.basename(sys.executable)] + sys.argv)}
-    with open(path, "w") as f:
-        json.dump({"meta": meta, "rows": rows}, f, indent=2)
+    path = _common.write_json({"meta": meta, "rows": rows}, os.path.join(out_dir, "adapter_latency.json"))
     print(f"\nwrote {path}")
     return 0
 

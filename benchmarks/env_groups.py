@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import os
 import sys
 import time
@@ -80,11 +79,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print(f"n_envs={n} env_group={token} mjx={variant}: {row['steps_per_s'] / 1e6:.2f} M env-steps/s, "
               f"compile {compile_s:.1f} s, Q-tables after one chunk {fingerprint}; {plan!r}", flush=True)
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "env_groups.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump({"device": jax.devices()[0].device_kind, "jax": jax.__version__, "argv": sys.argv, "rows": rows},
-                  f, indent=2)
+    path = _common.write_json({"device": jax.devices()[0].device_kind, "jax": jax.__version__, "argv": sys.argv,
+                               "rows": rows}, args.out, "env_groups.json")
     print(f"wrote {path}")
     return 0
 

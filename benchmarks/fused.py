@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import re
 import sys
@@ -174,8 +173,7 @@ def learning(env_spec: str, choice: str, seed: int) -> dict[str, Any]:
 
 def _write(path: str | None, rows: list[dict[str, Any]]) -> None:
     if path:
-        with open(path, "w") as f:
-            json.dump(rows, f, indent=2, default=str)
+        _common.write_json(rows, path, default=str)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -29,7 +29,6 @@ and table variants compute other things). ``--hlo-dir`` writes each row's optimi
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import sys
@@ -189,8 +188,7 @@ def main(argv: list[str] | None = None) -> int:
                 row = {"n_envs": n, "variant": variant, "error": f"{type(err).__name__}: {err}"[:400]}
             rows.append(row)
             if args.out:
-                with open(args.out, "w") as f:
-                    json.dump(rows, f, indent=2)
+                _common.write_json(rows, args.out)
             if "error" in row:
                 print(f"n={n:<8d} {variant:18s} ERROR {row['error']}", flush=True)
                 continue

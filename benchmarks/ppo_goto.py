@@ -15,7 +15,6 @@ is most of them). Written to ``benchmarks/results/<device>/ppo_goto.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -72,7 +71,6 @@ def main(argv: list[str] | None = None) -> int:
         pass
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     overrides = parse_overrides(args.set)
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "ppo_goto.json")
     runs: list[dict] = []
     for seed in seeds:
         spec = deep.resolve(ENV_ID, "ppo", args.preset, {**overrides, "seed": seed,
@@ -95,9 +93,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"seed {seed}: final arrivals {final:.3f}; target {args.target} "
               + (f"reached at {hit['env_steps']:,} steps, {hit['seconds']:.1f} s" if hit else "not reached"),
               flush=True)
-        write(path, summarize(args, overrides, seeds[:len(runs)], runs, argv))
+        # the JSON so far after each seed, so that a run cut short keeps the seeds it finished
+        _common.write_json(summarize(args, overrides, seeds[:len(runs)], runs, argv), args.out, "ppo_goto.json")
     out = summarize(args, overrides, seeds, runs, argv)
-    write(path, out)
+    path = _common.write_json(out, args.out, "ppo_goto.json")
     to_target = out["median_seconds_to_target"]
     print(f"median final arrival rate {out['median_final_arrival_rate']:.3f} over seeds {seeds} "
           f"(min {out['min_final_arrival_rate']:.3f}, max {out['max_final_arrival_rate']:.3f}); median time to "
@@ -105,13 +104,6 @@ def main(argv: list[str] | None = None) -> int:
                                 if to_target is not None else "not reached"))
     print(path)
     return 0
-
-
-def write(path: str, out: dict) -> None:
-    """The JSON so far (after each seed, so that a run cut short keeps the seeds it finished)."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f, indent=2)
 
 
 def summarize(args, overrides: dict, seeds: list[int], runs: list[dict], argv) -> dict:

@@ -93,10 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     a, b = rows.get("jaxrobo_CartPoleContinuous-v0", {}), rows.get("brax_inverted_pendulum_mjx", {})
     if a.get("steps_per_second_steady") and b.get("steps_per_second_steady"):
         out["ratio_steady"] = round(a["steps_per_second_steady"] / b["steps_per_second_steady"], 2)
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "ppo_throughput.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f, indent=2)
+    path = _common.write_json(out, args.out, "ppo_throughput.json")
     print(json.dumps({k: v for k, v in out.items() if k != "settings"}, indent=1))
     print(path)
     return 0

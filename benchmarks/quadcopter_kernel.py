@@ -19,7 +19,6 @@ the GPU kernel.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -41,8 +40,7 @@ def _compile_and_time(loop, carry, xs, repeats: int) -> tuple[float, float]:
 
 def _write(rows: list[dict], out: str | None) -> None:
     if out:
-        with open(out, "w") as f:
-            json.dump(rows, f, indent=2)
+        _common.write_json(rows, out)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -123,9 +123,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'cached starts':>20}: median {result['cached_median_s']:.2f} s over {len(cached)} "
               f"(min {cached[0]:.2f}, max {cached[-1]:.2f})")
     if args.out:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump(result, f, indent=2)
+        import _common  # here, not at the top: the child's measured imports stay jaxrobo's alone
+
+        _common.write_json(result, args.out)
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -11,7 +11,6 @@ the whole call (compile included), the run time alone, env steps per second and 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -89,10 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"best alpha {best['alpha']} (mean return of the last 100 episodes {best['mean']:.1f} ± {best['std']:.1f})")
     if runs >= 1000 and nepisodes >= 1000 and g["complete"]:
         print(f"target < 60 s: {'met' if wall < 60 else 'missed'}")
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "sweep.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f, indent=2, default=str)
+    path = _common.write_json(out, args.out, "sweep.json", default=str)
     print(f"wrote {path}")
     return 0
 

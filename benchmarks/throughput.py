@@ -688,10 +688,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print("  " + _line(row), flush=True)
         # Every row measured so far, on disk at once: a run stopped by a time limit keeps them (--replot it).
-        os.makedirs(out_dir, exist_ok=True)
-        with open(partial, "w") as f:
-            json.dump({"meta": {"device": jax.devices()[0].device_kind, "argv": sys.argv, "partial": True},
-                       "rows": rows}, f, indent=1, default=str)
+        _common.write_json({"meta": {"device": jax.devices()[0].device_kind, "argv": sys.argv, "partial": True},
+                            "rows": rows}, partial, default=str)
 
     for item in jaxrobo_plan(args, n_list, gpu):
         if item[0] == "skip":
@@ -717,9 +715,7 @@ def main(argv: list[str] | None = None) -> int:
     _ratios(rows)
     print()
     print(table(rows))
-    os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, "throughput.json"), "w") as f:
-        json.dump({"meta": meta, "rows": rows}, f, indent=2, default=str)
+    _common.write_json({"meta": meta, "rows": rows}, os.path.join(out_dir, "throughput.json"), default=str)
     if os.path.exists(partial):
         os.remove(partial)
     keys = list(dict.fromkeys(k for r in rows for k in r))

@@ -17,7 +17,6 @@ Gymnasium ``CartPole-v1``, its time limit raised to 1000 steps) is evaluated the
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import sys
@@ -238,10 +237,8 @@ def main(argv: list[str] | None = None) -> int:
                  f"best greedy success {r['best_success']:.2f}, selected run on fresh goals "
                  f"{r['selected_fresh_success']:.2f}")
         print(f"{r['side']:10s} {r['env']}: target {when}{extra}; {score}")
-    path = args.out or os.path.join(_common.ROOT, "benchmarks", "results", _common.device_name(), "time_to_learn.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump({"device": jax.devices()[0].device_kind, "argv": sys.argv, "rows": rows}, f, indent=2)
+    path = _common.write_json({"device": jax.devices()[0].device_kind, "argv": sys.argv, "rows": rows}, args.out,
+                              "time_to_learn.json")
     print(f"wrote {path}")
     return 0
 

@@ -557,7 +557,8 @@ def nothing_runs(monkeypatch):
     """Whatever got past validation would reach one of these; each fails the case instead of training/drawing."""
     import matplotlib.figure
 
-    from jaxrobo import flights, results, sweep, train
+    from jaxrobo import flights, results, train
+    from jaxrobo.sweep import running as sweep_running
 
     def forbidden(what: str):
         def fail(*_a, **_kw):
@@ -570,7 +571,7 @@ def nothing_runs(monkeypatch):
 
     monkeypatch.setattr(train, "train", forbidden("train()"))
     monkeypatch.setattr(train.Trainer, "init", forbidden("Trainer.init"))
-    monkeypatch.setattr(sweep, "GroupRunner", forbidden("the sweep's compiled group"))
+    monkeypatch.setattr(sweep_running, "GroupRunner", forbidden("the sweep's compiled group"))
     monkeypatch.setattr(flights, "fly", forbidden("flights.fly"))
     monkeypatch.setattr(results, "save_run", forbidden("save_run"))
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", forbidden("savefig"))

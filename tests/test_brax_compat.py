@@ -65,10 +65,11 @@ def test_evaluator_swap_keeps_params_and_restores_the_original_even_when_trainin
 
 
 def test_sac_training_restores_the_evaluator_when_the_trainer_raises(monkeypatch):
-    """deep._train_sac through the swap, with a fake sac.train that evaluates once and then fails."""
+    """training._train_sac through the swap, with a fake sac.train that evaluates once and then fails."""
     from brax.training.agents.sac import train as sac
 
     from jaxrobo import deep
+    from jaxrobo.deep.training import _train_sac
 
     original = acting.Evaluator
     seen = []
@@ -80,7 +81,7 @@ def test_sac_training_restores_the_evaluator_when_the_trainer_raises(monkeypatch
 
     monkeypatch.setattr(sac, "train", fake_train)
     with pytest.raises(RuntimeError, match="trainer failed"):
-        deep._train_sac({"progress_fn": lambda step, m: None}, deep.SACConfig(),
+        _train_sac({"progress_fn": lambda step, m: None}, deep.SACConfig(),
                         lambda step, p: seen.append((step, p)))
     assert seen == [(0, "params-at-0")]
     assert acting.Evaluator is original

@@ -80,12 +80,13 @@ def test_a_saved_policy_loads_back_and_acts_the_same(tmp_path, agent):
     import jax
 
     from jaxrobo import deep
+    from jaxrobo.deep.policy import _networks, _template
 
     net = {"format": 1, "agent": agent, "observation_size": 5, "action_size": 2, "normalize_observations": True,
            "env_id": CPC}
     net.update({"policy_hidden_layer_sizes": [8, 8], "value_hidden_layer_sizes": [8]} if agent == "ppo"
                else {"hidden_layer_sizes": [8, 8]})
-    template = deep._template(net)
+    template = _template(net)
     leaves, treedef = jax.tree.flatten(template)
     rng = np.random.default_rng(0)
     # Non-trivial values everywhere (normaliser included), so a mixed-up leaf would change the actions.
@@ -95,7 +96,7 @@ def test_a_saved_policy_loads_back_and_acts_the_same(tmp_path, agent):
     with np.load(tmp_path / "policy.npz", allow_pickle=False) as npz:  # plain arrays only
         assert len(npz.files) == len(leaves)
     loaded = deep.load_policy(str(tmp_path))
-    _, make_policy = deep._networks(net)
+    _, make_policy = _networks(net)
     obs = rng.normal(size=(16, 5)).astype(np.float32)
     want = make_policy(params, deterministic=True)(obs, jax.random.key(0))[0]
     got = loaded.act(obs)
@@ -104,11 +105,12 @@ def test_a_saved_policy_loads_back_and_acts_the_same(tmp_path, agent):
 
 def test_a_policy_that_does_not_match_its_networks_is_refused(tmp_path):
     from jaxrobo import deep
+    from jaxrobo.deep.policy import _template
     from jaxrobo.config import ConfigError
 
     net = {"format": 1, "agent": "ppo", "observation_size": 3, "action_size": 1, "normalize_observations": False,
            "policy_hidden_layer_sizes": [4], "value_hidden_layer_sizes": [4], "env_id": CPC}
-    deep.save_policy(str(tmp_path), deep._template(net), net)
+    deep.save_policy(str(tmp_path), _template(net), net)
     net["policy_hidden_layer_sizes"] = [6]
     with open(tmp_path / "policy.json", "w") as f:
         json.dump(net, f)

@@ -207,12 +207,13 @@ def _saved_deep_run(root, agent: str, env_id: str = "CartPoleContinuous-v0", ste
     """A ppo/sac run directory (config.yaml + a saved policy of non-trivial parameters) without training."""
     from jaxrobo import deep
     from jaxrobo.brax_env import BraxEnv
+    from jaxrobo.deep.policy import _template
     from jaxrobo.results import write_config
 
     spec = deep.resolve(env_id, agent, "tiny", {"env.max_episode_steps": steps})
     benv = BraxEnv(spec.env)
     net = deep.network_config(spec, benv.observation_size, benv.action_size)
-    leaves, treedef = jax.tree.flatten(deep._template(net))
+    leaves, treedef = jax.tree.flatten(_template(net))
     rng = np.random.default_rng(0)
     params = jax.tree.unflatten(treedef, [np.asarray(rng.uniform(0.5, 1.5, np.shape(x)), np.asarray(x).dtype)
                                           for x in leaves])

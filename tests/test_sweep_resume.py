@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from jaxrobo import rundir, sweep
+from jaxrobo.sweep import state as sweep_state
 from jaxrobo.config import ConfigError
 
 ENV = "CartPoleStayUp-v0"
@@ -72,14 +73,14 @@ def test_cli_interrupt_by_signal_then_resume(uninterrupted, tmp_path, monkeypatc
     """A SIGTERM after the first group: exit 143, one line, the group saved; --resume finishes the sweep with
     the same sweep.csv and summary.json as the uninterrupted run (timings aside)."""
     out = tmp_path / "sweep"
-    save = sweep.save_checkpoint
+    save = sweep_state.save_checkpoint
 
     def save_then_signal(state_dir, fingerprint, plan, finished):
         save(state_dir, fingerprint, plan, finished)
         if len(finished) == 1:
             signal.raise_signal(signal.SIGTERM)  # the handler only sets a flag; the sweep stops before group 2
 
-    monkeypatch.setattr(sweep, "save_checkpoint", save_then_signal)
+    monkeypatch.setattr(sweep_state, "save_checkpoint", save_then_signal)
     assert _main([*ARGS, "--out", str(out)]) == 143
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "SIGTERM" in err[0] and "1 of 2 groups" in err[0] and f"--resume {out}" in err[0]
@@ -87,7 +88,7 @@ def test_cli_interrupt_by_signal_then_resume(uninterrupted, tmp_path, monkeypatc
     assert rundir.read_status(str(out))["status"] == rundir.INTERRUPTED
     assert not rundir.is_complete(str(out)) and rundir.is_resumable(str(out))
     assert not os.path.exists(out / "sweep.csv") and not os.path.exists(out / "summary.json")
-    monkeypatch.setattr(sweep, "save_checkpoint", save)
+    monkeypatch.setattr(sweep_state, "save_checkpoint", save)
 
     # The saved settings are the sweep's: flags that differ are refused, before anything runs.
     for flags, name in ((["--seeds", "3"], "--seeds"), (["--grid", "alpha=0.2"], "--grid"),
@@ -169,11 +170,11 @@ def test_library_stop_hook_and_resume(uninterrupted, tmp_path, monkeypatch):
         sweep.run_plan(_plan(seeds=[0, 2]), state_dir=state)
     with pytest.raises(ConfigError, match="groups, points differ"):
         sweep.run_plan(_plan(points=[{"number_splits": 4, "alpha": 0.1}]), state_dir=state)
-    code_version = sweep.code_version
-    monkeypatch.setattr(sweep, "code_version", lambda: {**code_version(), "jaxrobo_sources": "edited"})
+    code_version = sweep_state.code_version
+    monkeypatch.setattr(sweep_state, "code_version", lambda: {**code_version(), "jaxrobo_sources": "edited"})
     with pytest.raises(ConfigError, match="other code"):
         sweep.run_plan(plan, state_dir=state)
-    monkeypatch.setattr(sweep, "code_version", code_version)
+    monkeypatch.setattr(sweep_state, "code_version", code_version)
     assert _finished_groups(state) == 1
 
     lines.clear()
@@ -264,14 +265,14 @@ def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkey
     out = tmp_path / "sweep"
     shutil.copytree(uninterrupted, out)
     (out / "summary.json").write_text('{"old": true}')  # tells the old run from the new one
-    save = sweep.save_checkpoint
+    save = sweep_state.save_checkpoint
 
     def save_then_signal(state_dir, fingerprint, plan, finished):
         save(state_dir, fingerprint, plan, finished)
         if len(finished) == 1:
             signal.raise_signal(signal.SIGINT)
 
-    monkeypatch.setattr(sweep, "save_checkpoint", save_then_signal)
+    monkeypatch.setattr(sweep_state, "save_checkpoint", save_then_signal)
     assert _main([*ARGS, "--out", str(out), "--overwrite"]) == 130
     last = capsys.readouterr().err.strip().splitlines()[-1]
     (live,) = [p for p in os.listdir(tmp_path) if p.startswith(".sweep.") and p.endswith(".partial")]
@@ -279,7 +280,7 @@ def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkey
     assert f"--resume {live}" in last
     assert json.loads((out / "summary.json").read_text()) == {"old": True}
     assert rundir.read_status(live)["out"] == str(out) and _finished_groups(live) == 1
-    monkeypatch.setattr(sweep, "save_checkpoint", save)
+    monkeypatch.setattr(sweep_state, "save_checkpoint", save)
     assert _main(["--resume", live]) == 0
     assert _outputs(out) == _outputs(uninterrupted)
     assert not os.path.exists(live) and os.listdir(tmp_path) == ["sweep"]

@@ -36,9 +36,6 @@ from jaxrobo.deep.output import EVAL_COLUMNS, STAT_COLUMNS, is_deep_run, write_r
 from jaxrobo.deep.policy import (POLICY_JSON, POLICY_NPZ, LoadedPolicy, env_policy, load_policy, network_config,
                                  save_policy)
 from jaxrobo.deep.training import DeepResult, TrainingStopped, evaluate, train
-# Private helpers the tests call directly (``deep._networks``, ``deep._template``, ``deep._train_sac``).
-from jaxrobo.deep.policy import _networks, _template  # noqa: F401
-from jaxrobo.deep.training import _train_sac  # noqa: F401
 
 __all__ = ["AGENTS", "AGENT_CONFIG_DIR", "DeepConfig", "DeepResult", "DeepRunSpec", "EVAL_COLUMNS", "LoadedPolicy",
            "MAX_LAYER", "POLICY_JSON", "POLICY_NPZ", "PPOConfig", "SACConfig", "STAT_COLUMNS", "TrainingStopped",
