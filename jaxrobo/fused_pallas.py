@@ -3,12 +3,13 @@
 The plain path runs a training step as ~20-30 batch-wide kernels, each reading and writing part of every env's
 state (~1.5 KB of memory traffic per env step on an H100, docs/benchmarks.md "Fused path"). Here one
 ``pallas_call`` runs the whole chunk: each program takes a block of envs and loops over the chunk's steps
-in-kernel, the env's state, keys, epsilon, counters and its current table row in registers; per step it touches
-memory only to gather the next state's table row and scatter the one updated entry (the env's own table, by
-computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
-goes back to memory once, at the end of the chunk. A program is one warp of 32 envs by default (:data:`BLOCK`):
-seven of a step's ten threefry hashes serve only the reset, and a program computes them only in a step where one
-of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would.
+in-kernel, the env's state, keys, epsilon, counters and its current table row in registers, that row's updates
+included; per step it touches memory only when the env leaves its state (to write that row back and gather the
+next state's, in the env's own table by computed index: :data:`DEFER_WRITES`), to record a finished episode, and
+to gather the fresh state's row after a reset. The carry goes back to memory once, at the end of the chunk. A
+program is one warp of 32 envs by default (:data:`BLOCK`): seven of a step's ten threefry hashes serve only the
+reset, and a program computes them only in a step where one of its envs is done (:data:`SKIP_RESETS`), which a
+warp of 32 skips more often than a larger block would.
 
 It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
@@ -27,8 +28,8 @@ with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk ove
 the call (tested interpreted; not run on a GPU).
 
 Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
-:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is
-traced).
+:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES`, :data:`DEFER_WRITES`,
+:data:`CACHE_HINTS` (read when a chunk is traced).
 """
 from __future__ import annotations
 
