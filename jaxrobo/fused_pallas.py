@@ -3,13 +3,12 @@
 The plain path runs a training step as ~20-30 batch-wide kernels, each reading and writing part of every env's
 state (~1.5 KB of memory traffic per env step on an H100, docs/benchmarks.md "Fused path"). Here one
 ``pallas_call`` runs the whole chunk: each program takes a block of envs and loops over the chunk's steps
-in-kernel, the env's state, keys, epsilon, counters and its current table row in registers, that row's updates
-included; per step it touches memory only when the env leaves its state (to write that row back and gather the
-next state's, in the env's own table by computed index: :data:`DEFER_WRITES`), to record a finished episode, and
-to gather the fresh state's row after a reset. The carry goes back to memory once, at the end of the chunk. A
-program is one warp of 32 envs by default (:data:`BLOCK`): seven of a step's ten threefry hashes serve only the
-reset, and a program computes them only in a step where one of its envs is done (:data:`SKIP_RESETS`), which a
-warp of 32 skips more often than a larger block would.
+in-kernel, the env's state, keys, epsilon, counters and its current table row in registers; per step it touches
+memory only to gather the next state's table row and scatter the one updated entry (the env's own table, by
+computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
+goes back to memory once, at the end of the chunk. A program is one warp of 32 envs by default (:data:`BLOCK`):
+seven of a step's ten threefry hashes serve only the reset, and a program computes them only in a step where one
+of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would.
 
 It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
@@ -28,8 +27,8 @@ with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk ove
 the call (tested interpreted; not run on a GPU).
 
 Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
-:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES`, :data:`DEFER_WRITES`,
-:data:`CACHE_HINTS` (read when a chunk is traced).
+:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is
+traced).
 """
 from __future__ import annotations
 
@@ -61,18 +60,6 @@ APPROX_SINCOS = False
 #: back after (a full read and write of the tables each way); the values are the same. Off: on an H100 the kernel
 #: gains less than the two transposes cost, at every size measured (docs/benchmarks.md, "Pallas").
 TILED_TABLES = False
-#: True: the row of the env's current state stays in registers, updates included, for as long as the env stays in
-#: that state, and goes back to memory (the whole row, one sector) only in the step the env leaves it (another
-#: state, or a reset) and at the end of the chunk; a step that stays gathers no row and writes nothing. The table in
-#: memory is then behind only in that one row, which the kernel never reads from memory (the staying step and a
-#: reset into the same state take it from registers). False: every step gathers the next state's row and
-#: scatters the updated entry (the same values; kept to measure against and to test that it changes nothing).
-DEFER_WRITES = True
-#: True: on a GPU the table's row gathers ask L2 to keep their sectors (``evict_last``) and the row write-backs to
-#: drop theirs first (``evict_first``): under :data:`DEFER_WRITES` a row is written back to the sector it was read
-#: from, and the rows the envs currently sit in (one 32 B sector per env, 32 MB at 1 M envs) are what should stay.
-#: A hint only: the values are the same.
-CACHE_HINTS = False
 _MAX_BLOCK = 1024
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
@@ -161,7 +148,7 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
-     timestep, n_substeps, action_steps, skip_resets, approx_sincos, tiled, defer, hints) = static
+     timestep, n_substeps, action_steps, skip_resets, approx_sincos, tiled) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
@@ -188,12 +175,10 @@ def _make_kernel(static):
             base = env * (n_states * n_actions)
             row_at = lambda s: base + s * n_actions  # noqa: E731
 
-        keep, drop = ("evict_last", "evict_first") if hints else (None, None)
-
         def row(s, mask=None):
             at = row_at(s)
-            return [plgpu.load(q_ref.at[at + k], mask=mask, other=0.0 if mask is not None else None,
-                               eviction_policy=keep) for k in range(n_actions)]
+            return [plgpu.load(q_ref.at[at + k], mask=mask, other=0.0 if mask is not None else None)
+                    for k in range(n_actions)]
 
         def discretise(o):
             idx = []
@@ -294,11 +279,7 @@ def _make_kernel(static):
             pnan = ~ok
             s2 = discretise(obs)
             done = term | trunc | (env_steps_now >= nsteps)
-            hit_s = s2 == cr["s"]
-            if defer:  # staying: the row is the carried one (memory may be behind in it)
-                r_s2 = [jnp.where(hit_s, r_s[k], v) for k, v in enumerate(row(s2, ~hit_s))]
-            else:
-                r_s2 = row(s2)
+            r_s2 = row(s2)
             # Q-learning's update of (s, a), the rows carried across the step.
             discount = f("gamma") * (1.0 - term.astype(jnp.float32))
             target = reward + discount * row_max(r_s2)
@@ -307,7 +288,7 @@ def _make_kernel(static):
                 old = jnp.where(a == i, r_s[i], old)
             new = old + f("alpha") * (target - old)
             written = jnp.where(active & ~pnan, new, old)
-            r_s_new = [jnp.where(a == k, written, r_s[k]) for k in range(n_actions)]  # row s after the update
+            hit_s = s2 == cr["s"]
             r_s2 = [jnp.where(hit_s & (a == k), written, r_s2[k]) for k in range(n_actions)]
             # Records.
             ep_return = cr["ep_return"] + reward
@@ -338,8 +319,8 @@ def _make_kernel(static):
                     noise.append(_unit(w1 ^ w2) * span + lo)
                 fresh = (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3])
                 s_fresh = discretise((fresh[0], fresh[2], fresh[1], fresh[3]))
-                again = s_fresh == cr["s"]  # reset into the state it left: the row from registers
-                r_fresh = [jnp.where(again, r_s_new[k], v) for k, v in enumerate(row(s_fresh, done & ~again))]
+                r_fresh = row(s_fresh, done)
+                r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
                 return (*fresh, rk[0], rk[1], s_fresh, *r_fresh)
 
             if skip_resets:
@@ -352,13 +333,7 @@ def _make_kernel(static):
             else:
                 reset = fresh_episode(None)
             fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:]
-            if defer:  # leaving state s: its row goes back to memory
-                at = row_at(cr["s"])
-                leaving = ~hit_s | done
-                for k in range(n_actions):
-                    plgpu.store(q_ref.at[at + k], r_s_new[k], mask=leaving, eviction_policy=drop)
-            else:
-                plgpu.store(q_ref.at[row_at(cr["s"]) + a], written)
+            plgpu.store(q_ref.at[row_at(cr["s"]) + a], written)
             w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
             cr["x"], cr["th"], cr["xd"], cr["thd"] = w(fresh[0], x), w(fresh[1], th), w(fresh[2], xd), w(fresh[3], thd)
             cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(fresh[0], obs[0]), w(fresh[2], obs[1]), w(fresh[1], obs[2]),
@@ -384,10 +359,6 @@ def _make_kernel(static):
             return cr
 
         carry = jax.lax.fori_loop(0, steps_per_chunk, step, carry)
-        if defer:  # the rows still held in registers: the table complete again for the next chunk
-            at = row_at(carry["s"])
-            for k in range(n_actions):
-                plgpu.store(q_ref.at[at + k], carry[f"r{k}"])
         for name, ref in zip(_NAMES, outs):
             ref[...] = carry[name].astype(ref.dtype)
 
@@ -463,8 +434,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
               tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
-              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu", tiled, bool(DEFER_WRITES),
-              bool(CACHE_HINTS) and jax.default_backend() == "gpu")
+              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu", tiled)
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)

@@ -130,45 +130,6 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
-@pytest.mark.parametrize("case", ["stay", "leave", "some"])
-def test_the_row_held_in_registers_changes_nothing(case, monkeypatch):
-    """The current state's row kept in registers while the env stays in the state and written back when it leaves
-    (``DEFER_WRITES``) against the eager kernel (a gather and a scatter every step): carry, tables and records bit
-    for bit over two chunks of 20 steps (the write-back at the chunk's end included), 8 envs in programs of 4.
-    ``stay``: one state (one bin per dimension), so every step stays and every reset re-enters the state it left;
-    ``leave``: every env is done every step (``nsteps=1``), so it leaves its row every step; ``some``: envs stay
-    and leave at different steps (counted on the plain path's states)."""
-    from jaxrobo import fused_pallas
-
-    overrides = {"stay": dict(bins=[1, 1, 1, 1]), "leave": dict(nsteps=1), "some": dict(nsteps=200)}[case]
-    spec = _cartpole(n_envs=8, chunk_steps=20, **overrides)
-    if case == "some":  # the plain path's states step by step: some steps stay in their state, others leave it
-        single = _cartpole(n_envs=8, chunk_steps=1, **overrides)
-        trainer = Trainer(single.env, single.config, plan=_plan(single))
-        runner = jax.jit(trainer.init)(jax.random.key(13), single.agent_params, single.env.default_params)
-        chunk = jax.jit(trainer.run_chunk)
-        states = [np.asarray(runner.s)]
-        for _ in range(40):
-            runner = chunk(runner, single.agent_params, single.env.default_params)
-            states.append(np.asarray(runner.s))
-        stays = np.mean(np.diff(np.stack(states), axis=0) == 0)
-        assert 0.1 < stays < 0.9, stays
-    out = {}
-    for defer in (True, False):
-        monkeypatch.setattr(fused_pallas, "DEFER_WRITES", defer)
-        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4))
-        runner = jax.jit(trainer.init)(jax.random.key(13), spec.agent_params, spec.env.default_params)
-        chunk = jax.jit(trainer.run_chunk)
-        for _ in range(2):
-            runner = chunk(runner, spec.agent_params, spec.env.default_params)
-        out[defer] = runner
-    assert (np.asarray(out[True].agent.q) != 0).any(axis=(1, 2, 3)).all()  # every env learned
-    episodes = np.asarray(out[True].episode)
-    assert (episodes == spec.config.nepisodes).all() if case == "leave" else episodes.max() > 0
-    for (path, a), (_, b) in zip(_leaves(out[True]), _leaves(out[False])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
-
-
 @pytest.mark.parametrize("changes", [dict(), dict(record_episodes=False, carry_rows=True)])
 def test_the_tiled_tables_change_nothing(changes, monkeypatch):
     """The tables tiled by program for the kernel ([program, state, env of the program, action]) and back: the
@@ -216,15 +177,14 @@ def test_a_sweep_vmaps_the_kernel(tiled, monkeypatch):
     assert np.abs(tables[0]).sum() > 0
 
 
-@pytest.mark.parametrize("knobs", [dict(), dict(TILED_TABLES=True), dict(DEFER_WRITES=False, CACHE_HINTS=True)])
-def test_it_lowers_for_the_gpu_through_triton(knobs, monkeypatch):
+@pytest.mark.parametrize("tiled", [False, True])
+def test_it_lowers_for_the_gpu_through_triton(tiled, monkeypatch):
     """The kernel the GPU would run (not interpreted) lowers to a Triton call: the ops it uses (in-kernel loop,
-    gathers and masked scatters by computed index, uint32 hashing, eviction hints) all have Triton lowerings, in
-    either layout of the tables and with or without the row held in registers."""
+    gathers and masked scatters by computed index, uint32 hashing) all have Triton lowerings, in either layout of
+    the tables."""
     from jaxrobo import fused_pallas
 
-    for name, value in knobs.items():
-        monkeypatch.setattr(fused_pallas, name, value)
+    monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
     spec = _cartpole(n_envs=512, record_episodes=True)
     trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
     runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
