@@ -11,7 +11,7 @@ Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
 under one plan: ``off`` (the plain path), ``xla`` (substeps written out), ``xla:BLOCK`` (and the chunk's steps
 run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas kernel: :mod:`jaxrobo.fused_pallas`,
 the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing about the GPU kernel);
-``pallas:BLOCK[:wWARPS][:always][:sincos][:tiled][:rkeach]`` sets its envs per program and its tuning knobs (:func:`plan_of`). The
+``pallas:BLOCK[:wWARPS][:always][:sincos][:tiled]`` sets its envs per program and its tuning knobs (:func:`plan_of`). The
 default chunk (4 M env steps per call, at least 10 steps) is short enough that a fast kernel's calls time the
 fixed cost per call (the host's dispatch); ``--steps 1000`` times the chunk ``jaxrobo train`` runs by default. Columns: env steps/s, physics steps/s, simulated s/s, the compiled
 program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
@@ -40,8 +40,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--device", choices=("cpu", "gpu"), default=None)
     p.add_argument("--n-envs", default="1024,16384", help="comma list of batch sizes")
     p.add_argument("--plans", default="off,xla",
-                   help="comma list of off, xla, xla:BLOCK, pallas, "
-                        "pallas:BLOCK[:wWARPS][:always][:sincos][:tiled][:rkeach]")
+                   help="comma list of off, xla, xla:BLOCK, pallas, pallas:BLOCK[:wWARPS][:always][:sincos][:tiled]")
     p.add_argument("--envs", default="CartPoleStayUp-v0:analytic,QuadcopterGoto-v1",
                    help="comma list of env ids, each with :backend where it has a choice")
     p.add_argument("--steps", type=int, default=None, help="steps per timed chunk (default: by size)")
@@ -62,10 +61,10 @@ def kernels(compiled: Any) -> int:
 
 def plan_of(base: Any, choice: str) -> tuple[Any, dict[str, Any]]:
     """The plan a choice names, and the Pallas kernel's tuning knobs it sets (:mod:`jaxrobo.fused_pallas`'s
-    module constants): ``off``, ``xla[:BLOCK]``, ``pallas[:BLOCK][:wWARPS][:always][:sincos][:tiled][:rkeach]`` (BLOCK envs
+    module constants): ``off``, ``xla[:BLOCK]``, ``pallas[:BLOCK][:wWARPS][:always][:sincos][:tiled]`` (BLOCK envs
     per program, WARPS warps per program, ``always``: the reset's random numbers in every env every step, the
     unbranched form; ``sincos``: the hardware's approximate sin/cos; ``tiled``: the tables tiled by program for
-    the kernel; ``rkeach``: the env's new key hashed at every reset, not once at the chunk's end)."""
+    the kernel)."""
     fused, *parts = choice.split(":")
     block, knobs = None, {}
     for part in parts:
@@ -75,14 +74,12 @@ def plan_of(base: Any, choice: str) -> tuple[Any, dict[str, Any]]:
             knobs["APPROX_SINCOS"] = True
         elif part == "tiled":
             knobs["TILED_TABLES"] = True
-        elif part == "rkeach":
-            knobs["RESET_KEY_AT_END"] = False
         elif part.startswith("w"):
             knobs["NUM_WARPS"] = int(part[1:])
         elif part:
             block = int(part)
     if knobs and fused != "pallas":
-        raise ValueError(f"plan {choice!r}: 'always', 'sincos', 'tiled', 'rkeach' and 'wN' apply to pallas only")
+        raise ValueError(f"plan {choice!r}: 'always', 'sincos', 'tiled' and 'wN' apply to pallas only")
     return base.replace(fused=fused, fused_block=block), knobs
 
 

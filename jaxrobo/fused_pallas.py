@@ -8,8 +8,7 @@ memory only to gather the next state's table row and scatter the one updated ent
 computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
 goes back to memory once, at the end of the chunk. A program is one warp of 32 envs by default (:data:`BLOCK`):
 seven of a step's ten threefry hashes serve only the reset, and a program computes them only in a step where one
-of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would; one of
-the seven waits for the chunk's end (:data:`RESET_KEY_AT_END`).
+of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would.
 
 It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
@@ -28,8 +27,8 @@ with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk ove
 the call (tested interpreted; not run on a GPU).
 
 Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
-:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES`,
-:data:`RESET_KEY_AT_END` (read when a chunk is traced).
+:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is
+traced).
 """
 from __future__ import annotations
 
@@ -61,11 +60,6 @@ APPROX_SINCOS = False
 #: back after (a full read and write of the tables each way); the values are the same. Off: on an H100 the kernel
 #: gains less than the two transposes cost, at every size measured (docs/benchmarks.md, "Pallas").
 TILED_TABLES = False
-#: True: a reset keeps its reset key in the env's key slot, and the env's new key (the first subkey of that reset
-#: key, one hash) is hashed once per chunk, at its end, in the envs that reset during it: the kernel never reads the
-#: env's key, and of a chunk's resets only the last one's key is returned. False: hashed at every reset, in the
-#: reset's branch (one of its seven hashes). The same values either way.
-RESET_KEY_AT_END = True
 _MAX_BLOCK = 1024
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
@@ -123,10 +117,8 @@ def _threefry(k1, k2, x1, x2):
             x1 = x1 + x2
             x2 = jax.lax.shift_left(x2, u(r)) | jax.lax.shift_right_logical(x2, u(32 - r))
             x2 = x1 ^ x2
-        # (ks + i) first: uint32 addition is associative, so the value is the same, and the sum is shared by
-        # the hashes of one key (the step's subkeys).
         x1 = x1 + ks[(block + 1) % 3]
-        x2 = x2 + (ks[(block + 2) % 3] + u(block + 1))
+        x2 = x2 + ks[(block + 2) % 3] + u(block + 1)
     return x1, x2
 
 
@@ -156,7 +148,7 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
-     timestep, n_substeps, action_steps, skip_resets, approx_sincos, tiled, key_at_end) = static
+     timestep, n_substeps, action_steps, skip_resets, approx_sincos, tiled) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
@@ -317,9 +309,7 @@ def _make_kernel(static):
             # Triton); where none is, the fresh values would be discarded by the selects below anyway.
             def fresh_episode(_):
                 k_reset = _subkey(key, 4)
-                # The env's key is the reset key's first subkey: hashed here, or at the chunk's end (key_at_end).
-                rk = k_reset if key_at_end else _subkey(k_reset, 0)
-                pose_key = _subkey(k_reset, 1)
+                rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
                 zero = jnp.zeros_like(pose_key[0])
                 lo = -f("init_noise")
                 span = f("init_noise") - lo
@@ -369,11 +359,6 @@ def _make_kernel(static):
             return cr
 
         carry = jax.lax.fori_loop(0, steps_per_chunk, step, carry)
-        if key_at_end:  # an env reset in this chunk iff its episode is younger than the chunk
-            reset_here = carry["steps"] < steps_per_chunk
-            rk = _subkey((carry["ek0"], carry["ek1"]), 0)
-            carry["ek0"], carry["ek1"] = (jnp.where(reset_here, rk[0], carry["ek0"]),
-                                          jnp.where(reset_here, rk[1], carry["ek1"]))
         for name, ref in zip(_NAMES, outs):
             ref[...] = carry[name].astype(ref.dtype)
 
@@ -449,7 +434,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
               tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
-              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu", tiled, bool(RESET_KEY_AT_END))
+              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu", tiled)
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)

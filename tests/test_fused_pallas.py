@@ -130,34 +130,6 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
-@pytest.mark.parametrize("case", ["none", "all", "some"])
-def test_the_reset_key_hashed_at_the_chunks_end_changes_nothing(case, monkeypatch):
-    """The env's new key hashed once at the chunk's end in the envs that reset during it (``RESET_KEY_AT_END``)
-    against hashed at every reset: in a chunk where no env resets, one where every env resets every step and one
-    where some envs reset and others do not, the carry after two chunks is equal bit for bit, env keys included.
-    8 envs in programs of 4."""
-    from jaxrobo import fused_pallas
-
-    overrides = {"none": dict(chunk_steps=3), "all": dict(nsteps=1, chunk_steps=3), "some": dict(nsteps=200, chunk_steps=12)}
-    spec = _cartpole(n_envs=8, **overrides[case])
-    out = {}
-    for at_end in (True, False):
-        monkeypatch.setattr(fused_pallas, "RESET_KEY_AT_END", at_end)
-        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4))
-        runner = jax.jit(trainer.init)(jax.random.key(7), spec.agent_params, spec.env.default_params)
-        chunk = jax.jit(trainer.run_chunk)
-        keys = [np.asarray(jax.random.key_data(runner.env_state.key))]
-        for _ in range(2):
-            runner = chunk(runner, spec.agent_params, spec.env.default_params)
-            keys.append(np.asarray(jax.random.key_data(runner.env_state.key)))
-        out[at_end] = runner
-    reset = (np.diff(np.stack(keys), axis=0) != 0).any(axis=2)  # [chunk, env]: the envs that reset in each chunk
-    assert {"none": not reset[0].any(), "all": reset.all(),
-            "some": any(r.any() and not r.all() for r in reset)}[case], reset
-    for (path, a), (_, b) in zip(_leaves(out[True]), _leaves(out[False])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
-
-
 @pytest.mark.parametrize("changes", [dict(), dict(record_episodes=False, carry_rows=True)])
 def test_the_tiled_tables_change_nothing(changes, monkeypatch):
     """The tables tiled by program for the kernel ([program, state, env of the program, action]) and back: the
