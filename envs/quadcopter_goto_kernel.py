@@ -177,10 +177,11 @@ def _finite(x):
 Obstacle = Callable[[Any], tuple[Any, list, list, Any]]
 
 
-def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, old_obs: Sequence, task: dict,
-              p: dict, obstacle: Obstacle) -> dict:
+def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, old_obs: Callable[[Any], Sequence],
+              task: dict, p: dict, obstacle: Obstacle) -> dict:
     """One Goto step per coordinate, on arrays of any (common) shape: ``q`` (7), ``v`` (6) the robot's state,
-    ``action`` int, ``old_obs`` the last observation (kept where the new state is not finite), ``task`` the
+    ``action`` int, ``old_obs(ok)`` the last observation (kept where ``ok``, the new state is finite, is False:
+    the kernel reads it only there), ``task`` the
     per-step task variables (``goal`` [3], ``prev_dist``, ``arrived``, ``crashed`` as bools; v2 ``prev_bearing``,
     ``prev_dz``), ``p`` the parameters by name, ``obstacle`` the obstacles' accessor. Returns the new ``q``,
     ``v``, ``obs``, ``reward``, ``terminated``, ``nan`` (the guard fired) and the task variables."""
@@ -270,7 +271,7 @@ def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, ol
     ok = _finite(q[0])
     for value in list(q[1:]) + list(v) + obs:
         ok = ok & _finite(value)
-    obs = [jnp.where(ok, o, old) for o, old in zip(obs, old_obs)]
+    obs = [jnp.where(ok, o, old) for o, old in zip(obs, old_obs(ok))]
     return {"q": q, "v": v, "obs": obs, "reward": jnp.where(ok, reward, 0.0), "terminated": arrived | failed | ~ok,
             "nan": ~ok, "task": new_task}
 
@@ -308,7 +309,12 @@ def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bo
             return plgpu.load(in_refs[name].at[env * width + j], mask=mask, other=0 if is_int else 0.0)
 
         row = {name: [load(name, width, j, is_int) for j in range(width)]
-               for name, width, is_int in ins if name not in ("kind", "center", "size", "active")}
+               for name, width, is_int in ins if name not in ("obs", "kind", "center", "size", "active")}
+
+        def old_obs(ok):  # read only where the guard fires: a warp of finite states loads nothing
+            return [plgpu.load(in_refs["obs"].at[env * layout.obs_size + j], mask=mask & ~ok, other=0.0)
+                    for j in range(layout.obs_size)]
+
         stride = n_params if params_per_env else 0
         p = {name: plgpu.load(in_refs["params"].at[env * stride + j], mask=mask, other=0.0)
              for j, name in enumerate(layout.param_names)}
@@ -324,7 +330,7 @@ def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bo
                 "crashed": row["crashed"][0] != 0}
         if layout.v2:
             task.update(prev_bearing=row["prev_bearing"][0], prev_dz=row["prev_dz"][0])
-        out = task_step(c, layout, row["qpos"], row["qvel"], row["action"][0], row["obs"], task, p, obstacle)
+        out = task_step(c, layout, row["qpos"], row["qvel"], row["action"][0], old_obs, task, p, obstacle)
         values = {"qpos": out["q"], "qvel": out["v"], "obs": out["obs"], "reward": [out["reward"]],
                   "terminated": [out["terminated"]], "nan": [out["nan"]],
                   **{name: [value] for name, value in out["task"].items()}}

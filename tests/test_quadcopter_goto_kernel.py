@@ -113,7 +113,7 @@ def test_the_per_coordinate_step_runs_on_plain_arrays():
                 "crashed": st.task.crashed, "prev_bearing": st.task.prev_bearing, "prev_dz": st.task.prev_dz}
         ob = lambda i: (obs.kind[:, i], cols(obs.center[:, i]), cols(obs.size[:, i]), obs.active[:, i])  # noqa: E731
         return task_step(constants_of(env.robot), layout, cols(st.pipeline_state.qpos), cols(st.pipeline_state.qvel),
-                         a, cols(st.obs), task, {n: getattr(p, n) for n in layout.param_names}, ob)
+                         a, lambda ok: cols(st.obs), task, {n: getattr(p, n) for n in layout.param_names}, ob)
 
     out = jax.jit(run)(st, a)
     got = _stepped("v2-mixed", True)
@@ -124,7 +124,7 @@ def test_the_per_coordinate_step_runs_on_plain_arrays():
 
 def test_a_sweep_around_the_batch_is_one_call_with_its_own_parameters():
     """A vmap over configurations (as a sweep runs one) with a batched parameter makes one kernel call and gives
-    each configuration's own flat-batch step; an unbatched step agrees to round-off."""
+    each configuration's own flat-batch step (to round-off); an unbatched step agrees to round-off."""
     env = _spec("v1").env
     st, a = _states("v1", 160)
     st, a = jax.tree.map(lambda x: x[:24], st), a[:24]
@@ -142,7 +142,8 @@ def test_a_sweep_around_the_batch_is_one_call_with_its_own_parameters():
         flat = jax.jit(sweep)(jax.tree.map(lambda x: split(x)[i], st), split(a)[i], speeds[i])
         for x, y in zip(jax.tree.leaves(flat), jax.tree.leaves(jax.tree.map(lambda x: x[i], nested))):
             if not jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
-                np.testing.assert_array_equal(np.asarray(y), np.asarray(x))
+                # To round-off: the interpreter compiles a per-env and a shared parameter differently.
+                np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-5, atol=1e-6)
     one = jax.jit(lambda s, a: kernel_step(env, s, a, p))(jax.tree.map(lambda x: x[9], st), a[9])
     ref = jax.jit(jax.vmap(lambda s, a: kernel_step(env, s, a, p)))(st, a)
     np.testing.assert_allclose(np.asarray(one.obs), np.asarray(ref.obs)[9], rtol=1e-6, atol=1e-6)
