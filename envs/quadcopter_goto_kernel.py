@@ -277,19 +277,27 @@ def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, ol
 
 
 # ---- the batch kernel ------------------------------------------------------------------------------------
+F32, I32, BOOL = jnp.float32, jnp.int32, jnp.bool_
+
+
 def _fields(layout: Layout) -> tuple[list, list]:
-    """The kernel's per-env inputs and outputs: ``(name, words per env, int32?)``; booleans travel as int32."""
+    """The kernel's per-env inputs and outputs: ``(name, values per env, dtype)``, each the task's own dtype (so
+    XLA converts nothing around the call)."""
     k = layout.n_obstacles
-    extra = [("prev_bearing", 1, False), ("prev_dz", 1, False)] if layout.v2 else []
-    ins = [("qpos", 7, False), ("qvel", 6, False), ("action", 1, True), ("obs", layout.obs_size, False),
-           ("goal", 3, False), ("prev_dist", 1, False), ("arrived", 1, True), ("crashed", 1, True)] + extra
+    extra = [("prev_bearing", 1, F32), ("prev_dz", 1, F32)] if layout.v2 else []
+    ins = [("qpos", 7, F32), ("qvel", 6, F32), ("action", 1, I32), ("obs", layout.obs_size, F32), ("goal", 3, F32),
+           ("prev_dist", 1, F32), ("arrived", 1, BOOL), ("crashed", 1, BOOL)] + extra
     if k:
-        ins += ([("kind", k, True)] if layout.obstacle_kind == "mixed" else []) + \
-            [("center", 3 * k, False), ("size", 3 * k, False), ("active", k, True)]
-    outs = [("qpos", 7, False), ("qvel", 6, False), ("obs", layout.obs_size, False), ("reward", 1, False),
-            ("terminated", 1, True), ("nan", 1, True), ("prev_dist", 1, False), ("arrived", 1, True),
-            ("crashed", 1, True)] + extra
+        ins += ([("kind", k, I32)] if layout.obstacle_kind == "mixed" else []) + \
+            [("center", 3 * k, F32), ("size", 3 * k, F32), ("active", k, BOOL)]
+    outs = [("qpos", 7, F32), ("qvel", 6, F32), ("obs", layout.obs_size, F32), ("reward", 1, F32),
+            ("terminated", 1, BOOL), ("nan", 1, BOOL), ("prev_dist", 1, F32), ("arrived", 1, BOOL),
+            ("crashed", 1, BOOL)] + extra
     return ins, outs
+
+
+def _zero(dtype):
+    return False if dtype == BOOL else 0 if dtype == I32 else 0.0
 
 
 def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bool) -> Callable:
@@ -305,11 +313,11 @@ def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bo
         env = pl.program_id(0) * block + jax.lax.iota(jnp.int32, block)
         mask = env < n
 
-        def load(name, width, j, is_int):
-            return plgpu.load(in_refs[name].at[env * width + j], mask=mask, other=0 if is_int else 0.0)
+        def load(name, width, j, dtype):
+            return plgpu.load(in_refs[name].at[env * width + j], mask=mask, other=_zero(dtype))
 
-        row = {name: [load(name, width, j, is_int) for j in range(width)]
-               for name, width, is_int in ins if name not in ("obs", "kind", "center", "size", "active")}
+        row = {name: [load(name, width, j, dtype) for j in range(width)]
+               for name, width, dtype in ins if name not in ("obs", "kind", "center", "size", "active")}
 
         def old_obs(ok):  # read only where the guard fires: a warp of finite states loads nothing
             return [plgpu.load(in_refs["obs"].at[env * layout.obs_size + j], mask=mask & ~ok, other=0.0)
@@ -321,23 +329,22 @@ def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bo
         k = layout.n_obstacles
 
         def obstacle(i):
-            kind = load("kind", k, i, True) if layout.obstacle_kind == "mixed" else None
-            center = [load("center", 3 * k, 3 * i + j, False) for j in range(3)]
-            size = [load("size", 3 * k, 3 * i + j, False) for j in range(3)]
-            return kind, center, size, load("active", k, i, True) != 0
+            kind = load("kind", k, i, I32) if layout.obstacle_kind == "mixed" else None
+            center = [load("center", 3 * k, 3 * i + j, F32) for j in range(3)]
+            size = [load("size", 3 * k, 3 * i + j, F32) for j in range(3)]
+            return kind, center, size, load("active", k, i, BOOL)
 
-        task = {"goal": row["goal"], "prev_dist": row["prev_dist"][0], "arrived": row["arrived"][0] != 0,
-                "crashed": row["crashed"][0] != 0}
+        task = {"goal": row["goal"], "prev_dist": row["prev_dist"][0], "arrived": row["arrived"][0],
+                "crashed": row["crashed"][0]}
         if layout.v2:
             task.update(prev_bearing=row["prev_bearing"][0], prev_dz=row["prev_dz"][0])
         out = task_step(c, layout, row["qpos"], row["qvel"], row["action"][0], old_obs, task, p, obstacle)
         values = {"qpos": out["q"], "qvel": out["v"], "obs": out["obs"], "reward": [out["reward"]],
                   "terminated": [out["terminated"]], "nan": [out["nan"]],
                   **{name: [value] for name, value in out["task"].items()}}
-        for name, width, is_int in outs:
+        for name, width, dtype in outs:
             for j, value in enumerate(values[name]):
-                value = value.astype(jnp.int32) if is_int else value.astype(jnp.float32)
-                plgpu.store(out_refs[name].at[env * width + j], value, mask=mask)
+                plgpu.store(out_refs[name].at[env * width + j], value.astype(dtype), mask=mask)
 
     return kernel
 
@@ -363,10 +370,9 @@ class TaskStep:
         run_interpreted = jax.default_backend() != "gpu" if self.interpret is None else self.interpret
         compiler = None if run_interpreted else plgpu.CompilerParams(num_warps=max(1, min(8, size // 32)),
                                                                       num_stages=1)
-        flat = [jnp.asarray(inputs[name], jnp.int32 if is_int else jnp.float32).reshape(-1)
-                for name, _, is_int in ins]
+        flat = [jnp.asarray(inputs[name], dtype).reshape(-1) for name, _, dtype in ins]
         whole = pl.BlockSpec(memory_space=pl.ANY)
-        shapes = [jax.ShapeDtypeStruct((n * width,), jnp.int32 if is_int else jnp.float32) for _, width, is_int in outs]
+        shapes = [jax.ShapeDtypeStruct((n * width,), dtype) for _, width, dtype in outs]
         result = pl.pallas_call(
             _kernel(self.constants, self.layout, n, size, params.ndim == 2), grid=(-(-n // size),),
             in_specs=[whole] * (len(ins) + 1), out_specs=[whole] * len(outs), out_shape=shapes,
@@ -452,13 +458,12 @@ def kernel_step(env: Any, state: Any, action: jax.Array, params: Any) -> Any:
         inputs.update(center=obs.center, size=obs.size, active=obs.active)
         if layout.obstacle_kind == "mixed":
             inputs["kind"] = obs.kind
-    inputs = {name: jnp.asarray(x, jnp.int32) if x.dtype == bool else x for name, x in inputs.items()}
     p = jnp.stack([jnp.asarray(getattr(params, name), jnp.float32) for name in layout.param_names])
     out = _through(kernel, inputs, p)
-    changes = {name: out[name] != 0 if name in ("arrived", "crashed") else out[name]
-               for name in ("prev_dist", "arrived", "crashed", "prev_bearing", "prev_dz") if name in out}
-    terminated = out["terminated"] != 0
+    changes = {name: out[name] for name in ("prev_dist", "arrived", "crashed", "prev_bearing", "prev_dz")
+               if name in out}
+    terminated = out["terminated"]
     steps = state.steps + 1
     truncated = (steps >= params.max_episode_steps) & ~terminated
     return EnvState(JointState(out["qpos"], out["qvel"]), out["obs"], out["reward"], terminated, truncated, steps,
-                    task.replace(**changes), state.key, out["nan"] != 0)
+                    task.replace(**changes), state.key, out["nan"])
