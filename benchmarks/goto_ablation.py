@@ -3,8 +3,8 @@
     python benchmarks/goto_ablation.py --device gpu --n-envs 262144,1048576 --steps 1000 --out rows.json \
         --hlo-dir hlo/
 
-Each row trains ``--env`` (QuadcopterGoto-v2 by default; rigid, Q-learning, the preset's shared table and ``edges`` discretiser,
-records off: the chunk ``jaxrobo train`` compiles, :func:`jaxrobo.driver.compiled_chunk`) under
+Each row trains ``--env`` (QuadcopterGoto-v2 by default; rigid, Q-learning, the preset's shared table and
+``edges`` discretiser, records off: the chunk ``jaxrobo train`` compiles, :func:`jaxrobo.driver.compiled_chunk`) under
 ``ExecutionPlan.for_run``'s plan with one change (``--variants``, comma list):
 
 ``base``                   the plan as built (on a GPU: ``fused=pallas`` with the task's whole step as one
