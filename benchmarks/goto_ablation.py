@@ -3,12 +3,14 @@
     python benchmarks/goto_ablation.py --device gpu --n-envs 262144,1048576 --steps 1000 --out rows.json \
         --hlo-dir hlo/
 
-Each row trains QuadcopterGoto-v2 (rigid, Q-learning, the preset's shared table and ``edges`` discretiser,
-records off: the chunk ``jaxrobo train`` compiles, :func:`jaxrobo.driver.compiled_chunk`) under
+Each row trains ``--env`` (QuadcopterGoto-v2 by default; rigid, Q-learning, the preset's shared table and
+``edges`` discretiser, records off: the chunk ``jaxrobo train`` compiles, :func:`jaxrobo.driver.compiled_chunk`) under
 ``ExecutionPlan.for_run``'s plan with one change (``--variants``, comma list):
 
-``base``                   the plan as built (on a GPU: ``fused=pallas``, done envs gathered, an eighth of the
-                           batch at most)
+``base``                   the plan as built (on a GPU: ``fused=pallas`` with the task's whole step as one
+                           kernel, done envs gathered, an eighth of the batch at most)
+``physics``                ``task_kernel`` off: only the robot's control step in a kernel, the rest of the
+                           task's step (observation, outcome, reward, guard) XLA's
 ``rc:N`` / ``rc:/K``       ``reset_capacity`` N, or the batch over K (done envs gathered, reset, scattered back);
                            ``rc:all`` the plain select (every env reset, the done ones kept)
 ``group:G[:U]``            ``env_group`` G envs stepped at once (``unrolled_groups`` U, default 4)
@@ -44,6 +46,7 @@ ENV = "QuadcopterGoto-v2"
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", choices=("cpu", "gpu"), default=None)
+    p.add_argument("--env", default=ENV, choices=("QuadcopterGoto-v1", "QuadcopterGoto-v2"))
     p.add_argument("--n-envs", default="262144")
     p.add_argument("--variants", default="base,rc:/8,rc:/32,rc:1024,records,bins,env,env+disc")
     p.add_argument("--steps", type=int, default=1000, help="steps per compiled chunk")
@@ -125,15 +128,17 @@ def measure(n: int, variant: str, args: argparse.Namespace) -> dict[str, Any]:
             plan_changes["carry_rows"] = True
         elif m == "sarsa":
             agent = "sarsa"
+        elif m == "physics":
+            plan_changes["task_kernel"] = False
         elif m in ("base", "env", "disc"):
             pass
         else:
             raise ValueError(f"variant {variant!r}: unknown part {m!r}")
-    spec = resolve(ENV, "default", overrides, agent=agent)
+    spec = resolve(args.env, "default", overrides, agent=agent)
     env, ap, ep = spec.env, spec.agent_params, spec.env.default_params
     plan = ExecutionPlan.for_run(env, spec.config).replace(**plan_changes)
     trainer = Trainer(env, spec.config, plan=plan)
-    row: dict[str, Any] = {"env": ENV, "n_envs": n, "variant": variant, "execution_plan": repr(plan),
+    row: dict[str, Any] = {"env": args.env, "n_envs": n, "variant": variant, "execution_plan": repr(plan),
                            "steps": args.steps}
     t0 = time.perf_counter()
     if "env" in mods:

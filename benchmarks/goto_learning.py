@@ -9,6 +9,11 @@ fresh goals), which says what selection can reach, not what one run does.
 
     python benchmarks/goto_learning.py --env QuadcopterGoto-v2 --runs 16      # CPU or GPU
     python benchmarks/goto_learning.py --env QuadcopterGoto-v1 --runs 32      # the original task
+    python benchmarks/goto_learning.py --fused pallas                          # the same runs through the kernel
+
+``--fused pallas``: train under ``ExecutionPlan(fused="pallas")`` with the task's whole step as one kernel where it
+has one (``task_kernel``), which the presets' small batches do not get by default, so that the learning of the
+kernel's path can be compared with the plain path's.
 """
 from __future__ import annotations
 
@@ -44,13 +49,21 @@ def spread(rates) -> dict[str, float]:
             "share_of_runs_at_target": float((r >= TARGET).mean())}
 
 
-def train_population(env_id: str, runs: int, overrides: dict) -> tuple[object, object, np.ndarray, float]:
+def train_population(env_id: str, runs: int, overrides: dict, fused: str = "default"
+                     ) -> tuple[object, object, np.ndarray, float]:
     """Train ``runs`` independent runs of ``env_id``'s default preset (seeds 0..runs-1) as one vmapped
-    computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds include the compile)."""
+    computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds include the compile). ``fused``:
+    ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that choice; ``pallas`` with the task's kernel
+    where it has one)."""
+    from jaxrobo.plan import ExecutionPlan, task_kernel
+
     spec = resolve(env_id, overrides={"eval_episodes": 0, **overrides})
     if not spec.config.shared_table:
         raise ValueError(f"{env_id}: the benchmark expects a preset with shared_table: true (one table per run)")
-    trainer = Trainer(spec.env, spec.config)
+    plan = ExecutionPlan.for_run(spec.env, spec.config)
+    if fused != "default":
+        plan = plan.replace(fused=fused, task_kernel=fused == "pallas" and task_kernel(spec.env))
+    trainer = Trainer(spec.env, spec.config, plan=plan)
     keys = jnp.stack([jax.random.key(s) for s in range(runs)])
     t0 = time.perf_counter()
     ap_, ep = spec.agent_params, spec.env.default_params
@@ -82,6 +95,8 @@ def main(argv=None) -> int:
     ap.add_argument("--episodes", type=int, default=200, help="fresh evaluation goals flown by every run's table")
     ap.add_argument("--select-episodes", type=int, default=100,
                     help="selection goals for the secondary best-of-population line")
+    ap.add_argument("--fused", default="default", choices=("default", "off", "pallas"),
+                    help="the plan's fused choice (default: as for_run builds it)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="preset override")
     ap.add_argument("--out", default=None,
                     help="JSON path (default benchmarks/results/<device>/goto_learning_<env>.json)")
@@ -91,7 +106,7 @@ def main(argv=None) -> int:
             ap.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
     from jaxrobo.config import parse_overrides
 
-    spec, trainer, q, train_s = train_population(args.env, args.runs, parse_overrides(args.set))
+    spec, trainer, q, train_s = train_population(args.env, args.runs, parse_overrides(args.set), args.fused)
     env, disc = spec.env, trainer.disc
     fresh = evaluate(env, disc, q, jax.random.key(FRESH_KEY), args.episodes)
     select = evaluate(env, disc, q, jax.random.key(10_000), args.select_episodes)
@@ -101,6 +116,7 @@ def main(argv=None) -> int:
     r3 = lambda x: round(float(x), 3)  # noqa: E731
     out = {"device": jax.devices()[0].device_kind, "env": args.env, "runs": args.runs,
            "n_envs": spec.config.n_envs, "nepisodes": spec.config.nepisodes, "fresh_episodes": args.episodes,
+           "execution_plan": repr(trainer.plan),
            "train_seconds": round(train_s, 2),
            "fresh_success": {k: r3(v) for k, v in spread(fresh["success"]).items()},
            "fresh_success_per_run": [r3(v) for v in fresh["success"]],

@@ -28,7 +28,7 @@ Parameters   see :class:`Options` (static) and :class:`Params` (numbers; vmappab
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +36,8 @@ import numpy as np
 
 from envs.quadcopter import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
-from jaxrobo import rng, spaces
+from envs.quadcopter_goto_kernel import kernel_step, make_task_step, supports
+from jaxrobo import fused, rng, spaces
 from jaxrobo.env import BaseParams, EnvState, LearningTarget
 from jaxrobo.struct import param, pytree_dataclass
 
@@ -103,6 +104,25 @@ class QuadcopterGoto(QuadcopterTask):
     #: Learned: most greedy flights arrive (the arrival flag; measured by :func:`success_rate`).
     learning_target = LearningTarget("arriving", "success_rate", 0.8,
                                      "share of greedy episodes arriving at the goal >= 0.8 (success_rate)")
+    #: Which of :mod:`envs.quadcopter_goto_kernel`'s task kernels holds this class's hooks (a subclass that
+    #: overrides one of them gets none).
+    step_kernel_variant: ClassVar[str | None] = "v1"
+
+    def __init__(self, options: Any = None, params: Any = None):
+        super().__init__(options, params)
+        #: The whole step (action, control step, observation, outcome, reward, NaN guard) over a batch as one
+        #: Pallas kernel, which ``ExecutionPlan(fused="pallas", task_kernel=True)`` runs; None where the task's
+        #: configuration has none (:func:`envs.quadcopter_goto_kernel.supports`).
+        self.step_kernel_refusal = supports(self)
+        self.step_kernel = make_task_step(self) if self.step_kernel_refusal is None else None
+
+    def step(self, state: EnvState, action: jax.Array, params: Params | None = None) -> EnvState:
+        """:meth:`jaxrobo.env.TaskEnv.step`, or under the plan's task kernel the same step as one kernel over the
+        batch (:func:`envs.quadcopter_goto_kernel.kernel_step`, equal to float32 round-off)."""
+        if self.step_kernel is not None and fused.task_kernels():
+            params = self.default_params if params is None else params
+            return kernel_step(self, state, jnp.asarray(action, self.action_dtype), params)
+        return super().step(state, action, params)
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         n = len(OBS_NAMES)

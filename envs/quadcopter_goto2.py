@@ -72,6 +72,7 @@ class TaskVars2(TaskVars):
 class QuadcopterGoto2(QuadcopterGoto):
     Options = Options
     Params = Params
+    step_kernel_variant = "v2"
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         n = len(OBS_NAMES)

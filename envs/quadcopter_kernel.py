@@ -7,11 +7,16 @@ so the whole env state goes through memory many times per control step. Here eac
 and 4 command floats once and writes 13, whatever the number of substeps.
 
 What it computes: the same equations in the same order, written per coordinate over ``[block]`` vectors (Triton
-has no slice, so a state is a list of 7 + 6 vectors rather than one array), with the constants baked in from the
+has no slice, so a state is a list of 7 + 6 vectors rather than one array), except that the controller takes the
+heading's cosine and sine and the cosines of roll and pitch from the quaternion algebraically instead of through
+the angles (fewer transcendental calls, the kernel's main cost), and divides by a constant or by one value
+several times as a multiplication by its reciprocal (a float32 division is a short routine on a GPU, a
+multiplication one instruction; the two differ by at most a rounding), with the constants baked in from the
 robot (its :class:`~envs.quadcopter.ControllerGains`, mass, inertia, unmix matrix and motor limits) and the
 simulator's :class:`~envs.rigid_body.Airframe`. XLA and Triton round some operations differently in the last bit
-(the dot products are written out, ``atan2``/``sin``/``cos`` come from another library on a GPU), so a control
-step agrees with the XLA path to float32 round-off, not bit for bit (``tests/test_quadcopter_kernel.py``).
+(the dot products are written out, the rewritten cosines and divisions above, ``atan2``/``sin``/``cos`` from
+another library on a GPU), so a control step agrees with the XLA path to float32 round-off, not bit for bit
+(``tests/test_quadcopter_kernel.py``).
 
 How it is used: :func:`make_advance` builds the batch function the robot offers as ``advance_kernel``
 (:class:`jaxrobo.robot.Robot`); under ``ExecutionPlan(fused="pallas")`` :meth:`jaxrobo.sim.Simulator.advance`
@@ -115,20 +120,31 @@ def _dot(row: Sequence[float], xs: Sequence[Any]):
 def _controller(c: Constants, q: Sequence[Any], v: Sequence[Any], cmd: Sequence[Any]) -> list:
     """:meth:`envs.quadcopter.Quadcopter.controller`, per coordinate: rotor thrusts (N)."""
     w, x, y, z = q[3], q[4], q[5], q[6]
-    roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = jnp.arcsin(_clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    roll_y, roll_x = 2 * (w * x + y * z), 1 - 2 * (x * x + y * y)
+    roll = jnp.arctan2(roll_y, roll_x)
+    sin_pitch = _clip(2 * (w * y - z * x), -1.0, 1.0)
+    pitch = jnp.arcsin(sin_pitch)
+    # The heading's cosine and sine, and cos(roll), cos(pitch), from the atan2/asin arguments instead of through
+    # the angles (cos(atan2(y, x)) = x / hypot(x, y), cos(asin(s)) = sqrt(1 - s^2)): five transcendental calls
+    # fewer per substep, equal to float32 round-off. The yaw angle itself is not needed.
+    yaw_y, yaw_x = 2 * (w * z + x * y), 1 - 2 * (y * y + z * z)
+    yaw_h = jnp.sqrt(yaw_x * yaw_x + yaw_y * yaw_y)
+    level = yaw_h > 0  # atan2(0, 0) = 0: heading 0 where the heading is undefined (pitch +-90 degrees)
+    inv_h = 1.0 / jnp.where(level, yaw_h, 1.0)
+    cy, sy = jnp.where(level, yaw_x * inv_h, 1.0), jnp.where(level, yaw_y * inv_h, 0.0)
+    roll_h = jnp.sqrt(roll_x * roll_x + roll_y * roll_y)
+    cos_roll = jnp.where(roll_h > 0, roll_x / jnp.where(roll_h > 0, roll_h, 1.0), 1.0)
+    cos_pitch = jnp.sqrt(jnp.maximum(1 - sin_pitch * sin_pitch, 0.0))
     vz_cmd = cmd[2]
     if c.min_altitude > 0:
         vz_cmd = jnp.maximum(vz_cmd, c.k_floor * (c.min_altitude - q[2]))
-    cy, sy = jnp.cos(yaw), jnp.sin(yaw)
     vx_h, vy_h = cy * v[0] + sy * v[1], -sy * v[0] + cy * v[1]
     ax = _clip(c.k_vel_xy * (cmd[0] - vx_h), -c.a_max, c.a_max)
     ay = _clip(c.k_vel_xy * (cmd[1] - vy_h), -c.a_max, c.a_max)
     az = _clip(c.k_vel_z * (vz_cmd - v[2]), -c.max_acc_down, c.max_acc_up)
     pitch_d = _clip(jnp.arctan2(ax, c.g + az), -c.max_tilt, c.max_tilt)
     roll_d = _clip(jnp.arctan2(-ay, c.g + az), -c.max_tilt, c.max_tilt)
-    thrust = c.mass * (c.g + az) / jnp.maximum(jnp.cos(roll) * jnp.cos(pitch), 0.5)
+    thrust = c.mass * (c.g + az) / jnp.maximum(cos_roll * cos_pitch, 0.5)
     torque = [c.inertia[0] * (c.k_att * (roll_d - roll) - c.k_rate * v[3]),
               c.inertia[1] * (c.k_att * (pitch_d - pitch) - c.k_rate * v[4]),
               c.inertia[2] * (c.k_yaw * (cmd[3] - v[5]))]
@@ -149,13 +165,13 @@ def _physics(c: Constants, q: Sequence[Any], v: Sequence[Any], ctrl: Sequence[An
     acc = []
     for i in range(3):
         f = rot[i][0] * force[0] + rot[i][1] * force[1] + rot[i][2] * force[2]
-        acc.append(f / c.body_mass + c.gravity[i])
+        acc.append(f * _f32(1.0 / np.float32(c.body_mass)) + c.gravity[i])
     om = v[3:6]
     inertia = c.body_inertia
     l_mom = [inertia[i] * om[i] for i in range(3)]
     cross = [om[1] * l_mom[2] - om[2] * l_mom[1], om[2] * l_mom[0] - om[0] * l_mom[2],
              om[0] * l_mom[1] - om[1] * l_mom[0]]
-    alpha = [(wr[3 + i] - cross[i]) / inertia[i] for i in range(3)]
+    alpha = [(wr[3 + i] - cross[i]) * _f32(1.0 / np.float32(inertia[i])) for i in range(3)]
     vel = [v[i] + dt * acc[i] for i in range(3)]
     om = [om[i] + dt * alpha[i] for i in range(3)]
     pos = [q[i] + dt * vel[i] for i in range(3)]
@@ -166,8 +182,8 @@ def _physics(c: Constants, q: Sequence[Any], v: Sequence[Any], ctrl: Sequence[An
     bw, bx, by, bz = jnp.cos(half), om[0] * scale, om[1] * scale, om[2] * scale
     out = [qw * bw - qx * bx - qy * by - qz * bz, qw * bx + qx * bw + qy * bz - qz * by,
            qw * by - qx * bz + qy * bw + qz * bx, qw * bz + qx * by - qy * bx + qz * bw]
-    norm = jnp.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3])
-    return pos + [o / norm for o in out], vel + om
+    inv_norm = 1.0 / jnp.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3])
+    return pos + [o * inv_norm for o in out], vel + om
 
 
 def control_step(c: Constants, q: Sequence[Any], v: Sequence[Any], cmd: Sequence[Any]) -> tuple[list, list]:

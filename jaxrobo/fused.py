@@ -33,8 +33,9 @@ control step (:attr:`jaxrobo.robot.Robot.advance_kernel`, the rigid quadcopter's
 on the whole batch (:func:`physics_kernels`, read by :meth:`jaxrobo.sim.Simulator.advance`); the rest of the step
 stays XLA's. The cart-pole's whole-chunk kernel is :mod:`jaxrobo.fused_pallas`, which the trainer runs itself.
 
-Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`physics_kernels`, :func:`choose`. The
-module imports nothing of jaxrobo's: the simulators read its flags and the plan its choices, and the trainer runs
+Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`physics_kernels`, :func:`task_kernels`,
+:func:`choose`. The module imports nothing of jaxrobo's: the simulators and tasks read its flags and the plan its
+choices, and the trainer runs
 the blocks.
 """
 from __future__ import annotations
@@ -49,6 +50,7 @@ CHOICES = ("off", "xla")
 
 _UNROLL_ALL: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_unroll_all_substeps", default=False)
 _KERNELS: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_physics_kernels", default=False)
+_TASK_KERNELS: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_task_kernels", default=False)
 
 
 def unroll_all_substeps() -> bool:
@@ -63,14 +65,23 @@ def physics_kernels() -> bool:
     return _KERNELS.get()
 
 
+def task_kernels() -> bool:
+    """Whether a task step traced now runs as its task's whole-step kernel where it has one (the innermost
+    :func:`choose` block's choice is ``"pallas"`` with ``task_kernel``; False outside any)."""
+    return _TASK_KERNELS.get()
+
+
 @contextlib.contextmanager
-def choose(fused: str) -> Iterator[None]:
+def choose(fused: str, task_kernel: bool = False) -> Iterator[None]:
     """Within this block (this thread or task), traces follow the fused choice ``fused`` (one of
-    :data:`CHOICES`, or ``"pallas"``)."""
+    :data:`CHOICES`, or ``"pallas"``); with ``"pallas"`` and ``task_kernel``, a task with a kernel for its whole
+    step runs that instead of the robot's control-step kernel."""
     token = _UNROLL_ALL.set(fused != "off")
     kernels = _KERNELS.set(fused == "pallas")
+    tasks = _TASK_KERNELS.set(fused == "pallas" and task_kernel)
     try:
         yield
     finally:
+        _TASK_KERNELS.reset(tasks)
         _KERNELS.reset(kernels)
         _UNROLL_ALL.reset(token)

@@ -22,7 +22,7 @@ long as the carry's structure, which ``carry_rows`` changes, is the same; the ch
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
 :meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`physics_kernel`,
-:func:`check_pallas`, :func:`step_batch` (``env.step``
+:func:`task_kernel`, :func:`check_pallas`, :func:`step_batch` (``env.step``
 over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after group).
 Names with a leading underscore are private.
 """
@@ -79,11 +79,24 @@ def physics_kernel(env: Env) -> bool:
     return getattr(robot, "advance_kernel", None) is not None
 
 
+def task_kernel(env: Env) -> bool:
+    """Whether ``env``'s task offers its whole step as a kernel (``step_kernel``: the Goto tasks on backend
+    ``rigid``, :mod:`envs.quadcopter_goto_kernel`), which ``fused="pallas"`` with ``task_kernel`` runs."""
+    return getattr(layers(env)[-1], "step_kernel", None) is not None
+
+
 def check_pallas(trainer: Any) -> None:
     """Refuse, naming the field and the runs it supports, a :class:`jaxrobo.trainer.Trainer` whose run
     ``fused="pallas"`` cannot take. Two runs can: a robot with a physics kernel (:func:`physics_kernel`), with
     any learner, and the analytic cart-pole with Q-learning, whose whole chunk is one kernel
     (:mod:`jaxrobo.fused_pallas`)."""
+    if trainer.plan.task_kernel and not task_kernel(trainer.env):
+        inner = layers(trainer.env)[-1]
+        why = getattr(inner, "step_kernel_refusal", None)  # the task's reason, where it names one
+        raise ValueError(f"ExecutionPlan task_kernel=True: {type(inner).__name__} has no kernel for its whole step"
+                         f"{f' ({why})' if why else ''}; the Goto tasks with discrete actions on backend='rigid' "
+                         "have one. Set task_kernel=False (the control step alone runs as a kernel where the "
+                         "robot has one)")
     if physics_kernel(trainer.env):
         if trainer.plan.fused_block is not None:
             raise ValueError(f"ExecutionPlan fused='pallas': fused_block={trainer.plan.fused_block}; the "
@@ -161,6 +174,12 @@ class ExecutionPlan:
     ``fused="pallas"`` on the cart-pole, envs per Pallas program (a power of two up to 1024; None: one warp's
     32, :data:`jaxrobo.fused_pallas.BLOCK`); the quadcopter's kernel sets its own block, so it refuses one.
 
+    ``task_kernel``: with ``fused="pallas"``, a task that offers its whole step as a kernel (the Goto tasks'
+    ``step_kernel``, :mod:`envs.quadcopter_goto_kernel`: action, control step, observation, outcome, reward and the
+    NaN guard in one call) runs that instead of the robot's control-step kernel with the rest of the step in XLA;
+    equal to float32 round-off. :meth:`for_run` turns it on with ``fused="pallas"`` where the task has one; a
+    plan with it on for a task without one is refused (:func:`check_pallas`). Read only under ``fused="pallas"``.
+
     ``ordered_sums``: a shared table sums the updates that meet in one entry in a fixed order
     (:func:`jaxrobo.tabular.sum_in_order`: sort, segmented scan) instead of a scatter-add, which a GPU runs as
     float atomics in no fixed order: there the same seed gave other tables run after run. The default on a GPU
@@ -178,6 +197,7 @@ class ExecutionPlan:
     carry_rows: bool = False
     fused: str = "off"
     fused_block: int | None = None
+    task_kernel: bool = False
     ordered_sums: bool = False
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
@@ -191,7 +211,7 @@ class ExecutionPlan:
         if not isinstance(self.unrolled_groups, int) or isinstance(self.unrolled_groups, bool) \
                 or self.unrolled_groups < 1:
             raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
-        for name in ("lean_mjx", "carry_rows", "ordered_sums"):
+        for name in ("lean_mjx", "carry_rows", "task_kernel", "ordered_sums"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ExecutionPlan {name}={getattr(self, name)!r}: expected True or False")
         options = self.compiler_options
@@ -233,6 +253,10 @@ class ExecutionPlan:
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
             fused=fused,
+            # The whole task step as one kernel where the task has one: Goto-v1/v2 + Q-learning at 1 M envs on an
+            # H100 took 1.50 / 1.63 ns per env step against 2.00 / 2.33 ns with only the control step in a kernel
+            # (docs/benchmarks.md, "Pallas: quadcopter").
+            task_kernel=fused == "pallas" and task_kernel(env),
             # A GPU sums a shared table's updates as float atomics in no fixed order: sum them in order there.
             ordered_sums=backend == "gpu" and config.shared_table,
             compiler_options=compiler_options,
@@ -251,7 +275,7 @@ class ExecutionPlan:
     def tracing(self) -> Iterator["ExecutionPlan"]:
         """A block whose traces follow this plan's trace-time choices (the MJX stage replacement, a closed form's
         substeps written out under ``fused``); nests, and is local to the thread or task that enters it."""
-        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused):
+        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused, self.task_kernel):
             yield self
 
     def traced(self, fn: Callable) -> Callable:
@@ -281,6 +305,8 @@ class ExecutionPlan:
         if self.fused != "off":  # named only when on, so plans from before the choice read as they did
             block = "all" if self.fused_block is None else self.fused_block
             parts.append(f"fused={self.fused}, fused_block={block}")
+            if self.fused == "pallas" and self.task_kernel:
+                parts.append("task_kernel=on")
         if self.ordered_sums:  # likewise
             parts.append("ordered_sums=on")
         if self.compiler_options is not None:

@@ -119,7 +119,7 @@ def test_repr_is_short_and_names_every_choice():
                           "carry_rows=on, compiler_options={xla_backend_optimization_level: 0})")
     assert json.loads(json.dumps(fast.to_dict())) == {
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
-        "fused": "off", "fused_block": None, "ordered_sums": False, "compiler_options": FAST}
+        "fused": "off", "fused_block": None, "task_kernel": False, "ordered_sums": False, "compiler_options": FAST}
 
 
 def test_plans_are_validated_frozen_and_hashable():
