@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -233,24 +233,32 @@ def learn(learner: Learner, key: jax.Array, agent: AgentState, s, a, r, s2, a2, 
     return write(agent, table, s, a, jnp.where(active, new, old), active)
 
 
-def sum_in_order(index: jax.Array, values: jax.Array, size: int) -> jax.Array:
-    """``zeros(size).at[index].add(values)`` with the additions in one fixed order on every device.
+def sum_in_order(index: jax.Array, values: Any, size: int) -> Any:
+    """``zeros(size).at[index].add(v)`` for each array ``v`` of the pytree ``values``, with the additions in one
+    fixed order on every device.
 
     A scatter-add of floats runs on a GPU as atomic additions in whatever order the threads arrive, so the
     rounding, and then a tabular run, changes from run to run. Here the values are sorted by index (stably), each
-    run of one index is summed by a segmented scan, and each index's total is written once."""
-    order = jnp.argsort(index, stable=True)
-    index, values = index[order], values[order]
-    change = index[1:] != index[:-1]
+    run of one index is summed by a segmented scan, and each index's total is written once. Every leaf of
+    ``values`` shares the one sort, scan and write. The sort's keys are 16-bit where ``size`` allows: a GPU
+    radix-sorts them in half the passes, and a stable sort's order does not depend on the key's width."""
+    key_dtype = jnp.uint16 if size <= 1 << 16 else jnp.int32
+    keys, order = jax.lax.sort((index.astype(key_dtype), jnp.arange(index.shape[0], dtype=jnp.int32)),
+                               num_keys=1, is_stable=True)
+    leaves, treedef = jax.tree.flatten(values)
+    leaves = [v[order] for v in leaves]
+    change = keys[1:] != keys[:-1]
     first = jnp.concatenate([jnp.ones((1,), bool), change])
     last = jnp.concatenate([change, jnp.ones((1,), bool)])
 
     def combine(x, y):
         (vx, fx), (vy, fy) = x, y
-        return jnp.where(fy, vy, vx + vy), fx | fy
+        return [jnp.where(fy, b, a + b) for a, b in zip(vx, vy)], fx | fy
 
-    sums, _ = jax.lax.associative_scan(combine, (values, first))
-    return jnp.zeros((size,), values.dtype).at[jnp.where(last, index, size)].set(sums, mode="drop")
+    sums, _ = jax.lax.associative_scan(combine, (leaves, first))
+    where = jnp.where(last, keys.astype(jnp.int32), size)
+    return jax.tree.unflatten(treedef, [jnp.zeros((size,), v.dtype).at[where].set(t, mode="drop")
+                                        for v, t in zip(leaves, sums)])
 
 
 def learn_shared(learner: Learner, keys: jax.Array, agent: AgentState, s, a, r, s2, a2, terminated, epsilon,
@@ -267,14 +275,14 @@ def learn_shared(learner: Learner, keys: jax.Array, agent: AgentState, s, a, r, 
     table, _, new = jax.vmap(new_entry, in_axes=(None, 0, None, 0, 0, 0, 0, 0, 0, 0, None, None))(
         learner, keys, agent, s, a, r, s2, a2, terminated, epsilon, params, seed_compat)
     w = active.astype(jnp.float32)
-    if ordered:
+    if ordered:  # the counts ride along the values' sort (one scatter fewer, no atomics)
         _, n_states, n_actions = agent.q.shape
         flat = (table * n_states + s) * n_actions + a
-        total = sum_in_order(flat, w * new, agent.q.size).reshape(agent.q.shape)
+        total, count = (x.reshape(agent.q.shape) for x in sum_in_order(flat, (w * new, w), agent.q.size))
     else:
         total = jnp.zeros_like(agent.q).at[table, s, a].add(w * new)
-    # Counts are whole numbers, exact in float32 in any order of addition.
-    count = jnp.zeros_like(agent.q).at[table, s, a].add(w)
+        count = jnp.zeros_like(agent.q).at[table, s, a].add(w)
+    # Counts are whole numbers, exact in float32 in any order of addition: both branches count alike.
     q = jnp.where(count > 0, total / jnp.maximum(count, 1.0), agent.q)
     visited = None
     if agent.visited is not None:

@@ -101,6 +101,12 @@ def test_sum_in_order_is_the_scatter_add_summed_in_one_order():
     np.testing.assert_allclose(np.asarray(sum_in_order(index, frac, 9)), exact, rtol=1e-5, atol=1e-6)
     assert np.asarray(jax.vmap(lambda v: sum_in_order(index, v, 9))(jnp.stack([whole, frac])))[0].tolist() == \
         np.asarray(expected).tolist()
+    # Several arrays share one sort; 16-bit and 32-bit sort keys give the same order, so the same sums.
+    both = sum_in_order(index, (frac, whole), 9)
+    wide = sum_in_order(index, {"f": frac, "w": whole}, 1 << 17)
+    assert np.array_equal(np.asarray(both[0]), np.asarray(sum_in_order(index, frac, 9)))
+    assert np.array_equal(np.asarray(both[1]), np.asarray(expected))
+    assert np.array_equal(np.asarray(wide["f"][:9]), np.asarray(both[0])) and not np.asarray(wide["w"][9:]).any()
     spec = _spec("analytic", shared_table=True)
     base = ExecutionPlan.for_run(spec.env, spec.config, "cpu", compiler_options=FAST)
     plain = train(spec.env, spec.config, spec.agent_params, plan=base)
