@@ -16,13 +16,20 @@ settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "reproducible"))
 
 # Identical programs compiled by several tests (e.g. the determinism check) are compiled once.
-_CACHE = os.environ.get("JAXROBO_TEST_CACHE", os.path.join(os.path.dirname(__file__), "..", ".jax_cache", "tests"))
-jax.config.update("jax_compilation_cache_dir", os.path.abspath(_CACHE))
+_BASE = os.path.abspath(
+    os.environ.get("JAXROBO_TEST_CACHE", os.path.join(os.path.dirname(__file__), "..", ".jax_cache", "tests")))
+# Under pytest-xdist (scripts/test.sh) each worker gets a cache folder of its own: JAX writes an entry in place,
+# not through a temporary file and a rename, so a worker could read the half-written entry of another.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+_CACHE = os.path.join(_BASE, _WORKER) if _WORKER else _BASE
+jax.config.update("jax_compilation_cache_dir", _CACHE)
 # `jaxrobo train` & co., run in-process by many tests (and by the subprocesses of some), turn on the user's cache
 # (~/.cache/jaxrobo/jax) unless JAXROBO_CACHE_DIR names another: name this one, so that the whole session
 # compiles into one cache (a program compiled before the first command is found after it) and a run of the suite
-# neither reads nor fills the user's cache (a cold run is cold).
-os.environ.setdefault("JAXROBO_CACHE_DIR", os.path.abspath(_CACHE))
+# neither reads nor fills the user's cache (a cold run is cold). A worker inherits the base folder from the xdist
+# controller, whose conftest named it: it takes its own folder instead (a folder the caller named is kept).
+if os.environ.get("JAXROBO_CACHE_DIR") in (None, _BASE):
+    os.environ["JAXROBO_CACHE_DIR"] = _CACHE
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 import jaxrobo  # noqa: E402  (picks an OpenGL backend whose library loads, or none: jaxrobo.render)
