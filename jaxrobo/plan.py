@@ -253,9 +253,9 @@ class ExecutionPlan:
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
             fused=fused,
-            # The whole task step as one kernel where the task has one: Goto-v1/v2 + Q-learning at 1 M envs on an
-            # H100 took 1.50 / 1.63 ns per env step against 2.00 / 2.33 ns with only the control step in a kernel
-            # (docs/benchmarks.md, "Pallas: quadcopter").
+            # The whole task step as one kernel where the task has one: the observation, outcome and reward then
+            # leave the batch-wide XLA kernels they took around the control step (docs/benchmarks.md, "Pallas:
+            # quadcopter").
             task_kernel=fused == "pallas" and task_kernel(env),
             # A GPU sums a shared table's updates as float atomics in no fixed order: sum them in order there.
             ordered_sums=backend == "gpu" and config.shared_table,
