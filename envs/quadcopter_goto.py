@@ -37,7 +37,7 @@ import numpy as np
 from envs.quadcopter import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
 from envs.quadcopter_goto_kernel import kernel_step, make_task_step, supports
-from jaxrobo import fused, rng, spaces
+from jaxrobo import rng, spaces
 from jaxrobo.env import BaseParams, EnvState, LearningTarget
 from jaxrobo.struct import param, pytree_dataclass
 
@@ -116,13 +116,10 @@ class QuadcopterGoto(QuadcopterTask):
         self.step_kernel_refusal = supports(self)
         self.step_kernel = make_task_step(self) if self.step_kernel_refusal is None else None
 
-    def step(self, state: EnvState, action: jax.Array, params: Params | None = None) -> EnvState:
-        """:meth:`jaxrobo.env.TaskEnv.step`, or under the plan's task kernel the same step as one kernel over the
-        batch (:func:`envs.quadcopter_goto_kernel.kernel_step`, equal to float32 round-off)."""
-        if self.step_kernel is not None and fused.task_kernels():
-            params = self.default_params if params is None else params
-            return kernel_step(self, state, jnp.asarray(action, self.action_dtype), params)
-        return super().step(state, action, params)
+    def _kernel_step(self, state: EnvState, action: jax.Array, params: Params) -> EnvState:
+        """The step as one kernel over the batch (:func:`envs.quadcopter_goto_kernel.kernel_step`, equal to the
+        hooks' step to float32 round-off)."""
+        return kernel_step(self, state, action, params)
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         n = len(OBS_NAMES)

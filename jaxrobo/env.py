@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 import jax
 import jax.numpy as jnp
 
-from jaxrobo import rng, spaces
+from jaxrobo import fused, rng, spaces
 from jaxrobo.precision import check_precision
 from jaxrobo.robot import Robot
 from jaxrobo.struct import param, pytree_dataclass
@@ -159,6 +159,11 @@ class TaskEnv(Env):
     #: The dtype ``step`` casts an action to before ``_set_action``: int32 for a ``Discrete`` task (every built-in
     #: tabular id), float32 for a task declaring a ``spaces.Box`` action space (the continuous ids).
     action_dtype: ClassVar[Any] = jnp.int32
+    #: The task's whole step as one batch kernel, where the task offers one (the Goto tasks on the ``rigid``
+    #: backend, :mod:`envs.quadcopter_goto_kernel`); None otherwise. Under ``ExecutionPlan(fused="pallas",
+    #: task_kernel=True)`` :meth:`step` runs :meth:`_kernel_step` instead of the hooks (:func:`jaxrobo.plan.
+    #: task_kernel` reads this attribute), which stay the task's definition the kernel is tested against.
+    step_kernel: Any = None
 
     # ---- the seed's hooks (pure; override in tasks) ---------------------------------------------------
     def _set_init_pose(self, key: jax.Array, params: Any) -> tuple[jax.Array, jax.Array]:
@@ -192,9 +197,15 @@ class TaskEnv(Env):
         return EnvState(pipeline_state, obs, jnp.zeros((), jnp.float32), false, false, jnp.zeros((), jnp.int32),
                         task, key, false)
 
+    def _kernel_step(self, state: EnvState, action: jax.Array, params: Any) -> EnvState:
+        """:meth:`step` through :attr:`step_kernel` (one env; a vmapped step makes one call over the batch)."""
+        raise NotImplementedError
+
     def step(self, state: EnvState, action: jax.Array, params: Any = None) -> EnvState:
         params = self.default_params if params is None else params
         action = jnp.asarray(action, self.action_dtype)
+        if self.step_kernel is not None and fused.task_kernels():
+            return self._kernel_step(state, action, params)
         command, task = self._set_action(action, state.task, params)
         pipeline_state = self.robot.advance(state.pipeline_state, command)
         ok = self.robot._check_all_systems_ready(pipeline_state)
