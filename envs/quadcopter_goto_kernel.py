@@ -393,57 +393,11 @@ def make_task_step(env: Any, block: int | None = None, interpret: bool | None = 
 
 
 # ---- one env's step through the batch kernel ---------------------------------------------------------------
-def _on_batch(kernel: TaskStep, inputs: dict, params: jax.Array, per_env: bool) -> dict:
-    """``kernel`` on a batch (``params`` [n, P] if ``per_env`` else [P]); vmapped again (a sweep around the env
-    batch), the new axis is flattened into the batch and it is still one call."""
-
-    @jax.custom_batching.custom_vmap
-    def batch(inputs: dict, params: jax.Array) -> dict:
-        return kernel(inputs, params)
-
-    @batch.def_vmap
-    def batch_of_batches(axis_size: int, in_batched: list, inputs: dict, params: jax.Array) -> tuple[Any, Any]:
-        def merged(x: jax.Array, batched: bool) -> jax.Array:
-            x = x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
-            return x.reshape((axis_size * x.shape[1],) + x.shape[2:])
-
-        n = inputs["qpos"].shape[1 if in_batched[0]["qpos"] else 0]
-        both = params
-        if in_batched[1] or per_env:  # per env after merging: [axis, n, P] → [axis * n, P]
-            both = params if in_batched[1] else jnp.broadcast_to(params, (axis_size,) + params.shape)
-            if not per_env:
-                both = jnp.broadcast_to(both[:, None], (axis_size, n) + params.shape[1:])
-            both = both.reshape((-1, both.shape[-1]))
-        out = _on_batch(kernel, jax.tree.map(merged, inputs, in_batched[0]), both, in_batched[1] or per_env)
-        out = jax.tree.map(lambda x: x.reshape((axis_size, -1) + x.shape[1:]), out)
-        return out, jax.tree.map(lambda _: True, out)
-
-    return batch(inputs, params)
-
-
-def _through(kernel: TaskStep, inputs: dict, params: jax.Array) -> dict:
-    """One env's step computed by ``kernel``: under ``vmap``, one call on the whole batch (the parameters stay one
-    vector unless they are batched too); unbatched, a batch of one."""
-
-    @jax.custom_batching.custom_vmap
-    def one(inputs: dict, params: jax.Array) -> dict:
-        out = _on_batch(kernel, jax.tree.map(lambda x: x[None], inputs), params, False)
-        return jax.tree.map(lambda x: x[0], out)
-
-    @one.def_vmap
-    def batched(axis_size: int, in_batched: list, inputs: dict, params: jax.Array) -> tuple[Any, Any]:
-        spread = lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)  # noqa: E731
-        out = _on_batch(kernel, jax.tree.map(spread, inputs, in_batched[0]), params, bool(in_batched[1]))
-        return out, jax.tree.map(lambda _: True, out)
-
-    return one(inputs, params)
-
-
 def kernel_step(env: Any, state: Any, action: jax.Array, params: Any) -> Any:
     """``env.step(state, action, params)`` (one env; vmap it) through ``env.step_kernel``: the same
     :class:`jaxrobo.env.EnvState` as :meth:`jaxrobo.env.TaskEnv.step`, to float32 round-off."""
     from jaxrobo.env import EnvState
-    from jaxrobo.sim import JointState
+    from jaxrobo.sim import JointState, through_batch
 
     kernel: TaskStep = env.step_kernel
     layout = kernel.layout
@@ -459,7 +413,7 @@ def kernel_step(env: Any, state: Any, action: jax.Array, params: Any) -> Any:
         if layout.obstacle_kind == "mixed":
             inputs["kind"] = obs.kind
     p = jnp.stack([jnp.asarray(getattr(params, name), jnp.float32) for name in layout.param_names])
-    out = _through(kernel, inputs, p)
+    out = through_batch(kernel, inputs, p)  # one call over the batch; p per env where a sweep batches it
     changes = {name: out[name] for name in ("prev_dist", "arrived", "crashed", "prev_bearing", "prev_dz")
                if name in out}
     terminated = out["terminated"]

@@ -184,44 +184,68 @@ class Simulator(abc.ABC):
         return jax.lax.scan(substep, state, None, length=self.n_substeps, unroll=unroll)[0]
 
 
-def _on_batch(kernel: BatchedAdvance, state: Any, command: jax.Array) -> Any:
-    """``kernel(state, command)`` on a batch; vmapped again (a sweep over configurations around the env batch),
-    it flattens the new axis into the batch and still makes one call."""
+def _on_batch(kernel: Callable[[Any, Any], Any], rows: Any, shared: Any, per_row: bool) -> Any:
+    """``kernel(rows, shared)`` on a batch (``shared`` with a leading row axis where ``per_row``); vmapped again (a
+    sweep over configurations around the env batch), it flattens the new axis into the batch and still makes one
+    call (``shared`` then becomes per row where it is batched)."""
 
     @jax.custom_batching.custom_vmap
-    def batch(state: Any, command: jax.Array) -> Any:
-        return kernel(state, command)
+    def batch(rows: Any, shared: Any) -> Any:
+        return kernel(rows, shared)
 
     @batch.def_vmap
-    def batch_of_batches(axis_size: int, in_batched: list, state: Any, command: jax.Array) -> tuple[Any, Any]:
+    def batch_of_batches(axis_size: int, in_batched: list, rows: Any, shared: Any) -> tuple[Any, Any]:
+        def full(x: jax.Array, batched: bool) -> jax.Array:
+            return x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
+
         def merged(x: jax.Array, batched: bool) -> jax.Array:
-            x = x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
+            x = full(x, batched)
             return x.reshape((axis_size * x.shape[1],) + x.shape[2:])
 
-        out = _on_batch(kernel, jax.tree.map(merged, state, in_batched[0]), merged(command, in_batched[1]))
+        n = jax.tree.leaves(jax.tree.map(lambda x, b: x.shape[1 if b else 0], rows, in_batched[0]))[0]
+
+        def one_per_row(x: jax.Array, batched: bool) -> jax.Array:  # -> [axis * n, ...]
+            if per_row:  # already one per row: [axis, n, ...]
+                return merged(x, batched)
+            x = full(x, batched)  # one per configuration: [axis, ...]
+            return jnp.broadcast_to(x[:, None], (axis_size, n) + x.shape[1:]).reshape((axis_size * n,) + x.shape[1:])
+
+        per = per_row or any(jax.tree.leaves(in_batched[1]))
+        if per:
+            shared = jax.tree.map(one_per_row, shared, in_batched[1])
+        out = _on_batch(kernel, jax.tree.map(merged, rows, in_batched[0]), shared, per)
         out = jax.tree.map(lambda x: x.reshape((axis_size, -1) + x.shape[1:]), out)
         return out, jax.tree.map(lambda _: True, out)
 
-    return batch(state, command)
+    return batch(rows, shared)
 
 
-def through_kernel(kernel: BatchedAdvance, state: Any, command: jax.Array) -> Any:
-    """One env's control step computed by ``kernel``, a function of a batch: under ``vmap`` (an env batch, and
-    any vmap around it) one call on the whole batch, instead of the kernel traced per env; unbatched, a batch of
-    one."""
+def through_batch(kernel: Callable[[Any, Any], Any], rows: Any, shared: Any = ()) -> Any:
+    """One env's ``rows`` (a pytree) computed by ``kernel(rows_batch, shared)``, a function of a batch: under
+    ``vmap`` (an env batch, and any vmap around it) one call on the whole batch, instead of the kernel traced per
+    env; unbatched, a batch of one. ``shared`` (e.g. a task's parameters) reaches the kernel as it is, or, where a
+    vmap batches it (a sweep over them), with a leading axis of one value per row: the kernel tells the two apart
+    by shape."""
 
     @jax.custom_batching.custom_vmap
-    def one(state: Any, command: jax.Array) -> Any:
-        out = _on_batch(kernel, jax.tree.map(lambda x: x[None], state), command[None])
+    def one(rows: Any, shared: Any) -> Any:
+        out = _on_batch(kernel, jax.tree.map(lambda x: x[None], rows), shared, False)
         return jax.tree.map(lambda x: x[0], out)
 
     @one.def_vmap
-    def batched(axis_size: int, in_batched: list, state: Any, command: jax.Array) -> tuple[Any, Any]:
+    def batched(axis_size: int, in_batched: list, rows: Any, shared: Any) -> tuple[Any, Any]:
         spread = lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)  # noqa: E731
-        out = _on_batch(kernel, jax.tree.map(spread, state, in_batched[0]), spread(command, in_batched[1]))
+        per = any(jax.tree.leaves(in_batched[1]))
+        out = _on_batch(kernel, jax.tree.map(spread, rows, in_batched[0]),
+                        jax.tree.map(spread, shared, in_batched[1]) if per else shared, per)
         return out, jax.tree.map(lambda _: True, out)
 
-    return one(state, command)
+    return one(rows, shared)
+
+
+def through_kernel(kernel: BatchedAdvance, state: Any, command: jax.Array) -> Any:
+    """One env's control step computed by ``kernel``, a function of a batch (:func:`through_batch`)."""
+    return through_batch(lambda rows, _: kernel(*rows), (state, command))
 
 
 def constraint_free(m: mujoco.MjModel) -> bool:
