@@ -105,7 +105,9 @@ class Trainer:
         self.learner = learner or registry.learner(config.agent)
         self.disc = discretiser or make_discretiser_for(env, config)
         self.n_actions = env.num_actions
-        self.plan = ExecutionPlan.for_run(env, config) if plan is None else plan
+        # The default plan of this run: its learner and discretiser decide whether the whole chunk runs as one kernel.
+        self.plan = ExecutionPlan.for_run(env, config, agent=self.learner.name, discretiser=self.disc) \
+            if plan is None else plan
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
         if self.plan.fused == "pallas":
