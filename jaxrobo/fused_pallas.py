@@ -20,15 +20,16 @@ XLA rounds differently in the last bit. Once such a bit moves a state across a b
 any last-bit change does in tabular learning; on a GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so
 the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
 
-Supported (:func:`unsupported` says why not, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the
-``analytic`` backend with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not
-``seed_compat``), one table per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys
-with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
-the call (tested interpreted; not run on a GPU).
+Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
+for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
+with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not ``seed_compat``), one table
+per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys with
+``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
+the call (tested interpreted; on a GPU it compiled and trained, docs/benchmarks.md, "Pallas").
 
-Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
-:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is
-traced).
+Public surface: :func:`unsupported_run`, :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the
+tuning knobs :data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a
+chunk is traced).
 """
 from __future__ import annotations
 
@@ -99,7 +100,7 @@ def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser
         return f"agent={agent!r} (seed_compat={c.seed_compat}, shared_table={c.shared_table}); " \
                "only agent='qlearn' with per-env tables, not seed_compat"
     if discretiser is None:
-        from jaxrobo.trainer import make_discretiser_for  # the trainer imports the plan, which imports this lazily
+        from jaxrobo.discretise import make_discretiser_for
 
         discretiser = make_discretiser_for(env, c)
     if discretiser.edges is not None:

@@ -57,9 +57,9 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
     return None
 
 
-#: Fewest envs a GPU run has for :func:`default_fused` to write out many substeps: from 1,024 envs it ran faster
-#: per step (measured); the default Goto preset's 64 envs took twice the wall time (the written-out physics
-#: compiles ~9 s longer, which a run that small does not earn back).
+#: Fewest envs a GPU run has for :func:`default_fused` to write out many substeps or run a Pallas kernel: from
+#: 1,024 envs they ran faster per step (measured); the default Goto preset's 64 envs took twice the wall time (the
+#: written-out physics compiles ~9 s longer, which a run that small does not earn back).
 _FUSED_MIN_ENVS = 1024
 
 
