@@ -12,7 +12,7 @@ into the end bins); the per-dimension bin indices are combined row-major into on
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -183,3 +183,13 @@ def make_discretiser(low: Sequence[float], high: Sequence[float], mode: str = "b
         return Discretiser(jnp.asarray(start, jnp.float32), jnp.asarray(width, jnp.float32), bins)
     width = (high_np - low_np) / np.asarray(bins)
     return Discretiser(jnp.asarray(low_np, jnp.float32), jnp.asarray(width, jnp.float32), bins)
+
+
+def make_discretiser_for(env: Any, config: Any, env_params: Any = None) -> Discretiser:
+    """The discretiser a config (a :class:`jaxrobo.trainer.TrainConfig`) asks for, over ``env``'s state bounds
+    (``env.state_bounds``) unless the config gives its own."""
+    low, high = env.state_bounds(env_params)
+    low = np.asarray(config.state_low if config.state_low is not None else low, np.float64)
+    high = np.asarray(config.state_high if config.state_high is not None else high, np.float64)
+    splits = config.bins if config.bins is not None else config.number_splits
+    return make_discretiser(low, high, config.discretiser, splits, config.resolution, config.edges)

@@ -20,15 +20,16 @@ XLA rounds differently in the last bit. Once such a bit moves a state across a b
 any last-bit change does in tabular learning; on a GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so
 the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
 
-Supported (:func:`unsupported` says why not, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the
-``analytic`` backend with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not
-``seed_compat``), one table per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys
-with ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
-the call (tested interpreted; not run on a GPU).
+Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
+for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
+with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not ``seed_compat``), one table
+per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys with
+``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
+the call (tested interpreted; on a GPU it compiled and trained, docs/benchmarks.md, "Pallas").
 
-Public surface: :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the tuning knobs
-:data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is
-traced).
+Public surface: :func:`unsupported_run`, :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the
+tuning knobs :data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a
+chunk is traced).
 """
 from __future__ import annotations
 
@@ -72,9 +73,21 @@ _PARAMS = 32
 
 
 def unsupported(trainer: Any) -> str | None:
-    """Why ``trainer``'s run cannot take the Pallas path (None: it can)."""
+    """Why ``trainer``'s run cannot take the Pallas path (None: it can): :func:`unsupported_run` of its env,
+    config, learner, discretiser and ``fused_block``."""
+    return unsupported_run(trainer.env, trainer.config, trainer.learner.name, trainer.disc, trainer.plan.fused_block)
+
+
+def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser: Any = None,
+                    fused_block: int | None = None) -> str | None:
+    """Why training ``env`` with ``config`` (a :class:`jaxrobo.trainer.TrainConfig`) cannot take the Pallas path
+    (None: it can); the one place its rules live, read both by the plan's default
+    (:meth:`jaxrobo.plan.ExecutionPlan.for_run`) and by the boundary that refuses an explicit choice (:func:`check`).
+    ``agent``: the learner's name (default: ``config.agent``); ``discretiser``: the run's
+    :class:`jaxrobo.discretise.Discretiser` (default: the config's, built only once the env qualifies);
+    ``fused_block``: the plan's envs per program."""
     # By class name, not isinstance: jaxrobo reaches the envs only through the registry (tests/test_structure.py).
-    env, c = trainer.env, trainer.config
+    c = config
     if "CartPoleStayUp" not in {k.__name__ for k in type(env).__mro__}:
         return f"the env is {type(env).__name__}; only CartPoleStayUp"
     o = env.options
@@ -82,17 +95,22 @@ def unsupported(trainer: Any) -> str | None:
         return f"backend={o.backend!r}; only backend='analytic'"
     if o.control_type != "velocity" or o.round_obs:
         return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
-    if trainer.learner.name != "qlearn" or c.seed_compat or c.shared_table:
-        return f"agent={trainer.learner.name!r} (seed_compat={c.seed_compat}, shared_table={c.shared_table}); " \
+    agent = c.agent if agent is None else agent
+    if agent != "qlearn" or c.seed_compat or c.shared_table:
+        return f"agent={agent!r} (seed_compat={c.seed_compat}, shared_table={c.shared_table}); " \
                "only agent='qlearn' with per-env tables, not seed_compat"
-    if trainer.disc.edges is not None:
+    if discretiser is None:
+        from jaxrobo.discretise import make_discretiser_for
+
+        discretiser = make_discretiser_for(env, c)
+    if discretiser.edges is not None:
         return "discretiser='edges'; only 'bins' or 'round'"
     if not jax.config.jax_threefry_partitionable or jax.config.jax_default_prng_impl != "threefry2x32":
         return "only JAX's default threefry keys with jax_threefry_partitionable"
-    b = trainer.plan.fused_block
+    b = fused_block
     if b is not None and (b > _MAX_BLOCK or b & (b - 1)):
         return f"fused_block={b}; with fused='pallas' the envs per program, a power of two up to {_MAX_BLOCK}"
-    if c.n_envs * trainer.disc.n_states * trainer.n_actions >= 2**31:
+    if c.n_envs * discretiser.n_states * env.num_actions >= 2**31:
         return "the tables hold 2**31 entries or more (int32 indices)"
     if c.record_episodes and c.n_envs * c.nepisodes >= 2**31:
         return "the episode records hold 2**31 entries or more (int32 indices); set record_episodes=False"

@@ -57,9 +57,9 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
     return None
 
 
-#: Fewest envs a GPU run has for :func:`default_fused` to write out many substeps: from 1,024 envs it ran faster
-#: per step (measured); the default Goto preset's 64 envs took twice the wall time (the written-out physics
-#: compiles ~9 s longer, which a run that small does not earn back).
+#: Fewest envs a GPU run has for :func:`default_fused` to write out many substeps or run a Pallas kernel: from
+#: 1,024 envs they ran faster per step (measured); the default Goto preset's 64 envs took twice the wall time (the
+#: written-out physics compiles ~9 s longer, which a run that small does not earn back).
 _FUSED_MIN_ENVS = 1024
 
 
@@ -112,26 +112,43 @@ def check_pallas(trainer: Any) -> None:
                          "Q-learning (the whole chunk as one kernel); use fused='off' or 'xla' otherwise")
 
 
-def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None) -> str:
-    """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, with a
+def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None, *, config: Any = None,
+                  agent: str | None = None, discretiser: Any = None) -> str:
+    """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, where JAX
+    sees one device: ``"pallas"`` for a run whose whole chunk is one kernel (the analytic cart-pole with Q-learning,
+    :mod:`jaxrobo.fused_pallas`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
+    compiles ~10-12 s longer, which a run of fewer than ~0.4 M steps per env at up to 16 k envs does not earn
+    back, docs/benchmarks.md, "Pallas"), decided from ``config`` (a :class:`jaxrobo.trainer.TrainConfig`; its
+    ``n_envs`` replaces ``n_envs``) with the run's learner name ``agent`` and ``discretiser`` (defaults: the
+    config's) by :func:`jaxrobo.fused_pallas.unsupported_run`, the rules that also refuse an explicit choice.
+    Otherwise, with a
     closed form of more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot
     offers its control step as a kernel (:func:`physics_kernel`: the rigid quadcopter, whose Goto + Q-learning ran
     2.9-3.9x the env steps/s of ``"xla"`` on an H100 at 1 k-1 M envs and compiled faster) and JAX sees one device,
     else ``"xla"`` (the substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"``
     otherwise: on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back
-    the longer compile, and with 8 substeps or fewer the program is the same. The cart-pole's whole-chunk kernel
-    and blocks of envs (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path"). ``backend``: JAX's
-    platform name (default: ``jax.default_backend()``); ``n_envs`` None (stepping envs outside training):
-    ``"off"``."""
+    the longer compile, and with 8 substeps or fewer the program is the same. A run the kernels cannot take keeps
+    these choices; blocks of envs (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path" and
+    "Pallas"). ``backend``: JAX's platform name (default: ``jax.default_backend()``); ``n_envs`` and ``config``
+    None (stepping envs outside training): ``"off"``."""
     backend = jax.default_backend() if backend is None else backend
-    sim = simulator_of(env)
-    many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
+    n_envs = config.n_envs if config is not None else n_envs
     big = n_envs is not None and n_envs >= _FUSED_MIN_ENVS
-    if not (many and big and backend == "gpu"):
+    if not (big and backend == "gpu"):
         return "off"
     # One device only: a run sharded over several (a sweep's automatic mesh) would hand the kernel, a custom call
-    # XLA cannot partition, a sharded batch; not measured on several GPUs, so they keep the written-out substeps.
-    return "pallas" if physics_kernel(env) and jax.device_count() == 1 else "xla"
+    # XLA cannot partition, a sharded batch; not measured on several GPUs, so they keep the plain choices.
+    one = jax.device_count() == 1
+    if config is not None and one and not physics_kernel(env):
+        from jaxrobo import fused_pallas
+
+        if fused_pallas.unsupported_run(env, config, agent, discretiser) is None:
+            return "pallas"
+    sim = simulator_of(env)
+    many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
+    if not many:
+        return "off"
+    return "pallas" if physics_kernel(env) and one else "xla"
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -227,25 +244,31 @@ class ExecutionPlan:
 
     @classmethod
     def for_run(cls, env: Env, config: Any = None, backend: str | None = None, *,
-                compiler_options: Mapping[str, Any] | None = None) -> "ExecutionPlan":
+                compiler_options: Mapping[str, Any] | None = None, agent: str | None = None,
+                discretiser: Any = None) -> "ExecutionPlan":
         """The plan for training ``env`` with ``config`` (a :class:`jaxrobo.trainer.TrainConfig`: its ``n_envs``,
         ``shared_table`` and ``env_group``) on ``backend`` (JAX's platform name; default
         ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector
         env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not
         carried. With a config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"``
-        from 262,144 envs, the whole batch (the plain select) otherwise. ``compiler_options``: see the class docstring
+        with a physics kernel from 262,144 envs, the whole batch (the plain select) otherwise. ``fused``:
+        :func:`default_fused`, which on one GPU from 1,024 envs picks ``"pallas"`` for a run the cart-pole's
+        whole-chunk kernel takes; ``agent`` (a learner's name) and ``discretiser`` (a
+        :class:`jaxrobo.discretise.Discretiser`) are the run's where they differ from the config's (a
+        :class:`jaxrobo.trainer.Trainer` given its own passes them). ``compiler_options``: see the class docstring
         (XLA's defaults unless given). ``ordered_sums`` is on for a shared table on a GPU."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
         if config is None:
             return cls(env_group=default_env_group(env, backend), compiler_options=compiler_options)
-        fused = default_fused(env, backend, config.n_envs)
+        fused = default_fused(env, backend, config=config, agent=agent, discretiser=discretiser)
         # Gather the done envs (an eighth of the batch: few finish on any one step) on a CPU, and on a GPU where
         # the physics runs as a kernel and the batch is large: there the plain select's reset of every env (goal,
         # obstacles, a first observation with its ray tests) cost up to a fifth of the step (Goto-v2 on an H100,
         # 262 k and 1 M envs). Smaller GPU batches are latency-bound and the gather adds ~50 kernels a step (not
-        # measured there); elsewhere on an accelerator the plain select.
-        gather = cpu or (fused == "pallas" and config.n_envs >= _GATHER_MIN_ENVS)
+        # measured there); elsewhere on an accelerator the plain select. The cart-pole's whole-chunk kernel resets
+        # in place and reads neither.
+        gather = cpu or (fused == "pallas" and physics_kernel(env) and config.n_envs >= _GATHER_MIN_ENVS)
         return cls(
             # The config's env_group, 0 meaning automatic.
             env_group=config.env_group or default_env_group(env, backend),

@@ -13,8 +13,9 @@ parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`
 runs a host loop: :mod:`jaxrobo.driver` compiles the chunk and runs it chunk after chunk.
 
 Public surface: :class:`TrainConfig`, :class:`Runner`, :class:`Trainer` (``init``, ``step``, ``run_chunk``,
-``max_chunks``, ``evaluate``, ``evaluate_episodes``), :func:`make_discretiser_for`, :func:`progress_stats`. Names
-with a leading underscore are private.
+``max_chunks``, ``evaluate``, ``evaluate_episodes``), :func:`make_discretiser_for` (defined in
+:mod:`jaxrobo.discretise`, where the plan's default reads it too), :func:`progress_stats`. Names with a leading
+underscore are private.
 """
 from __future__ import annotations
 
@@ -23,12 +24,11 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxrobo import tabular
 from jaxrobo.tabular import AgentParams, AgentState, Learner
 from jaxrobo import autoreset, registry, rng, rollout
-from jaxrobo.discretise import MODES, Discretiser, make_discretiser
+from jaxrobo.discretise import MODES, Discretiser, make_discretiser_for
 from jaxrobo.env import Env, EnvState
 from jaxrobo.plan import ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
 from jaxrobo.struct import param, pytree_dataclass
@@ -83,15 +83,6 @@ class Runner:
     env_steps: jax.Array
 
 
-def make_discretiser_for(env: Env, config: TrainConfig, env_params: Any = None) -> Discretiser:
-    """The discretiser a config asks for, over the task's state bounds unless the config gives its own."""
-    low, high = env.state_bounds(env_params)
-    low = np.asarray(config.state_low if config.state_low is not None else low, np.float64)
-    high = np.asarray(config.state_high if config.state_high is not None else high, np.float64)
-    splits = config.bins if config.bins is not None else config.number_splits
-    return make_discretiser(low, high, config.discretiser, splits, config.resolution, config.edges)
-
-
 class Trainer:
     """Pure ``init`` / ``run_chunk`` / ``evaluate`` for one env, learner, discretiser and config."""
 
@@ -105,7 +96,9 @@ class Trainer:
         self.learner = learner or registry.learner(config.agent)
         self.disc = discretiser or make_discretiser_for(env, config)
         self.n_actions = env.num_actions
-        self.plan = ExecutionPlan.for_run(env, config) if plan is None else plan
+        # The default plan of this run: its learner and discretiser decide whether the whole chunk runs as one kernel.
+        self.plan = ExecutionPlan.for_run(env, config, agent=self.learner.name, discretiser=self.disc) \
+            if plan is None else plan
         if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
             raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
         if self.plan.fused == "pallas":

@@ -43,8 +43,9 @@ def test_the_choice_is_validated_and_named():
 
 def test_the_plan_fuses_where_it_measured_faster():
     """Training 1,024 envs or more on a GPU, a closed form with more than 8 substeps (the quadcopter's 30) runs
-    fused; fewer envs, a CPU, the cart-pole's 4 substeps (written out either way), MJX and envs stepped outside
-    training do not; no plan blocks envs by default."""
+    fused; fewer envs, a CPU, the cart-pole's 4 substeps (written out either way; with Q-learning its whole chunk
+    is the Pallas kernel instead, tests/test_fused_pallas.py), MJX and envs stepped outside training do not; no
+    plan blocks envs by default."""
     goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=1024))
     assert ExecutionPlan.for_run(goto.env, goto.config, "gpu").fused == "pallas"  # its robot has a kernel
     mjx = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=1024, backend="mjx"))
@@ -54,7 +55,7 @@ def test_the_plan_fuses_where_it_measured_faster():
     assert ExecutionPlan.for_run(goto.env, backend="gpu").fused == "off"
     small = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=1023))
     assert ExecutionPlan.for_run(small.env, small.config, "gpu").fused == "off"
-    for cartpole in (_cartpole(n_envs=4096), _cartpole(backend="mjx", n_envs=4096)):
+    for cartpole in (_cartpole(n_envs=4096, agent="sarsa"), _cartpole(backend="mjx", n_envs=4096)):
         assert ExecutionPlan.for_run(cartpole.env, cartpole.config, "gpu").fused == "off"
 
 
