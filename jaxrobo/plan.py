@@ -37,6 +37,7 @@ import jax
 
 from jaxrobo import fused as _fused
 from jaxrobo import mjx_lean
+from jaxrobo.config import ConfigError
 from jaxrobo.env import Env, EnvState, layers, simulator_of
 
 #: Envs stepped at once on a GPU when the env runs on MJX: beyond this size a step's intermediates no longer fit
@@ -86,20 +87,20 @@ def task_kernel(env: Env) -> bool:
 
 
 def check_pallas(trainer: Any) -> None:
-    """Refuse, naming the field and the runs it supports, a :class:`jaxrobo.trainer.Trainer` whose run
-    ``fused="pallas"`` cannot take. Two runs can: a robot with a physics kernel (:func:`physics_kernel`), with
+    """Refuse (a :class:`jaxrobo.config.ConfigError`, naming the field and the runs it supports) a
+    :class:`jaxrobo.trainer.Trainer` whose run ``fused="pallas"`` cannot take. Two runs can: a robot with a physics kernel (:func:`physics_kernel`), with
     any learner, and the analytic cart-pole with Q-learning, whose whole chunk is one kernel
     (:mod:`jaxrobo.fused_pallas`)."""
     if trainer.plan.task_kernel and not task_kernel(trainer.env):
         inner = layers(trainer.env)[-1]
         why = getattr(inner, "step_kernel_refusal", None)  # the task's reason, where it names one
-        raise ValueError(f"ExecutionPlan task_kernel=True: {type(inner).__name__} has no kernel for its whole step"
+        raise ConfigError(f"ExecutionPlan task_kernel=True: {type(inner).__name__} has no kernel for its whole step"
                          f"{f' ({why})' if why else ''}; the Goto tasks with discrete actions on backend='rigid' "
                          "have one. Set task_kernel=False (the control step alone runs as a kernel where the "
                          "robot has one)")
     if physics_kernel(trainer.env):
         if trainer.plan.fused_block is not None:
-            raise ValueError(f"ExecutionPlan fused='pallas': fused_block={trainer.plan.fused_block}; the "
+            raise ConfigError(f"ExecutionPlan fused='pallas': fused_block={trainer.plan.fused_block}; the "
                              f"{type(trainer.env).__name__} control-step kernel sets its own envs per program: "
                              "leave fused_block None")
         return
@@ -107,7 +108,7 @@ def check_pallas(trainer: Any) -> None:
 
     why = fused_pallas.unsupported(trainer)
     if why is not None:
-        raise ValueError(f"ExecutionPlan fused='pallas': {why}. It supports the quadcopter tasks on backend='rigid' "
+        raise ConfigError(f"ExecutionPlan fused='pallas': {why}. It supports the quadcopter tasks on backend='rigid' "
                          "(the control step as one kernel, any learner) and the analytic CartPoleStayUp with "
                          "Q-learning (the whole chunk as one kernel); use fused='off' or 'xla' otherwise")
 
@@ -251,8 +252,9 @@ class ExecutionPlan:
         ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector
         env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not
         carried. With a config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"``
-        with a physics kernel from 262,144 envs, the whole batch (the plain select) otherwise. ``fused``:
-        :func:`default_fused`, which on one GPU from 1,024 envs picks ``"pallas"`` for a run the cart-pole's
+        with a physics kernel from 262,144 envs, the whole batch (the plain select) otherwise. ``fused``: the
+        config's ``fused`` where it names one (``off``, ``xla``, ``pallas``), else (``auto``) :func:`default_fused`,
+        which on one GPU from 1,024 envs picks ``"pallas"`` for a run the cart-pole's
         whole-chunk kernel takes; ``agent`` (a learner's name) and ``discretiser`` (a
         :class:`jaxrobo.discretise.Discretiser`) are the run's where they differ from the config's (a
         :class:`jaxrobo.trainer.Trainer` given its own passes them). ``compiler_options``: see the class docstring
@@ -261,7 +263,10 @@ class ExecutionPlan:
         cpu = backend == "cpu"
         if config is None:
             return cls(env_group=default_env_group(env, backend), compiler_options=compiler_options)
-        fused = default_fused(env, backend, config=config, agent=agent, discretiser=discretiser)
+        # The config's fused, "auto" (or a config without the field) meaning the default for this device and run.
+        asked = getattr(config, "fused", "auto")
+        fused = default_fused(env, backend, config=config, agent=agent, discretiser=discretiser) \
+            if asked == "auto" else asked
         # Gather the done envs (an eighth of the batch: few finish on any one step) on a CPU, and on a GPU where
         # the physics runs as a kernel and the batch is large: there the plain select's reset of every env (goal,
         # obstacles, a first observation with its ray tests) cost up to a fifth of the step (Goto-v2 on an H100,

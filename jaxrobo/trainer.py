@@ -30,7 +30,7 @@ from jaxrobo.tabular import AgentParams, AgentState, Learner
 from jaxrobo import autoreset, registry, rng, rollout
 from jaxrobo.discretise import MODES, Discretiser, make_discretiser_for
 from jaxrobo.env import Env, EnvState
-from jaxrobo.plan import ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
+from jaxrobo.plan import FUSED_CHOICES, ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
 from jaxrobo.struct import param, pytree_dataclass
 
 
@@ -58,6 +58,9 @@ class TrainConfig:
     eval_envs: int = param(8, low=1, static=True, doc="how many trained tables to evaluate")
     env_group: int = param(0, low=0, static=True,
                            doc="envs stepped together, group after group (0: automatic, see ExecutionPlan)")
+    fused: str = param("auto", choices=("auto",) + FUSED_CHOICES, static=True,
+                       doc="how a closed form's substeps and kernels run (auto: ExecutionPlan.for_run's choice for "
+                           "the device and run; off, xla or pallas: that one, pallas refused where it cannot run)")
 
 
 @pytree_dataclass

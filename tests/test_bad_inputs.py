@@ -208,6 +208,9 @@ TRAIN = [
       "discretiser=hash"),
     T("control-type-unknown", "control_type='magic': allowed values are", "--set", "control_type=magic"),
     T("n-actions-unsupported", "n_actions=3: allowed values are 2, 4", "--set", "n_actions=3"),
+    T("fused-unknown", "fused='fast': allowed values are 'auto', 'off', 'xla', 'pallas'", "--set", "fused=fast"),
+    T("fused-pallas-unsupported", "ExecutionPlan fused='pallas': backend='mjx'; only backend='analytic'",
+      "--set", "fused=pallas"),
     T("running-step-off-grid", "running_step=0.0333 s is not a whole multiple of the physics timestep",
       "--set", "running_step=0.0333"),
     # combinations

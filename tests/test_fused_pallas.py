@@ -14,6 +14,7 @@ import jax
 import numpy as np
 import pytest
 
+from jaxrobo.config import ConfigError
 from jaxrobo.plan import ExecutionPlan
 from jaxrobo.run import resolve
 from jaxrobo.train import Trainer, train
@@ -79,6 +80,13 @@ def test_the_gpu_default_picks_the_kernel_where_it_applies(monkeypatch):
         Trainer(other.env, other.config, plan=ExecutionPlan.for_run(other.env, other.config, "gpu"))  # accepted
     goto = resolve("QuadcopterGoto-v2", overrides=dict(n_envs=1024, backend="rigid"))
     assert (fused(goto), ExecutionPlan.for_run(goto.env, goto.config, "gpu").task_kernel) == ("pallas", True)
+    # The config's `fused` (`--set fused=...`, a preset, a sweep) names the choice; "auto" leaves it to the plan.
+    assert [fused(_cartpole(n_envs=1024, fused=f)) for f in ("off", "xla", "auto")] == ["off", "xla", "pallas"]
+    assert fused(_cartpole(n_envs=12, fused="pallas"), "cpu") == "pallas"
+    assert fused(resolve("QuadcopterGoto-v2", overrides=dict(n_envs=1024, backend="rigid", fused="off"))) == "off"
+    with pytest.raises(ConfigError, match="ExecutionPlan fused='pallas': backend='mjx'"):
+        mjx = _cartpole(n_envs=12, backend="mjx", fused="pallas")
+        Trainer(mjx.env, mjx.config)
     monkeypatch.setattr(jax, "device_count", lambda *a, **k: 2)  # a sweep sharded over several devices
     assert fused(big) == "off" and fused(goto) == "xla"
 
