@@ -169,35 +169,7 @@ def test_the_plan_chooses_it_where_the_task_has_one_and_refuses_it_elsewhere():
     Trainer(show.env, show.config, plan=_plan(show, fused="pallas"))  # the control-step kernel alone
 
 
-def _carry(spec, n_chunks: int, **plan_changes):
-    trainer = Trainer(spec.env, spec.config, plan=_plan(spec, **plan_changes))
-    runner = jax.jit(trainer.init)(jax.random.key(5), spec.agent_params, spec.env.default_params)
-    chunk = jax.jit(trainer.run_chunk)
-    for _ in range(n_chunks):
-        runner = chunk(runner, spec.agent_params, spec.env.default_params)
-    as_data = lambda x: jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x  # noqa: E731
-    return jax.tree_util.tree_flatten_with_path(jax.tree.map(as_data, runner))[0]
-
-
-def test_training_follows_the_plain_path_whatever_the_chunking():
-    """Goto-v2, 4 envs feeding the preset's shared table, 45 training steps: the task kernel's run takes the plain
-    path's actions, episodes and resets (every discrete part of the carry equal), its continuous values equal to
-    round-off; as 3 chunks of 15 or 5 chunks of 9 its carries are equal bit for bit."""
-    spec = _spec("v2-mixed")
-    plain = _carry(spec, 3)
-    kernel = _carry(spec, 3, fused="pallas", task_kernel=True)
-    rechunked = _carry(resolve("QuadcopterGoto-v2", overrides={**TINY, **CASES["v2-mixed"][1], "chunk_steps": 9}), 5,
-                       fused="pallas", task_kernel=True)
-    for (path, a), (_, b), (_, c) in zip(plain, kernel, rechunked):
-        name = jax.tree_util.keystr(path)
-        a, b, c = np.asarray(a), np.asarray(b), np.asarray(c)
-        np.testing.assert_array_equal(b, c, err_msg=name)
-        if np.issubdtype(a.dtype, np.floating):
-            np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-4, err_msg=name)
-        else:
-            np.testing.assert_array_equal(b, a, err_msg=name)
-    episodes = dict((jax.tree_util.keystr(p), np.asarray(x)) for p, x in plain)[".episode"]
-    assert episodes.sum() > 0  # episodes ended (and were reset) within the run
+# Training through the task kernel follows the plain path: tests/test_quadcopter_kernel.py (both kernels).
 
 
 @pytest.mark.parametrize("case", ["v1", "v2-mixed"])

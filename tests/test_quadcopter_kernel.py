@@ -142,8 +142,8 @@ def test_the_choice_is_accepted_for_the_rigid_quadcopter_with_any_learner_and_re
         Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
 
 
-def _carry(spec, fused_choice: str, n_chunks: int):
-    trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused=fused_choice))
+def _carry(spec, n_chunks: int, **plan_changes):
+    trainer = Trainer(spec.env, spec.config, plan=_plan(spec, **plan_changes))
     runner = jax.jit(trainer.init)(jax.random.key(5), spec.agent_params, spec.env.default_params)
     chunk = jax.jit(trainer.run_chunk)
     for _ in range(n_chunks):
@@ -152,15 +152,21 @@ def _carry(spec, fused_choice: str, n_chunks: int):
     return jax.tree_util.tree_flatten_with_path(jax.tree.map(as_data, runner))[0]
 
 
-def test_training_follows_the_plain_path_whatever_the_chunking():
+@pytest.mark.parametrize("overrides,kernel", [
+    ({}, dict(fused="pallas")),  # the control step as the kernel, the task in XLA
+    # the task's whole step as the kernel (envs/quadcopter_goto_kernel.py), with more obstacles than it writes
+    # out and both kinds
+    (dict(n_obstacles=3, obstacle_kind="mixed"), dict(fused="pallas", task_kernel=True)),
+], ids=["control-step", "task-step"])
+def test_training_follows_the_plain_path_whatever_the_chunking(overrides, kernel):
     """Goto-v2, 4 envs feeding the preset's shared table, 45 training steps (episodes of at most 20): the
     kernel's run takes the plain path's actions, episodes and resets (every discrete part of the carry equal),
     its states, rewards, returns and table values equal to round-off (the reward reads continuous distances);
     and as 3 chunks of 15 or 5 chunks of 9 the kernel's carries are equal bit for bit."""
-    plain = _carry(_goto(n_envs=4), "off", 3)
-    kernel = _carry(_goto(n_envs=4), "pallas", 3)
-    rechunked = _carry(_goto(n_envs=4, chunk_steps=9), "pallas", 5)
-    for (path, a), (_, b), (_, c) in zip(plain, kernel, rechunked):
+    plain = _carry(_goto(n_envs=4, **overrides), 3)
+    kernel_run = _carry(_goto(n_envs=4, **overrides), 3, **kernel)
+    rechunked = _carry(_goto(n_envs=4, chunk_steps=9, **overrides), 5, **kernel)
+    for (path, a), (_, b), (_, c) in zip(plain, kernel_run, rechunked):
         name = jax.tree_util.keystr(path)
         a, b, c = np.asarray(a), np.asarray(b), np.asarray(c)
         np.testing.assert_array_equal(b, c, err_msg=name)
