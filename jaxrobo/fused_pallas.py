@@ -40,6 +40,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrobo.config import ConfigError
+
 #: Envs per Pallas program when the plan's ``fused_block`` is None (a power of two; smaller where ``n_envs`` has
 #: fewer factors of two), one per GPU thread: ``num_warps`` is ``block / 32`` (1 to 8) unless :data:`NUM_WARPS`
 #: says otherwise. ``ExecutionPlan(fused="pallas", fused_block=B)`` asks for B (a power of two up to 1024).
@@ -82,7 +84,7 @@ def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser
                     fused_block: int | None = None) -> str | None:
     """Why training ``env`` with ``config`` (a :class:`jaxrobo.trainer.TrainConfig`) cannot take the Pallas path
     (None: it can); the one place its rules live, read both by the plan's default
-    (:meth:`jaxrobo.plan.ExecutionPlan.for_run`) and by the boundary that refuses an explicit choice (:func:`check`).
+    (:meth:`jaxrobo.plan.ExecutionPlan.for_run`) and by the boundaries that refuse an explicit choice (:func:`check`, :func:`jaxrobo.plan.check_pallas`).
     ``agent``: the learner's name (default: ``config.agent``); ``discretiser``: the run's
     :class:`jaxrobo.discretise.Discretiser` (default: the config's, built only once the env qualifies);
     ``fused_block``: the plan's envs per program."""
@@ -121,8 +123,8 @@ def check(trainer: Any) -> None:
     """Refuse, naming the field and what is allowed, a run the Pallas path cannot take."""
     why = unsupported(trainer)
     if why is not None:
-        raise ValueError(f"ExecutionPlan fused='pallas': {why}. It supports the analytic CartPoleStayUp with "
-                         "Q-learning; use fused='off' or 'xla' otherwise")
+        raise ConfigError(f"ExecutionPlan fused='pallas': {why}. It supports the analytic CartPoleStayUp with "
+                          "Q-learning; use fused='off' or 'xla' otherwise")
 
 
 # ---- in-kernel random numbers: jaxrobo.rng's hash on [block] uint32 vectors ------------------------------
