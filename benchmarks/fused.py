@@ -11,7 +11,7 @@ Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
 under one plan: ``off`` (the plain path), ``xla`` (substeps written out), ``xla:BLOCK`` (and the chunk's steps
 run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas kernel: :mod:`jaxrobo.fused_pallas`,
 the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing about the GPU kernel);
-``pallas:BLOCK[:wWARPS][:always][:sincos][:tiled]`` sets its envs per program and its tuning knobs (:func:`plan_of`). The
+``pallas:BLOCK[:wWARPS][:always][:lanes][:libdevice][:sincos][:tiled]`` sets its envs per program and its tuning knobs (:func:`plan_of`). The
 default chunk (4 M env steps per call, at least 10 steps) is short enough that a fast kernel's calls time the
 fixed cost per call (the host's dispatch); ``--steps 1000`` times the chunk ``jaxrobo train`` runs by default. Columns: env steps/s, physics steps/s, simulated s/s, the compiled
 program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
@@ -39,7 +39,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--device", choices=("cpu", "gpu"), default=None)
     p.add_argument("--n-envs", default="1024,16384", help="comma list of batch sizes")
     p.add_argument("--plans", default="off,xla",
-                   help="comma list of off, xla, xla:BLOCK, pallas, pallas:BLOCK[:wWARPS][:always][:sincos][:tiled]")
+                   help="comma list of off, xla, xla:BLOCK, "
+                        "pallas, pallas:BLOCK[:wWARPS][:always][:lanes][:libdevice][:sincos][:tiled]")
     p.add_argument("--envs", default="CartPoleStayUp-v0:analytic,QuadcopterGoto-v1",
                    help="comma list of env ids, each with :backend where it has a choice")
     p.add_argument("--steps", type=int, default=None, help="steps per timed chunk (default: by size)")
@@ -60,10 +61,11 @@ def kernels(compiled: Any) -> int:
 
 def plan_of(base: Any, choice: str) -> tuple[Any, dict[str, Any]]:
     """The plan a choice names, and the Pallas kernel's tuning knobs it sets (:mod:`jaxrobo.fused_pallas`'s
-    module constants): ``off``, ``xla[:BLOCK]``, ``pallas[:BLOCK][:wWARPS][:always][:sincos][:tiled]`` (BLOCK envs
-    per program, WARPS warps per program, ``always``: the reset's random numbers in every env every step, the
-    unbranched form; ``sincos``: the hardware's approximate sin/cos; ``tiled``: the tables tiled by program for
-    the kernel)."""
+    module constants): ``off``, ``xla[:BLOCK]``, ``pallas[:BLOCK][:wWARPS][:always][:lanes][:libdevice][:sincos][:tiled]``
+    (BLOCK envs per program, WARPS warps per program, ``always``: the reset's random numbers in every env every
+    step, the unbranched form; ``lanes``: each lane hashes its own env's reset, not groups of four;
+    ``libdevice``: libdevice's sin/cos calls, not written out; ``sincos``: the hardware's approximate sin/cos;
+    ``tiled``: the tables tiled by program for the kernel)."""
     fused, *parts = choice.split(":")
     block, knobs = None, {}
     for part in parts:
@@ -71,6 +73,10 @@ def plan_of(base: Any, choice: str) -> tuple[Any, dict[str, Any]]:
             knobs["SKIP_RESETS"] = False
         elif part == "sincos":
             knobs["APPROX_SINCOS"] = True
+        elif part == "lanes":
+            knobs["GROUP_RESETS"] = False
+        elif part == "libdevice":
+            knobs["FAST_SINCOS"] = False
         elif part == "tiled":
             knobs["TILED_TABLES"] = True
         elif part.startswith("w"):
@@ -78,7 +84,8 @@ def plan_of(base: Any, choice: str) -> tuple[Any, dict[str, Any]]:
         elif part:
             block = int(part)
     if knobs and fused != "pallas":
-        raise ValueError(f"plan {choice!r}: 'always', 'sincos', 'tiled' and 'wN' apply to pallas only")
+        raise ValueError(f"plan {choice!r}: 'always', 'sincos', 'lanes', 'libdevice', 'tiled' and 'wN' apply to "
+                         "pallas only")
     return base.replace(fused=fused, fused_block=block), knobs
 
 

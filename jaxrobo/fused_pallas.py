@@ -8,7 +8,12 @@ memory only to gather the next state's table row and scatter the one updated ent
 computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
 goes back to memory once, at the end of the chunk. A program is one warp of 32 envs by default (:data:`BLOCK`):
 seven of a step's ten threefry hashes serve only the reset, and a program computes them only in a step where one
-of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would.
+of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would; where at
+most a quarter of its envs are done, groups of four lanes share each done env's seven hashes, three hash rounds
+for the program instead of seven (:data:`GROUP_RESETS`). On a GPU the physics' ``sin``/``cos`` are libdevice's
+own, written out where every pole angle of the program allows it (:data:`FAST_SINCOS`,
+:mod:`jaxrobo.libdevice_sincos`). Both keep every value; the kernel is bound by the issue of its integer and
+logic instructions (docs/benchmarks.md, "Pallas"), which these take out.
 
 It is :meth:`jaxrobo.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.rng` does
@@ -28,8 +33,8 @@ per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry 
 the call (tested interpreted; on a GPU it compiled and trained, docs/benchmarks.md, "Pallas").
 
 Public surface: :func:`unsupported_run`, :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the
-tuning knobs :data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a
-chunk is traced).
+tuning knobs :data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`GROUP_RESETS`, :data:`FAST_SINCOS`,
+:data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is traced).
 """
 from __future__ import annotations
 
@@ -63,6 +68,14 @@ APPROX_SINCOS = False
 #: back after (a full read and write of the tables each way); the values are the same. Off: on an H100 the kernel
 #: gains less than the two transposes cost, at every size measured (docs/benchmarks.md, "Pallas").
 TILED_TABLES = False
+#: True: a program whose done envs number at most a quarter of its lanes hashes their resets in groups of four
+#: lanes (three hash rounds for the program instead of seven; the same values). False: each lane its own env's.
+GROUP_RESETS = True
+#: True: on a GPU, where every env's pole angle is within :data:`jaxrobo.libdevice_sincos.LIMIT` in a substep (a
+#: scalar branch per program), the physics' ``sin``/``cos`` are libdevice's written out
+#: (:func:`jaxrobo.libdevice_sincos.sincos`, the same values, checked on the GPU at hand before use); elsewhere
+#: and otherwise libdevice's calls.
+FAST_SINCOS = True
 _MAX_BLOCK = 1024
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
@@ -168,10 +181,12 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
-     timestep, n_substeps, action_steps, skip_resets, approx_sincos, tiled) = static
+     timestep, n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
+
+    from jaxrobo import libdevice_sincos
 
     def kernel(fp_ref, ip_ref, *refs):
         ins = refs[:n_cols]
@@ -229,7 +244,7 @@ def _make_kernel(static):
                 seen = seen + m.astype(jnp.int32)
             return jnp.where(coin < epsilon, random_action, choice)
 
-        def physics(x, th, xd, thd, ctrl):
+        def physics(x, th, xd, thd, ctrl, written_out=False):
             # CartPoleSim.physics_step term by term (same constants, same order).
             c = consts
             generalized = [0.0, 0.0]
@@ -255,6 +270,8 @@ def _make_kernel(static):
                 sin, cos = (plgpu.elementwise_inline_asm(f"{op}.approx.f32 $0, $1;", args=[th], constraints="=r,r",
                                                          pack=1, result_shape_dtypes=shape)[0]
                             for op in ("sin", "cos"))
+            elif written_out:
+                sin, cos = libdevice_sincos.sincos(th)
             else:
                 sin, cos = jnp.sin(th), jnp.cos(th)
             coupling = c.pole_mass_length * cos
@@ -284,8 +301,20 @@ def _make_kernel(static):
             command = cr["command"] + delta * f("pos_step")
             command = jnp.minimum(jnp.maximum(command, -f("max_base_velocity")), f("max_base_velocity"))
             x, th, xd, thd = cr["x"], cr["th"], cr["xd"], cr["thd"]
-            for _sub in range(n_substeps):
-                x, th, xd, thd = physics(x, th, xd, thd, command)
+            def substeps(written_out):
+                state, beyond = (x, th, xd, thd), jnp.zeros(x.shape, jnp.int32)
+                for _sub in range(n_substeps):
+                    beyond = beyond | (~(jnp.abs(state[1]) <= libdevice_sincos.LIMIT)).astype(jnp.int32)  # NaN too
+                    state = physics(*state, command, written_out)
+                return state, beyond
+
+            if fast_sincos:
+                # libdevice's sin/cos written out serve the step where every env's angle stays within their range
+                # in every substep (checked once per step and program); otherwise the step is redone with the calls.
+                state, beyond = substeps(True)
+                x, th, xd, thd = jax.lax.cond(jnp.max(beyond) > 0, lambda _: substeps(False)[0], lambda _: state, None)
+            else:
+                x, th, xd, thd = substeps(False)[0]
             ok = finite(x) & finite(th) & finite(xd) & finite(thd)
             obs = (x, xd, th, thd)
             ok = ok & finite(obs[0]) & finite(obs[1]) & finite(obs[2]) & finite(obs[3])
@@ -327,31 +356,82 @@ def _make_kernel(static):
             # the step's ten hashes serve only the reset, and in many steps no env of a program is done: under
             # skip_resets the program computes them only when one of its envs is (a scalar branch, scf.if in
             # Triton); where none is, the fresh values would be discarded by the selects below anyway.
-            def fresh_episode(_):
+            def noise_of(w1, w2):
+                lo = -f("init_noise")
+                return _unit(w1 ^ w2) * (f("init_noise") - lo) + lo
+
+            def hashed_by_lane(_):
+                # Every lane hashes its own env's seven: the reset key, the env key and the pose key from it,
+                # and the pose's four uniforms.
                 k_reset = _subkey(key, 4)
                 rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
                 zero = jnp.zeros_like(pose_key[0])
-                lo = -f("init_noise")
-                span = f("init_noise") - lo
-                noise = []
-                for j in range(4):
-                    w1, w2 = _threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))
-                    noise.append(_unit(w1 ^ w2) * span + lo)
-                fresh = (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3])
-                s_fresh = discretise((fresh[0], fresh[2], fresh[1], fresh[3]))
+                noise = [noise_of(*_threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))) for j in range(4)]
+                return (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3], *rk)
+
+            def hashed_by_group(n_done):
+                # The same seven hashes of each done env, shared by a group of four lanes: three hash rounds
+                # for the program instead of seven (the 2nd and 3rd stages hash one counter per lane), the
+                # words moving between lanes by block-wide integer sums of one nonzero term (exact).
+                lane = jax.lax.iota(jnp.int32, block)
+                slot, group = lane % 4, lane // 4
+                i32 = lambda v: jax.lax.bitcast_convert_type(v, jnp.int32)  # noqa: E731
+                u32 = lambda v: jax.lax.bitcast_convert_type(v, jnp.uint32)  # noqa: E731
+                take = lambda at, v: jnp.sum(jnp.where(at, v, 0))  # noqa: E731  (the value of the lane at `at`)
+                k_reset = [i32(v) for v in _subkey(key, 4)]  # each lane its own env's
+
+                def to_groups(m, c):  # the m-th done lane (in lane order) hands its reset key to group m
+                    pending, owner, g0, g1 = c
+                    src = jnp.min(jnp.where(pending, lane, block))
+                    at, mine = lane == src, group == m
+                    return (pending & ~at, jnp.where(mine, src, owner), jnp.where(mine, take(at, k_reset[0]), g0),
+                            jnp.where(mine, take(at, k_reset[1]), g1))
+
+                zi = jnp.zeros_like(lane)
+                _, owner, g0, g1 = jax.lax.fori_loop(0, n_done, to_groups, (done, zi, zi, zi))
+                zero = jnp.zeros_like(key[0])
+                b = [i32(v) for v in _threefry(u32(g0), u32(g1), zero, u32(slot))]  # slot 0: env key, 1: pose key
+
+                def pose_to_group(m, c):
+                    at, mine = lane == 4 * m + 1, group == m
+                    return jnp.where(mine, take(at, b[0]), c[0]), jnp.where(mine, take(at, b[1]), c[1])
+
+                p0, p1 = jax.lax.fori_loop(0, n_done, pose_to_group, (zi, zi))
+                noise = noise_of(*_threefry(u32(p0), u32(p1), zero, u32(slot)))
+                value = jnp.where(slot == 0, f("init_pos") + noise,
+                                  jnp.where(slot == 2, f("init_pole_angle") + noise, noise))
+                # Back to the done lane: slot j's value (x, xd, th, thd) and slot 0's env key.
+                sources = [(j, i32(value)) for j in range(4)] + [(0, b[0]), (0, b[1])]
+
+                def to_owner(m, c):
+                    dest = lane == take(lane == 4 * m, owner)
+                    return tuple(jnp.where(dest, take(lane == 4 * m + j, v), cj) for (j, v), cj in zip(sources, c))
+
+                v = jax.lax.fori_loop(0, n_done, to_owner, (zi,) * len(sources))
+                as_f = lambda w: jax.lax.bitcast_convert_type(w, jnp.float32)  # noqa: E731
+                return as_f(v[0]), as_f(v[2]), as_f(v[1]), as_f(v[3]), u32(v[4]), u32(v[5])
+
+            def fresh_episode(hashed):
+                fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1 = hashed
+                s_fresh = discretise((fresh_x, fresh_xd, fresh_th, fresh_thd))
                 r_fresh = row(s_fresh, done)
                 r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
-                return (*fresh, rk[0], rk[1], s_fresh, *r_fresh)
+                return (fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1, s_fresh, *r_fresh)
 
             if skip_resets:
                 def none_done(_):
                     zf, zu = jnp.zeros_like(x), jnp.zeros_like(key[0])
                     return (zf, zf, zf, zf, zu, zu, jnp.zeros_like(s2), *([zf] * n_actions))
 
-                any_done = jnp.max(done.astype(jnp.int32)) > 0
-                reset = jax.lax.cond(any_done, fresh_episode, none_done, None)
+                n_done = jnp.sum(done.astype(jnp.int32))
+                if group_resets and block >= 4:  # groups of four lanes for up to block / 4 done envs, else lane by lane
+                    some_done = lambda n: fresh_episode(jax.lax.cond(  # noqa: E731
+                        n <= block // 4, hashed_by_group, hashed_by_lane, n))
+                else:
+                    some_done = lambda n: fresh_episode(hashed_by_lane(n))  # noqa: E731
+                reset = jax.lax.cond(n_done > 0, some_done, none_done, n_done)
             else:
-                reset = fresh_episode(None)
+                reset = fresh_episode(hashed_by_lane(None))
             fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:]
             plgpu.store(q_ref.at[row_at(cr["s"]) + a], written)
             w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
@@ -404,7 +484,10 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     from jaxrobo.sim import JointState
     from jaxrobo.tabular import AgentState
 
+    from jaxrobo import libdevice_sincos
+
     check(trainer)
+    gpu = jax.default_backend() == "gpu"
     c, env, disc = trainer.config, trainer.env, trainer.disc
     n, n_states, n_actions = c.n_envs, disc.n_states, trainer.n_actions
     sim = env.robot.sim
@@ -454,7 +537,8 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
               tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
-              bool(SKIP_RESETS), bool(APPROX_SINCOS) and jax.default_backend() == "gpu", tiled)
+              bool(SKIP_RESETS), bool(GROUP_RESETS), bool(FAST_SINCOS) and libdevice_sincos.verified(),
+              bool(APPROX_SINCOS) and gpu, tiled)
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)

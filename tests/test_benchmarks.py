@@ -143,3 +143,20 @@ def test_env_groups_smoke_gives_the_same_tables_for_every_group_size(tmp_path):
     rows = json.loads(out.read_text())["rows"]
     assert [r["env_group"] for r in rows] == ["all", "3"] and all(r["steps_per_s"] > 0 for r in rows)
     assert rows[0]["q_fingerprint_after_one_chunk"] == rows[1]["q_fingerprint_after_one_chunk"]
+
+
+def test_fused_plan_tokens_name_the_kernel_knobs():
+    """benchmarks/fused.py's plan tokens: each names one of the Pallas kernel's knobs, and they apply to pallas only."""
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import fused
+
+    from jaxrobo import fused_pallas
+    from jaxrobo.plan import ExecutionPlan
+
+    plan, knobs = fused.plan_of(ExecutionPlan(), "pallas:64:w2:always:lanes:libdevice:sincos:tiled")
+    assert (plan.fused, plan.fused_block) == ("pallas", 64)
+    assert knobs == dict(NUM_WARPS=2, SKIP_RESETS=False, GROUP_RESETS=False, FAST_SINCOS=False, APPROX_SINCOS=True,
+                         TILED_TABLES=True)
+    assert all(hasattr(fused_pallas, name) for name in knobs)
+    with pytest.raises(ValueError, match="apply to pallas only"):
+        fused.plan_of(ExecutionPlan(), "xla:lanes")

@@ -167,6 +167,74 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
+def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(monkeypatch):
+    """Where at most a quarter of a program's envs are done, groups of four lanes share their reset's hashes
+    (:data:`jaxrobo.fused_pallas.GROUP_RESETS`); beyond that each lane hashes its own. 32 envs in programs of 16
+    over 80 steps, in which a program has one, two or three and more than four envs done in one step (counted on
+    the plain path, step by step): the carry equals the lane-by-lane kernel's, and the kernel that hashes every
+    reset in every env every step, bit for bit."""
+    from jaxrobo import fused_pallas
+
+    spec = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=80)
+    # How many envs of each program of 16 are done in each step, on the plain path.
+    one = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=1)
+    trainer = Trainer(one.env, one.config, plan=_plan(one, fused="off"))
+    runner = jax.jit(trainer.init)(jax.random.key(3), one.agent_params, one.env.default_params)
+    step = jax.jit(trainer.run_chunk)
+    counts = set()
+    for _ in range(80):
+        before = np.asarray(runner.episode)
+        runner = step(runner, one.agent_params, one.env.default_params)
+        counts |= set((np.asarray(runner.episode) - before).reshape(2, 16).sum(1).tolist())
+    assert {1, 2, 3} <= counts and max(counts) > 4, counts
+    out = {}
+    for group, skip in ((True, True), (False, True), (False, False)):
+        monkeypatch.setattr(fused_pallas, "GROUP_RESETS", group)
+        monkeypatch.setattr(fused_pallas, "SKIP_RESETS", skip)
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=16))
+        runner = jax.jit(trainer.init)(jax.random.key(3), spec.agent_params, spec.env.default_params)
+        out[group, skip] = jax.jit(trainer.run_chunk)(runner, spec.agent_params, spec.env.default_params)
+    assert np.asarray(out[True, True].episode).sum() > 60
+    for other in ((False, True), (False, False)):
+        for (path, a), (_, b) in zip(_leaves(out[True, True]), _leaves(out[other])):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f"{other} {jax.tree_util.keystr(path)}")
+
+
+@pytest.mark.parametrize("limit", [0.0, 0.05, 10.0])
+def test_a_step_beyond_the_written_out_sin_cos_is_redone_with_the_calls(limit, monkeypatch):
+    """Under :data:`jaxrobo.fused_pallas.FAST_SINCOS` a step whose pole angles all stay within the written-out
+    sin/cos's range (:data:`jaxrobo.libdevice_sincos.LIMIT`) keeps their values, and a step where any leaves it is
+    redone with ``jnp.sin``/``jnp.cos``. Interpreted, the written-out form is stood in for by one that is off by
+    0.01: with the range at 0 every step is redone (the carry is the calls' bit for bit), at 10 none is (the carry
+    differs), at 0.05 some are and some are not (it differs too, and both forms ran: the carry is neither's)."""
+    import jax.numpy as jnp
+
+    from jaxrobo import fused_pallas, libdevice_sincos
+
+    spec = _cartpole(n_envs=8, nsteps=200, chunk_steps=40)
+
+    def run(fast):
+        monkeypatch.setattr(fused_pallas, "FAST_SINCOS", fast)
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4))
+        runner = jax.jit(trainer.init)(jax.random.key(5), spec.agent_params, spec.env.default_params)
+        return jax.jit(trainer.run_chunk)(runner, spec.agent_params, spec.env.default_params)
+
+    calls = run(False)
+    monkeypatch.setattr(libdevice_sincos, "verified", lambda: True)
+    monkeypatch.setattr(libdevice_sincos, "sincos", lambda t: (jnp.sin(t) + 0.01, jnp.cos(t)))
+    monkeypatch.setattr(libdevice_sincos, "LIMIT", limit)
+    written = run(True)
+    th = lambda r: np.asarray(r.env_state.pipeline_state.qpos[:, 1])  # noqa: E731
+    if limit == 0.0:
+        for (path, a), (_, b) in zip(_leaves(calls), _leaves(written)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
+    else:
+        assert not np.array_equal(th(calls), th(written))
+    if limit == 0.05:
+        monkeypatch.setattr(libdevice_sincos, "LIMIT", 10.0)
+        assert not np.array_equal(th(run(True)), th(written))
+
+
 @pytest.mark.parametrize("changes", [dict(), dict(record_episodes=False, carry_rows=True)])
 def test_the_tiled_tables_change_nothing(changes, monkeypatch):
     """The tables tiled by program for the kernel ([program, state, env of the program, action]) and back: the
@@ -217,11 +285,12 @@ def test_a_sweep_vmaps_the_kernel(tiled, monkeypatch):
 @pytest.mark.parametrize("tiled", [False, True])
 def test_it_lowers_for_the_gpu_through_triton(tiled, monkeypatch):
     """The kernel the GPU would run (not interpreted) lowers to a Triton call: the ops it uses (in-kernel loop,
-    gathers and masked scatters by computed index, uint32 hashing) all have Triton lowerings, in either layout of
-    the tables."""
-    from jaxrobo import fused_pallas
+    gathers and masked scatters by computed index, uint32 hashing, block-wide sums moving words between lanes,
+    inline PTX fmas) all have Triton lowerings, in either layout of the tables."""
+    from jaxrobo import fused_pallas, libdevice_sincos
 
     monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
+    monkeypatch.setattr(libdevice_sincos, "verified", lambda: True)  # the written-out sin/cos (inline PTX) too
     spec = _cartpole(n_envs=512, record_episodes=True)
     trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
     runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
