@@ -71,10 +71,10 @@ TILED_TABLES = False
 #: True: a program whose done envs number at most a quarter of its lanes hashes their resets in groups of four
 #: lanes (three hash rounds for the program instead of seven; the same values). False: each lane its own env's.
 GROUP_RESETS = True
-#: True: on a GPU, where every env's pole angle is within :data:`jaxrobo.libdevice_sincos.LIMIT` in a substep (a
-#: scalar branch per program), the physics' ``sin``/``cos`` are libdevice's written out
-#: (:func:`jaxrobo.libdevice_sincos.sincos`, the same values, checked on the GPU at hand before use); elsewhere
-#: and otherwise libdevice's calls.
+#: True: on a GPU, in a step where every pole angle of a program stays within
+#: :data:`jaxrobo.libdevice_sincos.LIMIT` in every substep (one scalar branch per program and step), the physics'
+#: ``sin``/``cos`` are libdevice's written out (:func:`jaxrobo.libdevice_sincos.sincos`, the same values, checked
+#: on the GPU at hand before use); in the other steps, and off a GPU, libdevice's calls.
 FAST_SINCOS = True
 _MAX_BLOCK = 1024
 

@@ -6,7 +6,8 @@ a check for the slow path beyond 105,615), then evaluates one of two polynomials
 (selects) and flips the sign by the quadrant. Where ``fl(|t| * 2/pi) < 0.5`` the quadrant is 0 and the reduction
 returns ``t`` itself (``fma(0, c, t) == t``), so the two calls are two short fma chains that can share ``t*t``;
 :func:`sincos` is those chains as inline PTX ``fma.rn.f32`` in libdevice's order with libdevice's coefficients, for
-``|t| <= LIMIT``. In the cart-pole kernel it takes four calls' reductions, selects and branches out of every substep.
+``|t| <= LIMIT``. In the cart-pole kernel it takes two calls' reductions, selects and slow-path checks out of every
+substep.
 
 This reaches into another library's private code (libdevice's polynomial and its order of operations), hence the
 guard: :func:`verified` compares :func:`sincos` with ``jnp.sin``/``jnp.cos`` bit for bit inside a Pallas kernel on
@@ -30,7 +31,7 @@ import numpy as np
 
 #: The largest ``|t|`` :func:`sincos` serves: ``fl(0.78 * 0.63661975) = 0.4966 < 0.5``, quadrant 0.
 LIMIT = 0.78
-# libdevice's coefficients (float32 bit patterns, as in libdevice.10.bc of CUDA 11-13).
+# libdevice's coefficients (float32 bit patterns, read from libdevice.10.bc of CUDA 13.0; verified() checks the GPU's own).
 _SIN = ("B94D4153", "3C0885E4", "BE2AAAA8")  # z = (c0 * t2 + c1) * t2 + c2; sin = z * (t2 * t) + t
 _COS = ("37CBAC00", "BAB607ED", "3D2AAABB", "BEFFFFFF")  # z = ((c0 * t2 + c1) * t2 + c2) * t2 + c3; cos = z * t2 + 1
 
