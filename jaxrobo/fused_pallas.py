@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrobo import libdevice_sincos
 from jaxrobo.config import ConfigError
 
 #: Envs per Pallas program when the plan's ``fused_block`` is None (a power of two; smaller where ``n_envs`` has
@@ -186,8 +187,6 @@ def _make_kernel(static):
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
 
-    from jaxrobo import libdevice_sincos
-
     def kernel(fp_ref, ip_ref, *refs):
         ins = refs[:n_cols]
         rest = refs[n_cols:]
@@ -266,10 +265,7 @@ def _make_kernel(static):
                     force = jnp.minimum(force, float(c.force_high[j]))
                 generalized = [gf + float(g) * force if g else gf for gf, g in zip(generalized, gear)]
             if approx_sincos:
-                shape = [jax.ShapeDtypeStruct(th.shape, jnp.float32)]
-                sin, cos = (plgpu.elementwise_inline_asm(f"{op}.approx.f32 $0, $1;", args=[th], constraints="=r,r",
-                                                         pack=1, result_shape_dtypes=shape)[0]
-                            for op in ("sin", "cos"))
+                sin, cos = (libdevice_sincos.inline_ptx(f"{op}.approx.f32 $0, $1;", th) for op in ("sin", "cos"))
             elif written_out:
                 sin, cos = libdevice_sincos.sincos(th)
             else:
@@ -302,19 +298,21 @@ def _make_kernel(static):
             command = jnp.minimum(jnp.maximum(command, -f("max_base_velocity")), f("max_base_velocity"))
             x, th, xd, thd = cr["x"], cr["th"], cr["xd"], cr["thd"]
             def substeps(written_out):
-                state, beyond = (x, th, xd, thd), jnp.zeros(x.shape, jnp.int32)
+                state = (x, th, xd, thd)
                 for _sub in range(n_substeps):
-                    beyond = beyond | (~(jnp.abs(state[1]) <= libdevice_sincos.LIMIT)).astype(jnp.int32)  # NaN too
                     state = physics(*state, command, written_out)
-                return state, beyond
+                return state
 
             if fast_sincos:
                 # libdevice's sin/cos written out serve the step where every env's angle stays within their range
                 # in every substep (checked once per step and program); otherwise the step is redone with the calls.
-                state, beyond = substeps(True)
-                x, th, xd, thd = jax.lax.cond(jnp.max(beyond) > 0, lambda _: substeps(False)[0], lambda _: state, None)
+                state, beyond = (x, th, xd, thd), jnp.zeros(x.shape, jnp.int32)
+                for _sub in range(n_substeps):
+                    beyond = beyond | (~(jnp.abs(state[1]) <= libdevice_sincos.LIMIT)).astype(jnp.int32)  # NaN too
+                    state = physics(*state, command, True)
+                x, th, xd, thd = jax.lax.cond(jnp.max(beyond) > 0, lambda _: substeps(False), lambda _: state, None)
             else:
-                x, th, xd, thd = substeps(False)[0]
+                x, th, xd, thd = substeps(False)
             ok = finite(x) & finite(th) & finite(xd) & finite(thd)
             obs = (x, xd, th, thd)
             ok = ok & finite(obs[0]) & finite(obs[1]) & finite(obs[2]) & finite(obs[3])
@@ -483,8 +481,6 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     from jaxrobo.env import EnvState
     from jaxrobo.sim import JointState
     from jaxrobo.tabular import AgentState
-
-    from jaxrobo import libdevice_sincos
 
     check(trainer)
     gpu = jax.default_backend() == "gpu"

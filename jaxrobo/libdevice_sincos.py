@@ -40,7 +40,9 @@ def _f32(bits: str) -> np.float32:
     return np.frombuffer(bytes.fromhex(bits)[::-1], np.float32)[0]
 
 
-def _asm(text: str, *args):
+def inline_ptx(text: str, *args):
+    """One float32 result per element from the PTX ``text`` (``$0`` the result, ``$1``... the float32 ``args``),
+    inside a Pallas kernel on a GPU (Triton's elementwise inline assembly; interpret mode has none)."""
     from jax.experimental.pallas import triton as plgpu
 
     shape = [jax.ShapeDtypeStruct(args[0].shape, jnp.float32)]
@@ -53,14 +55,14 @@ def sincos(t):
     """``(sin(t), cos(t))`` as libdevice computes them, for ``|t| <= LIMIT``; inside a Pallas kernel on a GPU only
     (inline PTX). Other arguments get other values: a caller selects libdevice's calls for them."""
     t2 = t * t  # libdevice: mul.rn
-    q = _asm("fma.rn.f32 $0, $1, $2, 0f00000000;", t2, t)  # fma(t2, t, 0), the sign of zero as libdevice's
-    z = _asm(f"fma.rn.f32 $0, $1, 0f{_SIN[0]}, 0f{_SIN[1]};", t2)
-    z = _asm(f"fma.rn.f32 $0, $1, $2, 0f{_SIN[2]};", z, t2)
-    sin = _asm("fma.rn.f32 $0, $1, $2, $3;", z, q, t)
-    z = _asm(f"fma.rn.f32 $0, $1, 0f{_COS[0]}, 0f{_COS[1]};", t2)
-    z = _asm(f"fma.rn.f32 $0, $1, $2, 0f{_COS[2]};", z, t2)
-    z = _asm(f"fma.rn.f32 $0, $1, $2, 0f{_COS[3]};", z, t2)
-    cos = _asm("fma.rn.f32 $0, $1, $2, 0f3F800000;", z, t2)
+    q = inline_ptx("fma.rn.f32 $0, $1, $2, 0f00000000;", t2, t)  # fma(t2, t, 0), the sign of zero as libdevice's
+    z = inline_ptx(f"fma.rn.f32 $0, $1, 0f{_SIN[0]}, 0f{_SIN[1]};", t2)
+    z = inline_ptx(f"fma.rn.f32 $0, $1, $2, 0f{_SIN[2]};", z, t2)
+    sin = inline_ptx("fma.rn.f32 $0, $1, $2, $3;", z, q, t)
+    z = inline_ptx(f"fma.rn.f32 $0, $1, 0f{_COS[0]}, 0f{_COS[1]};", t2)
+    z = inline_ptx(f"fma.rn.f32 $0, $1, $2, 0f{_COS[2]};", z, t2)
+    z = inline_ptx(f"fma.rn.f32 $0, $1, $2, 0f{_COS[3]};", z, t2)
+    cos = inline_ptx("fma.rn.f32 $0, $1, $2, 0f3F800000;", z, t2)
     return sin, cos
 
 
