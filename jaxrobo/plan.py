@@ -118,9 +118,9 @@ def default_fused(env: Env, backend: str | None = None, n_envs: int | None = Non
     """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, where JAX
     sees one device: ``"pallas"`` for a run whose whole chunk is one kernel (the analytic cart-pole with Q-learning,
     :mod:`jaxrobo.fused_pallas`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
-    compiles ~10-12 s longer, which a run of fewer than ~0.4 M steps per env at up to 16 k envs does not earn
-    back, docs/benchmarks.md, "Pallas"), decided from ``config`` (a :class:`jaxrobo.trainer.TrainConfig`; its
-    ``n_envs`` replaces ``n_envs``) with the run's learner name ``agent`` and ``discretiser`` (defaults: the
+    compiles ~10-25 s longer, which a short run compiling cold does not earn back; the persistent compile cache
+    serves the later runs of a configuration, docs/benchmarks.md, "Pallas"), decided from ``config`` (a
+    :class:`jaxrobo.trainer.TrainConfig`; its ``n_envs`` replaces ``n_envs``) with the run's learner name ``agent`` and ``discretiser`` (defaults: the
     config's) by :func:`jaxrobo.fused_pallas.unsupported_run`, the rules that also refuse an explicit choice.
     Otherwise, with a
     closed form of more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot
