@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from agents import double_q, expected_sarsa, qlearning, sarsa
-from jaxrobo.tabular import AgentParams, AgentState, Learner
+from jaxrobo.api import AgentParams, AgentState, Learner
 
 LEARNERS: dict[str, Learner] = {m.LEARNER.name: m.LEARNER for m in (qlearning, sarsa, expected_sarsa, double_q)}
 

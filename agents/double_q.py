@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jaxrobo.tabular import Learner, epsilon_greedy, row_argmax
-from jaxrobo import rng
+from jaxrobo.api import Learner, epsilon_greedy, rng, row_argmax
 
 
 def target(key, q_next, a2, reward, discount, epsilon):

@@ -8,8 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxrobo.tabular import Learner, argmax_random_ties, epsilon_greedy, row_max, row_min
-from jaxrobo import rng
+from jaxrobo.api import Learner, argmax_random_ties, epsilon_greedy, rng, row_max, row_min
 
 
 def noisy_greedy(key: jax.Array, q_row: jax.Array, epsilon: jax.Array) -> jax.Array:

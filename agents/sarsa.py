@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jaxrobo.tabular import Learner, epsilon_greedy, row_pick
+from jaxrobo.api import Learner, epsilon_greedy, row_pick
 
 
 def target(key, q_next, a2, reward, discount, epsilon):

@@ -100,9 +100,9 @@ def compile_timed(jitted: Callable, *args: Any, cache_dir: str | None = None) ->
 
 
 def timed(compile_fn: Callable[[], Callable], cache_dir: str | None = None) -> tuple[Callable, float, bool]:
-    """``compile_fn()`` (e.g. :func:`jaxrobo.driver.compiled_chunk`, the chunk ``jaxrobo train`` runs), timed;
+    """``compile_fn()`` (e.g. :func:`jaxrobo.training.driver.compiled_chunk`, the chunk ``jaxrobo train`` runs), timed;
     returns (compiled, seconds, from_cache). A compile that wrote no cache file was a hit."""
-    from jaxrobo.cache import entries
+    from jaxrobo.speed.cache import entries
 
     before = entries(cache_dir)
     t0 = time.perf_counter()

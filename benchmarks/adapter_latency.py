@@ -100,8 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     import jaxrobo  # noqa: F401  (registers jaxrobo/<id>)
-    from jaxrobo.cache import enable_compilation_cache
-    from jaxrobo.gym_adapter import JaxroboEnv
+    from jaxrobo.speed.cache import enable_compilation_cache
+    from jaxrobo.interop.gym_adapter import JaxroboEnv
 
     cache = None if args.no_cache else enable_compilation_cache()
     gid = f"jaxrobo/{args.env}"

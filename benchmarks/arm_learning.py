@@ -27,10 +27,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrobo import driver  # noqa: E402
-from jaxrobo.rollout import greedy_policy, random_policy, rollout  # noqa: E402
-from jaxrobo.run import resolve  # noqa: E402
-from jaxrobo.trainer import Trainer  # noqa: E402
+from jaxrobo.training import driver  # noqa: E402
+from jaxrobo.task.rollout import greedy_policy, random_policy, rollout  # noqa: E402
+from jaxrobo.training.run import resolve  # noqa: E402
+from jaxrobo.training.trainer import Trainer  # noqa: E402
 
 ENV_ID = "ArmReach-v0"
 #: Evaluation keys: apart from the training seeds (0..runs-1), the same for every run.
@@ -48,7 +48,7 @@ def main(argv=None) -> int:
         ap.error(f"--runs {args.runs}: expected an integer >= 1")
     if args.episodes < 1:
         ap.error(f"--episodes {args.episodes}: expected an integer >= 1")
-    from jaxrobo.config import parse_overrides
+    from jaxrobo.core.config import parse_overrides
 
     spec = resolve(ENV_ID, overrides={"eval_episodes": 0, **parse_overrides(args.set)})
     env, target = spec.env, spec.env.learning_target

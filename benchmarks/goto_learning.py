@@ -30,10 +30,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrobo import driver  # noqa: E402
-from jaxrobo.rollout import greedy_policy, random_policy, rollout  # noqa: E402
-from jaxrobo.run import resolve  # noqa: E402
-from jaxrobo.trainer import Trainer  # noqa: E402
+from jaxrobo.training import driver  # noqa: E402
+from jaxrobo.task.rollout import greedy_policy, random_policy, rollout  # noqa: E402
+from jaxrobo.training.run import resolve  # noqa: E402
+from jaxrobo.training.trainer import Trainer  # noqa: E402
 
 ENVS = ("QuadcopterGoto-v1", "QuadcopterGoto-v2")
 FRESH_KEY = 123_456  # the fresh evaluation goals: no run trains or selects on this key
@@ -55,7 +55,7 @@ def train_population(env_id: str, runs: int, overrides: dict, fused: str = "defa
     computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds include the compile). ``fused``:
     ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that choice; ``pallas`` with the task's kernel
     where it has one)."""
-    from jaxrobo.plan import ExecutionPlan, task_kernel
+    from jaxrobo.speed.plan import ExecutionPlan, task_kernel
 
     spec = resolve(env_id, overrides={"eval_episodes": 0, **overrides})
     if not spec.config.shared_table:
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     for name in ("runs", "episodes", "select_episodes"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
-    from jaxrobo.config import parse_overrides
+    from jaxrobo.core.config import parse_overrides
 
     spec, trainer, q, train_s = train_population(args.env, args.runs, parse_overrides(args.set), args.fused)
     env, disc = spec.env, trainer.disc

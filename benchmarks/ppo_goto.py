@@ -61,10 +61,10 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     from jaxrobo import deep
-    from jaxrobo.config import parse_overrides
+    from jaxrobo.core.config import parse_overrides
 
     try:
-        from jaxrobo.cache import enable_compilation_cache
+        from jaxrobo.speed.cache import enable_compilation_cache
 
         enable_compilation_cache()  # seeds after the first reuse the first one's executables
     except ImportError:

@@ -39,13 +39,13 @@ def child(args: argparse.Namespace) -> None:
     sys.path.insert(0, ROOT)
     import jax
 
-    from jaxrobo.cache import enable_compilation_cache, entries
-    from jaxrobo.run import resolve
-    from jaxrobo.train import train
+    from jaxrobo.speed.cache import enable_compilation_cache, entries
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
 
     directory = enable_compilation_cache(args.cache_dir)
     n_before = entries(directory)
-    from jaxrobo.config import parse_overrides
+    from jaxrobo.core.config import parse_overrides
 
     overrides = {"n_envs": args.n_envs, "chunk_steps": args.chunk_steps, **parse_overrides(args.set)}
     spec = resolve(args.env, "default", overrides, agent=args.agent)

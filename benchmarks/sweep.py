@@ -1,7 +1,7 @@
 """Many independent Q-learning runs of the seed's cartpole experiment in ONE sweep call (issue 5 target).
 
 Target on an H100: 1,000 runs of 1,000 episodes of at most 1,000 steps each in under 60 s. The runs are a
-grid of ``--configs`` learning rates × seeds, one table per run, trained by :func:`jaxrobo.sweep.run_sweep`
+grid of ``--configs`` learning rates × seeds, one table per run, trained by :func:`jaxrobo.training.sweep.run_sweep`
 as one vmapped program (sharded over every local device when there are several). Reported: the wall time of
 the whole call (compile included), the run time alone, env steps per second and the best learning rate.
 
@@ -39,10 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     import jax
     import numpy as np
 
-    from jaxrobo import sharding
-    from jaxrobo.cache import enable_compilation_cache
-    from jaxrobo.config import ConfigError
-    from jaxrobo.sweep import run_sweep
+    from jaxrobo.speed import sharding
+    from jaxrobo.speed.cache import enable_compilation_cache
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.training.sweep import run_sweep
 
     enable_compilation_cache()
     gpu = jax.default_backend() == "gpu"

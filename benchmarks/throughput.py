@@ -126,12 +126,12 @@ def steps_for(n: int, gpu: bool, requested: int | None, cheap: bool = False) -> 
 # ---- jaxrobo rows ----------------------------------------------------------------------------------------------
 def env_rollout(env: Any, n: int, steps: int, plan: Any):
     """``(state, key) -> (state, checksum)``: ``steps`` random-action steps of ``n`` auto-resetting envs, stepped
-    as ``plan`` (a :class:`jaxrobo.plan.ExecutionPlan`) says."""
+    as ``plan`` (a :class:`jaxrobo.speed.plan.ExecutionPlan`) says."""
     import jax
     import jax.numpy as jnp
 
-    from jaxrobo.plan import step_batch
-    from jaxrobo.wrappers import AutoReset
+    from jaxrobo.speed.plan import step_batch
+    from jaxrobo.task.wrappers import AutoReset
 
     wrapped = AutoReset(env)
     params = env.default_params
@@ -157,7 +157,7 @@ def env_rollout(env: Any, n: int, steps: int, plan: Any):
 
 
 def sim_info(env: Any) -> tuple[int, float]:
-    from jaxrobo.env import simulator_of
+    from jaxrobo.task.env import simulator_of
 
     sim = simulator_of(env)
     n_sub = int(getattr(sim, "n_substeps", 1) or 1)
@@ -167,7 +167,7 @@ def sim_info(env: Any) -> tuple[int, float]:
 
 def fused_plan(env: Any, config: Any, fused: str | None) -> Any:
     """The run's plan, with ``--fused CHOICE[:BLOCK]`` applied when given."""
-    from jaxrobo.plan import ExecutionPlan
+    from jaxrobo.speed.plan import ExecutionPlan
 
     plan = ExecutionPlan.for_run(env, config)
     if fused is None:
@@ -182,9 +182,9 @@ def measure_jaxrobo(env_id: str, backend: str | None, learner: str | None, n: in
     that differ from the defaults (shown beside the backend, e.g. ``mjx dt=0.02``)."""
     import jax
 
-    from jaxrobo import driver
-    from jaxrobo.run import resolve
-    from jaxrobo.trainer import Trainer
+    from jaxrobo.training import driver
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.trainer import Trainer
 
     label = _backend_label(backend, options)
     if learner and args.fused:  # a training row of another plan is another row (env-only rows never fuse)
@@ -300,7 +300,7 @@ def _brax_style_rollout(env: Any, action_size: int, n: int, steps: int, physics:
 
 
 def peer_brax(n: int, args, ctx) -> dict[str, Any]:
-    from jaxrobo.sim import quiet_imports
+    from jaxrobo.physics.sim import quiet_imports
 
     with quiet_imports():
         from brax import envs
@@ -318,7 +318,7 @@ def peer_playground(n: int, args, ctx) -> dict[str, Any]:
     """MuJoCo Playground's ``CartpoleBalance`` (dm_control's cart-pole on MJX), random actions, auto-reset by
     Playground's own Brax training wrapper, on MJX's JAX implementation (Playground defaults to MJX-Warp, which
     needs ``warp-lang`` and a CUDA GPU; the JAX one runs everywhere and is what our rows use too)."""
-    from jaxrobo.sim import quiet_imports
+    from jaxrobo.physics.sim import quiet_imports
 
     with quiet_imports():
         from mujoco_playground import registry, wrapper
@@ -344,7 +344,7 @@ def peer_crazyflow(n: int, args, ctx) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
 
-    from jaxrobo.sim import quiet_imports
+    from jaxrobo.physics.sim import quiet_imports
 
     with quiet_imports():
         import crazyflow.sim.functional as cf_functional
@@ -421,7 +421,7 @@ def published_rows(names) -> list[dict[str, Any]]:
 def brax_physics_dt() -> float | str:
     """Brax ``inverted_pendulum``'s physics step on ``mjx`` (s), or why it cannot be read."""
     try:
-        from jaxrobo.sim import quiet_imports
+        from jaxrobo.physics.sim import quiet_imports
 
         with quiet_imports():
             from brax import envs
@@ -540,7 +540,7 @@ def continuous(env_id: str) -> bool:
     """Whether ``env_id``'s actions are a Box: its task declares float actions (nothing is built)."""
     import jax.numpy as jnp
 
-    from jaxrobo.registry import _lookup
+    from jaxrobo.task.registry import _lookup
 
     return jnp.issubdtype(_lookup(env_id).env_class().action_dtype, jnp.floating)
 
@@ -548,7 +548,7 @@ def continuous(env_id: str) -> bool:
 def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
     """("run", env_id, backend, learner, n, options) rows, plus ("skip", env_id, reason) for ids not there."""
     import jaxrobo
-    from envs.cartpole import BACKENDS
+    from envs.cartpole.robot import BACKENDS
 
     ids = jaxrobo.registered()
     wanted = args.envs.split(",") if args.envs else ids + [q for q in QUADCOPTERS if q not in ids]
@@ -571,9 +571,9 @@ def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
         if env_id not in ids:
             plan.append(("skip", env_id, f"{env_id} is not registered in this checkout"))
             continue
-        if continuous(env_id):  # tabular rows need Discrete actions; PPO's throughput: benchmarks/ppo_throughput.py
+        if continuous(env_id):  # tabular rows need Discrete actions; PPO's throughput: benchmarks/studies/ppo_throughput.py
             plan.append(("skip", env_id, f"{env_id} has continuous (Box) actions: no tabular rows; "
-                                         "benchmarks/ppo_throughput.py measures PPO on it"))
+                                         "benchmarks/studies/ppo_throughput.py measures PPO on it"))
             continue
         cartpole = env_id.startswith("CartPoleStayUp")
         env_backends = (backends if env_id == "CartPoleStayUp-v0" else ("mjx",)) if cartpole else (None,)
@@ -665,7 +665,7 @@ def main(argv: list[str] | None = None) -> int:
     _common.select_device(args.device)
     import jax
 
-    from jaxrobo.cache import enable_compilation_cache
+    from jaxrobo.speed.cache import enable_compilation_cache
 
     cache = None if args.no_cache else enable_compilation_cache()
     gpu = jax.default_backend() == "gpu"

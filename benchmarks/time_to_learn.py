@@ -32,14 +32,14 @@ GOTO_TARGET = 0.8  # share of greedy episodes that arrive at the goal
 
 
 def train_until(runner, chunk, score, target, args, max_chunks, label):
-    """Run ``--eval-every`` chunks at a time (the host driver's loop, :func:`jaxrobo.driver.run_chunks`, with
+    """Run ``--eval-every`` chunks at a time (the host driver's loop, :func:`jaxrobo.training.driver.run_chunks`, with
     nothing read back between chunks) until ``score`` reaches ``target``, ``--budget`` seconds of training pass
     or the run ends; only the chunks are timed (each stretch waited for with ``block_until_ready``).
     ``score(runner, chunks) -> (value, record, text)``. Returns the runner, the training seconds, the evaluation
     records, the last score and whether it met."""
     import numpy as np
 
-    from jaxrobo import driver
+    from jaxrobo.training import driver
 
     train_s, evals, best, chunks, met = 0.0, [], 0.0, 0, False
     while train_s < args.budget and chunks < max_chunks:
@@ -62,9 +62,9 @@ def jaxrobo_cartpole(args) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
 
-    from jaxrobo import driver
-    from jaxrobo.run import resolve
-    from jaxrobo.trainer import Trainer
+    from jaxrobo.training import driver
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.trainer import Trainer
 
     overrides = {"n_envs": args.n_envs, "chunk_steps": args.chunk_steps, "seed": args.seed}
     if args.backend:
@@ -138,10 +138,10 @@ def goto_row(args) -> dict[str, Any]:
     import numpy as np
 
     import jaxrobo
-    from jaxrobo.rollout import greedy_policy, rollout
-    from jaxrobo import driver
-    from jaxrobo.run import resolve
-    from jaxrobo.trainer import Trainer
+    from jaxrobo.task.rollout import greedy_policy, rollout
+    from jaxrobo.training import driver
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.trainer import Trainer
 
     if GOTO_ID not in jaxrobo.registered():
         return {"side": "jaxrobo", "env": GOTO_ID, "status": "skipped", "reason": f"{GOTO_ID} is not registered"}
@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     _common.select_device(args.device)
     import jax
 
-    from jaxrobo.cache import enable_compilation_cache
+    from jaxrobo.speed.cache import enable_compilation_cache
 
     enable_compilation_cache()
     if args.goto_runs is None:

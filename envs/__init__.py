@@ -1,78 +1,89 @@
-"""Robots and tasks shipped with jaxrobo; importing this package registers their ids (lazily: a task module,
-and MuJoCo with it, is imported only when its env is made). :mod:`jaxrobo.registry` imports it by name (its
-``BUILTIN_ENVS`` entry point) the first time an id is looked up.
+"""Robots and tasks shipped with jaxrobo, one folder per robot family; importing this package registers their ids
+(lazily: a task module, and MuJoCo with it, is imported only when its env is made). :mod:`jaxrobo.task.registry`
+imports it by name (its ``BUILTIN_ENVS`` entry point) the first time an id is looked up.
 
-Layout, and how to add your own robot or task (in this package or in your own):
+Each family keeps its MJCF, robot, tasks, env YAML and fast kernels side by side::
 
-* a **robot** (``cartpole.py``, ``quadcopter.py``) subclasses :class:`jaxrobo.robot.Robot`: it loads its MJCF
-  with :func:`jaxrobo.sim.load_model` from :func:`asset_path` (or any path of its own), builds its simulator with
-  :func:`jaxrobo.sim.make_simulator` (offering its hand-written backends, :class:`jaxrobo.sim.ClosedFormSim`
-  subclasses such as ``cartpole_dynamics.CartPoleSim`` and ``rigid_body.RigidBodySim``, by name), and adds its
-  controller and sensors;
-* a **task** (``cartpole_stay_up.py``, ``quadcopter_goto.py``, ``quadcopter_live_show.py``) subclasses
-  :class:`jaxrobo.env.TaskEnv` with its ``Options``/``Params`` and is registered here with
-  :func:`jaxrobo.registry.register` (``"module:Class"``, its step limit, its YAML files under ``configs/``);
-* a **continuous-action task** (``cartpole_continuous.py``: ``CartPoleContinuous-v0``, a bounded force on the
-  cart; ``quadcopter_goto_twist.py``: ``QuadcopterGotoTwist-v0``, the Goto task flown with a Twist
-  ``[vx, vy, vz, yaw_rate]`` bounded by ``speed_value``) has a ``Box`` action space and an observation without
-  discretisation, for Brax's PPO/SAC through :mod:`jaxrobo.brax_env` (``jaxrobo train --agent ppo|sac``); it sits
-  beside its discrete task, whose id stays exactly as it is.
+    cartpole/     cartpole.xml  robot.py (CartPoleRobot)  dynamics.py (closed form, also the kernels' source)
+                  stay_up.py (CartPoleStayUp-v0, -LeftRight-v0)  continuous.py (CartPoleContinuous-v0)
+                  cartpole_stay_up.yaml
+    quadcopter/   quadcopter.xml  robot.py (QuadcopterRobot: Twist controller, sonar)  rigid_body.py (closed form)
+                  kernel.py (the control step as one Pallas kernel)  live_show.py  goto.py  goto_v2.py
+                  goto_kernel.py (the Goto step as one Pallas kernel)  goto_twist.py  quadcopter_*.yaml
+    arm/          arm.xml  robot.py (ArmRobot)  reach.py (ArmReach-v0)  arm_reach.yaml
 
-What a module here may import from jaxrobo is the task API: ``jaxrobo.env``, ``jaxrobo.robot``, ``jaxrobo.sim``,
-``jaxrobo.spaces``, ``jaxrobo.struct``, ``jaxrobo.rng``, ``jaxrobo.registry`` and the rollout/evaluation module
-``jaxrobo.rollout`` (for a task's own evaluation); never the trainer, the CLI or a learner
-(``tests/test_structure.py`` checks it).
+How to add your own robot or task (in this package or in your own module, docs/extending.md):
+
+* a **robot** subclasses :class:`jaxrobo.api.Robot`: it loads its MJCF with :func:`jaxrobo.api.load_model`, builds
+  its simulator with :func:`jaxrobo.api.make_simulator` (offering its hand-written backends,
+  :class:`jaxrobo.api.ClosedFormSim` subclasses such as ``cartpole.dynamics.CartPoleSim`` and
+  ``quadcopter.rigid_body.RigidBodySim``, by name), and adds its controller and sensors;
+* a **task** subclasses :class:`jaxrobo.api.TaskEnv` with its ``Options``/``Params``, opens with its environment
+  card, and is registered here with :func:`jaxrobo.api.register` (``"module:Class"``, its step limit, its YAML);
+* a **continuous-action task** (``cartpole/continuous.py``, ``quadcopter/goto_twist.py``) has a ``Box`` action
+  space and an observation without discretisation, for Brax's PPO/SAC through :mod:`jaxrobo.interop.brax_env`
+  (``jaxrobo train --agent ppo|sac``); it sits beside its discrete task, whose id stays exactly as it is.
+
+A module here imports from jaxrobo only its public surface, :mod:`jaxrobo.api` (``tests/test_structure.py``
+checks it): never the trainer, the CLI or a learner.
 """
 from __future__ import annotations
 
 import os
 
-from jaxrobo.registry import deprecated_alias, register
+from jaxrobo.api import deprecated_alias, register
 
-_CONFIGS = os.path.join(os.path.dirname(__file__), "configs")
-#: The robots' MJCF files.
-ASSETS = os.path.join(os.path.dirname(__file__), "assets")
-
-
-def asset_path(*parts: str) -> str:
-    """Absolute path of a file in ``envs/assets``."""
-    return os.path.join(ASSETS, *parts)
+_HERE = os.path.dirname(os.path.abspath(__file__))
+#: The robot families, each a folder of its own.
+FAMILIES = ("cartpole", "quadcopter", "arm")
 
 
-def _cfg(name: str) -> str:
-    return os.path.join(_CONFIGS, name)
+def asset_path(name: str) -> str:
+    """Absolute path of a family's file by its name (``asset_path("cartpole.xml")`` is
+    ``envs/cartpole/cartpole.xml``); an absolute path is returned as it is."""
+    if os.path.isabs(name):
+        return name
+    for family in FAMILIES:
+        path = os.path.join(_HERE, family, name)
+        if os.path.exists(path):
+            return path
+    raise FileNotFoundError(f"{name!r} is in none of the robot families' folders ({', '.join(FAMILIES)})")
+
+
+def _cfg(family: str, name: str) -> str:
+    return os.path.join(_HERE, family, name)
 
 
 def _register_builtin() -> None:
     # Cart-pole (seed 001). Agent YAML names are relative to agents/configs/.
-    register("CartPoleStayUp-v0", "envs.cartpole_stay_up:CartPoleStayUp",
-             config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
+    register("CartPoleStayUp-v0", "envs.cartpole.stay_up:CartPoleStayUp",
+             config=_cfg("cartpole", "cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
              description="seed 001: keep the pole up, 4 actions")
     # The seed's exercise 2.3 is a different task, not a newer CartPoleStayUp: an id of its own, so Gymnasium
     # never calls CartPoleStayUp-v0 "out of date". Its first name, CartPoleStayUp-v1, still works in jaxrobo.
-    register("CartPoleStayUpLeftRight-v0", "envs.cartpole_stay_up:CartPoleStayUp",
-             config=_cfg("cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
+    register("CartPoleStayUpLeftRight-v0", "envs.cartpole.stay_up:CartPoleStayUp",
+             config=_cfg("cartpole", "cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
              description="seed exercise 2.3: left/right only", n_actions=2)
     deprecated_alias("CartPoleStayUp-v1", "CartPoleStayUpLeftRight-v0")
     # Quadcopter (seed 000): the faithful live-show task and the seed's homework (goto with obstacles).
-    register("QuadcopterLiveShow-v0", "envs.quadcopter_live_show:QuadcopterLiveShow",
-             config=_cfg("quadcopter_live_show.yaml"), agent_config="quadcopter_live_show.yaml",
+    register("QuadcopterLiveShow-v0", "envs.quadcopter.live_show:QuadcopterLiveShow",
+             config=_cfg("quadcopter", "quadcopter_live_show.yaml"), agent_config="quadcopter_live_show.yaml",
              description="seed 000: fly toward (14, 1, 0.7) observing x only (does not learn, as in the seed)")
-    register("QuadcopterGoto-v1", "envs.quadcopter_goto:QuadcopterGoto",
-             config=_cfg("quadcopter_goto.yaml"), agent_config="quadcopter_goto.yaml",
+    register("QuadcopterGoto-v1", "envs.quadcopter.goto:QuadcopterGoto",
+             config=_cfg("quadcopter", "quadcopter_goto.yaml"), agent_config="quadcopter_goto.yaml",
              description="seed 000 homework: random goals, obstacles, sonar, discretised relative pose")
-    register("QuadcopterGoto-v2", "envs.quadcopter_goto2:QuadcopterGoto2",
-             config=_cfg("quadcopter_goto_v2.yaml"), agent_config="quadcopter_goto_v2.yaml",
+    register("QuadcopterGoto-v2", "envs.quadcopter.goto_v2:QuadcopterGoto2",
+             config=_cfg("quadcopter", "quadcopter_goto_v2.yaml"), agent_config="quadcopter_goto_v2.yaml",
              description="Goto homework redesigned to learn: goal_clear feature, crash penalty 150, potential shaping")
-    # Continuous actions (Box(-1, 1)) for Brax's PPO/SAC (jaxrobo.brax_env): a task module each, beside its
+    # Continuous actions (Box(-1, 1)) for Brax's PPO/SAC (jaxrobo.interop.brax_env): a task module each, beside its
     # discrete task, so the discrete ids stay exactly as they are.
-    register("CartPoleContinuous-v0", "envs.cartpole_continuous:CartPoleContinuous",
+    register("CartPoleContinuous-v0", "envs.cartpole.continuous:CartPoleContinuous",
              description="keep the pole up with a continuous force on the cart (Box(-1, 1) x 10 N)")
-    register("QuadcopterGotoTwist-v0", "envs.quadcopter_goto_twist:QuadcopterGotoTwist",
+    register("QuadcopterGotoTwist-v0", "envs.quadcopter.goto_twist:QuadcopterGotoTwist",
              description="Goto with a continuous Twist [vx, vy, vz, yaw_rate] bounded by speed_value")
     # Planar two-joint arm (openai_ros' reach tasks): two position servos, a random goal each episode.
-    register("ArmReach-v0", "envs.arm_reach:ArmReach",
-             config=_cfg("arm_reach.yaml"), agent_config="arm_reach.yaml",
+    register("ArmReach-v0", "envs.arm.reach:ArmReach",
+             config=_cfg("arm", "arm_reach.yaml"), agent_config="arm_reach.yaml",
              description="planar 2-joint arm under position control: reach a random goal, 4 actions")
 
 

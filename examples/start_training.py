@@ -7,10 +7,10 @@ What changed from the seed (openai_ros, seed 001):
 * ROS and Gazebo are gone: ``gymnasium.make("jaxrobo/CartPoleStayUp-v0")`` builds the MuJoCo MJX model, and
   ``import jaxrobo`` is what registers the ``jaxrobo/`` ids with Gymnasium.
 * The parameters come from the shipped YAML files (environment and learner halves, the seed's split) through
-  :func:`jaxrobo.run.resolve`, instead of the ROS parameter server; ``--set KEY=VALUE`` overrides any of them.
+  :func:`jaxrobo.training.run.resolve`, instead of the ROS parameter server; ``--set KEY=VALUE`` overrides any of them.
 * ``gym.wrappers.Monitor`` no longer exists: results go to a run directory that ``jaxrobo plot`` reads
   (``config.yaml``, ``episodes.csv``, ``summary.json``, ``qtables.npz``).
-* States are integer bins (:func:`jaxrobo.trainer.make_discretiser_for`); ``--preset seed`` reproduces the seed's
+* States are integer bins (:func:`jaxrobo.training.trainer.make_discretiser_for`); ``--preset seed`` reproduces the seed's
   rounding to 0.1 and its learner rules exactly.
 
 This is the slow, classic path on purpose (one env, numpy ↔ JAX every step); ``jaxrobo train`` runs the same
@@ -36,11 +36,11 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import agents  # noqa: E402
 import jaxrobo  # noqa: E402,F401  (registers the jaxrobo/<id> environments with Gymnasium)
-from jaxrobo import tabular  # noqa: E402
-from jaxrobo import results  # noqa: E402
-from jaxrobo.config import ConfigError, parse_overrides  # noqa: E402
-from jaxrobo.run import resolve  # noqa: E402
-from jaxrobo.train import make_discretiser_for  # noqa: E402
+from jaxrobo.tabular import learner as tabular  # noqa: E402
+from jaxrobo.io import results  # noqa: E402
+from jaxrobo.core.config import ConfigError, parse_overrides  # noqa: E402
+from jaxrobo.training.run import resolve  # noqa: E402
+from jaxrobo.training.train import make_discretiser_for  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

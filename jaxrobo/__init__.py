@@ -5,26 +5,40 @@
 >>> state = env.reset(jax.random.key(0))
 >>> state = env.step(state, 1)
 
-Public surface: :func:`make`, :func:`register`, :func:`registered`, :func:`spec` (:mod:`jaxrobo.registry`); to
-write a task, subclass :class:`TaskEnv` (:mod:`jaxrobo.env`); a robot, :class:`Robot` (:mod:`jaxrobo.robot`),
+Public surface: :func:`make`, :func:`register`, :func:`registered`, :func:`spec` (:mod:`jaxrobo.task.registry`); to
+write a task, subclass :class:`TaskEnv` (:mod:`jaxrobo.task.env`); a robot, :class:`Robot` (:mod:`jaxrobo.task.robot`),
 whose simulator comes from :func:`make_simulator`, with a hand-written backend on :class:`ClosedFormSim`
-(:mod:`jaxrobo.sim`). Training, sweeps, plots and videos are the ``jaxrobo`` CLI and :mod:`jaxrobo.train`,
-:mod:`jaxrobo.sweep`, :mod:`jaxrobo.render`; the Gymnasium ids ``jaxrobo/<id>`` are :mod:`jaxrobo.gym_adapter`.
+(:mod:`jaxrobo.physics.sim`). Training, sweeps, plots and videos are the ``jaxrobo`` CLI and :mod:`jaxrobo.training.train`,
+:mod:`jaxrobo.training.sweep`, :mod:`jaxrobo.pictures.render`; the Gymnasium ids ``jaxrobo/<id>`` are :mod:`jaxrobo.interop.gym_adapter`.
 """
 from __future__ import annotations
 
-__version__ = "0.1.0"
+import importlib as _importlib
+import sys as _sys
 
-from jaxrobo.render import select_gl_backend as _select_gl
+from jaxrobo.core.version import __version__
+
+from jaxrobo.pictures.render import select_gl_backend as _select_gl
 
 _select_gl()  # before anything imports mujoco: MUJOCO_GL may only name a backend whose library loads
 
-from jaxrobo.config import ConfigError
-from jaxrobo.env import EnvState, TaskEnv
-from jaxrobo.registry import make, register, registered, spec
-from jaxrobo.robot import Robot
-from jaxrobo.sim import ClosedFormSim, make_simulator
-from jaxrobo import gym_adapter as _gym_adapter  # noqa: E402,F401  (registers "jaxrobo/<id>" with Gymnasium)
+from jaxrobo.core.config import ConfigError
+from jaxrobo.task.env import EnvState, TaskEnv
+from jaxrobo.task.registry import make, register, registered, spec
+from jaxrobo.task.robot import Robot
+from jaxrobo.physics.sim import ClosedFormSim, make_simulator
+from jaxrobo.interop import gym_adapter as _gym_adapter  # noqa: E402,F401  (registers "jaxrobo/<id>" with Gymnasium)
+
+#: Module names of the earlier flat layout that user modules import, and their homes now: ``import jaxrobo.env``
+#: and ``from jaxrobo import spaces`` keep working (``tests/test_public_api.py``). New code imports
+#: :mod:`jaxrobo.api`.
+LEGACY_MODULES = {"env": "jaxrobo.task.env", "robot": "jaxrobo.task.robot", "registry": "jaxrobo.task.registry",
+                  "rollout": "jaxrobo.task.rollout", "sim": "jaxrobo.physics.sim", "struct": "jaxrobo.core.struct",
+                  "spaces": "jaxrobo.core.spaces", "rng": "jaxrobo.core.rng", "config": "jaxrobo.core.config"}
+for _old, _new in LEGACY_MODULES.items():
+    _sys.modules.setdefault(f"{__name__}.{_old}", _importlib.import_module(_new))
+    globals().setdefault(_old, _sys.modules[_new])
+del _old, _new
 
 __all__ = ["ClosedFormSim", "ConfigError", "EnvState", "Robot", "TaskEnv", "make", "make_simulator", "register",
            "registered", "spec", "__version__"]

@@ -41,9 +41,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrobo import spaces
+from jaxrobo.core import spaces
 
-#: The task hooks of :class:`jaxrobo.env.TaskEnv`, as a traceback names them.
+#: The task hooks of :class:`jaxrobo.task.env.TaskEnv`, as a traceback names them.
 HOOKS = ("_set_init_pose", "_init_env_variables", "_set_action", "_get_obs", "_is_done", "_compute_reward")
 
 OK, FAIL, SKIP = "ok", "FAIL", "skip"
@@ -137,7 +137,7 @@ def _keys(seed: int, n: int) -> jax.Array:
 
 
 def _is_task_env(env: Any) -> bool:
-    from jaxrobo.env import TaskEnv
+    from jaxrobo.task.env import TaskEnv
 
     return isinstance(env, TaskEnv)
 
@@ -202,13 +202,13 @@ class _Checker:
                 raise _Fail(f"action_space(): the action Box needs finite bounds with low < high, got low={low}, "
                             f"high={high}")
         elif not isinstance(act, spaces.Discrete):
-            raise _Fail(f"action_space() returned {type(act).__name__}; expected jaxrobo.spaces.Discrete(n) or "
-                        "jaxrobo.spaces.Box")
+            raise _Fail(f"action_space() returned {type(act).__name__}; expected jaxrobo.core.spaces.Discrete(n) or "
+                        "jaxrobo.core.spaces.Box")
         elif not isinstance(act.n, (int, np.integer)) or act.n <= 0:
             raise _Fail(f"action_space().n={act.n!r}: expected an integer > 0")
         obs_space = env.observation_space(p)
         if not isinstance(obs_space, spaces.Box):
-            raise _Fail(f"observation_space() returned {type(obs_space).__name__}; expected jaxrobo.spaces.Box")
+            raise _Fail(f"observation_space() returned {type(obs_space).__name__}; expected jaxrobo.core.spaces.Box")
         low, high = np.asarray(obs_space.low), np.asarray(obs_space.high)
         if low.shape != high.shape or np.any(low > high):
             raise _Fail(f"observation_space(): low {low.shape} and high {high.shape} must have one shape, low <= high")
@@ -481,7 +481,7 @@ class _Checker:
 
     # -- MJX against native MuJoCo
     def mjx_native(self) -> str:
-        from jaxrobo.env import simulator_of
+        from jaxrobo.task.env import simulator_of
 
         sim = simulator_of(self.env)
         if sim is None or getattr(sim, "backend", None) != "mjx":
@@ -520,8 +520,8 @@ class _Checker:
         import gymnasium
         from gymnasium.utils.env_checker import check_env as gym_check_env
 
-        from jaxrobo.gym_adapter import JaxroboEnv, gym_id, register_gymnasium_id
-        from jaxrobo.registry import registration
+        from jaxrobo.interop.gym_adapter import JaxroboEnv, gym_id, register_gymnasium_id
+        from jaxrobo.task.registry import registration
 
         if self.env_id is not None:
             # A user's "module:Id" is registered with Gymnasium under its bare id once its module is imported
@@ -532,7 +532,7 @@ class _Checker:
                 register_gymnasium_id(bare)
             if gid not in gymnasium.registry:
                 return _skip(f"{gid} is not registered with Gymnasium (call "
-                             "jaxrobo.gym_adapter.register_gymnasium_envs() after registering it)")
+                             "jaxrobo.interop.gym_adapter.register_gymnasium_envs() after registering it)")
             genv = gymnasium.make(gid).unwrapped
             what = f"gymnasium.make({gid!r})"
         else:
@@ -585,9 +585,9 @@ def check_env(env_or_id: Any, *, quick: bool = False, seed: int = 0, params: Any
               checks: tuple[str, ...] | None = None, **overrides: Any) -> list[CheckResult]:
     """Check a jaxrobo env (an id made with ``overrides``, or an env) and return one result per check.
 
-    Raises :class:`jaxrobo.config.ConfigError` for an unknown id or bad overrides (nothing is checked then).
+    Raises :class:`jaxrobo.core.config.ConfigError` for an unknown id or bad overrides (nothing is checked then).
     """
-    from jaxrobo.registry import make
+    from jaxrobo.task.registry import make
 
     if isinstance(env_or_id, str):
         env_id = env_or_id[len("jaxrobo/"):] if env_or_id.startswith("jaxrobo/") else env_or_id

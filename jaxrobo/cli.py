@@ -17,8 +17,8 @@ import time
 from typing import Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
-PLUGINS = {"show": ("jaxrobo.flights", "draw greedy flights of a trained quadcopter (top and side views)"),
-           "sweep": ("jaxrobo.sweep", "parameter sweep as one vmapped computation")}
+PLUGINS = {"show": ("jaxrobo.show", "draw greedy flights of a trained quadcopter (top and side views)"),
+           "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation")}
 
 
 #: Default checkpoint cadence of ``jaxrobo train``: at the first chunk boundary this long after the last save.
@@ -31,7 +31,7 @@ TRAIN_FLAGS = (("n_envs", "--n-envs"), ("seed", "--seed"), ("nepisodes", "--nepi
 
 def train_overrides(args: argparse.Namespace) -> dict:
     """``--set`` pairs merged with the flags; a key given both ways is refused (neither silently wins)."""
-    from jaxrobo.config import merge_flags, parse_overrides
+    from jaxrobo.core.config import merge_flags, parse_overrides
 
     overrides = merge_flags(parse_overrides(args.set or []), [(k, f, getattr(args, k)) for k, f in TRAIN_FLAGS])
     if args.agent is not None:
@@ -41,7 +41,7 @@ def train_overrides(args: argparse.Namespace) -> dict:
 
 def _train(args: argparse.Namespace) -> int:
     """``jaxrobo train``: a fresh run into ``--out``, or ``--resume DIR``; exit 130/143 after SIGINT/SIGTERM with a
-    resumable directory (:mod:`jaxrobo.rundir` has the rules of run directories)."""
+    resumable directory (:mod:`jaxrobo.io.rundir` has the rules of run directories)."""
     try:
         return _train_checked(args)
     except KeyboardInterrupt:  # before the handlers are installed or after a second signal: nothing half-written
@@ -54,10 +54,10 @@ def _train_spec(args: argparse.Namespace):
     or the interrupted run of ``--resume DIR`` with its own ``config.yaml``. Raises ConfigError naming the flag."""
     import yaml
 
-    from jaxrobo import rundir
-    from jaxrobo.config import ConfigError
-    from jaxrobo.registry import find
-    from jaxrobo.run import resolve, spec_from_config
+    from jaxrobo.io import rundir
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.task.registry import find
+    from jaxrobo.training.run import resolve, spec_from_config
 
     resume = args.resume
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
@@ -103,7 +103,7 @@ def _deep_agent(args: argparse.Namespace) -> str | None:
     """``ppo`` or ``sac`` when the run asked for is one of Brax's trainers (``--agent``, ``--set agent=``, or a
     ``--resume`` of such a run), else None."""
     from jaxrobo import deep
-    from jaxrobo.config import parse_overrides
+    from jaxrobo.core.config import parse_overrides
 
     if deep.is_deep(args.agent):
         return args.agent
@@ -122,9 +122,10 @@ def _deep_agent(args: argparse.Namespace) -> str | None:
 
 def _deep_spec(args: argparse.Namespace, agent: str):
     """The deep run asked for and its directory; ConfigError naming the flag."""
-    from jaxrobo import deep, rundir
-    from jaxrobo.config import ConfigError, merge_flags, parse_overrides
-    from jaxrobo.registry import find
+    from jaxrobo import deep
+    from jaxrobo.io import rundir
+    from jaxrobo.core.config import ConfigError, merge_flags, parse_overrides
+    from jaxrobo.task.registry import find
 
     if args.resume is not None:
         raise ConfigError(f"--resume {args.resume}: a ppo/sac run cannot be resumed (Brax's trainers keep their state "
@@ -151,14 +152,15 @@ def _deep_spec(args: argparse.Namespace, agent: str):
 
 def _train_deep(args: argparse.Namespace, agent: str) -> int:
     """``jaxrobo train --agent ppo|sac``: Brax's trainer on the env's Brax face, into a run directory that is
-    checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.rundir`)."""
+    checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.io.rundir`)."""
     import shlex
 
     import numpy as np
 
-    from jaxrobo import deep, rundir
-    from jaxrobo.config import ConfigError
-    from jaxrobo.results import write_config
+    from jaxrobo import deep
+    from jaxrobo.io import rundir
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.io.results import write_config
 
     try:
         spec, out = _deep_spec(args, agent)
@@ -194,7 +196,7 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
 
     # SIGINT/SIGTERM: Brax's trainer cannot be paused, so it is stopped where it hands control back (its next
     # evaluation point); a second signal exits at once. Either way the run directory says "interrupted".
-    from jaxrobo import driver
+    from jaxrobo.training import driver
 
     try:
         with driver.StopOnSignal(notice, second="exit") as stop:
@@ -237,7 +239,7 @@ def _deep_stopped(live: str, out: str, again: str, what: str, code: int, **field
     (``live`` is ``out``) is marked ``interrupted``; an old run that ``--overwrite`` was to replace stays as it was
     (a stopped deep run cannot be resumed, so it must not replace a finished one) and the new run's staging
     directory is removed. Returns ``code``."""
-    from jaxrobo import rundir
+    from jaxrobo.io import rundir
 
     if os.path.abspath(live) == os.path.abspath(out):
         rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", what=what, **fields)
@@ -252,10 +254,10 @@ def _deep_stopped(live: str, out: str, again: str, what: str, code: int, **field
 def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
     """An error after a checkpoint was saved (evaluating or writing the results of a finished run) leaves a run
     that ``resume_cmd`` (``jaxrobo train --resume OUT``) continues, and says so. The state of a run that replaces
-    an old one (``--overwrite``) lives in a hidden staging sibling (:func:`jaxrobo.rundir.live_dir`): it is moved
+    an old one (``--overwrite``) lives in a hidden staging sibling (:func:`jaxrobo.io.rundir.live_dir`): it is moved
     into place as OUT first, as an interrupted run is, so that ``--resume OUT`` finds the new run, not the old one.
     The error is raised again."""
-    from jaxrobo import rundir
+    from jaxrobo.io import rundir
 
     try:
         yield
@@ -277,10 +279,11 @@ def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
 def _train_checked(args: argparse.Namespace) -> int:
     import shlex
 
-    from jaxrobo import checkpoint, driver, rundir
-    from jaxrobo import train as training
-    from jaxrobo.config import ConfigError
-    from jaxrobo.results import save_run, write_config, write_episodes
+    from jaxrobo.training import checkpoint, driver
+    from jaxrobo.io import rundir
+    from jaxrobo.training import train as training
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.io.results import save_run, write_config, write_episodes
 
     resume = args.resume
     agent = _deep_agent(args)
@@ -380,29 +383,9 @@ def _train_checked(args: argparse.Namespace) -> int:
     return 0
 
 
-#: Image formats the PNG-writing commands accept (matplotlib picks the format from the extension).
-IMAGE_EXTENSIONS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
-
-
-def check_image_path(path: str, flag: str = "--out") -> None:
-    """ConfigError unless ``path`` names an image file matplotlib writes, in a directory that is not a file."""
-    from jaxrobo.config import ConfigError
-
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in IMAGE_EXTENSIONS:
-        raise ConfigError(f"{flag} {path!r}: expected an image file ending in {', '.join(IMAGE_EXTENSIONS)}")
-    if os.path.isdir(path):
-        raise ConfigError(f"{flag} {path!r} is a directory; give a file name")
-    parent = os.path.dirname(os.path.abspath(path))
-    while parent and not os.path.exists(parent):
-        parent = os.path.dirname(parent)
-    if parent and not os.path.isdir(parent):
-        raise ConfigError(f"{flag} {path!r}: {parent!r} is a file, not a directory")
-
-
 def _plot(args: argparse.Namespace) -> int:
-    from jaxrobo.config import ConfigError
-    from jaxrobo.plots import plot_runs
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.pictures.plots import check_image_path, plot_runs
 
     try:
         for d in args.runs:
@@ -424,9 +407,9 @@ def _plot(args: argparse.Namespace) -> int:
 
 def _list(args: argparse.Namespace) -> int:
     import jaxrobo
-    from jaxrobo import registry
-    from jaxrobo.config import ConfigError
-    from jaxrobo.run import agent_presets
+    from jaxrobo.task import registry
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.training.run import agent_presets
 
     print("environments:")
     for env_id in jaxrobo.registered():
@@ -437,7 +420,7 @@ def _list(args: argparse.Namespace) -> int:
             presets = "(agent YAML unreadable: see note)"
             print(f"  note: {env_id}: {err}", file=sys.stderr)
         print(f"  {env_id:28s} max {spec.max_episode_steps:5d} steps  presets: {presets:14s} {spec.description}")
-    aliases = getattr(jaxrobo.registry, "ALIASES", {})
+    aliases = getattr(jaxrobo.task.registry, "ALIASES", {})
     for old, new in sorted(aliases.items()):
         print(f"  {old:28s} deprecated name of {new}")
     print("agents: " + ", ".join(registry.learners()) + " (tabular: Discrete actions)")
@@ -450,7 +433,7 @@ def _list(args: argparse.Namespace) -> int:
 def _check(args: argparse.Namespace) -> int:
     """``jaxrobo check ID``: one line per check of the env; exit 1 if any fails, 2 for an unknown id."""
     from jaxrobo.check import check_env
-    from jaxrobo.config import ConfigError
+    from jaxrobo.core.config import ConfigError
 
     try:
         results = check_env(args.env_id, quick=args.quick, seed=args.seed)
@@ -523,18 +506,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from jaxrobo.sim import quiet_imports
+    from jaxrobo.physics.sim import quiet_imports
 
     with quiet_imports():
         import mujoco.mjx  # noqa: F401  (import once, silently: MJX prints warp import noise)
     try:
-        from jaxrobo.cache import enable_compilation_cache
+        from jaxrobo.speed.cache import enable_compilation_cache
 
         enable_compilation_cache()
     except ImportError:
         pass
     args = build_parser().parse_args(argv)
-    from jaxrobo.config import ConfigError
+    from jaxrobo.core.config import ConfigError
 
     try:
         return int(args.func(args) or 0)

@@ -46,8 +46,8 @@ def name(case: dict) -> str:
 
 
 def fingerprint(case: dict) -> str:
-    from jaxrobo.run import resolve
-    from jaxrobo.train import train
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
 
     spec = resolve(case["env_id"], case["preset"], {**SMALL, **case["extra"]}, agent=case["agent"])
     r = train(spec.env, spec.config, spec.agent_params)
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--check", metavar="JSON", help="compare every case with JSON; exit 1 on a difference")
     p.add_argument("-k", default="", help="only cases whose name contains this text")
     args = p.parse_args(argv)
-    from jaxrobo.cache import enable_compilation_cache
+    from jaxrobo.speed.cache import enable_compilation_cache
 
     enable_compilation_cache()
     todo = [c for c in cases() if args.k in name(c)]

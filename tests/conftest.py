@@ -32,12 +32,12 @@ if os.environ.get("JAXROBO_CACHE_DIR") in (None, _BASE):
     os.environ["JAXROBO_CACHE_DIR"] = _CACHE
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
-import jaxrobo  # noqa: E402  (picks an OpenGL backend whose library loads, or none: jaxrobo.render)
+import jaxrobo  # noqa: E402  (picks an OpenGL backend whose library loads, or none: jaxrobo.pictures.render)
 
 
 def pytest_report_header(config):
     """Which OpenGL the rendering tests use, or why they skip (one line in the session header)."""
-    from jaxrobo.render import gl_unavailable_reason
+    from jaxrobo.pictures.render import gl_unavailable_reason
 
     reason = gl_unavailable_reason()
     return f"OpenGL: MUJOCO_GL={os.environ.get('MUJOCO_GL')}" if reason is None else f"OpenGL: none, {reason}"
@@ -53,9 +53,9 @@ def cartpole():
 @pytest.fixture
 def mjx_step_spy(monkeypatch):
     """A list that gets, for each ``mjx.step`` traced while the test runs, whether jaxrobo's lean MJX stage
-    (:mod:`jaxrobo.mjx_lean`) was swapped in for it: one bool per traced step, in order."""
-    from jaxrobo import mjx_lean
-    from jaxrobo.sim import mjx
+    (:mod:`jaxrobo.physics.mjx_lean`) was swapped in for it: one bool per traced step, in order."""
+    from jaxrobo.physics import mjx_lean
+    from jaxrobo.physics.sim import mjx
 
     swapped = []
     step = mjx.step

@@ -12,9 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import agents
-from jaxrobo import tabular
+from jaxrobo.tabular import learner as tabular
 from agents.qlearning import noisy_greedy
-from jaxrobo.tabular import AgentParams
+from jaxrobo.tabular.learner import AgentParams
 
 N_S, N_A = 5, 4
 PARAMS = AgentParams(alpha=0.3, gamma=0.9, epsilon=0.2)
@@ -173,8 +173,8 @@ def test_unknown_agent_name_is_a_clear_error():
 
 
 def test_rng_draws_equal_jax_random_under_jit_and_vmap():
-    """jaxrobo.rng's unrolled threefry gives JAX's own numbers: results do not depend on which one ran."""
-    from jaxrobo import rng
+    """jaxrobo.core.rng's unrolled threefry gives JAX's own numbers: results do not depend on which one ran."""
+    from jaxrobo.core import rng
 
     for i in (0, 1, 7, 2**31 + 5):
         key = jax.random.key(i)
@@ -203,7 +203,7 @@ def test_rng_draws_equal_jax_random_under_jit_and_vmap():
 
 
 def test_rng_defers_to_jax_random_for_other_key_implementations():
-    from jaxrobo import rng
+    from jaxrobo.core import rng
 
     key = jax.random.key(3, impl="rbg")
     np.testing.assert_array_equal(np.asarray(jax.random.key_data(rng.split(key, 3))),

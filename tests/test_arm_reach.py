@@ -1,4 +1,4 @@
-"""ArmReach-v0 (envs/arm.py, envs/arm_reach.py): the MJCF under MJX against native MuJoCo, the fingertip
+"""ArmReach-v0 (envs/arm/robot.py, envs/arm/reach.py): the MJCF under MJX against native MuJoCo, the fingertip
 sensor, the environment card (actions, observation, reward, termination, reset), and the ordinary tools on it:
 ``jaxrobo check``, Gymnasium's checker through ``gym.make``, rendering, ``jaxrobo train`` and ``sweep`` and a
 throughput row. Everything shares one built env and its compiled reset/step."""
@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from envs import arm_reach
-from envs.arm import ELBOW_MAX, FORE, UPPER, ArmRobot, fingertip
-from jaxrobo import render
+from envs.arm import reach as arm_reach
+from envs.arm.robot import ELBOW_MAX, FORE, UPPER, ArmRobot, fingertip
+from jaxrobo.pictures import render
 from jaxrobo.cli import main
 
 ID = "ArmReach-v0"
@@ -204,9 +204,9 @@ def test_a_model_based_policy_reaches_the_goal_with_the_bonus(arm):
 
 
 def test_params_out_of_range_are_refused_naming_the_field():
-    with pytest.raises(jaxrobo.config.ConfigError, match="goal_tolerance"):
+    with pytest.raises(jaxrobo.core.config.ConfigError, match="goal_tolerance"):
         jaxrobo.make(ID, goal_tolerance=0.0)
-    with pytest.raises(jaxrobo.config.ConfigError, match="timestep"):
+    with pytest.raises(jaxrobo.core.config.ConfigError, match="timestep"):
         jaxrobo.make(ID, timestep=0.05)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from jaxrobo.cli import main
-from jaxrobo.config import ConfigError, load_yaml, parse_overrides
+from jaxrobo.core.config import ConfigError, load_yaml, parse_overrides
 
 CP = "CartPoleStayUp-v0"
 GOTO = "QuadcopterGoto-v1"
@@ -44,7 +44,7 @@ _GOTO_CONFIG: dict[str, Any] = {}
 def goto_config() -> dict[str, Any]:
     """A valid QuadcopterGoto-v1 run config (as `jaxrobo train` writes it), built once."""
     if not _GOTO_CONFIG:
-        from jaxrobo.run import resolve
+        from jaxrobo.training.run import resolve
 
         _GOTO_CONFIG.update(resolve(GOTO, check_memory=False).to_dict())
     return _GOTO_CONFIG
@@ -106,7 +106,7 @@ def write_csv_run(tmp: str, name: str, filename: str, text: str | bytes) -> None
 def agent_yaml(text: str, env_id: str = CP, which: str = "agent_config") -> Callable[[str, Any], None]:
     """Point ``env_id``'s agent (or env) YAML at a file holding ``text`` for this case only."""
     def setup(tmp: str, monkeypatch: Any) -> None:
-        from jaxrobo import registry
+        from jaxrobo.task import registry
 
         path = os.path.join(tmp, "cfg", "bad.yaml")
         os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -442,13 +442,13 @@ def _make(*a, **kw):
 
 
 def _resolve(*a, **kw):
-    from jaxrobo.run import resolve
+    from jaxrobo.training.run import resolve
 
     return resolve(*a, **kw)
 
 
 def _disc(*a, **kw):
-    from jaxrobo.discretise import make_discretiser
+    from jaxrobo.tabular.discretise import make_discretiser
 
     return make_discretiser(*a, **kw)
 
@@ -560,8 +560,10 @@ def nothing_runs(monkeypatch):
     """Whatever got past validation would reach one of these; each fails the case instead of training/drawing."""
     import matplotlib.figure
 
-    from jaxrobo import flights, results, train
-    from jaxrobo.sweep import running as sweep_running
+    from jaxrobo import show as flights
+    from jaxrobo.io import results
+    from jaxrobo.training import train
+    from jaxrobo.training.sweep import running as sweep_running
 
     def forbidden(what: str):
         def fail(*_a, **_kw):

@@ -136,7 +136,7 @@ def test_env_groups_smoke_gives_the_same_tables_for_every_group_size(tmp_path):
     # its last bit differently when the env step around it is compiled differently.
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": "off"}
     out = tmp_path / "groups.json"
-    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "env_groups.py"), "--backend", "analytic",
+    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "studies", "env_groups.py"), "--backend", "analytic",
            "--n-envs", "7", "--groups", "all,3", "--steps", "20", "--repeats", "1", "--out", str(out)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -146,12 +146,12 @@ def test_env_groups_smoke_gives_the_same_tables_for_every_group_size(tmp_path):
 
 
 def test_fused_plan_tokens_name_the_kernel_knobs():
-    """benchmarks/fused.py's plan tokens: each names one of the Pallas kernel's knobs, and they apply to pallas only."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    """benchmarks/studies/fused.py's plan tokens: each names one of the Pallas kernel's knobs, and they apply to pallas only."""
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks", "studies"))
     import fused
 
-    from jaxrobo import fused_pallas
-    from jaxrobo.plan import ExecutionPlan
+    from jaxrobo.speed import fused_pallas
+    from jaxrobo.speed.plan import ExecutionPlan
 
     plan, knobs = fused.plan_of(ExecutionPlan(), "pallas:64:w2:always:lanes:libdevice:sincos:tiled")
     assert (plan.fused, plan.fused_block) == ("pallas", 64)

@@ -1,4 +1,4 @@
-"""jaxrobo.brax_compat: the JAX shim for Brax's trainers and the SAC evaluator swap, and their Brax version guard."""
+"""jaxrobo.interop.brax_compat: the JAX shim for Brax's trainers and the SAC evaluator swap, and their Brax version guard."""
 from __future__ import annotations
 
 import jax
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from brax.training import acting
 
-from jaxrobo import brax_compat
+from jaxrobo.interop import brax_compat
 
 
 @pytest.fixture(autouse=True)

@@ -1,4 +1,4 @@
-"""Brax's Env interface over jaxrobo envs (jaxrobo.brax_env): jit/vmap, fresh autoresets, truncation vs termination,
+"""Brax's Env interface over jaxrobo envs (jaxrobo.interop.brax_env): jit/vmap, fresh autoresets, truncation vs termination,
 the NaN guard, and Brax's own PPO and SAC trainers running unchanged on the continuous ids (tiny, CPU)."""
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrobo import brax_env
-from jaxrobo.config import ConfigError
+from jaxrobo.interop import brax_env
+from jaxrobo.core.config import ConfigError
 
 IDS = ("CartPoleContinuous-v0", "QuadcopterGotoTwist-v0")
 

@@ -6,14 +6,14 @@ import os
 import subprocess
 import sys
 
-from jaxrobo import cache
+from jaxrobo.speed import cache
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 CHILD = r"""
 import json, os, sys, time
 sys.path.insert(0, sys.argv[1])
-from jaxrobo.cache import enable_compilation_cache, entries
+from jaxrobo.speed.cache import enable_compilation_cache, entries
 d = enable_compilation_cache()
 import jax, jax.numpy as jnp
 before = entries(d)
@@ -59,12 +59,12 @@ def test_off_writes_nothing(tmp_path):
 TRAIN_CHILD = r"""
 import hashlib, json, sys
 sys.path.insert(0, sys.argv[1])
-from jaxrobo.cache import enable_compilation_cache, entries
+from jaxrobo.speed.cache import enable_compilation_cache, entries
 d = enable_compilation_cache()
 import jax, jax.numpy as jnp, numpy as np
 import jaxrobo
-from envs.cartpole_dynamics import CartPoleSim
-from jaxrobo.train import TrainConfig, train
+from envs.cartpole.dynamics import CartPoleSim
+from jaxrobo.training.train import TrainConfig, train
 
 env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
 config = TrainConfig(n_envs=4, nepisodes=3, nsteps=40, chunk_steps=40, seed=5, eval_episodes=0)

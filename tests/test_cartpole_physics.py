@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 
 from envs import asset_path
-from envs.cartpole import CartPoleRobot
-from jaxrobo.sim import MjxState, check_same_dynamics, load_model, make_simulator, mjx
+from envs.cartpole.robot import CartPoleRobot
+from jaxrobo.physics.sim import MjxState, check_same_dynamics, load_model, make_simulator, mjx
 
 # Runs in a fresh interpreter because float64 must be switched on before JAX starts. Each backend steps the
 # robot's own model (the MJCF as shipped) through 500 physics steps of a swinging trajectory beside native MuJoCo.
 _X64_SCRIPT = textwrap.dedent("""
     import jax, jax.numpy as jnp, mujoco, numpy as np
-    from envs.cartpole import CartPoleRobot
-    from jaxrobo.sim import JointState, MjxState
+    from envs.cartpole.robot import CartPoleRobot
+    from jaxrobo.physics.sim import JointState, MjxState
     cases = [("mjx", "velocity")] + [("analytic", c) for c in ("velocity", "position", "effort")]
     for backend, control_type in cases:
         robot = CartPoleRobot(control_type, backend, running_step=0.01, timestep=0.01)
@@ -173,7 +173,7 @@ def test_mjx_state_steps_like_the_full_data_and_forward_rebuilds_it():
 def test_constraint_free_is_false_where_a_constraint_row_can_exist():
     """Only a model whose constraint solver can never run drops the warm start: contacts on, a joint limit, an
     equality or friction loss each make it keep MJX's value."""
-    from jaxrobo.sim import constraint_free
+    from jaxrobo.physics.sim import constraint_free
 
     m = load_model(asset_path("cartpole.xml"))
     assert constraint_free(m)
@@ -211,8 +211,8 @@ def test_analytic_backend_tracks_mjx_in_float32():
 
 
 def test_analytic_backend_refuses_what_it_cannot_model():
-    from envs.cartpole import CART_JOINT, MJCF, POLE_JOINT
-    from envs.cartpole_dynamics import CartPoleSim
+    from envs.cartpole.robot import CART_JOINT, MJCF, POLE_JOINT
+    from envs.cartpole.dynamics import CartPoleSim
 
     with pytest.raises(ValueError, match="damping"):
         CartPoleSim(load_model(asset_path(MJCF), edit=lambda s: setattr(s.joint(CART_JOINT), "damping", [0.5, 0, 0])),

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from envs.cartpole_stay_up import ACTION_STEPS
-from jaxrobo.config import ConfigError
-from jaxrobo.wrappers import AutoReset
+from envs.cartpole.stay_up import ACTION_STEPS
+from jaxrobo.core.config import ConfigError
+from jaxrobo.task.wrappers import AutoReset
 
 
 def test_registered_ids_and_action_counts():

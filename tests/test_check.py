@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from envs.cartpole_stay_up import CartPoleStayUp
-from jaxrobo import spaces
+from envs.cartpole.stay_up import CartPoleStayUp
+from jaxrobo.core import spaces
 from jaxrobo.check import check_env
 from jaxrobo.cli import main
 
@@ -124,7 +124,7 @@ class IgnoredTwistDimension:
 
     @staticmethod
     def make():
-        from envs.quadcopter_goto_twist import QuadcopterGotoTwist
+        from envs.quadcopter.goto_twist import QuadcopterGotoTwist
 
         class Ignored(QuadcopterGotoTwist):
             def _set_action(self, action, task, params):

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from jaxrobo.cli import main
-from jaxrobo.results import load_stats
+from jaxrobo.io.results import load_stats
 
 TINY = ["--set", "nsteps=40", "--set", "chunk_steps=50", "--set", "eval_episodes=2", "--set", "eval_envs=2",
         "--set", "bins=[3, 6, 8, 10]", "--set", "state_low=[-2.4, -1.0, -0.3, -2.0]",
@@ -76,7 +76,8 @@ def test_train_help_and_readme_say_what_a_new_user_needs(capsys):
     import re
 
     import envs
-    from jaxrobo import registry, spaces
+    from jaxrobo.task import registry
+    from jaxrobo.core import spaces
 
     with pytest.raises(SystemExit):
         main(["train", "--help"])

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import pytest
 
 import jaxrobo
-from jaxrobo.config import ConfigError, load_yaml, parse_overrides
-from jaxrobo.registry import registration
-from jaxrobo.run import agent_presets, resolve
+from jaxrobo.core.config import ConfigError, load_yaml, parse_overrides
+from jaxrobo.task.registry import registration
+from jaxrobo.training.run import agent_presets, resolve
 
 
 def test_every_registered_env_resolves_with_each_preset():

@@ -55,7 +55,7 @@ def test_a_tiny_ppo_run_writes_a_complete_run_directory(runs, env_id):
         assert "success" in rows[0] and "final_eval_success_rate" in summary
     # the saved config resolves to itself (jaxrobo show rebuilds the run from it)
     from jaxrobo import deep
-    from jaxrobo.results import load_config
+    from jaxrobo.io.results import load_config
 
     cfg = load_config(d)
     assert deep.spec_from_config(cfg).to_dict() == json.loads(json.dumps(cfg))
@@ -106,7 +106,7 @@ def test_a_saved_policy_loads_back_and_acts_the_same(tmp_path, agent):
 def test_a_policy_that_does_not_match_its_networks_is_refused(tmp_path):
     from jaxrobo import deep
     from jaxrobo.deep.policy import _template
-    from jaxrobo.config import ConfigError
+    from jaxrobo.core.config import ConfigError
 
     net = {"format": 1, "agent": "ppo", "observation_size": 3, "action_size": 1, "normalize_observations": False,
            "policy_hidden_layer_sizes": [4], "value_hidden_layer_sizes": [4], "env_id": CPC}
@@ -124,8 +124,8 @@ def test_the_fields_both_trainers_take_are_declared_once_on_their_base():
     import dataclasses
 
     from jaxrobo import deep
-    from jaxrobo.config import ConfigError
-    from jaxrobo.struct import rules
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.core.struct import rules
 
     shared = {f.name for f in dataclasses.fields(deep.DeepConfig)} - {"agent"}
     assert {"num_timesteps", "num_envs", "episode_length", "learning_rate", "batch_size", "seed"} <= shared
@@ -144,8 +144,8 @@ def test_show_flies_a_saved_ppo_policy(runs, tmp_path, capsys):
 
 
 def test_plot_overlays_a_tabular_and_a_ppo_run_on_env_steps(runs, tmp_path):
-    from jaxrobo.plots import env_steps_axis
-    from jaxrobo.results import load_stats
+    from jaxrobo.pictures.plots import env_steps_axis
+    from jaxrobo.io.results import load_stats
 
     tab = str(tmp_path / "tab")
     assert main(["train", "--env", "CartPoleStayUp-v0", "--n-envs", "2", "--nepisodes", "5", "--set", "nsteps=30",

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxrobo.discretise import make_discretiser
+from jaxrobo.tabular.discretise import make_discretiser
 
 LOW, HIGH = [-2.5, -2.0, -0.7, -3.0], [2.5, 2.0, 0.7, 3.0]
 

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrobo import driver
+from jaxrobo.training import driver
 
 
 def _loop(n_chunks=10, per_chunk=1, total=5, **kw):
@@ -93,9 +93,9 @@ def test_stop_on_signal_sets_a_flag_then_quits_on_a_second_signal(python_sigint_
 
 
 def test_train_and_the_sweep_run_their_chunks_through_the_same_driver(monkeypatch):
-    from jaxrobo import sweep
-    from jaxrobo.run import resolve
-    from jaxrobo.train import train
+    from jaxrobo.training import sweep
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
 
     loops = []
     run_chunks = driver.run_chunks
@@ -125,9 +125,9 @@ def test_the_greedy_evaluation_flies_once_and_counts_arrivals_as_a_second_flight
     of the same tables on the same keys (how they used to be counted, the oracle here) finds."""
     import jax
 
-    from jaxrobo import rollout
-    from jaxrobo.run import resolve
-    from jaxrobo.train import make_discretiser_for, train
+    from jaxrobo.task import rollout
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import make_discretiser_for, train
 
     spec = resolve(env_id, overrides={"n_envs": 2, "nepisodes": 2, "eval_envs": 1, **overrides})
     env, config = spec.env, spec.config

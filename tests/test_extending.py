@@ -12,7 +12,7 @@ import types
 import gymnasium
 import pytest
 
-from jaxrobo import registry
+from jaxrobo.task import registry
 from jaxrobo.cli import main
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

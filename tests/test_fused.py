@@ -8,10 +8,10 @@ import pytest
 
 from jax.extend.core import jaxprs_in_params
 
-from jaxrobo import driver
-from jaxrobo.plan import ExecutionPlan
-from jaxrobo.run import resolve
-from jaxrobo.train import Trainer, train
+from jaxrobo.training import driver
+from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import Trainer, train
 
 # The test_plan sizes (bins small, so the tables and compiles stay small).
 TINY = dict(n_envs=12, nepisodes=4, nsteps=30, chunk_steps=25, eval_episodes=2, eval_envs=2,

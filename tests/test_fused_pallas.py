@@ -14,10 +14,10 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrobo.config import ConfigError
-from jaxrobo.plan import ExecutionPlan
-from jaxrobo.run import resolve
-from jaxrobo.train import Trainer, train
+from jaxrobo.core.config import ConfigError
+from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import Trainer, train
 
 TINY = dict(n_envs=12, nepisodes=4, nsteps=30, chunk_steps=25, eval_episodes=2, eval_envs=2,
             bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
@@ -58,7 +58,7 @@ def test_the_choice_is_validated_and_refused_where_it_does_not_apply():
 def test_the_gpu_default_picks_the_kernel_where_it_applies(monkeypatch):
     """On one GPU from 1,024 envs the default plan runs the chunk as the kernel for every run it takes (by the rules
     that refuse an explicit choice), and keeps the plain path for the others; the quadcopter's default is its own."""
-    from jaxrobo import fused_pallas
+    from jaxrobo.speed import fused_pallas
 
     def fused(spec, backend="gpu", **run):
         return ExecutionPlan.for_run(spec.env, spec.config, backend, **run).fused
@@ -150,7 +150,7 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
     resets (3 steps of fresh episodes), where every env resets every step (nsteps=1) and where some do, the carry
     equals the unbranched kernel's (the reset computed in every env every step) bit for bit. 8 envs in programs
     of 4."""
-    from jaxrobo import fused_pallas
+    from jaxrobo.speed import fused_pallas
 
     overrides = {"none": dict(chunk_steps=3), "all": dict(nsteps=1, chunk_steps=3), "some": dict(nsteps=200, chunk_steps=40)}
     spec = _cartpole(n_envs=8, **overrides[case])
@@ -169,11 +169,11 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
 
 def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(monkeypatch):
     """Where at most a quarter of a program's envs are done, groups of four lanes share their reset's hashes
-    (:data:`jaxrobo.fused_pallas.GROUP_RESETS`); beyond that each lane hashes its own. 32 envs in programs of 16
+    (:data:`jaxrobo.speed.fused_pallas.GROUP_RESETS`); beyond that each lane hashes its own. 32 envs in programs of 16
     over 80 steps, in which a program has one, two or three and more than four envs done in one step (counted on
     the plain path, step by step): the carry equals the lane-by-lane kernel's, and the kernel that hashes every
     reset in every env every step, bit for bit."""
-    from jaxrobo import fused_pallas
+    from jaxrobo.speed import fused_pallas
 
     spec = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=80)
     # How many envs of each program of 16 are done in each step, on the plain path.
@@ -202,14 +202,15 @@ def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(monkeypatch):
 
 @pytest.mark.parametrize("limit", [0.0, 0.05, 10.0])
 def test_a_step_beyond_the_written_out_sin_cos_is_redone_with_the_calls(limit, monkeypatch):
-    """Under :data:`jaxrobo.fused_pallas.FAST_SINCOS` a step whose pole angles all stay within the written-out
-    sin/cos's range (:data:`jaxrobo.libdevice_sincos.LIMIT`) keeps their values, and a step where any leaves it is
+    """Under :data:`jaxrobo.speed.fused_pallas.FAST_SINCOS` a step whose pole angles all stay within the written-out
+    sin/cos's range (:data:`jaxrobo.physics.libdevice_sincos.LIMIT`) keeps their values, and a step where any leaves it is
     redone with ``jnp.sin``/``jnp.cos``. Interpreted, the written-out form is stood in for by one that is off by
     0.01: with the range at 0 every step is redone (the carry is the calls' bit for bit), at 10 none is (the carry
     differs), at 0.05 some are and some are not (it differs too, and both forms ran: the carry is neither's)."""
     import jax.numpy as jnp
 
-    from jaxrobo import fused_pallas, libdevice_sincos
+    from jaxrobo.speed import fused_pallas
+    from jaxrobo.physics import libdevice_sincos
 
     spec = _cartpole(n_envs=8, nsteps=200, chunk_steps=40)
 
@@ -240,7 +241,7 @@ def test_the_tiled_tables_change_nothing(changes, monkeypatch):
     """The tables tiled by program for the kernel ([program, state, env of the program, action]) and back: the
     carry, tables and records equal the runner-layout kernel's bit for bit over two chunks of 40 steps in which envs
     reset at different steps (8 envs in programs of 4, records on; records off with carried rows)."""
-    from jaxrobo import fused_pallas
+    from jaxrobo.speed import fused_pallas
 
     carry_rows = changes.pop("carry_rows", False)
     spec = _cartpole(n_envs=8, nsteps=200, chunk_steps=40, **changes)
@@ -265,7 +266,7 @@ def test_a_sweep_vmaps_the_kernel(tiled, monkeypatch):
     tables in the runner's layout or tiled by program."""
     import jax.numpy as jnp
 
-    from jaxrobo import fused_pallas
+    from jaxrobo.speed import fused_pallas
 
     monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
     spec = _cartpole(n_envs=4, chunk_steps=10)
@@ -287,7 +288,8 @@ def test_it_lowers_for_the_gpu_through_triton(tiled, monkeypatch):
     """The kernel the GPU would run (not interpreted) lowers to a Triton call: the ops it uses (in-kernel loop,
     gathers and masked scatters by computed index, uint32 hashing, block-wide sums moving words between lanes,
     inline PTX fmas) all have Triton lowerings, in either layout of the tables."""
-    from jaxrobo import fused_pallas, libdevice_sincos
+    from jaxrobo.speed import fused_pallas
+    from jaxrobo.physics import libdevice_sincos
 
     monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
     monkeypatch.setattr(libdevice_sincos, "verified", lambda: True)  # the written-out sin/cos (inline PTX) too

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from envs.quadcopter import Obstacles
-from envs.quadcopter_goto2 import OBS_NAMES
+from envs.quadcopter.robot import Obstacles
+from envs.quadcopter.goto_v2 import OBS_NAMES
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = {"n_envs": 2, "nepisodes": 2, "nsteps": 12, "chunk_steps": 12}
@@ -27,7 +27,7 @@ def test_v2_is_registered_with_v1_task_and_its_own_presets():
     assert float(v2.default_params.crash_penalty) == 150.0 and float(v1.default_params.crash_penalty) == 50.0
     low, high = v2.state_bounds()
     assert low.shape == high.shape == (8,) and float(high[-1]) == float(v2.default_params.sonar_bound)
-    from jaxrobo.run import resolve
+    from jaxrobo.training.run import resolve
 
     spec = resolve("QuadcopterGoto-v2", overrides=TINY)
     assert spec.config.discretiser == "edges" and len(spec.config.edges) == 8
@@ -56,8 +56,8 @@ def test_goal_clear_sees_the_grown_obstacle_on_the_way_and_ignores_one_beyond_th
 
 
 def test_tiny_train_summary_has_the_greedy_arrival_rate():
-    from jaxrobo.run import resolve
-    from jaxrobo.train import train
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
 
     spec = resolve("QuadcopterGoto-v2", overrides={**TINY, "eval_episodes": 4})
     res = train(spec.env, spec.config, spec.agent_params)

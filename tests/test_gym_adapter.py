@@ -1,7 +1,7 @@
 """The Gymnasium adapter: registration, check_env for every id, vector env semantics, seeding, invalid actions.
 
 Every registered jaxrobo id is covered (ids whose task module does not exist yet are skipped with the reason).
-Compiled functions are shared per env configuration (``jaxrobo.compiled.compiled_for``), so each id compiles its
+Compiled functions are shared per env configuration (``jaxrobo.speed.compiled.compiled_for``), so each id compiles its
 reset/step once for the whole module whatever the parameters.
 """
 from __future__ import annotations
@@ -20,9 +20,9 @@ from gymnasium.utils.env_checker import check_env, data_equivalence
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 import jaxrobo
-from jaxrobo import gym_adapter
-from jaxrobo.gym_adapter import InvalidActionError, JaxroboEnv, JaxroboVectorEnv
-from jaxrobo.registry import _lookup
+from jaxrobo.interop import gym_adapter
+from jaxrobo.interop.gym_adapter import InvalidActionError, JaxroboEnv, JaxroboVectorEnv
+from jaxrobo.task.registry import _lookup
 
 IDS = jaxrobo.registered()
 N_VEC = 3  # one batch size throughout, so each env configuration compiles its vector step once
@@ -55,7 +55,7 @@ def _require(env_id: str) -> None:
 
 
 def _render_ok() -> bool:
-    from jaxrobo.render import gl_unavailable_reason
+    from jaxrobo.pictures.render import gl_unavailable_reason
 
     return gl_unavailable_reason() is None
 
@@ -83,10 +83,10 @@ def _actions(n: int | gym.spaces.Box, count: int, seed: int = 0) -> list:
 def test_every_id_is_registered_with_its_step_limit():
     for env_id in IDS:
         spec = gym.spec(f"jaxrobo/{env_id}")
-        expected = jaxrobo.registry.env_config(env_id).get("max_episode_steps", jaxrobo.spec(env_id).max_episode_steps)
+        expected = jaxrobo.task.registry.env_config(env_id).get("max_episode_steps", jaxrobo.spec(env_id).max_episode_steps)
         assert spec.max_episode_steps == expected
-        assert spec.entry_point == "jaxrobo.gym_adapter:JaxroboEnv"
-        assert spec.vector_entry_point == "jaxrobo.gym_adapter:JaxroboVectorEnv"
+        assert spec.entry_point == "jaxrobo.interop.gym_adapter:JaxroboEnv"
+        assert spec.vector_entry_point == "jaxrobo.interop.gym_adapter:JaxroboVectorEnv"
         assert spec.kwargs == {"env_id": env_id}
     assert gym_adapter.register_gymnasium_envs() == []  # idempotent
 
@@ -135,7 +135,7 @@ def test_make_passes_overrides_and_rejects_bad_ones():
 def test_spaces_are_exact(env_id, single):
     jenv = jaxrobo.make(env_id)
     act = jenv.action_space()
-    if isinstance(act, jaxrobo.spaces.Box):  # a continuous task: its own bounds, float32
+    if isinstance(act, jaxrobo.core.spaces.Box):  # a continuous task: its own bounds, float32
         assert single.action_space == gym.spaces.Box(act.low, act.high, dtype=np.float32)
     else:
         assert single.action_space == gym.spaces.Discrete(act.n)

@@ -18,7 +18,7 @@ from gymnasium.utils.env_checker import data_equivalence
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 import jaxrobo  # noqa: F401 - registers the jaxrobo/<id> Gymnasium ids
-from jaxrobo.gym_adapter import JaxroboEnv, JaxroboVectorEnv, autoreset_mode_of
+from jaxrobo.interop.gym_adapter import JaxroboEnv, JaxroboVectorEnv, autoreset_mode_of
 
 ID = "CartPoleStayUpLeftRight-v0"
 N = 3  # the batch size of tests/test_gym_adapter.py: the same compiled steps serve both files
@@ -119,7 +119,7 @@ def test_make_vec_takes_the_mode():
 
 @pytest.mark.parametrize("bad", ["same_step", "SameStepp", 1, None, gym.envs.registration.VectorizeMode.SYNC])
 def test_bad_mode_is_refused_before_anything_is_built(bad, monkeypatch):
-    import jaxrobo.gym_adapter as adapter
+    import jaxrobo.interop.gym_adapter as adapter
 
     monkeypatch.setattr(adapter, "_make_env", lambda *a, **k: pytest.fail("built an env for a bad mode"))
     with pytest.raises(ValueError, match=r"autoreset_mode=.*allowed values are AutoresetMode.NEXT_STEP \(or "

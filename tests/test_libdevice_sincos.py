@@ -1,5 +1,5 @@
-"""libdevice's sinf/cosf written out for small arguments (:mod:`jaxrobo.libdevice_sincos`). The bit-for-bit check
-against libdevice needs a GPU (``benchmarks/libdevice_sincos.py``, and :func:`verified` before a kernel uses it);
+"""libdevice's sinf/cosf written out for small arguments (:mod:`jaxrobo.physics.libdevice_sincos`). The bit-for-bit check
+against libdevice needs a GPU (``benchmarks/studies/libdevice_sincos.py``, and :func:`verified` before a kernel uses it);
 here: the coefficients and the order of the fmas make a sine and a cosine (the host's exact-arithmetic reference
 within an ulp of the true values), the signs of zero, and the guard's behaviour on every outcome."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrobo import libdevice_sincos as lds
+from jaxrobo.physics import libdevice_sincos as lds
 
 
 def test_the_written_out_polynomials_are_a_sine_and_a_cosine():

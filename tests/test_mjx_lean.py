@@ -1,4 +1,4 @@
-"""The MJX stage replacement (jaxrobo.mjx_lean): bit for bit MJX as it is, scoped to its block, version-guarded."""
+"""The MJX stage replacement (jaxrobo.physics.mjx_lean): bit for bit MJX as it is, scoped to its block, version-guarded."""
 from __future__ import annotations
 
 import threading
@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from jaxrobo import mjx_lean
+from jaxrobo.physics import mjx_lean
 from envs import asset_path
-from jaxrobo.sim import load_model, mjx
+from jaxrobo.physics.sim import load_model, mjx
 
 
 @pytest.mark.parametrize("xml", ["cartpole.xml", "quadcopter.xml"])
@@ -76,7 +76,7 @@ def test_choose_sets_what_the_simulator_asks_for_per_block_and_thread():
 
 def test_the_simulator_traces_mjx_under_the_choice(mjx_step_spy):
     """``Simulator.physics_step`` swaps the stage exactly when the block being traced wants it."""
-    from envs.cartpole import CartPoleRobot
+    from envs.cartpole.robot import CartPoleRobot
 
     sim = CartPoleRobot("velocity", "mjx").sim
     swapped = mjx_step_spy

@@ -50,7 +50,7 @@ def test_start_training_example_writes_a_plottable_run(tmp_path, capsys):
     header, *rows = (out / "episodes.csv").read_text().splitlines()
     assert header == "env,episode,return,length,terminated,epsilon" and len(rows) == 4
     assert json.loads((out / "summary.json").read_text())["nepisodes"] == 4
-    from jaxrobo.plots import plot_runs
+    from jaxrobo.pictures.plots import plot_runs
 
     assert os.path.exists(plot_runs([str(out)], str(tmp_path / "plot.png")))
     assert start_training.main(["--set", "alpha=7"]) == 2  # bad values are reported, not raised

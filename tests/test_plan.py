@@ -13,11 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrobo import mjx_lean
-from jaxrobo.config import ConfigError
-from jaxrobo.plan import ExecutionPlan, default_env_group, map_groups
-from jaxrobo.run import resolve
-from jaxrobo.train import Trainer, train
+from jaxrobo.physics import mjx_lean
+from jaxrobo.core.config import ConfigError
+from jaxrobo.speed.plan import ExecutionPlan, default_env_group, map_groups
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import Trainer, train
 
 HERE = os.path.abspath(__file__)
 ROOT = os.path.dirname(os.path.dirname(HERE))
@@ -88,7 +88,7 @@ def test_sum_in_order_is_the_scatter_add_summed_in_one_order():
     """Whole numbers (exact in any order): equal to the scatter-add bit for bit; fractions: equal to a float64 sum
     within float32 rounding; a training run with a shared table under ordered sums learns what the scatter-add's
     run learns within rounding, and the same seed gives the same tables."""
-    from jaxrobo.tabular import sum_in_order
+    from jaxrobo.tabular.learner import sum_in_order
 
     rng = np.random.default_rng(0)
     index = jnp.asarray(rng.integers(0, 7, 50), jnp.int32)
@@ -236,7 +236,7 @@ def test_trainer_choices_read_the_plan():
 
 
 def test_the_sweep_compiles_each_group_under_a_plan_with_its_compiler_options(monkeypatch):
-    from jaxrobo import sweep
+    from jaxrobo.training import sweep
 
     seen = []
 
@@ -255,7 +255,7 @@ def test_the_sweep_compiles_each_group_under_a_plan_with_its_compiler_options(mo
 
 
 def test_the_vector_env_steps_as_its_plan_says_with_the_same_values():
-    from jaxrobo.gym_adapter import JaxroboVectorEnv
+    from jaxrobo.interop.gym_adapter import JaxroboVectorEnv
 
     kw = dict(num_envs=3, overrides={"max_episode_steps": 6})  # the size test_gym_adapter compiles
     whole = JaxroboVectorEnv("CartPoleStayUp-v0", **kw)
@@ -277,7 +277,9 @@ def test_the_vector_env_steps_as_its_plan_says_with_the_same_values():
 
 # ---- no module-global speed knobs ------------------------------------------------------------------------------
 def test_no_module_global_speed_knob_is_left():
-    from jaxrobo import env, sim, sweep
+    from jaxrobo.task import env
+    from jaxrobo.physics import sim
+    from jaxrobo.training import sweep
 
     for module, name in ((sim, "LEAN_MJX"), (sim, "lean_mjx"), (env, "UNROLLED_GROUPS"), (env, "GPU_ENV_GROUP"),
                          (env, "step_batch"), (env, "map_groups"), (sweep, "COMPILER_OPTIONS")):

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from envs.quadcopter import (BOX, CYLINDER, ControllerGains, Obstacles, Quadcopter, point_obstacle_distance,
+from envs.quadcopter.robot import (BOX, CYLINDER, ControllerGains, Obstacles, Quadcopter, point_obstacle_distance,
                              ray_box, ray_cylinder, ray_ground, sonar, sphere_hits, twist_command)
 
 SPEED = 1.0

@@ -1,5 +1,5 @@
 """``ExecutionPlan(fused="pallas", task_kernel=True)`` for the Goto tasks: the whole step as one Pallas kernel
-(:mod:`envs.quadcopter_goto_kernel`), run here interpreted on a CPU and held to the task's own hooks (the plain
+(:mod:`envs.quadcopter.goto_kernel`), run here interpreted on a CPU and held to the task's own hooks (the plain
 ``TaskEnv.step``) as its oracle.
 
 The kernel writes the hooks' equations per coordinate, which XLA rounds differently in the last bits, so a step
@@ -15,13 +15,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from envs.quadcopter_goto_twist import QuadcopterGotoTwist
-from envs.quadcopter_goto_kernel import Layout, kernel_step, supports, task_step
-from envs.quadcopter_kernel import constants_of
-from jaxrobo import fused
-from jaxrobo.plan import ExecutionPlan, task_kernel
-from jaxrobo.run import resolve
-from jaxrobo.train import Trainer
+from envs.quadcopter.goto_twist import QuadcopterGotoTwist
+from envs.quadcopter.goto_kernel import Layout, kernel_step, supports, task_step
+from envs.quadcopter.kernel import constants_of
+from jaxrobo.physics import fused
+from jaxrobo.speed.plan import ExecutionPlan, task_kernel
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import Trainer
 
 TINY = dict(n_envs=4, nepisodes=3, nsteps=20, chunk_steps=15, eval_episodes=2, eval_envs=2, backend="rigid")
 #: The configurations the step is checked in: v1 as preset (one cylinder, written out), v2 with a mix of kinds

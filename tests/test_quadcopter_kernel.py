@@ -1,5 +1,5 @@
 """``ExecutionPlan.fused = "pallas"`` for the rigid quadcopter: its control step (controller + physics, every
-substep) as one Pallas kernel (:mod:`envs.quadcopter_kernel`), run here interpreted on a CPU and held to the XLA
+substep) as one Pallas kernel (:mod:`envs.quadcopter.kernel`), run here interpreted on a CPU and held to the XLA
 step as its oracle.
 
 What is exact and what is not: the kernel writes the same equations per coordinate, which XLA rounds differently
@@ -16,13 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from envs.quadcopter import Quadcopter
-from envs.quadcopter_kernel import make_advance
-from jaxrobo import fused
-from jaxrobo.plan import ExecutionPlan
-from jaxrobo.run import resolve
-from jaxrobo.sim import JointState
-from jaxrobo.train import Trainer
+from envs.quadcopter.robot import Quadcopter
+from envs.quadcopter.kernel import make_advance
+from jaxrobo.physics import fused
+from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.training.run import resolve
+from jaxrobo.physics.sim import JointState
+from jaxrobo.training.train import Trainer
 
 TINY = dict(n_envs=6, nepisodes=3, nsteps=20, chunk_steps=15, eval_episodes=2, eval_envs=2, backend="rigid")
 
@@ -154,7 +154,7 @@ def _carry(spec, n_chunks: int, **plan_changes):
 
 @pytest.mark.parametrize("overrides,kernel", [
     ({}, dict(fused="pallas")),  # the control step as the kernel, the task in XLA
-    # the task's whole step as the kernel (envs/quadcopter_goto_kernel.py), with more obstacles than it writes
+    # the task's whole step as the kernel (envs/quadcopter/goto_kernel.py), with more obstacles than it writes
     # out and both kinds
     (dict(n_obstacles=3, obstacle_kind="mixed"), dict(fused="pallas", task_kernel=True)),
 ], ids=["control-step", "task-step"])

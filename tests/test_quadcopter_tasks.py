@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from envs.quadcopter import BOX, CYLINDER, Obstacles
-from jaxrobo.rollout import random_policy, success_rate
+from envs.quadcopter.robot import BOX, CYLINDER, Obstacles
+from jaxrobo.task.rollout import random_policy, success_rate
 
 
 @pytest.fixture(scope="module")
@@ -139,9 +139,9 @@ def test_goto_random_policy_success_is_low(goto):
 
 def test_goto_training_smoke_and_flights_png(tmp_path):
     """A tiny shared-table training run compiles, stays finite, and its table flies in the picture."""
-    from jaxrobo import flights
-    from jaxrobo.run import resolve
-    from jaxrobo.train import train
+    from jaxrobo import show as flights
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
 
     spec = resolve("QuadcopterGoto-v1", overrides={"n_envs": 4, "nepisodes": 3, "nsteps": 15, "chunk_steps": 15,
                                                     "eval_episodes": 0})

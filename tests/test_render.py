@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from jaxrobo import render
-from jaxrobo.gym_adapter import JaxroboEnv, JaxroboVectorEnv
-from jaxrobo.wrappers import Wrapper
+from jaxrobo.pictures import render
+from jaxrobo.interop.gym_adapter import JaxroboEnv, JaxroboVectorEnv
+from jaxrobo.task.wrappers import Wrapper
 
 _REASON = render.gl_unavailable_reason()
 needs_gl = pytest.mark.skipif(_REASON is not None, reason=str(_REASON))
@@ -85,9 +85,9 @@ def test_vector_env_renders_one_frame_per_env():
 @needs_gl
 @pytest.mark.parametrize("env_id", jaxrobo.registered())
 def test_every_registered_env_renders(env_id):
-    from jaxrobo.compiled import compiled_for
+    from jaxrobo.speed.compiled import compiled_for
 
-    module = jaxrobo.registry._lookup(env_id).entry_point.partition(":")[0]
+    module = jaxrobo.task.registry._lookup(env_id).entry_point.partition(":")[0]
     try:
         env = jaxrobo.make(env_id)
     except ModuleNotFoundError as err:
@@ -178,7 +178,7 @@ def test_a_forced_backend_that_is_absent_does_not_break_import_make_or_step(tmp_
 import os
 import gymnasium as gym
 import jaxrobo
-from jaxrobo import render
+from jaxrobo.pictures import render
 assert os.environ["MUJOCO_GL"] == "disable", os.environ["MUJOCO_GL"]
 env = gym.make("jaxrobo/CartPoleStayUp-v0")
 obs, _ = env.reset(seed=0)
@@ -206,9 +206,9 @@ print("ok")
 def _saved_deep_run(root, agent: str, env_id: str = "CartPoleContinuous-v0", steps: int = 6) -> str:
     """A ppo/sac run directory (config.yaml + a saved policy of non-trivial parameters) without training."""
     from jaxrobo import deep
-    from jaxrobo.brax_env import BraxEnv
+    from jaxrobo.interop.brax_env import BraxEnv
     from jaxrobo.deep.policy import _template
-    from jaxrobo.results import write_config
+    from jaxrobo.io.results import write_config
 
     spec = deep.resolve(env_id, agent, "tiny", {"env.max_episode_steps": steps})
     benv = BraxEnv(spec.env)
@@ -254,8 +254,8 @@ def test_show_video_renders_a_saved_deep_policy(tmp_path, capsys, agent):
     assert 2 <= len(frames) <= 7  # the run's 6-step episodes, first state included
 
     # The episode is the saved policy's: the same actions as the policy acting on the same observations.
-    from jaxrobo.brax_env import BraxEnv
-    from jaxrobo.results import load_config
+    from jaxrobo.interop.brax_env import BraxEnv
+    from jaxrobo.io.results import load_config
 
     spec = deep.spec_from_config(load_config(run))
     loaded = deep.load_policy(run)

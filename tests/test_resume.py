@@ -14,12 +14,13 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrobo import checkpoint, rundir
-from jaxrobo import train as training
+from jaxrobo.training import checkpoint
+from jaxrobo.io import rundir
+from jaxrobo.training import train as training
 from jaxrobo.cli import main
-from jaxrobo.config import ConfigError
-from jaxrobo.results import save_run
-from jaxrobo.run import resolve
+from jaxrobo.core.config import ConfigError
+from jaxrobo.io.results import save_run
+from jaxrobo.training.run import resolve
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TIMING = {"compile_seconds", "run_seconds", "env_steps_per_second"}
@@ -237,7 +238,7 @@ def test_a_real_signal_leaves_a_resumable_run_that_resumes_to_the_uninterrupted_
 
 def _counting_chunks(patch: pytest.MonkeyPatch) -> list:
     """A list that gets one item per compiled chunk run from now on (``driver.compiled_chunk`` wrapped)."""
-    from jaxrobo import driver
+    from jaxrobo.training import driver
 
     chunks_run = []
     real = driver.compiled_chunk
@@ -269,7 +270,7 @@ def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunnin
     ``--resume OUT`` finishes without running any chunk again, to the run that never failed, and the failure
     says so. With ``--overwrite`` the new run's state lives in a hidden sibling while it runs; the failure moves
     that state into place, so that ``--resume OUT`` continues the new run, not the old one it replaces."""
-    from jaxrobo import results
+    from jaxrobo.io import results
 
     out = tmp_path / "run"
     if overwrite:
@@ -308,7 +309,7 @@ def test_changed_config_message(tmp_path, capsys):
     trainer = training.Trainer(spec.env, spec.config)
     template = training.carry_template(trainer, spec.agent_params)
     os.makedirs(out)
-    from jaxrobo.results import write_config
+    from jaxrobo.io.results import write_config
 
     write_config(out, spec.to_dict())
     rundir.write_status(out, rundir.INTERRUPTED)

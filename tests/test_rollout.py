@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from jaxrobo import tabular
-from jaxrobo import autoreset, rollout
+from jaxrobo.tabular import learner as tabular
+from jaxrobo.task import autoreset, rollout
 
 HORIZON = 30
 
@@ -42,8 +42,8 @@ def test_greedy_policy_acts_on_the_sum_of_double_q_tables():
 def test_trainer_evaluate_is_the_greedy_rollout_with_its_key_layout(cartpole):
     """``Trainer.evaluate`` = the documented key layout with ``tabular.greedy`` at every step (the reference
     below is the trainer's evaluation as it was written before the rollout module, so its figures stay the same)."""
-    from jaxrobo.run import resolve
-    from jaxrobo.train import Trainer
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import Trainer
 
     spec = resolve("CartPoleStayUp-v0", overrides={"backend": "analytic", "n_envs": 1, "bins": [3, 3, 4, 4],
                                                    "state_low": [-2.4, -1.0, -0.3, -2.0],
@@ -84,7 +84,7 @@ def test_trainer_evaluate_is_the_greedy_rollout_with_its_key_layout(cartpole):
 def test_render_q_policy_breaks_ties_by_the_same_rule():
     """The video policy ties like the trainer's evaluation (random among maxima, from the step's key), not by
     taking the first maximum: an untrained (all-zero) table does not always push the same way."""
-    from jaxrobo import render
+    from jaxrobo.pictures import render
 
     q = np.zeros((1, 2, 4), np.float32)
     q[0, 1] = [0.0, 2.0, 1.0, 2.0]  # state 1: actions 1 and 3 tie

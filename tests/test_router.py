@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from jaxrobo.tabular import AgentParams
-from jaxrobo import registry, sweep
-from jaxrobo.config import ConfigError, load_yaml, split_and_validate
-from jaxrobo.env import LearningTarget
-from jaxrobo.run import agent_presets, resolve, route
-from jaxrobo.train import TrainConfig, TrainResult
+from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.task import registry
+from jaxrobo.training import sweep
+from jaxrobo.core.config import ConfigError, load_yaml, split_and_validate
+from jaxrobo.task.env import LearningTarget
+from jaxrobo.training.run import agent_presets, resolve, route
+from jaxrobo.training.train import TrainConfig, TrainResult
 
 CP = "CartPoleStayUp-v0"
 IDS = ("CartPoleStayUp-v0", "CartPoleStayUpLeftRight-v0", "QuadcopterGoto-v1", "QuadcopterLiveShow-v0")
@@ -108,7 +109,7 @@ def test_the_step_limit_has_one_source(env_id):
 
 def test_a_registration_may_override_the_step_limit(monkeypatch):
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
-    registry.register("ShortCartPole-v0", "envs.cartpole_stay_up:CartPoleStayUp", 7, backend="analytic")
+    registry.register("ShortCartPole-v0", "envs.cartpole.stay_up:CartPoleStayUp", 7, backend="analytic")
     assert jaxrobo.spec("ShortCartPole-v0").max_episode_steps == 7
     assert jaxrobo.make("ShortCartPole-v0").default_params.max_episode_steps == 7
     assert jaxrobo.make("ShortCartPole-v0", max_episode_steps=9).spec.max_episode_steps == 9

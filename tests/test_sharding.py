@@ -19,10 +19,10 @@ CHILD = r"""
 import json, sys
 sys.path.insert(0, sys.argv[1])
 import jax, numpy as np
-from jaxrobo import sharding
-from jaxrobo.run import resolve
-from jaxrobo.sweep import run_sweep
-from jaxrobo.train import Trainer
+from jaxrobo.speed import sharding
+from jaxrobo.training.run import resolve
+from jaxrobo.training.sweep import run_sweep
+from jaxrobo.training.train import Trainer
 
 def leaves(tree):
     return [np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
@@ -84,7 +84,7 @@ def test_sharded_equals_unsharded():
 def test_padding_and_shardings():
     import numpy as np
 
-    from jaxrobo import sharding
+    from jaxrobo.speed import sharding
 
     mesh = sharding.make_mesh()
     assert sharding.padded_size(3, None) == 3

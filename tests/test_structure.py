@@ -2,22 +2,24 @@
 
 Every ``import`` and ``from ... import`` is read with :mod:`ast`, module-level and inside functions alike (a
 function-level import is still a dependency; it only runs later). An edge goes to the module the statement names:
-``from jaxrobo import rng`` is an edge to ``jaxrobo.rng``, ``from jaxrobo import make`` one to ``jaxrobo`` (the
-package's ``__init__``). The parent packages Python initialises on the way are not edges: they are never the
-cause of a circle unless a parent imports its child back, which is an edge of its own.
+``from jaxrobo.core import rng`` is an edge to ``jaxrobo.core.rng``, ``from jaxrobo import make`` one to
+``jaxrobo`` (the package's ``__init__``). The parent packages Python initialises on the way are not edges: they
+are never the cause of a circle unless a parent imports its child back, which is an edge of its own.
 
-The layers (the public surface each may use is written down in the docstrings of ``jaxrobo/sim.py``,
-``jaxrobo/robot.py``, ``jaxrobo/registry.py`` and ``envs/__init__.py``):
+The layers:
 
-* ``envs/`` (robots and tasks) builds on the task API: :data:`ENVS_MAY_IMPORT`.
-* ``agents/`` (tabular learners) builds on pure helpers only: :data:`AGENTS_MAY_IMPORT`. ``envs`` and ``agents``
+* ``jaxrobo/`` is a stack of subpackages, :data:`LAYERS`, from the foundation up: a module imports modules of its
+  own subpackage or of one listed below it, never one above (no upward imports between the subpackages). The
+  commands (``jaxrobo.cli``, ``jaxrobo.check``), the package root and the public surface ``jaxrobo.api`` stand on
+  top.
+* ``envs/`` (robots and tasks) and ``agents/`` (tabular learners) import from jaxrobo only its public surface,
+  :data:`PUBLIC_SURFACE` (``jaxrobo.api``; ``tests/test_public_api.py`` holds its names). ``envs`` and ``agents``
   never import each other.
 * ``jaxrobo/`` reaches ``envs`` and the learners only through the registry's entry points
-  (:data:`ENTRY_POINTS`: ``jaxrobo.registry`` imports them by name with importlib). The learner protocol
-  (``jaxrobo.tabular``: what a learner implements and the trainer calls) lives in ``jaxrobo/``, so the learners
-  build on it like envs build on the task API.
+  (:data:`ENTRY_POINTS`: ``jaxrobo.task.registry`` imports them by name with importlib).
 
-Run ``python tests/test_structure.py`` to print the graph (every edge into or out of envs/agents, and circles).
+Run ``python tests/test_structure.py`` to print the graph (the edges between subpackages and packages, and
+circles).
 """
 from __future__ import annotations
 
@@ -29,14 +31,24 @@ from typing import NamedTuple
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGES = ("jaxrobo", "envs", "agents")
 
-#: What a robot or task module may import from jaxrobo: the task API and the helpers it is written with.
-#: ``jaxrobo.rollout`` is the rollout/evaluation module tasks' own evaluations (the Goto success rate) run on.
-ENVS_MAY_IMPORT = frozenset({"jaxrobo.env", "jaxrobo.robot", "jaxrobo.sim", "jaxrobo.spaces", "jaxrobo.struct",
-                             "jaxrobo.rng", "jaxrobo.registry", "jaxrobo.rollout"})
-#: What a learner may import from jaxrobo: pure helpers with no knowledge of envs or training.
-AGENTS_MAY_IMPORT = frozenset({"jaxrobo.struct", "jaxrobo.rng", "jaxrobo.tabular"})
+#: The subpackages of ``jaxrobo/``, from the foundation up; a module may import its own subpackage's modules and
+#: those of the layers below. Siblings in one tuple are independent (neither imports the other).
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("core",),                 # pytree dataclasses, keys, spaces, validated YAML, precision, version
+    ("physics", "tabular"),    # simulators and their trace-time switches; the learner protocol, the discretiser
+    ("task",),                 # TaskEnv and its hooks, Robot, registry, autoreset, wrappers, rollouts
+    ("speed", "io"),           # the execution plan and kernels, compile cache, sharding; run directories and files
+    ("training",),             # trainer, driver, train(), run resolution, budget, checkpoints, summaries, sweeps
+    ("pictures",),             # frames and videos, reward plots, flights
+    ("interop",),              # Gymnasium and Brax faces
+    ("deep",),                 # Brax's PPO/SAC trainers on the Brax face
+)
+#: The modules on top of every layer: the package root, its public surface and the commands (``check``, ``show``).
+TOP = frozenset({"jaxrobo", "jaxrobo.api", "jaxrobo.cli", "jaxrobo.check", "jaxrobo.show"})
+#: The one module ``envs/`` and ``agents/`` import from jaxrobo.
+PUBLIC_SURFACE = frozenset({"jaxrobo.api"})
 #: The jaxrobo modules that may import envs/agents (by entry-point name, with importlib, in practice).
-ENTRY_POINTS = frozenset({"jaxrobo.registry"})
+ENTRY_POINTS = frozenset({"jaxrobo.task.registry"})
 
 #: Edges that break the rules and are waiting to be removed, each with what removes it. Empty: nothing is excused,
 #: and a new forbidden edge fails the test.
@@ -70,7 +82,7 @@ def modules() -> dict[str, str]:
 
 
 def _resolve(name: str, known: dict[str, str]) -> str | None:
-    """The longest known module ``name`` starts with (``jaxrobo.sim.mjx`` -> ``jaxrobo.sim``); None if outside."""
+    """The longest known module ``name`` starts with (``jaxrobo.physics.sim.mjx`` -> ``jaxrobo.physics.sim``); None if outside."""
     parts = name.split(".")
     while parts:
         candidate = ".".join(parts)
@@ -146,17 +158,42 @@ def _top(module: str) -> str:
     return module.split(".")[0]
 
 
+def layer(module: str) -> int | None:
+    """The index in :data:`LAYERS` of a ``jaxrobo`` module's subpackage; ``len(LAYERS)`` for :data:`TOP`; None for
+    a module of no listed subpackage (a new one, which :func:`test_every_module_has_a_layer` reports)."""
+    if module in TOP:
+        return len(LAYERS)
+    parts = module.split(".")
+    if parts[0] != "jaxrobo" or len(parts) < 2:
+        return None
+    for i, group in enumerate(LAYERS):
+        if parts[1] in group:
+            return i
+    return None
+
+
+def _subpackage(module: str) -> str:
+    return module.split(".")[1] if module not in TOP else module
+
+
 def forbidden(edge: Edge) -> str | None:
     """Why ``edge`` breaks a layering rule, or None if it is allowed."""
     src, dst = _top(edge.src), _top(edge.dst)
+    if src == dst == "jaxrobo":
+        a, b = layer(edge.src), layer(edge.dst)
+        if a == b == len(LAYERS):  # the top modules use each other freely
+            return None
+        if a is not None and b is not None and _subpackage(edge.src) != _subpackage(edge.dst) and b >= a:
+            if b > a:
+                return f"upward: {_subpackage(edge.src)} (layer {a}) must not import {_subpackage(edge.dst)} (layer {b})"
+            return f"sideways: {_subpackage(edge.src)} and {_subpackage(edge.dst)} are siblings of layer {a}"
+        return None
     if src == "envs" and dst == "agents":
         return "envs must not import agents (tasks know nothing of learners)"
     if src == "agents" and dst == "envs":
         return "agents must not import envs (learners know nothing of tasks)"
-    if src == "envs" and dst == "jaxrobo" and edge.dst not in ENVS_MAY_IMPORT:
-        return f"envs may import only {', '.join(sorted(ENVS_MAY_IMPORT))} from jaxrobo"
-    if src == "agents" and dst == "jaxrobo" and edge.dst not in AGENTS_MAY_IMPORT:
-        return f"agents may import only {', '.join(sorted(AGENTS_MAY_IMPORT))} from jaxrobo"
+    if src in ("envs", "agents") and dst == "jaxrobo" and edge.dst not in PUBLIC_SURFACE:
+        return f"{src} may import only the public surface ({', '.join(sorted(PUBLIC_SURFACE))}) from jaxrobo"
     if src == "jaxrobo" and dst in ("envs", "agents") and edge.src not in ENTRY_POINTS:
         return f"jaxrobo reaches {dst} only through the registry's entry points ({', '.join(sorted(ENTRY_POINTS))})"
     return None
@@ -172,8 +209,8 @@ def test_every_package_is_parsed():
     known = modules()
     for pkg in PACKAGES:
         assert pkg in known, f"{pkg}/__init__.py not found under {ROOT}"
-    assert {"jaxrobo.sim", "jaxrobo.registry", "envs.cartpole", "jaxrobo.tabular"} <= set(known)
-    assert any(e.src == "envs.cartpole" and e.dst == "jaxrobo.robot" for e in import_edges())
+    assert {"jaxrobo.physics.sim", "jaxrobo.task.registry", "envs.cartpole.robot", "jaxrobo.tabular.learner"} <= set(known)
+    assert any(e.src == "envs.cartpole.robot" and e.dst == "jaxrobo.api" for e in import_edges())
 
 
 def test_no_import_circles():
@@ -203,12 +240,21 @@ def test_the_checker_finds_circles_and_forbidden_edges():
     e = lambda a, b: Edge(a, b, "x.py", 1, False)  # noqa: E731
     assert circles([e("jaxrobo.a", "jaxrobo.b"), e("jaxrobo.b", "jaxrobo.c"), e("jaxrobo.c", "jaxrobo.a"),
                     e("jaxrobo.c", "jaxrobo.d")]) == [["jaxrobo.a", "jaxrobo.b", "jaxrobo.c"]]
-    assert forbidden(e("jaxrobo.sim", "envs")) and forbidden(e("jaxrobo.train", "agents.qlearning"))
-    assert forbidden(e("envs.x", "jaxrobo.tabular")) and forbidden(e("agents.sarsa", "envs.cartpole"))
-    assert forbidden(e("envs.x", "jaxrobo.train")) and forbidden(e("agents.sarsa", "jaxrobo.env"))
-    assert not forbidden(e("jaxrobo.registry", "envs")) and not forbidden(e("jaxrobo.train", "jaxrobo.tabular"))
-    assert not forbidden(e("envs.cartpole", "jaxrobo.sim")) and not forbidden(e("agents.sarsa", "jaxrobo.rng"))
-    assert not forbidden(e("agents.sarsa", "jaxrobo.tabular")) and forbidden(e("jaxrobo.trainer", "agents.tabular"))
+    assert forbidden(e("jaxrobo.physics.sim", "envs")) and forbidden(e("jaxrobo.training.train", "agents.qlearning"))
+    assert forbidden(e("envs.x", "jaxrobo.tabular.learner")) and forbidden(e("agents.sarsa", "envs.cartpole.robot"))
+    assert forbidden(e("envs.x", "jaxrobo.training.train")) and forbidden(e("agents.sarsa", "jaxrobo.task.env"))
+    assert not forbidden(e("jaxrobo.task.registry", "envs"))
+    assert not forbidden(e("jaxrobo.training.train", "jaxrobo.tabular.learner"))
+    assert forbidden(e("envs.cartpole.robot", "jaxrobo.physics.sim")) and forbidden(e("agents.sarsa", "jaxrobo.core.rng"))
+    assert not forbidden(e("envs.cartpole.robot", "jaxrobo.api")) and not forbidden(e("agents.sarsa", "jaxrobo.api"))
+    assert forbidden(e("agents.sarsa", "jaxrobo.tabular.learner"))
+    assert forbidden(e("jaxrobo.training.trainer", "agents.tabular"))
+    # between subpackages: down is allowed, up and sideways are not; inside one subpackage anything goes
+    assert forbidden(e("jaxrobo.physics.sim", "jaxrobo.task.env"))          # up
+    assert forbidden(e("jaxrobo.physics.sim", "jaxrobo.tabular.learner"))   # sideways
+    assert forbidden(e("jaxrobo.core.config", "jaxrobo.cli"))               # up to the top
+    assert not forbidden(e("jaxrobo.cli", "jaxrobo.core.config"))
+    assert not forbidden(e("jaxrobo.training.driver", "jaxrobo.training.trainer"))
 
 
 def report() -> str:
@@ -220,7 +266,9 @@ def report() -> str:
     for e in sorted(set(edges), key=lambda e: (e.src, e.dst, e.line)):
         why = forbidden(e)
         allowed = (e.src, e.dst) in ALLOWED_FOR_NOW
-        if _top(e.src) != _top(e.dst) or why or allowed:
+        across = _top(e.src) != _top(e.dst) or (e.src.count(".") and e.dst.count(".")
+                                                  and e.src.split(".")[1] != e.dst.split(".")[1])
+        if across or why or allowed:
             tag = " [allowed for now]" if allowed else (" [!]" if why else "")
             lines.append(f"  {e}{tag}")
     return "\n".join(lines)

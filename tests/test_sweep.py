@@ -10,10 +10,10 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrobo import sweep
-from jaxrobo.config import ConfigError
-from jaxrobo.run import resolve
-from jaxrobo.train import Trainer
+from jaxrobo.training import sweep
+from jaxrobo.core.config import ConfigError
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import Trainer
 
 ENV = "CartPoleStayUp-v0"
 FAST = {"xla_backend_optimization_level": 0}  # compile fast; sweep and single runs use the same options

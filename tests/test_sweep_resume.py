@@ -14,9 +14,10 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrobo import rundir, sweep
-from jaxrobo.sweep import state as sweep_state
-from jaxrobo.config import ConfigError
+from jaxrobo.io import rundir
+from jaxrobo.training import sweep
+from jaxrobo.training.sweep import state as sweep_state
+from jaxrobo.core.config import ConfigError
 
 ENV = "CartPoleStayUp-v0"
 FAST = {"xla_backend_optimization_level": 0}

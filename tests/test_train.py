@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxrobo.run import resolve
-from jaxrobo.train import train
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import train
 
 TINY = dict(n_envs=4, nepisodes=6, nsteps=40, chunk_steps=50, eval_episodes=0,
             bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
@@ -111,7 +111,7 @@ def test_gathered_resets_equal_resetting_every_env(agent):
     at times by the short early episodes, so the fallback runs too)."""
     import jax
 
-    from jaxrobo.train import Trainer
+    from jaxrobo.training.train import Trainer
 
     spec = resolve("CartPoleStayUp-v0", overrides={**TINY, "n_envs": 12, "backend": "analytic"}, agent=agent)
     ap, ep = spec.agent_params, spec.env.default_params
@@ -137,7 +137,7 @@ def test_carried_table_rows_change_nothing(agent, extra):
     bit for bit the one of reading the table every time, on both reset paths."""
     import jax
 
-    from jaxrobo.train import Trainer
+    from jaxrobo.training.train import Trainer
 
     spec = resolve("CartPoleStayUp-v0", overrides={**TINY, "n_envs": 12, "backend": "analytic", **extra},
                    agent=agent)

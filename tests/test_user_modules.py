@@ -16,9 +16,9 @@ import pytest
 import yaml
 
 import jaxrobo
-from jaxrobo import registry
+from jaxrobo.task import registry
 from jaxrobo.cli import main
-from jaxrobo.config import ConfigError
+from jaxrobo.core.config import ConfigError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXAMPLE = os.path.join(ROOT, "examples", "custom_task")
@@ -65,7 +65,7 @@ def test_train_a_user_module_task_from_its_folder(example_dir, tmp_path):
         assert json.load(f)["env_id"] == ID
 
     # --resume runs in another process: the saved 'module:Id' imports the module again from the run's folder.
-    code = ("import sys, yaml; from jaxrobo.run import spec_from_config; "
+    code = ("import sys, yaml; from jaxrobo.training.run import spec_from_config; "
             f"spec = spec_from_config(yaml.safe_load(open({os.path.join(out, 'config.yaml')!r}))); "
             "print(spec.env_id, spec.env.default_params.max_episode_steps)")
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": ROOT}
@@ -109,7 +109,7 @@ def test_register_paths_beside_the_module_or_absolute(example_dir, tmp_path):
     assert env.spec.max_episode_steps == 30
     spec = registry.spec("MyOtherPendulum-v0")
     assert spec.config == str(tmp_path / "cfg" / "env.yaml") and spec.agent_config == str(agent_yaml)
-    from jaxrobo.run import agent_presets
+    from jaxrobo.training.run import agent_presets
 
     assert agent_presets("my_other_task:MyOtherPendulum-v0")["default"]["alpha"] == 0.2
     with pytest.raises(ValueError, match="without ':'"):

@@ -11,7 +11,7 @@ import sys
 import pytest
 
 import jaxrobo
-from jaxrobo.precision import check_precision
+from jaxrobo.core.precision import check_precision
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MESSAGE = "JAX 64-bit mode is on (jax_enable_x64=True, from the environment variable JAX_ENABLE_X64=1)"
@@ -84,10 +84,10 @@ def test_an_env_built_without_make_is_refused_too(monkeypatch):
     built before x64 was switched on meets it where it is first compiled: training, the Gymnasium adapters."""
     import jax
 
-    from envs.cartpole_stay_up import CartPoleStayUp
-    from jaxrobo.gym_adapter import JaxroboEnv, JaxroboVectorEnv
-    from jaxrobo.run import resolve
-    from jaxrobo.train import train
+    from envs.cartpole.stay_up import CartPoleStayUp
+    from jaxrobo.interop.gym_adapter import JaxroboEnv, JaxroboVectorEnv
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
 
     monkeypatch.delenv("JAX_ENABLE_X64", raising=False)
     spec = resolve("CartPoleStayUp-v0", overrides={"n_envs": 2, "nepisodes": 2, "nsteps": 5, "backend": "analytic"})

@@ -2,7 +2,7 @@
 motor, with its joint sensors. Copy it and change the MJCF, the joints it reads and the controller.
 
 A robot loads its MJCF, builds its simulator with :func:`jaxrobo.make_simulator` (MuJoCo MJX here; a robot may
-also offer a hand-written backend, see ``envs/cartpole.py``) and says what it senses. It knows nothing of the
+also offer a hand-written backend, see ``envs/cartpole/robot.py``) and says what it senses. It knows nothing of the
 task: actions, rewards and episode ends are the task's (``my_task.py``).
 """
 from __future__ import annotations
@@ -14,8 +14,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from jaxrobo import Robot, make_simulator
-from jaxrobo.sim import backend_choices, load_model
+from jaxrobo.api import Robot, backend_choices, load_model, make_simulator
 
 MJCF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "pendulum.xml")
 JOINT = "hinge"

@@ -28,9 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrobo
-from jaxrobo import TaskEnv, rng, spaces
-from jaxrobo.env import BaseParams
-from jaxrobo.struct import param, pytree_dataclass
+from jaxrobo.api import BaseParams, TaskEnv, param, pytree_dataclass, rng, spaces
 from my_robot import BACKENDS, PendulumRobot
 
 #: Action ``i`` applies ``TORQUE_SIGNS[i] * max_torque``.

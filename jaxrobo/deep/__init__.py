@@ -1,8 +1,8 @@
 """Deep RL on jaxrobo envs through Brax's own trainers: ``jaxrobo train --agent ppo|sac``.
 
 The trainers are ``brax.training.agents.ppo.train`` and ``brax.training.agents.sac.train``, called unchanged on
-the env's Brax face (:class:`jaxrobo.brax_env.BraxEnv`) with jaxrobo's training wrapper
-(:func:`jaxrobo.brax_env.wrap_for_training`: fresh randomness at every auto-reset, truncation kept apart from
+the env's Brax face (:class:`jaxrobo.interop.brax_env.BraxEnv`) with jaxrobo's training wrapper
+(:func:`jaxrobo.interop.brax_env.wrap_for_training`: fresh randomness at every auto-reset, truncation kept apart from
 termination). jaxrobo adds what a run needs around them, one concern per module:
 
 * :mod:`jaxrobo.deep.config`: one home for every default: :class:`DeepConfig` (the fields both trainers take,
@@ -12,11 +12,11 @@ termination). jaxrobo adds what a run needs around them, one concern per module:
   everything, and refuses a Discrete-action id, before anything compiles;
 * :mod:`jaxrobo.deep.training`: Brax's trainer with the evaluation of the deterministic policy on
   ``eval_episodes`` fresh episodes of the jaxrobo env itself at each of the trainer's ``num_evals`` points
-  (:func:`evaluate`), through :func:`jaxrobo.rollout.rollout`, so a task's success flags (the Goto's
+  (:func:`evaluate`), through :func:`jaxrobo.task.rollout.rollout`, so a task's success flags (the Goto's
   ``arrived``) are counted exactly as for the tabular learners;
 * :mod:`jaxrobo.deep.output`: the run directory (:func:`write_run`: ``config.yaml``, ``evaluations.csv``,
   ``episode_stats.csv`` with an ``env_steps`` column, ``summary.json``, TensorBoard scalars, ``rewards.png``, the
-  policy) written through :mod:`jaxrobo.rundir`;
+  policy) written through :mod:`jaxrobo.io.rundir`;
 * :mod:`jaxrobo.deep.policy`: the policy saved without pickle (:func:`save_policy`: the parameter pytree
   flattened to ``policy.npz`` by key path, the network's configuration in ``policy.json``) and loaded back
   (:func:`load_policy`) for ``jaxrobo show`` and rendering.

@@ -8,8 +8,8 @@ import dataclasses
 import os
 from typing import Any, Mapping
 
-from jaxrobo.config import ConfigError, as_dict, load_yaml, split_and_validate, unknown_key
-from jaxrobo.struct import param, rules
+from jaxrobo.core.config import ConfigError, as_dict, load_yaml, split_and_validate, unknown_key
+from jaxrobo.core.struct import param, rules
 
 #: The deep-RL learners, each Brax's trainer of that name.
 AGENTS = ("ppo", "sac")
@@ -160,7 +160,7 @@ class DeepRunSpec:
     def to_dict(self) -> dict[str, Any]:
         """The resolved configuration, as written to ``config.yaml``: the same sections as a tabular run's
         (``env_options``, ``env_params``), the trainer's settings under ``train`` (``train.agent`` names it)."""
-        from jaxrobo.registry import qualified_id
+        from jaxrobo.task.registry import qualified_id
 
         return {"env_id": qualified_id(self.env_id), "preset": self.preset,
                 "env_options": as_dict(self.env.options), "env_params": as_dict(self.env.default_params),
@@ -195,7 +195,7 @@ def check_combinations(config: Any, where: str = "") -> None:
 def check_action_space(env: Any, agent: str, env_id: str) -> None:
     """Brax's trainers act in a continuous (Box) action space: the env's Brax face refuses a Discrete id (naming
     the continuous id of the same task where there is one); said here as the ``--agent``'s refusal."""
-    from jaxrobo.brax_env import BraxEnv
+    from jaxrobo.interop.brax_env import BraxEnv
 
     try:
         BraxEnv(env)
@@ -208,7 +208,7 @@ def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping
     """Build the env and the trainer's config of a deep run; :class:`ConfigError` on any bad value, before
     anything compiles. Override keys: a field of the agent's config, or an env option/parameter (``env.KEY``
     forces the env, ``agent.KEY`` the config)."""
-    from jaxrobo.registry import _lookup, make
+    from jaxrobo.task.registry import _lookup, make
 
     cls = config_class(agent)
     env_id = _lookup(env_id).spec.id
@@ -247,7 +247,7 @@ def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping
 
 def spec_from_config(run_config: Mapping[str, Any], where: str = "config.yaml") -> DeepRunSpec:
     """The :class:`DeepRunSpec` a deep run's ``config.yaml`` describes (for ``jaxrobo show``)."""
-    from jaxrobo.registry import find
+    from jaxrobo.task.registry import find
 
     try:
         env_id, preset, train = run_config["env_id"], run_config.get("preset", "default"), run_config["train"]

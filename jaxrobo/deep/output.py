@@ -1,6 +1,6 @@
 """The run directory of a deep run (:func:`write_run`: ``config.yaml``, the policy, ``evaluations.csv``,
 ``episode_stats.csv``, ``training_metrics.csv``, ``summary.json``, TensorBoard scalars, ``rewards.png``), written
-into a staging directory that :mod:`jaxrobo.rundir` publishes whole, and :func:`is_deep_run`."""
+into a staging directory that :mod:`jaxrobo.io.rundir` publishes whole, and :func:`is_deep_run`."""
 from __future__ import annotations
 
 import os
@@ -36,12 +36,12 @@ def _stats_rows(result: DeepResult) -> tuple[tuple[str, ...], list[list[Any]]]:
 
 
 def write_run(out_dir: str, result: DeepResult) -> str:
-    """Everything a deep run produced, into ``out_dir`` (a staging directory: :mod:`jaxrobo.rundir` publishes
+    """Everything a deep run produced, into ``out_dir`` (a staging directory: :mod:`jaxrobo.io.rundir` publishes
     it whole): ``config.yaml``, ``policy.npz`` + ``policy.json``, ``evaluations.csv``, ``episode_stats.csv``,
     ``training_metrics.csv``, ``summary.json``, ``tensorboard/`` and ``rewards.png``."""
     import csv
 
-    from jaxrobo.results import write_config, write_summary
+    from jaxrobo.io.results import write_config, write_summary
 
     write_config(out_dir, result.spec.to_dict())
     save_policy(out_dir, result.params, result.net)
@@ -67,7 +67,7 @@ def write_run(out_dir: str, result: DeepResult) -> str:
                 w.writerow([m["env_steps"], *(f"{m[k]:.6g}" if k in m else "" for k in keys)])
     write_summary(out_dir, result.summary())
     _write_tensorboard(out_dir, result)
-    from jaxrobo.plots import plot_runs
+    from jaxrobo.pictures.plots import plot_runs
 
     plot_runs([out_dir], os.path.join(out_dir, "rewards.png"), labels=[f"{result.spec.env_id} · {result.spec.agent}"],
               window=1)
@@ -99,7 +99,7 @@ def _write_tensorboard(out_dir: str, result: DeepResult) -> None:
 
 def is_deep_run(run_dir: str) -> bool:
     """A run directory written by a deep-RL run (its ``config.yaml`` names ``ppo`` or ``sac``)."""
-    from jaxrobo.results import load_config
+    from jaxrobo.io.results import load_config
 
     try:
         return is_deep((load_config(run_dir).get("train") or {}).get("agent"))

@@ -11,7 +11,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from jaxrobo.config import ConfigError
+from jaxrobo.core.config import ConfigError
 from jaxrobo.deep.config import AGENTS, DeepRunSpec
 
 #: Files of a deep run's saved policy.
@@ -181,7 +181,7 @@ def load_policy(run_dir: str) -> LoadedPolicy:
 
 
 def env_policy(benv: Any, make_policy: Callable, params: Any) -> Callable:
-    """A :data:`jaxrobo.rollout.Policy` ``(key, obs) -> action`` of the jaxrobo env, acting as the trained
+    """A :data:`jaxrobo.task.rollout.Policy` ``(key, obs) -> action`` of the jaxrobo env, acting as the trained
     deterministic policy does through ``benv`` (its Brax action, mapped to the env's action space as the Brax
     face maps it)."""
     policy = make_policy(params, deterministic=True)

@@ -15,11 +15,11 @@ from jaxrobo.deep.policy import _factory, _networks, env_policy, network_config
 # ---- evaluation ----------------------------------------------------------------------------------------------------
 def evaluate(env: Any, benv: Any, make_policy: Callable, n_episodes: int, horizon: int) -> Callable:
     """A jitted ``(params, key) -> dict`` of ``n_episodes`` fresh episodes of the deterministic policy on the
-    jaxrobo env (:func:`jaxrobo.rollout.rollout`): ``return``, ``length``, ``terminated`` and, for a task with an
+    jaxrobo env (:func:`jaxrobo.task.rollout.rollout`): ``return``, ``length``, ``terminated`` and, for a task with an
     ``arrived`` flag, ``success``."""
     import jax
 
-    from jaxrobo.rollout import outcomes, rollout
+    from jaxrobo.task.rollout import outcomes, rollout
 
     # The step limit of training (the wrapper's episode_length) is the evaluation's too.
     env_params = benv.params.replace(max_episode_steps=horizon)
@@ -94,12 +94,12 @@ def train(spec: DeepRunSpec, progress: Callable[[dict[str, Any]], None] | None =
     :func:`evaluate` on fresh episodes of the jaxrobo env.
 
     Brax's trainer runs as one call with no way to pause it: ``should_stop()`` (e.g. a
-    :class:`jaxrobo.driver.StopOnSignal`) is asked each time the trainer hands control back (its progress and
+    :class:`jaxrobo.training.driver.StopOnSignal`) is asked each time the trainer hands control back (its progress and
     parameter callbacks, at each evaluation point), and :class:`TrainingStopped` is raised out of the trainer
     there when it says so; nothing of the unfinished training is returned."""
     import jax
 
-    from jaxrobo import brax_env  # its import gives Brax 0.14's trainers the JAX calls they need
+    from jaxrobo.interop import brax_env  # its import gives Brax 0.14's trainers the JAX calls they need
 
     c = spec.config
     benv = brax_env.BraxEnv(spec.env)
@@ -158,12 +158,12 @@ def _train_sac(common: dict[str, Any], c: SACConfig, on_params: Callable[[int, A
 
     Brax's SAC takes no ``policy_params_fn``: it hands the parameters at each point to the
     ``acting.Evaluator`` it builds, then calls ``progress_fn(step, metrics)``. For the length of the call
-    :func:`jaxrobo.brax_compat.keep_evaluator_params` makes that evaluator one that keeps those parameters (and
+    :func:`jaxrobo.interop.brax_compat.keep_evaluator_params` makes that evaluator one that keeps those parameters (and
     skips Brax's own evaluation rollout), and ``progress_fn`` runs the run's evaluation with them at that step;
     the trainer itself runs unchanged."""
     from brax.training.agents.sac import train as sac
 
-    from jaxrobo.brax_compat import keep_evaluator_params
+    from jaxrobo.interop.brax_compat import keep_evaluator_params
 
     progress = common["progress_fn"]
     with keep_evaluator_params() as hook:

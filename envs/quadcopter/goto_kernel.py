@@ -1,0 +1,422 @@
+"""The Goto tasks' whole control step as one Pallas kernel: action → Twist, the robot's control step (every
+substep of controller and rigid physics), the observation (goal distance and bearing, the level sonars against
+the obstacles and the ground, v2's ``goal_clear``), the outcome (crash, limits, arrival), the reward, the task
+variables and the NaN guard, for a block of envs, each env reading its state and task variables once and
+writing its new ones once.
+
+Why: with only the control step in a kernel (:mod:`envs.quadcopter.kernel`), the rest of the task's step stayed
+XLA's: some 30 batch-wide kernels a step (transposes, the sonar's 3x3 GEMM, the concatenations building the
+observation, reductions over the obstacles), each moving part of every env's state through memory. Here the
+task's step is one kernel and only the learner, the discretiser and the reset remain around it.
+
+What it computes: the task's hooks (:meth:`envs.quadcopter.goto.QuadcopterGoto._set_action`, ``_get_obs``,
+``_is_done``, ``_compute_reward``; v2's :class:`envs.quadcopter.goto_v2.QuadcopterGoto2`) and
+:meth:`jaxrobo.task.env.TaskEnv.step`'s NaN guard, written once per coordinate in :func:`task_step`, which runs on
+arrays of any shape (the tests run it on a CPU against the hooks themselves, which stay the task's definition).
+The geometry is the hooks' exact ray tests with the directions the task's rays have written in: the level rays'
+vertical component is 0 and the down ray is ``(0, 0, -1)``, so their parallel-slab branches are chosen while
+tracing. The kernel agrees with the XLA step to float32 round-off (the dot products are written out, and a GPU
+takes ``atan2``/``sin``/``cos`` from another library), not bit for bit.
+
+Scope (:func:`supports`): the Goto tasks with the seed's five discrete actions (v1, v2), backend ``rigid``, any
+``n_obstacles`` (0-32; more than :data:`UNROLL_OBSTACLES` run as a loop inside the kernel), kinds ``cylinder``,
+``box`` or ``mixed``. A subclass that overrides a hook gets no kernel (its meaning would be lost): the plan
+then keeps the physics-only kernel. The obstacles' ``kind`` is read only for ``mixed``: the other two layouts
+are one kind by construction (:meth:`envs.quadcopter.goto.QuadcopterGoto._obstacles`).
+
+How it is used: :class:`envs.quadcopter.goto.QuadcopterGoto` builds :func:`make_task_step` as its
+``step_kernel``; under ``ExecutionPlan(fused="pallas", task_kernel=True)`` (:mod:`jaxrobo.speed.plan`, the default
+with ``fused="pallas"`` where the task has one) its ``step`` runs :func:`kernel_step`, which a vmapped step
+turns into one kernel call over the whole batch (and over any vmap around it, as a sweep's).
+
+Public surface: :func:`supports`, :func:`make_task_step`, :func:`kernel_step`, :func:`task_step`,
+:class:`Layout`, :data:`UNROLL_OBSTACLES`.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.quadcopter.robot import _ACTION_FIXED, _ACTION_SCALE, _INF, _PARALLEL, BOX, SONAR_RAYS, wrap_angle
+from envs.quadcopter.kernel import BLOCK, Constants, constants_of, control_step
+
+#: Obstacles written out one after another in the kernel; more run in a loop (a long unrolled body compiles
+#: slowly and gains nothing once the loop's few instructions are amortised over an obstacle's ray tests).
+UNROLL_OBSTACLES = 2
+
+#: The parameters (:class:`envs.quadcopter.goto.Params`) a step reads, in the order of the kernel's vector.
+V1_PARAMS = ("speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius",
+             "sonar_range", "progress_reward", "step_cost", "altitude_cost", "arrival_bonus", "crash_penalty")
+#: v2's (:class:`envs.quadcopter.goto_v2.Params`): v1's and the goal_clear margin and the two shaping weights.
+V2_PARAMS = V1_PARAMS + ("clear_margin", "heading_reward", "climb_reward")
+#: The hooks whose meaning the kernel holds: a subclass overriding one of them gets no kernel.
+HOOKS = ("step", "_set_action", "_get_obs", "_sonar", "_goal_clear", "_outcome", "_is_done", "_compute_reward")
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """What the kernel is specialised for (static): obstacles per env, their kind, and v2's additions."""
+
+    n_obstacles: int
+    obstacle_kind: str  # "cylinder", "box" or "mixed"
+    v2: bool
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return V2_PARAMS if self.v2 else V1_PARAMS
+
+    @property
+    def obs_size(self) -> int:
+        return 8 if self.v2 else 7
+
+
+def supports(env: Any) -> str | None:
+    """None if ``env``'s step can run as the task kernel, else why not (a sentence)."""
+    variant = getattr(env, "step_kernel_variant", None)
+    if variant is None:
+        return f"{type(env).__name__} declares no task kernel (only the Goto tasks with discrete actions do)"
+    if env.options.backend != "rigid":
+        return f"backend={env.options.backend!r}: the task kernel runs the 'rigid' physics only"
+    owner = next(cls for cls in type(env).__mro__ if "step_kernel_variant" in cls.__dict__)
+    for cls in type(env).__mro__:
+        if cls is owner:
+            break
+        changed = [h for h in HOOKS if h in cls.__dict__]
+        if changed:
+            return f"{cls.__name__} overrides {', '.join(changed)}, whose meaning the task kernel would not hold"
+    return None
+
+
+# ---- the task's step, per coordinate ---------------------------------------------------------------------
+def _safe_inv(d):
+    return 1.0 / jnp.where(jnp.abs(d) < _PARALLEL, jnp.where(d < 0, -_PARALLEL, _PARALLEL), d)
+
+
+def _slab(o, d, c, h):
+    """One axis of :func:`envs.quadcopter.robot.ray_box`: ``(t_near, t_far)``; ``d`` None: a direction component
+    known to be 0 (the ray parallel to the axis' planes), a float: a known one."""
+    in_slab = jnp.abs(o - c) <= h
+    outside_near = jnp.where(in_slab, -_INF, _INF)
+    if d is None:
+        return outside_near, jnp.where(in_slab, _INF, -_INF)
+    inv = 1.0 / d if isinstance(d, float) else _safe_inv(d)
+    t1 = (c - h - o) * inv
+    t2 = (c + h - o) * inv
+    if isinstance(d, float):
+        return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
+    parallel = jnp.abs(d) < _PARALLEL
+    return (jnp.where(parallel, outside_near, jnp.minimum(t1, t2)),
+            jnp.where(parallel, jnp.where(in_slab, _INF, -_INF), jnp.maximum(t1, t2)))
+
+
+def _ray_box(o: Sequence, d: Sequence, c: Sequence, h: Sequence):
+    """:func:`envs.quadcopter.robot.ray_box` per coordinate."""
+    near, far = zip(*(_slab(o[i], d[i], c[i], h[i]) for i in range(3)))
+    t_near = jnp.maximum(jnp.maximum(near[0], near[1]), near[2])
+    t_far = jnp.minimum(jnp.minimum(far[0], far[1]), far[2])
+    hit = (t_near <= t_far) & (t_far >= 0)
+    return jnp.where(hit, jnp.maximum(t_near, 0.0), _INF)
+
+
+def _ray_cylinder(p: Sequence, d: Sequence, center: Sequence, radius, half_height):
+    """:func:`envs.quadcopter.robot.ray_cylinder` per coordinate, for a level ray (``d = (dx, dy, None)``) or the
+    down ray (``d = (None, None, -1.0)``)."""
+    o = [p[i] - center[i] for i in range(3)]
+    r2 = radius * radius
+    c = o[0] * o[0] + o[1] * o[1] - r2
+    inside = (c <= 0) & (jnp.abs(o[2]) <= half_height)
+    if d[2] is None:  # level: the side wall only (a level ray never meets a cap)
+        a = d[0] * d[0] + d[1] * d[1]
+        b = 2 * (o[0] * d[0] + o[1] * d[1])
+        disc = b * b - 4 * a * c
+        t_side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / (2 * jnp.maximum(a, 1e-12))
+        side_ok = (a > 1e-12) & (disc >= 0) & (t_side >= 0) & (jnp.abs(o[2]) <= half_height)
+        t = jnp.where(side_ok, t_side, _INF)
+    else:  # straight down: the caps only
+        inv_z = 1.0 / d[2]
+        xy_in = o[0] * o[0] + o[1] * o[1] <= r2
+        caps = [(half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z]
+        t = jnp.minimum(jnp.where((caps[0] >= 0) & xy_in, caps[0], _INF),
+                        jnp.where((caps[1] >= 0) & xy_in, caps[1], _INF))
+    return jnp.where(inside, 0.0, t)
+
+
+def _point_distance(p: Sequence, center: Sequence, size: Sequence, kind: str):
+    """:func:`envs.quadcopter.robot.point_obstacle_distance` of one obstacle (``kind`` 'box' or 'cylinder')."""
+    q = [jnp.abs(p[i] - center[i]) for i in range(3)]
+    over_z = jnp.maximum(q[2] - size[2], 0.0)
+    if kind == "box":
+        over = [jnp.maximum(q[i] - size[i], 0.0) for i in range(2)]
+        return jnp.sqrt(over[0] * over[0] + over[1] * over[1] + over_z * over_z)
+    radial = jnp.maximum(jnp.sqrt(q[0] * q[0] + q[1] * q[1]) - size[0], 0.0)
+    return jnp.sqrt(radial * radial + over_z * over_z)
+
+
+def _twist(action, speed) -> list:
+    """:func:`envs.quadcopter.robot.twist_command` per coordinate (an action outside 0-4 reads as 0)."""
+    out = []
+    for j in range(4):
+        value = None
+        for k in range(_ACTION_SCALE.shape[0]):
+            scale, fixed = float(_ACTION_SCALE[k, j]), float(_ACTION_FIXED[k, j])
+            v_k = scale * speed + fixed if scale != 0.0 else speed * 0.0 + fixed
+            value = v_k if value is None else jnp.where(action == k, v_k, value)
+        out.append(value)
+    return out
+
+
+def _finite(x):
+    return jnp.abs(x) < np.inf  # False for NaN and ±inf (Triton has no isfinite)
+
+
+#: Obstacle accessor: index → ``(kind or None, center [3], size [3], active)``, each per coordinate.
+Obstacle = Callable[[Any], tuple[Any, list, list, Any]]
+
+
+def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, old_obs: Callable[[Any], Sequence],
+              task: dict, p: dict, obstacle: Obstacle) -> dict:
+    """One Goto step per coordinate, on arrays of any (common) shape: ``q`` (7), ``v`` (6) the robot's state,
+    ``action`` int, ``old_obs(ok)`` the last observation (kept where ``ok``, the new state is finite, is False:
+    the kernel reads it only there), ``task`` the
+    per-step task variables (``goal`` [3], ``prev_dist``, ``arrived``, ``crashed`` as bools; v2 ``prev_bearing``,
+    ``prev_dz``), ``p`` the parameters by name, ``obstacle`` the obstacles' accessor. Returns the new ``q``,
+    ``v``, ``obs``, ``reward``, ``terminated``, ``nan`` (the guard fired) and the task variables."""
+    q, v = control_step(c, q, v, _twist(action, p["speed_value"]))
+    # read_sensors / euler_from_quat
+    w, x, y, z = q[3], q[4], q[5], q[6]
+    roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    pos = q[:3]
+    goal = task["goal"]
+    delta = [goal[i] - pos[i] for i in range(3)]
+    dist = jnp.sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2])
+    bearing = wrap_angle(jnp.arctan2(delta[1], delta[0]) - yaw)
+    # _sonar: the level rays, rotated by the heading's quaternion (its matrix written out: x = y = 0).
+    hw, hz = jnp.cos(yaw / 2), jnp.sin(yaw / 2)
+    r_cos, r_sin = 1 - 2 * (hz * hz), 2 * (hw * hz)
+    rays = []
+    for rx, ry, rz in SONAR_RAYS.tolist():
+        if rz != 0.0:  # the down ray (0, 0, -1)
+            rays.append((None, None, float(np.float32(rz))))
+            continue
+        dx = [t for t in (rx * r_cos if rx else None, -(ry * r_sin) if ry else None) if t is not None]
+        dy = [t for t in (rx * r_sin if rx else None, ry * r_cos if ry else None) if t is not None]
+        rays.append((sum(dx[1:], dx[0]), sum(dy[1:], dy[0]), None))
+    # v2's goal_clear ray: level, towards the goal.
+    level = jnp.sqrt(delta[0] * delta[0] + delta[1] * delta[1])
+    unit = jnp.maximum(level, 1e-6)
+    towards = (delta[0] / unit, delta[1] / unit, None)
+
+    kinds = ("box", "cylinder") if layout.obstacle_kind == "mixed" else (layout.obstacle_kind,)
+    grow = p["drone_radius"] + p["clear_margin"] if layout.v2 else None
+
+    def one(i, carry):
+        kind, center, size, active = obstacle(i)
+        found = {}
+        for name in kinds:
+            ts = []
+            for d in rays:
+                if name == "box":
+                    ts.append(_ray_box(pos, d, center, size))
+                else:
+                    ts.append(_ray_cylinder(pos, d, center, size[0], size[2]))
+            if layout.v2:
+                grown = [size[0] + grow, size[1] + grow, size[2]]
+                ts.append(_ray_box(pos, towards, center, grown) if name == "box"
+                          else _ray_cylinder(pos, towards, center, grown[0], grown[2]))
+            ts.append(_point_distance(pos, center, size, name))
+            found[name] = ts
+        ts = found[kinds[0]] if len(kinds) == 1 else \
+            [jnp.where(kind == BOX, b, cyl) for b, cyl in zip(found["box"], found["cylinder"])]
+        return tuple(jnp.minimum(m, jnp.where(active, t, _INF)) for m, t in zip(carry, ts))
+
+    n_out = len(rays) + int(layout.v2) + 1
+    nearest = tuple(pos[0] * 0.0 + _INF for _ in range(n_out))
+    if layout.n_obstacles > UNROLL_OBSTACLES:
+        nearest = jax.lax.fori_loop(0, layout.n_obstacles, one, nearest)
+    else:
+        for i in range(layout.n_obstacles):
+            nearest = one(i, nearest)
+    pz = pos[2]
+    sonar_range = p["sonar_range"]
+    obs = [dist, bearing, delta[2]]
+    for d, t in zip(rays, nearest):
+        ground = jnp.where(pz > 0, pz, 0.0) if d[2] is not None else jnp.where(pz <= 0, 0.0, _INF)
+        obs.append(jnp.minimum(jnp.minimum(ground, t), sonar_range))
+    if layout.v2:
+        ray = nearest[len(rays)]
+        obs.append(jnp.where(ray < level, jnp.minimum(ray, sonar_range), sonar_range))
+    # _outcome
+    radius = p["drone_radius"]
+    ws = p["workspace"]
+    outside = (jnp.abs(pos[0]) > ws) | (jnp.abs(pos[1]) > ws)
+    limits = (pz > p["max_altitude"]) | (jnp.abs(roll) >= p["max_incl"]) | (jnp.abs(pitch) >= p["max_incl"])
+    failed = (pz <= radius) | (nearest[-1] <= radius) | outside | limits
+    arrived = (dist < p["goal_tolerance"]) & ~failed
+    # _compute_reward
+    reward = (p["progress_reward"] * (task["prev_dist"] - dist) - p["step_cost"] - p["altitude_cost"] * pz
+              + jnp.where(arrived, p["arrival_bonus"], 0.0) - jnp.where(failed, p["crash_penalty"], 0.0))
+    new_task = {"prev_dist": dist, "arrived": task["arrived"] | arrived, "crashed": task["crashed"] | failed}
+    if layout.v2:
+        b_abs, dz_abs = jnp.abs(bearing), jnp.abs(delta[2])
+        reward = reward + (p["heading_reward"] * (task["prev_bearing"] - b_abs)
+                           + p["climb_reward"] * (task["prev_dz"] - dz_abs))
+        new_task.update(prev_bearing=b_abs, prev_dz=dz_abs)
+    # TaskEnv.step's guard: a non-finite state ends the episode with zero reward and the last finite observation.
+    ok = _finite(q[0])
+    for value in list(q[1:]) + list(v) + obs:
+        ok = ok & _finite(value)
+    obs = [jnp.where(ok, o, old) for o, old in zip(obs, old_obs(ok))]
+    return {"q": q, "v": v, "obs": obs, "reward": jnp.where(ok, reward, 0.0), "terminated": arrived | failed | ~ok,
+            "nan": ~ok, "task": new_task}
+
+
+# ---- the batch kernel ------------------------------------------------------------------------------------
+F32, I32, BOOL = jnp.float32, jnp.int32, jnp.bool_
+
+
+def _fields(layout: Layout) -> tuple[list, list]:
+    """The kernel's per-env inputs and outputs: ``(name, values per env, dtype)``, each the task's own dtype (so
+    XLA converts nothing around the call)."""
+    k = layout.n_obstacles
+    extra = [("prev_bearing", 1, F32), ("prev_dz", 1, F32)] if layout.v2 else []
+    ins = [("qpos", 7, F32), ("qvel", 6, F32), ("action", 1, I32), ("obs", layout.obs_size, F32), ("goal", 3, F32),
+           ("prev_dist", 1, F32), ("arrived", 1, BOOL), ("crashed", 1, BOOL)] + extra
+    if k:
+        ins += ([("kind", k, I32)] if layout.obstacle_kind == "mixed" else []) + \
+            [("center", 3 * k, F32), ("size", 3 * k, F32), ("active", k, BOOL)]
+    outs = [("qpos", 7, F32), ("qvel", 6, F32), ("obs", layout.obs_size, F32), ("reward", 1, F32),
+            ("terminated", 1, BOOL), ("nan", 1, BOOL), ("prev_dist", 1, F32), ("arrived", 1, BOOL),
+            ("crashed", 1, BOOL)] + extra
+    return ins, outs
+
+
+def _zero(dtype):
+    return False if dtype == BOOL else 0 if dtype == I32 else 0.0
+
+
+def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bool) -> Callable:
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+
+    ins, outs = _fields(layout)
+    n_params = len(layout.param_names)
+
+    def kernel(*refs):
+        in_refs = dict(zip([f[0] for f in ins] + ["params"], refs[:len(ins) + 1]))
+        out_refs = dict(zip([f[0] for f in outs], refs[len(ins) + 1:]))
+        env = pl.program_id(0) * block + jax.lax.iota(jnp.int32, block)
+        mask = env < n
+
+        def load(name, width, j, dtype):
+            return plgpu.load(in_refs[name].at[env * width + j], mask=mask, other=_zero(dtype))
+
+        row = {name: [load(name, width, j, dtype) for j in range(width)]
+               for name, width, dtype in ins if name not in ("obs", "kind", "center", "size", "active")}
+
+        def old_obs(ok):  # read only where the guard fires: a warp of finite states loads nothing
+            return [plgpu.load(in_refs["obs"].at[env * layout.obs_size + j], mask=mask & ~ok, other=0.0)
+                    for j in range(layout.obs_size)]
+
+        stride = n_params if params_per_env else 0
+        p = {name: plgpu.load(in_refs["params"].at[env * stride + j], mask=mask, other=0.0)
+             for j, name in enumerate(layout.param_names)}
+        k = layout.n_obstacles
+
+        def obstacle(i):
+            kind = load("kind", k, i, I32) if layout.obstacle_kind == "mixed" else None
+            center = [load("center", 3 * k, 3 * i + j, F32) for j in range(3)]
+            size = [load("size", 3 * k, 3 * i + j, F32) for j in range(3)]
+            return kind, center, size, load("active", k, i, BOOL)
+
+        task = {"goal": row["goal"], "prev_dist": row["prev_dist"][0], "arrived": row["arrived"][0],
+                "crashed": row["crashed"][0]}
+        if layout.v2:
+            task.update(prev_bearing=row["prev_bearing"][0], prev_dz=row["prev_dz"][0])
+        out = task_step(c, layout, row["qpos"], row["qvel"], row["action"][0], old_obs, task, p, obstacle)
+        values = {"qpos": out["q"], "qvel": out["v"], "obs": out["obs"], "reward": [out["reward"]],
+                  "terminated": [out["terminated"]], "nan": [out["nan"]],
+                  **{name: [value] for name, value in out["task"].items()}}
+        for name, width, dtype in outs:
+            for j, value in enumerate(values[name]):
+                plgpu.store(out_refs[name].at[env * width + j], value.astype(dtype), mask=mask)
+
+    return kernel
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskStep:
+    """The batch kernel of one task configuration: ``(inputs {name: [n, ...]}, params [P] or [n, P]) ->
+    outputs {name: [n, ...]}`` (:func:`_fields` names them), one Pallas call."""
+
+    constants: Constants
+    layout: Layout
+    block: int | None = None
+    interpret: bool | None = None
+
+    def __call__(self, inputs: dict, params: jax.Array) -> dict:
+        from jax.experimental import pallas as pl
+        from jax.experimental.pallas import triton as plgpu
+
+        ins, outs = _fields(self.layout)
+        n = inputs["qpos"].shape[0]
+        size = BLOCK if self.block is None else self.block
+        size = min(size, max(1, 1 << max(n - 1, 0).bit_length()))
+        run_interpreted = jax.default_backend() != "gpu" if self.interpret is None else self.interpret
+        compiler = None if run_interpreted else plgpu.CompilerParams(num_warps=max(1, min(8, size // 32)),
+                                                                      num_stages=1)
+        flat = [jnp.asarray(inputs[name], dtype).reshape(-1) for name, _, dtype in ins]
+        whole = pl.BlockSpec(memory_space=pl.ANY)
+        shapes = [jax.ShapeDtypeStruct((n * width,), dtype) for _, width, dtype in outs]
+        result = pl.pallas_call(
+            _kernel(self.constants, self.layout, n, size, params.ndim == 2), grid=(-(-n // size),),
+            in_specs=[whole] * (len(ins) + 1), out_specs=[whole] * len(outs), out_shape=shapes,
+            interpret=run_interpreted, compiler_params=compiler, name="quadcopter_goto_step",
+        )(*flat, params.astype(jnp.float32).reshape(-1))
+        return {name: r.reshape((n, width) if width > 1 or name in ("qpos", "qvel", "obs") else (n,))
+                for (name, width, _), r in zip(outs, result)}
+
+
+def make_task_step(env: Any, block: int | None = None, interpret: bool | None = None) -> TaskStep:
+    """The batch kernel of ``env`` (a Goto task :func:`supports`; raises ValueError naming why not)."""
+    why = supports(env)
+    if why is not None:
+        raise ValueError(f"no task kernel: {why}")
+    o = env.options
+    layout = Layout(int(o.n_obstacles), str(o.obstacle_kind), env.step_kernel_variant == "v2")
+    return TaskStep(constants_of(env.robot), layout, block, interpret)
+
+
+# ---- one env's step through the batch kernel ---------------------------------------------------------------
+def kernel_step(env: Any, state: Any, action: jax.Array, params: Any) -> Any:
+    """``env.step(state, action, params)`` (one env; vmap it) through ``env.step_kernel``: the same
+    :class:`jaxrobo.task.env.EnvState` as :meth:`jaxrobo.task.env.TaskEnv.step`, to float32 round-off."""
+    from jaxrobo.api import EnvState, JointState, through_batch
+
+    kernel: TaskStep = env.step_kernel
+    layout = kernel.layout
+    task = state.task
+    inputs = {"qpos": state.pipeline_state.qpos, "qvel": state.pipeline_state.qvel,
+              "action": jnp.asarray(action, jnp.int32), "obs": state.obs, "goal": task.goal,
+              "prev_dist": task.prev_dist, "arrived": task.arrived, "crashed": task.crashed}
+    if layout.v2:
+        inputs.update(prev_bearing=task.prev_bearing, prev_dz=task.prev_dz)
+    if layout.n_obstacles:
+        obs = task.obstacles
+        inputs.update(center=obs.center, size=obs.size, active=obs.active)
+        if layout.obstacle_kind == "mixed":
+            inputs["kind"] = obs.kind
+    p = jnp.stack([jnp.asarray(getattr(params, name), jnp.float32) for name in layout.param_names])
+    out = through_batch(kernel, inputs, p)  # one call over the batch; p per env where a sweep batches it
+    changes = {name: out[name] for name in ("prev_dist", "arrived", "crashed", "prev_bearing", "prev_dz")
+               if name in out}
+    terminated = out["terminated"]
+    steps = state.steps + 1
+    truncated = (steps >= params.max_episode_steps) & ~terminated
+    return EnvState(JointState(out["qpos"], out["qvel"]), out["obs"], out["reward"], terminated, truncated, steps,
+                    task.replace(**changes), state.key, out["nan"])

@@ -1,0 +1,291 @@
+"""The quadcopter robot (the seed's Parrot AR.Drone robot env): model, on-board controller, pose and sonar.
+
+* **Model** - ``envs/quadcopter/quadcopter.xml``: a 0.42 kg X-quadrotor on a free joint, four site-thrust actuators each
+  with its reaction yaw torque, contacts disabled (crashes are exact geometry, see :func:`sphere_hits`).
+* **Backends** - ``mjx`` (MuJoCo MJX) or ``rigid`` (:mod:`envs.quadcopter.rigid_body`: Newton–Euler for the one free body,
+  every constant read from the same compiled model; agrees with MJX to round-off and is much faster). On
+  ``rigid`` the robot also offers its control step as a Pallas kernel (:mod:`envs.quadcopter.kernel`), which
+  ``ExecutionPlan(fused="pallas")`` runs.
+* **On-board controller** (:meth:`Quadcopter.controller`, every physics substep) - the seed's ``cmd_vel`` Twist
+  ``[vx, vy, vz, yaw_rate]`` in the heading frame (body frame with roll and pitch removed) is tracked by a
+  cascade: velocity error → desired acceleration (tilt-limited) → desired roll/pitch and collective thrust →
+  attitude PD and yaw-rate P → torques → rotor thrusts through the inverse of the model's mixing matrix,
+  clipped to the motor limits. An optional altitude floor (``min_altitude``) makes descent commands stop above
+  the ground, as the AR.Drone's sonar-based firmware does; with it at 0 the drone can fly into the ground.
+* **Sensors** - :meth:`Quadcopter.read_sensors`: position, roll/pitch/yaw, world and heading-frame velocity,
+  body rates. :func:`sonar`: ranges along fixed body rays to the ground and to obstacles (axis-aligned boxes
+  and vertical cylinders held as task data in :class:`Obstacles`), by exact ray–shape tests.
+"""
+from __future__ import annotations
+
+import os
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.quadcopter.rigid_body import RigidBodySim, airframe_from_model, quat_to_mat
+from jaxrobo.api import Robot, TaskEnv, backend_choices, load_model, make_simulator, param, pytree_dataclass, spaces
+
+#: The robot's MJCF, beside this module.
+MJCF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "quadcopter.xml")
+#: The quadcopter's hand-written backend; of the engines, its tasks offer MJX only.
+CLOSED_FORM = {"rigid": RigidBodySim}
+ENGINES = ("mjx",)
+BACKENDS = backend_choices(CLOSED_FORM, ENGINES)
+BOX, CYLINDER = 0, 1
+#: Unit sonar rays in the body frame: forward, forward-left 35°, forward-right 35°, down.
+SONAR_RAYS = np.array([[1.0, 0.0, 0.0], [np.cos(0.61), np.sin(0.61), 0.0], [np.cos(0.61), -np.sin(0.61), 0.0],
+                       [0.0, 0.0, -1.0]], np.float32)
+SONAR_NAMES = ("forward", "left", "right", "down")
+_INF = 1e6
+#: The seed's five Twist actions ``[vx, vy, vz, yaw_rate]`` per unit ``speed_value``: forward, turn left, turn
+#: right, up, down. Turning keeps the seed's small forward speed of 0.05 m/s (not scaled).
+ACTION_NAMES = ("forward", "left", "right", "up", "down")
+_ACTION_SCALE = np.array([[1, 0, 0, 0], [0, 0, 0, 1], [0, 0, 0, -1], [0, 0, 1, 0], [0, 0, -1, 0]], np.float32)
+_ACTION_FIXED = np.array([[0, 0, 0, 0], [0.05, 0, 0, 0], [0.05, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]], np.float32)
+
+
+def twist_command(action: jax.Array, speed_value: jax.Array) -> jax.Array:
+    """The seed's Twist for an action index (0 forward, 1 left, 2 right, 3 up, 4 down) at ``speed_value``."""
+    return jnp.asarray(_ACTION_SCALE)[action] * speed_value + jnp.asarray(_ACTION_FIXED)[action]
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerGains:
+    """Gains and limits of the on-board cascade (static: baked into the compiled step)."""
+
+    k_vel_xy: float = 3.5  # 1/s: horizontal velocity error → acceleration
+    k_vel_z: float = 4.0  # 1/s: vertical velocity error → acceleration
+    max_tilt: float = 0.35  # rad: roll/pitch set-points are limited to this (below the task's max_incl)
+    max_acc_up: float = 6.0  # m/s^2 above gravity compensation
+    max_acc_down: float = 5.0  # m/s^2 below it
+    k_att: float = 144.0  # 1/s^2: attitude stiffness (natural frequency 12 rad/s)
+    k_rate: float = 20.0  # 1/s: attitude damping
+    k_yaw: float = 8.0  # 1/s: yaw-rate error → yaw acceleration
+    k_floor: float = 2.0  # 1/s: altitude-floor climb rate per m below the floor
+
+
+@pytree_dataclass
+class Obstacles:
+    """Obstacles as task data, ``[n]`` each: ``kind`` (0 box, 1 vertical cylinder), ``center`` [n, 3] (m),
+    ``size`` [n, 3] (box: half extents; cylinder: radius, unused, half height), ``active`` (False: ignored)."""
+
+    kind: jax.Array
+    center: jax.Array
+    size: jax.Array
+    active: jax.Array
+
+    @staticmethod
+    def empty() -> "Obstacles":
+        return Obstacles(jnp.zeros(0, jnp.int32), jnp.zeros((0, 3)), jnp.zeros((0, 3)), jnp.zeros(0, bool))
+
+
+# ---- pose helpers ----------------------------------------------------------------------------------------
+def euler_from_quat(q: jax.Array) -> jax.Array:
+    """``[roll, pitch, yaw]`` (rad) of a wxyz quaternion, ZYX convention (tf's ``euler_from_quaternion``)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return jnp.stack([roll, pitch, yaw])
+
+
+def quat_from_yaw(yaw: jax.Array) -> jax.Array:
+    return jnp.stack([jnp.cos(yaw / 2), jnp.zeros_like(yaw), jnp.zeros_like(yaw), jnp.sin(yaw / 2)])
+
+
+def wrap_angle(a: jax.Array) -> jax.Array:
+    """Angle wrapped to [-pi, pi)."""
+    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
+
+
+# ---- exact geometry --------------------------------------------------------------------------------------
+#: A direction component below this is treated as parallel to the axis' planes by the ray tests.
+_PARALLEL = 1e-9
+
+
+def _safe_inv(d: jax.Array) -> jax.Array:
+    return 1.0 / jnp.where(jnp.abs(d) < _PARALLEL, jnp.where(d < 0, -_PARALLEL, _PARALLEL), d)
+
+
+def ray_ground(origin: jax.Array, direction: jax.Array) -> jax.Array:
+    """Distance along a unit ray to the plane z = 0 (``_INF`` if it points up or sideways; 0 if below it)."""
+    t = -origin[2] * _safe_inv(direction[2])
+    hit = (direction[2] < -_PARALLEL) | (origin[2] <= 0)
+    return jnp.where(hit, jnp.maximum(t, 0.0) * (origin[2] > 0), _INF)
+
+
+def ray_box(origin: jax.Array, direction: jax.Array, center: jax.Array, half: jax.Array) -> jax.Array:
+    """Slab test: distance to an axis-aligned box (0 when the origin is inside, ``_INF`` on a miss).
+
+    A ray parallel to a slab (direction component ~0) is inside it for all t if its origin is within the slab's
+    closed range, boundary included (a ray grazing along a face touches the box), else never."""
+    inv = _safe_inv(direction)
+    t1 = (center - half - origin) * inv
+    t2 = (center + half - origin) * inv
+    parallel = jnp.abs(direction) < _PARALLEL
+    in_slab = jnp.abs(origin - center) <= half
+    t_near = jnp.max(jnp.where(parallel, jnp.where(in_slab, -_INF, _INF), jnp.minimum(t1, t2)))
+    t_far = jnp.min(jnp.where(parallel, jnp.where(in_slab, _INF, -_INF), jnp.maximum(t1, t2)))
+    hit = (t_near <= t_far) & (t_far >= 0)
+    return jnp.where(hit, jnp.maximum(t_near, 0.0), _INF)
+
+
+def ray_cylinder(origin: jax.Array, direction: jax.Array, center: jax.Array, radius: jax.Array,
+                 half_height: jax.Array) -> jax.Array:
+    """Distance to a vertical solid cylinder: side wall, both caps, or 0 from inside; ``_INF`` on a miss."""
+    o = origin - center
+    a = direction[0] ** 2 + direction[1] ** 2
+    b = 2 * (o[0] * direction[0] + o[1] * direction[1])
+    c = o[0] ** 2 + o[1] ** 2 - radius**2
+    disc = b * b - 4 * a * c
+    t_side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / (2 * jnp.maximum(a, 1e-12))
+    z_side = o[2] + t_side * direction[2]
+    side_ok = (a > 1e-12) & (disc >= 0) & (t_side >= 0) & (jnp.abs(z_side) <= half_height)
+    inv_z = _safe_inv(direction[2])
+    caps = jnp.stack([(half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z])
+    cap_xy = o[:2, None] + caps[None, :] * direction[:2, None]
+    caps_ok = (caps >= 0) & (jnp.sum(cap_xy**2, axis=0) <= radius**2) & (jnp.abs(direction[2]) > _PARALLEL)
+    inside = (c <= 0) & (jnp.abs(o[2]) <= half_height)
+    t = jnp.minimum(jnp.where(side_ok, t_side, _INF), jnp.min(jnp.where(caps_ok, caps, _INF)))
+    return jnp.where(inside, 0.0, t)
+
+
+def ray_obstacles(origin: jax.Array, direction: jax.Array, obstacles: Obstacles) -> jax.Array:
+    """Distance along a unit ray to the nearest active obstacle (``_INF`` if none)."""
+    if obstacles.kind.shape[0] == 0:
+        return jnp.asarray(_INF, jnp.float32)
+
+    def one(kind, center, size, active):
+        t = jnp.where(kind == BOX, ray_box(origin, direction, center, size),
+                      ray_cylinder(origin, direction, center, size[0], size[2]))
+        return jnp.where(active, t, _INF)
+
+    return jnp.min(jax.vmap(one)(obstacles.kind, obstacles.center, obstacles.size, obstacles.active))
+
+
+def sonar(pos: jax.Array, quat: jax.Array, obstacles: Obstacles, max_range: float | jax.Array,
+          rays: np.ndarray = SONAR_RAYS) -> jax.Array:
+    """Range (m) along each body-frame ray to the ground or an obstacle, clipped to ``max_range``."""
+    dirs = jnp.asarray(rays) @ quat_to_mat(quat).T
+
+    def one(d):
+        return jnp.minimum(ray_ground(pos, d), ray_obstacles(pos, d, obstacles))
+
+    return jnp.minimum(jax.vmap(one)(dirs), max_range)
+
+
+def point_obstacle_distance(p: jax.Array, obstacles: Obstacles) -> jax.Array:
+    """Euclidean distance from a point to the nearest active obstacle surface (0 inside; ``_INF`` if none)."""
+    if obstacles.kind.shape[0] == 0:
+        return jnp.asarray(_INF, jnp.float32)
+
+    def one(kind, center, size, active):
+        q = jnp.abs(p - center)
+        box = jnp.sqrt(jnp.sum(jnp.maximum(q - size, 0.0) ** 2))
+        radial = jnp.maximum(jnp.sqrt(q[0] ** 2 + q[1] ** 2) - size[0], 0.0)
+        cyl = jnp.sqrt(radial**2 + jnp.maximum(q[2] - size[2], 0.0) ** 2)
+        return jnp.where(active, jnp.where(kind == BOX, box, cyl), _INF)
+
+    return jnp.min(jax.vmap(one)(obstacles.kind, obstacles.center, obstacles.size, obstacles.active))
+
+
+def sphere_hits(pos: jax.Array, radius: float | jax.Array, obstacles: Obstacles) -> tuple[jax.Array, jax.Array]:
+    """Exact crash test of the drone as a sphere: ``(hits_ground, hits_obstacle)``."""
+    return pos[2] <= radius, point_obstacle_distance(pos, obstacles) <= radius
+
+
+# ---- the robot -------------------------------------------------------------------------------------------
+class Quadcopter(Robot):
+    """The AR.Drone-like quadrotor; the command is the seed's Twist ``[vx, vy, vz, yaw_rate]`` (m/s, rad/s)."""
+
+    def __init__(self, backend: str = "mjx", running_step: float = 0.3, timestep: float = 0.01,
+                 min_altitude: float = 0.0, gains: ControllerGains = ControllerGains()):
+        mj_model = load_model(MJCF, timestep=timestep)
+        physics = lambda: load_model(MJCF, timestep=timestep, physics_only=True)  # noqa: E731
+        super().__init__(make_simulator(mj_model, backend, running_step, physics, closed_form=CLOSED_FORM,
+                                        engines=ENGINES))
+        self.gains = gains
+        self.min_altitude = float(min_altitude)
+        af = airframe_from_model(mj_model)  # constants of the controller, from the same model as the physics
+        self.mass, self.inertia = af.mass, af.inertia.astype(np.float32)
+        self.g = float(-af.gravity[2])
+        mix = af.wrench[[2, 3, 4, 5], :]  # rows: thrust (body z), roll, pitch, yaw torque per rotor newton
+        self.unmix = np.linalg.inv(mix).astype(np.float32)
+        self.ctrl_low, self.ctrl_high = af.ctrl_low.astype(np.float32), af.ctrl_high.astype(np.float32)
+        self.hover_thrust = self.mass * self.g / mix[0].sum()
+        if backend == "rigid":  # the control step as one Pallas kernel, for ExecutionPlan(fused="pallas")
+            from envs.quadcopter.kernel import make_advance
+
+            self.advance_kernel = make_advance(self)
+
+    def init_pose(self, pos: jax.Array, yaw: jax.Array = 0.0) -> tuple[jax.Array, jax.Array]:
+        """``(qpos, qvel)`` hovering at rest at ``pos`` (m) with heading ``yaw`` (rad)."""
+        qpos = jnp.concatenate([jnp.asarray(pos, jnp.float32), quat_from_yaw(jnp.asarray(yaw, jnp.float32))])
+        return qpos, jnp.zeros(6, jnp.float32)
+
+    def controller(self, pipeline_state: Any, command: jax.Array) -> jax.Array:
+        """Twist → rotor thrusts (N): the on-board velocity → attitude/thrust → mixing cascade."""
+        k, g = self.gains, self.g
+        q, v = self.sim.qpos(pipeline_state), self.sim.qvel(pipeline_state)
+        roll, pitch, yaw = euler_from_quat(q[3:7])
+        omega = v[3:6]
+        vz_cmd = command[2]
+        if self.min_altitude > 0:
+            vz_cmd = jnp.maximum(vz_cmd, k.k_floor * (self.min_altitude - q[2]))
+        c, s = jnp.cos(yaw), jnp.sin(yaw)
+        vx_h, vy_h = c * v[0] + s * v[1], -s * v[0] + c * v[1]
+        a_max = g * np.tan(k.max_tilt)
+        ax = jnp.clip(k.k_vel_xy * (command[0] - vx_h), -a_max, a_max)
+        ay = jnp.clip(k.k_vel_xy * (command[1] - vy_h), -a_max, a_max)
+        az = jnp.clip(k.k_vel_z * (vz_cmd - v[2]), -k.max_acc_down, k.max_acc_up)
+        pitch_d = jnp.clip(jnp.arctan2(ax, g + az), -k.max_tilt, k.max_tilt)
+        roll_d = jnp.clip(jnp.arctan2(-ay, g + az), -k.max_tilt, k.max_tilt)
+        thrust = self.mass * (g + az) / jnp.maximum(jnp.cos(roll) * jnp.cos(pitch), 0.5)
+        inertia = jnp.asarray(self.inertia)
+        torque = inertia * jnp.stack([
+            k.k_att * (roll_d - roll) - k.k_rate * omega[0],
+            k.k_att * (pitch_d - pitch) - k.k_rate * omega[1],
+            k.k_yaw * (command[3] - omega[2]),
+        ])
+        rotors = jnp.asarray(self.unmix) @ jnp.concatenate([thrust[None], torque])
+        return jnp.clip(rotors, jnp.asarray(self.ctrl_low), jnp.asarray(self.ctrl_high))
+
+    def read_sensors(self, pipeline_state: Any) -> dict[str, jax.Array]:
+        """Pose and velocities: ``pos`` (m), ``quat`` (wxyz), ``rpy`` (rad), ``vel`` (world, m/s),
+        ``vel_heading`` (heading frame, m/s), ``omega`` (body rates, rad/s)."""
+        q, v = self.sim.qpos(pipeline_state), self.sim.qvel(pipeline_state)
+        rpy = euler_from_quat(q[3:7])
+        c, s = jnp.cos(rpy[2]), jnp.sin(rpy[2])
+        vel_heading = jnp.stack([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]])
+        return {"pos": q[:3], "quat": q[3:7], "rpy": rpy, "vel": v[:3], "vel_heading": vel_heading,
+                "omega": v[3:6]}
+
+
+@pytree_dataclass
+class QuadcopterOptions:
+    """Static options every quadcopter task has (tasks subclass it to add theirs or change defaults)."""
+
+    backend: str = param("rigid", choices=BACKENDS, static=True,
+                         doc="physics: 'mjx' (MuJoCo MJX) or 'rigid' (same model, hand-written one-body dynamics)")
+    running_step: float = param(0.3, low=0.0, low_open=True, high=5.0, static=True, unit="s",
+                                doc="how long each command is applied")
+    timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s", doc="physics step")
+    min_altitude: float = param(0.0, low=0.0, high=2.0, static=True, unit="m",
+                                doc="on-board altitude floor of descent commands (0: none, ground crashes possible)")
+
+
+class QuadcopterTask(TaskEnv):
+    """What the quadcopter tasks share: the robot built from the task's options (``backend``, ``running_step``,
+    ``timestep``, ``min_altitude``) and the seed's five Twist actions."""
+
+    def __init__(self, options: Any = None, params: Any = None):
+        super().__init__(options, params)
+        o = self.options
+        self.robot = Quadcopter(o.backend, o.running_step, o.timestep, min_altitude=o.min_altitude)
+
+    def action_space(self, params: Any = None) -> spaces.Discrete:
+        return spaces.Discrete(len(ACTION_NAMES))

@@ -1,0 +1,47 @@
+"""The public surface for robot, task and learner authors: every name the shipped robots and tasks (``envs/``),
+learners (``agents/``), the custom-task example and docs/extending.md import from jaxrobo, in one module whose
+names stay where they are whatever moves inside the package (``tests/test_public_api.py`` holds the list).
+
+A robot and a task::
+
+    from jaxrobo.api import (BaseParams, ClosedFormSim, EnvState, JointState, LearningTarget, Robot, TaskEnv,
+                             backend_choices, load_model, make_simulator, param, pytree_dataclass, register,
+                             rng, spaces)
+
+A learner::
+
+    from jaxrobo.api import Learner, epsilon_greedy, row_max, rng
+
+Modules written against the earlier flat layout (``jaxrobo.env``, ``jaxrobo.sim``, ``jaxrobo.robot``,
+``jaxrobo.struct``, ``jaxrobo.spaces``, ``jaxrobo.rng``, ``jaxrobo.registry``, ``jaxrobo.rollout``) keep
+working: ``import jaxrobo`` maps those names onto their homes (:data:`jaxrobo.LEGACY_MODULES`).
+"""
+from __future__ import annotations
+
+from jaxrobo.core import rng, spaces
+from jaxrobo.core.config import ConfigError
+from jaxrobo.core.struct import param, pytree_dataclass, static_field
+from jaxrobo.physics.sim import (ClosedFormSim, JointState, Simulator, backend_choices, load_model, make_simulator,
+                                 through_batch)
+from jaxrobo.tabular import (AgentParams, AgentState, Learner, argmax_random_ties, epsilon_greedy,
+                             epsilon_greedy_probabilities, greedy, greedy_probabilities, pick_among_maxima,
+                             row_argmax, row_max, row_min, row_pick)
+from jaxrobo.task.env import BaseParams, Env, EnvState, LearningTarget, TaskEnv
+from jaxrobo.task.registry import deprecated_alias, make, register
+from jaxrobo.task.robot import Robot
+from jaxrobo.task.rollout import greedy_policy, random_policy, rollout, success_rate
+
+__all__ = [
+    # foundation
+    "ConfigError", "param", "pytree_dataclass", "static_field", "rng", "spaces",
+    # simulators (the seed's Gazebo layer) and robots
+    "ClosedFormSim", "JointState", "Simulator", "backend_choices", "load_model", "make_simulator", "through_batch",
+    "Robot",
+    # tasks
+    "BaseParams", "Env", "EnvState", "LearningTarget", "TaskEnv", "deprecated_alias", "make", "register",
+    # policies and episodes
+    "greedy_policy", "random_policy", "rollout", "success_rate",
+    # learners
+    "AgentParams", "AgentState", "Learner", "argmax_random_ties", "epsilon_greedy", "epsilon_greedy_probabilities",
+    "greedy", "greedy_probabilities", "pick_among_maxima", "row_argmax", "row_max", "row_min", "row_pick",
+]

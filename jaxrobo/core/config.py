@@ -1,0 +1,215 @@
+"""YAML configuration: load with safe loading, validate against the declared fields, merge overrides.
+
+The seed keeps environment parameters and algorithm parameters in YAML files loaded at run time; jaxrobo does
+the same (``envs/configs/*.yaml``, ``agents/configs/*.yaml``) and checks every value *before* anything compiles:
+an unknown key, a wrong type or an out-of-range value raises :class:`ConfigError` naming the key and what it
+accepts.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+import re
+from typing import Any, Iterable, Mapping
+
+import yaml
+
+from jaxrobo.core.struct import Rule, rules
+
+
+class ConfigError(ValueError):
+    """A configuration value is unknown, of the wrong type or out of range."""
+
+
+class StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` (no Python objects) that also refuses duplicate keys and reads every float syntax.
+
+    YAML 1.1 reads ``1e-3`` (no dot) as a string; here it is the number a user means. A mapping that gives the
+    same key twice would silently keep the last value, so it is an error naming the key and both lines.
+    """
+
+
+_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
+StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT, list("-+0123456789."))
+
+
+def _mapping_without_duplicates(loader: StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    loader.flatten_mapping(node)
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        try:
+            first = seen.get(key)
+        except TypeError:  # an unhashable key (a list or mapping used as a key)
+            raise ConfigError(f"line {key_node.start_mark.line + 1}: a key must be a plain value, got {key!r}") from None
+        if first is not None:
+            raise ConfigError(f"duplicate key {key!r} (lines {first} and {key_node.start_mark.line + 1}): "
+                              "give each key once")
+        seen[key] = key_node.start_mark.line + 1
+    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+
+
+StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
+
+
+def parse_yaml(text: str, where: str) -> Any:
+    """YAML text through :class:`StrictLoader`; any syntax error, unknown tag or duplicate key is a ConfigError."""
+    try:
+        return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - StrictLoader is a SafeLoader
+    except ConfigError as err:
+        raise ConfigError(f"{where}: {err}") from None
+    except yaml.YAMLError as err:
+        # e.g. "could not determine a constructor for the tag '!!python/object...'" or a syntax error with its line
+        msg = " ".join(str(err).split())
+        raise ConfigError(f"{where}: not valid YAML (safe subset only): {msg}") from None
+
+
+def load_yaml(path: str) -> dict[str, Any]:
+    """Read a YAML mapping safely (no arbitrary objects, no duplicate keys); ConfigError on anything else."""
+    if not os.path.exists(path):
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path}: cannot be read as a text file ({err})") from None
+    data = parse_yaml(text, path)
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of key: value at the top level, got {type(data).__name__}")
+    return data
+
+
+def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
+    """Check one value against its rule; ints are accepted for floats. Returns the value in the rule's type."""
+    loc = f"{where}: " if where else ""
+    kind = rule.kind
+    if value is None and (rule.optional or (rule.choices is not None and None in rule.choices)):
+        return None
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+    elif kind is int:
+        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
+            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+        value = int(value)
+    elif kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{loc}{key}={value!r}: must be finite")
+    elif kind is tuple:
+        if not isinstance(value, (list, tuple)):
+            doc = f" ({rule.doc})" if rule.doc else ""
+            raise ConfigError(f"{loc}{key}={value!r}: expected a list{' or null' if rule.optional else ''}{doc}")
+        value = tuple(value)
+    elif kind is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+    if rule.choices is not None and value not in rule.choices:
+        raise ConfigError(f"{loc}{key}={value!r}: allowed values are {rule.describe()[7:]}")
+    if kind in (int, float):
+        if rule.low is not None and (value < rule.low or (rule.low_open and value == rule.low)):
+            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+        if rule.high is not None and value > rule.high:
+            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+    return value
+
+
+def unknown_key(key: str, known: Iterable[str], where: str = "") -> ConfigError:
+    known = sorted(known)
+    close = difflib.get_close_matches(key, known, n=3)
+    hint = f" (did you mean {', '.join(close)}?)" if close else ""
+    loc = f"{where}: " if where else ""
+    return ConfigError(f"{loc}unknown key {key!r}{hint}; allowed keys: {', '.join(known)}")
+
+
+def split_and_validate(values: Mapping[str, Any], *targets: type, where: str = "") -> list[dict[str, Any]]:
+    """Route each key to the first dataclass in ``targets`` that declares it, validating it there."""
+    tables = [rules(t) for t in targets]
+    out: list[dict[str, Any]] = [{} for _ in targets]
+    if not isinstance(values, Mapping):
+        loc = f"{where}: " if where else ""
+        raise ConfigError(f"{loc}expected a mapping of key: value, got {type(values).__name__} {values!r}")
+    for key, value in values.items():
+        if not isinstance(key, str):
+            raise unknown_key(repr(key), [k for t in tables for k in t], where)
+        for i, table in enumerate(tables):
+            if key in table:
+                out[i][key] = coerce(key, value, table[key], where)
+                break
+        else:
+            raise unknown_key(key, [k for t in tables for k in t], where)
+    return out
+
+
+def build(cls: type, values: Mapping[str, Any], where: str = "") -> Any:
+    """Instantiate a params/options dataclass from validated values (defaults for the rest)."""
+    (checked,) = split_and_validate(values, cls, where=where)
+    return cls(**checked)
+
+
+def parse_value(text: str, key: str = "value") -> Any:
+    """A command-line value as YAML reads it: ``0.3`` or ``1e-3`` → float, ``true`` → bool, ``[1, 2]`` → list."""
+    return parse_yaml(text, f"--set {key}")
+
+
+def parse_overrides(pairs: Iterable[str]) -> dict[str, Any]:
+    """``["alpha=0.3", "env.pos_step=0.02"]`` → ``{"alpha": 0.3, "env.pos_step": 0.02}``."""
+    out = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ConfigError(f"--set {pair!r}: expected KEY=VALUE")
+        key, text = pair.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise ConfigError(f"--set {pair!r}: expected KEY=VALUE (the key is empty)")
+        if key in out:
+            raise ConfigError(f"--set {key}: given twice ({out[key]!r} and {text!r}); give each key once")
+        out[key] = parse_value(text, key)
+    return out
+
+
+def merge_flags(overrides: dict[str, Any], flags: Iterable[tuple[str, str, Any]]) -> dict[str, Any]:
+    """Add command-line flags ``(key, flag, value)`` (value None: not given) to ``--set`` overrides; a key given
+    both ways (``--n-envs 2 --set n_envs=3``, or ``agent.n_envs``) is refused rather than one silently winning."""
+    for key, flag, value in flags:
+        if value is None:
+            continue
+        for name in (key, f"agent.{key}"):
+            if name in overrides:
+                raise ConfigError(f"{key} given twice: {flag} {value} and --set {name}={overrides[name]!r}; "
+                                  "give it once")
+        overrides[key] = value
+    return overrides
+
+
+def as_dict(obj: Any) -> dict[str, Any]:
+    """A params/options dataclass as plain Python values (for YAML/JSON output)."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        try:
+            import numpy as np
+
+            arr = np.asarray(v)
+            v = arr.tolist() if arr.ndim else arr.item()
+        except Exception:  # noqa: BLE001 - strings and other plain values pass through
+            pass
+        out[f.name] = v
+    return out
+
+
+def flat_keys(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested mapping as ``{"outer.inner": value}`` (to name the keys where two configs differ)."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(flat_keys(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out

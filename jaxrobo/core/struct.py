@@ -1,0 +1,89 @@
+"""Frozen dataclasses that are JAX pytrees, and fields that carry their own validation rules.
+
+Every parameter a user can set (from YAML, the CLI or ``jaxrobo.make(**overrides)``) is declared once, with
+its range or allowed values, by :func:`param`; :mod:`jaxrobo.core.config` validates against these declarations, so
+the rules live beside the value they guard.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Sequence, TypeVar
+
+import jax
+
+T = TypeVar("T")
+
+_RULES = "jaxrobo_rules"
+
+#: Upper bound of every declared integer field that gives none: values become int32 arrays (counters, step
+#: limits, indices) or shapes, so anything larger would wrap around or fail deep inside a compile.
+INT32_MAX = 2**31 - 1
+
+
+def pytree_dataclass(cls: type[T]) -> type[T]:
+    """A frozen dataclass registered as a pytree; fields declared with ``static=True`` become treedef metadata."""
+    cls = dataclasses.dataclass(frozen=True)(cls)
+    data, meta = [], []
+    for f in dataclasses.fields(cls):
+        (meta if f.metadata.get("static", False) else data).append(f.name)
+    jax.tree_util.register_dataclass(cls, data_fields=data, meta_fields=meta)
+    cls.replace = lambda self, **kw: dataclasses.replace(self, **kw)  # type: ignore[attr-defined]
+    return cls
+
+
+@dataclasses.dataclass(frozen=True)
+class Rule:
+    """What a user-settable field accepts: a type, an optional closed range and an optional set of choices."""
+
+    kind: type
+    low: float | None = None
+    high: float | None = None
+    choices: Sequence[Any] | None = None
+    doc: str = ""
+    unit: str = ""
+    low_open: bool = False  # True: the value must be strictly greater than ``low``
+    optional: bool = False  # None is allowed (the field's default is None: "not given")
+
+    def describe(self) -> str:
+        if self.choices is not None:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string", tuple: "a list"}.get(self.kind, str(self.kind))
+        lo = "" if self.low is None else f"{'>' if self.low_open else '>='} {self.low}"
+        hi = "" if self.high is None else f"<= {self.high}"
+        bounds = " and ".join(b for b in (lo, hi) if b)
+        return f"{kind}{' ' + bounds if bounds else ''}{' ' + self.unit if self.unit else ''}"
+
+
+def param(
+    default: Any,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    choices: Sequence[Any] | None = None,
+    static: bool = False,
+    low_open: bool = False,
+    doc: str = "",
+    unit: str = "",
+    kind: type | None = None,
+    default_factory: Callable[[], Any] | None = None,
+) -> Any:
+    """Declare a user-settable field. ``static`` fields select code paths or shapes; the rest are traced leaves."""
+    kind = kind or type(default)
+    if kind is int and high is None:
+        high = INT32_MAX
+    rule = Rule(kind, low, high, tuple(choices) if choices is not None else None, doc, unit, low_open,
+                optional=default is None and default_factory is None)
+    meta = {"static": static, _RULES: rule}
+    if default_factory is not None:
+        return dataclasses.field(default_factory=default_factory, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def static_field(default: Any = dataclasses.MISSING, **kw: Any) -> Any:
+    """A pytree field that is metadata (hashed into the treedef), not a traced leaf."""
+    return dataclasses.field(default=default, metadata={"static": True}, **kw)
+
+
+def rules(cls_or_obj: Any) -> dict[str, Rule]:
+    """The validation rule of every user-settable field of a dataclass."""
+    return {f.name: f.metadata[_RULES] for f in dataclasses.fields(cls_or_obj) if _RULES in f.metadata}

@@ -1,0 +1,3 @@
+"""Other libraries' faces of a jaxrobo env: Gymnasium's single and vector envs
+(:mod:`~jaxrobo.interop.gym_adapter`), Brax's ``Env`` (:mod:`~jaxrobo.interop.brax_env`) and the version-guarded
+shims Brax needs (:mod:`~jaxrobo.interop.brax_compat`)."""

@@ -1,0 +1,183 @@
+"""The two places where jaxrobo reaches past Brax's public surface, guarded by the Brax version they were written for.
+
+1. :func:`install_jax_compat`: Brax 0.14's trainers call ``jax.device_put_replicated`` and
+   ``jax.device_put_sharded``, which JAX 0.10 removed. Where JAX lacks them, this sets the drop-in replacements of
+   JAX's pmap migration guide on the ``jax`` module (a leading device axis, one shard per device); where JAX still
+   has them it does nothing. :mod:`jaxrobo.interop.brax_env` calls it on import, so ``ppo.train`` and ``sac.train`` run
+   unchanged on a BraxEnv.
+2. :func:`keep_evaluator_params`: Brax's SAC takes no ``policy_params_fn``; it hands the parameters of each
+   evaluation point to the ``brax.training.acting.Evaluator`` it builds. For the length of a ``with`` block this
+   swaps that class (looked up on the module by ``sac.train``) for one that keeps the parameters and skips Brax's
+   own evaluation rollout, and puts the original back on the way out, also when training raises. The swap is
+   process-wide for its duration: do not run another Brax trainer in another thread meanwhile.
+
+Both follow Brax's internals, so they are guarded: :data:`WRITTEN_FOR` is the range of ``brax`` versions they were
+written and tested for. Outside it (or where ``acting.Evaluator`` does not have the shape the swap needs),
+:func:`unavailable` gives the reason, and:
+
+* :func:`install_jax_compat` still fills in the missing JAX functions (adding a name JAX no longer has cannot
+  change a library that does not call it, and a Brax that still calls them needs them) and warns once with a
+  :class:`RuntimeWarning` that the combination is untested;
+* :func:`keep_evaluator_params` raises :class:`BraxCompatError` naming the version before anything trains where
+  the Evaluator is not what it replaces, and warns once where only the version is outside the range; if the
+  trainer then never handed parameters to the evaluator, :meth:`EvaluatorHook.check` says so with the version
+  instead of leaving the run without evaluations.
+
+To widen the range, run ``tests/test_brax_compat.py``, ``tests/test_brax_env.py`` and ``tests/test_deep.py`` on the
+new version. Public surface: :data:`WRITTEN_FOR`, :func:`installed_version`, :func:`unavailable`,
+:func:`install_jax_compat`, :func:`keep_evaluator_params`, :class:`EvaluatorHook`, :class:`BraxCompatError`.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import importlib.metadata
+import re
+import warnings
+from typing import Any, Iterator
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: The ``brax`` versions both tricks were written and tested for: ``[low, high)`` as (major, minor).
+WRITTEN_FOR = ((0, 14), (0, 15))
+#: The JAX functions Brax's trainers call that JAX 0.10 removed.
+JAX_FUNCTIONS = ("device_put_replicated", "device_put_sharded")
+
+_WARNED: set[str] = set()
+
+
+class BraxCompatError(RuntimeError):
+    """The installed Brax does not have the internals a jaxrobo trick needs (the message names the version)."""
+
+
+@functools.lru_cache(maxsize=None)
+def installed_version() -> str | None:
+    """The installed ``brax`` version string, or None if its metadata cannot be found."""
+    try:
+        return importlib.metadata.version("brax")
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def unavailable(version: str | None = None) -> str | None:
+    """Why the tricks are outside what they were written for (a sentence), or None when they are not.
+    ``version`` defaults to :func:`installed_version`."""
+    version = installed_version() if version is None else version
+    if version is None:
+        return "the brax package metadata was not found, so its version cannot be checked"
+    match = re.match(r"(\d+)\.(\d+)", version)
+    low, high = WRITTEN_FOR
+    if match is None or not low <= (int(match[1]), int(match[2])) < high:
+        return (f"brax {version} is outside the versions jaxrobo.interop.brax_compat was written for "
+                f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
+    return None
+
+
+def _warn_once(message: str) -> None:
+    if message not in _WARNED:
+        _WARNED.add(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+def _sharding(devices: Any) -> Any:
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("devices",))
+    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("devices"))
+
+
+def device_put_replicated(x: Any, devices: Any) -> Any:
+    """JAX's removed ``device_put_replicated``: each leaf stacked once per device along a new leading axis."""
+    s = _sharding(devices)
+    return jax.tree.map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), s), x)
+
+
+def device_put_sharded(shards: Any, devices: Any) -> Any:
+    """JAX's removed ``device_put_sharded``: the i-th of ``shards`` on the i-th device, along a new leading axis."""
+    s = _sharding(devices)
+    return jax.tree.map(lambda *xs: jax.device_put(jnp.stack([jnp.asarray(a) for a in xs]), s), *shards)
+
+
+def install_jax_compat(version: str | None = None) -> list[str]:
+    """Set the JAX functions of :data:`JAX_FUNCTIONS` that JAX lacks (see the module docstring); return the names
+    it set (empty where JAX has them all: then it does nothing, whatever the Brax version). ``version`` (the Brax
+    version to check, default the installed one) exists so the guard can be tested."""
+    missing = [name for name in JAX_FUNCTIONS if not hasattr(jax, name)]
+    if not missing:
+        return []
+    reason = unavailable(version)
+    if reason is not None:
+        _warn_once(f"jaxrobo.interop.brax_compat: {reason}; setting jax.{' and jax.'.join(missing)} (removed in JAX 0.10) "
+                   "for it anyway, untested with this Brax")
+    for name in missing:
+        setattr(jax, name, globals()[name])
+    return missing
+
+
+@dataclasses.dataclass
+class EvaluatorHook:
+    """What :func:`keep_evaluator_params` yields: :meth:`pop` the parameters the trainer handed to its evaluator
+    since the last call (None if none); ``calls`` counts the hand-overs."""
+
+    version: str | None
+    calls: int = 0
+    _params: Any = None
+    _has: bool = False
+
+    def keep(self, params: Any) -> None:
+        self.calls += 1
+        self._params, self._has = params, True
+
+    def pop(self) -> Any:
+        params, self._params, self._has = self._params, None, False
+        return params
+
+    @property
+    def has_params(self) -> bool:
+        return self._has
+
+    def check(self) -> None:
+        """Raise :class:`BraxCompatError` if the trainer never handed parameters to its evaluator (a Brax whose
+        trainer no longer builds ``acting.Evaluator`` as the swap expects)."""
+        if self.calls == 0:
+            raise BraxCompatError(f"brax {self.version}: sac.train never handed its parameters to "
+                                  "brax.training.acting.Evaluator.run_evaluation, so the run has no evaluations; "
+                                  f"jaxrobo.interop.brax_compat was written for brax {_range()}")
+
+
+def _range() -> str:
+    low, high = WRITTEN_FOR
+    return f">= {low[0]}.{low[1]}, < {high[0]}.{high[1]}"
+
+
+@contextlib.contextmanager
+def keep_evaluator_params(version: str | None = None) -> Iterator[EvaluatorHook]:
+    """For the block, ``brax.training.acting.Evaluator`` is a subclass whose ``run_evaluation(policy_params,
+    training_metrics, ...)`` keeps ``policy_params`` in the yielded :class:`EvaluatorHook` and returns the training
+    metrics without running Brax's evaluation rollout. The original class is back after the block, whether it
+    ends normally or raises. ``version`` (default: the installed Brax) exists so the guard can be tested."""
+    from brax.training import acting
+
+    version = installed_version() if version is None else version
+    original = acting.Evaluator
+    run = getattr(original, "run_evaluation", None)
+    if not isinstance(original, type) or not callable(run):
+        raise BraxCompatError(f"brax {version}: brax.training.acting.Evaluator has no run_evaluation method, which "
+                              f"jaxrobo's SAC evaluation replaces (written for brax {_range()})")
+    reason = unavailable(version)
+    if reason is not None:
+        _warn_once(f"jaxrobo.interop.brax_compat: {reason}; swapping brax.training.acting.Evaluator for SAC's evaluation "
+                   "points anyway, untested with this Brax")
+    hook = EvaluatorHook(version)
+
+    class KeepParams(original):  # type: ignore[misc, valid-type]
+        def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
+            hook.keep(policy_params)
+            return dict(training_metrics)
+
+    acting.Evaluator = KeepParams
+    try:
+        yield hook
+    finally:
+        acting.Evaluator = original

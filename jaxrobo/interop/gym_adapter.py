@@ -1,0 +1,537 @@
+"""Gymnasium adapter: the classic single-env API and a vmapped vector env around any jaxrobo environment.
+
+The seed trained through ``gym.make('CartPoleStayUp-v0')`` one step at a time; this keeps that API for users
+and libraries that expect Gymnasium, over the same pure functions the vectorised trainer compiles:
+
+* :class:`JaxroboEnv` - a :class:`gymnasium.Env`: numpy ``float32`` observations, a Python ``float`` reward,
+  separate ``terminated`` / ``truncated``, reproducible ``reset(seed=...)``, exact spaces, one jitted call per
+  ``step`` and one device→host transfer of its results. ``render_mode="rgb_array"`` draws MuJoCo frames.
+* :class:`JaxroboVectorEnv` - a :class:`gymnasium.vector.VectorEnv` stepping ``num_envs`` copies as one vmapped
+  jitted call, numpy batches out, with any of Gymnasium's autoreset modes (``AutoresetMode.NEXT_STEP`` by
+  default, ``SAME_STEP`` with ``final_obs``/``final_info``, ``DISABLED`` with ``reset(options={"reset_mask": m})``).
+* :func:`register_gymnasium_envs` - every jaxrobo id as ``jaxrobo/<id>`` for ``gymnasium.make`` and
+  ``gymnasium.make_vec``. It runs on ``import jaxrobo`` and only records strings (no env is built).
+
+Seeding: ``reset(seed=s)`` starts from ``env.reset(jax.random.key(s))`` of the functional API (for
+``s < 2**32``), so both give the same trajectory; a later ``reset()`` without a seed continues from the key the
+previous episode carried (``jax.random.split(state.key)[1]``), as the vector env's autoreset does, so
+``JaxroboVectorEnv`` with ``reset(seed=s)`` reproduces Gymnasium's ``SyncVectorEnv`` of single envs seeded
+``s, s+1, ...``.
+
+Time limit: the task truncates by itself at its ``max_episode_steps`` parameter, which is also the
+``max_episode_steps`` of the Gymnasium registration; ``gymnasium.make`` therefore adds a ``TimeLimit`` at the
+same step (both report ``truncated``). ``gymnasium.make(id, max_episode_steps=M)`` can only shorten episodes,
+since Gymnasium keeps that keyword for its wrapper; to lengthen them pass
+``overrides={"max_episode_steps": M}`` as well.
+"""
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces as gspaces
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+
+from jaxrobo.core import spaces
+from jaxrobo.speed.compiled import N_EXTRA, compiled_for
+
+NAMESPACE = "jaxrobo"
+_KEY_MOD = 2**64  # Gymnasium seeds are any non-negative int; keys hold 64 bits
+
+
+class InvalidActionError(ValueError, AssertionError):
+    """An action the env cannot take; both a ``ValueError`` and the ``AssertionError`` Gymnasium envs raise."""
+
+
+# ---- action checks (host side, before any JAX call) ----------------------------------------------------------
+def check_box_actions(actions: Any, box: gspaces.Box, shape: tuple[int, ...]) -> np.ndarray:
+    """Continuous actions of ``shape`` (``box.shape``, with a leading ``num_envs`` axis for a batch) as float32,
+    finite and inside ``box``; otherwise :class:`InvalidActionError` naming the first bad entry and the range."""
+    try:
+        arr = np.asarray(actions, dtype=np.float32)
+    except Exception as err:  # noqa: BLE001 - anything numpy cannot read as floats is not an action
+        raise InvalidActionError(f"action={actions!r} cannot be read as a float array of shape {shape}") from err
+    if arr.shape != shape:
+        raise InvalidActionError(f"action has shape {arr.shape}; expected {shape} (a Box{box.shape} action"
+                                 + (" per env)" if len(shape) > len(box.shape) else ")"))
+    bad = ~np.isfinite(arr) | (arr < box.low) | (arr > box.high)
+    if bad.any():
+        i = tuple(int(k) for k in np.unravel_index(int(np.argmax(bad)), arr.shape))
+        j = i[len(i) - len(box.shape):]
+        what = "is not finite" if not np.isfinite(arr[i]) else "is outside the Box"
+        raise InvalidActionError(f"action{list(i)}={float(arr[i])!r} {what}: allowed range "
+                                 f"[{float(box.low[j])}, {float(box.high[j])}]")
+    return arr
+
+
+def check_action(action: Any, n: int | gspaces.Box) -> np.int32 | np.ndarray:
+    """``action`` as an ``int32`` in ``0 .. n-1``, or :class:`InvalidActionError` naming what is wrong; for a
+    continuous task ``n`` is its action Box and the action a float32 array inside it."""
+    if isinstance(n, gspaces.Box):
+        return check_box_actions(action, n, n.shape)
+    if isinstance(action, (bool, np.bool_)):
+        raise InvalidActionError(f"action={action!r}: a boolean is not an action; expected an integer in [0, {n})")
+    if isinstance(action, (int, np.integer)):
+        value = int(action)
+    else:
+        try:
+            arr = np.asarray(action)
+        except Exception as err:  # noqa: BLE001 - anything numpy cannot read is not an action
+            raise InvalidActionError(f"action={action!r} ({type(action).__name__}) is not an integer") from err
+        if arr.shape != ():
+            raise InvalidActionError(f"action has shape {arr.shape}; a Discrete({n}) action is one integer, shape ()")
+        if not np.issubdtype(arr.dtype, np.integer) or arr.dtype == np.bool_:
+            what = "NaN" if np.issubdtype(arr.dtype, np.floating) and np.isnan(arr) else f"dtype {arr.dtype}"
+            raise InvalidActionError(f"action={action!r} ({what}) is not an integer in [0, {n})")
+        value = int(arr)
+    if not 0 <= value < n:
+        raise InvalidActionError(f"action={value} is out of range: Discrete({n}) takes 0 .. {n - 1}")
+    return np.int32(value)
+
+
+def check_actions(actions: Any, n: int | gspaces.Box, num_envs: int) -> np.ndarray:
+    """A batch of actions as ``int32[num_envs]`` in ``0 .. n-1``, or :class:`InvalidActionError`; for a continuous
+    task ``n`` is its action Box and the batch ``float32[num_envs, *shape]`` inside it."""
+    if isinstance(n, gspaces.Box):
+        return check_box_actions(actions, n, (num_envs,) + n.shape)
+    try:
+        arr = np.asarray(actions)
+    except Exception as err:  # noqa: BLE001
+        raise InvalidActionError(f"actions={actions!r} cannot be read as an integer array") from err
+    if arr.shape != (num_envs,):
+        raise InvalidActionError(f"actions have shape {arr.shape}; expected ({num_envs},), one per env")
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
+        bad = "NaN" if np.issubdtype(arr.dtype, np.floating) and np.isnan(arr).any() else f"dtype {arr.dtype}"
+        raise InvalidActionError(f"actions ({bad}) must be integers in [0, {n})")
+    out = (arr < 0) | (arr >= n)
+    if out.any():
+        i = int(np.argmax(out))
+        raise InvalidActionError(f"actions[{i}]={int(arr[i])} is out of range: Discrete({n}) takes 0 .. {n - 1}")
+    return arr.astype(np.int32)
+
+
+# ---- spaces --------------------------------------------------------------------------------------------------
+def gym_spaces(env: Any, params: Any = None) -> tuple[gspaces.Discrete | gspaces.Box, gspaces.Box]:
+    """The Gymnasium action and observation spaces of a jaxrobo env (Box with the task's own bounds; a continuous
+    task's action Box is float32 with its own bounds).
+
+    An unbounded dimension (``±inf`` in the task) becomes ``±float32 max``, as Gymnasium's own CartPole does:
+    every finite float32 observation is inside it, and ``check_env`` does not warn about infinite bounds.
+    """
+    act, obs = env.action_space(params), env.observation_space(params)
+    big = np.finfo(np.float32).max
+    low = np.nan_to_num(np.asarray(obs.low, np.float32), neginf=-big, posinf=big)
+    high = np.nan_to_num(np.asarray(obs.high, np.float32), neginf=-big, posinf=big)
+    observation = gspaces.Box(low, high, shape=low.shape, dtype=np.float32)
+    if isinstance(act, spaces.Box):
+        a_low, a_high = np.asarray(act.low, np.float32), np.asarray(act.high, np.float32)
+        return gspaces.Box(a_low, a_high, shape=a_low.shape, dtype=np.float32), observation
+    return gspaces.Discrete(int(act.n)), observation
+
+
+def _action_limit(space: gspaces.Discrete | gspaces.Box) -> int | gspaces.Box:
+    """What :func:`check_action` checks against: ``n`` of a Discrete space, the Box itself otherwise."""
+    return space if isinstance(space, gspaces.Box) else int(space.n)
+
+
+def _make_env(env_id: str | None, env: Any, overrides: Mapping[str, Any] | None, kwargs: Mapping[str, Any]) -> Any:
+    from jaxrobo.task.registry import make
+
+    values = {**(overrides or {}), **kwargs}
+    if env is not None:
+        if env_id is not None or values:
+            raise TypeError("pass either env= (a made jaxrobo env) or env_id with keyword overrides, not both")
+        return env
+    if env_id is None:
+        raise TypeError("env_id is required (a jaxrobo id such as 'CartPoleStayUp-v0')")
+    if env_id.startswith(NAMESPACE + "/"):
+        env_id = env_id[len(NAMESPACE) + 1:]
+    return make(env_id, **values)
+
+
+def _reset_params(env: Any, base: Any, options: Mapping[str, Any] | None) -> Any:
+    """``options`` may set any task *parameter* for the episodes that follow (e.g. ``init_pole_angle``)."""
+    if not options:
+        return base
+    from jaxrobo.core.config import split_and_validate
+    from jaxrobo.core.struct import rules
+
+    static = set(rules(type(env.options))) if hasattr(env, "options") else set()
+    bad = sorted(k for k in options if k in static)
+    if bad:
+        raise ValueError(f"reset options {bad} are static options of {env.name}; pass them to gymnasium.make instead")
+    (checked,) = split_and_validate(dict(options), type(base), where=f"{env.name} reset options")
+    return base.replace(**checked)
+
+
+def _seed_keys(seeds: Sequence[int]) -> Any:
+    """The key of each seed, in one call: ``jax.random.key(s)`` for ``s < 2**32`` (threefry key data is
+    ``[s >> 32, s & 0xffffffff]``); larger seeds keep both halves, which ``jax.random.key`` without x64 would not."""
+    import jax
+
+    s = np.asarray([int(x) % _KEY_MOD for x in seeds], np.uint64)
+    data = np.stack([(s >> np.uint64(32)).astype(np.uint32), (s & np.uint64(0xFFFFFFFF)).astype(np.uint32)], -1)
+    return jax.random.wrap_key_data(data)
+
+
+def _frame_rate(env: Any) -> int:
+    from jaxrobo.task.env import simulator_of
+
+    sim = simulator_of(env)
+    dt = float(getattr(sim, "running_step", 0.0) or 0.0)
+    return max(1, int(round(1.0 / dt))) if dt > 0 else 30
+
+
+# ---- the single environment ----------------------------------------------------------------------------------
+class JaxroboEnv(gymnasium.Env):
+    """A jaxrobo env with Gymnasium's classic single-env API.
+
+    ``JaxroboEnv("CartPoleStayUp-v0", control_type="position")`` or ``gymnasium.make("jaxrobo/CartPoleStayUp-v0",
+    control_type="position")``: keyword arguments are the same overrides :func:`jaxrobo.make` takes;
+    ``overrides={...}`` passes them as a dict (for names Gymnasium keeps for itself, like ``max_episode_steps``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(self, env_id: str | None = None, render_mode: str | None = None, *, env: Any = None,
+                 overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
+                 camera: str | int | None = None, **kwargs: Any):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r}: allowed values are None, "
+                             + ", ".join(repr(m) for m in self.metadata["render_modes"]))
+        self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self.params = self.jax_env.default_params
+        self.action_space, self.observation_space = gym_spaces(self.jax_env, self.params)
+        self._n = _action_limit(self.action_space)
+        self._obs_size = int(np.prod(self.observation_space.shape))
+        self._fns = compiled_for(self.jax_env)
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
+        self._render_args = (int(width), int(height), camera)
+        self._renderer: Any = None
+        self.state: Any = None  # the current jaxrobo EnvState (on device)
+
+    # -- core API ----------------------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode; ``seed`` gives the functional ``reset(jax.random.key(seed))``; ``options`` may set task
+        parameters (``{"init_pole_angle": 0.52}``) for this and later episodes."""
+        super().reset(seed=seed)
+        self.params = _reset_params(self.jax_env, self.params, options)
+        if seed is not None:
+            key = _seed_keys([seed])[0]
+        elif self.state is not None:
+            key = self._fns.next_key(self.state.key)
+        else:
+            key = _seed_keys([int(self.np_random.integers(2**32))])[0]
+        self.state, packed = self._fns.reset(key, self.params)
+        obs, *_ = self._unpack(np.asarray(packed))
+        return obs, {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        a = check_action(action, self._n)
+        self.state, packed = self._fns.step(self.state, a, self.params)
+        obs, reward, terminated, truncated, nan, steps = self._unpack(np.asarray(packed))
+        return obs, reward, terminated, truncated, {"steps": steps, "physics_nan": nan}
+
+    def _unpack(self, row: np.ndarray) -> tuple[np.ndarray, float, bool, bool, bool, int]:
+        d = self._obs_size
+        obs = row[:d].reshape(self.observation_space.shape)
+        reward, term, trunc, nan, steps = row[d:d + N_EXTRA]
+        return obs, float(reward), bool(term), bool(trunc), bool(nan), int(steps)
+
+    # -- rendering ---------------------------------------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        """An ``H x W x 3`` uint8 frame of the current state in ``rgb_array`` mode (None without a render mode)."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to make")
+            return None
+        if self.state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before render()")
+        if self._renderer is None:
+            from jaxrobo.pictures.render import Renderer
+
+            self._renderer = Renderer(self.jax_env, *self._render_args)
+        return self._renderer.render(self.state, self.params)
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        super().close()
+
+    def __repr__(self) -> str:
+        return f"<JaxroboEnv {self.jax_env.name}>"
+
+
+# ---- the vector environment ----------------------------------------------------------------------------------
+def autoreset_mode_of(value: Any) -> AutoresetMode:
+    """``value`` as an :class:`AutoresetMode`: the enum, its value (``"NextStep"``, as ``SyncVectorEnv`` takes) or its
+    name (``"NEXT_STEP"``); anything else is a ``ValueError`` naming the allowed values."""
+    if isinstance(value, AutoresetMode):
+        return value
+    if isinstance(value, str):
+        for mode in AutoresetMode:
+            if value in (mode.value, mode.name):
+                return mode
+    allowed = ", ".join(f"AutoresetMode.{m.name} (or {m.value!r})" for m in AutoresetMode)
+    raise ValueError(f"autoreset_mode={value!r}: allowed values are {allowed}")
+
+
+def _check_reset_mask(mask: Any, num_envs: int) -> np.ndarray:
+    """The ``reset_mask`` option as ``bool[num_envs]`` with at least one True (Gymnasium's own conditions), or a
+    ``ValueError`` naming what is wrong."""
+    arr = np.asarray(mask)
+    if arr.dtype != np.bool_:
+        raise ValueError(f"reset_mask has dtype {arr.dtype}; expected a boolean array of shape ({num_envs},)")
+    if arr.shape != (num_envs,):
+        raise ValueError(f"reset_mask has shape {arr.shape}; expected ({num_envs},), one flag per env")
+    if not arr.any():
+        raise ValueError("reset_mask selects no env; it needs at least one True (skip the reset instead)")
+    return arr
+
+
+class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
+    """``num_envs`` copies of a jaxrobo env stepped as one vmapped jitted call, with Gymnasium's autoreset modes.
+
+    ``autoreset_mode`` (``metadata["autoreset_mode"]``; the enum or its string value, as ``SyncVectorEnv`` takes):
+
+    * ``AutoresetMode.NEXT_STEP`` (default, as ``SyncVectorEnv``'s): after a step that ends an env's episode
+      (terminated or truncated), the next ``step`` resets that env and returns its first observation with reward 0,
+      ``terminated=truncated=False``, ignoring its action. ``info`` holds ``steps`` and ``physics_nan`` with their
+      ``_steps`` / ``_physics_nan`` masks (False for envs that were reset on this step).
+    * ``AutoresetMode.SAME_STEP``: a step that ends an env's episode also resets it; it returns that step's reward
+      and flags with the next episode's first observation, and the final observation and info in
+      ``info["final_obs"]`` (an object array, None for the other envs) and ``info["final_info"]``, with the
+      ``_final_obs`` / ``_final_info`` masks (both keys only on steps where some env finished). ``steps`` and
+      ``physics_nan`` are masked out for the envs that were reset.
+    * ``AutoresetMode.DISABLED``: envs never reset by themselves; ``reset(options={"reset_mask": mask})`` resets the
+      envs where ``mask`` is True and keeps the others. Stepping a batch that holds a finished env raises
+      :class:`gymnasium.error.ResetNeeded`.
+
+    In every mode the step, and the resets it does, are one jitted call; a reset starts from fresh randomness: the
+    key the env's state carries (or the seed's key), never a cached first state. ``reset_mask`` works in every mode.
+
+    ``plan``: a :class:`jaxrobo.speed.plan.ExecutionPlan` for how the batch is stepped and compiled (default: the plan
+    for this env on the default device); it changes the compiled program, never the values.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(self, env_id: str | None = None, num_envs: int = 1, render_mode: str | None = None, *,
+                 env: Any = None, overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
+                 camera: str | int | None = None, plan: Any = None,
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, **kwargs: Any):
+        if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
+            raise ValueError(f"num_envs={num_envs!r}: expected an integer >= 1")
+        self.autoreset_mode = autoreset_mode_of(autoreset_mode)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array'")
+        self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self.params = self.jax_env.default_params
+        self.num_envs = int(num_envs)
+        self.single_action_space, self.single_observation_space = gym_spaces(self.jax_env, self.params)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self._n = _action_limit(self.single_action_space)
+        self._obs_size = int(np.prod(self.single_observation_space.shape))
+        from jaxrobo.speed.plan import ExecutionPlan
+
+        #: How the batch is stepped (:class:`jaxrobo.speed.plan.ExecutionPlan`; default: the plan for this env on the
+        #: default device, which steps large MJX batches on a GPU in groups, as the trainer does).
+        self.plan = ExecutionPlan.for_run(self.jax_env) if plan is None else plan
+        self._fns = compiled_for(self.jax_env, self.plan)
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env),
+                         "autoreset_mode": self.autoreset_mode}
+        self._render_args = (int(width), int(height), camera)
+        self._renderer: Any = None
+        self.states: Any = None
+        self._needs_reset: Any = None
+        self._done = np.zeros(self.num_envs, bool)  # envs whose episode ended on the last step (host copy)
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every env; ``seed=s`` seeds env ``i`` with ``s + i`` (as ``SyncVectorEnv`` does), a list seeds each.
+
+        ``options={"reset_mask": mask}`` (``bool[num_envs]``, as Gymnasium's vector envs take it) resets only the
+        envs where ``mask`` is True, from their seed if one is given, else from the key their state carries; the
+        others keep their state and observation."""
+        if options and "reset_mask" in options:
+            rest = {k: v for k, v in options.items() if k != "reset_mask"}
+            return self._reset_where(_check_reset_mask(options["reset_mask"], self.num_envs), seed, rest)
+        if isinstance(seed, (list, tuple)):
+            if len(seed) != self.num_envs:
+                raise ValueError(f"{len(seed)} seeds for {self.num_envs} envs")
+            seeds = list(seed)
+            super().reset(seed=None)
+        else:
+            super().reset(seed=seed)
+            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        self.params = _reset_params(self.jax_env, self.params, options)
+        if self.states is not None and all(s is None for s in seeds):
+            keys = self._fns.vnext_key(self.states.key)  # continue each env's own key chain
+        else:
+            seeds = [int(self.np_random.integers(2**32)) if s is None else int(s) for s in seeds]
+            keys = _seed_keys(seeds)
+        self.states, self._needs_reset, packed = self._fns.vreset(keys, self.params)
+        self._done = np.zeros(self.num_envs, bool)
+        obs, *_ = self._unpack(np.asarray(packed))
+        return obs, {}
+
+    def _reset_where(self, mask: np.ndarray, seed: int | Sequence[int | None] | None, options: dict[str, Any]
+                     ) -> tuple[np.ndarray, dict[str, Any]]:
+        if self.states is None:
+            raise gymnasium.error.ResetNeeded("reset(options={'reset_mask': ...}) resets some envs of a running "
+                                              "batch: call reset() without a mask first")
+        if options:
+            raise ValueError(f"reset options {sorted(options)} given with reset_mask: task parameters are shared by "
+                             "every env of the batch; set them in a reset() without reset_mask")
+        if isinstance(seed, (list, tuple)):
+            if len(seed) != self.num_envs:
+                raise ValueError(f"{len(seed)} seeds for {self.num_envs} envs")
+            seeds = list(seed)
+        else:
+            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        seeded = np.array([s is not None for s in seeds])
+        keys = _seed_keys([0 if s is None else int(s) for s in seeds])
+        self.states, self._needs_reset, packed = self._fns.vreset_where(
+            self.states, self._needs_reset, mask, seeded, keys, self.params)
+        self._done = self._done & ~mask
+        obs, *_ = self._unpack(np.asarray(packed))
+        return obs, {}
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        if self.states is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        a = check_actions(actions, self._n, self.num_envs)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            return self._step_same(a)
+        if self.autoreset_mode == AutoresetMode.DISABLED:
+            return self._step_disabled(a)
+        self.states, self._needs_reset, packed = self._fns.vstep(self.states, self._needs_reset, a, self.params)
+        obs, rewards, terms, truncs, nan, steps = self._unpack(np.asarray(packed))
+        was_reset = steps == 0
+        info = {"steps": np.where(was_reset, 0, steps).astype(np.int64), "_steps": ~was_reset,
+                "physics_nan": nan & ~was_reset, "_physics_nan": ~was_reset}
+        return obs, rewards, terms, truncs, info
+
+    def _step_same(self, a: np.ndarray):
+        self.states, packed = self._fns.vstep_same(self.states, a, self.params)
+        rows = np.asarray(packed)
+        final, rewards, terms, truncs, nan, steps = self._unpack(rows)
+        obs = rows[:, self._obs_size + N_EXTRA:].reshape(final.shape)
+        done = terms | truncs
+        info: dict[str, Any] = {"steps": np.where(done, 0, steps), "_steps": ~done,
+                                "physics_nan": nan & ~done, "_physics_nan": ~done}
+        if done.any():
+            final_obs = np.full(self.num_envs, None, dtype=object)
+            for i in np.flatnonzero(done):
+                final_obs[i] = final[i]
+            info["final_obs"], info["_final_obs"] = final_obs, done
+            info["final_info"] = {"steps": np.where(done, steps, 0), "_steps": done.copy(),
+                                  "physics_nan": nan & done, "_physics_nan": done.copy()}
+            info["_final_info"] = done.copy()
+        return obs, rewards, terms, truncs, info
+
+    def _step_disabled(self, a: np.ndarray):
+        if self._done.any():
+            raise gymnasium.error.ResetNeeded(
+                f"envs {np.flatnonzero(self._done).tolist()} finished their episodes and autoreset_mode is DISABLED:"
+                " reset them with reset(options={'reset_mask': mask}) before the next step")
+        self.states, packed = self._fns.vstep_plain(self.states, a, self.params)
+        obs, rewards, terms, truncs, nan, steps = self._unpack(np.asarray(packed))
+        self._done = terms | truncs
+        every = np.ones(self.num_envs, bool)
+        return obs, rewards, terms, truncs, {"steps": steps, "_steps": every, "physics_nan": nan,
+                                             "_physics_nan": every.copy()}
+
+    def _unpack(self, rows: np.ndarray):
+        d = self._obs_size
+        obs = rows[:, :d].reshape((self.num_envs,) + self.single_observation_space.shape)
+        extra = rows[:, d:d + N_EXTRA]
+        return (obs, extra[:, 0].astype(np.float64), extra[:, 1] > 0.5, extra[:, 2] > 0.5, extra[:, 3] > 0.5,
+                extra[:, 4].astype(np.int64))
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """One ``H x W x 3`` uint8 frame per env (``rgb_array`` mode), as ``SyncVectorEnv`` returns them."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        if self.states is None:
+            raise gymnasium.error.ResetNeeded("call reset() before render()")
+        import jax
+
+        if self._renderer is None:
+            from jaxrobo.pictures.render import Renderer
+
+            self._renderer = Renderer(self.jax_env, *self._render_args)
+        host = jax.device_get(self.states)
+        return tuple(self._renderer.render(jax.tree.map(lambda x, i=i: x[i], host), self.params)
+                     for i in range(self.num_envs))
+
+    def close_extras(self, **kwargs: Any) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def __repr__(self) -> str:
+        mode = "" if self.autoreset_mode == AutoresetMode.NEXT_STEP else f" {self.autoreset_mode.name}"
+        return f"<JaxroboVectorEnv {self.jax_env.name} x{self.num_envs}{mode}>"
+
+
+# ---- registration --------------------------------------------------------------------------------------------
+def gym_id(env_id: str) -> str:
+    """The Gymnasium id of a jaxrobo id: ``jaxrobo/<id>``."""
+    return f"{NAMESPACE}/{env_id}"
+
+
+def register_gymnasium_envs() -> list[str]:
+    """Register every jaxrobo id with Gymnasium as ``jaxrobo/<id>`` (idempotent). :func:`jaxrobo.register` calls
+    :func:`register_gymnasium_id` for each id it adds after ``import jaxrobo``, so ``gymnasium.make("jaxrobo/<id>")``
+    works after importing the user's module that registers it. Records strings only: no env, model or JAX
+    function is built."""
+    from jaxrobo.task.registry import registered
+
+    return [gid for gid in (register_gymnasium_id(env_id) for env_id in registered()) if gid]
+
+
+def register_gymnasium_id(env_id: str) -> str | None:
+    """Register ``jaxrobo/<env_id>`` with Gymnasium; its id, or ``None`` if it was already registered."""
+    from jaxrobo.task.registry import env_config, max_episode_steps
+
+    gid = gym_id(env_id)
+    if gid in gymnasium.registry:
+        return None
+    try:
+        steps = int(env_config(env_id).get("max_episode_steps", max_episode_steps(env_id, with_yaml=False)))
+    except Exception:  # noqa: BLE001 - a broken YAML shows up when the env is made, not at import
+        try:
+            steps = max_episode_steps(env_id, with_yaml=False)
+        except Exception:  # noqa: BLE001 - the task class is not importable yet (its module is still importing
+            steps = None  # the register call): the task truncates by itself at its own limit
+    gymnasium.register(
+        id=gid,
+        entry_point=f"{__name__}:JaxroboEnv",
+        vector_entry_point=f"{__name__}:JaxroboVectorEnv",
+        max_episode_steps=steps,
+        kwargs={"env_id": env_id},
+    )
+    return gid
+
+
+register_gymnasium_envs()
+
+
+def _install_hook() -> None:
+    from jaxrobo.task.registry import REGISTER_HOOKS
+
+    if register_gymnasium_id not in REGISTER_HOOKS:
+        REGISTER_HOOKS.append(register_gymnasium_id)
+
+
+_install_hook()  # after the built-in ids: every id registered from now on becomes a Gymnasium id at once

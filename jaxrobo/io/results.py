@@ -1,0 +1,254 @@
+"""Run directories: what ``jaxrobo train`` writes and ``jaxrobo plot`` reads (the seed's ``training_results``).
+
+A run directory holds:
+
+=======================  =====================================================================================
+``config.yaml``          the resolved configuration (env options and params, learner params, loop settings)
+``episodes.csv``         ``env,episode,return,length,terminated,epsilon`` - one row per env and episode (the
+                         first ``max_csv_envs`` envs; every env is in ``records.npz``)
+``episode_stats.csv``    per episode over all envs: mean, std, 10th/50th/90th percentile of return and length
+``records.npz``          every env's ``returns``, ``lengths``, ``terminated``, and ``epsilon`` per episode
+``summary.json``         the seed's summary figures and the run's timing
+``qtables.npz``          ``q [n_envs, n_tables, n_states, n_actions]`` and the discretiser (``low``, ``width``,
+                         ``bins``, ``edges``) - plain arrays, no pickle
+``eval.csv``             greedy evaluation: ``table,episode,return,length`` (when evaluated)
+``tensorboard/``         TensorBoard scalars per episode (mean return, mean length, epsilon)
+``status.json``          ``{"status": "running" | "interrupted" | "complete", ...}``: an interrupted run also
+                         says how far it got (``chunks_done``, ``episodes_done_min``) and how to go on
+                         (``resume``: the command line)
+``checkpoint.npz``       only in an unfinished run: the whole training carry, from which ``jaxrobo train
+                         --resume DIR`` goes on (format: :func:`jaxrobo.training.checkpoint.save_checkpoint`)
+=======================  =====================================================================================
+
+A complete run is written into a hidden sibling and renamed into place (:mod:`jaxrobo.io.rundir`), so a directory
+whose status is ``complete`` has all of its files. An interrupted run holds ``config.yaml``, ``status.json``,
+``checkpoint.npz`` and the episodes finished so far (``episodes.csv``, ``records.npz`` with ``episodes_done``
+per env, ``episode_stats.csv`` over the episodes every env finished); no tables, summary or evaluation.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+from typing import Any
+
+import numpy as np
+import yaml
+
+from jaxrobo.tabular.discretise import Discretiser
+
+EPISODE_COLUMNS = ("env", "episode", "return", "length", "terminated", "epsilon")
+STAT_COLUMNS = ("episode", "return_mean", "return_std", "return_p10", "return_p50", "return_p90",
+                "length_mean", "length_std", "length_p10", "length_p50", "length_p90", "epsilon")
+
+
+def write_config(out_dir: str, config: dict[str, Any]) -> None:
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "config.yaml"), "w") as f:
+        yaml.safe_dump(config, f, sort_keys=False)
+
+
+def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray,
+                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None) -> None:
+    """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats.
+
+    ``episodes_done`` (per env, for an interrupted run): only finished episodes get CSV rows, ``records.npz``
+    keeps the count, and the stats cover the episodes that every env finished."""
+    os.makedirs(out_dir, exist_ok=True)
+    returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
+    terminated = np.atleast_2d(terminated)
+    n_envs, n_ep = returns.shape
+    done = np.full(n_envs, n_ep) if episodes_done is None else np.minimum(np.asarray(episodes_done), n_ep)
+    with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(EPISODE_COLUMNS)
+        for e in range(min(n_envs, max_csv_envs)):
+            for i in range(int(done[e])):
+                w.writerow((e, i, f"{returns[e, i]:.6g}", int(lengths[e, i]), int(terminated[e, i]), f"{epsilon[i]:.6g}"))
+    extra = {} if episodes_done is None else {"episodes_done": done}
+    np.savez_compressed(os.path.join(out_dir, "records.npz"), returns=returns, lengths=lengths,
+                        terminated=terminated, epsilon=epsilon, **extra)
+    n_ep = int(done.min()) if n_envs else 0
+    returns, lengths, epsilon = returns[:, :n_ep], lengths[:, :n_ep], np.asarray(epsilon)[:n_ep]
+    pct = lambda x, q: np.percentile(x, q, axis=0)  # noqa: E731
+    with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(STAT_COLUMNS)
+        cols = [np.arange(n_ep), returns.mean(0), returns.std(0), pct(returns, 10), pct(returns, 50), pct(returns, 90),
+                lengths.mean(0), lengths.std(0), pct(lengths, 10), pct(lengths, 50), pct(lengths, 90), epsilon]
+        for row in zip(*cols):
+            w.writerow([int(row[0])] + [f"{v:.6g}" for v in row[1:]])
+
+
+def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None) -> None:
+    arrays: dict[str, Any] = {"q": np.asarray(q)}
+    if disc is not None:
+        arrays.update(low=np.asarray(disc.low), width=np.asarray(disc.width), bins=np.asarray(disc.bins))
+        if disc.edges is not None:
+            for i, e in enumerate(disc.edges):
+                arrays[f"edges_{i}"] = np.asarray(e)
+    np.savez_compressed(os.path.join(out_dir, "qtables.npz"), **arrays)
+
+
+def write_summary(out_dir: str, summary: dict[str, Any]) -> None:
+    with open(os.path.join(out_dir, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+
+
+def write_eval(out_dir: str, returns: np.ndarray, lengths: np.ndarray) -> None:
+    with open(os.path.join(out_dir, "eval.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(("table", "episode", "return", "length"))
+        for t in range(returns.shape[0]):
+            for i in range(returns.shape[1]):
+                w.writerow((t, i, f"{returns[t, i]:.6g}", int(lengths[t, i])))
+
+
+def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray) -> None:
+    """Per-episode scalars (mean over envs) for TensorBoard: the seed plotted its reward topic live."""
+    try:
+        from tensorboardX import SummaryWriter
+    except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
+        return
+    writer = SummaryWriter(os.path.join(out_dir, "tensorboard"))
+    try:
+        mean_r, mean_l = np.atleast_2d(returns).mean(0), np.atleast_2d(lengths).mean(0)
+        for i in range(mean_r.shape[0]):
+            writer.add_scalar("episode/reward_mean", float(mean_r[i]), i)
+            writer.add_scalar("episode/length_mean", float(mean_l[i]), i)
+            writer.add_scalar("episode/epsilon", float(epsilon[i]), i)
+    finally:
+        writer.close()
+
+
+def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None) -> str:
+    """Write everything a :class:`jaxrobo.training.summary.TrainResult` holds into ``out_dir``; returns ``out_dir``.
+
+    An interrupted result (``complete`` False) writes its config and the episodes finished so far only. The
+    caller writes ``status.json`` (and, for an interrupted run, the checkpoint) and publishes the directory
+    (:mod:`jaxrobo.io.rundir`)."""
+    write_config(out_dir, run_config)
+    if not getattr(result, "complete", True):
+        write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
+                       episodes_done=result.episodes_done)
+        return out_dir
+    write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon)
+    write_tables(out_dir, result.q, disc)
+    write_summary(out_dir, result.summary())
+    if result.eval_lengths is not None:
+        write_eval(out_dir, result.eval_returns, result.eval_lengths)
+    write_tensorboard(out_dir, result.returns, result.lengths, result.epsilon)
+    return out_dir
+
+
+def load_config(run_dir: str) -> dict[str, Any]:
+    """A run's ``config.yaml`` as a mapping; FileNotFoundError if absent, ConfigError if it is not valid YAML
+    or not a mapping whose sections (``env_options``, ``env_params``, ``agent_params``, ``train``) are mappings."""
+    from jaxrobo.core.config import ConfigError, load_yaml
+
+    path = os.path.join(run_dir, "config.yaml")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{run_dir}: no config.yaml; is it a jaxrobo run directory?")
+    cfg = load_yaml(path)
+    for section in ("env_options", "env_params", "agent_params", "train"):
+        if cfg.get(section) is not None and not isinstance(cfg[section], dict):
+            raise ConfigError(f"{path}: {section} must be a mapping of key: value, got {cfg[section]!r}")
+    if "env_id" in cfg and not isinstance(cfg["env_id"], str):
+        raise ConfigError(f"{path}: env_id must be a string, got {cfg['env_id']!r}")
+    if "preset" in cfg and not isinstance(cfg["preset"], str):
+        raise ConfigError(f"{path}: preset must be a string, got {cfg['preset']!r}")
+    return cfg
+
+
+def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """A numeric CSV with a header row as ``{column: float array}``.
+
+    ValueError naming the file, and the column or line, when a ``required`` column is missing, a row is short
+    (a truncated file) or a value is not a number."""
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            header = reader.fieldnames or []
+            missing = [c for c in required if c not in header]
+            if missing:
+                raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; expected {', '.join(required)}")
+            rows = list(reader)
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not a text CSV file ({err})") from None
+    except csv.Error as err:
+        raise ValueError(f"{path}: not a valid CSV file ({err})") from None
+    if not rows:
+        raise ValueError(f"{path} has no rows")
+    out: dict[str, list[float]] = {name: [] for name in header}
+    for line, row in enumerate(rows, start=2):
+        if None in row or any(row.get(name) is None for name in header):
+            raise ValueError(f"{path} line {line}: expected {len(header)} values ({', '.join(header)}); "
+                             "the file is truncated or malformed")
+        for name in header:
+            try:
+                out[name].append(float(row[name]))
+            except ValueError:
+                raise ValueError(f"{path} line {line}: column {name}={row[name]!r} is not a number") from None
+    return {name: np.asarray(values) for name, values in out.items()}
+
+
+#: The columns of ``episode_stats.csv`` that ``jaxrobo plot`` draws.
+PLOTTED_STATS = ("episode", "return_mean", "return_p10", "return_p90", "length_mean", "length_p10", "length_p90")
+
+
+def load_stats(run_dir: str) -> dict[str, np.ndarray]:
+    """Per-episode statistics of a run (from ``episode_stats.csv``, else computed from ``episodes.csv``)."""
+    path = os.path.join(run_dir, "episode_stats.csv")
+    if os.path.exists(path):
+        return read_columns(path, PLOTTED_STATS)
+    path = os.path.join(run_dir, "episodes.csv")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{run_dir}: no episode_stats.csv or episodes.csv; is it a jaxrobo run directory?")
+    data = read_columns(path, ("env", "episode", "return", "length", "epsilon"))
+    for name in ("env", "episode"):
+        col = data[name]
+        if not (np.all(np.isfinite(col)) and np.all(col >= 0) and np.all(col == np.round(col))):
+            raise ValueError(f"{path}: column {name} must hold integers >= 0")
+    env, ep = data["env"].astype(int), data["episode"].astype(int)
+    n_env, n_ep = env.max() + 1, ep.max() + 1
+    if n_env * n_ep > 10 * env.size + 1_000_000:
+        raise ValueError(f"{path}: env/episode numbers up to {n_env - 1}/{n_ep - 1} for {env.size} rows; "
+                         "the file is malformed")
+    r = np.full((n_env, n_ep), np.nan)
+    r[env, ep] = data["return"]
+    ln = np.full((n_env, n_ep), np.nan)
+    ln[env, ep] = data["length"]
+    eps = np.zeros(n_ep)
+    eps[ep] = data["epsilon"]
+    stats = {"episode": np.arange(n_ep), "epsilon": eps}
+    for name, x in (("return", r), ("length", ln)):
+        stats[f"{name}_mean"] = np.nanmean(x, 0)
+        stats[f"{name}_std"] = np.nanstd(x, 0)
+        for q in (10, 50, 90):
+            stats[f"{name}_p{q}"] = np.nanpercentile(x, q, axis=0)
+    return stats
+
+
+def load_tables(run_dir: str) -> dict[str, np.ndarray]:
+    """A run's ``qtables.npz`` as plain arrays (no pickle); ConfigError naming the file when it is missing,
+    truncated, pickled or has no ``q`` of shape ``[n_envs, n_tables, n_states, n_actions]``."""
+    import zipfile
+
+    from jaxrobo.core.config import ConfigError
+
+    path = os.path.join(run_dir, "qtables.npz")
+    if not os.path.isfile(path):
+        raise ConfigError(f"{run_dir}: no qtables.npz; is it a finished jaxrobo run directory?")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
+        raise ConfigError(f"{path}: cannot be read as plain arrays ({type(err).__name__}: {err}); "
+                          "it is truncated, pickled or not an npz file") from None
+    if "q" not in arrays:
+        raise ConfigError(f"{path}: no array 'q' (found {', '.join(arrays) or 'none'})")
+    q = arrays["q"]
+    if q.ndim != 4 or not np.issubdtype(q.dtype, np.floating):
+        raise ConfigError(f"{path}: q must be a float array [n_envs, n_tables, n_states, n_actions], got "
+                          f"{q.dtype} of shape {q.shape}")
+    return arrays

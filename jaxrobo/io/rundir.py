@@ -1,0 +1,323 @@
+"""Run directories that are never lost nor mixed: checked before anything compiles, written whole or not at all.
+
+The rules (``jaxrobo train``; ``jaxrobo sweep`` uses the same helpers):
+
+* :func:`check_out` validates an output path at the boundary, before any compile: an existing file, a non-empty
+  directory (without ``--overwrite`` or ``--resume``), a non-writable parent are refused with a
+  :class:`~jaxrobo.core.config.ConfigError` naming the flag, what is wrong and which flag would allow it.
+* Finished results are written into a fresh hidden sibling (:func:`staging`) and moved into place by
+  :func:`publish`, so a crash while writing never leaves a half-written directory that looks complete; an old run
+  is replaced only when the caller says so (``--overwrite``, or resuming it).
+* Single files that are rewritten while a run goes on (the checkpoint, ``status.json``) go through
+  :func:`atomic_write`: a temporary file in the same directory, ``fsync``, ``os.replace``, ``fsync`` of the
+  directory. A reader sees the old file or the new one, never a torn one.
+* ``status.json`` says what a directory holds: ``{"status": "running" | "interrupted" | "complete", ...}``
+  (:func:`write_status` / :func:`read_status`); :func:`is_complete` and :func:`is_resumable` read it.
+* The life of a run directory, shared by ``jaxrobo train`` and ``jaxrobo sweep``: :func:`live_dir` is where a new
+  run keeps its state (checkpoint, status) while it runs; :func:`interrupted` marks it interrupted and says on
+  stderr how to go on; :func:`publish_results` writes the finished results into a staging directory and moves
+  them into place, then drops the state.
+"""
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import shutil
+import sys
+import tempfile
+from typing import IO, Any, Callable
+
+import numpy as np
+
+from jaxrobo.core.config import ConfigError
+
+#: The training carry of an unfinished run (see :func:`jaxrobo.training.checkpoint.save_checkpoint`), or a sweep's
+#: finished groups.
+CHECKPOINT = "checkpoint.npz"
+#: What the directory holds: ``running``, ``interrupted`` or ``complete``, and how to resume.
+STATUS = "status.json"
+RUNNING, INTERRUPTED, COMPLETE = "running", "interrupted", "complete"
+#: Files by which a directory is recognised as a jaxrobo run (or sweep): only such a directory is ever replaced.
+RUN_MARKERS = (STATUS, "config.yaml", "summary.json", "sweep.csv", CHECKPOINT)
+
+
+# ---- status --------------------------------------------------------------------------------------------------
+def read_status(path: str) -> dict[str, Any] | None:
+    """The directory's ``status.json`` as a dict, or None when it has none (or an unreadable one)."""
+    try:
+        with open(os.path.join(path, STATUS)) as f:
+            status = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return status if isinstance(status, dict) else None
+
+
+def write_status(path: str, status: str, **fields: Any) -> None:
+    """Atomically write ``status.json``: ``{"status": status, **fields}``."""
+    atomic_write_json(os.path.join(path, STATUS), {"status": status, **fields})
+
+
+def is_complete(path: str) -> bool:
+    """A finished run: its status says ``complete`` (a directory from before statuses existed: it has a
+    ``summary.json`` and no checkpoint)."""
+    if not os.path.isdir(path):
+        return False
+    status = read_status(path)
+    if status is not None:
+        return status.get("status") == COMPLETE
+    return os.path.isfile(os.path.join(path, "summary.json")) and not os.path.exists(os.path.join(path, CHECKPOINT))
+
+
+def is_resumable(path: str) -> bool:
+    """An unfinished run that can go on: it has a checkpoint and its status is not ``complete``."""
+    return (os.path.isdir(path) and os.path.isfile(os.path.join(path, CHECKPOINT))
+            and (read_status(path) or {}).get("status") != COMPLETE)
+
+
+def _looks_like_run(path: str) -> bool:
+    return any(os.path.exists(os.path.join(path, name)) for name in RUN_MARKERS)
+
+
+def _describe(path: str) -> str:
+    if is_complete(path):
+        return "a complete run"
+    if is_resumable(path):
+        return "an interrupted run"
+    if _looks_like_run(path):
+        return "an unfinished run without a checkpoint"
+    return "files that are not a jaxrobo run"
+
+
+# ---- checks at the boundary ----------------------------------------------------------------------------------
+def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag: str = "--out") -> None:
+    """Refuse an output path that would lose or mix runs, before anything compiles.
+
+    ``path`` may be missing (it is created, parents too) or an empty directory. A non-empty directory needs
+    ``overwrite`` (and must look like a jaxrobo run: nothing else is ever replaced) or ``resume`` (and must hold
+    a checkpoint of an unfinished run). An existing file, or a parent that is a file or not writable, is refused
+    whatever the flags. Raises :class:`ConfigError` naming ``flag`` (``--out`` or ``--resume``)."""
+    if not path:
+        raise ConfigError(f"{flag}: empty path")
+    where = f"{flag} {path}"
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ConfigError(f"{where}: is an existing file, not a directory; give a new or empty directory "
+                          "(--overwrite replaces run directories only)")
+    if resume:
+        if not os.path.isdir(path):
+            raise ConfigError(f"{where}: no such run directory")
+        if is_complete(path):
+            raise ConfigError(f"{where}: the run is complete, nothing to resume")
+        if not is_resumable(path):
+            raise ConfigError(f"{where}: no {CHECKPOINT} in it ({_describe(path)}); nothing to resume")
+    elif os.path.isdir(path) and os.listdir(path):
+        what = _describe(path)
+        if not overwrite:
+            hint = "give --overwrite to replace it" if _looks_like_run(path) else "choose another path"
+            if is_resumable(path):
+                hint += f", or --resume {path} to continue it"
+            raise ConfigError(f"{where}: directory is not empty (it holds {what}); {hint}")
+        if not _looks_like_run(path):
+            raise ConfigError(f"{where}: directory is not empty and holds {what}; --overwrite replaces jaxrobo run "
+                              "directories only: choose another path")
+    # The parent must take a hidden sibling (staging) and a rename: the nearest existing ancestor must be a
+    # writable directory.
+    parent = os.path.dirname(os.path.abspath(path))
+    ancestor = parent
+    while not os.path.exists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    if not os.path.isdir(ancestor):
+        raise ConfigError(f"{where}: {ancestor} is a file, not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(f"{where}: cannot write in {ancestor} (permission denied)")
+
+
+# ---- staging and publishing ----------------------------------------------------------------------------------
+def staging(path: str) -> str:
+    """A fresh, empty hidden sibling of ``path`` (``.<name>.<random>.partial``, on the same file system, so that
+    :func:`publish` is a rename); the parent is created if missing."""
+    path = os.path.abspath(path)
+    parent, name = os.path.split(path.rstrip(os.sep))
+    os.makedirs(parent, exist_ok=True)
+    path = tempfile.mkdtemp(prefix=f".{name}.", suffix=".partial", dir=parent)
+    os.chmod(path, 0o777 & ~_umask())  # mkdtemp makes it private; a published run has the usual permissions
+    return path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _fsync_dir(path: str) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover - some file systems refuse fsync on directories
+        pass
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(path: str) -> None:
+    for root, _, files in os.walk(path):
+        for name in files:
+            try:
+                fd = os.open(os.path.join(root, name), os.O_RDONLY)
+            except OSError:
+                continue
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        _fsync_dir(root)
+
+
+def _exchange(a: str, b: str) -> bool:
+    """Swap two paths in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where unavailable."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = (ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint)
+    at_fdcwd, rename_exchange = -100, 2
+    return fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
+
+
+def publish(staging_dir: str, path: str, *, overwrite: bool = False) -> None:
+    """Move a finished ``staging_dir`` (from :func:`staging`) to ``path``, its files flushed to disk first.
+
+    A missing or empty ``path`` is replaced by one ``rename``. An existing run is replaced only with
+    ``overwrite``: swapped in one step where the OS can (Linux ``renameat2``), else moved aside, the new one
+    renamed in and the old one removed (a crash in between leaves the old run as ``.<name>.<random>.old``, never
+    a mix of both). Without ``overwrite`` a non-empty ``path`` raises :class:`FileExistsError`."""
+    path = os.path.abspath(path).rstrip(os.sep)
+    parent = os.path.dirname(path)
+    _fsync_tree(staging_dir)
+    if not os.path.exists(path) or (os.path.isdir(path) and not os.listdir(path)):
+        try:
+            os.rename(staging_dir, path)
+            _fsync_dir(parent)
+            return
+        except OSError:
+            # Only a run that appeared at ``path`` meanwhile goes on to the overwrite rules below.
+            if not (os.path.isdir(path) and os.listdir(path)):
+                raise
+    if not overwrite:
+        raise FileExistsError(f"{path} exists and is not empty; not replacing it")
+    if not os.path.isdir(path):
+        raise FileExistsError(f"{path} is a file; not replacing it")
+    if _exchange(staging_dir, path):
+        _fsync_dir(parent)
+        shutil.rmtree(staging_dir, ignore_errors=True)  # now the old run
+        return
+    old = tempfile.mkdtemp(prefix=f".{os.path.basename(path)}.", suffix=".old", dir=parent)
+    os.rename(path, os.path.join(old, "run"))
+    os.rename(staging_dir, path)
+    _fsync_dir(parent)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def discard(staging_dir: str) -> None:
+    """Remove a staging directory that will not be published."""
+    shutil.rmtree(staging_dir, ignore_errors=True)
+
+
+# ---- a run's life: where its state lives, interrupted, published ----------------------------------------------
+def live_dir(out: str) -> str:
+    """Where a new run (or sweep) keeps its state while it runs: ``out`` itself when it is new or empty (created
+    here), so that a hard crash leaves it resumable; else (an old run that ``--overwrite`` replaces, allowed by
+    :func:`check_out`) a hidden sibling (:func:`staging`), so that the old run stays whole until the new one
+    replaces it."""
+    if os.path.isdir(out) and os.listdir(out):
+        return staging(out)
+    os.makedirs(out, exist_ok=True)
+    return out
+
+
+def interrupted(live: str | None, *, out: str, resume: str, prog: str, what: str, publish_live: bool = False,
+                **fields: Any) -> None:
+    """Mark the run whose state is in ``live`` interrupted and say how to go on: ``status.json`` becomes
+    ``{"status": "interrupted", "out": ..., "resume": resume, **fields}`` (None ``live``: not written, another
+    process owns it), ``publish_live`` moves a ``live`` staging directory into place as ``out`` (replacing an old
+    run), and one line goes to stderr: ``"<prog>: <what>; to go on: <resume>"``."""
+    if live is not None:
+        write_status(live, INTERRUPTED, out=os.path.abspath(out), resume=resume, **fields)
+        if publish_live and os.path.abspath(live) != os.path.abspath(out):
+            publish(live, out, overwrite=True)
+    print(f"{prog}: {what}; to go on: {resume}", file=sys.stderr)
+
+
+def publish_results(out: str, live: str, write: Callable[[str], None]) -> None:
+    """The finished run: ``write(staged)`` fills a fresh staging directory (its ``status.json`` saying
+    ``complete`` included), which then replaces ``out`` in one step (``out`` holds this run's own state, or an
+    old run that ``--overwrite`` allowed to replace); a failure discards it and leaves ``out`` as it was. A
+    ``live`` state directory other than ``out`` is removed afterwards."""
+    staged = staging(out)
+    try:
+        write(staged)
+        publish(staged, out, overwrite=True)
+    except BaseException:
+        discard(staged)
+        raise
+    if os.path.abspath(live) != os.path.abspath(out):
+        discard(live)
+
+
+# ---- atomic single files -------------------------------------------------------------------------------------
+def atomic_write(path: str, writer: Callable[[IO], None], mode: str = "wb") -> None:
+    """Write ``path`` through ``writer(file)`` all at once: into a temporary file in the same directory, flushed
+    and ``fsync``-ed, then ``os.replace``-d over ``path`` and the directory ``fsync``-ed."""
+    directory, name = os.path.split(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, mode, **({} if "b" in mode else {"newline": ""})) as f:
+            writer(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    _fsync_dir(directory)
+
+
+def atomic_write_json(path: str, obj: Any) -> None:
+    atomic_write(path, lambda f: f.write(json.dumps(obj, indent=2) + "\n"), mode="w")
+
+
+def atomic_savez(path: str, **arrays: Any) -> None:
+    """``np.savez`` (uncompressed, no pickled objects) written atomically."""
+    atomic_write(path, lambda f: np.savez(f, **arrays))
+
+
+#: Checkpoints of runs and sweeps record this hash: resuming under other code is refused (a carry from other code
+#: would not continue the same run bit for bit).
+_SOURCE_DIRS = ("jaxrobo", "envs", "agents")
+_SOURCE_SUFFIXES = (".py", ".xml")
+
+
+def source_hash() -> str:
+    """SHA-256 over the code that shapes a run (``jaxrobo``, ``envs``, ``agents``: Python and MJCF files)."""
+    import hashlib
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    h = hashlib.sha256()
+    for top in _SOURCE_DIRS:
+        for dirpath, dirnames, files in os.walk(os.path.join(root, top)):
+            dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+            for name in sorted(f for f in files if f.endswith(_SOURCE_SUFFIXES)):
+                path = os.path.join(dirpath, name)
+                h.update(os.path.relpath(path, root).encode() + b"\0")
+                with open(path, "rb") as f:
+                    h.update(f.read() + b"\0")
+    return h.hexdigest()

@@ -1,0 +1,121 @@
+"""``jaxrobo plot``: reward and length per episode, mean and 10-90 % band over envs, several runs overlaid.
+
+The seed's ``plot_results`` drew the reward per episode of one run; comparing Q-learning with Sarsa "under the
+exact same conditions" (seed exercise 2.2) means overlaying runs trained with the same seeds.
+
+A deep-RL run (``--agent ppo|sac``) records evaluations, not training episodes: its ``episode_stats.csv`` has one
+row per evaluation and an ``env_steps`` column. Runs of both kinds share one x axis, the env steps of training
+(all envs together): a tabular run's are the cumulated mean episode length times its ``n_envs``
+(:func:`env_steps_axis`). ``x="auto"`` uses env steps as soon as one run is a deep run, else episodes.
+"""
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+import numpy as np
+
+from jaxrobo.core.config import ConfigError
+from jaxrobo.io.results import load_config, load_stats
+
+
+#: Image formats the PNG-writing commands accept (matplotlib picks the format from the extension).
+IMAGE_EXTENSIONS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+
+
+def check_image_path(path: str, flag: str = "--out") -> None:
+    """ConfigError unless ``path`` names an image file matplotlib writes, in a directory that is not a file."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in IMAGE_EXTENSIONS:
+        raise ConfigError(f"{flag} {path!r}: expected an image file ending in {', '.join(IMAGE_EXTENSIONS)}")
+    if os.path.isdir(path):
+        raise ConfigError(f"{flag} {path!r} is a directory; give a file name")
+    parent = os.path.dirname(os.path.abspath(path))
+    while parent and not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if parent and not os.path.isdir(parent):
+        raise ConfigError(f"{flag} {path!r}: {parent!r} is a file, not a directory")
+
+
+def run_label(run_dir: str) -> str:
+    """``env · agent (preset)`` from a run's config, else the directory name."""
+    try:
+        cfg = load_config(run_dir)
+        train = cfg.get("train", {})
+        return f"{cfg.get('env_id', '?')} · {train.get('agent', '?')} ({cfg.get('preset', '?')})"
+    except (FileNotFoundError, OSError, ValueError):  # a label only: a broken config.yaml is not fatal here
+        return os.path.basename(os.path.normpath(run_dir))
+
+
+#: The x axes ``plot_runs`` draws on.
+X_AXES = ("auto", "episode", "env_steps")
+
+
+def env_steps_axis(run_dir: str, stats: dict[str, np.ndarray]) -> np.ndarray:
+    """Env steps of training (all envs) at each row of a run's stats: the ``env_steps`` column of a deep run;
+    for a tabular run, the cumulated mean episode length times ``n_envs`` (every env runs its episodes side by
+    side, so after episode ``i`` the envs have stepped about ``n_envs * sum(mean length up to i)`` times)."""
+    if "env_steps" in stats:
+        return np.asarray(stats["env_steps"], np.float64)
+    cfg = load_config(run_dir)
+    n_envs = (cfg.get("train") or {}).get("n_envs")
+    if not isinstance(n_envs, int) or isinstance(n_envs, bool) or n_envs < 1:
+        raise ValueError(f"{run_dir}: config.yaml has no train.n_envs (an integer >= 1) for the env-steps axis")
+    return np.cumsum(np.asarray(stats["length_mean"], np.float64)) * n_envs
+
+
+def smooth(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average (window 1 = unchanged), the same length as ``x``."""
+    if window <= 1 or x.size == 0:
+        return x
+    c = np.cumsum(np.insert(np.asarray(x, np.float64), 0, 0.0))
+    out = np.empty(x.size)
+    for i in range(x.size):
+        lo = max(0, i + 1 - window)
+        out[i] = (c[i + 1] - c[lo]) / (i + 1 - lo)
+    return out
+
+
+def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | None = None, window: int = 10,
+              title: str | None = None, x: str = "auto") -> str:
+    """Draw reward and length per episode (or per evaluation, for a deep run) of each run into one PNG, against
+    ``x``: ``"episode"``, ``"env_steps"`` or ``"auto"`` (env steps when one run is a deep run); returns its path.
+    A deep run's rows are evaluations: they are never smoothed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not run_dirs:
+        raise ValueError("plot needs at least one run directory")
+    labels = list(labels) if labels else [run_label(d) for d in run_dirs]
+    if len(labels) != len(run_dirs):
+        raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    if not (isinstance(window, int) and window >= 1):
+        raise ValueError(f"window={window!r}: must be an integer >= 1 (episodes averaged)")
+    if x not in X_AXES:
+        raise ValueError(f"x={x!r}: allowed values are {', '.join(X_AXES)}")
+    all_stats = [load_stats(d) for d in run_dirs]  # every run read (and checked) before anything is drawn
+    if x == "auto":
+        x = "env_steps" if any("env_steps" in s for s in all_stats) else "episode"
+    xs = [env_steps_axis(d, s) if x == "env_steps" else s["episode"] for d, s in zip(run_dirs, all_stats)]
+    fig, (ax_r, ax_l) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    for s, label, ep in zip(all_stats, labels, xs):
+        w = 1 if "env_steps" in s else window
+        for ax, name in ((ax_r, "return"), (ax_l, "length")):
+            mean = smooth(s[f"{name}_mean"], w)
+            (line,) = ax.plot(ep, mean, label=label, lw=1.6, marker="o" if "env_steps" in s else None, ms=3)
+            ax.fill_between(ep, smooth(s[f"{name}_p10"], w), smooth(s[f"{name}_p90"], w),
+                            color=line.get_color(), alpha=0.18, lw=0)
+    ax_r.set_ylabel("reward per episode")
+    ax_l.set_ylabel("episode length (steps)")
+    ax_l.set_xlabel("env steps of training (all envs)" if x == "env_steps" else "episode")
+    ax_r.legend(loc="best", fontsize=8)
+    ax_r.set_title(title or f"mean over envs, band 10-90 %, moving average {window}")
+    for ax in (ax_r, ax_l):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return out_png

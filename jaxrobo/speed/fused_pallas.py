@@ -1,0 +1,583 @@
+"""``ExecutionPlan.fused = "pallas"``: the closed-form cart-pole with Q-learning as one Pallas kernel per chunk.
+
+The plain path runs a training step as ~20-30 batch-wide kernels, each reading and writing part of every env's
+state (~1.5 KB of memory traffic per env step on an H100, docs/benchmarks.md "Fused path"). Here one
+``pallas_call`` runs the whole chunk: each program takes a block of envs and loops over the chunk's steps
+in-kernel, the env's state, keys, epsilon, counters and its current table row in registers; per step it touches
+memory only to gather the next state's table row and scatter the one updated entry (the env's own table, by
+computed index), to record a finished episode, and to gather the fresh state's row after a reset. The carry
+goes back to memory once, at the end of the chunk. A program is one warp of 32 envs by default (:data:`BLOCK`):
+seven of a step's ten threefry hashes serve only the reset, and a program computes them only in a step where one
+of its envs is done (:data:`SKIP_RESETS`), which a warp of 32 skips more often than a larger block would; where at
+most a quarter of its envs are done, groups of four lanes share each done env's seven hashes, three hash rounds
+for the program instead of seven (:data:`GROUP_RESETS`). On a GPU the physics' ``sin``/``cos`` are libdevice's
+own, written out where every pole angle of the program allows it (:data:`FAST_SINCOS`,
+:mod:`jaxrobo.physics.libdevice_sincos`). Both keep every value; the kernel is bound by the issue of its integer and
+logic instructions (docs/benchmarks.md, "Pallas"), which these take out.
+
+It is :meth:`jaxrobo.training.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
+random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.core.rng` does
+(Threefry-2x32, JAX's partitionable layout: uint32 add, rotate, xor), so the draws are ``jax.random``'s own. On a
+CPU (``interpret=True``, what the tests run) keys, actions, updates, resets and records follow the plain path bit
+for bit while the physics state agrees to its last bits: the physics is written per coordinate over ``[block]``
+vectors (the env's own step stacks the coordinates and slices them, and the Triton lowering has no slice), which
+XLA rounds differently in the last bit. Once such a bit moves a state across a bin edge the runs part ways, as
+any last-bit change does in tabular learning; on a GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so
+the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
+
+Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
+for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
+with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not ``seed_compat``), one table
+per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys with
+``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
+the call (tested interpreted; on a GPU it compiled and trained, docs/benchmarks.md, "Pallas").
+
+Public surface: :func:`unsupported_run`, :func:`unsupported`, :func:`check`, :func:`run_chunk`, :data:`BLOCK`; the
+tuning knobs :data:`NUM_WARPS`, :data:`SKIP_RESETS`, :data:`GROUP_RESETS`, :data:`FAST_SINCOS`,
+:data:`APPROX_SINCOS`, :data:`TILED_TABLES` (read when a chunk is traced).
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrobo.physics import libdevice_sincos
+from jaxrobo.core.config import ConfigError
+
+#: Envs per Pallas program when the plan's ``fused_block`` is None (a power of two; smaller where ``n_envs`` has
+#: fewer factors of two), one per GPU thread: ``num_warps`` is ``block / 32`` (1 to 8) unless :data:`NUM_WARPS`
+#: says otherwise. ``ExecutionPlan(fused="pallas", fused_block=B)`` asks for B (a power of two up to 1024).
+BLOCK = 32
+#: Warps per program (None: one thread per env, ``block / 32`` clamped to 1..8). A tuning knob for benchmarks.
+NUM_WARPS: int | None = None
+#: True: a program hashes the reset's random numbers and gathers the fresh rows only in a step where one of its
+#: envs is done (a scalar branch per program). False: in every env every step, selected away where not done
+#: (the same values; kept to measure the branch against and to test that it changes nothing).
+SKIP_RESETS = True
+#: True: on a GPU the physics' ``sin``/``cos`` are the hardware's approximations (PTX ``sin.approx.f32`` and
+#: ``cos.approx.f32``, absolute error about 5e-7 on [-pi, pi]) instead of libdevice's. A benchmark knob, off: it
+#: changes the GPU's values in the last bits, and a CPU (interpret mode, no inline assembly) cannot test it.
+APPROX_SINCOS = False
+#: True: the kernel sees the tables tiled by program, ``[program, state, env of the program, action]``, instead of
+#: the runner's ``[env, state, action]``: lanes of a warp whose envs sit in the same state (cart-pole envs crowd
+#: into a few bins near upright) gather and scatter neighbouring words, i.e. share 32 B sectors, where the runner's
+#: layout puts every env's row 7.7 KB from its neighbour's. The chunk transposes the tables in before the kernel and
+#: back after (a full read and write of the tables each way); the values are the same. Off: on an H100 the kernel
+#: gains less than the two transposes cost, at every size measured (docs/benchmarks.md, "Pallas").
+TILED_TABLES = False
+#: True: a program whose done envs number at most a quarter of its lanes hashes their resets in groups of four
+#: lanes (three hash rounds for the program instead of seven; the same values). False: each lane its own env's.
+GROUP_RESETS = True
+#: True: on a GPU, in a step where every pole angle of a program stays within
+#: :data:`jaxrobo.physics.libdevice_sincos.LIMIT` in every substep (one scalar branch per program and step), the physics'
+#: ``sin``/``cos`` are libdevice's written out (:func:`jaxrobo.physics.libdevice_sincos.sincos`, the same values, checked
+#: on the GPU at hand before use); in the other steps, and off a GPU, libdevice's calls.
+FAST_SINCOS = True
+_MAX_BLOCK = 1024
+
+_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
+_PARITY = 0x1BD11BDA
+# The float parameters, in the order of the kernel's parameter vector.
+_F = ("pos_step", "max_base_velocity", "min_pole_angle", "max_pole_angle", "min_base_pose_x", "max_base_pose_x",
+      "init_pos", "init_pole_angle", "init_noise", "alpha", "gamma", "epsilon_discount", "epsilon_min",
+      "low0", "low1", "low2", "low3", "width0", "width1", "width2", "width3")
+_PARAMS = 32
+
+
+def unsupported(trainer: Any) -> str | None:
+    """Why ``trainer``'s run cannot take the Pallas path (None: it can): :func:`unsupported_run` of its env,
+    config, learner, discretiser and ``fused_block``."""
+    return unsupported_run(trainer.env, trainer.config, trainer.learner.name, trainer.disc, trainer.plan.fused_block)
+
+
+def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser: Any = None,
+                    fused_block: int | None = None) -> str | None:
+    """Why training ``env`` with ``config`` (a :class:`jaxrobo.training.trainer.TrainConfig`) cannot take the Pallas path
+    (None: it can); the one place its rules live, read both by the plan's default
+    (:meth:`jaxrobo.speed.plan.ExecutionPlan.for_run`) and by the boundaries that refuse an explicit choice (:func:`check`, :func:`jaxrobo.speed.plan.check_pallas`).
+    ``agent``: the learner's name (default: ``config.agent``); ``discretiser``: the run's
+    :class:`jaxrobo.tabular.discretise.Discretiser` (default: the config's, built only once the env qualifies);
+    ``fused_block``: the plan's envs per program."""
+    # By class name, not isinstance: jaxrobo reaches the envs only through the registry (tests/test_structure.py).
+    c = config
+    if "CartPoleStayUp" not in {k.__name__ for k in type(env).__mro__}:
+        return f"the env is {type(env).__name__}; only CartPoleStayUp"
+    o = env.options
+    if type(env.robot.sim).__name__ != "CartPoleSim":
+        return f"backend={o.backend!r}; only backend='analytic'"
+    if o.control_type != "velocity" or o.round_obs:
+        return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
+    agent = c.agent if agent is None else agent
+    if agent != "qlearn" or c.seed_compat or c.shared_table:
+        return f"agent={agent!r} (seed_compat={c.seed_compat}, shared_table={c.shared_table}); " \
+               "only agent='qlearn' with per-env tables, not seed_compat"
+    if discretiser is None:
+        from jaxrobo.tabular.discretise import make_discretiser_for
+
+        discretiser = make_discretiser_for(env, c)
+    if discretiser.edges is not None:
+        return "discretiser='edges'; only 'bins' or 'round'"
+    if not jax.config.jax_threefry_partitionable or jax.config.jax_default_prng_impl != "threefry2x32":
+        return "only JAX's default threefry keys with jax_threefry_partitionable"
+    b = fused_block
+    if b is not None and (b > _MAX_BLOCK or b & (b - 1)):
+        return f"fused_block={b}; with fused='pallas' the envs per program, a power of two up to {_MAX_BLOCK}"
+    if c.n_envs * discretiser.n_states * env.num_actions >= 2**31:
+        return "the tables hold 2**31 entries or more (int32 indices)"
+    if c.record_episodes and c.n_envs * c.nepisodes >= 2**31:
+        return "the episode records hold 2**31 entries or more (int32 indices); set record_episodes=False"
+    return None
+
+
+def check(trainer: Any) -> None:
+    """Refuse, naming the field and what is allowed, a run the Pallas path cannot take."""
+    why = unsupported(trainer)
+    if why is not None:
+        raise ConfigError(f"ExecutionPlan fused='pallas': {why}. It supports the analytic CartPoleStayUp with "
+                          "Q-learning; use fused='off' or 'xla' otherwise")
+
+
+# ---- in-kernel random numbers: jaxrobo.core.rng's hash on [block] uint32 vectors ------------------------------
+def _threefry(k1, k2, x1, x2):
+    u = lambda v: jnp.uint32(v)  # noqa: E731
+    ks = (k1, k2, k1 ^ k2 ^ u(_PARITY))
+    x1, x2 = x1 + ks[0], x2 + ks[1]
+    for block in range(5):
+        for r in _ROTATIONS[block % 2]:
+            x1 = x1 + x2
+            x2 = jax.lax.shift_left(x2, u(r)) | jax.lax.shift_right_logical(x2, u(32 - r))
+            x2 = x1 ^ x2
+        x1 = x1 + ks[(block + 1) % 3]
+        x2 = x2 + ks[(block + 2) % 3] + u(block + 1)
+    return x1, x2
+
+
+def _subkey(key, index):
+    """``split(key, num)[index]`` (any ``num``): the hash of counter ``(0, index)``."""
+    zero = jnp.zeros_like(key[0])
+    return _threefry(key[0], key[1], zero, zero + jnp.uint32(index))
+
+
+def _unit(words):
+    return jax.lax.bitcast_convert_type(jax.lax.shift_right_logical(words, jnp.uint32(9)) | jnp.uint32(0x3F800000),
+                                        jnp.float32) - 1.0
+
+
+# ---- the kernel --------------------------------------------------------------------------------------------
+_COLS = (  # per-env carry columns: name, dtype
+    ("x", jnp.float32), ("th", jnp.float32), ("xd", jnp.float32), ("thd", jnp.float32),
+    ("o0", jnp.float32), ("o1", jnp.float32), ("o2", jnp.float32), ("o3", jnp.float32),
+    ("reward", jnp.float32), ("term", jnp.int32), ("trunc", jnp.int32), ("steps", jnp.int32),
+    ("command", jnp.float32), ("ek0", jnp.uint32), ("ek1", jnp.uint32), ("pnan", jnp.int32),
+    ("s", jnp.int32), ("r0", jnp.float32), ("r1", jnp.float32), ("r2", jnp.float32), ("r3", jnp.float32),
+    ("action", jnp.int32), ("epsilon", jnp.float32), ("episode", jnp.int32), ("ep_return", jnp.float32),
+    ("k0", jnp.uint32), ("k1", jnp.uint32), ("nan_episodes", jnp.int32), ("env_steps", jnp.int32),
+    ("ret_sum", jnp.float32), ("len_sum", jnp.int32), ("term_any", jnp.int32))
+_NAMES = tuple(name for name, _ in _COLS)
+
+
+def _make_kernel(static):
+    (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
+     timestep, n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled) = static
+    n_cols = len(_COLS)
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+
+    def kernel(fp_ref, ip_ref, *refs):
+        ins = refs[:n_cols]
+        rest = refs[n_cols:]
+        n_big = 4 if records else 1
+        outs = rest[n_big:n_big + n_cols]
+        q_ref = rest[n_big + n_cols]
+        rec_refs = rest[n_big + n_cols + 1:n_big + n_cols + 4] if records else None
+        fvals = {name: fp_ref[i] for i, name in enumerate(_F)}  # read once, kept in registers
+        f = fvals.__getitem__
+        max_episode_steps = ip_ref[0]
+        env0 = pl.program_id(0) * block
+        env = env0 + jax.lax.iota(jnp.int32, block)
+        carry = {name: ref[...] for name, ref in zip(_NAMES, ins)}
+        if tiled:  # [program, state, env of the program, action]
+            # program_id read here, not in the reset's branch (interpret mode cannot discharge it inside a cond).
+            tile = block * n_actions
+            base = pl.program_id(0) * (n_states * tile) + jax.lax.iota(jnp.int32, block) * n_actions
+            row_at = lambda s: base + s * tile  # noqa: E731
+        else:  # [env, state, action]
+            base = env * (n_states * n_actions)
+            row_at = lambda s: base + s * n_actions  # noqa: E731
+
+        def row(s, mask=None):
+            at = row_at(s)
+            return [plgpu.load(q_ref.at[at + k], mask=mask, other=0.0 if mask is not None else None)
+                    for k in range(n_actions)]
+
+        def discretise(o):
+            idx = []
+            for d in range(4):
+                i = jnp.floor((o[d] - f(f"low{d}")) / f(f"width{d}")).astype(jnp.int32)
+                idx.append(jnp.minimum(jnp.maximum(i, 0), bins[d] - 1))
+            total = idx[0] * strides[0]
+            for d in range(1, 4):
+                total = total + idx[d] * strides[d]
+            return total
+
+        def row_max(r):
+            return functools.reduce(jnp.maximum, r)
+
+        def epsilon_greedy(key, r, epsilon):
+            x1, x2 = _threefry(key[0], key[1], jnp.zeros_like(key[0]), jnp.zeros_like(key[0]))
+            coin, u = _unit(x1), _unit(x2)
+            random_action = jnp.minimum(jnp.floor(u * n_actions), n_actions - 1).astype(jnp.int32)
+            best = row_max(r)
+            is_max = [ri == best for ri in r]
+            count = is_max[0].astype(jnp.int32)
+            for m in is_max[1:]:
+                count = count + m.astype(jnp.int32)
+            wanted = jnp.minimum(jnp.floor(u * count.astype(jnp.float32)).astype(jnp.int32), count - 1)
+            choice, seen = jnp.zeros_like(count), jnp.zeros_like(count)
+            for i, m in enumerate(is_max):
+                choice = jnp.where(m & (seen == wanted), jnp.int32(i), choice)
+                seen = seen + m.astype(jnp.int32)
+            return jnp.where(coin < epsilon, random_action, choice)
+
+        def physics(x, th, xd, thd, ctrl, written_out=False):
+            # CartPoleSim.physics_step term by term (same constants, same order).
+            c = consts
+            generalized = [0.0, 0.0]
+            for j in range(c.gain.shape[0]):
+                gear = c.transmission[:, j]
+                length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
+                velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
+                u = ctrl
+                if np.isfinite(c.ctrl_low[j]):
+                    u = jnp.maximum(u, float(c.ctrl_low[j]))
+                if np.isfinite(c.ctrl_high[j]):
+                    u = jnp.minimum(u, float(c.ctrl_high[j]))
+                force = float(c.gain[j]) * u + float(c.bias[0, j])
+                force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
+                force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
+                if np.isfinite(c.force_low[j]):
+                    force = jnp.maximum(force, float(c.force_low[j]))
+                if np.isfinite(c.force_high[j]):
+                    force = jnp.minimum(force, float(c.force_high[j]))
+                generalized = [gf + float(g) * force if g else gf for gf, g in zip(generalized, gear)]
+            if approx_sincos:
+                sin, cos = (libdevice_sincos.inline_ptx(f"{op}.approx.f32 $0, $1;", th) for op in ("sin", "cos"))
+            elif written_out:
+                sin, cos = libdevice_sincos.sincos(th)
+            else:
+                sin, cos = jnp.sin(th), jnp.cos(th)
+            coupling = c.pole_mass_length * cos
+            rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
+            rhs_th = generalized[1] + c.pole_mass_length * c.gravity * sin
+            inv_det = 1.0 / (c.total_mass * c.pole_inertia - coupling * coupling)
+            acc_x = c.pole_inertia * rhs_x - coupling * rhs_th
+            acc_th = c.total_mass * rhs_th - coupling * rhs_x
+            xd = xd + timestep * (acc_x * inv_det)
+            thd = thd + timestep * (acc_th * inv_det)
+            return x + timestep * xd, th + timestep * thd, xd, thd
+
+        def finite(v):
+            return jnp.abs(v) < jnp.inf
+
+        def step(_, cr):
+            cr = dict(cr)
+            key = (cr["k0"], cr["k1"])
+            k_next, k_act = _subkey(key, 0), _subkey(key, 1)
+            active = cr["episode"] < nepisodes
+            r_s = [cr[f"r{k}"] for k in range(n_actions)]
+            a = epsilon_greedy(k_act, r_s, cr["epsilon"])
+            # env.step: the command, the physics, the guard, the observation, termination, truncation.
+            delta = jnp.zeros_like(cr["command"])
+            for i, v in enumerate(action_steps):
+                delta = jnp.where(a == i, jnp.float32(v), delta)
+            command = cr["command"] + delta * f("pos_step")
+            command = jnp.minimum(jnp.maximum(command, -f("max_base_velocity")), f("max_base_velocity"))
+            x, th, xd, thd = cr["x"], cr["th"], cr["xd"], cr["thd"]
+            def substeps(written_out):
+                state = (x, th, xd, thd)
+                for _sub in range(n_substeps):
+                    state = physics(*state, command, written_out)
+                return state
+
+            if fast_sincos:
+                # libdevice's sin/cos written out serve the step where every env's angle stays within their range
+                # in every substep (checked once per step and program); otherwise the step is redone with the calls.
+                state, beyond = (x, th, xd, thd), jnp.zeros(x.shape, jnp.int32)
+                for _sub in range(n_substeps):
+                    beyond = beyond | (~(jnp.abs(state[1]) <= libdevice_sincos.LIMIT)).astype(jnp.int32)  # NaN too
+                    state = physics(*state, command, True)
+                x, th, xd, thd = jax.lax.cond(jnp.max(beyond) > 0, lambda _: substeps(False), lambda _: state, None)
+            else:
+                x, th, xd, thd = substeps(False)
+            ok = finite(x) & finite(th) & finite(xd) & finite(thd)
+            obs = (x, xd, th, thd)
+            ok = ok & finite(obs[0]) & finite(obs[1]) & finite(obs[2]) & finite(obs[3])
+            term = ((obs[0] <= f("min_base_pose_x")) | (obs[0] >= f("max_base_pose_x"))
+                    | (obs[2] <= f("min_pole_angle")) | (obs[2] >= f("max_pole_angle")))
+            obs = tuple(jnp.where(ok, o, cr[f"o{d}"]) for d, o in enumerate(obs))
+            reward = jnp.where(ok, jnp.float32(1.0), jnp.float32(0.0))
+            term = term | ~ok
+            env_steps_now = cr["steps"] + 1
+            trunc = (env_steps_now >= max_episode_steps) & ~term
+            pnan = ~ok
+            s2 = discretise(obs)
+            done = term | trunc | (env_steps_now >= nsteps)
+            r_s2 = row(s2)
+            # Q-learning's update of (s, a), the rows carried across the step.
+            discount = f("gamma") * (1.0 - term.astype(jnp.float32))
+            target = reward + discount * row_max(r_s2)
+            old = r_s[0]
+            for i in range(1, n_actions):
+                old = jnp.where(a == i, r_s[i], old)
+            new = old + f("alpha") * (target - old)
+            written = jnp.where(active & ~pnan, new, old)
+            hit_s = s2 == cr["s"]
+            r_s2 = [jnp.where(hit_s & (a == k), written, r_s2[k]) for k in range(n_actions)]
+            # Records.
+            ep_return = cr["ep_return"] + reward
+            record = done & active
+            if records:
+                slot = jnp.minimum(cr["episode"], nepisodes - 1)
+                at = env * n_rec + slot
+                plgpu.store(rec_refs[0].at[at], ep_return, mask=record)
+                plgpu.store(rec_refs[1].at[at], env_steps_now, mask=record)
+                plgpu.store(rec_refs[2].at[at], term.astype(jnp.int32), mask=record)
+            else:
+                cr["ret_sum"] = cr["ret_sum"] + jnp.where(record, ep_return, 0.0)
+                cr["len_sum"] = cr["len_sum"] + jnp.where(record, env_steps_now, 0)
+                cr["term_any"] = cr["term_any"] | (record & term).astype(jnp.int32)
+            # The fresh episode wherever done (env.reset from k_reset), its rows from the updated table. Seven of
+            # the step's ten hashes serve only the reset, and in many steps no env of a program is done: under
+            # skip_resets the program computes them only when one of its envs is (a scalar branch, scf.if in
+            # Triton); where none is, the fresh values would be discarded by the selects below anyway.
+            def noise_of(w1, w2):
+                lo = -f("init_noise")
+                return _unit(w1 ^ w2) * (f("init_noise") - lo) + lo
+
+            def hashed_by_lane(_):
+                # Every lane hashes its own env's seven: the reset key, the env key and the pose key from it,
+                # and the pose's four uniforms.
+                k_reset = _subkey(key, 4)
+                rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
+                zero = jnp.zeros_like(pose_key[0])
+                noise = [noise_of(*_threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))) for j in range(4)]
+                return (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3], *rk)
+
+            def hashed_by_group(n_done):
+                # The same seven hashes of each done env, shared by a group of four lanes: three hash rounds
+                # for the program instead of seven (the 2nd and 3rd stages hash one counter per lane), the
+                # words moving between lanes by block-wide integer sums of one nonzero term (exact).
+                lane = jax.lax.iota(jnp.int32, block)
+                slot, group = lane % 4, lane // 4
+                i32 = lambda v: jax.lax.bitcast_convert_type(v, jnp.int32)  # noqa: E731
+                u32 = lambda v: jax.lax.bitcast_convert_type(v, jnp.uint32)  # noqa: E731
+                take = lambda at, v: jnp.sum(jnp.where(at, v, 0))  # noqa: E731  (the value of the lane at `at`)
+                k_reset = [i32(v) for v in _subkey(key, 4)]  # each lane its own env's
+
+                def to_groups(m, c):  # the m-th done lane (in lane order) hands its reset key to group m
+                    pending, owner, g0, g1 = c
+                    src = jnp.min(jnp.where(pending, lane, block))
+                    at, mine = lane == src, group == m
+                    return (pending & ~at, jnp.where(mine, src, owner), jnp.where(mine, take(at, k_reset[0]), g0),
+                            jnp.where(mine, take(at, k_reset[1]), g1))
+
+                zi = jnp.zeros_like(lane)
+                _, owner, g0, g1 = jax.lax.fori_loop(0, n_done, to_groups, (done, zi, zi, zi))
+                zero = jnp.zeros_like(key[0])
+                b = [i32(v) for v in _threefry(u32(g0), u32(g1), zero, u32(slot))]  # slot 0: env key, 1: pose key
+
+                def pose_to_group(m, c):
+                    at, mine = lane == 4 * m + 1, group == m
+                    return jnp.where(mine, take(at, b[0]), c[0]), jnp.where(mine, take(at, b[1]), c[1])
+
+                p0, p1 = jax.lax.fori_loop(0, n_done, pose_to_group, (zi, zi))
+                noise = noise_of(*_threefry(u32(p0), u32(p1), zero, u32(slot)))
+                value = jnp.where(slot == 0, f("init_pos") + noise,
+                                  jnp.where(slot == 2, f("init_pole_angle") + noise, noise))
+                # Back to the done lane: slot j's value (x, xd, th, thd) and slot 0's env key.
+                sources = [(j, i32(value)) for j in range(4)] + [(0, b[0]), (0, b[1])]
+
+                def to_owner(m, c):
+                    dest = lane == take(lane == 4 * m, owner)
+                    return tuple(jnp.where(dest, take(lane == 4 * m + j, v), cj) for (j, v), cj in zip(sources, c))
+
+                v = jax.lax.fori_loop(0, n_done, to_owner, (zi,) * len(sources))
+                as_f = lambda w: jax.lax.bitcast_convert_type(w, jnp.float32)  # noqa: E731
+                return as_f(v[0]), as_f(v[2]), as_f(v[1]), as_f(v[3]), u32(v[4]), u32(v[5])
+
+            def fresh_episode(hashed):
+                fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1 = hashed
+                s_fresh = discretise((fresh_x, fresh_xd, fresh_th, fresh_thd))
+                r_fresh = row(s_fresh, done)
+                r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
+                return (fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1, s_fresh, *r_fresh)
+
+            if skip_resets:
+                def none_done(_):
+                    zf, zu = jnp.zeros_like(x), jnp.zeros_like(key[0])
+                    return (zf, zf, zf, zf, zu, zu, jnp.zeros_like(s2), *([zf] * n_actions))
+
+                n_done = jnp.sum(done.astype(jnp.int32))
+                if group_resets and block >= 4:  # groups of four lanes for up to block / 4 done envs, else lane by lane
+                    some_done = lambda n: fresh_episode(jax.lax.cond(  # noqa: E731
+                        n <= block // 4, hashed_by_group, hashed_by_lane, n))
+                else:
+                    some_done = lambda n: fresh_episode(hashed_by_lane(n))  # noqa: E731
+                reset = jax.lax.cond(n_done > 0, some_done, none_done, n_done)
+            else:
+                reset = fresh_episode(hashed_by_lane(None))
+            fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:]
+            plgpu.store(q_ref.at[row_at(cr["s"]) + a], written)
+            w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
+            cr["x"], cr["th"], cr["xd"], cr["thd"] = w(fresh[0], x), w(fresh[1], th), w(fresh[2], xd), w(fresh[3], thd)
+            cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(fresh[0], obs[0]), w(fresh[2], obs[1]), w(fresh[1], obs[2]),
+                                                      w(fresh[3], obs[3]))
+            cr["reward"] = w(jnp.float32(0.0), reward)
+            cr["term"] = w(0, term.astype(jnp.int32))
+            cr["trunc"] = w(0, trunc.astype(jnp.int32))
+            cr["steps"] = w(0, env_steps_now)
+            cr["command"] = w(jnp.float32(0.0), command)
+            cr["ek0"], cr["ek1"] = w(rk[0], cr["ek0"]), w(rk[1], cr["ek1"])
+            cr["pnan"] = w(0, pnan.astype(jnp.int32))
+            cr["s"] = w(s_fresh, s2)
+            for k in range(n_actions):
+                cr[f"r{k}"] = w(r_fresh[k], r_s2[k])
+            eps = cr["epsilon"]
+            cr["epsilon"] = w(jnp.where(eps > f("epsilon_min"), eps * f("epsilon_discount"), eps), eps)
+            cr["action"] = a
+            cr["episode"] = cr["episode"] + record.astype(jnp.int32)
+            cr["ep_return"] = w(jnp.float32(0.0), ep_return)
+            cr["k0"], cr["k1"] = k_next
+            cr["nan_episodes"] = cr["nan_episodes"] + (record & pnan).astype(jnp.int32)
+            cr["env_steps"] = cr["env_steps"] + active.astype(jnp.int32)
+            return cr
+
+        carry = jax.lax.fori_loop(0, steps_per_chunk, step, carry)
+        for name, ref in zip(_NAMES, outs):
+            ref[...] = carry[name].astype(ref.dtype)
+
+    return kernel
+
+
+def _block_for(n: int, cap: int | None = None) -> int:
+    """The largest power of two that divides ``n``, at most ``cap`` (default :data:`BLOCK`)."""
+    cap = BLOCK if cap is None else cap
+    block = 1
+    while block < cap and n % (2 * block) == 0:
+        block *= 2
+    return block
+
+
+def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> Any:
+    """``trainer.run_chunk`` as one Pallas kernel (the values of :meth:`jaxrobo.training.trainer.Trainer.step`, scanned
+    ``chunk_steps`` times). Interpreted on a CPU, compiled through Triton on a GPU."""
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+
+    from jaxrobo.task.env import EnvState
+    from jaxrobo.physics.sim import JointState
+    from jaxrobo.tabular.learner import AgentState
+
+    check(trainer)
+    gpu = jax.default_backend() == "gpu"
+    c, env, disc = trainer.config, trainer.env, trainer.disc
+    n, n_states, n_actions = c.n_envs, disc.n_states, trainer.n_actions
+    sim = env.robot.sim
+    records = c.record_episodes
+    n_rec = runner.returns.shape[1]
+    ep = env_params
+    f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+    fvals = [f32(getattr(ep, name)) for name in _F[:9]]
+    fvals += [f32(getattr(agent_params, name)) for name in ("alpha", "gamma", "epsilon_discount", "epsilon_min")]
+    fvals += [disc.low[d] for d in range(4)] + [disc.width[d] for d in range(4)]
+    fvals += [jnp.float32(0.0)] * (_PARAMS - len(fvals))  # Triton blocks are powers of two long
+    fp = jnp.stack([jnp.reshape(v, ()).astype(jnp.float32) for v in fvals])
+    ip = jnp.reshape(jnp.asarray(ep.max_episode_steps, jnp.int32), (1,))
+
+    es = runner.env_state
+    ps = es.pipeline_state
+    ekey = jax.random.key_data(es.key)
+    key = jax.random.key_data(runner.key)
+    if runner.q_rows is None:
+        rows = runner.agent.q[jnp.arange(n), 0, runner.s, :]
+    else:
+        rows = runner.q_rows[:, 0, :]
+    i32 = lambda v: jnp.asarray(v).astype(jnp.int32)  # noqa: E731
+    cols = dict(x=ps.qpos[:, 0], th=ps.qpos[:, 1], xd=ps.qvel[:, 0], thd=ps.qvel[:, 1],
+                o0=es.obs[:, 0], o1=es.obs[:, 1], o2=es.obs[:, 2], o3=es.obs[:, 3], reward=es.reward,
+                term=i32(es.terminated), trunc=i32(es.truncated), steps=es.steps, command=es.task.command,
+                ek0=ekey[:, 0], ek1=ekey[:, 1], pnan=i32(es.physics_nan), s=runner.s,
+                action=runner.action, epsilon=runner.epsilon, episode=runner.episode, ep_return=runner.ep_return,
+                k0=key[:, 0], k1=key[:, 1], nan_episodes=runner.nan_episodes, env_steps=runner.env_steps)
+    for k in range(4):
+        cols[f"r{k}"] = rows[:, k] if k < n_actions else jnp.zeros(n, jnp.float32)
+    if records:
+        cols.update(ret_sum=jnp.zeros(n, jnp.float32), len_sum=jnp.zeros(n, jnp.int32), term_any=jnp.zeros(n, jnp.int32))
+    else:
+        cols.update(ret_sum=runner.returns[:, 0], len_sum=runner.lengths[:, 0], term_any=i32(runner.terminated[:, 0]))
+    col_in = [jnp.asarray(cols[name]).astype(dtype) for name, dtype in _COLS]
+    block = _block_for(n, trainer.plan.fused_block)
+    tiled = bool(TILED_TABLES)
+    q_in = runner.agent.q.reshape(n, n_states, n_actions)
+    if tiled:
+        q_in = q_in.reshape(n // block, block, n_states, n_actions).transpose(0, 2, 1, 3)
+    big = [q_in.reshape(-1)]
+    if records:
+        big += [runner.returns.reshape(-1), runner.lengths.reshape(-1), i32(runner.terminated).reshape(-1)]
+
+    strides = tuple(int(v) for v in np.cumprod((disc.bins[1:] + (1,))[::-1])[::-1])
+    static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
+              tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
+              tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
+              bool(SKIP_RESETS), bool(GROUP_RESETS), bool(FAST_SINCOS) and libdevice_sincos.verified(),
+              bool(APPROX_SINCOS) and gpu, tiled)
+    kernel = _make_kernel(static)
+    col_spec = pl.BlockSpec((block,), lambda i: (i,))
+    whole = pl.BlockSpec(memory_space=pl.ANY)
+    n_cols = len(_COLS)
+    in_specs = [pl.BlockSpec((_PARAMS,), lambda i: (0,)), pl.BlockSpec((1,), lambda i: (0,))] + [col_spec] * n_cols + [whole] * len(big)
+    out_specs = [col_spec] * n_cols + [whole] * len(big)
+    out_shape = [jax.ShapeDtypeStruct((n,), dtype) for _, dtype in _COLS] + \
+                [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in big]
+    aliases = {2 + n_cols + i: n_cols + i for i in range(len(big))}
+    interpret = jax.default_backend() != "gpu"
+    # Triton, not Mosaic GPU: the kernel gathers and scatters single words by computed index, which Triton's
+    # pointer arithmetic does and Mosaic GPU's bulk copies do not.
+    warps = NUM_WARPS or max(1, min(8, block // 32))
+    params = None if interpret else plgpu.CompilerParams(num_warps=warps, num_stages=1)
+    outs = pl.pallas_call(kernel, out_shape=out_shape, grid=(n // block,), in_specs=in_specs, out_specs=out_specs,
+                          input_output_aliases=aliases, interpret=interpret, compiler_params=params,
+                          name="cartpole_qlearn_chunk")(fp, ip, *col_in, *big)
+    o = dict(zip(_NAMES, outs[:n_cols]))
+    big_out = outs[n_cols:]
+    boolean = lambda v: v.astype(bool)  # noqa: E731
+    impl = jax.random.key_impl(runner.key)
+    env_state = EnvState(
+        JointState(jnp.stack([o["x"], o["th"]], 1), jnp.stack([o["xd"], o["thd"]], 1)),
+        jnp.stack([o["o0"], o["o1"], o["o2"], o["o3"]], 1), o["reward"], boolean(o["term"]), boolean(o["trunc"]),
+        o["steps"], type(es.task)(command=o["command"]),
+        jax.random.wrap_key_data(jnp.stack([o["ek0"], o["ek1"]], 1), impl=impl), boolean(o["pnan"]))
+    q = big_out[0]
+    if tiled:
+        q = q.reshape(n // block, n_states, block, n_actions).transpose(0, 2, 1, 3)
+    q = q.reshape(runner.agent.q.shape)
+    q_rows = None
+    if runner.q_rows is not None:
+        q_rows = jnp.stack([o[f"r{k}"] for k in range(n_actions)], 1)[:, None, :]
+    if records:
+        returns = big_out[1].reshape(runner.returns.shape)
+        lengths = big_out[2].reshape(runner.lengths.shape)
+        terminated = boolean(big_out[3].reshape(runner.terminated.shape))
+    else:
+        returns = runner.returns.at[:, 0].set(o["ret_sum"])
+        lengths = runner.lengths.at[:, 0].set(o["len_sum"])
+        terminated = runner.terminated.at[:, 0].set(boolean(o["term_any"]))
+    return runner.replace(env_state=env_state, agent=AgentState(q, runner.agent.visited), s=o["s"], q_rows=q_rows,
+                  action=o["action"], epsilon=o["epsilon"], episode=o["episode"], ep_return=o["ep_return"],
+                  key=jax.random.wrap_key_data(jnp.stack([o["k0"], o["k1"]], 1), impl=impl),
+                  returns=returns, lengths=lengths, terminated=terminated, nan_episodes=o["nan_episodes"],
+                  env_steps=o["env_steps"])

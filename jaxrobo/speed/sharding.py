@@ -1,0 +1,178 @@
+"""Scale-out: shard a batch axis (sweep configurations, or a training run's environments) over devices and hosts.
+
+Every row of a batch (one sweep configuration × seed, or one environment with its own table) is independent,
+so the batch axis is split over a 1-D :class:`jax.sharding.Mesh` of all devices with
+``NamedSharding(mesh, P("batch"))`` and XLA runs each device's slice with no communication; the results are
+the same numbers as the unsharded run. Leaves without the batch axis (a shared table, scalars) are replicated.
+
+Several hosts: start the same command on every host after :func:`initialize_distributed` (see
+``docs/scaling.md``); ``jax.devices()`` then lists every device of every host, each process feeds only its own
+shards (:func:`put_batch`) and :func:`gather` brings the whole result to every process.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+AXIS = "batch"
+
+
+def initialize_distributed(coordinator: str | None = None, num_processes: int | None = None,
+                           process_id: int | None = None) -> bool:
+    """Join a multi-host run; returns True if this is one (more than one process).
+
+    Arguments default to ``$JAXROBO_COORDINATOR`` (``host:port`` of process 0), ``$JAXROBO_NUM_PROCESSES`` and
+    ``$JAXROBO_PROCESS_ID``; with none of them set, JAX's own detection (SLURM, Open MPI, Cloud TPU) is tried
+    only if ``$JAXROBO_DISTRIBUTED=auto``, else nothing is done (a single-host run).
+    """
+    try:
+        from jax._src import distributed
+
+        if distributed.global_state.client is not None:  # already joined (e.g. by the CLI)
+            return jax.process_count() > 1
+    except (ImportError, AttributeError):
+        pass
+    coordinator = coordinator or os.environ.get("JAXROBO_COORDINATOR")
+    if num_processes is None and os.environ.get("JAXROBO_NUM_PROCESSES"):
+        num_processes = int(os.environ["JAXROBO_NUM_PROCESSES"])
+    if process_id is None and os.environ.get("JAXROBO_PROCESS_ID"):
+        process_id = int(os.environ["JAXROBO_PROCESS_ID"])
+    if coordinator is None and num_processes is None and process_id is None:
+        if os.environ.get("JAXROBO_DISTRIBUTED", "").lower() != "auto":
+            return False
+        jax.distributed.initialize()
+    else:
+        if coordinator is None or num_processes is None or process_id is None:
+            raise ValueError("multi-host: set all of JAXROBO_COORDINATOR (host:port), JAXROBO_NUM_PROCESSES and "
+                             f"JAXROBO_PROCESS_ID (got {coordinator!r}, {num_processes!r}, {process_id!r})")
+        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                                   process_id=process_id)
+    return jax.process_count() > 1
+
+
+def make_mesh(devices: list | None = None) -> Mesh:
+    """A 1-D mesh named ``batch`` over the given devices (default: every device of every process)."""
+    devices = list(jax.devices()) if devices is None else list(devices)
+    return Mesh(np.asarray(devices), (AXIS,))
+
+
+def padded_size(n: int, mesh: Mesh | None) -> int:
+    """``n`` rounded up to a multiple of the number of devices."""
+    if mesh is None:
+        return n
+    d = mesh.devices.size
+    return int(math.ceil(n / d) * d)
+
+
+def pad_rows(tree: Any, n: int) -> Any:
+    """Host arrays padded along axis 0 to ``n`` rows by repeating the last row (padding rows are dropped later)."""
+    def pad(x):
+        x = np.asarray(x)
+        if x.shape[0] == n:
+            return x
+        extra = np.repeat(x[-1:], n - x.shape[0], axis=0)
+        return np.concatenate([x, extra], axis=0)
+
+    return jax.tree.map(pad, tree)
+
+
+def batch_sharding(mesh: Mesh) -> NamedSharding:
+    return NamedSharding(mesh, P(AXIS))
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+    return NamedSharding(mesh, P())
+
+
+def shardings_like(tree: Any, mesh: Mesh, batch: int) -> Any:
+    """A sharding per leaf: split along axis 0 where that axis has length ``batch``, replicated otherwise."""
+    def pick(x):
+        shape = getattr(x, "shape", ())
+        return batch_sharding(mesh) if len(shape) >= 1 and shape[0] == batch else replicated(mesh)
+
+    return jax.tree.map(pick, tree)
+
+
+def put_batch(tree: Any, mesh: Mesh | None) -> Any:
+    """Host arrays with a leading batch axis → device arrays split over the mesh (each process gives its part).
+
+    Without a mesh, a plain ``device_put`` to the default device.
+    """
+    if mesh is None:
+        return jax.tree.map(jnp.asarray, tree)
+    sharding = batch_sharding(mesh)
+
+    def put(x):
+        x = np.asarray(x)
+        if x.shape[0] % mesh.devices.size:
+            raise ValueError(f"batch of {x.shape[0]} rows does not split over {mesh.devices.size} devices; "
+                             "pad it with pad_rows(padded_size(...)) first")
+        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+    return jax.tree.map(put, tree)
+
+
+def gather(tree: Any) -> Any:
+    """Device arrays (sharded or not, one host or several) → numpy arrays on this host."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        return multihost_utils.process_allgather(tree, tiled=True)
+    return jax.device_get(tree)
+
+
+def jit_batched(fn: Callable, mesh: Mesh | None, batch: int, example_args: tuple, donate: tuple[int, ...] = (),
+                compiler_options: dict[str, Any] | None = None) -> Callable:
+    """``jax.jit(fn)`` with every argument and result split along its batch axis over ``mesh`` (if any)."""
+    if mesh is None:
+        return jax.jit(fn, donate_argnums=donate, compiler_options=compiler_options)
+    out = jax.eval_shape(fn, *example_args)
+    return jax.jit(fn, in_shardings=shardings_like(example_args, mesh, batch),
+                   out_shardings=shardings_like(out, mesh, batch), donate_argnums=donate,
+                   compiler_options=compiler_options)
+
+
+class ShardedTrainer:
+    """A :class:`jaxrobo.training.trainer.Trainer` whose ``n_envs`` environments are split over the devices of a mesh.
+
+    ``init`` / ``run_chunk`` are jitted with the Runner's env axis sharded (a shared table is replicated and
+    its batched update becomes a cross-device reduction). ``n_envs`` must be a multiple of the device count.
+    """
+
+    def __init__(self, trainer: Any, mesh: Mesh | None = None):
+        self.trainer = trainer
+        self.mesh = make_mesh() if mesh is None else mesh
+        n, d = trainer.config.n_envs, self.mesh.devices.size
+        if n % d:
+            raise ValueError(f"n_envs={n} must be a multiple of the {d} devices to shard environments over them")
+        if d > 1 and trainer.env_group is not None:
+            # Stepping the env axis group after group would slice across the devices' shards: each device steps
+            # its own n_envs / d envs at once instead (the same values).
+            self.trainer = trainer = copy.copy(trainer)
+            trainer.env_group = None
+        self._init = None
+        self._chunk = None
+
+    def init(self, key: jax.Array, agent_params: Any, env_params: Any) -> Any:
+        if self._init is None:
+            out = jax.eval_shape(self.trainer.init, key, agent_params, env_params)
+            self._init = jax.jit(self.trainer.init, out_shardings=shardings_like(out, self.mesh,
+                                                                                  self.trainer.config.n_envs))
+        return self._init(key, agent_params, env_params)
+
+    def run_chunk(self, runner: Any, agent_params: Any, env_params: Any) -> Any:
+        if self._chunk is None:
+            s = shardings_like(runner, self.mesh, self.trainer.config.n_envs)
+            rep = replicated(self.mesh)
+            self._chunk = jax.jit(self.trainer.run_chunk, donate_argnums=0,
+                                  in_shardings=(s, jax.tree.map(lambda _: rep, agent_params),
+                                                jax.tree.map(lambda _: rep, env_params)),
+                                  out_shardings=s)
+        return self._chunk(runner, agent_params, env_params)

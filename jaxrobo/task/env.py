@@ -1,0 +1,238 @@
+"""Functional environments: the task layer with the seed's hooks, over a robot over the sim layer.
+
+``reset(key, params) -> EnvState`` and ``step(state, action, params) -> EnvState`` are pure; the state and the
+parameters are pytrees, so both jit and vmap (over environments and over parameters). A task subclass
+implements the six hooks of openai_ros' task env as pure functions:
+
+===========================  ====================================================================
+hook                         returns
+===========================  ====================================================================
+``_set_init_pose``           initial ``(qpos, qvel)`` of the robot (may be random)
+``_init_env_variables``      the task's per-episode variables (a pytree), fresh at every reset
+``_set_action``              the robot command for an action, and updated task variables
+``_get_obs``                 the observation vector
+``_is_done``                 True when the episode terminates (failure or success)
+``_compute_reward``          the reward, and updated task variables
+===========================  ====================================================================
+
+``step`` runs them in the seed's order (``_set_action`` → physics → ``_get_obs`` → ``_is_done`` →
+``_compute_reward``), then adds the time limit (``truncated``, distinct from ``terminated``) and a guard that
+ends the episode, and flags it, if the physics produced a non-finite number, so NaN never reaches a learner.
+``step`` does not reset; :class:`jaxrobo.task.wrappers.AutoReset` and the trainer reset with fresh randomness.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+
+from jaxrobo.physics import fused
+from jaxrobo.core import rng, spaces
+from jaxrobo.core.precision import check_precision
+from jaxrobo.task.robot import Robot
+from jaxrobo.core.struct import param, pytree_dataclass
+
+
+@pytree_dataclass
+class EnvState:
+    """Everything a step needs; ``task`` holds the task's per-episode variables."""
+
+    pipeline_state: Any
+    obs: jax.Array
+    reward: jax.Array
+    terminated: jax.Array
+    truncated: jax.Array
+    steps: jax.Array
+    task: Any
+    key: jax.Array
+    physics_nan: jax.Array
+    info: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def done(self) -> jax.Array:
+        return self.terminated | self.truncated
+
+
+@pytree_dataclass
+class BaseParams:
+    """Parameters every task has; tasks extend this with their own (see each task's environment card)."""
+
+    max_episode_steps: int = param(1000, low=1, doc="episode step cap (the seed's timestep_limit)", unit="steps")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvSpec:
+    """How an environment was registered: id, step limit and the default overrides it was made with."""
+
+    id: str
+    #: None in a registration that leaves the step limit to its task's Params default (``jaxrobo.spec`` and
+    #: ``make`` fill it in).
+    max_episode_steps: int | None
+    description: str = ""
+    config: str | None = None  # YAML with the env parameters (the seed's split)
+    agent_config: str | None = None  # YAML with the learner parameters
+
+
+@dataclasses.dataclass(frozen=True)
+class LearningTarget:
+    """What "has learned" means for a task, declared on the task class (:attr:`Env.learning_target`) and read by
+    the training summary (:meth:`jaxrobo.training.summary.TrainResult.summary`), so the trainer knows no task's threshold.
+
+    A table reaches the target when its greedy evaluation's ``metric`` is ``>= threshold``. ``metric`` is one of
+    :data:`TARGET_METRICS`: ``"mean_length"`` / ``"mean_return"`` (mean greedy episode length / return, which the
+    trainer's evaluation records per table: the summary gives the share of evaluated tables that reach the
+    target as ``eval_share_of_tables_<name>``), or ``"success_rate"`` (share of greedy episodes the task counts as
+    a success: for a task whose task variables carry an ``arrived`` flag the evaluation records it too
+    (:func:`jaxrobo.training.driver.evaluate_tables`) and the summary adds ``eval_success_rate`` and the share; for
+    any other task the summary names the target only and the task measures it itself).
+    """
+
+    name: str
+    metric: str
+    threshold: float
+    description: str
+
+    def __post_init__(self) -> None:
+        if self.metric not in TARGET_METRICS:
+            raise ValueError(f"LearningTarget metric={self.metric!r}: allowed values are {', '.join(TARGET_METRICS)}")
+
+
+#: The figures a :class:`LearningTarget` can be stated on.
+TARGET_METRICS = ("mean_length", "mean_return", "success_rate")
+
+
+class Env:
+    """A functional environment. Subclasses declare ``Options`` (static: code paths, shapes, the model) and
+    ``Params`` (traced numbers: limits, gains, goals), both dataclasses built with :func:`jaxrobo.core.struct.param`."""
+
+    Options: ClassVar[type]
+    Params: ClassVar[type]
+    spec: EnvSpec | None = None
+    #: What learning this task means (None: the task declares no target, e.g. one that cannot be learned).
+    learning_target: ClassVar[LearningTarget | None] = None
+
+    def __init__(self, options: Any = None, params: Any = None):
+        # An env built without jaxrobo.make (the task class called directly) meets make's x64 refusal here,
+        # before a task's __init__ builds its model.
+        check_precision(f"{type(self).__name__}(...)")
+        self.options = options if options is not None else self.Options()
+        self.default_params = params if params is not None else self.Params()
+
+    # ---- interface ------------------------------------------------------------------------------------
+    def reset(self, key: jax.Array, params: Any = None) -> EnvState:
+        raise NotImplementedError
+
+    def step(self, state: EnvState, action: jax.Array, params: Any = None) -> EnvState:
+        raise NotImplementedError
+
+    @property
+    def num_actions(self) -> int:
+        return self.action_space().n
+
+    def action_space(self, params: Any = None) -> spaces.Discrete:
+        raise NotImplementedError
+
+    def observation_space(self, params: Any = None) -> spaces.Box:
+        raise NotImplementedError
+
+    @property
+    def observation_size(self) -> int:
+        return int(self.observation_space().shape[0])
+
+    def state_bounds(self, params: Any = None) -> tuple[jax.Array, jax.Array]:
+        """Finite per-dimension ranges of the observation that a discretiser should cover."""
+        raise NotImplementedError
+
+    @property
+    def name(self) -> str:
+        return self.spec.id if self.spec is not None else type(self).__name__
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name} {self.options}>"
+
+
+class TaskEnv(Env):
+    """An environment built from a robot and the seed's six task hooks."""
+
+    robot: Robot
+    #: The dtype ``step`` casts an action to before ``_set_action``: int32 for a ``Discrete`` task (every built-in
+    #: tabular id), float32 for a task declaring a ``spaces.Box`` action space (the continuous ids).
+    action_dtype: ClassVar[Any] = jnp.int32
+    #: The task's whole step as one batch kernel, where the task offers one (the Goto tasks on the ``rigid``
+    #: backend, :mod:`envs.quadcopter.goto_kernel`); None otherwise. Under ``ExecutionPlan(fused="pallas",
+    #: task_kernel=True)`` :meth:`step` runs :meth:`_kernel_step` instead of the hooks (:func:`jaxrobo.speed.plan.
+    #: task_kernel` reads this attribute), which stay the task's definition the kernel is tested against.
+    step_kernel: Any = None
+
+    # ---- the seed's hooks (pure; override in tasks) ---------------------------------------------------
+    def _set_init_pose(self, key: jax.Array, params: Any) -> tuple[jax.Array, jax.Array]:
+        raise NotImplementedError
+
+    def _init_env_variables(self, key: jax.Array, pipeline_state: Any, params: Any) -> Any:
+        return ()
+
+    def _set_action(self, action: jax.Array, task: Any, params: Any) -> tuple[jax.Array, Any]:
+        raise NotImplementedError
+
+    def _get_obs(self, pipeline_state: Any, task: Any, params: Any) -> jax.Array:
+        raise NotImplementedError
+
+    def _is_done(self, obs: jax.Array, pipeline_state: Any, task: Any, params: Any) -> jax.Array:
+        raise NotImplementedError
+
+    def _compute_reward(self, obs: jax.Array, done: jax.Array, action: jax.Array, pipeline_state: Any,
+                        task: Any, params: Any) -> tuple[jax.Array, Any]:
+        raise NotImplementedError
+
+    # ---- composition ----------------------------------------------------------------------------------
+    def reset(self, key: jax.Array, params: Any = None) -> EnvState:
+        params = self.default_params if params is None else params
+        key, pose_key, var_key = rng.split(key, 3)
+        qpos, qvel = self._set_init_pose(pose_key, params)
+        pipeline_state = self.robot.sim.init(qpos, qvel)
+        task = self._init_env_variables(var_key, pipeline_state, params)
+        obs = self._get_obs(pipeline_state, task, params)
+        false = jnp.zeros((), bool)
+        return EnvState(pipeline_state, obs, jnp.zeros((), jnp.float32), false, false, jnp.zeros((), jnp.int32),
+                        task, key, false)
+
+    def _kernel_step(self, state: EnvState, action: jax.Array, params: Any) -> EnvState:
+        """:meth:`step` through :attr:`step_kernel` (one env; a vmapped step makes one call over the batch)."""
+        raise NotImplementedError
+
+    def step(self, state: EnvState, action: jax.Array, params: Any = None) -> EnvState:
+        params = self.default_params if params is None else params
+        action = jnp.asarray(action, self.action_dtype)
+        if self.step_kernel is not None and fused.task_kernels():
+            return self._kernel_step(state, action, params)
+        command, task = self._set_action(action, state.task, params)
+        pipeline_state = self.robot.advance(state.pipeline_state, command)
+        ok = self.robot._check_all_systems_ready(pipeline_state)
+        obs = self._get_obs(pipeline_state, task, params)
+        ok = ok & jnp.all(jnp.isfinite(obs))
+        terminated = self._is_done(obs, pipeline_state, task, params)
+        reward, task = self._compute_reward(obs, terminated, action, pipeline_state, task, params)
+        # A non-finite physics state ends the episode with zero reward and the last finite observation.
+        obs = jnp.where(ok, obs, state.obs)
+        reward = jnp.where(ok, reward, 0.0).astype(jnp.float32)
+        terminated = terminated | ~ok
+        steps = state.steps + 1
+        truncated = (steps >= params.max_episode_steps) & ~terminated
+        return EnvState(pipeline_state, obs, reward, terminated, truncated, steps, task, state.key, ~ok)
+
+
+# ---- the layers of a wrapped env ---------------------------------------------------------------------------
+def layers(env: Env) -> list[Env]:
+    """The env and every env it wraps (wrappers hold theirs in ``.env``), outermost first."""
+    out = [env]
+    while hasattr(out[-1], "env"):
+        out.append(out[-1].env)
+    return out
+
+
+def simulator_of(env: Env) -> Any:
+    """The simulator under an env and its wrappers, or None for an env without a robot (e.g. a closed form)."""
+    robot = getattr(layers(env)[-1], "robot", None)
+    return None if robot is None else robot.sim

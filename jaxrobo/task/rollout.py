@@ -1,0 +1,167 @@
+"""Episodes of a policy, in one compiled computation: greedy evaluation of tables, random baselines, success rates.
+
+Every place that runs a policy's episodes goes through here: the trainer's evaluation
+(:meth:`jaxrobo.training.trainer.Trainer.evaluate`), the quadcopter flights (:mod:`jaxrobo.show`, the benchmarks) and the
+greedy policy of a video (:func:`jaxrobo.pictures.render.q_policy`). So a greedy policy breaks ties one way everywhere:
+uniformly at random among the maximal action values, drawn from the step's key (:func:`greedy_action`, which is
+:func:`jaxrobo.tabular.learner.greedy`).
+
+Public surface:
+
+``Policy``
+    ``policy(key, obs) -> action``: a pure, traceable function of the step's key and one observation.
+:func:`greedy_action` ``(key, values)``
+    The greedy action of a row of action values, ties broken at random by ``key``: the one tie-breaking rule.
+:func:`greedy_policy` ``(q, discretiser)``
+    Greedy in one learner's tables ``q [n_tables, n_states, n_actions]`` (Double Q-learning acts on the sum).
+:func:`random_policy` ``(n_actions)``
+    Uniform random actions.
+:func:`rollout` ``(env, policy, key, n_episodes, horizon=None, params=None, observe=None)``
+    ``n_episodes`` episodes of at most ``horizon`` steps, vmapped: returns, lengths, the first and last states,
+    and with ``observe`` a per-step record (for flight plots).
+:func:`outcomes` ``(out)``
+    How each episode of a ``rollout`` ended: returns, lengths, ``terminated`` and, where the task has one, ``arrived``.
+:func:`success_rate` ``(env, policy, key, n_episodes=200, params=None, horizon=None)``
+    For tasks whose task variables carry ``arrived`` / ``crashed`` flags (QuadcopterGoto): the fractions of
+    episodes that arrive, fail or time out, and the mean episode length, as Python floats.
+:func:`host_policy` ``(policy, seed=0)``
+    A ``Policy`` as a host function ``obs -> int`` with its own key chain, for host loops such as
+    :func:`jaxrobo.pictures.render.rollout_frames`.
+
+Keys: episode ``i`` uses ``k = split(key, n_episodes)[i]``, resets from ``split(k)[0]`` and takes its ``t``-th
+action with ``split(split(k)[1], horizon)[t]``; the trainer's evaluation figures depend on this layout.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrobo.tabular import learner as tabular
+
+__all__ = ["Policy", "greedy_action", "greedy_policy", "random_policy", "rollout", "success_rate", "host_policy"]
+
+#: ``(key, obs) -> action``.
+Policy = Callable[[jax.Array, jax.Array], jax.Array]
+
+
+def greedy_action(key: jax.Array, values: jax.Array) -> jax.Array:
+    """argmax of ``values`` (the last axis), ties broken uniformly at random with ``key``."""
+    return tabular.greedy(key, values)
+
+
+def greedy_policy(q: jax.Array, discretiser: Callable[[jax.Array], jax.Array]) -> Policy:
+    """Greedy in one learner's tables ``q [n_tables, n_states, n_actions]``: the action values of the state
+    ``discretiser(obs)`` are the table's row, or the sum of both rows for Double Q-learning
+    (:func:`jaxrobo.tabular.learner.policy_values`, as the learner acts); ties at random (:func:`greedy_action`).
+    ``discretiser`` must be traceable (a :class:`jaxrobo.tabular.discretise.Discretiser`)."""
+    q = jnp.asarray(q)
+    if q.ndim != 3:
+        raise ValueError(f"q has shape {q.shape}; expected [n_tables, n_states, n_actions]")
+    return lambda k, obs: greedy_action(k, tabular.policy_values(q[:, discretiser(obs), :]))
+
+
+def random_policy(n_actions: int) -> Policy:
+    """Uniformly random actions in ``0 .. n_actions-1``."""
+    return lambda k, obs: jax.random.randint(k, (), 0, n_actions, dtype=jnp.int32)
+
+
+def _horizon(env: Any, horizon: int | None) -> int:
+    if horizon is not None:
+        if int(horizon) < 1:
+            raise ValueError(f"horizon={horizon}: expected an integer >= 1")
+        return int(horizon)
+    spec = getattr(env, "spec", None)
+    if spec is None or not spec.max_episode_steps:
+        raise ValueError(f"{env!r} has no spec.max_episode_steps: pass horizon (the step cap per episode)")
+    return int(spec.max_episode_steps)
+
+
+def rollout(env: Any, policy: Policy, key: jax.Array, n_episodes: int, horizon: int | None = None,
+            params: Any = None, observe: Callable[[Any], Any] | None = None) -> dict[str, Any]:
+    """``n_episodes`` episodes of ``policy``, each of at most ``horizon`` steps (default: the env spec's
+    ``max_episode_steps``); traceable (jit it, or call it inside a jitted function).
+
+    Returns a dict of ``[n_episodes, ...]`` arrays: ``return`` (sum of rewards until the episode ends),
+    ``length`` (steps until it ends, ``horizon`` if it does not), ``first`` (the reset ``EnvState``) and
+    ``last`` (the state the episode ended in; its ``task`` holds a task's outcome flags). With ``observe``
+    (``EnvState -> pytree``, e.g. the robot's position) also ``trace`` (``observe`` of the first state and of
+    the state after each step, frozen once the episode has ended: ``[n, horizon+1, ...]``), ``alive``
+    (``[n, horizon+1]``, True while the episode runs, including its last state), ``reward`` (``[n, horizon]``,
+    0 after the end) and ``action`` (``[n, horizon]``, meaningful where ``alive[:, 1:]``).
+
+    The env keeps stepping after an episode ends (a scan has a fixed length); nothing after the end is counted.
+    """
+    params = env.default_params if params is None else params
+    horizon = _horizon(env, horizon)
+
+    def episode(k):
+        k_reset, k_run = jax.random.split(k)
+        state = env.reset(k_reset, params)
+
+        def body(carry, k_step):
+            state, last, ret, length, alive = carry
+            a = policy(k_step, state.obs)
+            nxt = env.step(state, a, params)
+            ret = ret + jnp.where(alive, nxt.reward, 0.0)
+            length = length + alive.astype(jnp.int32)
+            last = jax.tree.map(lambda n, o: jnp.where(alive, n, o), nxt, last)
+            out = None if observe is None else (observe(last), alive, jnp.where(alive, nxt.reward, 0.0), a)
+            alive = alive & ~nxt.done
+            return (nxt, last, ret, length, alive), out
+
+        init = (state, state, jnp.float32(0), jnp.int32(0), jnp.bool_(True))
+        (_, last, ret, length, _), steps = jax.lax.scan(body, init, jax.random.split(k_run, horizon))
+        out = {"return": ret, "length": length, "first": state, "last": last}
+        if observe is not None:
+            seen, alive, reward, action = steps
+            out["trace"] = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[None], xs]), observe(state), seen)
+            out["alive"] = jnp.concatenate([jnp.ones(1, bool), alive])
+            out["reward"], out["action"] = reward, action
+        return out
+
+    return jax.vmap(episode)(jax.random.split(key, n_episodes))
+
+
+def outcomes(out: dict[str, Any]) -> dict[str, jax.Array]:
+    """How each episode of a :func:`rollout` ended: ``return``, ``length``, ``terminated`` and, for a task whose
+    task variables carry an ``arrived`` flag (QuadcopterGoto, ArmReach), ``arrived``; each ``[n_episodes]``."""
+    last = out["last"]
+    res = {"return": out["return"], "length": out["length"], "terminated": last.terminated}
+    arrived = getattr(last.task, "arrived", None)
+    if arrived is not None:
+        res["arrived"] = jnp.asarray(arrived, bool)
+    return res
+
+
+def success_rate(env: Any, policy: Policy, key: jax.Array, n_episodes: int = 200, params: Any = None,
+                 horizon: int | None = None) -> dict[str, float]:
+    """Fractions of ``n_episodes`` episodes that arrive (``success``), fail (``failure``: crash, leaving the
+    workspace, a limit) or run out of steps (``timeout``), and the mean episode length (``mean_steps``), for a
+    task whose task variables carry ``arrived`` and ``crashed`` flags (QuadcopterGoto)."""
+    probe = jax.eval_shape(lambda k: env.reset(k, env.default_params if params is None else params),
+                           jax.random.key(0))
+    task = getattr(probe, "task", None)
+    if not (hasattr(task, "arrived") and hasattr(task, "crashed")):
+        raise ValueError(f"{getattr(env, 'name', env)!r}: success_rate needs a task with arrived/crashed flags")
+    last = jax.jit(lambda k: rollout(env, policy, k, n_episodes, horizon, params)["last"])(key)
+    arrived, crashed = np.asarray(last.task.arrived), np.asarray(last.task.crashed)
+    return {"success": float(arrived.mean()), "failure": float(crashed.mean()),
+            "timeout": float((~arrived & ~crashed).mean()), "mean_steps": float(np.asarray(last.steps).mean())}
+
+
+class host_policy:  # noqa: N801 - used like a function: host_policy(policy, seed)(obs)
+    """``policy`` as a host function ``obs -> int``: jitted once, the ``t``-th call acting with
+    ``fold_in(key(seed), t)``, so a host loop breaks ties by the same rule as :func:`rollout`."""
+
+    def __init__(self, policy: Policy, seed: int = 0):
+        self._act = jax.jit(policy)
+        self._key = jax.random.key(seed)
+        self._t = 0
+
+    def __call__(self, obs: Any) -> int:
+        k = jax.random.fold_in(self._key, self._t)
+        self._t += 1
+        return int(self._act(k, jnp.asarray(obs)))

@@ -1,0 +1,147 @@
+"""Checkpoints: a training carry saved whole to one ``.npz`` and loaded back only into the run that wrote it.
+
+``jaxrobo train`` saves its carry (:func:`save_checkpoint`) now and then and when interrupted;
+``jaxrobo train --resume`` reads it back (:func:`load_checkpoint`), refusing with :class:`CheckpointError` a
+checkpoint whose fingerprint (:func:`carry_fingerprint`: the resolved run config, the library versions, the
+carry's structure and the sources' hash) differs from the run's own, saying what differs
+(:func:`fingerprint_mismatch`). ``jaxrobo sweep`` keeps the metrics of its finished groups in the same kind of
+file (:mod:`jaxrobo.training.sweep`): both write through :func:`write_npz` (atomic, no pickled objects) and read through
+:func:`read_npz`.
+
+Public surface: :data:`CHECKPOINT_FORMAT`, :class:`CheckpointError`, :func:`carry_template`,
+:func:`carry_fingerprint`, :func:`fingerprint_mismatch`, :func:`save_checkpoint`, :func:`read_fingerprint`,
+:func:`load_checkpoint`, :func:`write_npz`, :func:`read_npz`.
+"""
+from __future__ import annotations
+
+import json
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrobo.io import rundir
+from jaxrobo.core.config import ConfigError, flat_keys
+
+if TYPE_CHECKING:
+    from jaxrobo.tabular.learner import AgentParams
+    from jaxrobo.training.trainer import Runner, Trainer
+
+#: Bumped when the checkpoint layout changes.
+CHECKPOINT_FORMAT = 1
+
+
+class CheckpointError(ConfigError):
+    """A checkpoint that cannot be loaded: unreadable, or from another config or code version (a
+    :class:`~jaxrobo.core.config.ConfigError`: the command refuses it at its boundary, exit status 2)."""
+
+
+def write_npz(path: str, **arrays: Any) -> None:
+    """``arrays`` (plain arrays, no pickled objects) to ``path`` as an uncompressed ``.npz``, atomically: a reader
+    or a crash sees the previous file or this one, never a torn one (:func:`jaxrobo.io.rundir.atomic_savez`).
+
+    Why npz rather than orbax-checkpoint: what is saved is one single-host pytree of a few arrays (or a few
+    metrics), written now and then as a whole; npz does that with numpy alone, while orbax is a heavy dependency
+    (tensorstore, async managers, a directory layout per step) that brings nothing a single host needs."""
+    rundir.atomic_savez(path, **arrays)
+
+
+def read_npz(path: str, what: str = "the checkpoint") -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` at ``path`` (read without unpickling); :class:`CheckpointError` naming
+    ``what`` when it cannot be read."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as err:
+        raise CheckpointError(f"{path}: cannot read {what} ({err})") from err
+
+
+def _is_key(x: Any) -> bool:
+    return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any = None) -> Runner:
+    """The carry's structure, shapes and dtypes (``ShapeDtypeStruct`` leaves), traced without compiling."""
+    env_params = trainer.env.default_params if env_params is None else env_params
+    return jax.eval_shape(trainer.init, jax.random.key(trainer.config.seed), agent_params, env_params)
+
+
+def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint must match to be loaded: the resolved run config, the jaxrobo and JAX versions, the
+    carry's tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`jaxrobo.io.rundir.source_hash`)."""
+    from jaxrobo.core.version import __version__
+
+    leaves, treedef = jax.tree.flatten(template)
+    return json.loads(json.dumps({
+        "format": CHECKPOINT_FORMAT, "config": run_config, "jaxrobo": __version__, "jax": jax.__version__,
+        "treedef": str(treedef), "leaves": [[list(x.shape), str(x.dtype)] for x in leaves],
+        "sources": rundir.source_hash()}))
+
+
+def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: dict[str, Any]) -> None:
+    """Write the whole training carry to ``path`` (``.npz``), atomically.
+
+    Layout (``np.savez``, no pickled objects, so ``np.load(allow_pickle=False)`` reads it): ``leaf_<i>`` the
+    i-th leaf of ``jax.tree.flatten(runner)`` as a plain array (a PRNG key array as its ``jax.random.key_data``),
+    ``key_impls`` a JSON list with each leaf's PRNG implementation name or null, ``chunks_done`` the number of
+    chunks the carry has run, and ``fingerprint`` the JSON of :func:`carry_fingerprint`."""
+    leaves = jax.tree.leaves(runner)
+    impls = [str(jax.random.key_impl(x)) if _is_key(x) else None for x in leaves]
+    host = jax.device_get([jax.random.key_data(x) if _is_key(x) else x for x in leaves])
+    arrays = {f"leaf_{i}": np.asarray(x) for i, x in enumerate(host)}
+    write_npz(path, **arrays, key_impls=np.array(json.dumps(impls)), chunks_done=np.int64(chunks_done),
+              fingerprint=np.array(json.dumps(fingerprint, sort_keys=True)))
+
+
+def read_fingerprint(path: str) -> tuple[dict[str, Any], int]:
+    """A checkpoint's fingerprint and chunk count, without loading the carry."""
+    with np.load(path, allow_pickle=False) as data:
+        return json.loads(str(data["fingerprint"])), int(data["chunks_done"])
+
+
+def fingerprint_mismatch(saved: dict[str, Any], expected: dict[str, Any]) -> str | None:
+    """Why a checkpoint with fingerprint ``saved`` cannot go on as ``expected`` (None if it can)."""
+    what = {"format": "checkpoint format", "config": "configuration", "jaxrobo": "jaxrobo version",
+            "jax": "JAX version", "treedef": "training carry structure", "leaves": "training carry shapes/dtypes",
+            "sources": "jaxrobo/envs/agents source code"}
+    for field, name in what.items():
+        if saved.get(field) != expected.get(field):
+            if field == "config":
+                a, b = flat_keys(saved.get("config") or {}), flat_keys(expected.get("config") or {})
+                keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+                diff = ", ".join(f"{k}: {a.get(k)!r} in the checkpoint vs {b.get(k)!r} now" for k in keys[:5])
+                return f"the configuration differs ({diff})"
+            if field in ("jaxrobo", "jax"):
+                return f"it was written by {name} {saved.get(field)} (this is {expected.get(field)})"
+            return f"the {name} differs from the one that wrote it"
+    return None
+
+
+
+def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) -> tuple[Runner, int]:
+    """The carry saved at ``path`` and its chunk count, on the default device, checked against ``fingerprint``
+    (:func:`carry_fingerprint` of this run) and ``template``'s structure: refused with :class:`CheckpointError`
+    saying why, rather than loaded, when they differ."""
+    data = read_npz(path, "the checkpoint")
+    try:
+        saved = json.loads(str(data["fingerprint"]))
+        impls = json.loads(str(data["key_impls"]))
+        chunks_done = int(data["chunks_done"])
+    except (KeyError, ValueError) as err:
+        raise CheckpointError(f"{path}: not a jaxrobo checkpoint ({err})") from err
+    why = fingerprint_mismatch(saved, fingerprint)
+    if why is not None:
+        raise CheckpointError(f"{path}: refusing to resume: {why}")
+    specs, treedef = jax.tree.flatten(template)
+    leaves = []
+    for i, (spec, impl) in enumerate(zip(specs, impls)):
+        x = data.get(f"leaf_{i}")
+        if x is None:
+            raise CheckpointError(f"{path}: leaf {i} is missing")
+        leaf = jax.random.wrap_key_data(x, impl=impl) if impl is not None else jnp.asarray(x)
+        if leaf.shape != spec.shape or leaf.dtype != spec.dtype:
+            raise CheckpointError(f"{path}: leaf {i} is {leaf.shape} {leaf.dtype}, expected {spec.shape} "
+                                  f"{spec.dtype}")
+        leaves.append(leaf)
+    return jax.tree.unflatten(treedef, leaves), chunks_done

@@ -1,0 +1,259 @@
+"""The host driver: compile a training chunk once, then run it chunk after chunk from a carry.
+
+One loop serves every caller that trains: :func:`jaxrobo.training.train.train` (``jaxrobo train``), the sweep's compiled
+groups (:class:`jaxrobo.training.sweep.GroupRunner`, a chunk vmapped or sharded over rows) and the benchmarks. The chunk is
+traced and compiled under the run's execution plan (:func:`compile_under`, :func:`compiled_chunk`); the loop
+(:func:`run_chunks`) only dispatches compiled chunks and, between them, reads two numbers (fewest episodes done,
+mean last return) for the done test and the progress bar, so the hot loop never syncs with the host inside a
+chunk. Between chunks it asks a stop hook (``should_stop``: a chunk boundary is the only place a run stops) and
+hands the carry to a checkpoint hook at its cadence (every N chunks and/or every T seconds), and at the end.
+
+:func:`run_training` is a whole training run: compile, loop from a fresh or saved carry, greedy evaluation at the
+end (:func:`evaluate_tables`, whose one flight also counts the arrivals of a task whose target is a success
+rate), a :class:`~jaxrobo.training.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT / SIGTERM into a stop request
+for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
+
+Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
+its :class:`ChunkRun`, :func:`run_training`, :func:`evaluate_tables`, :class:`StopOnSignal`, the hook types
+:data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
+"""
+from __future__ import annotations
+
+import dataclasses
+import signal
+import threading
+import time
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from jaxrobo.tabular import learner as tabular
+from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.training import budget
+from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.core.precision import check_precision
+from jaxrobo.training.summary import TrainResult
+from jaxrobo.training.trainer import Runner, Trainer, progress_stats
+
+#: ``progress(episodes_done_min, nepisodes, mean_last_return)``, called after each chunk.
+ProgressFn = Callable[[int, int, float], None]
+#: ``checkpoint(carry, chunks_done)``, called at the checkpoint cadence and when the run stops early.
+CheckpointFn = Callable[[Any, int], None]
+
+
+# ---- compiling ---------------------------------------------------------------------------------------------------
+def compile_under(plan: ExecutionPlan, jitted: Any, *args: Any) -> Callable:
+    """``jitted`` (a ``jax.jit``-wrapped function) lowered for ``args`` and compiled, traced under ``plan``.
+
+    Traced afresh in every process and every call, so a run executes the code as it is now in this process (a
+    patched physics step, another plan). A second start of the same configuration still skips XLA: the
+    persistent compilation cache (:mod:`jaxrobo.speed.cache`) is keyed on the lowered module, so it serves the
+    executable only when the traced program is the same."""
+    with plan.tracing():
+        return jitted.lower(*args).compile()
+
+
+def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, env_params: Any) -> Callable:
+    """``trainer.run_chunk`` compiled for ``runner`` under the trainer's plan (its compiler options, its
+    trace-time choices), the carry donated: ``runner = chunk(runner, agent_params, env_params)``."""
+    plan = trainer.plan
+    jitted = jax.jit(trainer.run_chunk, donate_argnums=0, compiler_options=plan.xla_options)
+    return compile_under(plan, jitted, runner, agent_params, env_params)
+
+
+def compiled_progress(carry: Runner) -> Callable:
+    """:func:`jaxrobo.training.trainer.progress_stats` compiled for ``carry`` (one run's, or a sweep's batch of rows)."""
+    return jax.jit(progress_stats).lower(carry).compile()
+
+
+# ---- the loop ----------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class ChunkRun:
+    """What :func:`run_chunks` ends with."""
+
+    carry: Any
+    chunks_done: int  # counted from the carry's start (``start_chunk``)
+    done: float | None  # fewest episodes done by any env (None without a ``read``)
+    stopped: bool  # ``should_stop`` ended the loop early
+    seconds: float  # wall time of the loop, the last chunk waited for
+
+
+def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_chunk: int = 0,
+               read: Callable[[Any], Any] | None = None, total: int | None = None,
+               progress: ProgressFn | None = None, should_stop: Callable[[], bool] | None = None,
+               checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
+               checkpoint_seconds: float | None = None, max_seconds: float | None = None) -> ChunkRun:
+    """Run ``carry = chunk(carry)`` until ``n_chunks`` chunks are done (counting the ``start_chunk`` the carry
+    has already run) or every env has done ``total`` episodes.
+
+    ``read(carry) -> (episodes_done_min, mean_last_return)`` (e.g. :func:`compiled_progress`) is read before the
+    loop and after each chunk, for the done test and ``progress(int(done), total, last)``; without it the loop
+    runs its chunks without reading anything back (the chunks are dispatched back to back). ``should_stop()``
+    is asked before each chunk: True ends the loop (``stopped``) after the chunk in flight. ``max_seconds`` ends
+    it (not ``stopped``) before a chunk once that much time has passed, at least one chunk run.
+    ``checkpoint(carry, chunks_done)`` is called every ``checkpoint_every`` chunks and/or at the first chunk
+    boundary ``checkpoint_seconds`` after the last call (neither: none on the way), and once more with the carry
+    the loop ends with (stopped, finished or out of time) unless that one was just saved: what the caller does
+    after the loop (evaluating, writing results and plots) may fail, and a resume then starts from the finished
+    carry instead of running chunks again."""
+    done = last = None
+    if read is not None:
+        done = float(jax.device_get(read(carry))[0])
+
+    def finished(chunks_done: int) -> bool:
+        return chunks_done >= n_chunks or (done is not None and total is not None and done >= total)
+
+    t0 = last_saved = time.perf_counter()
+    chunks_done, stopped = start_chunk, False
+    saved_at = None  # the chunk count of the last checkpoint written by this loop
+    while not finished(chunks_done):
+        if should_stop is not None and should_stop():
+            stopped = True
+            break
+        if max_seconds is not None and chunks_done > start_chunk and time.perf_counter() - t0 > max_seconds:
+            break
+        carry = chunk(carry)
+        chunks_done += 1
+        if read is not None:
+            done, last = (float(x) for x in jax.device_get(read(carry)))
+            if progress is not None:
+                progress(int(done), total, last)
+        due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
+            checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
+        if checkpoint is not None and due:
+            checkpoint(carry, chunks_done)
+            saved_at, last_saved = chunks_done, time.perf_counter()
+    jax.block_until_ready(carry)
+    seconds = time.perf_counter() - t0
+    # A resumed carry that ran no chunk is its checkpoint already, unless a stop asks for one explicitly.
+    unsaved = saved_at != chunks_done and (chunks_done > start_chunk or stopped)
+    if checkpoint is not None and unsaved:
+        checkpoint(carry, chunks_done)
+    return ChunkRun(carry, chunks_done, done, stopped, seconds)
+
+
+# ---- a whole training run ----------------------------------------------------------------------------------------
+def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_params: Any = None,
+                 progress: ProgressFn | None = None, *, initial: Runner | None = None, start_chunk: int = 0,
+                 checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
+                 checkpoint_seconds: float | None = None,
+                 should_stop: Callable[[], bool] | None = None) -> TrainResult:
+    """Train with ``trainer`` from ``initial`` (a carry after ``start_chunk`` chunks; default: a fresh
+    ``trainer.init``), then evaluate (unless stopped): the body of :func:`jaxrobo.training.train.train`, which runs it
+    inside the trainer's plan's tracing block. The hooks are :func:`run_chunks`'s."""
+    env, config = trainer.env, trainer.config
+    check_precision(env.name)  # x64 may have been switched on since the env was built; nothing is traced yet
+    agent_params = agent_params or AgentParams()
+    env_params = env.default_params if env_params is None else env_params
+    # The CLI checked this in ``run.resolve``; a Python caller gets the same refusal before anything compiles.
+    budget.check_memory(env, config, trainer.disc.n_states, where=env.name)
+    key = jax.random.key(config.seed)
+    t0 = time.perf_counter()
+    runner = jax.jit(trainer.init)(key, agent_params, env_params) if initial is None else initial
+    chunk = compiled_chunk(trainer, runner, agent_params, env_params)
+    stats = compiled_progress(runner)
+    jax.block_until_ready(runner)
+    compile_seconds = time.perf_counter() - t0
+
+    loop = run_chunks(lambda r: chunk(r, agent_params, env_params), runner, trainer.max_chunks(),
+                      start_chunk=start_chunk, read=stats, total=config.nepisodes, progress=progress,
+                      should_stop=should_stop, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                      checkpoint_seconds=checkpoint_seconds)
+    runner = loop.carry
+    eval_returns = eval_lengths = selected = eval_success = None
+    if config.eval_episodes > 0 and not loop.stopped:
+        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params)
+
+    host = jax.device_get(runner.replace(key=None, env_state=None))
+    q = np.asarray(host.agent.q)
+    return TrainResult(
+        env_id=env.name, config=config, agent_params=agent_params,
+        returns=np.asarray(host.returns), lengths=np.asarray(host.lengths), terminated=np.asarray(host.terminated),
+        epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
+        env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
+        compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_returns=eval_returns,
+        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
+        chunks_done=loop.chunks_done,
+        episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
+        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan))
+
+
+def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any
+                    ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, np.ndarray | None]:
+    """Greedy evaluation of the first ``eval_envs`` trained tables (the shared one: once), ``eval_episodes``
+    each: ``(returns, lengths, selected, success)``, the first two ``[tables, eval_episodes]``. With several tables
+    the best one (by mean return) is evaluated again on fresh episodes (``selected``: its index, returns and
+    lengths), so its figure is not the maximum of noisy estimates. ``key`` is the run's key.
+
+    ``success``: for a task whose learning target is a ``success_rate`` and whose task variables carry an
+    ``arrived`` flag (QuadcopterGoto, ArmReach), whether each of those episodes arrived, ``[tables,
+    eval_episodes]``, read from the same flight as the returns; None for any other task."""
+    config = trainer.config
+    n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
+    tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
+    evaluate = jax.jit(jax.vmap(trainer.evaluate_episodes,
+                                in_axes=(0, 0 if not config.shared_table else None, None, None)), static_argnums=2)
+    keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)
+    out = jax.device_get(evaluate(keys, tables, config.eval_episodes, env_params))
+    eval_returns, eval_lengths = np.asarray(out["return"]), np.asarray(out["length"])
+    target = getattr(trainer.env, "learning_target", None)
+    counts_success = target is not None and target.metric == "success_rate" and "arrived" in out
+    success = np.asarray(out["arrived"]) if counts_success else None
+    selected = None
+    if n_eval > 1:
+        best = int(np.argmax(eval_returns.mean(axis=1)))
+        table = jax.tree.map(lambda x: x[best], tables)
+        sel_returns, sel_lengths = jax.jit(trainer.evaluate, static_argnums=2)(
+            jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)
+        selected = {"table": best, "returns": np.asarray(sel_returns), "lengths": np.asarray(sel_lengths)}
+    return eval_returns, eval_lengths, selected, success
+
+
+# ---- stopping on a signal ----------------------------------------------------------------------------------------
+class StopOnSignal:
+    """SIGINT / SIGTERM ask a run to stop at its next chunk boundary, for the command lines.
+
+    ``with StopOnSignal() as stop: train(..., should_stop=stop)``: ``stop()`` says whether a signal came,
+    ``stop.signum`` / ``stop.name`` which one. ``notice(signum)`` runs on the first one (to say what happens
+    next). A second signal quits without waiting for the chunk: with ``second="default"`` it acts as it would
+    without this handler (KeyboardInterrupt for SIGINT, termination for SIGTERM), with ``second="exit"`` it
+    raises ``SystemExit(128 + signum)``. The previous handlers come back on exit. Handlers are installed only
+    in the main thread (Python allows no others); elsewhere ``stop()`` stays False."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, notice: Callable[[int], None] | None = None, second: str = "default") -> None:
+        if second not in ("default", "exit"):
+            raise ValueError(f"second={second!r}: expected 'default' or 'exit'")
+        self.notice, self.second = notice, second
+        self.signum: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> "StopOnSignal":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        if self.second == "exit" and self.signum is not None:
+            raise SystemExit(128 + signum)
+        first = self.signum is None
+        self.signum = signum
+        if self.second == "default":  # the next one of this signal meets its old handler
+            signal.signal(signum, self._old.get(signum, signal.SIG_DFL))
+        if first and self.notice is not None:
+            self.notice(signum)
+
+    @property
+    def name(self) -> str | None:
+        """``"SIGINT"`` / ``"SIGTERM"`` once one came, else None."""
+        return None if self.signum is None else signal.Signals(self.signum).name
+
+    def __call__(self) -> bool:
+        return self.signum is not None
+
+    def __exit__(self, *_exc: Any) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)

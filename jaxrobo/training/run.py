@@ -1,0 +1,256 @@
+"""Resolve a training run from the shipped YAML files and user overrides, validated before anything compiles.
+
+A task's agent YAML (``agents/configs/<name>.yaml`` for a built-in task; for a task in a user's module, the path
+its ``register`` call gives, relative to that module's directory or absolute) holds presets; each preset maps learner parameters
+(:class:`jaxrobo.tabular.learner.AgentParams`) and loop settings (:class:`jaxrobo.training.trainer.TrainConfig`), plus an optional
+``env:`` mapping of env overrides. ``default`` is the textbook setup that learns; ``seed`` is the seed's own
+values with its learners reproduced exactly.
+
+Overrides are ``{key: value}``; :func:`route` says where each key lives, for ``--set`` here and for the swept
+keys of :mod:`jaxrobo.training.sweep`: a bare key goes to whichever of learner, loop or env declares it (learner and
+loop first), ``env.KEY`` forces the env and ``agent.KEY`` the learner/loop.
+
+Every default has one home: the dataclasses (:class:`jaxrobo.tabular.learner.AgentParams`, :class:`TrainConfig`, each
+task's ``Options`` and ``Params``). The env YAML and the agent presets hold only what differs from them.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from typing import Any, Mapping
+
+import numpy as np
+
+from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.tabular import discretise
+from jaxrobo.core.config import ConfigError, as_dict, flat_keys, load_yaml, split_and_validate, unknown_key
+from jaxrobo.task.env import Env
+from jaxrobo.task.registry import _lookup, find, learner, learners, make, qualified_id
+from jaxrobo.core.struct import INT32_MAX, Rule, rules
+from jaxrobo.training.trainer import TrainConfig
+
+AGENT_CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "agents",
+                                "configs")
+
+
+# ---- where a key lives ----------------------------------------------------------------------------------------
+#: The four homes of a key, in the order a bare key looks for it: learner parameter (traced), loop setting
+#: (static), env option (static), env parameter (traced).
+HOMES = ("agent", "train", "option", "env")
+_PREFIXES = {"agent": ("agent", "train"), "env": ("option", "env")}
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyRoute:
+    """Where one override or swept key lives: ``name`` is the field (the key without its ``env.``/``agent.``
+    prefix), ``where`` one of :data:`HOMES`, ``rule`` the field's validation rule."""
+
+    key: str
+    name: str
+    where: str
+    rule: Rule
+
+    @property
+    def side(self) -> str:
+        """``"agent"`` (learner and loop: :class:`AgentParams`, :class:`TrainConfig`) or ``"env"``."""
+        return "agent" if self.where in _PREFIXES["agent"] else "env"
+
+    @property
+    def static(self) -> bool:
+        """True for loop settings and env options, which fix shapes and code (a sweep compiles per value);
+        False for learner and env parameters, which are traced (a sweep vmaps over them)."""
+        return self.where in ("train", "option")
+
+
+def _tables(env_cls: type) -> dict[str, dict[str, Rule]]:
+    return {"agent": rules(AgentParams), "train": rules(TrainConfig), "option": rules(env_cls.Options),
+            "env": rules(env_cls.Params)}
+
+
+def route(env_id: str, key: Any, where: str = "--set") -> KeyRoute:
+    """Where ``key`` lives for the env ``env_id``; :class:`ConfigError` naming the key and the allowed keys if
+    nowhere. The one router of ``--set`` (:func:`resolve`) and of swept keys (:func:`jaxrobo.training.sweep.classify`)."""
+    tables = _tables(_lookup(env_id).env_class())
+    homes: tuple[str, ...] = HOMES
+    name = key
+    if isinstance(key, str) and key.startswith(("env.", "agent.")):
+        side, name = key.split(".", 1)
+        homes = _PREFIXES[side]
+    if isinstance(name, str):
+        for home in homes:
+            if name in tables[home]:
+                return KeyRoute(key, name, home, tables[home][name])
+    known = {k for home in homes for k in tables[home]}
+    err = unknown_key(name if isinstance(name, str) else repr(name), known, where=where)
+    other = next((h for h in HOMES if h not in homes and isinstance(name, str) and name in tables[h]), None)
+    if other is not None:  # e.g. agent.backend: say where the key does live
+        side = "agent" if other in _PREFIXES["agent"] else "env"
+        err = ConfigError(f"{err} ({name} is {'a learner/loop' if side == 'agent' else 'an env'} key: {side}.{name})")
+    raise err
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    env_id: str
+    preset: str
+    env: Env
+    agent_params: AgentParams
+    config: TrainConfig
+    env_overrides: dict[str, Any]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The resolved configuration, as written to ``config.yaml`` of a run. An id a user's module registered
+        is written ``module:Id``, so that ``--resume`` (another process) imports the module again."""
+        return {
+            "env_id": qualified_id(self.env_id),
+            "preset": self.preset,
+            "env_options": as_dict(self.env.options),
+            "env_params": as_dict(self.env.default_params),
+            "agent_params": as_dict(self.agent_params),
+            "train": as_dict(self.config),
+        }
+
+
+def agent_presets(env_id: str) -> dict[str, dict[str, Any]]:
+    """The presets in the id's agent YAML (``{}`` if it has none); ConfigError if the file is not a mapping of
+    preset name to a mapping of settings."""
+    spec = _lookup(env_id).spec
+    if not spec.agent_config:
+        return {}
+    path = spec.agent_config
+    if not os.path.isabs(path):
+        path = os.path.join(AGENT_CONFIG_DIR, path)
+    presets = load_yaml(path)
+    for name, values in presets.items():
+        if not isinstance(name, str):
+            raise ConfigError(f"{path}: preset names must be strings, got {name!r}")
+        if values is not None and not isinstance(values, dict):
+            raise ConfigError(f"{path}: preset {name!r} must be a mapping of key: value, got "
+                              f"{type(values).__name__} {values!r}")
+        env = (values or {}).get("env")
+        if env is not None and not isinstance(env, dict):
+            raise ConfigError(f"{path}: preset {name!r}: env must be a mapping of key: value, got "
+                              f"{type(env).__name__} {env!r}")
+    return presets
+
+
+#: The discretiser fields each mode leaves unused (``bins`` mode: number_splits too when bins is given).
+_UNUSED_BY_MODE = {"bins": ("resolution", "edges"), "round": ("number_splits", "bins", "edges"),
+                   "edges": ("number_splits", "bins", "resolution")}
+#: TrainConfig field names of the discretiser's arguments, for messages.
+DISCRETISER_NAMES = {"low": "state_low", "high": "state_high", "mode": "discretiser", "splits": "bins",
+                     "resolution": "resolution", "edges": "edges"}
+
+
+def check_combinations(config: TrainConfig, given: Mapping[str, Any], where: str = "") -> None:
+    """Refuse settings that are each valid but do not go together, or that would be silently ignored.
+
+    ``given``: the loop settings the user set explicitly (``--set``/flags); one of them that the chosen
+    discretiser mode does not use is refused unless it equals the default (a saved run's config lists every
+    field, so it must resolve again).
+    """
+    loc = f"{where}: " if where else ""
+    defaults = TrainConfig()
+    if config.seed_compat and learner(config.agent).n_tables > 1:
+        raise ConfigError(f"{loc}agent={config.agent!r} with seed_compat=true: the seed's learners had one table "
+                          f"and {config.agent} has no seed form; set seed_compat=false or agent to one of "
+                          + ", ".join(n for n, lr in learners().items() if lr.n_tables == 1))
+    unused = list(_UNUSED_BY_MODE[config.discretiser])
+    if config.discretiser == "bins" and config.bins is not None:
+        unused.append("number_splits")
+    for key in unused:
+        if key in given and getattr(config, key) != getattr(defaults, key):
+            because = (f"bins={list(config.bins)} is given (set bins=null to use number_splits)"
+                       if key == "number_splits" and config.discretiser == "bins"
+                       else f"discretiser={config.discretiser!r} does not use it")
+            raise ConfigError(f"{loc}{key}={given[key]!r} would be ignored: {because}")
+    steps = config.nepisodes * config.nsteps
+    if steps > INT32_MAX:
+        raise ConfigError(f"{loc}nepisodes x nsteps = {config.nepisodes} x {config.nsteps} = {steps:,} steps per env: "
+                          f"must be <= {INT32_MAX:,} (step counters are int32); use fewer nepisodes or nsteps")
+    if config.eval_episodes * max(config.nsteps, 1) > INT32_MAX:
+        raise ConfigError(f"{loc}eval_episodes={config.eval_episodes}: too many greedy evaluation episodes; "
+                          f"must be <= {INT32_MAX // max(config.nsteps, 1):,} with nsteps={config.nsteps}")
+
+
+def check_discretiser(env: Env, config: TrainConfig, where: str = "") -> int:
+    """Validate the config's discretiser settings against the task's observation; returns the table's n_states."""
+    loc = f"{where}: " if where else ""
+    dims = int(env.observation_space().shape[0])
+    low, high = config.state_low, config.state_high
+    if low is None or high is None:
+        task_low, task_high = (np.asarray(b, np.float64) for b in env.state_bounds())
+        low = task_low if low is None else low
+        high = task_high if high is None else high
+    splits = config.bins if config.bins is not None else config.number_splits
+    names = dict(DISCRETISER_NAMES, splits="bins" if config.bins is not None else "number_splits")
+    try:
+        _, _, bins, _ = discretise.check(low, high, config.discretiser, splits, config.resolution, config.edges,
+                                         dims=dims, names=names)
+    except ValueError as err:
+        raise ConfigError(f"{loc}{err}") from None
+    return int(np.prod(bins, dtype=object))
+
+
+def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] | None = None,
+            agent: str | None = None, check_memory: bool = True) -> RunSpec:
+    """Build env, learner parameters and loop config for a run; raises :class:`ConfigError` on any bad value.
+
+    Everything is checked here, before anything compiles: each value against its declared rule, combinations
+    (:func:`check_combinations`), the discretiser against the task's observation, and (``check_memory``) the
+    batch's estimated memory against what the device has (:func:`jaxrobo.training.budget.check_memory`).
+    """
+    env_id = _lookup(env_id).spec.id  # a deprecated alias resolves (and warns) once; the run records the real id
+    presets = agent_presets(env_id)
+    if not isinstance(preset, str) or (presets and preset not in presets):
+        raise ConfigError(f"{env_id}: preset={preset!r}: allowed values are {', '.join(presets) or 'default'}")
+    if overrides is not None and not isinstance(overrides, Mapping):
+        raise ConfigError(f"overrides: expected a mapping of key: value, got {type(overrides).__name__}")
+    chosen = dict(presets.get(preset, {}) or {})
+    env_values = dict(chosen.pop("env", {}) or {})
+    agent_values = chosen
+    given: dict[str, Any] = {}
+    for key, value in (overrides or {}).items():
+        r = route(env_id, key)
+        if r.side == "agent":
+            agent_values[r.name] = given[r.name] = value
+        else:
+            env_values[r.name] = value
+    if agent is not None:
+        agent_values["agent"] = agent
+    where = f"{env_id} preset {preset}"
+    agent_kw, train_kw = split_and_validate(agent_values, AgentParams, TrainConfig, where=where)
+    config = TrainConfig(**train_kw)
+    check_combinations(config, given, where)
+    env = make(env_id, **env_values)
+    from jaxrobo.core import spaces
+
+    if isinstance(env.action_space(), spaces.Box):  # before the discretiser: its message would mislead
+        raise ConfigError(f"{where}: agent={config.agent!r} is a tabular learner (a table of Discrete actions) and "
+                          f"{env_id} has continuous (Box) actions; use --agent ppo or --agent sac (Brax's trainers)")
+    n_states = check_discretiser(env, config, where)
+    if check_memory:
+        from jaxrobo.training.budget import check_memory as fits
+
+        fits(env, config, n_states, where=where)
+    return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values)
+
+
+def spec_from_config(run_config: dict[str, Any]):
+    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
+    applied as an override of the saved preset, and the result must give back the same config."""
+    try:
+        env_id, preset = run_config["env_id"], run_config.get("preset", "default")
+        overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
+        overrides.update({f"agent.{k}": v for part in ("agent_params", "train") for k, v in run_config[part].items()})
+    except (KeyError, TypeError, AttributeError) as err:
+        raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
+    find(env_id, where=f"config.yaml: env_id {env_id}")  # a 'module:Id' imports its module (run from its folder)
+    spec = resolve(env_id, preset, overrides)
+    again = json.loads(json.dumps(spec.to_dict()))
+    if again != json.loads(json.dumps(run_config)):
+        a, b = flat_keys(run_config), flat_keys(again)
+        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        raise ConfigError(f"config.yaml: does not resolve to itself ({', '.join(keys[:5])}); edited by hand?")
+    return spec

@@ -1,0 +1,99 @@
+"""What a training run produced: :class:`TrainResult` (host arrays) and its :meth:`~TrainResult.summary`.
+
+The summary holds the seed's figures (highest cumulated reward, overall mean length, mean of the best 100
+episodes), timings, the execution plan the run used, the greedy evaluation, and how many evaluated tables reach
+the task's declared learning target (:class:`jaxrobo.task.env.LearningTarget`: the task says what "learned" means,
+not the trainer). :func:`jaxrobo.io.results.save_run` writes it all to a run directory.
+
+Public surface: :class:`TrainResult`.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.task.env import LearningTarget
+from jaxrobo.training.trainer import TrainConfig
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What a run produced, as host arrays, with the seed's summary figures."""
+
+    env_id: str
+    config: TrainConfig
+    agent_params: AgentParams
+    returns: np.ndarray  # [n_envs, nepisodes]
+    lengths: np.ndarray
+    terminated: np.ndarray
+    epsilon: np.ndarray  # [nepisodes]
+    nan_episodes: np.ndarray  # [n_envs]
+    env_steps: int
+    q: np.ndarray  # [n_envs or 1, n_tables, n_states, n_actions]
+    compile_seconds: float
+    run_seconds: float
+    eval_returns: np.ndarray | None = None  # [eval_envs, eval_episodes]
+    eval_lengths: np.ndarray | None = None
+    #: Whether each of those episodes arrived (``[eval_envs, eval_episodes]``), for a task whose learning target
+    #: is a ``success_rate`` (:func:`jaxrobo.training.driver.evaluate_tables`); None otherwise.
+    eval_success: np.ndarray | None = None
+    selected: dict[str, Any] | None = None  # the best evaluated table, re-evaluated on fresh episodes
+    #: False when ``should_stop`` ended the run early: the records hold the episodes finished so far
+    #: (``episodes_done`` per env), there is no evaluation, and the carry at ``chunks_done`` goes on from there.
+    complete: bool = True
+    chunks_done: int = 0
+    episodes_done: np.ndarray | None = None  # [n_envs] finished episodes per env
+    #: The task's declared target (:class:`jaxrobo.task.env.LearningTarget`; None: no target), for :meth:`summary`.
+    learning_target: LearningTarget | None = None
+    plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it)
+
+    @property
+    def steps_per_second(self) -> float:
+        return self.env_steps / max(self.run_seconds, 1e-9)
+
+    def summary(self) -> dict[str, Any]:
+        """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run, and
+        how many evaluated tables reach the task's declared learning target (``learning_target``)."""
+        lengths = self.lengths.astype(np.float64)
+        best100 = np.sort(lengths, axis=1)[:, -100:].mean(axis=1)
+        out = {
+            "env_id": self.env_id,
+            "agent": self.config.agent,
+            "n_envs": self.config.n_envs,
+            "nepisodes": self.config.nepisodes,
+            "highest_reward_mean": float(self.returns.max(axis=1).mean()),
+            "highest_reward_max": float(self.returns.max()),
+            "overall_mean_length": float(lengths.mean()),
+            "best_100_mean_length": float(best100.mean()),
+            "final_100_mean_return": float(self.returns[:, -100:].mean()),
+            "physics_nan_episodes": int(self.nan_episodes.sum()),
+            "env_steps": int(self.env_steps),
+            "compile_seconds": round(self.compile_seconds, 3),
+            "run_seconds": round(self.run_seconds, 3),
+            "env_steps_per_second": round(self.steps_per_second, 1),
+        }
+        target = self.learning_target
+        if target is not None:
+            out["learning_target"] = target.description
+        if self.plan is not None:
+            out["execution_plan"] = self.plan
+        if self.eval_lengths is not None and self.eval_lengths.size:
+            out["eval_mean_length"] = float(self.eval_lengths.mean())
+            out["eval_mean_return"] = float(self.eval_returns.mean())
+            out["eval_best_table_mean_length"] = float(self.eval_lengths.mean(axis=1).max())
+            per_table = {"mean_length": self.eval_lengths, "mean_return": self.eval_returns}
+            if self.eval_success is not None and self.eval_success.size:
+                per_table["success_rate"] = self.eval_success
+                out["eval_success_rate"] = float(self.eval_success.mean())
+                out["eval_best_table_success_rate"] = float(self.eval_success.mean(axis=1).max())
+            if target is not None and target.metric in per_table:
+                score = per_table[target.metric].astype(np.float64).mean(axis=1)
+                out[f"eval_share_of_tables_{target.name}"] = float((score >= target.threshold).mean())
+        if self.selected is not None:
+            out["selected_table"] = self.selected["table"]
+            out["selected_table_fresh_mean_length"] = float(self.selected["lengths"].mean())
+            out["selected_table_fresh_mean_return"] = float(self.selected["returns"].mean())
+        return out

@@ -1,0 +1,289 @@
+"""``jaxrobo sweep``: the flags, their checks at the boundary, ``--resume``, and the run from flags to results.
+
+The sweep-defining flags (:data:`SWEEP_FLAGS`) are saved with the sweep's state, so ``--resume DIR`` runs the
+same sweep again (:func:`sweep_flags`). :func:`run` plans the sweep (:mod:`jaxrobo.training.sweep.planning`), runs it
+(:mod:`jaxrobo.training.sweep.running`) under the signal handlers of :class:`jaxrobo.training.driver.StopOnSignal`, and publishes
+``sweep.csv``, ``summary.json`` and the heatmaps (:mod:`jaxrobo.training.sweep.output`) in one rename.
+
+Public surface: :data:`SWEEP_FLAGS`, :func:`configure_parser`, :func:`sweep_flags`, :func:`points_from_args`,
+:func:`run`, :func:`main`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import signal
+import sys
+import time
+from typing import Any, Mapping, Sequence
+
+import jax
+import numpy as np
+
+from jaxrobo.training import driver
+from jaxrobo.core.config import ConfigError, merge_flags, parse_overrides
+from jaxrobo.core.struct import INT32_MAX
+from jaxrobo.training.sweep.output import _fmt, plot_sweep, write_csv
+from jaxrobo.training.sweep.planning import _canonical, grid_points, parse_grid, parse_ranges, plan_sweep, random_points
+from jaxrobo.training.sweep.running import METRICS, SweepInterrupted, run_plan
+from jaxrobo.training.sweep.state import open_state, read_state
+
+#: What ``jaxrobo sweep --help`` says the command does.
+DESCRIPTION = "Parameter sweeps as one vmapped, jitted computation: ``jaxrobo sweep``."
+
+
+#: The flags that define a sweep, with their defaults: saved with its state and read back by ``--resume``.
+SWEEP_FLAGS: dict[str, Any] = {"env": "CartPoleStayUp-v0", "agent": None, "preset": "default", "grid": None,
+                               "random": 0, "ranges": None, "seeds": 4, "seed": 0, "n_envs": None, "nepisodes": None,
+                               "nsteps": None, "set": None, "eval_episodes": 10, "metric": "final_return",
+                               "no_plots": False}
+_FLAG_NAMES = {"ranges": "--range", "n_envs": "--n-envs", "eval_episodes": "--eval-episodes",
+               "no_plots": "--no-plots"}
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Flags of ``jaxrobo sweep``. The sweep-defining flags parse to None when absent (defaults in
+    :data:`SWEEP_FLAGS`), so ``--resume`` can tell a flag given again from one left out."""
+    d = SWEEP_FLAGS
+    parser.add_argument("--env", default=None, help=f"environment id (see `jaxrobo list`; default {d['env']})")
+    parser.add_argument("--agent", default=None, help="qlearn | sarsa | expected_sarsa | double_q")
+    parser.add_argument("--preset", default=None, help="parameter preset of the env's agent YAML (default default)")
+    parser.add_argument("--grid", action="append", metavar="KEY=V1,V2,...",
+                        help="values of one swept key (repeatable; the grid is their product)")
+    parser.add_argument("--random", type=int, default=None, metavar="N", help="N random points from the --range's")
+    parser.add_argument("--range", action="append", metavar="KEY=LOW:HIGH[:log]", dest="ranges",
+                        help="sampling range of one key for --random (repeatable)")
+    parser.add_argument("--seeds", type=int, default=None,
+                        help=f"seeds per configuration (rows = configs × seeds; default {d['seeds']})")
+    parser.add_argument("--seed", type=int, default=None, help="first seed; seeds are SEED .. SEED+N-1 (default 0)")
+    parser.add_argument("--n-envs", type=int, default=None, help="environments (tables) per row")
+    parser.add_argument("--nepisodes", type=int, default=None, help="episodes per environment")
+    parser.add_argument("--nsteps", type=int, default=None, help="step cap per episode")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override for every row")
+    parser.add_argument("--eval-episodes", type=int, default=None,
+                        help=f"greedy evaluation episodes of each row's first table (0: none; default "
+                             f"{d['eval_episodes']})")
+    parser.add_argument("--metric", default=None, choices=METRICS,
+                        help=f"what ranks configurations (default {d['metric']})")
+    parser.add_argument("--shard", choices=("auto", "on", "off"), default="auto",
+                        help="split rows over all devices (auto: when there is more than one)")
+    parser.add_argument("--out", default=None, help="output directory (default sweep_results/<env>_<time>); "
+                        "must be new or empty unless --overwrite")
+    parser.add_argument("--overwrite", action="store_true", help="replace the jaxrobo run or sweep in --out")
+    parser.add_argument("--resume", default=None, metavar="DIR",
+                        help="go on with the interrupted sweep in DIR: its saved settings, its unfinished groups")
+    parser.add_argument("--no-plots", action="store_true", default=None, help="skip the heatmap PNGs")
+
+
+def _flag(dest: str) -> str:
+    return _FLAG_NAMES.get(dest, "--" + dest)
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, bool):
+        return "(given)" if value else "(not given)"
+    return " ".join(map(str, value)) if isinstance(value, list) else str(value)
+
+
+def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, dict[str, Any], list[str]]:
+    """The output directory, the sweep-defining flags and the command line of the sweep, checked at the boundary.
+
+    A new sweep: ``--out`` must be new or empty (or a run, with ``--overwrite``); ``check_out=False`` skips that
+    check (processes other than 0, which never write it). ``--resume DIR``: DIR must hold an interrupted sweep,
+    whose saved flags are used (a flag given again must say the same) and whose ``status.json`` names the output
+    directory (DIR itself, or the run an ``--overwrite`` sweep replaces). Raises :class:`ConfigError` naming the
+    flag."""
+    from jaxrobo.io import rundir
+    from jaxrobo.task.registry import find
+
+    given = {k: getattr(args, k, None) for k in SWEEP_FLAGS}
+    if args.resume is None:
+        env_id = given["env"] or SWEEP_FLAGS["env"]
+        find(env_id, where=f"--env {env_id}")  # imports the module of a 'module:Id'; a missing one names --env
+        out = args.out or os.path.join("sweep_results", f"{env_id.rpartition(':')[2]}_"
+                                                        f"{time.strftime('%Y%m%d-%H%M%S')}")
+        if check_out:
+            rundir.check_out(out, overwrite=args.overwrite)
+        flags = {k: SWEEP_FLAGS[k] if v is None else v for k, v in given.items()}
+        return out, flags, list(sys.argv)
+    live = args.resume
+    if args.overwrite:
+        raise ConfigError(f"--resume {live}: cannot be combined with --overwrite (one continues the sweep, the "
+                          "other replaces it)")
+    if args.out is not None:
+        raise ConfigError(f"--out {args.out}: a resumed sweep finishes where it was going to; drop --out")
+    rundir.check_out(live, resume=True, flag="--resume")
+    extra = read_state(live).get("extra", {})
+    saved = extra.get("flags")
+    if not isinstance(saved, dict) or set(saved) != set(SWEEP_FLAGS):
+        raise ConfigError(f"--resume {live}: its sweep state has no command-line flags to resume from")
+    for k, v in given.items():
+        if v is not None and _canonical(v) != saved[k]:
+            raise ConfigError(f"--resume {live}: {_flag(k)} {_show(v)} differs from the saved sweep's "
+                              f"{_flag(k)} {_show(saved[k])}; a resumed sweep keeps its settings (drop the flag)")
+    find(saved["env"], where=f"--resume {live}: env {saved['env']}")  # a 'module:Id' imports its module again
+    out = (rundir.read_status(live) or {}).get("out") or live
+    return out, dict(saved), list(extra.get("argv") or [])
+
+
+def _all_agree(ok: bool) -> bool:
+    """Whether every process accepted the sweep: with several, all of them run it or none does (one alone
+    would wait forever for the others)."""
+    if jax.process_count() == 1:
+        return ok
+    from jax.experimental import multihost_utils
+
+    return bool(np.all(multihost_utils.process_allgather(np.asarray(ok))))
+
+
+def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The grid (product of --grid axes) times the --random sample (if any)."""
+    axes = parse_grid(args.grid or [])
+    ranges = parse_ranges(args.ranges or [])
+    for key, values in list(axes.items()):  # "--grid alpha=0.05:0.9" with --random is a range
+        if len(values) == 1 and isinstance(values[0], str) and ":" in values[0] and args.random:
+            ranges.update(parse_ranges([f"{key}={values[0]}"]))
+            del axes[key]
+    if ranges and not args.random:
+        raise ConfigError("--range needs --random N (how many points to draw)")
+    if args.random and not ranges:
+        raise ConfigError("--random N needs at least one --range KEY=LOW:HIGH")
+    if args.random < 0:
+        raise ConfigError(f"--random {args.random}: must be >= 0")
+    grid = grid_points(axes)
+    if not args.random:
+        return grid
+    sample = random_points(ranges, args.random, args.seed)
+    return [{**g, **s} for g in grid for s in sample]
+
+
+def run(args: argparse.Namespace, *, compiler_options: Mapping[str, Any] | None = None) -> int:
+    """``jaxrobo sweep`` (see :func:`_run`); Ctrl-C before the sweep's own handlers are in place exits with 130
+    and one line (nothing is half-written: the state and the results are written atomically).
+    ``compiler_options``: XLA options for every group's plan (part of the sweep's saved settings)."""
+    try:
+        return _run(args, compiler_options)
+    except KeyboardInterrupt:
+        print("jaxrobo sweep: interrupted", file=sys.stderr)
+        return 128 + signal.SIGINT
+
+
+def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = None) -> int:
+    """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best.
+
+    The sweep's state (``status.json``, ``sweep_state.json``, ``checkpoint.npz`` with the finished groups) lives
+    in the output directory while it runs, or, with ``--overwrite``, in a hidden sibling, so that the old run
+    stays whole until the new one replaces it. The results are written into a hidden sibling and replace the
+    state (or the old run) in one rename. SIGINT / SIGTERM stop the sweep with exit status 130 / 143, the
+    finished groups saved for ``--resume``."""
+    from jaxrobo.io import rundir
+    from jaxrobo.speed import sharding
+
+    error = None
+    try:
+        sharding.initialize_distributed()  # a no-op unless JAXROBO_COORDINATOR & co. are set (docs/scaling.md)
+        main_process = jax.process_index() == 0
+        out, flags, argv = sweep_flags(args, check_out=main_process)
+        live = args.resume  # where the state is; a new sweep's is chosen by process 0 below
+        f = argparse.Namespace(**flags)
+        if f.seeds < 1:
+            raise ConfigError(f"--seeds {f.seeds}: must be >= 1")
+        if f.eval_episodes < 0:
+            raise ConfigError(f"--eval-episodes {f.eval_episodes}: must be >= 0")
+        if f.metric.startswith("eval_") and f.eval_episodes == 0:
+            raise ConfigError(f"--metric {f.metric}: needs --eval-episodes > 0")
+        points = points_from_args(f)
+        overrides = merge_flags(parse_overrides(f.set or []), [("n_envs", "--n-envs", f.n_envs),
+                                                                ("nepisodes", "--nepisodes", f.nepisodes),
+                                                                ("nsteps", "--nsteps", f.nsteps)])
+        if f.seed < 0 or f.seed + f.seeds - 1 > INT32_MAX:
+            raise ConfigError(f"--seed {f.seed} --seeds {f.seeds}: the seeds run from --seed to --seed + --seeds - 1, "
+                              f"which must lie in [0, {INT32_MAX}]")
+        seeds = list(range(f.seed, f.seed + f.seeds))
+        plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes,
+                          compiler_options=compiler_options)
+        if args.resume is not None:
+            open_state(live, plan)  # refuses a state of other settings or code before anything compiles
+        mesh = None
+        if args.shard == "on" or (args.shard == "auto" and jax.device_count() > 1):
+            mesh = sharding.make_mesh()
+    except (ConfigError, ValueError) as err:
+        error = str(err)
+    if not _all_agree(error is None):
+        print(f"jaxrobo sweep: {error or 'another process refused the sweep (see its output)'}", file=sys.stderr)
+        return 2
+    if main_process and live is None:
+        # The state of a new sweep goes to --out itself (new or empty), so that a hard crash leaves it resumable;
+        # with --overwrite (checked above) to a hidden sibling, so that the old run stays whole until the end.
+        live = rundir.live_dir(out)
+    resume_hint = (f"jaxrobo sweep --resume {shlex.quote(live)}" if live is not None
+                   else "jaxrobo sweep --resume DIR (DIR as process 0 says)")
+    if main_process:
+        rundir.write_status(live, rundir.RUNNING, command="sweep", out=os.path.abspath(out), resume=resume_hint)
+    print(f"{f.env}: {len(points)} configurations × {len(seeds)} seeds in {len(plan.groups)} groups"
+          f"{f' over {mesh.devices.size} devices' if mesh is not None else ''} → {out}")
+    if live is not None and os.path.abspath(live) != os.path.abspath(out):
+        print(f"state in {live} until the sweep is done", file=sys.stderr)
+    # Other processes read the state only when resuming (a new sweep's state directory is process 0's choice).
+    state_dir = live
+    owned = live if main_process else None  # the directory whose status this process writes
+    with driver.StopOnSignal() as stop:
+        # Processes stop together (a signal may reach only some of them): one more collective per chunk.
+        should_stop = stop if jax.process_count() == 1 else (lambda: not _all_agree(not stop()))
+        saved_in = live or "process 0"
+        try:
+            result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=should_stop,
+                              state_extra={"flags": flags, "argv": argv})
+        except KeyboardInterrupt:  # a second Ctrl-C: the group in progress is dropped at once
+            rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
+                               what=f"interrupted by SIGINT: the finished groups are saved in {saved_in}")
+            return 128 + signal.SIGINT
+        except SweepInterrupted as err:
+            name = stop.name or "a signal to another process"
+            rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
+                               finished_groups=err.done, groups=err.total,
+                               what=f"interrupted by {name}: {err.done} of {err.total} groups finished, saved in "
+                                    f"{saved_in}")
+            return 128 + (stop.signum or signal.SIGINT)
+        except Exception as err:  # the finished groups are saved: say how to go on, then fail as before
+            rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
+                               error=f"{type(err).__name__}: {err}",
+                               what=f"failed ({type(err).__name__}); the finished groups are saved in {saved_in}")
+            raise
+    if not main_process:
+        return 0
+    metric = f.metric
+    best = result.best(metric)
+    summary = {"env_id": f.env, "agent": f.agent, "preset": f.preset, "swept": result.swept,
+               "seeds": seeds, "n_rows": len(result.rows), "wall_seconds": result.wall_seconds,
+               "env_steps": result.env_steps, "env_steps_per_second": result.env_steps / max(result.wall_seconds, 1e-9),
+               "groups": result.groups, "best": best, "argv": argv}
+    plots: list[str] = []
+
+    def write(staged: str) -> None:
+        write_csv(result, os.path.join(staged, "sweep.csv"))
+        with open(os.path.join(staged, "summary.json"), "w") as fh:
+            json.dump(summary, fh, indent=2, default=str)
+        plots.extend([] if f.no_plots else plot_sweep(result, staged, metric))
+        rundir.write_status(staged, rundir.COMPLETE, command="sweep")
+
+    rundir.publish_results(out, live, write)  # replaces the state (or the old run) in one step
+    plots = [os.path.join(out, os.path.basename(p)) for p in plots]
+    print(f"{len(result.rows)} rows, {result.env_steps:,} env steps in {result.wall_seconds:.1f} s "
+          f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile)")
+    print("best configuration: " + ", ".join(f"{k}={_fmt(best[k])}" for k in result.swept) +
+          f"  ({metric} {best['mean']:.1f} ± {best['std']:.1f} over {best['seeds']} seeds)")
+    print(f"results: {os.path.join(out, 'sweep.csv')}" + (f"; plots: {', '.join(plots)}" if plots else ""))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None, *, compiler_options: Mapping[str, Any] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="jaxrobo sweep", description=DESCRIPTION)
+    configure_parser(parser)
+    return run(parser.parse_args(argv), compiler_options=compiler_options)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,266 @@
+"""Running a planned sweep: every group one compiled program, its rows vmapped (and sharded) over a leading axis.
+
+:class:`GroupRunner` compiles ``Trainer.init`` / ``Trainer.run_chunk`` vmapped over the rows of one group and
+drives them with the host loop of :func:`jaxrobo.training.driver.run_chunks`; :func:`run_plan` runs the groups of a
+:class:`~jaxrobo.training.sweep.planning.SweepPlan` one after the other, saving each finished group through
+:mod:`jaxrobo.training.sweep.state` when given a state directory, and gathers the rows into a :class:`SweepResult`.
+
+Public surface: :data:`METRICS`, :class:`SweepResult`, :class:`GroupRunner`, :func:`run_sweep`, :func:`run_plan`,
+:class:`SweepInterrupted`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrobo.training import driver
+from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.core.struct import rules
+from jaxrobo.training.sweep import state
+from jaxrobo.training.sweep.planning import SweepPlan, plan_sweep
+from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.training.trainer import Runner, Trainer
+
+#: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
+METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
+           "episodes_done", "env_steps", "physics_nan_episodes", "eval_mean_length", "eval_mean_return")
+
+
+class SweepInterrupted(Exception):
+    """The sweep's stop hook fired; ``done`` of ``total`` groups are finished (and saved in ``state_dir``)."""
+
+    def __init__(self, done: int, total: int, state_dir: str | None):
+        super().__init__(f"interrupted with {done} of {total} groups finished")
+        self.done, self.total, self.state_dir = done, total, state_dir
+
+
+@dataclasses.dataclass
+class SweepResult:
+    """One row per (configuration, seed), plus how long each compiled group took."""
+
+    env_id: str
+    swept: list[str]
+    rows: list[dict[str, Any]]
+    groups: list[dict[str, Any]]
+    wall_seconds: float
+
+    @property
+    def env_steps(self) -> int:
+        return int(sum(r["env_steps"] for r in self.rows))
+
+    def best(self, metric: str = "final_return") -> dict[str, Any]:
+        """The configuration with the highest mean of ``metric`` over its seeds."""
+        by_config: dict[int, list[dict[str, Any]]] = {}
+        for r in self.rows:
+            by_config.setdefault(r["config"], []).append(r)
+        scored = [(float(np.mean([r[metric] for r in rs])), rs) for rs in by_config.values()]
+        score, rs = max(scored, key=lambda t: t[0])
+        out = {k: rs[0][k] for k in self.swept}
+        out.update(config=rs[0]["config"], metric=metric, mean=score,
+                   std=float(np.std([r[metric] for r in rs])), seeds=len(rs))
+        return out
+
+
+def _as_array(values: list[Any]) -> np.ndarray:
+    arr = np.asarray(values)
+    if arr.dtype.kind == "f":
+        return arr.astype(np.float32)
+    if arr.dtype.kind in "iu":
+        return arr.astype(np.int32)
+    return arr
+
+
+def _stack(trees: list[Any]) -> Any:
+    return jax.tree.map(lambda *xs: _as_array(list(xs)), *trees)
+
+
+def _row_metrics(runner: Runner, n_last: int) -> dict[str, jax.Array]:
+    """Per-row performance, reduced on the device (``runner`` leaves are ``[rows, n_envs, ...]``)."""
+    returns = runner.returns.astype(jnp.float32)
+    lengths = runner.lengths.astype(jnp.float32)
+    nep = returns.shape[-1]
+    k = min(n_last, nep)
+    best = jnp.sort(lengths, axis=-1)[..., -min(100, nep):]
+    return {
+        "final_return": returns[..., -k:].mean(axis=(-1, -2)),
+        "final_length": lengths[..., -k:].mean(axis=(-1, -2)),
+        "mean_length": lengths.mean(axis=(-1, -2)),
+        "best_100_mean_length": best.mean(axis=(-1, -2)),
+        "highest_reward": returns.max(axis=(-1, -2)),
+        "episodes_done": runner.episode.min(axis=-1),
+        "env_steps": runner.env_steps.sum(axis=-1),
+        "physics_nan_episodes": runner.nan_episodes.sum(axis=-1),
+    }
+
+
+class GroupRunner:
+    """The compiled sweep of one static group: ``init`` / ``run_chunk`` vmapped over the row axis, compiled
+    with the trainer's plan (``trainer.plan``: its compiler options, traced under it)."""
+
+    def __init__(self, trainer: Trainer, n_rows: int, mesh: Any = None, eval_episodes: int = 0,
+                 n_last: int = 100):
+        from jaxrobo.speed import sharding
+
+        if not trainer.config.record_episodes:
+            raise ValueError("a sweep needs record_episodes=True (it ranks by the last episodes' returns)")
+        self.trainer, self.mesh, self.n_rows = trainer, mesh, n_rows
+        self.n_padded = sharding.padded_size(n_rows, mesh)
+        self.eval_episodes, self.n_last = eval_episodes, n_last
+        self.compile_seconds = self.run_seconds = 0.0
+        self.complete = False
+
+    def _init(self, key_data, agent_params, env_params):
+        keys = jax.random.wrap_key_data(key_data)
+        return jax.vmap(self.trainer.init)(keys, agent_params, env_params)
+
+    def _chunk(self, runner, agent_params, env_params):
+        return jax.vmap(self.trainer.run_chunk)(runner, agent_params, env_params)
+
+    def _finish(self, runner, key_data, env_params):
+        out = _row_metrics(runner, self.n_last)
+        if self.eval_episodes > 0:
+            shared = self.trainer.config.shared_table
+            table = runner.agent if shared else jax.tree.map(lambda x: x[:, 0], runner.agent)
+            keys = jax.vmap(lambda kd: jax.random.fold_in(jax.random.wrap_key_data(kd), 1))(key_data)
+            ev = jax.vmap(self.trainer.evaluate, in_axes=(0, 0, None, 0))
+            ret, length = ev(keys, table, self.eval_episodes, env_params)
+            out["eval_mean_return"] = ret.mean(axis=-1)
+            out["eval_mean_length"] = length.astype(jnp.float32).mean(axis=-1)
+        return out
+
+    def run(self, key_data: np.ndarray, agent_params: Any, env_params: Any,
+            progress: Callable[[int, int], None] | None = None,
+            max_seconds: float | None = None, stop: Callable[[], bool] | None = None) -> dict[str, np.ndarray]:
+        """Train every row to its last episode (or until ``max_seconds`` of running); per-row metrics as host
+        arrays of length ``n_rows``. ``self.complete`` says whether every row finished. The chunk loop is the
+        host driver's (:func:`jaxrobo.training.driver.run_chunks`): ``stop`` is polled before every chunk; when it returns
+        True the group is abandoned with :class:`SweepInterrupted`."""
+        from jaxrobo.speed import sharding
+
+        mesh, n = self.mesh, self.n_padded
+        host = sharding.pad_rows((key_data, agent_params, env_params), n)
+        kd, ap, ep = sharding.put_batch(host, mesh)
+        t0 = time.perf_counter()
+        plan = self.trainer.plan
+        opts = plan.xla_options
+        init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
+        runner = driver.compile_under(plan, init, kd, ap, ep)(kd, ap, ep)
+        chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,), compiler_options=opts)
+        chunk = driver.compile_under(plan, chunk, runner, ap, ep)
+        finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
+        finish = driver.compile_under(plan, finish, runner, kd, ep)
+        stats = driver.compiled_progress(runner)
+        jax.block_until_ready(runner)
+        self.compile_seconds = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        nepisodes = self.trainer.config.nepisodes
+        report = None if progress is None else (lambda done, total, _last: progress(done, total))
+        loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, self.trainer.max_chunks(), read=stats,
+                                 total=nepisodes, progress=report, should_stop=stop, max_seconds=max_seconds)
+        if loop.stopped:
+            raise SweepInterrupted(0, 1, None)
+        self.complete = loop.done >= nepisodes
+        out = finish(loop.carry, kd, ep)
+        out = sharding.gather(out)
+        self.run_seconds = time.perf_counter() - t0
+        return {k: np.asarray(v)[: self.n_rows] for k, v in out.items()}
+
+
+def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[int] = (0,),
+              preset: str = "default", agent: str | None = None, overrides: Mapping[str, Any] | None = None,
+              mesh: Any = None, eval_episodes: int = 0, n_last: int = 100,
+              log: Callable[[str], None] | None = None,
+              progress: Callable[[int, int], None] | None = None,
+              compiler_options: dict[str, Any] | None = None, max_seconds: float | None = None,
+              state_dir: str | None = None, should_stop: Callable[[], bool] | None = None) -> SweepResult:
+    """Train every point × seed; rows grouped by static settings, one compiled program per group.
+
+    ``points`` map swept keys to values (see :func:`classify`); ``overrides`` apply to every point (like
+    ``--set``); ``max_seconds`` stops each group's training early (its rows then have ``episodes_done`` below
+    ``nepisodes`` and the group ``complete: False``). Raises :class:`ConfigError` naming the key for any bad
+    key or value, before compiling. ``state_dir`` and ``should_stop`` make it resumable: see :func:`run_plan`.
+    """
+    plan = plan_sweep(env_id, points, seeds, preset, agent, overrides, eval_episodes, n_last, compiler_options,
+                      max_seconds)
+    return run_plan(plan, mesh, log, progress, state_dir, should_stop)
+
+
+def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | None = None,
+             progress: Callable[[int, int], None] | None = None, state_dir: str | None = None,
+             should_stop: Callable[[], bool] | None = None, state_extra: Mapping[str, Any] | None = None
+             ) -> SweepResult:
+    """Run a planned sweep, group by group.
+
+    ``state_dir`` makes the sweep resumable by finished groups: the sweep's settings, the code's versions and
+    their fingerprint go to ``state_dir/sweep_state.json`` before the first compile (with ``state_extra``, kept
+    but not compared), and the row metrics of every finished group to ``state_dir/checkpoint.npz`` (rewritten
+    atomically after each group; an empty one at the start). Running the same plan again on the same
+    ``state_dir`` skips the saved groups and gives the same rows; a state saved by other settings or other code
+    raises :class:`ConfigError` before anything compiles. ``should_stop`` is polled before each group and before
+    each training chunk; when it returns True the sweep abandons the group it is in (a compiled group cannot be
+    split) and raises :class:`SweepInterrupted`, the finished groups staying saved. With several processes only
+    process 0 writes; the others read ``state_dir`` if they are given it (a shared file system).
+    """
+    log = log or (lambda _msg: None)
+    planned = plan.groups
+    saved: dict[int, dict[str, Any]] = {}
+    fingerprint = None
+    if state_dir is not None:
+        opened = state.open_state(state_dir, plan, state_extra)
+        fingerprint = opened["fingerprint"]
+        saved = state.load_checkpoint(state_dir, plan, fingerprint)
+        if saved:
+            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}")
+        elif jax.process_index() == 0:
+            state.save_checkpoint(state_dir, fingerprint, plan, saved)
+
+    rows: list[dict[str, Any]] = []
+    timings: list[dict[str, Any]] = []
+    t_all = time.perf_counter()
+    for p in planned:
+        g, static, spec, meta = p.index, p.static, p.spec, p.meta
+        label = ", ".join(f"{k}={v}" for k, v in static) or "all"
+        if g in saved:
+            log(f"group {g + 1}/{len(planned)} [{label}]: finished before, read from {state_dir}")
+        else:
+            if should_stop is not None and should_stop():
+                raise SweepInterrupted(len(saved), len(planned), state_dir)
+            key_data = np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for (_, s, _) in meta])
+            execution = ExecutionPlan.for_run(spec.env, spec.config, compiler_options=plan.compiler_options)
+            trainer = Trainer(spec.env, spec.config, plan=execution)
+            group = GroupRunner(trainer, len(meta), mesh, plan.eval_episodes, plan.n_last)
+            log(f"group {g + 1}/{len(planned)} [{label}]: {len(p.configs)} configs × {len(plan.seeds)} seeds × "
+                f"{spec.config.n_envs} envs, {spec.config.nepisodes} episodes ≤ {spec.config.nsteps} steps")
+            try:
+                metrics = group.run(key_data, _stack(p.agent_list), _stack(p.env_list), progress, plan.max_seconds,
+                                    stop=should_stop)
+            except SweepInterrupted:
+                raise SweepInterrupted(len(saved), len(planned), state_dir) from None
+            saved[g] = {"metrics": metrics, "compile_seconds": group.compile_seconds,
+                        "run_seconds": group.run_seconds, "complete": group.complete}
+            if state_dir is not None and jax.process_index() == 0:
+                state.save_checkpoint(state_dir, fingerprint, plan, saved)
+        done = saved[g]
+        metrics = done["metrics"]
+        steps = int(metrics["env_steps"].astype(np.int64).sum())
+        timings.append({"group": g, "static": dict(static), "rows": len(meta), "n_envs": spec.config.n_envs,
+                        "compile_seconds": done["compile_seconds"], "run_seconds": done["run_seconds"],
+                        "env_steps": steps, "env_steps_per_second": steps / max(done["run_seconds"], 1e-9),
+                        "complete": done["complete"]})
+        log(f"  compiled in {done['compile_seconds']:.1f} s; {steps:,} env steps in {done['run_seconds']:.1f} s "
+            f"({steps / max(done['run_seconds'], 1e-9):,.0f} steps/s)")
+        for r, (i, s, ap) in enumerate(meta):
+            row: dict[str, Any] = {"config": i, "seed": s, "group": g}
+            row.update(plan.checked[i])
+            row.update({k: float(getattr(ap, k)) for k in rules(AgentParams)})
+            for m, values in metrics.items():
+                v = values[r]
+                row[m] = int(v) if np.issubdtype(values.dtype, np.integer) else float(v)
+            rows.append(row)
+    rows.sort(key=lambda r: (r["config"], r["seed"]))
+    return SweepResult(plan.env_id, plan.swept, rows, timings, time.perf_counter() - t_all)

@@ -1,0 +1,129 @@
+"""A sweep's saved progress: finished groups survive an interrupt or a crash.
+
+While a sweep runs, its state directory holds ``sweep_state.json`` (the settings of the
+:class:`~jaxrobo.training.sweep.planning.SweepPlan`, the code's versions and their fingerprint: :func:`open_state`) and
+``checkpoint.npz`` (the row metrics of every finished group: :func:`save_checkpoint`, read back by
+:func:`load_checkpoint`). A state saved by other settings or other code is refused, naming what differs.
+
+Public surface: :data:`STATE_FILE`, :data:`STATE_FORMAT`, :func:`code_version`, :func:`read_state`,
+:func:`open_state`, :func:`save_checkpoint`, :func:`load_checkpoint`.
+"""
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Mapping
+
+import jax
+import numpy as np
+
+from jaxrobo.training import checkpoint
+from jaxrobo.core.config import ConfigError
+from jaxrobo.training.sweep.planning import SweepPlan, _canonical
+
+STATE_FILE = "sweep_state.json"
+STATE_FORMAT = 1
+
+
+def code_version() -> dict[str, str]:
+    """What the sweep's numbers depend on besides its settings: jaxrobo's sources and the libraries' versions."""
+    from importlib import metadata
+
+    from jaxrobo.core.version import __version__
+    from jaxrobo.io.rundir import source_hash
+
+    out = {"jaxrobo": __version__, "jaxrobo_sources": source_hash()}
+    for dist in ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx", "brax"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "absent"
+    return out
+
+
+def read_state(state_dir: str) -> dict[str, Any]:
+    """The saved ``sweep_state.json`` of ``state_dir``: settings, versions, fingerprint and extra."""
+    path = os.path.join(state_dir, STATE_FILE)
+    try:
+        with open(path) as f:
+            state = json.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"{state_dir}: not a sweep ({STATE_FILE} missing)") from None
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: unreadable sweep state ({err})") from None
+    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+        found = state.get("format") if isinstance(state, dict) else None
+        raise ConfigError(f"{path}: not a sweep state this jaxrobo reads (format {found!r}, expected {STATE_FORMAT})")
+    return state
+
+
+def open_state(state_dir: str, plan: SweepPlan, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The saved state of ``plan`` in ``state_dir``: checked to be this sweep's (same settings and code) if there
+    is one, else written (process 0). Raises :class:`ConfigError` saying what differs."""
+    import hashlib
+
+    from jaxrobo.io import rundir
+
+    versions = code_version()
+    fingerprint = hashlib.sha256(json.dumps([plan.settings, versions], sort_keys=True).encode()).hexdigest()
+    if os.path.exists(os.path.join(state_dir, STATE_FILE)):
+        state = read_state(state_dir)
+        if state.get("fingerprint") != fingerprint:
+            old_v, old_s = state.get("versions", {}), state.get("settings", {})
+            code = [k if k == "jaxrobo_sources" else f"{k} {old_v.get(k)} → {versions[k]}"
+                    for k in versions if old_v.get(k) != versions[k]]
+            diff = sorted(k for k in set(plan.settings) | set(old_s) if plan.settings.get(k) != old_s.get(k))
+            why = (f"by other code ({', '.join(code)} changed)" if code else
+                   f"by a sweep with other settings ({', '.join(diff) or 'fingerprint'} differ)")
+            raise ConfigError(f"{state_dir}: cannot resume: its sweep state was saved {why}; "
+                              "start it again with --overwrite, or sweep into another --out")
+        return state
+    state = {"format": STATE_FORMAT, "fingerprint": fingerprint, "versions": versions, "settings": plan.settings,
+             "extra": _canonical(dict(extra or {}))}
+    if jax.process_index() == 0:
+        rundir.atomic_write_json(os.path.join(state_dir, STATE_FILE), state)
+    return state
+
+
+def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished: Mapping[int, Mapping[str, Any]]
+                    ) -> None:
+    """The row metrics of every finished group in ``state_dir/checkpoint.npz`` (plain arrays, no pickle),
+    written atomically (:func:`jaxrobo.training.checkpoint.write_npz`): a crash leaves the previous checkpoint or this one."""
+    from jaxrobo.io import rundir
+
+    arrays: dict[str, np.ndarray] = {"fingerprint": np.asarray(fingerprint),
+                                     "finished": np.asarray(sorted(finished), np.int64)}
+    for g, done in finished.items():
+        p = plan.groups[g]
+        arrays[f"g{g}_config"] = np.asarray([i for i, _, _ in p.meta], np.int64)
+        arrays[f"g{g}_seed"] = np.asarray([s for _, s, _ in p.meta], np.int64)
+        for k in ("compile_seconds", "run_seconds"):
+            arrays[f"g{g}_{k}"] = np.asarray(done[k], np.float64)
+        arrays[f"g{g}_complete"] = np.asarray(bool(done["complete"]))
+        arrays.update({f"g{g}_metric_{k}": np.asarray(v) for k, v in done["metrics"].items()})
+    checkpoint.write_npz(os.path.join(state_dir, rundir.CHECKPOINT), **arrays)
+
+
+def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[int, dict[str, Any]]:
+    """The finished groups saved in ``state_dir``: ``{group: {"metrics", "compile_seconds", "run_seconds",
+    "complete"}}`` (empty without a checkpoint). Raises :class:`ConfigError` for one of another sweep."""
+    from jaxrobo.io import rundir
+
+    path = os.path.join(state_dir, rundir.CHECKPOINT)
+    if not os.path.exists(path):
+        return {}
+    data = checkpoint.read_npz(path, "the sweep checkpoint")
+    if str(data.get("fingerprint")) != fingerprint:
+        raise ConfigError(f"{path}: saved by another sweep than {os.path.join(state_dir, STATE_FILE)}; "
+                          "start it again with --overwrite")
+    out = {}
+    for g in (int(x) for x in data["finished"]):
+        p = plan.groups[g]
+        if not (np.array_equal(data[f"g{g}_config"], [i for i, _, _ in p.meta])
+                and np.array_equal(data[f"g{g}_seed"], [s for _, s, _ in p.meta])):
+            raise ConfigError(f"{path}: group {g} holds other rows than the sweep plans")
+        prefix = f"g{g}_metric_"
+        out[g] = {"metrics": {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)},
+                  "compile_seconds": float(data[f"g{g}_compile_seconds"]),
+                  "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"])}
+    return out

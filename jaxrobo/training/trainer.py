@@ -1,0 +1,330 @@
+"""The trainer: how a run is shaped (:class:`TrainConfig`), its carry (:class:`Runner`) and the jitted step.
+
+Each environment runs the seed's experiment with its own learner and table (or, with ``shared_table``, all of
+them feed one table): ``nepisodes`` episodes of at most ``nsteps`` steps, the learner updated every step,
+``epsilon *= epsilon_discount`` at the start of every episode while it is above ``epsilon_min``. Environments
+that finish an episode reset with fresh randomness at once and carry on with their next episode; an
+environment that has done all its episodes stops learning and recording, so the results do not depend on how
+long the others take, nor on the chunk length.
+
+The whole step (act → env step → discretise → learn → record → auto-reset) is one function scanned over
+``chunk_steps`` steps (:meth:`Trainer.run_chunk`); ``init`` and ``run_chunk`` take the learner and env
+parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`jaxrobo.training.sweep`). Nothing here
+runs a host loop: :mod:`jaxrobo.training.driver` compiles the chunk and runs it chunk after chunk.
+
+Public surface: :class:`TrainConfig`, :class:`Runner`, :class:`Trainer` (``init``, ``step``, ``run_chunk``,
+``max_chunks``, ``evaluate``, ``evaluate_episodes``), :func:`make_discretiser_for` (defined in
+:mod:`jaxrobo.tabular.discretise`, where the plan's default reads it too), :func:`progress_stats`. Names with a leading
+underscore are private.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from jaxrobo.tabular import learner as tabular
+from jaxrobo.tabular.learner import AgentParams, AgentState, Learner
+from jaxrobo.task import autoreset, registry, rollout
+from jaxrobo.core import rng
+from jaxrobo.tabular.discretise import MODES, Discretiser, make_discretiser_for
+from jaxrobo.task.env import Env, EnvState
+from jaxrobo.speed.plan import FUSED_CHOICES, ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
+from jaxrobo.core.struct import param, pytree_dataclass
+
+
+@pytree_dataclass
+class TrainConfig:
+    """How a run is shaped (static: these fix array shapes and code paths)."""
+
+    agent: str = param("qlearn", choices=tuple(registry.learners()), static=True, doc="tabular learner")
+    n_envs: int = param(64, low=1, static=True, doc="independent copies of the experiment run at once")
+    nepisodes: int = param(1000, low=1, static=True, doc="episodes per environment")
+    nsteps: int = param(1000, low=1, static=True, doc="step cap per episode in the training loop")
+    seed: int = param(0, low=0, static=True, doc="random seed; the same seed gives the same results")
+    seed_compat: bool = param(False, static=True, doc="reproduce the seed's learners exactly (SPEC §4)")
+    shared_table: bool = param(False, static=True, doc="one table learning from all environments")
+    discretiser: str = param("bins", choices=MODES, static=True, doc="how observations become states")
+    number_splits: int = param(10, low=1, high=10_000, static=True, doc="bins per observation dimension")
+    bins: tuple | None = param(None, kind=tuple, static=True, doc="bins per dimension (overrides number_splits)")
+    state_low: tuple | None = param(None, kind=tuple, static=True, doc="discretiser lower bounds (default: task's)")
+    state_high: tuple | None = param(None, kind=tuple, static=True, doc="discretiser upper bounds")
+    edges: tuple | None = param(None, kind=tuple, static=True, doc="interior bin edges per dimension (mode edges)")
+    resolution: float = param(0.1, low=0.0, low_open=True, static=True, doc="bin width of mode round")
+    chunk_steps: int = param(1000, low=1, static=True, doc="steps per compiled chunk between progress updates")
+    record_episodes: bool = param(True, static=True, doc="keep every episode's return and length")
+    eval_episodes: int = param(100, low=0, static=True, doc="greedy evaluation episodes per evaluated table")
+    eval_envs: int = param(8, low=1, static=True, doc="how many trained tables to evaluate")
+    env_group: int = param(0, low=0, static=True,
+                           doc="envs stepped together, group after group (0: automatic, see ExecutionPlan)")
+    fused: str = param("auto", choices=("auto",) + FUSED_CHOICES, static=True,
+                       doc="how a closed form's substeps and kernels run (auto: ExecutionPlan.for_run's choice for "
+                           "the device and run; off, xla or pallas: that one, pallas refused where it cannot run)")
+
+
+@pytree_dataclass
+class Runner:
+    """The training carry: a batch of environments, their learner state and their records."""
+
+    env_state: EnvState
+    agent: AgentState
+    s: jax.Array
+    #: Each env's table rows at ``s`` (``[n_envs, n_tables, n_actions]``), carried so that a step reads the
+    #: table once (the next state's rows) instead of three times; ``None`` with a shared table, where other envs'
+    #: updates would make a carried copy stale.
+    q_rows: jax.Array | None
+    action: jax.Array
+    epsilon: jax.Array
+    episode: jax.Array
+    ep_return: jax.Array
+    key: jax.Array
+    returns: jax.Array
+    lengths: jax.Array
+    terminated: jax.Array
+    nan_episodes: jax.Array
+    env_steps: jax.Array
+
+
+class Trainer:
+    """Pure ``init`` / ``run_chunk`` / ``evaluate`` for one env, learner, discretiser and config."""
+
+    def __init__(self, env: Env, config: TrainConfig, discretiser: Discretiser | None = None,
+                 learner: Learner | None = None, *, plan: ExecutionPlan | None = None):
+        """``plan``: how the run is executed (:class:`jaxrobo.speed.plan.ExecutionPlan`; default: the plan for this env
+        and config on the default device). It changes the compiled program; the values only in their last bits, where
+        a GPU rounds the Pallas kernels or a shared table's ordered sums otherwise (see the plan's fields)."""
+        self.env = env
+        self.config = config
+        self.learner = learner or registry.learner(config.agent)
+        self.disc = discretiser or make_discretiser_for(env, config)
+        self.n_actions = env.num_actions
+        # The default plan of this run: its learner and discretiser decide whether the whole chunk runs as one kernel.
+        self.plan = ExecutionPlan.for_run(env, config, agent=self.learner.name, discretiser=self.disc) \
+            if plan is None else plan
+        if config.shared_table and self.learner.n_tables > 1 and config.seed_compat:
+            raise ValueError("seed_compat applies to one-table learners; double_q has no seed form")
+        if self.plan.fused == "pallas":
+            check_pallas(self)
+
+    # ---- the plan's choices the step reads (assigning one replaces the plan) --------------------------------
+    @property
+    def env_group(self) -> int | None:
+        """Envs stepped at once (``plan.env_group``; None: the whole batch)."""
+        return self.plan.env_group
+
+    @env_group.setter
+    def env_group(self, value: int | None) -> None:
+        self.plan = self.plan.replace(env_group=value)
+
+    @property
+    def reset_capacity(self) -> int:
+        """Most envs reset per step by gathering them (``plan.reset_capacity``; None there: every env)."""
+        return self.config.n_envs if self.plan.reset_capacity is None else self.plan.reset_capacity
+
+    @reset_capacity.setter
+    def reset_capacity(self, value: int | None) -> None:
+        self.plan = self.plan.replace(reset_capacity=value)
+
+    @property
+    def carry_rows(self) -> bool:
+        """Carry each env's table rows at its state (``plan.carry_rows``; never with a shared table)."""
+        return self.plan.carry_rows and not self.config.shared_table
+
+    @carry_rows.setter
+    def carry_rows(self, value: bool) -> None:
+        self.plan = self.plan.replace(carry_rows=value)
+
+    # ---- building blocks -------------------------------------------------------------------------------
+    def _rows(self, agent, s, envs=None):
+        """Table rows ``[len(s), n_tables, n_actions]`` at states ``s``: of each env's own table (of the tables of
+        ``envs``, a subset of the batch, when given), or of the shared table."""
+        if self.config.shared_table:
+            return jax.vmap(tabular.rows, in_axes=(None, 0))(agent, s)
+        if envs is None:
+            return jax.vmap(tabular.rows)(agent, s)
+        return agent.q[envs, :, s, :]
+
+    def _select(self, key, q_rows, epsilon):
+        select = lambda k, r, e: self.learner.select(k, tabular.policy_values(r), e, self.config.seed_compat)  # noqa: E731
+        return jax.vmap(select)(key, q_rows, epsilon)
+
+    def _learn(self, key, agent, q_s, q_s2, s, a, r, s2, a2, terminated, epsilon, params, active):
+        """The updated tables, and ``q_s2`` as it reads after the update (where ``s' == s`` the entry changed)."""
+        c, learner = self.config, self.learner
+        if c.shared_table:
+            return tabular.learn_shared(learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params,
+                                        c.seed_compat, active, ordered=self.plan.ordered_sums), q_s2
+        visited_sa = jax.vmap(lambda v, s, a: v[s, a])(agent.visited, s, a) if c.seed_compat else None
+        table, old, new = jax.vmap(tabular.update, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, None, None, 0))(
+            learner, key, q_s, q_s2, a, r, a2, terminated, epsilon, params, c.seed_compat, visited_sa)
+        written = jnp.where(active, new, old)
+        agent = jax.vmap(tabular.write)(agent, table, s, a, written, active)
+        n_tables, n_actions = q_s2.shape[1:]
+        hit = ((s2 == s)[:, None, None] & (jnp.arange(n_tables)[:, None] == table[:, None, None])
+               & (jnp.arange(n_actions) == a[:, None, None]))
+        return agent, jnp.where(hit, written[:, None, None], q_s2)
+
+    def _reset(self, keys, env_params):
+        states = jax.vmap(self.env.reset, in_axes=(0, None))(keys, env_params)
+        return states, jax.vmap(self.disc)(states.obs)
+
+    def _reset_done(self, done, keys, env_params, stepped, s2, agent, q_s2, capacity=None):
+        """``(env_state, s, q_rows)`` with a fresh episode (its first state index and table rows) wherever ``done``.
+
+        The shared autoreset (:func:`jaxrobo.task.autoreset.reset_where`): each env resets from its own key in
+        ``keys``; with ``capacity`` (default ``self.reset_capacity``) below the batch size, the done envs are
+        gathered, reset and scattered back (the same values as the select over the batch, tested)."""
+        capacity = self.reset_capacity if capacity is None else capacity
+
+        def fresh(keys, envs):
+            states, s = self._reset(keys, env_params)
+            return states, s, None if q_s2 is None else self._rows(agent, s, envs)
+
+        return autoreset.reset_where(fresh, done, keys, (stepped, s2, q_s2), capacity)
+
+    # ---- public ----------------------------------------------------------------------------------------
+    def init(self, key: jax.Array, agent_params: AgentParams, env_params: Any = None) -> Runner:
+        c = self.config
+        env_params = self.env.default_params if env_params is None else env_params
+        n = c.n_envs
+        k_env, k_run, k_act = jax.random.split(key, 3)
+        env_state, s = self._reset(jax.random.split(k_env, n), env_params)
+        agent = tabular.init(self.learner, self.disc.n_states, self.n_actions, c.seed_compat)
+        if not c.shared_table:
+            agent = jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), agent)
+        epsilon = tabular.decay_epsilon(jnp.full((n,), agent_params.epsilon, jnp.float32), agent_params)
+        q_rows = self._rows(agent, s)
+        action = self._select(jax.random.split(k_act, n), q_rows, epsilon)
+        n_rec = c.nepisodes if c.record_episodes else 1
+        return Runner(
+            env_state=env_state, agent=agent, s=s, q_rows=q_rows if self.carry_rows else None, action=action,
+            epsilon=epsilon,
+            episode=jnp.zeros(n, jnp.int32), ep_return=jnp.zeros(n, jnp.float32),
+            key=jax.random.split(k_run, n),
+            returns=jnp.zeros((n, n_rec), jnp.float32), lengths=jnp.zeros((n, n_rec), jnp.int32),
+            terminated=jnp.zeros((n, n_rec), bool), nan_episodes=jnp.zeros(n, jnp.int32),
+            env_steps=jnp.zeros(n, jnp.int32))
+
+    def step(self, runner: Runner, agent_params: AgentParams, env_params: Any) -> Runner:
+        """One training step of every environment."""
+        c, learner = self.config, self.learner
+        # The five keys of ``split(key, 5)``, each hashed on its own: those a learner does not use cost nothing.
+        k_next, k_act, k_act2, k_learn, k_reset = (jax.vmap(rng.subkey, in_axes=(0, None, None))(runner.key, i, 5)
+                                                   for i in range(5))
+        active = runner.episode < c.nepisodes
+        q_s = self._rows(runner.agent, runner.s) if runner.q_rows is None else runner.q_rows
+        a = runner.action if learner.on_policy else self._select(k_act, q_s, runner.epsilon)
+
+        stepped = step_batch(self.env, runner.env_state, a, env_params, self.plan)
+        s2 = jax.vmap(self.disc)(stepped.obs)
+        done = stepped.terminated | stepped.truncated | (stepped.steps >= c.nsteps)
+        q_s2 = self._rows(runner.agent, s2)  # before the update: what the targets (and Sarsa's next action) see
+        a2 = self._select(k_act2, q_s2, runner.epsilon) if learner.on_policy else a
+        agent, q_s2 = self._learn(k_learn, runner.agent, q_s, q_s2, runner.s, a, stepped.reward, s2, a2,
+                                  stepped.terminated, runner.epsilon, agent_params, active & ~stepped.physics_nan)
+
+        ep_return = runner.ep_return + stepped.reward
+        record = done & active
+        returns, lengths, terminated = runner.returns, runner.lengths, runner.terminated
+        if c.record_episodes:
+            # Only the envs that finished an episode write: the others' slot is out of range and their write is
+            # dropped, which leaves their entry as it was without reading it first.
+            slot = jnp.where(record, jnp.minimum(runner.episode, c.nepisodes - 1), c.nepisodes)
+            rows = jnp.arange(c.n_envs)
+            put = lambda table, value: table.at[rows, slot].set(value, mode="drop")  # noqa: E731
+            returns = put(returns, ep_return)
+            lengths = put(lengths, stepped.steps)
+            terminated = put(terminated, stepped.terminated)
+        else:  # keep the running totals only: slot 0 holds the sum of returns and lengths
+            returns = returns.at[:, 0].add(jnp.where(record, ep_return, 0.0))
+            lengths = lengths.at[:, 0].add(jnp.where(record, stepped.steps, 0))
+            terminated = terminated.at[:, 0].set(terminated[:, 0] | (record & stepped.terminated))
+
+        env_state, s_next, q_rows = self._reset_done(done, k_reset, env_params, stepped, s2, agent,
+                                                     None if runner.q_rows is None else q_s2)
+        epsilon = jnp.where(done, tabular.decay_epsilon(runner.epsilon, agent_params), runner.epsilon)
+        if learner.on_policy:
+            # Used only where done: the new episode's first action, from the updated table.
+            a_fresh = self._select(k_act, self._rows(agent, s_next) if q_rows is None else q_rows, epsilon)
+            action = jnp.where(done, a_fresh, a2)
+        else:
+            action = a
+        return Runner(
+            env_state=env_state, agent=agent, s=s_next, q_rows=q_rows, action=action, epsilon=epsilon,
+            episode=runner.episode + record.astype(jnp.int32), ep_return=jnp.where(done, 0.0, ep_return),
+            key=k_next, returns=returns, lengths=lengths, terminated=terminated,
+            nan_episodes=runner.nan_episodes + (record & stepped.physics_nan).astype(jnp.int32),
+            env_steps=runner.env_steps + active.astype(jnp.int32))
+
+    def run_chunk(self, runner: Runner, agent_params: AgentParams, env_params: Any = None) -> Runner:
+        """``chunk_steps`` training steps as one ``lax.scan`` (under a fused plan with ``fused_block``, one scan per
+        block of envs: :meth:`run_chunk_blocked`)."""
+        env_params = self.env.default_params if env_params is None else env_params
+        plan = self.plan
+        if plan.fused == "pallas" and not physics_kernel(self.env):  # the whole chunk as one kernel (fused_pallas)
+            from jaxrobo.speed import fused_pallas
+
+            return fused_pallas.run_chunk(self, runner, agent_params, env_params)
+        if plan.fused == "xla" and plan.fused_block is not None and not self.config.shared_table \
+                and plan.fused_block < self.config.n_envs:
+            # The plan's fused path: the same steps, block of envs after block (see jaxrobo.physics.fused).
+            return self.run_chunk_blocked(runner, agent_params, env_params, plan.fused_block)
+        body = lambda r, _: (self.step(r, agent_params, env_params), None)  # noqa: E731
+        return jax.lax.scan(body, runner, None, length=self.config.chunk_steps)[0]
+
+    def _block_trainer(self, size: int) -> "Trainer":
+        """A trainer for ``size`` of this trainer's envs: the same env, learner, discretiser and plan, unfused (it
+        is the block's body), with the plan's reset capacity scaled to the block."""
+        c, plan = self.config, self.plan
+        capacity = None
+        if plan.reset_capacity is not None and plan.reset_capacity < c.n_envs:
+            capacity = max(1, -(-plan.reset_capacity * size // c.n_envs))
+        return Trainer(self.env, dataclasses.replace(c, n_envs=size), self.disc, self.learner,
+                       plan=plan.replace(fused="off", fused_block=None, reset_capacity=capacity))
+
+    def run_chunk_blocked(self, runner: Runner, agent_params: AgentParams, env_params: Any, block: int) -> Runner:
+        """``run_chunk`` with the loop over steps inside a loop over blocks of ``block`` envs (the last block
+        shorter if need be): each block runs all ``chunk_steps`` steps, its carry updated in place. Only for
+        per-env tables (``run_chunk`` checks): the envs are then independent and the values are the unblocked
+        ones (the fused plan of :mod:`jaxrobo.physics.fused`)."""
+        bodies: dict[int, Trainer] = {}
+
+        def one_block(part: Runner) -> Runner:
+            size = jax.tree.leaves(part)[0].shape[0]
+            if size not in bodies:
+                bodies[size] = self._block_trainer(size)
+            return bodies[size].run_chunk(part, agent_params, env_params)
+
+        # One block per loop iteration (not written out: each written-out block is another copy of the whole
+        # chunk to compile).
+        return map_groups(one_block, runner, block, unrolled=1)
+
+    def max_chunks(self) -> int:
+        c = self.config
+        return -(-c.nepisodes * c.nsteps // c.chunk_steps)
+
+    def evaluate(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
+                 max_steps: int | None = None) -> tuple[jax.Array, jax.Array]:
+        """Greedy episodes with one table (:func:`jaxrobo.task.rollout.rollout` of
+        :func:`jaxrobo.task.rollout.greedy_policy`): ``(returns, lengths)``, each ``[n_episodes]``."""
+        out = self.evaluate_episodes(key, agent, n_episodes, env_params, max_steps)
+        return out["return"], out["length"]
+
+    def evaluate_episodes(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
+                          max_steps: int | None = None) -> dict[str, jax.Array]:
+        """The episodes of :meth:`evaluate` (the same keys, so the same episodes) with how each ended, from the
+        one rollout (:func:`jaxrobo.task.rollout.outcomes`)."""
+        env_params = self.env.default_params if env_params is None else env_params
+        horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
+        return rollout.outcomes(rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes,
+                                                horizon, env_params))
+
+
+def progress_stats(runner: Runner) -> tuple[jax.Array, jax.Array]:
+    """Fewest episodes done by any env, and the mean return of each env's last finished episode (over every
+    leading axis: a sweep's rows too)."""
+    last_slot = jnp.clip(runner.episode - 1, 0, runner.returns.shape[-1] - 1)
+    last = jnp.take_along_axis(runner.returns, last_slot[..., None], axis=-1)[..., 0]
+    return jnp.min(runner.episode), jnp.mean(last)
