@@ -26,7 +26,8 @@ CHECKPOINT_SECONDS = 300.0
 
 
 #: ``jaxrobo train`` flags that are also settable with ``--set KEY=VALUE``.
-TRAIN_FLAGS = (("n_envs", "--n-envs"), ("seed", "--seed"), ("nepisodes", "--nepisodes"), ("agent", "--agent"))
+TRAIN_FLAGS = (("n_envs", "--n-envs"), ("seed", "--seed"), ("nepisodes", "--nepisodes"), ("agent", "--agent"),
+               ("total_steps", "--total-steps"), ("total_episodes", "--total-episodes"), ("devices", "--devices"))
 
 
 def train_overrides(args: argparse.Namespace) -> dict:
@@ -41,7 +42,43 @@ def train_overrides(args: argparse.Namespace) -> dict:
 
 def _train(args: argparse.Namespace) -> int:
     """``jaxrobo train``: a fresh run into ``--out``, or ``--resume DIR``; exit 130/143 after SIGINT/SIGTERM with a
-    resumable directory (:mod:`jaxrobo.io.rundir` has the rules of run directories)."""
+    resumable directory (:mod:`jaxrobo.io.rundir` has the rules of run directories).
+
+    Several hosts: the same command on every host under ``jax.distributed`` (``$JAXROBO_COORDINATOR``,
+    ``$JAXROBO_NUM_PROCESSES``, ``$JAXROBO_PROCESS_ID``: docs/scaling.md). The envs are split over every process's
+    devices; process 0 writes the one run directory, the others compute with it and keep their copies of what it
+    writes in a private temporary directory, removed at the end."""
+    import jax
+
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.speed import sharding
+
+    try:
+        sharding.initialize_distributed()
+    except (ConfigError, ValueError, RuntimeError) as err:
+        print(f"jaxrobo train: {err}", file=sys.stderr)
+        return 2
+    if jax.process_count() > 1 and jax.process_index() != 0:
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="jaxrobo-process-") as private, \
+                open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
+            return _train_guarded(args, private)
+    return _train_guarded(args, None)
+
+
+def _private_copy(args: argparse.Namespace, private: str) -> argparse.Namespace:
+    """The arguments of a process other than 0: what it writes goes to ``private``; a resumed run is read from
+    where process 0 reads it (a file system the hosts share)."""
+    copy = argparse.Namespace(**vars(args))
+    copy.private_out = os.path.join(private, "run")
+    copy.no_progress = True
+    return copy
+
+
+def _train_guarded(args: argparse.Namespace, private: str | None) -> int:
+    if private is not None:
+        args = _private_copy(args, private)
     try:
         return _train_checked(args)
     except KeyboardInterrupt:  # before the handlers are installed or after a second signal: nothing half-written
@@ -60,6 +97,7 @@ def _train_spec(args: argparse.Namespace):
     from jaxrobo.training.run import resolve, spec_from_config
 
     resume = args.resume
+    private = getattr(args, "private_out", None)  # a process other than 0 writes only there
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         raise ConfigError(f"--checkpoint-every={args.checkpoint_every}: expected an integer >= 0 (chunks; 0: "
                           "no saves on the way; still saved at the end and when interrupted)")
@@ -70,10 +108,14 @@ def _train_spec(args: argparse.Namespace):
         spec = resolve(env_id, args.preset or "default", overrides, agent=args.agent)
         out = args.out or os.path.join("training_results",
                                        f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
+        if private is not None:
+            return spec, private
         rundir.check_out(out, overwrite=args.overwrite)
         return spec, out
     given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent), ("--preset", args.preset),
                                       ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
+                                      ("--total-steps", getattr(args, "total_steps", None)),
+                                      ("--total-episodes", getattr(args, "total_episodes", None)),
                                       ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
              if value is not None]
     given += ["--overwrite"] if args.overwrite else []
@@ -89,14 +131,60 @@ def _train_spec(args: argparse.Namespace):
     return spec_from_config(saved if isinstance(saved, dict) else {}), resume
 
 
-def _progress_bar(nepisodes: int, initial):
-    """A tqdm bar over episodes, starting where a resumed carry ``initial`` is."""
+def _progress_bar(trainer, initial):
+    """A tqdm bar over the run's budget (episodes per env, steps per env, or the run's episodes), starting where a
+    resumed carry ``initial`` is."""
     import jax
-    import numpy as np
     from tqdm.auto import tqdm
 
-    done0 = 0 if initial is None else int(np.min(np.asarray(jax.device_get(initial.episode))))
-    return tqdm(total=nepisodes, initial=min(done0, nepisodes), unit="ep", desc="training", dynamic_ncols=True)
+    total, unit = trainer.budget_total
+    done0 = 0 if initial is None else int(jax.device_get(trainer.progress(initial))[0])
+    desc = {"episodes": "training (episodes per env)", "steps": "training (steps per env)",
+            "run_episodes": "training (episodes of the run)"}[trainer.budget]
+    return tqdm(total=total, initial=min(done0, total), unit="ep" if unit == "episodes" else "step", desc=desc,
+                dynamic_ncols=True)
+
+
+def budget_line(cfg, trainer) -> str:
+    """How the run is budgeted, in words, for the first line a training prints."""
+    if trainer.budget == "steps":
+        return (f"{cfg.n_envs} envs × {trainer.steps_per_env:,} steps (total_steps {cfg.total_steps:,}; episodes ≤ "
+                f"{cfg.nsteps} steps, the first {cfg.nepisodes} of each env recorded)")
+    if trainer.budget == "run_episodes":
+        return (f"{cfg.n_envs} envs until the run has {cfg.total_episodes:,} episodes (episodes ≤ {cfg.nsteps} "
+                f"steps, the first {cfg.nepisodes} of each env recorded)")
+    return f"{cfg.n_envs} envs × {cfg.nepisodes} episodes ≤ {cfg.nsteps} steps"
+
+
+class LiveScalars:
+    """TensorBoard scalars written as a run goes (tensorboardX, flushed after every chunk), against env steps:
+    ``progress/useful_share``, ``progress/done`` (in the budget's unit), ``train/last_return`` (the mean over
+    envs of each env's latest recorded episode, the same number as the progress bar's ``last_return``) and
+    ``progress/steps_per_second``. Nothing is written if tensorboardX is missing or the folder cannot be made."""
+
+    def __init__(self, run_dir: str) -> None:
+        self.writer = None
+        try:
+            from tensorboardX import SummaryWriter
+
+            self.writer = SummaryWriter(os.path.join(run_dir, "tensorboard"), flush_secs=1)
+        except (ImportError, OSError) as err:
+            print(f"jaxrobo: no live TensorBoard scalars ({err})", file=sys.stderr)
+
+    def __call__(self, p) -> None:
+        if self.writer is None:
+            return
+        step = int(p.useful_steps) if p.useful_steps == p.useful_steps else p.chunks_done
+        self.writer.add_scalar("progress/done", p.done, step)
+        self.writer.add_scalar("progress/useful_share", p.useful_share, step)
+        self.writer.add_scalar("train/last_return", p.last_return, step)
+        if p.seconds > 0:
+            self.writer.add_scalar("progress/steps_per_second", p.useful_steps / p.seconds, step)
+        self.writer.flush()
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
 
 
 def _deep_agent(args: argparse.Namespace) -> str | None:
@@ -283,7 +371,7 @@ def _train_checked(args: argparse.Namespace) -> int:
     from jaxrobo.io import rundir
     from jaxrobo.training import train as training
     from jaxrobo.core.config import ConfigError
-    from jaxrobo.io.results import save_run, write_config, write_episodes
+    from jaxrobo.io.results import save_run, write_config, write_episodes, write_summary
 
     resume = args.resume
     agent = _deep_agent(args)
@@ -303,26 +391,34 @@ def _train_checked(args: argparse.Namespace) -> int:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
 
-    live = out if resume is not None else rundir.live_dir(out)
-    if resume is None:
+    private = getattr(args, "private_out", None)
+    if private is not None:  # a process other than 0: everything it writes stays in its private directory
+        out = private
+    live = out if (resume is not None and private is None) else rundir.live_dir(out)
+    if resume is None or private is not None:
         write_config(live, spec.to_dict())
     n_chunks = trainer.max_chunks()
     resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
     rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=start_chunk, chunks=n_chunks,
                         resume=resume_cmd)
     checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
-    print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {cfg.n_envs} envs × {cfg.nepisodes} episodes "
-          f"≤ {cfg.nsteps} steps → {out}" + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
+    print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {budget_line(cfg, trainer)} → {out}"
+          + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
+    if spec.preset == "seed":
+        print("preset 'seed': the seed's own parameters and learners, exactly (SPEC §4) — a faithful baseline that "
+              "learns little; use the default preset to train")
     print(f"running as {trainer.plan!r}")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 
-    bar = None if args.no_progress else _progress_bar(cfg.nepisodes, initial)
+    bar = None if args.no_progress else _progress_bar(trainer, initial)
+    live_scalars = LiveScalars(live)
 
-    def progress(done: int, total: int, last_return: float) -> None:
+    def progress(p) -> None:
+        live_scalars(p)
         if bar is not None:
-            bar.update(done - bar.n)
-            bar.set_postfix(mean_reward=f"{last_return:.1f}")
+            bar.update(p.done - bar.n)
+            bar.set_postfix(last_return=f"{p.last_return:.1f}", useful=f"{p.useful_share:.0%}")
 
     def save(runner, chunks_done: int) -> None:
         checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
@@ -345,6 +441,7 @@ def _train_checked(args: argparse.Namespace) -> int:
                                          should_stop=stop)
         if bar is not None:
             bar.close()
+        live_scalars.close()
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.
@@ -359,14 +456,21 @@ def _train_checked(args: argparse.Namespace) -> int:
             return 128 + stop.signum
 
         def write(staged: str) -> None:
+            t = time.perf_counter()
             save_run(staged, result, spec.to_dict(), trainer.disc)
+            write_summary(staged, {**result.summary(), "write_seconds": round(time.perf_counter() - t, 3)})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
 
+        t_write = time.perf_counter()
         rundir.publish_results(out, live, write)
+        write_seconds = time.perf_counter() - t_write
     s = result.summary()
     print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps']:,} env steps in {s['run_seconds']:.1f} s "
-          f"({s['env_steps_per_second']:,.0f} steps/s)")
+          f"({s['env_steps_per_second']:,.0f} steps/s); {s['useful_share']:.1%} of the "
+          f"{s['env_slots']:,} env slots stepped were useful")
+    print(f"wall: compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
+          f"{s['eval_seconds']:.1f} s, writing {write_seconds:.1f} s")
     print(f"highest reward {s['highest_reward_max']:.0f} · overall mean length {s['overall_mean_length']:.1f} · "
           f"best 100 mean {s['best_100_mean_length']:.1f}")
     if "eval_mean_length" in s:
@@ -459,8 +563,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default=None,
                    help="parameter preset of the env's agent YAML: default | seed (default: default)")
     p.add_argument("--n-envs", type=int, default=None, help="environments (independent learners) run at once")
-    p.add_argument("--nepisodes", type=int, default=None, help="episodes per environment")
+    p.add_argument("--nepisodes", type=int, default=None,
+                   help="episodes per environment (the default budget); under --total-steps or --total-episodes, "
+                        "how many episodes each environment records")
+    p.add_argument("--total-steps", type=int, default=None, metavar="N",
+                   help="step budget: N env steps for the whole run, all envs together (every env steps "
+                        "ceil(N / n_envs), episodes restarting as they end: the batch stays full)")
+    p.add_argument("--total-episodes", type=int, default=None, metavar="N",
+                   help="episode budget of the whole run: every env steps until the run has finished N episodes "
+                        "(with shared_table: the episodes the table learned from)")
     p.add_argument("--seed", type=int, default=None, help="random seed")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="split the envs over N devices (default 0: every local device, or the most that divide "
+                        "n_envs; under jax.distributed, every host's); the tables are those of one device")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a parameter (repeatable)")
     p.add_argument("--out", default=None, help="run directory (default training_results/<env>_<agent>_<time>)")
     p.add_argument("--overwrite", action="store_true",

@@ -165,8 +165,22 @@ def check_combinations(config: TrainConfig, given: Mapping[str, Any], where: str
                        if key == "number_splits" and config.discretiser == "bins"
                        else f"discretiser={config.discretiser!r} does not use it")
             raise ConfigError(f"{loc}{key}={given[key]!r} would be ignored: {because}")
+    if config.total_steps and config.total_episodes:
+        raise ConfigError(f"{loc}total_steps={config.total_steps} and total_episodes={config.total_episodes}: give "
+                          "one run-wide budget (or neither: nepisodes per env)")
+    if config.total_steps and -(-config.total_steps // config.n_envs) > INT32_MAX:
+        raise ConfigError(f"{loc}total_steps={config.total_steps:,}: {-(-config.total_steps // config.n_envs):,} "
+                          f"steps per env over n_envs={config.n_envs}; must be <= {INT32_MAX:,} per env (step "
+                          "counters are int32): use more n_envs or fewer total_steps")
+    if config.total_episodes and config.total_episodes + config.n_envs > INT32_MAX:
+        raise ConfigError(f"{loc}total_episodes={config.total_episodes:,}: must be <= "
+                          f"{INT32_MAX - config.n_envs:,} (episode counters are int32)")
+    if config.total_episodes and -(-config.total_episodes // config.n_envs) * config.nsteps > INT32_MAX:
+        raise ConfigError(f"{loc}total_episodes={config.total_episodes:,} over n_envs={config.n_envs} with "
+                          f"nsteps={config.nsteps}: up to {-(-config.total_episodes // config.n_envs) * config.nsteps:,} "
+                          f"steps per env; must be <= {INT32_MAX:,} (step counters are int32)")
     steps = config.nepisodes * config.nsteps
-    if steps > INT32_MAX:
+    if not (config.total_steps or config.total_episodes) and steps > INT32_MAX:
         raise ConfigError(f"{loc}nepisodes x nsteps = {config.nepisodes} x {config.nsteps} = {steps:,} steps per env: "
                           f"must be <= {INT32_MAX:,} (step counters are int32); use fewer nepisodes or nsteps")
     if config.eval_episodes * max(config.nsteps, 1) > INT32_MAX:
