@@ -89,12 +89,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "sweep-episodes, sweep-steps, or 'none' (default: all four on a GPU, train-steps and "
                         "sweep-steps on a CPU)")
     p.add_argument("--command-envs", default="CartPoleStayUp-v0,QuadcopterGoto-v2",
-                   help="env ids the --commands rows run (default presets)")
+                   help="env ids the --commands rows run, default presets (ID:BACKEND runs another backend, e.g. "
+                        "CartPoleStayUp-v0:analytic)")
     p.add_argument("--command-n-envs", default=None,
                    help="comma list of n_envs for the --commands rows (default: 65536,262144,1048576 on a GPU, "
                         "1024 on a CPU)")
-    p.add_argument("--steps-per-env", type=int, default=1000,
-                   help="the step budget of the --commands rows: --total-steps n_envs x this (default 1000)")
+    p.add_argument("--steps-per-env", type=int, default=10000,
+                   help="the step budget of the --commands rows: --total-steps n_envs x this (default 10,000: "
+                        "about the useful work of the episode-budget rows)")
     p.add_argument("--out", default=None,
                    help="output folder (default benchmarks/results/local/<device-name>, git-ignored; the committed "
                         "tables are updated on purpose, e.g. --out benchmarks/results/h100)")
@@ -152,20 +154,22 @@ def command_argv(kind: str, env_id: str, n: int, steps_per_env: int, out: str) -
     """The ``jaxrobo train`` / ``jaxrobo sweep`` command of a --commands row: the env's default preset, ``n``
     env slots in all (a sweep's rows × envs), the episode or the step budget."""
     command, budget = kind.split("-")
+    env_id, _, backend = env_id.partition(":")
+    extra = ["--set", f"env.backend={backend}"] if backend else []
     limit = (["--total-steps", str(n * steps_per_env)] if command == "train" else
              ["--total-steps", str(SWEEP_ENVS * steps_per_env)]) if budget == "steps" else []
     if command == "train":
         argv = ["train", "--env", env_id, "--n-envs", str(n), "--no-progress", "--out", out]
         if budget == "episodes":
             argv += ["--nepisodes", str(COMMAND_EPISODES)]
-        return argv + limit
+        return argv + limit + extra
     envs = min(SWEEP_ENVS, n)
     seeds = max(1, n // (4 * envs))
     argv = ["sweep", "--env", env_id, "--grid", SWEEP_GRID, "--seeds", str(seeds), "--n-envs", str(envs),
             "--no-plots", "--no-progress", "--out", out]
     if budget == "episodes":
         argv += ["--nepisodes", str(COMMAND_EPISODES)]
-    return argv + limit
+    return argv + limit + extra
 
 
 def measure_command(kind: str, env_id: str, n: int, args, ctx) -> dict[str, Any]:
@@ -190,8 +194,9 @@ def measure_command(kind: str, env_id: str, n: int, args, ctx) -> dict[str, Any]
     command = argv[0]
     import jaxrobo
 
-    n_sub, dt = sim_info(jaxrobo.make(env_id))
-    row = {"suite": "jaxrobo-cli", "env": env_id, "backend": "default", "mode": kind, "n_envs": n,
+    name, _, backend = env_id.partition(":")
+    n_sub, dt = sim_info(jaxrobo.make(name, **({"backend": backend} if backend else {})))
+    row = {"suite": "jaxrobo-cli", "env": name, "backend": backend or "default", "mode": kind, "n_envs": n,
            "n_substeps": n_sub, "physics_dt": dt, "physics_steps_per_s": s["env_steps"] * n_sub / wall,
            "sim_seconds_per_s": s["env_steps"] * n_sub * dt / wall,
            "status": "ok", "command": "jaxrobo " + " ".join(a if a != out else "OUT" for a in argv),
@@ -202,6 +207,15 @@ def measure_command(kind: str, env_id: str, n: int, args, ctx) -> dict[str, Any]
         row.update(eval_s=s.get("eval_seconds"), write_s=s.get("write_seconds"), execution_plan=s.get("execution_plan"))
     row["steps_per_s_run"] = s["env_steps"] / max(s.get("run_seconds") or 1e-9, 1e-9)
     return row
+
+
+def _gpu_visible() -> bool:
+    """Whether a GPU is there, without starting JAX (``nvidia-smi`` answers)."""
+    import shutil
+    import subprocess
+
+    exe = shutil.which("nvidia-smi")
+    return bool(exe) and subprocess.run([exe, "-L"], capture_output=True).returncode == 0
 
 
 def command_plan(args, gpu: bool) -> list[tuple]:
@@ -757,6 +771,10 @@ def main(argv: list[str] | None = None) -> int:
         return replot(args.replot, args.out)
     if "crazyflow" in args.peers:  # crazyflow uses scipy's array-API mode, which scipy reads once, at its import
         os.environ.setdefault("SCIPY_ARRAY_API", "1")
+    if command_plan(args, args.device == "gpu" or args.device is None and _gpu_visible()):
+        # The commands run in child processes beside this one: this one must not hold 75 % of the GPU's memory
+        # from its first row on (XLA's default preallocation), or theirs fail to allocate.
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     _common.select_device(args.device)
     import jax
 
@@ -799,7 +817,8 @@ def main(argv: list[str] | None = None) -> int:
             add(_guard(fn, skip, n, args, ctx, *extra) if fn is not None else skip)
 
     for kind, env_id, n in command_plan(args, gpu):
-        add(_guard(measure_command, _skip("jaxrobo-cli", env_id, "default", kind, n, ""), kind, env_id, n, args, ctx))
+        add(_guard(measure_command, _skip("jaxrobo-cli", env_id.partition(":")[0], env_id.partition(":")[2] or "default",
+                                          kind, n, ""), kind, env_id, n, args, ctx))
 
     meta = {"device": jax.devices()[0].device_kind, "device_name": dev, "backend": jax.default_backend(),
             "device_count": jax.device_count(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
