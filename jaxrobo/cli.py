@@ -238,7 +238,6 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
             print(deep_progress_line(point), flush=True)
 
     def stopped(what: str, code: int, **fields) -> int:
-        keeper.close()
         return _deep_stopped(live, out, resume_cmd, what, code, **fields)
 
     def notice(signum: int) -> None:
@@ -263,17 +262,14 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
     except KeyboardInterrupt:
         return stopped("interrupted during training", 130, signal="SIGINT")
     except ConfigError as err:  # the checkpoint's state does not fit the trainer (found at its first epoch)
-        keeper.close()
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
     except Exception as err:
-        keeper.close()
         if rundir.is_resumable(live):  # the work of the last evaluation point is kept: say how to go on
             rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
                                what=f"the run failed ({type(err).__name__}: {err}); the last evaluation point's "
                                     "checkpoint, latest and best policy are kept")
         raise
-    keeper.close()
 
     def write(staged: str) -> None:
         deep.write_run(staged, result, live)

@@ -103,7 +103,12 @@ def load(path: str, fp: dict[str, Any], plan: Any, eval_episodes: int) -> Saved:
     """The checkpoint at ``path``, checked against this run's :func:`fingerprint` ``fp``, its
     :class:`~jaxrobo.deep.training.EpochPlan` and number of evaluation episodes; :class:`CheckpointError` saying
     what is wrong."""
-    data = read_npz(path, "the checkpoint")
+    import zipfile
+
+    try:
+        data = read_npz(path, "the checkpoint")
+    except (zipfile.BadZipFile, EOFError, KeyError, MemoryError) as err:  # a truncated or corrupted file
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({type(err).__name__}: {err})") from None
 
     def bad(what: str) -> CheckpointError:
         return CheckpointError(f"{path}: {what}")

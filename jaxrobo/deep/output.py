@@ -75,7 +75,7 @@ class LiveRun:
     ``on_point`` of :func:`jaxrobo.deep.training.train`), in this order: the latest policy (``policy.npz`` +
     ``policy.json``, with the point's ``evaluation`` and ``env_steps``), the best one when this point is the best
     so far (``best/``), the checkpoint (:mod:`jaxrobo.deep.checkpoint`; what ``--resume`` trusts), then
-    ``episode_stats.csv``, TensorBoard scalars (flushed: readable while the run goes on) and ``status.json``. A
+    ``episode_stats.csv``, TensorBoard scalars (written and closed: readable while the run goes on) and ``status.json``. A
     stop, a crash or a kill at any moment leaves the last point's files whole."""
 
     def __init__(self, live: str, fingerprint: dict[str, Any], resume_cmd: str, saved: Any = None):
@@ -83,21 +83,22 @@ class LiveRun:
 
         self.live, self.fingerprint, self.resume_cmd = live, fingerprint, resume_cmd
         self.checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
-        self._writer: Any = None
         # A resumed run (``saved``: its checkpoint) drops the events a stopped session wrote after that checkpoint's
         # last point (all of them where it stopped before its first epoch: that run starts again).
         going_on = saved is not None and saved.epochs_done > 0
         self._purge = None if saved is None else int(saved.evaluations[-1]["env_steps"]) + 1 if going_on else 0
         self._metrics_written = len(saved.training_metrics) if going_on else 0
 
-    def _tensorboard(self) -> Any:
-        if self._writer is None:
-            try:
-                from tensorboardX import SummaryWriter
-            except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
-                return None
-            self._writer = SummaryWriter(os.path.join(self.live, TENSORBOARD), purge_step=self._purge)
-        return self._writer
+    def _tensorboard(self, point: int) -> Any:
+        """A writer of this point's events. tensorboardX's ``flush()`` does not wait for the events its writer
+        thread has not taken yet, ``close()`` does: each point's events go to a file of their own (named by the
+        point, so two in one second do not collide), closed at once, so a reader finds every point so far."""
+        try:
+            from tensorboardX import SummaryWriter
+        except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
+            return None
+        purge, self._purge = self._purge, None
+        return SummaryWriter(os.path.join(self.live, TENSORBOARD), purge_step=purge, filename_suffix=f".{point:05d}")
 
     def point(self, p: Point) -> None:
         from jaxrobo.deep import checkpoint
@@ -112,18 +113,16 @@ class LiveRun:
         checkpoint.save(self.checkpoint_path, self.fingerprint, p.epochs_done, p.states, p.evaluations,
                         p.training_metrics, p.train_seconds)
         _write_stats(self.live, p.evaluations)
-        writer = self._tensorboard()
+        writer = self._tensorboard(i)
         if writer is not None:
-            _scalars(writer, [e], p.training_metrics[self._metrics_written:])
+            try:
+                _scalars(writer, [e], p.training_metrics[self._metrics_written:])
+            finally:
+                writer.close()
             self._metrics_written = len(p.training_metrics)
-            writer.flush()
         rundir.write_status(self.live, rundir.RUNNING, env_steps=int(e["env_steps"]), total_steps=p.plan.total_steps,
                             epochs_done=p.epochs_done, epochs=p.plan.epochs, resume=self.resume_cmd)
 
-    def close(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
 
 
 def write_run(out_dir: str, result: DeepResult, live: str | None = None) -> str:
