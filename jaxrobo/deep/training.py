@@ -260,8 +260,8 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
                                                             if np.size(v) == 1}})
         if pending:
             complete(pending["params"])
-        elif c.agent == "ppo":
-            stop_here()  # (SAC evaluates this point next, in on_params, and asks there)
+        elif c.agent == "ppo" or step == 0:
+            stop_here()  # (SAC evaluates a trained point next, in on_params, and asks there)
 
     num_timesteps, num_evals = (c.total_steps, c.num_evals) if not done0 else plan.trainer_budget(done0)
     common = dict(environment=benv, num_timesteps=num_timesteps, episode_length=length,
