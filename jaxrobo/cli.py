@@ -230,7 +230,7 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
              if going_on else ""))
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
-    keeper = deep.LiveRun(live, fingerprint, resume_cmd, saved)
+    keeper = deep.LiveRun(live, fingerprint, resume_cmd, saved, out=out)
 
     def on_point(point) -> None:
         keeper.point(point)

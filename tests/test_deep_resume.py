@@ -185,3 +185,43 @@ def test_total_steps_is_the_budget_and_num_timesteps_its_old_name(capsys):
         deep.resolve(CPC, "ppo", "tiny", {"num_timesteps": 640, "total_steps": 512})
     assert main(["train", "--env", CPC, "--agent", "ppo", "--total-steps", "640", "--set", "num_timesteps=512"]) == 2
     assert "total_steps given twice" in capsys.readouterr().err
+
+
+def test_a_checkpoint_of_non_finite_state_is_refused(runs, tmp_path, capsys):
+    if runs["agent"] != "ppo":
+        pytest.skip("the check does not depend on the agent")
+    bad = str(tmp_path / "nan")
+    shutil.copytree(runs["kept"], bad)
+    path = os.path.join(bad, "checkpoint.npz")
+    arrays = _arrays(path)
+    name = next(k for k, v in arrays.items() if k.startswith("state_") and v.dtype.kind == "f" and v.size)
+    arrays[name] = np.full_like(arrays[name], np.nan)
+    np.savez(path, **arrays)
+    assert main(["train", "--resume", bad]) == 2
+    assert "holds non-finite values" in capsys.readouterr().err
+
+
+def test_an_error_during_training_keeps_the_last_point_and_resume_goes_on(runs, tmp_path, capsys):
+    if runs["agent"] != "ppo":
+        pytest.skip("one agent is enough: the error path does not depend on it")
+    out = str(tmp_path / "failed")
+    original = deep.LiveRun.point
+
+    def point(self, p):
+        original(self, p)
+        if p.epochs_done == 2:
+            raise RuntimeError("disk on fire")
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(deep.LiveRun, "point", point)
+    try:
+        with pytest.raises(RuntimeError, match="disk on fire"):
+            main([*_args("ppo"), "--out", out])
+    finally:
+        mp.undo()
+    assert _status(out)["status"] == "interrupted"
+    err = capsys.readouterr().err
+    assert "the run failed (RuntimeError: disk on fire)" in err and f"jaxrobo train --resume {out}" in err
+    assert main(["train", "--resume", out, "--no-progress"]) == 0
+    a, b = _arrays(os.path.join(runs["full"], "policy.npz")), _arrays(os.path.join(out, "policy.npz"))
+    assert all(np.array_equal(a[k], b[k]) for k in a)

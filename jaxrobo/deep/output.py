@@ -78,10 +78,12 @@ class LiveRun:
     ``episode_stats.csv``, TensorBoard scalars (written and closed: readable while the run goes on) and ``status.json``. A
     stop, a crash or a kill at any moment leaves the last point's files whole."""
 
-    def __init__(self, live: str, fingerprint: dict[str, Any], resume_cmd: str, saved: Any = None):
+    def __init__(self, live: str, fingerprint: dict[str, Any], resume_cmd: str, saved: Any = None,
+                 out: str | None = None):
         from jaxrobo.io import rundir
 
         self.live, self.fingerprint, self.resume_cmd = live, fingerprint, resume_cmd
+        self.out = os.path.abspath(out if out is not None else live)
         self.checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
         # A resumed run (``saved``: its checkpoint) drops the events a stopped session wrote after that checkpoint's
         # last point (all of them where it stopped before its first epoch: that run starts again).
@@ -120,7 +122,7 @@ class LiveRun:
             finally:
                 writer.close()
             self._metrics_written = len(p.training_metrics)
-        rundir.write_status(self.live, rundir.RUNNING, env_steps=int(e["env_steps"]), total_steps=p.plan.total_steps,
+        rundir.write_status(self.live, rundir.RUNNING, out=self.out, env_steps=int(e["env_steps"]), total_steps=p.plan.total_steps,
                             epochs_done=p.epochs_done, epochs=p.plan.epochs, resume=self.resume_cmd)
 
 
