@@ -180,14 +180,21 @@ def _duration(seconds: float) -> str:
 
 def deep_progress_line(point) -> str:
     """One line per evaluation point of a ppo/sac run: env steps done of the run's total, the training wall time,
-    steps/s and the ETA of the training left (both from :func:`jaxrobo.deep.eval_means`' steps/s), and the
-    evaluation's mean return, length and success rate: the numbers of ``episode_stats.csv`` and TensorBoard."""
+    steps/s (:func:`jaxrobo.deep.eval_means`), the ETA of the training left, and the evaluation's mean return,
+    length and success rate: the numbers of ``episode_stats.csv`` and TensorBoard."""
     from jaxrobo import deep
 
     e, total = point.row, point.plan.total_steps
     m = deep.eval_means(e)
     sps = m["env_steps_per_second"]
-    eta = (total - e["env_steps"]) / sps if e["env_steps"] else float("nan")
+    # The ETA takes the pace since this session's first epoch ended (its compile excluded) once there is one.
+    trained = [r for r in point.evaluations if r["env_steps"] > point.session_start_steps]
+    pace = 0.0
+    if len(trained) > 1:
+        pace = (e["env_steps"] - trained[0]["env_steps"]) / max(e["seconds"] - trained[0]["seconds"], 1e-9)
+    elif trained:
+        pace = (e["env_steps"] - point.session_start_steps) / max(e["seconds"] - point.session_start_seconds, 1e-9)
+    eta = (total - e["env_steps"]) / pace if pace > 0 else float("nan")
     line = (f"  {e['env_steps']:>11,}/{total:,} env steps ({100 * e['env_steps'] / total:3.0f} %)  "
             f"{_duration(e['seconds'])}  {sps:,.0f} steps/s  ETA {_duration(eta) if eta == eta else '?'}  "
             f"return {m['return_mean']:.2f}  length {m['length_mean']:.1f}")

@@ -225,3 +225,37 @@ def test_an_error_during_training_keeps_the_last_point_and_resume_goes_on(runs, 
     assert main(["train", "--resume", out, "--no-progress"]) == 0
     a, b = _arrays(os.path.join(runs["full"], "policy.npz")), _arrays(os.path.join(out, "policy.npz"))
     assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_progress_line_csv_and_tensorboard_show_the_same_numbers(runs, capsys):
+    """One definition of each number: the progress line of a point, its ``episode_stats.csv`` row and its
+    TensorBoard scalars agree."""
+    from jaxrobo.cli import deep_progress_line
+
+    full = runs["full"]
+    rows = _rows(os.path.join(full, "episode_stats.csv"))
+    scalars = read_scalars(os.path.join(full, "tensorboard"))
+    for tag, col in (("eval/return_mean", "return_mean"), ("eval/length_mean", "length_mean")):
+        assert [s for s, _ in scalars[tag]] == [int(r["env_steps"]) for r in rows]
+        assert np.allclose([v for _, v in scalars[tag]], [float(r[col]) for r in rows], rtol=1e-5)
+    sps = [v for _, v in scalars["eval/env_steps_per_second"]]
+    assert np.allclose(sps[1:], [int(r["env_steps"]) / float(r["seconds"]) for r in rows[1:]], rtol=1e-3)
+    # The line of a point, rebuilt from the run's own evaluations.
+    spec = deep.spec_from_config(_config(full))
+    evaluations = []
+    for r in _rows(os.path.join(full, "evaluations.csv")):
+        i = int(r["evaluation"])
+        if i == len(evaluations):
+            evaluations.append({"env_steps": int(r["env_steps"]), "return": [], "length": []})
+        evaluations[i]["return"].append(float(r["return"]))
+        evaluations[i]["length"].append(float(r["length"]))
+    for e, row in zip(evaluations, rows):
+        e.update({"return": np.asarray(e["return"]), "length": np.asarray(e["length"]),
+                  "seconds": float(row["seconds"])})
+    plan = deep.epoch_plan(spec.config)
+    point = deep.Point(spec, {}, plan, 3, evaluations[:4], [], None, None, evaluations[3]["seconds"], 0, 0.0)
+    line = deep_progress_line(point)
+    steps = evaluations[3]["env_steps"]
+    assert f"{steps:,}/{plan.total_steps:,} env steps ({100 * steps / plan.total_steps:3.0f} %)" in line
+    assert f"return {float(rows[3]['return_mean']):.2f}" in line and f"length {float(rows[3]['length_mean']):.1f}" in line
+    assert f"{steps / evaluations[3]['seconds']:,.0f} steps/s" in line and "ETA " in line and "ETA ?" not in line
