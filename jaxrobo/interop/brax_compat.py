@@ -33,9 +33,9 @@ written and tested for. Outside it (or where ``acting.Evaluator`` does not have 
   instead of leaving the run without evaluations.
 
 To widen the range, run ``tests/test_brax_compat.py``, ``tests/test_brax_env.py``, ``tests/test_deep.py`` and
-``tests/test_deep_resume.py`` (resume bit for bit) on the new version. Public surface: :data:`WRITTEN_FOR`, :func:`installed_version`, :func:`unavailable`,
-:func:`install_jax_compat`, :func:`keep_evaluator_params`, :class:`EvaluatorHook`, :func:`hook_epochs`,
-:class:`EpochHook`, :class:`BraxCompatError`.
+``tests/test_deep_resume.py`` (resume bit for bit) on the new version. Public surface: :data:`WRITTEN_FOR`,
+:func:`installed_version`, :func:`unavailable`, :func:`install_jax_compat`, :func:`keep_evaluator_params`,
+:class:`EvaluatorHook`, :func:`hook_epochs`, :class:`EpochHook`, :class:`BraxCompatError`.
 """
 from __future__ import annotations
 
