@@ -209,132 +209,211 @@ def _deep_agent(args: argparse.Namespace) -> str | None:
 
 
 def _deep_spec(args: argparse.Namespace, agent: str):
-    """The deep run asked for and its directory; ConfigError naming the flag."""
+    """The deep run asked for, its directory and, for ``--resume``, its checkpoint
+    (:class:`jaxrobo.deep.checkpoint.Saved`, None for a new run); ConfigError naming the flag or file."""
     from jaxrobo import deep
+    from jaxrobo.deep import checkpoint
     from jaxrobo.io import rundir
     from jaxrobo.core.config import ConfigError, merge_flags, parse_overrides
     from jaxrobo.task.registry import find
 
-    if args.resume is not None:
-        raise ConfigError(f"--resume {args.resume}: a ppo/sac run cannot be resumed (Brax's trainers keep their state "
-                          "inside one call); start it again with --out")
+    total_steps = getattr(args, "total_steps", None)
     if args.checkpoint_every is not None:
-        raise ConfigError(f"--checkpoint-every: --agent {agent} runs do not checkpoint (Brax's trainer runs as one "
-                          "call); drop the flag")
+        raise ConfigError(f"--checkpoint-every: a {agent} run keeps a checkpoint at each of its evaluation points "
+                          "(--set num_evals=N sets how many); drop the flag")
+    if args.resume is not None:
+        given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent if agent != "resume" else None),
+                                          ("--preset", args.preset), ("--n-envs", args.n_envs),
+                                          ("--nepisodes", args.nepisodes), ("--total-steps", total_steps),
+                                          ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
+                 if value is not None]
+        given += ["--overwrite"] if args.overwrite else []
+        if given:
+            raise ConfigError(f"--resume {args.resume}: the run goes on with its own config.yaml and directory; "
+                              f"drop {', '.join(given)}")
+        rundir.check_out(args.resume, resume=True, flag="--resume")
+        from jaxrobo.io.results import load_config
+
+        spec = deep.spec_from_config(load_config(args.resume), os.path.join(args.resume, "config.yaml"))
+        saved = checkpoint.load(os.path.join(args.resume, rundir.CHECKPOINT), checkpoint.fingerprint(spec),
+                                deep.epoch_plan(spec.config), spec.config.eval_episodes)
+        return spec, args.resume, saved
     if args.nepisodes is not None:
         raise ConfigError(f"--nepisodes: --agent {agent} trains for a number of env steps, not episodes; use "
-                          "--set num_timesteps=N")
+                          "--total-steps N")
     overrides = parse_overrides(args.set or [])
     for key in ("agent", "agent.agent"):
         value = overrides.pop(key, agent)
         if value != agent:
             raise ConfigError(f"agent given twice: --agent {agent} and --set {key}={value!r}; give it once")
-    merge_flags(overrides, [("num_envs", "--n-envs", args.n_envs), ("seed", "--seed", args.seed)])
+    for alias in ("num_timesteps", "agent.num_timesteps"):
+        if total_steps is not None and alias in overrides:
+            raise ConfigError(f"total_steps given twice: --total-steps {total_steps} and --set {alias}="
+                              f"{overrides[alias]!r} (the old name of total_steps); give it once")
+    merge_flags(overrides, [("num_envs", "--n-envs", args.n_envs), ("seed", "--seed", args.seed),
+                            ("total_steps", "--total-steps", total_steps)])
     env_id = args.env or "CartPoleContinuous-v0"
     find(env_id, where=f"--env {env_id}")
     spec = deep.resolve(env_id, agent, args.preset or "default", overrides)
     out = args.out or os.path.join("training_results", f"{spec.env_id}_{agent}_{time.strftime('%Y%m%d-%H%M%S')}")
     rundir.check_out(out, overwrite=args.overwrite)
-    return spec, out
+    return spec, out, None
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(max(seconds, 0.0)))
+    h, rest = divmod(seconds, 3600)
+    return f"{h}:{rest // 60:02d}:{rest % 60:02d}" if h else f"{rest // 60}:{rest % 60:02d}"
+
+
+def deep_progress_line(point) -> str:
+    """One line per evaluation point of a ppo/sac run: env steps done of the run's total, the training wall time,
+    steps/s (:func:`jaxrobo.deep.eval_means`), the ETA of the training left, and the evaluation's mean return,
+    length and success rate: the numbers of ``episode_stats.csv`` and TensorBoard."""
+    from jaxrobo import deep
+
+    e, total = point.row, point.plan.total_steps
+    m = deep.eval_means(e)
+    sps = m["env_steps_per_second"]
+    # The ETA takes the pace since this session's first epoch ended (its compile excluded) once there is one.
+    trained = [r for r in point.evaluations if r["env_steps"] > point.session_start_steps]
+    pace = 0.0
+    if len(trained) > 1:
+        pace = (e["env_steps"] - trained[0]["env_steps"]) / max(e["seconds"] - trained[0]["seconds"], 1e-9)
+    elif trained:
+        pace = (e["env_steps"] - point.session_start_steps) / max(e["seconds"] - point.session_start_seconds, 1e-9)
+    eta = (total - e["env_steps"]) / pace if pace > 0 else float("nan")
+    line = (f"  {e['env_steps']:>11,}/{total:,} env steps ({100 * e['env_steps'] / total:3.0f} %)  "
+            f"{_duration(e['seconds'])}  {sps:,.0f} steps/s  ETA {_duration(eta) if eta == eta else '?'}  "
+            f"return {m['return_mean']:.2f}  length {m['length_mean']:.1f}")
+    if "success_rate" in m:
+        line += f"  success {m['success_rate']:.3f}"
+    return line
 
 
 def _train_deep(args: argparse.Namespace, agent: str) -> int:
-    """``jaxrobo train --agent ppo|sac``: Brax's trainer on the env's Brax face, into a run directory that is
-    checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.io.rundir`)."""
+    """``jaxrobo train --agent ppo|sac`` (or ``--resume`` of such a run): Brax's trainer on the env's Brax face, into
+    a run directory that is checked before anything compiles, keeps the run's work at every evaluation point
+    (:class:`jaxrobo.deep.LiveRun`) and is published whole when the run is done (:mod:`jaxrobo.deep`,
+    :mod:`jaxrobo.io.rundir`). A stop (SIGINT/SIGTERM, an error) leaves the last point's checkpoint, latest and
+    best policy: ``--resume`` goes on from there, ``jaxrobo show`` flies them."""
     import shlex
 
-    import numpy as np
-
     from jaxrobo import deep
+    from jaxrobo.deep import checkpoint
     from jaxrobo.io import rundir
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.results import write_config
 
     try:
-        spec, out = _deep_spec(args, agent)
+        spec, out, saved = _deep_spec(args, agent)
+        fingerprint = checkpoint.fingerprint(spec)
     except ConfigError as err:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
-    live = rundir.live_dir(out)
-    write_config(live, spec.to_dict())
-    rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out))
-    c = spec.config
-    print(f"{spec.env_id} · {agent} ({spec.preset}) · {c.num_envs} envs × {c.num_timesteps:,} env steps, episodes "
-          f"≤ {spec.episode_length} steps → {out}")
+    agent = spec.agent
+    resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
+    live = out if saved is not None else rundir.live_dir(out)
+    if saved is None:
+        write_config(live, spec.to_dict())
+    rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), resume=resume_cmd)
+    c, plan = spec.config, deep.epoch_plan(spec.config)
+    going_on = saved is not None and saved.epochs_done > 0
+    print(f"{spec.env_id} · {agent} ({spec.preset}) · {c.num_envs} envs × {plan.total_steps:,} env steps "
+          f"({plan.epochs} epochs), episodes ≤ {spec.episode_length} steps → {out}"
+          + (f" (resuming after epoch {saved.epochs_done}, {saved.evaluations[-1]['env_steps']:,} env steps)"
+             if going_on else ""))
+    if live != out:
+        print(f"checkpoints in {live} until the run is done", file=sys.stderr)
+    keeper = deep.LiveRun(live, fingerprint, resume_cmd, saved, out=out)
 
-    def progress(row: dict) -> None:
-        if args.no_progress:
-            return
-        line = (f"  {row['env_steps']:>12,} env steps  {row['seconds']:7.1f} s  return {np.mean(row['return']):9.2f}"
-                f"  length {np.mean(row['length']):7.1f}")
-        if "success" in row:
-            line += f"  success {np.mean(row['success']):.3f}"
-        print(line, flush=True)
-
-    again = f"(a {agent} run does not resume) jaxrobo train ... --out {shlex.quote(out)} --overwrite"
+    def on_point(point) -> None:
+        keeper.point(point)
+        if not args.no_progress:
+            print(deep_progress_line(point), flush=True)
 
     def stopped(what: str, code: int, **fields) -> int:
-        return _deep_stopped(live, out, again, what, code, **fields)
+        return _deep_stopped(live, out, resume_cmd, what, code, **fields)
 
     def notice(signum: int) -> None:
         import signal
 
-        print(f"\n{signal.Signals(signum).name}: stopping at the trainer's next evaluation point; nothing trained "
-              "is kept (again to quit at once)", file=sys.stderr)
+        print(f"\n{signal.Signals(signum).name}: stopping at the trainer's next evaluation point, its work kept "
+              "(again to quit at once, keeping the last point's)", file=sys.stderr)
 
     # SIGINT/SIGTERM: Brax's trainer cannot be paused, so it is stopped where it hands control back (its next
-    # evaluation point); a second signal exits at once. Either way the run directory says "interrupted".
+    # evaluation point, after that point is kept); a second signal exits at once with the last point kept.
     from jaxrobo.training import driver
 
     try:
         with driver.StopOnSignal(notice, second="exit") as stop:
-            result = deep.train(spec, progress, should_stop=stop)
+            result = deep.train(spec, on_point, should_stop=stop, resume=saved,
+                                checkpoint_path=keeper.checkpoint_path)
     except deep.TrainingStopped as err:
-        return stopped(f"{stop.name}: {err}; nothing trained was kept", 128 + stop.signum, signal=stop.name)
+        return stopped(f"{stop.name}: {err}", 128 + stop.signum, signal=stop.name)
     except SystemExit as err:  # the second signal (StopOnSignal's second="exit")
         name = stop.name or "signal"
-        return stopped(f"{name} twice: quit during training; nothing trained was kept", int(err.code or 1),
-                       signal=name)
+        return stopped(f"{name} twice: quit during training", int(err.code or 1), signal=name)
     except KeyboardInterrupt:
-        return stopped("interrupted during training; nothing trained was kept", 130, signal="SIGINT")
-    # The trained policy goes to disk first, so that no later error loses it.
-    deep.save_policy(live, result.params, result.net)
+        return stopped("interrupted during training", 130, signal="SIGINT")
+    except ConfigError as err:  # the checkpoint's state does not fit the trainer (found at its first epoch)
+        print(f"jaxrobo train: {err}", file=sys.stderr)
+        return 2
+    except Exception as err:
+        if rundir.is_resumable(live):  # the work of the last evaluation point is kept: say how to go on
+            rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
+                               what=f"the run failed ({type(err).__name__}: {err}); the last evaluation point's "
+                                    "checkpoint, latest and best policy are kept")
+        raise
 
     def write(staged: str) -> None:
-        deep.write_run(staged, result)
-        rundir.write_status(staged, rundir.COMPLETE, env_steps=result.env_steps)
+        deep.write_run(staged, result, live)
+        rundir.write_status(staged, rundir.COMPLETE, env_steps=result.env_steps,
+                            **({"resumed_after_env_steps": result.resumed_after_env_steps}
+                               if result.resumed_after_env_steps else {}))
 
     try:
         rundir.publish_results(out, live, write)
-    except Exception as err:  # noqa: BLE001 - the policy is saved in the live directory; say where
-        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", publish_live=True,
+    except Exception as err:  # noqa: BLE001 - the run's checkpoint and policy are in the live directory; say where
+        rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
                            what=f"writing the results failed ({type(err).__name__}: {err}); the trained policy is "
-                                f"in {live}/{deep.POLICY_NPZ}")
+                                f"in {out}/{deep.POLICY_NPZ}")
         return 1
     s = result.summary()
-    print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s, "
-          f"compile included; evaluations {s['eval_seconds']:.1f} s more)")
+    print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s of training ({s['env_steps_per_second']:,.0f} "
+          f"steps/s, compile included; evaluations {s['eval_seconds']:.1f} s more)")
     line = f"final evaluation: mean return {s['final_eval_mean_return']:.2f}, mean length {s['final_eval_mean_length']:.1f}"
     if "final_eval_success_rate" in s:
         line += f", success {s['final_eval_success_rate']:.3f}"
-    print(line + f" over {c.eval_episodes} fresh episodes")
+    print(line + f" over {c.eval_episodes} fresh episodes (best: evaluation {s['best_evaluation']}, in best/)")
     print(f"results in {out}")
     return 0
 
 
-def _deep_stopped(live: str, out: str, again: str, what: str, code: int, **fields) -> int:
-    """A ppo/sac run stopped before it finished training: nothing trained exists to keep. A new directory
-    (``live`` is ``out``) is marked ``interrupted``; an old run that ``--overwrite`` was to replace stays as it was
-    (a stopped deep run cannot be resumed, so it must not replace a finished one) and the new run's staging
-    directory is removed. Returns ``code``."""
+def _deep_stopped(live: str, out: str, resume_cmd: str, what: str, code: int, **fields) -> int:
+    """A ppo/sac run stopped before it finished. Once it reached an evaluation point its checkpoint, latest and
+    best policy are in ``live``: the run is marked interrupted (a staging ``live`` is moved into place as ``out``,
+    replacing the old run that ``--overwrite`` named, as a stopped tabular run does) and ``resume_cmd`` goes on.
+    Stopped before its first point, nothing trained exists: a new directory is marked interrupted (starting again
+    is the way on), an old run that ``--overwrite`` was to replace stays as it was. Returns ``code``."""
+    import shlex
+
     from jaxrobo.io import rundir
 
+    if rundir.is_resumable(live):
+        rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
+                           what=f"{what}; the last evaluation point's checkpoint, latest and best policy are kept",
+                           **fields)
+        return code
+    again = f"jaxrobo train ... --out {shlex.quote(out)} --overwrite"
     if os.path.abspath(live) == os.path.abspath(out):
-        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", what=what, **fields)
+        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train",
+                           what=f"{what}; stopped before its first evaluation point: nothing trained to keep",
+                           **fields)
     else:
         rundir.discard(live)
-        print(f"jaxrobo train: {what}; {out} still holds the run it had (not replaced); to go on: {again}",
-              file=sys.stderr)
+        print(f"jaxrobo train: {what} before its first evaluation point; {out} still holds the run it had (not "
+              f"replaced); to start again: {again}", file=sys.stderr)
     return code
 
 
@@ -567,8 +646,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="episodes per environment (the default budget); under --total-steps or --total-episodes, "
                         "how many episodes each environment records")
     p.add_argument("--total-steps", type=int, default=None, metavar="N",
-                   help="step budget: N env steps for the whole run, all envs together (every env steps "
-                        "ceil(N / n_envs), episodes restarting as they end: the batch stays full)")
+                   help="step budget: N env steps for the whole run, all envs together (tabular: every env steps "
+                        "ceil(N / n_envs), episodes restarting as they end: the batch stays full; ppo/sac: Brax's "
+                        "num_timesteps, rounded up to whole epochs)")
     p.add_argument("--total-episodes", type=int, default=None, metavar="N",
                    help="episode budget of the whole run: every env steps until the run has finished N episodes "
                         "(with shared_table: the episodes the table learned from)")

@@ -25,6 +25,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=int, default=6, help="flights to draw")
     parser.add_argument("--table", type=int, default=0, help="which trained table (env index) to fly")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the flights")
+    parser.add_argument("--policy", default="latest", choices=("latest", "best"),
+                        help="a ppo/sac run's policy: latest (the trained one; a stopped run's last evaluation "
+                             "point's) or best (its best evaluation's)")
     parser.add_argument("--video", metavar="PATH", default=None,
                         help="render one episode of the run's policy (a trained table, a saved ppo/sac policy, or "
                              "random with --env) to this .gif or .mp4 instead of drawing the figure; needs an "
@@ -242,7 +245,7 @@ def video(spec: Any, path: str, seed: int, policy: Any = None, q: np.ndarray | N
     return 0
 
 
-def _load_deep_run(run_dir: str, table: int) -> tuple[Any, Any]:
+def _load_deep_run(run_dir: str, table: int, which: str = "latest") -> tuple[Any, Any]:
     """A ``--agent ppo|sac`` run's spec and its saved policy as a :data:`jaxrobo.task.rollout.Policy` of the env."""
     from jaxrobo import deep
     from jaxrobo.interop.brax_env import BraxEnv
@@ -253,7 +256,7 @@ def _load_deep_run(run_dir: str, table: int) -> tuple[Any, Any]:
     spec = deep.spec_from_config(load_config(run_dir), where)
     if table != 0:
         raise ConfigError(f"--table {table}: a {spec.agent} run has one policy (table 0)")
-    loaded = deep.load_policy(run_dir)
+    loaded = deep.load_policy(run_dir, which)
     benv = BraxEnv(spec.env)
     sizes = (loaded.net["observation_size"], loaded.net["action_size"])
     if sizes != (benv.observation_size, benv.action_size):
@@ -312,9 +315,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         check_args(args)
         if args.run_dir and deep.is_deep_run(args.run_dir):
-            spec, policy = _load_deep_run(args.run_dir, args.table)
+            spec, policy = _load_deep_run(args.run_dir, args.table, args.policy)
             q = None
-            what = f"{spec.agent} policy, {args.run_dir}"
+            what = f"{spec.agent} {args.policy} policy, {args.run_dir}"
             if args.video is not None:
                 return video(spec, args.video, args.seed, policy=policy)
             if type(spec.env).__module__ not in FLYING_MODULES:

@@ -545,9 +545,14 @@ DEEP = [
     D("unknown-key", "unknown key 'tau'", "--set", "tau=0.1"),
     D("nepisodes", "--nepisodes: --agent ppo trains for a number of env steps", "--nepisodes", "3"),
     D("unknown-preset", "preset='fast': allowed values are default, tiny", "--preset", "fast"),
-    D("replay-too-large", "min_replay_size=10 must be < num_timesteps=5", "--set", "min_replay_size=10",
-      "--set", "num_timesteps=5", agent="sac"),
-    D("resume", "a ppo/sac run cannot be resumed", "--resume", "{tmp}"),
+    D("replay-too-large", "min_replay_size=10 must be < total_steps=5", "--set", "min_replay_size=10",
+      "--total-steps", "5", agent="sac"),
+    D("resume-with-config-flags", "the run goes on with its own config.yaml and directory; drop --env, --agent",
+      "--resume", "{tmp}"),
+    D("total-steps-twice", "total_steps given twice: --total-steps 10 and --set num_timesteps=20", "--total-steps",
+      "10", "--set", "num_timesteps=20"),
+    D("total-steps-alias-and-name", "name the same setting (num_timesteps is the old name of total_steps)",
+      "--set", "num_timesteps=20", "--set", "total_steps=10"),
     D("sac-tau-range", "tau=0.0: expected a number > 0.0 and <= 1.0", "--set", "tau=0", agent="sac"),
 ]
 
