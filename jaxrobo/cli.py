@@ -14,7 +14,7 @@ import importlib
 import os
 import sys
 import time
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
 PLUGINS = {"show": ("jaxrobo.show", "draw greedy flights of a trained quadcopter (top and side views)"),
@@ -313,6 +313,8 @@ def _train_checked(args: argparse.Namespace) -> int:
     checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
     print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {cfg.n_envs} envs × {cfg.nepisodes} episodes "
           f"≤ {cfg.nsteps} steps → {out}" + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
+    if spec.preset == "seed":
+        print(seed_preset_note(spec))
     print(f"running as {trainer.plan!r}")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
@@ -403,6 +405,18 @@ def _plot(args: argparse.Namespace) -> int:
         return 2
     print(out)
     return 0
+
+
+def seed_preset_note(spec: Any) -> str:
+    """What ``--preset seed`` is, printed when a run uses it: the seed's baseline, and what it costs in memory."""
+    from jaxrobo.training.budget import estimate, format_bytes
+    from jaxrobo.training.run import check_discretiser
+
+    parts = estimate(spec.env, spec.config, check_discretiser(spec.env, spec.config))
+    memory = ", ".join(f"{k} {format_bytes(v)}" for k, v in parts.items() if k != "total")
+    return (f"preset seed: the seed's baseline, its own parameters and learners reproduced exactly to compare with; "
+            f"not tuned to learn (the seed's cart-pole never does; the default preset is the one that learns); "
+            f"memory about {format_bytes(parts['total'])} ({memory})")
 
 
 def _list(args: argparse.Namespace) -> int:
@@ -505,18 +519,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that never step a simulator: they skip importing MJX (seconds) up front.
+LIGHT_COMMANDS = ("list", "plot")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    from jaxrobo.physics.sim import quiet_imports
-
-    with quiet_imports():
-        import mujoco.mjx  # noqa: F401  (import once, silently: MJX prints warp import noise)
-    try:
-        from jaxrobo.speed.cache import enable_compilation_cache
-
-        enable_compilation_cache()
-    except ImportError:
-        pass
     args = build_parser().parse_args(argv)
+    if args.command not in LIGHT_COMMANDS:
+        from jaxrobo.physics.sim import quiet_imports
+
+        with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
+            import mujoco.mjx  # noqa: F401
+        try:
+            from jaxrobo.speed.cache import enable_compilation_cache
+
+            enable_compilation_cache()
+        except ImportError:
+            pass
     from jaxrobo.core.config import ConfigError
 
     try:
