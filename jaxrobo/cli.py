@@ -450,7 +450,7 @@ def _check(args: argparse.Namespace) -> int:
     from jaxrobo.core.config import ConfigError
 
     try:
-        results = check_env(args.env_id, quick=args.quick, seed=args.seed)
+        results = check_env(args.env_id, quick=args.quick, seed=args.seed, long=args.long)
     except ConfigError as err:
         print(f"jaxrobo check: {err}", file=sys.stderr)
         return 2
@@ -506,6 +506,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("env_id", metavar="ID", help="environment id (see `jaxrobo list`)")
     p.add_argument("--quick", action="store_true", help="shorter rollout; skip the MJX-vs-MuJoCo and Gymnasium checks")
     p.add_argument("--seed", type=int, default=0, help="seed of the keys the checks use")
+    p.add_argument("--long", type=int, default=0, metavar="N",
+                   help="also run N random steps per env (fresh episodes where one ends) and fail on any float of "
+                        "the state beyond 1e6 in magnitude (finite but blown up)")
     p.set_defaults(func=_check)
 
     for name, (module, help_text) in PLUGINS.items():
