@@ -14,7 +14,7 @@ import importlib
 import os
 import sys
 import time
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
 PLUGINS = {"show": ("jaxrobo.show", "draw greedy flights of a trained quadcopter (top and side views)"),
@@ -484,8 +484,7 @@ def _train_checked(args: argparse.Namespace) -> int:
     print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {budget_line(cfg, trainer)} → {out}"
           + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
     if spec.preset == "seed":
-        print("preset 'seed': the seed's own parameters and learners, exactly (SPEC §4) — a faithful baseline that "
-              "learns little; use the default preset to train")
+        print(seed_preset_note(spec))
     print(f"running as {trainer.plan!r}")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
@@ -588,6 +587,18 @@ def _plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def seed_preset_note(spec: Any) -> str:
+    """What ``--preset seed`` is, printed when a run uses it: the seed's baseline, and what it costs in memory."""
+    from jaxrobo.training.budget import estimate, format_bytes
+    from jaxrobo.training.run import check_discretiser
+
+    parts = estimate(spec.env, spec.config, check_discretiser(spec.env, spec.config))
+    memory = ", ".join(f"{k} {format_bytes(v)}" for k, v in parts.items() if k != "total")
+    return (f"preset seed: the seed's baseline, its own parameters and learners reproduced exactly to compare with; "
+            f"not tuned to learn (the seed's cart-pole never does; the default preset is the one that learns); "
+            f"memory about {format_bytes(parts['total'])} ({memory})")
+
+
 def _list(args: argparse.Namespace) -> int:
     import jaxrobo
     from jaxrobo.task import registry
@@ -619,7 +630,7 @@ def _check(args: argparse.Namespace) -> int:
     from jaxrobo.core.config import ConfigError
 
     try:
-        results = check_env(args.env_id, quick=args.quick, seed=args.seed)
+        results = check_env(args.env_id, quick=args.quick, seed=args.seed, long=args.long)
     except ConfigError as err:
         print(f"jaxrobo check: {err}", file=sys.stderr)
         return 2
@@ -687,6 +698,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("env_id", metavar="ID", help="environment id (see `jaxrobo list`)")
     p.add_argument("--quick", action="store_true", help="shorter rollout; skip the MJX-vs-MuJoCo and Gymnasium checks")
     p.add_argument("--seed", type=int, default=0, help="seed of the keys the checks use")
+    p.add_argument("--long", type=int, default=0, metavar="N",
+                   help="also run N random steps per env (fresh episodes where one ends) and fail on any float of "
+                        "the state beyond 1e6 in magnitude (finite but blown up)")
     p.set_defaults(func=_check)
 
     for name, (module, help_text) in PLUGINS.items():
@@ -700,18 +714,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that never step a simulator: they skip importing MJX (seconds) up front.
+LIGHT_COMMANDS = ("list", "plot")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    from jaxrobo.physics.sim import quiet_imports
-
-    with quiet_imports():
-        import mujoco.mjx  # noqa: F401  (import once, silently: MJX prints warp import noise)
-    try:
-        from jaxrobo.speed.cache import enable_compilation_cache
-
-        enable_compilation_cache()
-    except ImportError:
-        pass
     args = build_parser().parse_args(argv)
+    if args.command not in LIGHT_COMMANDS:
+        from jaxrobo.physics.sim import quiet_imports
+
+        with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
+            import mujoco.mjx  # noqa: F401
+        try:
+            from jaxrobo.speed.cache import enable_compilation_cache
+
+            enable_compilation_cache()
+        except ImportError:
+            pass
     from jaxrobo.core.config import ConfigError
 
     try:

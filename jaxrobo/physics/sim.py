@@ -65,8 +65,7 @@ def quiet_imports():
             yield
 
 
-with quiet_imports():
-    from mujoco import mjx  # noqa: E402
+mjx = mjx_lean.mjx  # imported on first use (seconds, and noisy): listing ids or reading configs never pays for it
 
 
 @pytree_dataclass

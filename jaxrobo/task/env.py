@@ -99,8 +99,12 @@ class LearningTarget:
             raise ValueError(f"LearningTarget metric={self.metric!r}: allowed values are {', '.join(TARGET_METRICS)}")
 
 
-#: The figures a :class:`LearningTarget` can be stated on.
-TARGET_METRICS = ("mean_length", "mean_return", "success_rate")
+#: The figures a :class:`LearningTarget` can be stated on, each with what it measures (docs/extending.md lists them).
+TARGET_METRICS = {
+    "mean_length": "mean greedy episode length per evaluated table (longer is better: a task that is kept going)",
+    "mean_return": "mean greedy episode return per evaluated table",
+    "success_rate": "share of greedy episodes the task counts as a success (its task variables' `arrived` flag)",
+}
 
 
 class Env:
