@@ -3,7 +3,7 @@
     python scripts/sim2sim.py RUN [--policy DIR] [--episodes 100] [--seed 0]
 
 ``RUN`` is a finished tabular run of a task with a native port (CartPoleStayUp-v0/-v1: ``envs/cartpole/native.py``;
-QuadcopterGoto-v1/-v2: ``envs/quadcopter/native.py``). ``--policy`` is its export (``jaxrobo export RUN --out DIR``;
+QuadcopterGoto-v1/-v2: ``envs/quadcopter/native.py``; ArmReach-v0: ``envs/arm/native.py``). ``--policy`` is its export (``jaxrobo export RUN --out DIR``;
 without it the run is exported into a temporary directory). The episodes' initial states, goals and obstacles are
 drawn once, by the JAX env's reset (:func:`jaxrobo.task.rollout.rollout` with key ``--seed``), and fed to both:
 
@@ -36,7 +36,8 @@ if ROOT not in sys.path:
 #: The task modules with a native port, and the port's module and class.
 NATIVE = {"envs.cartpole.stay_up": ("envs.cartpole.native", "NativeCartPole"),
           "envs.quadcopter.goto": ("envs.quadcopter.native", "NativeGoto"),
-          "envs.quadcopter.goto_v2": ("envs.quadcopter.native", "NativeGoto")}
+          "envs.quadcopter.goto_v2": ("envs.quadcopter.native", "NativeGoto"),
+          "envs.arm.reach": ("envs.arm.native", "NativeArm")}
 
 
 def load_runner(policy_dir: str):
@@ -78,17 +79,16 @@ def jax_episodes(spec, q: np.ndarray, episodes: int, seed: int) -> dict:
 
 
 def native_episodes(env, runner, start: dict, episodes: int) -> tuple[list[dict], float]:
+    """Each episode in native MuJoCo from the JAX resets' initial state and task variables; and the loop's
+    control steps per second."""
+    import jax  # only to slice the task pytree, before the loop
+
     module, name = NATIVE[type(env).__module__]
     sim = getattr(importlib.import_module(module), name)(env)
-    goto = hasattr(start["task"], "goal")
+    tasks = [jax.tree.map(lambda x: x[i], start["task"]) for i in range(episodes)]  # host arrays, per episode
     out, steps, t0 = [], 0, time.perf_counter()
     for i in range(episodes):
-        if goto:
-            o = start["task"].obstacles
-            obstacles = {"kind": o.kind[i], "center": o.center[i], "size": o.size[i], "active": o.active[i]}
-            ep = sim.episode(runner, start["qpos"][i], start["qvel"][i], start["task"].goal[i], obstacles)
-        else:
-            ep = sim.episode(runner, start["qpos"][i], start["qvel"][i])
+        ep = sim.episode(runner, start["qpos"][i], start["qvel"][i], tasks[i])
         steps += ep["length"]
         out.append(ep)
     return out, steps / (time.perf_counter() - t0)

@@ -29,12 +29,10 @@ class NativeCartPole:
         self.n_substeps = int(env.robot.sim.n_substeps)
         self.steps = np.asarray(ACTION_STEPS[: o.n_actions], np.float64) * float(p.pos_step)
         self.velocity = o.control_type == "velocity"
-        self.position = o.control_type == "position"
         self.round_obs = bool(o.round_obs)
         self.vmax = float(p.max_base_velocity)
         self.x_lim = (float(p.min_base_pose_x), float(p.max_base_pose_x))
         self.angle_lim = (float(p.min_pole_angle), float(p.max_pole_angle))
-        self.init_pos = float(p.init_pos)
         self.horizon = int(p.max_episode_steps)
         r = env.robot
         self.idx = (r.cart_q, r.cart_v, r.pole_q, r.pole_v)
@@ -45,14 +43,15 @@ class NativeCartPole:
         obs = np.array([q[c_q], v[c_v], q[p_q], v[p_v]]).astype(np.float32)
         return np.round(obs, 1) if self.round_obs else obs
 
-    def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray,
+    def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
                 horizon: int | None = None) -> dict[str, Any]:
-        """One episode from ``(qpos, qvel)``: ``length``, ``terminated``, ``success`` (up for the horizon),
-        ``actions`` and ``obs`` (the observations the policy saw)."""
+        """One episode from ``(qpos, qvel)`` and the task's start command (``task.command``): ``length``,
+        ``terminated``, ``success`` (up for the horizon), ``actions`` and ``obs`` (the observations the policy
+        saw)."""
         horizon = self.horizon if horizon is None else int(horizon)
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:], self.data.qvel[:] = qpos, qvel
-        command = self.init_pos if self.position else 0.0
+        command = float(task.command)
         obs = self.observe()
         seen, actions, terminated = [obs], [], False
         for _ in range(horizon):

@@ -174,14 +174,16 @@ class NativeGoto:
         arrived = bool(np.linalg.norm(goal - pos) < p["goal_tolerance"]) and not failed
         return arrived, bool(failed)
 
-    def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, goal: np.ndarray,
-                obstacles: dict, horizon: int | None = None) -> dict[str, Any]:
-        """One flight from ``(qpos, qvel)`` to ``goal`` among ``obstacles`` (``kind``, ``center``, ``size``,
-        ``active`` arrays as in the task's state): ``length``, ``success`` (arrived), ``crashed``, ``actions``,
-        ``obs`` and ``pos`` per step."""
+    def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
+                horizon: int | None = None) -> dict[str, Any]:
+        """One flight from ``(qpos, qvel)`` to the goal among the obstacles of ``task`` (one episode's task
+        variables as host arrays: ``goal``, ``obstacles.kind/center/size/active``): ``length``, ``success``
+        (arrived), ``crashed``, ``actions``, ``obs`` and ``pos`` per step."""
         horizon = self.horizon if horizon is None else int(horizon)
-        goal = np.asarray(goal, np.float64)
-        obstacles = {k: np.asarray(v, np.float64 if k in ("center", "size") else None) for k, v in obstacles.items()}
+        goal = np.asarray(task.goal, np.float64)
+        o = task.obstacles
+        obstacles = {"kind": np.asarray(o.kind), "center": np.asarray(o.center, np.float64),
+                     "size": np.asarray(o.size, np.float64), "active": np.asarray(o.active)}
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:], self.data.qvel[:] = qpos, qvel
         obs = self.observe(goal, obstacles)
