@@ -3,8 +3,8 @@
     python scripts/sim2sim.py RUN [--policy DIR] [--episodes 100] [--seed 0]
 
 ``RUN`` is a finished tabular run of a task with a native port (CartPoleStayUp-v0/-v1: ``envs/cartpole/native.py``;
-QuadcopterGoto-v1/-v2: ``envs/quadcopter/native.py``; ArmReach-v0: ``envs/arm/native.py``). ``--policy`` is its export (``jaxrobo export RUN --out DIR``;
-without it the run is exported into a temporary directory). The episodes' initial states, goals and obstacles are
+QuadcopterGoto-v1/-v2: ``envs/quadcopter/native.py``; ArmReach-v0: ``envs/arm/native.py``). ``--policy`` is its
+export (``jaxrobo export RUN --out DIR``; without it the run is exported into a temporary directory). The episodes' initial states, goals and obstacles are
 drawn once, by the JAX env's reset (:func:`jaxrobo.task.rollout.rollout` with key ``--seed``), and fed to both:
 
 * **JAX**: the run's greedy table on its own backend, ties to the first maximum (``greedy_policy(ties="first")``,
@@ -164,7 +164,8 @@ def main(argv=None) -> int:
     rate = lambda s: float(np.mean(s))  # noqa: E731
     print(f"success  JAX first-max ties {rate(jx['first']['success']):.3f} · JAX random ties "
           f"{rate(jx['random']['success']):.3f} · native MuJoCo {rate([e['success'] for e in native]):.3f}")
-    print(f"mean length  JAX {np.mean(jx['first']['length']):.1f} · native {np.mean([e['length'] for e in native]):.1f}")
+    native_length = np.mean([e["length"] for e in native])
+    print(f"mean length  JAX {np.mean(jx['first']['length']):.1f} · native {native_length:.1f}")
     print(f"same outcome in {c['same_outcome']}/{args.episodes} episodes; identical action sequences in "
           f"{c['identical_flights']}/{args.episodes}; where they part, the median step is {c['median_part_step']}")
     print(f"largest observation gap before the flights part: {c['max_obs_gap_before_parting']:.3g}")

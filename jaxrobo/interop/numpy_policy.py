@@ -55,7 +55,8 @@ class Policy:
         self.obs_size = int(meta["observation_size"])
         self._a = arrays
         if self.kind == "tabular":
-            self._edges = [arrays[f"edges_{i}"] for i in range(self.obs_size)] if meta["discretiser"] == "edges" else None
+            edges = meta["discretiser"] == "edges"
+            self._edges = [arrays[f"edges_{i}"] for i in range(self.obs_size)] if edges else None
             self._bins = arrays["bins"].astype(np.int64)
             self._strides = np.cumprod(np.concatenate([self._bins[1:], [1]])[::-1])[::-1].astype(np.int64)
         else:
