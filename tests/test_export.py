@@ -121,8 +121,10 @@ def test_tabular_round_trip(runs, tmp_path, task):
 
 def test_deep_round_trip(runs, tmp_path):
     """PPO: the numpy runner's action equals the JAX policy's (Brax's deterministic action through the env's action
-    mapping) to float32 round-off: |diff| <= 1e-5, about 100 float32 ulps of an action in [-1, 1]; the two differ
-    only in the summation order of the float32 matrix products (16-wide layers) and in exp/tanh's last bits."""
+    mapping) to float32 round-off: |diff| <= 1e-5 on actions in [-1, 1]. Both are float32 computations of the same
+    network that differ in summation order and in exp/tanh's last bits; on these observations (normalised inputs
+    far from 0 included) each lies up to ~6e-6 from a float64 evaluation of the network, so 1e-5 bounds their gap
+    with little room for anything else (a wrong layer, activation or scaling moves actions by orders more)."""
     import jax
 
     from jaxrobo import deep
