@@ -223,3 +223,19 @@ def test_runner_refuses_hostile_files(runs, tmp_path):
     with pytest.raises(ValueError, match="NaN"):
         _runner(str(tmp_path / "again") if main(["export", runs["goto"], "--out", str(tmp_path / "again")]) == 0
                 else None)(np.full(8, np.nan))
+
+
+def test_greedy_policy_first_ties():
+    """``ties="first"``: the first of the maximal action values, whatever the key; an unknown rule is refused."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxrobo.task.rollout import greedy_policy
+
+    q = jnp.asarray([[[0.0, 2.0, 2.0, 1.0], [3.0, 3.0, 3.0, 3.0], [0.0, 0.0, 0.0, 5.0]]])
+    policy = greedy_policy(q, lambda obs: obs.astype(jnp.int32), ties="first")
+    for seed in range(5):
+        got = [int(policy(jax.random.key(seed), jnp.asarray(s))) for s in range(3)]
+        assert got == [1, 0, 3]
+    with pytest.raises(ValueError, match="ties='last'"):
+        greedy_policy(q, lambda obs: 0, ties="last")
