@@ -2,13 +2,15 @@
 
     python scripts/sim2sim.py RUN [--policy DIR] [--episodes 100] [--seed 0]
 
-``RUN`` is a finished tabular run of a task with a native port (CartPoleStayUp-v0/-v1: ``envs/cartpole/native.py``;
-QuadcopterGoto-v1/-v2: ``envs/quadcopter/native.py``; ArmReach-v0: ``envs/arm/native.py``). ``--policy`` is its
+``RUN`` is a finished run of a task with a native port: tabular CartPoleStayUp-v0/-v1 and PPO/SAC
+CartPoleContinuous-v0 (``envs/cartpole/native.py``), QuadcopterGoto-v1/-v2 (``envs/quadcopter/native.py``),
+ArmReach-v0 (``envs/arm/native.py``). ``--policy`` is its
 export (``jaxrobo export RUN --out DIR``; without it the run is exported into a temporary directory). The episodes' initial states, goals and obstacles are
 drawn once, by the JAX env's reset (:func:`jaxrobo.task.rollout.rollout` with key ``--seed``), and fed to both:
 
 * **JAX**: the run's greedy table on its own backend, ties to the first maximum (``greedy_policy(ties="first")``,
-  the rule the export acts by), and with the evaluation's random ties for reference;
+  the rule the export acts by), and with the evaluation's random ties for reference; or a PPO/SAC run's
+  deterministic policy;
 * **native**: the exported numpy runner (``jaxrobo_policy.py``) on ``mujoco.MjData`` (the C engine, float64), one
   env, the task's observation, action mapping, control period and success test ported to numpy; no JAX call in
   the loop.
@@ -37,6 +39,7 @@ if ROOT not in sys.path:
 NATIVE = {"envs.cartpole.stay_up": ("envs.cartpole.native", "NativeCartPole"),
           "envs.quadcopter.goto": ("envs.quadcopter.native", "NativeGoto"),
           "envs.quadcopter.goto_v2": ("envs.quadcopter.native", "NativeGoto"),
+          "envs.cartpole.continuous": ("envs.cartpole.native", "NativeCartPole"),
           "envs.arm.reach": ("envs.arm.native", "NativeArm")}
 
 
@@ -48,33 +51,53 @@ def load_runner(policy_dir: str):
     return mod.Policy.load(policy_dir)
 
 
-def jax_episodes(spec, q: np.ndarray, episodes: int, seed: int) -> dict:
-    """The in-JAX evaluation: greedy flights with first-maximum ties (what the export does) and with the
-    evaluation's random ties, from the same resets; plus the initial states both sides start from."""
-    import jax
-
-    from jaxrobo.task.rollout import greedy_policy, rollout
+def jax_policies(run_dir: str, runner) -> tuple:
+    """The run's spec and its JAX policies: a table's greedy policy with first-maximum ties (``export``: what the
+    exported runner does) and with the evaluation's random ties (``evaluation``); a PPO/SAC run's deterministic
+    policy through the env's action mapping (``export``)."""
+    from jaxrobo import deep
+    from jaxrobo.io.results import load_config, load_tables
+    from jaxrobo.task.rollout import greedy_policy
+    from jaxrobo.training.run import spec_from_config
     from jaxrobo.training.trainer import make_discretiser_for
 
-    env = spec.env
-    disc = make_discretiser_for(env, spec.config)
+    cfg = load_config(run_dir)
+    if runner.kind == "mlp":
+        from jaxrobo.interop.brax_env import BraxEnv
+
+        spec = deep.spec_from_config(cfg)
+        loaded = deep.load_policy(run_dir)
+        return spec, {"export": deep.env_policy(BraxEnv(spec.env), loaded.make_policy, loaded.params)}
+    spec = spec_from_config(cfg, check_memory=False)
+    q = load_tables(run_dir)["q"][runner.meta["table"]]
+    disc = make_discretiser_for(spec.env, spec.config)
+    return spec, {"export": greedy_policy(q, disc, ties="first"), "evaluation": greedy_policy(q, disc)}
+
+
+def jax_episodes(env, policies: dict, episodes: int, seed: int) -> dict:
+    """Each policy's episodes in JAX from the same resets (key ``seed``), and the initial states and task variables
+    of those resets, for the native side."""
+    import jax
+
+    from jaxrobo.task.rollout import rollout
+
     key = jax.random.key(seed)
     res = {}
-    for ties in ("first", "random"):
-        policy = greedy_policy(q, disc, ties=ties)
+    for name, policy in policies.items():
         out = jax.jit(lambda k: rollout(env, policy, k, episodes, observe=lambda s: s.obs))(key)
         last = out["last"]
         arrived = getattr(last.task, "arrived", None)
         success = (np.asarray(arrived) if arrived is not None
                    else (np.asarray(out["length"]) == env.default_params.max_episode_steps)
                    & ~np.asarray(last.terminated))
-        res[ties] = {"success": success, "length": np.asarray(out["length"]), "obs": np.asarray(out["trace"]),
-                     "actions": np.asarray(out["action"])}
-        if ties == "first":
-            first = out["first"]
-            res["qpos"] = np.asarray(jax.vmap(env.robot.sim.qpos)(first.pipeline_state), np.float64)
-            res["qvel"] = np.asarray(jax.vmap(env.robot.sim.qvel)(first.pipeline_state), np.float64)
-            res["task"] = jax.tree.map(np.asarray, first.task)
+        actions = np.asarray(out["action"])
+        res[name] = {"success": success, "length": np.asarray(out["length"]), "obs": np.asarray(out["trace"]),
+                     "actions": actions.reshape(episodes, actions.shape[1], -1)[..., 0] if actions.ndim > 2
+                     else actions}
+        first = out["first"]
+        res["qpos"] = np.asarray(jax.vmap(env.robot.sim.qpos)(first.pipeline_state), np.float64)
+        res["qvel"] = np.asarray(jax.vmap(env.robot.sim.qvel)(first.pipeline_state), np.float64)
+        res["task"] = jax.tree.map(np.asarray, first.task)
     return res
 
 
@@ -94,17 +117,26 @@ def native_episodes(env, runner, start: dict, episodes: int) -> tuple[list[dict]
     return out, steps / (time.perf_counter() - t0)
 
 
+#: Continuous actions: the two sides' flights "part" where their actions differ by more than this (of [-1, 1]).
+ACTION_GAP = 1e-3
+#: Continuous actions: the runner matches JAX's action on JAX's observation within this (tests/test_export.py).
+RUNNER_TOL = 1e-5
+
+
 def compare(jx: dict, native: list[dict], runner) -> dict:
-    """Outcome agreement, the step where the action sequences part, the observation gap before it, and the
-    exported runner on JAX's own observations (must pick JAX's actions: the round trip)."""
-    ref = jx["first"]
+    """Outcome agreement, the step where the action sequences part (continuous actions: differ by more than
+    :data:`ACTION_GAP`), the observation gap before it, and the exported runner on JAX's own observations (must
+    pick JAX's actions: the round trip; continuous: within :data:`RUNNER_TOL`)."""
+    ref = jx["export"]
     n = len(native)
+    continuous = runner.kind == "mlp"
     same_outcome = sum(bool(ref["success"][i]) == bool(native[i]["success"]) for i in range(n))
     part, gaps, agree, total = [], [], 0, 0
     for i in range(n):
         a_j, a_n = ref["actions"][i, : ref["length"][i]], native[i]["actions"]
         m = min(len(a_j), len(a_n))
-        diff = np.nonzero(a_j[:m] != a_n[:m])[0]
+        differs = np.abs(a_j[:m] - a_n[:m]) > ACTION_GAP if continuous else a_j[:m] != a_n[:m]
+        diff = np.nonzero(differs)[0]
         if diff.size or len(a_j) != len(a_n):
             k = int(diff[0]) if diff.size else m
             part.append(k)
@@ -113,7 +145,8 @@ def compare(jx: dict, native: list[dict], runner) -> dict:
         # observations 0..k were seen by both sides, after the same actions
         gaps.append(np.max(np.abs(native[i]["obs"][: k + 1] - ref["obs"][i, : k + 1])))
         seen = ref["obs"][i, : ref["length"][i]]
-        agree += int(np.sum(runner.batch(seen) == a_j))
+        mine = runner.batch(seen)
+        agree += int(np.sum(np.abs(mine[:, 0] - a_j) <= RUNNER_TOL if continuous else mine == a_j))
         total += len(a_j)
     return {"same_outcome": same_outcome, "identical_flights": n - len(part),
             "median_part_step": float(np.median(part)) if part else None,
@@ -130,47 +163,47 @@ def main(argv=None) -> int:
 
     from jaxrobo.core.config import ConfigError
     from jaxrobo.export import export_run
-    from jaxrobo.io.results import load_config, load_tables
-    from jaxrobo.training.run import spec_from_config
 
     if args.episodes < 1:
         print("sim2sim: --episodes must be >= 1", file=sys.stderr)
         return 2
+    tmp = None
     try:
-        tmp = None
         if args.policy is None:
             tmp = tempfile.TemporaryDirectory()
             args.policy = tmp.name
             export_run(args.run_dir, args.policy)
         runner = load_runner(args.policy)
-        if runner.kind != "tabular":
-            raise ConfigError(f"{args.policy}: a {runner.kind} policy; the native ports fly tabular policies")
-        spec = spec_from_config(load_config(args.run_dir), check_memory=False)
+        spec, policies = jax_policies(args.run_dir, runner)
         if type(spec.env).__module__ not in NATIVE:
             raise ConfigError(f"{spec.env_id}: no native port (have: {', '.join(sorted(NATIVE))})")
         if runner.meta["env_id"] != spec.env_id:
             raise ConfigError(f"{args.policy}: exported from {runner.meta['env_id']}, the run is {spec.env_id}")
-        q = load_tables(args.run_dir)["q"][runner.meta["table"]]
     except (ConfigError, FileNotFoundError, ValueError) as err:
         print(f"sim2sim: {err}", file=sys.stderr)
         return 2
     env = spec.env
+    what = f"table {runner.meta['table']}" if runner.kind == "tabular" else f"{runner.meta['agent']} MLP"
     print(f"{spec.env_id} ({getattr(env.options, 'backend', '?')} in JAX, float32; native MuJoCo "
-          f"{__import__('mujoco').__version__}, float64) · table {runner.meta['table']} · {args.episodes} episodes, "
-          f"resets from key {args.seed}")
-    jx = jax_episodes(spec, q, args.episodes, args.seed)
+          f"{__import__('mujoco').__version__}, float64) · {what} · {args.episodes} episodes, resets from key "
+          f"{args.seed}")
+    jx = jax_episodes(env, policies, args.episodes, args.seed)
     native, sps = native_episodes(env, runner, jx, args.episodes)
     c = compare(jx, native, runner)
     rate = lambda s: float(np.mean(s))  # noqa: E731
-    print(f"success  JAX first-max ties {rate(jx['first']['success']):.3f} · JAX random ties "
-          f"{rate(jx['random']['success']):.3f} · native MuJoCo {rate([e['success'] for e in native]):.3f}")
+    line = "success  JAX " + (f"{rate(jx['export']['success']):.3f}" if runner.kind == "mlp" else
+                              f"first-max ties {rate(jx['export']['success']):.3f} · JAX random ties "
+                              f"{rate(jx['evaluation']['success']):.3f}")
+    print(f"{line} · native MuJoCo {rate([e['success'] for e in native]):.3f}")
     native_length = np.mean([e["length"] for e in native])
-    print(f"mean length  JAX {np.mean(jx['first']['length']):.1f} · native {native_length:.1f}")
-    print(f"same outcome in {c['same_outcome']}/{args.episodes} episodes; identical action sequences in "
+    print(f"mean length  JAX {np.mean(jx['export']['length']):.1f} · native {native_length:.1f}")
+    same = "identical" if runner.kind == "tabular" else f"within {ACTION_GAP:g}:"
+    print(f"same outcome in {c['same_outcome']}/{args.episodes} episodes; {same} action sequences in "
           f"{c['identical_flights']}/{args.episodes}; where they part, the median step is {c['median_part_step']}")
     print(f"largest observation gap before the flights part: {c['max_obs_gap_before_parting']:.3g}")
     agree, total = c["runner_on_jax_obs"]
-    print(f"exported runner on JAX's observations: {agree}/{total} actions identical")
+    print(f"exported runner on JAX's observations: {agree}/{total} actions "
+          + ("identical" if runner.kind == "tabular" else f"within {RUNNER_TOL:g}"))
     print(f"native loop: {sps:,.0f} control steps/s (one env, policy included)")
     if tmp is not None:
         tmp.cleanup()
