@@ -17,9 +17,10 @@ from jaxrobo.cli import main
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STEPS = 12
 
-#: id, native module and class (each task on its default backend: MJX for the cart-pole and the arm, the rigid
-#: closed form for the quadcopter)
+#: id, native module and class (each task on its default backend: MJX for the cart-pole and the arm, the closed
+#: forms for the continuous cart-pole and the quadcopter)
 CASES = [("CartPoleStayUp-v0", "envs.cartpole.native", "NativeCartPole"),
+         ("CartPoleContinuous-v0", "envs.cartpole.native", "NativeCartPole"),
          ("QuadcopterGoto-v2", "envs.quadcopter.native", "NativeGoto"),
          ("QuadcopterGoto-v1", "envs.quadcopter.native", "NativeGoto"),
          ("ArmReach-v0", "envs.arm.native", "NativeArm")]
@@ -32,7 +33,9 @@ def test_native_port_steps_as_jax(env_id, module, name):
     rng = np.random.default_rng(0)
     for episode in range(3):
         state = jax.jit(env.reset)(jax.random.key(episode))
-        actions = rng.integers(0, env.num_actions, STEPS)
+        space = env.action_space()
+        actions = (rng.uniform(-1, 1, (STEPS, *space.shape)).astype(np.float32) if hasattr(space, "low")
+                   else rng.integers(0, space.n, STEPS))
         step = jax.jit(env.step)
         obs, done_at = [np.asarray(state.obs)], None
         for t, a in enumerate(actions):
@@ -45,7 +48,7 @@ def test_native_port_steps_as_jax(env_id, module, name):
         qpos = np.asarray(env.robot.sim.qpos(first.pipeline_state), np.float64)
         qvel = np.asarray(env.robot.sim.qvel(first.pipeline_state), np.float64)
         it = iter(actions)
-        ep = native.episode(lambda o: int(next(it)), qpos, qvel, jax.tree.map(np.asarray, first.task),
+        ep = native.episode(lambda o: next(it), qpos, qvel, jax.tree.map(np.asarray, first.task),
                             horizon=STEPS)
         n = len(obs)
         assert ep["obs"].shape[0] == n, (env_id, episode, ep["length"], done_at)
