@@ -3,7 +3,8 @@
     python scripts/sim2sim.py RUN [--policy DIR] [--episodes 100] [--seed 0]
 
 ``RUN`` is a finished run of a task with a native port: tabular CartPoleStayUp-v0/-v1 and PPO/SAC
-CartPoleContinuous-v0 (``envs/cartpole/native.py``), QuadcopterGoto-v1/-v2 (``envs/quadcopter/native.py``),
+CartPoleContinuous-v0 (``envs/cartpole/native.py``), QuadcopterGoto-v1/-v2 and PPO/SAC QuadcopterGotoTwist-v0
+(``envs/quadcopter/native.py``),
 ArmReach-v0 (``envs/arm/native.py``). ``--policy`` is its
 export (``jaxrobo export RUN --out DIR``; without it the run is exported into a temporary directory). The episodes' initial states, goals and obstacles are
 drawn once, by the JAX env's reset (:func:`jaxrobo.task.rollout.rollout` with key ``--seed``), and fed to both:
@@ -39,6 +40,7 @@ if ROOT not in sys.path:
 NATIVE = {"envs.cartpole.stay_up": ("envs.cartpole.native", "NativeCartPole"),
           "envs.quadcopter.goto": ("envs.quadcopter.native", "NativeGoto"),
           "envs.quadcopter.goto_v2": ("envs.quadcopter.native", "NativeGoto"),
+          "envs.quadcopter.goto_twist": ("envs.quadcopter.native", "NativeGoto"),
           "envs.cartpole.continuous": ("envs.cartpole.native", "NativeCartPole"),
           "envs.arm.reach": ("envs.arm.native", "NativeArm")}
 
@@ -90,10 +92,8 @@ def jax_episodes(env, policies: dict, episodes: int, seed: int) -> dict:
         success = (np.asarray(arrived) if arrived is not None
                    else (np.asarray(out["length"]) == env.default_params.max_episode_steps)
                    & ~np.asarray(last.terminated))
-        actions = np.asarray(out["action"])
         res[name] = {"success": success, "length": np.asarray(out["length"]), "obs": np.asarray(out["trace"]),
-                     "actions": actions.reshape(episodes, actions.shape[1], -1)[..., 0] if actions.ndim > 2
-                     else actions}
+                     "actions": np.asarray(out["action"])}
         first = out["first"]
         res["qpos"] = np.asarray(jax.vmap(env.robot.sim.qpos)(first.pipeline_state), np.float64)
         res["qvel"] = np.asarray(jax.vmap(env.robot.sim.qvel)(first.pipeline_state), np.float64)
@@ -135,7 +135,8 @@ def compare(jx: dict, native: list[dict], runner) -> dict:
     for i in range(n):
         a_j, a_n = ref["actions"][i, : ref["length"][i]], native[i]["actions"]
         m = min(len(a_j), len(a_n))
-        differs = np.abs(a_j[:m] - a_n[:m]) > ACTION_GAP if continuous else a_j[:m] != a_n[:m]
+        differs = (np.abs(a_j[:m] - a_n[:m]).reshape(m, -1).max(axis=1) > ACTION_GAP if continuous
+                   else a_j[:m] != a_n[:m])
         diff = np.nonzero(differs)[0]
         if diff.size or len(a_j) != len(a_n):
             k = int(diff[0]) if diff.size else m
@@ -146,7 +147,8 @@ def compare(jx: dict, native: list[dict], runner) -> dict:
         gaps.append(np.max(np.abs(native[i]["obs"][: k + 1] - ref["obs"][i, : k + 1])))
         seen = ref["obs"][i, : ref["length"][i]]
         mine = runner.batch(seen)
-        agree += int(np.sum(np.abs(mine[:, 0] - a_j) <= RUNNER_TOL if continuous else mine == a_j))
+        agree += int(np.sum(np.abs(mine - a_j).reshape(len(a_j), -1).max(axis=1) <= RUNNER_TOL if continuous
+                            else mine == a_j))
         total += len(a_j)
     return {"same_outcome": same_outcome, "identical_flights": n - len(part),
             "median_part_step": float(np.median(part)) if part else None,

@@ -23,6 +23,7 @@ CASES = [("CartPoleStayUp-v0", "envs.cartpole.native", "NativeCartPole"),
          ("CartPoleContinuous-v0", "envs.cartpole.native", "NativeCartPole"),
          ("QuadcopterGoto-v2", "envs.quadcopter.native", "NativeGoto"),
          ("QuadcopterGoto-v1", "envs.quadcopter.native", "NativeGoto"),
+         ("QuadcopterGotoTwist-v0", "envs.quadcopter.native", "NativeGoto"),
          ("ArmReach-v0", "envs.arm.native", "NativeArm")]
 
 

@@ -61,8 +61,8 @@ class NativeCartPole:
         seen, actions, terminated = [obs], [], False
         for _ in range(horizon):
             if self.continuous:
-                a = float(np.reshape(policy(obs), -1)[0])
-                command = self.max_command * min(max(a, -1.0), 1.0)
+                a = np.reshape(np.asarray(policy(obs), np.float64), -1)[:1]
+                command = self.max_command * min(max(float(a[0]), -1.0), 1.0)
             else:
                 a = int(policy(obs))
                 command = command + self.steps[a]

@@ -1,8 +1,9 @@
-"""QuadcopterGoto-v1/-v2 in native MuJoCo (``mujoco.MjData``, the C engine, float64, one env): the sim-to-sim check
+"""QuadcopterGoto-v1/-v2 and QuadcopterGotoTwist-v0 in native MuJoCo (``mujoco.MjData``, the C engine, float64, one env): the sim-to-sim check
 of an exported policy (``scripts/sim2sim.py``).
 
 Ported to numpy from :mod:`envs.quadcopter.robot`, :mod:`envs.quadcopter.goto` and :mod:`envs.quadcopter.goto_v2`:
-the Twist of each action, the on-board cascade (velocity -> tilt/thrust -> attitude PD -> rotor thrusts through the
+the Twist of each action (GotoTwist: ``speed_value * clip(a, -1, 1)`` of its ``Box(-1, 1, (4,))`` action), the
+on-board cascade (velocity -> tilt/thrust -> attitude PD -> rotor thrusts through the
 inverse mixing matrix, clipped to the motor limits) run before every ``mj_step``, the level sonars and v2's
 ``goal_clear`` (exact ray tests against the ground and the episode's obstacles), and the outcome (arrival, crash
 into the ground or an obstacle, leaving the workspace, altitude and inclination limits). Every constant is read
@@ -100,7 +101,8 @@ def point_obstacle_distance(p, obstacles: dict) -> float:
 
 
 class NativeGoto:
-    """One QuadcopterGoto (v1 or v2: v2 when its observation has ``goal_clear``) in native MuJoCo."""
+    """One QuadcopterGoto (v1 or v2: v2 when its observation has ``goal_clear``; GotoTwist when its action is a
+    Box) in native MuJoCo."""
 
     def __init__(self, env: Any, params: Any = None):
         p = env.default_params if params is None else params
@@ -112,6 +114,7 @@ class NativeGoto:
             "speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius", "sonar_range")}
         self.horizon = int(p.max_episode_steps)
         self.v2 = "goal_clear" in env.observation_space().names
+        self.continuous = hasattr(env.action_space(), "low")  # GotoTwist: the action is the Twist
         if self.v2:
             self.grow = float(p.drone_radius) + float(p.clear_margin)
         self.gains, self.g, self.mass = r.gains, float(r.g), float(r.mass)
@@ -190,8 +193,12 @@ class NativeGoto:
         seen, actions, pos = [obs], [], [self.data.qpos[:3].copy()]
         arrived = failed = False
         for _ in range(horizon):
-            a = int(policy(obs))
-            command = _ACTION_SCALE[a].astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED[a]
+            if self.continuous:
+                a = np.clip(np.reshape(np.asarray(policy(obs), np.float64), -1)[:4], -1.0, 1.0)
+                command = self.p["speed_value"] * a
+            else:
+                a = int(policy(obs))
+                command = _ACTION_SCALE[a].astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED[a]
             for _ in range(self.n_substeps):
                 self.data.ctrl[:] = self.controller(command)
                 mujoco.mj_step(self.model, self.data)
@@ -203,4 +210,5 @@ class NativeGoto:
             if arrived or failed:
                 break
         return {"length": len(actions), "success": arrived, "crashed": failed,
-                "actions": np.asarray(actions, np.int32), "obs": np.asarray(seen), "pos": np.asarray(pos)}
+                "actions": np.asarray(actions, np.float32 if self.continuous else np.int32), "obs": np.asarray(seen),
+                "pos": np.asarray(pos)}
