@@ -1,7 +1,7 @@
 """``jaxrobo export RUN --out DIR``: a trained policy as a small self-describing file and a numpy-only runner.
 
-``DIR`` receives ``policy.json`` (what the policy is: format, kind, env id, observation and action layout, where it
-came from), ``policy.npz`` (its numbers, plain arrays) and ``jaxrobo_policy.py`` (a copy of
+``DIR`` receives ``policy.json`` (what the policy is: format, kind, env id, observation and action layout, the env's
+options and parameters as the run set them, where it came from), ``policy.npz`` (its numbers, plain arrays) and ``jaxrobo_policy.py`` (a copy of
 :mod:`jaxrobo.interop.numpy_policy`, importing only numpy): ``Policy.load(DIR)(obs) -> action`` outside JAX. A deep
 run also gets ``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``).
 
@@ -312,6 +312,10 @@ def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool
         meta, arrays = deep_export(run_dir, cfg)
     else:
         meta, arrays = tabular_export(run_dir, cfg, table)
+    # The observation the policy expects is the env's, as this run configured it (e.g. a cart-pole run with
+    # round_obs rounds its observations to 0.1 before the policy sees them): the env's settings go with the policy.
+    meta["env_options"] = dict(cfg.get("env_options") or {})
+    meta["env_params"] = dict(cfg.get("env_params") or {})
     meta["source"] = {"run": os.path.abspath(run_dir), "jaxrobo_version": __version__}
     os.makedirs(out, exist_ok=True)
     for name in (numpy_policy.POLICY_JSON, numpy_policy.POLICY_NPZ, RUNNER_NAME, "policy.onnx"):
