@@ -220,9 +220,10 @@ def test_runner_refuses_hostile_files(runs, tmp_path):
         json.dump({"format": 99, "kind": "tabular"}, f)
     with pytest.raises(ValueError, match="format 1"):
         Policy.load(out)
+    again = str(tmp_path / "again")
+    assert main(["export", runs["goto"], "--out", again]) == 0
     with pytest.raises(ValueError, match="NaN"):
-        _runner(str(tmp_path / "again") if main(["export", runs["goto"], "--out", str(tmp_path / "again")]) == 0
-                else None)(np.full(8, np.nan))
+        _runner(again)(np.full(8, np.nan))
 
 
 def test_greedy_policy_first_ties():

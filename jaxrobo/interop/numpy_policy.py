@@ -149,6 +149,8 @@ def _check(meta: dict, a: dict, where: str) -> None:
     try:
         d = int(meta["observation_size"])
         if meta["kind"] == "tabular":
+            if meta["discretiser"] not in ("uniform", "edges"):
+                raise ValueError(f"discretiser={meta['discretiser']!r}: expected 'uniform' or 'edges'")
             bins = need("bins", (d,), "i")
             if np.any(bins < 1):
                 raise ValueError(f"{where}: bins must be >= 1")
