@@ -1,10 +1,12 @@
-"""The ``jaxrobo`` command: ``train``, ``plot``, ``list``, and (when their modules are present) ``show``, ``sweep``.
+"""The ``jaxrobo`` command: ``train``, ``plot``, ``list``, and (when their modules are present) ``show``, ``sweep``,
+``export``.
 
 Examples::
 
     jaxrobo train --env CartPoleStayUp-v0 --agent qlearn --n-envs 256 --set alpha=0.3 --out runs/q
     jaxrobo train --env CartPoleStayUp-v0 --agent sarsa --n-envs 256 --out runs/s
     jaxrobo plot runs/q runs/s --out runs/q_vs_sarsa.png
+    jaxrobo export runs/q --out policy/
 """
 from __future__ import annotations
 
@@ -18,7 +20,8 @@ from typing import Any, Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
 PLUGINS = {"show": ("jaxrobo.show", "draw greedy flights of a trained quadcopter (top and side views)"),
-           "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation")}
+           "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation"),
+           "export": ("jaxrobo.export", "a trained policy as policy.npz + policy.json and a numpy-only runner")}
 
 
 #: Default checkpoint cadence of ``jaxrobo train``: at the first chunk boundary this long after the last save.

@@ -251,9 +251,10 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values)
 
 
-def spec_from_config(run_config: dict[str, Any]):
-    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
-    applied as an override of the saved preset, and the result must give back the same config."""
+def spec_from_config(run_config: dict[str, Any], check_memory: bool = True):
+    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``; ``jaxrobo export`` passes
+    ``check_memory=False``: it trains nothing): every saved value is applied as an override of the saved preset,
+    and the result must give back the same config."""
     try:
         env_id, preset = run_config["env_id"], run_config.get("preset", "default")
         overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
@@ -261,7 +262,7 @@ def spec_from_config(run_config: dict[str, Any]):
     except (KeyError, TypeError, AttributeError) as err:
         raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
     find(env_id, where=f"config.yaml: env_id {env_id}")  # a 'module:Id' imports its module (run from its folder)
-    spec = resolve(env_id, preset, overrides)
+    spec = resolve(env_id, preset, overrides, check_memory=check_memory)
     again = json.loads(json.dumps(spec.to_dict()))
     if again != json.loads(json.dumps(run_config)):
         a, b = flat_keys(run_config), flat_keys(again)
