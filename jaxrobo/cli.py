@@ -314,6 +314,9 @@ def _train_checked(args: argparse.Namespace) -> int:
     print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {cfg.n_envs} envs × {cfg.nepisodes} episodes "
           f"≤ {cfg.nsteps} steps → {out}" + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
     print(f"running as {trainer.plan!r}")
+    if getattr(spec.env, "randomised", False):
+        print("randomise=true: each env draws its physics at every reset; the Pallas kernels bake the nominal "
+              "model in, so the step runs on XLA")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 
