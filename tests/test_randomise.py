@@ -46,8 +46,9 @@ def test_a_range_without_randomise_and_an_unsupported_backend_are_refused():
         jaxrobo.make("CartPoleStayUp-v0", backend="generalized", randomise=True)
     with pytest.raises(ConfigError, match="declares no randomisation ranges"):
         jaxrobo.make("QuadcopterLiveShow-v0", randomise=True)
-    # a zero-width range is a saved run's value that randomise=false never reads: accepted
-    jaxrobo.make(GOTO, rand_mass=[1.5, 1.5])
+    with pytest.raises(ConfigError, match="rand_mass.*randomise is false"):  # pinned away from nominal: also read
+        jaxrobo.make(GOTO, rand_mass=[1.5, 1.5])
+    jaxrobo.make(GOTO, rand_mass=[1.0, 1.0])  # the default, as a saved run's config.yaml lists it
 
 
 def test_off_traces_nothing_and_keeps_the_state_as_it_was():

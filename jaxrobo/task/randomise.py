@@ -28,6 +28,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxrobo.core.struct import rules
 
@@ -51,12 +52,14 @@ def ranges(params: Any) -> dict[str, Any]:
     return {name: getattr(params, PREFIX + name) for name in range_fields(type(params))}
 
 
-def degenerate(params: Any) -> list[str]:
-    """The ranges of host ``params`` whose low differs from high (empty: every quantity is pinned)."""
+def changed(params: Any) -> list[str]:
+    """The fields of host ``params`` whose range differs from its declared default (empty: all at their defaults,
+    which pin every quantity at its nominal value)."""
+    defaults = {f.name: f.default for f in dataclasses.fields(type(params))}
     out = []
     for name, r in ranges(params).items():
-        lo, hi = (float(v) for v in jnp.asarray(r).reshape(-1)[:2])
-        if lo != hi:
+        values = [float(v) for v in np.asarray(r, np.float64).reshape(-1)]
+        if values != [float(v) for v in defaults[PREFIX + name]]:
             out.append(PREFIX + name)
     return out
 
@@ -100,10 +103,10 @@ def check(env: Any) -> None:
     on = bool(getattr(env.options, "randomise", False))
     names = range_fields(type(env.default_params))
     if not on:
-        wide = degenerate(env.default_params)
-        if wide:
-            raise ValueError(f"{wide[0]}={list(getattr(env.default_params, wide[0]))}: a randomisation range is "
-                             "given but randomise is false; set randomise=true (or give a zero-width range)")
+        given = changed(env.default_params)
+        if given:
+            raise ValueError(f"{given[0]}={list(getattr(env.default_params, given[0]))}: a randomisation range is "
+                             "given but randomise is false, which reads none; set randomise=true")
         return
     if not names:
         raise ValueError(f"randomise=true: {type(env).__name__} declares no randomisation ranges")

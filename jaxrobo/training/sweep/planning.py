@@ -163,9 +163,9 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
             point = checked[i]
             ap = base_ap.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "agent"})
             ep = base_ep.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "env"})
-            wide = randomise.degenerate(ep)
-            if wide and not getattr(env, "randomised", False):
-                raise ConfigError(f"sweep {wide[0]}={list(getattr(ep, wide[0]))}: a randomisation range in a group "
+            given = randomise.changed(ep)
+            if given and not getattr(env, "randomised", False):
+                raise ConfigError(f"sweep {given[0]}={list(getattr(ep, given[0]))}: a randomisation range in a group "
                                   "with randomise=false would be ignored; set randomise=true (--set or sweep it)")
             if spec.config.discretiser != "edges" and spec.config.state_low is None:
                 moved = [b for b, b0 in zip(env.state_bounds(ep), bounds) if not np.allclose(np.asarray(b), b0)]
