@@ -18,7 +18,8 @@ from typing import Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
 PLUGINS = {"show": ("jaxrobo.show", "draw greedy flights of a trained quadcopter (top and side views)"),
-           "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation")}
+           "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation"),
+           "eval": ("jaxrobo.evaluate", "a trained policy on shifted physics (robustness table and plot)")}
 
 
 #: Default checkpoint cadence of ``jaxrobo train``: at the first chunk boundary this long after the last save.

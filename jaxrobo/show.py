@@ -49,8 +49,9 @@ def check_flying(spec: Any, source: str) -> None:
                           f"of QuadcopterGoto-v1/-v2 or QuadcopterLiveShow-v0 (use `jaxrobo plot` for other runs)")
 
 
-def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
-    """The run's RunSpec, config and tables, each checked (ConfigError naming the file and field)."""
+def _load_run(run_dir: str, flying: bool = True) -> tuple[Any, Any, np.ndarray | None]:
+    """The run's RunSpec, config and tables, each checked (ConfigError naming the file and field); ``flying``:
+    refuse a run that is not a quadcopter task's."""
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.results import load_config, load_tables
     from jaxrobo.training.run import resolve
@@ -72,7 +73,8 @@ def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
         spec = resolve(cfg["env_id"], cfg.get("preset", "default"), overrides, check_memory=False)
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
-    check_flying(spec, where)
+    if flying:
+        check_flying(spec, where)
     q = load_tables(run_dir)["q"]
     from jaxrobo.training.run import check_discretiser
 
