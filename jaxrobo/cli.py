@@ -19,9 +19,10 @@ import time
 from typing import Any, Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
-PLUGINS = {"show": ("jaxrobo.show", "draw greedy flights of a trained quadcopter (top and side views)"),
+PLUGINS = {"show": ("jaxrobo.show", "what a policy does, for any task: frames, returns, traces (flights for a quadcopter)"),
            "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation"),
-           "export": ("jaxrobo.export", "a trained policy as policy.npz + policy.json and a numpy-only runner")}
+           "export": ("jaxrobo.export", "a trained policy as policy.npz + policy.json and a numpy-only runner"),
+           "eval": ("jaxrobo.evaluate", "a trained policy on shifted physics (robustness table and plot)")}
 
 
 #: Default checkpoint cadence of ``jaxrobo train``: at the first chunk boundary this long after the last save.
@@ -489,6 +490,9 @@ def _train_checked(args: argparse.Namespace) -> int:
     if spec.preset == "seed":
         print(seed_preset_note(spec))
     print(f"running as {trainer.plan!r}")
+    if getattr(spec.env, "randomised", False):
+        print("randomise=true: each env draws its physics at every reset; the Pallas kernels bake the nominal "
+              "model in, so the step runs on XLA")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 

@@ -44,8 +44,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("deep",),                 # Brax's PPO/SAC trainers on the Brax face
 )
 #: The modules on top of every layer: the package root, its public surface and the commands (``check``, ``show``,
-#: ``export``).
-TOP = frozenset({"jaxrobo", "jaxrobo.api", "jaxrobo.cli", "jaxrobo.check", "jaxrobo.show", "jaxrobo.export"})
+#: ``export``, ``evaluate``).
+TOP = frozenset({"jaxrobo", "jaxrobo.api", "jaxrobo.cli", "jaxrobo.check", "jaxrobo.show", "jaxrobo.export",
+                 "jaxrobo.evaluate"})
 #: The one module ``envs/`` and ``agents/`` import from jaxrobo.
 PUBLIC_SURFACE = frozenset({"jaxrobo.api"})
 #: The jaxrobo modules that may import envs/agents (by entry-point name, with importlib, in practice).

@@ -113,14 +113,21 @@ class RigidBodySim(ClosedFormSim):
         self.airframe = airframe_from_model(mj_model, body)
         super().__init__(mj_model, "rigid", running_step)
 
-    def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
+    def physics_step(self, state: JointState, ctrl: jax.Array, physics: dict | None = None) -> JointState:
+        """One step; ``physics`` (domain randomisation, :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`):
+        this env's factors on mass (and inertia) and motor gain, and a world-frame force (wind)."""
         af = self.airframe
         dt = af.timestep
         ctrl = jnp.clip(ctrl, jnp.asarray(af.ctrl_low, jnp.float32), jnp.asarray(af.ctrl_high, jnp.float32))
         w = jnp.asarray(af.wrench, jnp.float32) @ ctrl
         quat, omega = state.qpos[3:7], state.qvel[3:6]
         inertia = jnp.asarray(af.inertia, jnp.float32)
-        acc = quat_to_mat(quat) @ w[:3] / af.mass + jnp.asarray(af.gravity, jnp.float32)
+        mass = af.mass
+        if physics is not None:
+            w, mass, inertia = w * physics["motor_gain"], mass * physics["mass"], inertia * physics["mass"]
+        acc = quat_to_mat(quat) @ w[:3] / mass + jnp.asarray(af.gravity, jnp.float32)
+        if physics is not None:
+            acc = acc + physics["wind"] / mass
         alpha = (w[3:] - jnp.cross(omega, inertia * omega)) / inertia
         vel = state.qvel[:3] + dt * acc
         omega = omega + dt * alpha

@@ -119,3 +119,32 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
     os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
     fig.savefig(out_png, dpi=110)
     return out_png
+
+
+def robustness_figure(rows: Sequence[dict], out_png: str, title: str) -> None:
+    """``jaxrobo eval``'s figure: one panel per shifted quantity, the metric (mean over tables, band from the worst
+    to the best table) against the quantity's value."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(dict.fromkeys(r["shift"] for r in rows))
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        sel = sorted((r for r in rows if r["shift"] == name), key=lambda r: r["value"])
+        x = np.array([r["value"] for r in sel])
+        ax.plot(x, [r["mean"] for r in sel], "o-", color="C0", label="mean over tables")
+        if any(r["tables"] > 1 for r in sel):
+            ax.fill_between(x, [r["worst"] for r in sel], [r["best"] for r in sel], color="C0", alpha=0.2,
+                            label="worst-best table")
+        ax.set_xlabel(name)
+        ax.set_ylabel(sel[0]["metric"])
+        if sel[0]["metric"] == "success_rate":
+            ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)

@@ -109,6 +109,8 @@ def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser
     o = env.options
     if type(env.robot.sim).__name__ != "CartPoleSim":
         return f"backend={o.backend!r}; only backend='analytic'"
+    if getattr(o, "randomise", False):
+        return "randomise=true; the kernel bakes the nominal model in (the run takes the XLA path)"
     if o.control_type != "velocity" or o.round_obs:
         return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
     agent = c.agent if agent is None else agent
