@@ -39,7 +39,8 @@ EVAL_SEED = 123_456
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=8, help="independent training runs (seeds 0..runs-1), >= 1")
+    ap.add_argument("--runs", type=int, default=8, help="independent training runs (seeds BASE..BASE+runs-1), >= 1")
+    ap.add_argument("--seed-base", type=int, default=0, help="first seed (e.g. 1000 for seeds nobody tuned on)")
     ap.add_argument("--episodes", type=int, default=200, help="fresh greedy evaluation episodes per run, >= 1")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="preset override")
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/<device>/arm_learning.json)")
@@ -53,7 +54,8 @@ def main(argv=None) -> int:
     spec = resolve(ENV_ID, overrides={"eval_episodes": 0, **parse_overrides(args.set)})
     env, target = spec.env, spec.env.learning_target
     trainer = Trainer(env, spec.config)
-    keys = jnp.stack([jax.random.key(s) for s in range(args.runs)])
+    seeds = list(range(args.seed_base, args.seed_base + args.runs))
+    keys = jnp.stack([jax.random.key(s) for s in seeds])
     t0 = time.perf_counter()
     ap_, ep = spec.agent_params, env.default_params
     runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
@@ -86,9 +88,14 @@ def main(argv=None) -> int:
            "success_per_run": success,
            "mean_steps_per_run": [round(float(x), 1) for x in per_run["mean_steps"]],
            "median_success": round(median, 4), "min_success": min(success), "max_success": max(success),
+           "seeds": seeds,
+           "worst_seeds": [{"seed": seeds[i], "success": success[i]}
+                           for i in np.argsort(per_run["success"], kind="stable")[:5]],
            "target": target.description, "median_meets_target": bool(median >= target.threshold),
            "random_policy": {k: round(v, 4) for k, v in rand.items()}, "overrides": args.set}
     print(json.dumps(out, indent=2))
+    print(f"MEDIAN {median:.3f} (worst {min(success):.3f}); WORST seeds: "
+          + ", ".join(f"seed {w['seed']} {w['success']:.3f}" for w in out["worst_seeds"]))
     _common.write_json(out, args.out, "arm_learning.json")
     return 0
 

@@ -40,7 +40,7 @@ PEER_FAMILY = {"gymnax": "cart-pole", "brax": "cart-pole", "playground": "cart-p
                "crazyflow": "quadcopter", "l2f": "quadcopter"}
 ENV_FAMILY = (("CartPole", "cart-pole"), ("Quadcopter", "quadcopter"))
 def family(row: dict[str, Any]) -> str | None:
-    if row["suite"] != "jaxrobo":
+    if not row["suite"].startswith("jaxrobo"):  # jaxrobo-cli: the user's commands, end to end
         return PEER_FAMILY.get(row["suite"])
     return next((fam for prefix, fam in ENV_FAMILY if row["env"].startswith(prefix)), None)
 
@@ -88,9 +88,18 @@ def headline_bars(rows: list[dict[str, Any]], fam: str) -> list[dict[str, Any]]:
                 seen.add(ident)
                 bars.append({"label": f"{_label(r)} + {r['mode']}", "value": r[key], "n_envs": top,
                              "published": False})
+    # The user's own commands, end to end (compile included): each command and budget at its largest batch.
+    cli = [r for r in rows if r["suite"] == "jaxrobo-cli" and r["status"] == "ok"]
+    for mode in dict.fromkeys(r["mode"] for r in cli):
+        group = [r for r in cli if r["mode"] == mode]
+        top = max(r["n_envs"] for r in group)
+        for r in (r for r in group if r["n_envs"] == top):
+            command, budget = mode.split("-")
+            bars.append({"label": f"jaxrobo {command} {r['env']} ({budget} budget), end to end", "value": r[key],
+                         "n_envs": top, "published": False})
     peers: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
-        if r["suite"] != "jaxrobo":
+        if not r["suite"].startswith("jaxrobo"):
             peers.setdefault((r["suite"], r["status"]), []).append(r)
     for (suite, status), group in peers.items():
         if status == "published":

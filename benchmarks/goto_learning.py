@@ -49,9 +49,9 @@ def spread(rates) -> dict[str, float]:
             "share_of_runs_at_target": float((r >= TARGET).mean())}
 
 
-def train_population(env_id: str, runs: int, overrides: dict, fused: str = "default"
+def train_population(env_id: str, runs: int, overrides: dict, fused: str = "default", seed_base: int = 0
                      ) -> tuple[object, object, np.ndarray, float]:
-    """Train ``runs`` independent runs of ``env_id``'s default preset (seeds 0..runs-1) as one vmapped
+    """Train ``runs`` independent runs of ``env_id``'s default preset (seeds seed_base..seed_base+runs-1) as one vmapped
     computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds include the compile). ``fused``:
     ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that choice; ``pallas`` with the task's kernel
     where it has one)."""
@@ -64,7 +64,7 @@ def train_population(env_id: str, runs: int, overrides: dict, fused: str = "defa
     if fused != "default":
         plan = plan.replace(fused=fused, task_kernel=fused == "pallas" and task_kernel(spec.env))
     trainer = Trainer(spec.env, spec.config, plan=plan)
-    keys = jnp.stack([jax.random.key(s) for s in range(runs)])
+    keys = jnp.stack([jax.random.key(s) for s in range(seed_base, seed_base + runs)])
     t0 = time.perf_counter()
     ap_, ep = spec.agent_params, spec.env.default_params
     runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
@@ -91,7 +91,10 @@ def evaluate(env, disc, q: np.ndarray, key: jax.Array, episodes: int) -> dict[st
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--env", default="QuadcopterGoto-v2", choices=ENVS, help="the Goto task to train")
-    ap.add_argument("--runs", type=int, default=16, help="independent training runs (seeds 0..runs-1)")
+    ap.add_argument("--runs", type=int, default=16, help="independent training runs (seeds BASE..BASE+runs-1)")
+    ap.add_argument("--seed-base", type=int, default=0,
+                    help="first seed (each run's seed is that of `jaxrobo train --seed S`); e.g. 1000 for seeds "
+                         "nobody tuned on")
     ap.add_argument("--episodes", type=int, default=200, help="fresh evaluation goals flown by every run's table")
     ap.add_argument("--select-episodes", type=int, default=100,
                     help="selection goals for the secondary best-of-population line")
@@ -106,7 +109,8 @@ def main(argv=None) -> int:
             ap.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
     from jaxrobo.core.config import parse_overrides
 
-    spec, trainer, q, train_s = train_population(args.env, args.runs, parse_overrides(args.set), args.fused)
+    spec, trainer, q, train_s = train_population(args.env, args.runs, parse_overrides(args.set), args.fused,
+                                                 args.seed_base)
     env, disc = spec.env, trainer.disc
     fresh = evaluate(env, disc, q, jax.random.key(FRESH_KEY), args.episodes)
     select = evaluate(env, disc, q, jax.random.key(10_000), args.select_episodes)
@@ -119,6 +123,8 @@ def main(argv=None) -> int:
            "execution_plan": repr(trainer.plan),
            "train_seconds": round(train_s, 2),
            "fresh_success": {k: r3(v) for k, v in spread(fresh["success"]).items()},
+           "seeds": list(range(args.seed_base, args.seed_base + args.runs)),
+           "overrides": args.set,
            "fresh_success_per_run": [r3(v) for v in fresh["success"]],
            "fresh_failure_per_run": [r3(v) for v in fresh["failure"]],
            "fresh_timeout_per_run": [r3(v) for v in fresh["timeout"]],
@@ -131,6 +137,10 @@ def main(argv=None) -> int:
     print("fresh-goal arrival rate per run: " + " ".join(f"{v:.3f}" for v in out["fresh_success_per_run"]))
     print(f"MEDIAN {s['median']:.3f}  (min {s['min']:.3f}, max {s['max']:.3f}; "
           f"{s['share_of_runs_at_target']:.0%} of runs >= {TARGET:.0%})")
+    order = np.argsort(fresh["success"], kind="stable")[:5]
+    worst = [(out["seeds"][i], float(fresh["success"][i])) for i in order]
+    out["worst_seeds"] = [{"seed": sd, "fresh_success": r3(v)} for sd, v in worst]
+    print("WORST seeds (fresh-goal arrival rate): " + ", ".join(f"seed {sd} {v:.3f}" for sd, v in worst))
     print(f"secondary, best of population: run {best} ({out['best_of_population']['selection_success']:.3f} on "
           f"{args.select_episodes} selection goals) -> {out['best_of_population']['fresh_success']:.3f} on the fresh "
           f"goals; random policy {out['random_policy_fresh_success']:.3f}")

@@ -76,9 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         spec = deep.resolve(ENV_ID, "ppo", args.preset, {**overrides, "seed": seed,
                                                           "eval_episodes": args.eval_episodes})
         t0 = time.perf_counter()
-        result = deep.train(spec, lambda row: print(
-            f"  seed {seed}: {row['env_steps']:>11,} steps {row['seconds']:6.1f} s  arrivals "
-            f"{np.mean(row['success']):.3f}  return {np.mean(row['return']):7.1f}", flush=True))
+        result = deep.train(spec, lambda point: print(
+            f"  seed {seed}: {point.row['env_steps']:>11,} steps {point.row['seconds']:6.1f} s  arrivals "
+            f"{np.mean(point.row['success']):.3f}  return {np.mean(point.row['return']):7.1f}", flush=True))
         wall = time.perf_counter() - t0
         hit = first_reaching(result.evaluations, args.target)
         final = float(np.mean(result.evaluations[-1]["success"]))

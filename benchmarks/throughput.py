@@ -22,6 +22,11 @@ crazyflow's quadrotor sim (random attitude commands around hover), Gymnasium ``C
 Q-learning in plain Python over Gymnasium ``CartPole-v1``). Anything missing is a ``skipped`` row with its reason;
 figures published by peers that cannot run here (crazyflow on an RTX 4090, L2F) are ``published`` rows.
 
+The user's own commands (``--commands``): ``jaxrobo train`` and ``jaxrobo sweep`` with the default presets, each in a
+fresh process, timed end to end (compile, training, evaluation, writing), under the seed's episode budget and the
+step budget: useful env steps per second of that wall, with the useful share of env slots, beside the kernel rows
+of the same task and size.
+
 Output: a table on stdout (each row's physics step and substeps; each jaxrobo row's ratio per env step, per
 physics step and per simulated second to the fastest peer of its family at the same n_envs, to Brax and to the
 seed-style loop), ``throughput.{json,csv}`` and the figures of ``figures.py`` under
@@ -78,6 +83,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="jaxrobo training rows under ExecutionPlan.fused=CHOICE (off, xla, pallas) and "
                         "fused_block=BLOCK envs (default: the plan's own choice)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per row (the minimum is kept)")
+    p.add_argument("--commands", default=None,
+                   help="the user's own commands as rows, timed end to end in a fresh process (compile, training, "
+                        "evaluation and writing included): comma list of train-episodes, train-steps, "
+                        "sweep-episodes, sweep-steps, or 'none' (default: all four on a GPU, train-steps and "
+                        "sweep-steps on a CPU)")
+    p.add_argument("--command-envs", default="CartPoleStayUp-v0,QuadcopterGoto-v2",
+                   help="env ids the --commands rows run, default presets (ID:BACKEND runs another backend, e.g. "
+                        "CartPoleStayUp-v0:analytic)")
+    p.add_argument("--command-n-envs", default=None,
+                   help="comma list of n_envs for the --commands rows (default: 65536,262144,1048576 on a GPU, "
+                        "1024 on a CPU)")
+    p.add_argument("--steps-per-env", type=int, default=10000,
+                   help="the step budget of the --commands rows: --total-steps n_envs x this (default 10,000: "
+                        "about the useful work of the episode-budget rows)")
     p.add_argument("--out", default=None,
                    help="output folder (default benchmarks/results/local/<device-name>, git-ignored; the committed "
                         "tables are updated on purpose, e.g. --out benchmarks/results/h100)")
@@ -121,6 +140,96 @@ def steps_for(n: int, gpu: bool, requested: int | None, cheap: bool = False) -> 
         return 1000
     budget = 4_000_000 if gpu else 60_000  # env steps per timed call
     return int(min(1000, max(10, budget // n)))
+
+
+# ---- the user's commands, end to end --------------------------------------------------------------------------
+COMMANDS = ("train-episodes", "train-steps", "sweep-episodes", "sweep-steps")
+#: Episodes per env of the episode-budget rows (``jaxrobo train ... --nepisodes 200``).
+COMMAND_EPISODES = 200
+#: A sweep row's grid: 4 configurations × (n_envs / 4 / SWEEP_ENVS) seeds × SWEEP_ENVS envs = n_envs env slots.
+SWEEP_GRID, SWEEP_ENVS = "alpha=0.1,0.2,0.3,0.5", 64
+
+
+def command_argv(kind: str, env_id: str, n: int, steps_per_env: int, out: str) -> list[str]:
+    """The ``jaxrobo train`` / ``jaxrobo sweep`` command of a --commands row: the env's default preset, ``n``
+    env slots in all (a sweep's rows × envs), the episode or the step budget."""
+    command, budget = kind.split("-")
+    env_id, _, backend = env_id.partition(":")
+    extra = ["--set", f"env.backend={backend}"] if backend else []
+    limit = (["--total-steps", str(n * steps_per_env)] if command == "train" else
+             ["--total-steps", str(SWEEP_ENVS * steps_per_env)]) if budget == "steps" else []
+    if command == "train":
+        argv = ["train", "--env", env_id, "--n-envs", str(n), "--no-progress", "--out", out]
+        if budget == "episodes":
+            argv += ["--nepisodes", str(COMMAND_EPISODES)]
+        return argv + limit + extra
+    envs = min(SWEEP_ENVS, n)
+    seeds = max(1, n // (4 * envs))
+    argv = ["sweep", "--env", env_id, "--grid", SWEEP_GRID, "--seeds", str(seeds), "--n-envs", str(envs),
+            "--no-plots", "--no-progress", "--out", out]
+    if budget == "episodes":
+        argv += ["--nepisodes", str(COMMAND_EPISODES)]
+    return argv + limit + extra
+
+
+def measure_command(kind: str, env_id: str, n: int, args, ctx) -> dict[str, Any]:
+    """One --commands row: the command in a fresh process, its wall time from start to exit, and its useful env
+    steps per second of that wall (``steps_per_s``), with its summary's useful share and wall split."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "run")
+        argv = command_argv(kind, env_id, n, args.steps_per_env, out)
+        env = dict(os.environ)
+        if args.device:
+            env["JAX_PLATFORMS"] = "cuda" if args.device == "gpu" else "cpu"
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "jaxrobo.cli", *argv], capture_output=True, text=True, env=env)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise RuntimeError(f"jaxrobo {' '.join(argv[:1])} exited {proc.returncode}: {proc.stderr[-800:]}")
+        with open(os.path.join(out, "summary.json")) as f:
+            s = json.load(f)
+    command = argv[0]
+    import jaxrobo
+
+    name, _, backend = env_id.partition(":")
+    n_sub, dt = sim_info(jaxrobo.make(name, **({"backend": backend} if backend else {})))
+    row = {"suite": "jaxrobo-cli", "env": name, "backend": backend or "default", "mode": kind, "n_envs": n,
+           "n_substeps": n_sub, "physics_dt": dt, "physics_steps_per_s": s["env_steps"] * n_sub / wall,
+           "sim_seconds_per_s": s["env_steps"] * n_sub * dt / wall,
+           "status": "ok", "command": "jaxrobo " + " ".join(a if a != out else "OUT" for a in argv),
+           "wall_s": wall, "env_steps": s["env_steps"], "steps_per_s": s["env_steps"] / wall,
+           "useful_share": s.get("useful_share"), "compile_s": s.get("compile_seconds"),
+           "run_s": s.get("run_seconds")}
+    if command == "train":
+        row.update(eval_s=s.get("eval_seconds"), write_s=s.get("write_seconds"), execution_plan=s.get("execution_plan"))
+    row["steps_per_s_run"] = s["env_steps"] / max(s.get("run_seconds") or 1e-9, 1e-9)
+    return row
+
+
+def _gpu_visible() -> bool:
+    """Whether a GPU is there, without starting JAX (``nvidia-smi`` answers)."""
+    import shutil
+    import subprocess
+
+    exe = shutil.which("nvidia-smi")
+    return bool(exe) and subprocess.run([exe, "-L"], capture_output=True).returncode == 0
+
+
+def command_plan(args, gpu: bool) -> list[tuple]:
+    """``(kind, env_id, n)`` of every --commands row."""
+    if args.commands == "none":
+        return []
+    kinds = tuple(args.commands.split(",")) if args.commands else (
+        COMMANDS if gpu else ("train-steps", "sweep-steps"))
+    for k in kinds:
+        if k not in COMMANDS:
+            raise SystemExit(f"--commands {k!r}: allowed values are {', '.join(COMMANDS)} or none")
+    sizes = tuple(int(x) for x in args.command_n_envs.split(",")) if args.command_n_envs else (
+        (65536, 262144, 1048576) if gpu else (1024,))
+    return [(k, e, n) for e in args.command_envs.split(",") for n in sizes for k in kinds]
 
 
 # ---- jaxrobo rows ----------------------------------------------------------------------------------------------
@@ -662,6 +771,10 @@ def main(argv: list[str] | None = None) -> int:
         return replot(args.replot, args.out)
     if "crazyflow" in args.peers:  # crazyflow uses scipy's array-API mode, which scipy reads once, at its import
         os.environ.setdefault("SCIPY_ARRAY_API", "1")
+    if command_plan(args, args.device == "gpu" or args.device is None and _gpu_visible()):
+        # The commands run in child processes beside this one: this one must not hold 75 % of the GPU's memory
+        # from its first row on (XLA's default preallocation), or theirs fail to allocate.
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     _common.select_device(args.device)
     import jax
 
@@ -702,6 +815,10 @@ def main(argv: list[str] | None = None) -> int:
     for peer in args.peers:
         for fn, skip, n, extra in peer_plan(peer, args, n_list, gpu):
             add(_guard(fn, skip, n, args, ctx, *extra) if fn is not None else skip)
+
+    for kind, env_id, n in command_plan(args, gpu):
+        add(_guard(measure_command, _skip("jaxrobo-cli", env_id.partition(":")[0], env_id.partition(":")[2] or "default",
+                                          kind, n, ""), kind, env_id, n, args, ctx))
 
     meta = {"device": jax.devices()[0].device_kind, "device_name": dev, "backend": jax.default_backend(),
             "device_count": jax.device_count(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
@@ -775,7 +892,7 @@ def _ratios(rows: list[dict[str, Any]]) -> None:
     for r in rows:  # recomputed from the rows at hand (with --append, earlier ratios may be stale)
         for k in RATIO_KEYS + ("x_best_peer", "best_peer"):
             r.pop(k, None)
-    peers = [r for r in rows if r["suite"] != "jaxrobo" and r.get("status") == "ok"]
+    peers = [r for r in rows if not r["suite"].startswith("jaxrobo") and r.get("status") == "ok"]
     seed = next((r for r in peers if r["suite"] == "seed-loop"), None)
     brax_at = {r["n_envs"]: r for r in peers if r["suite"] == "brax"}
     for r in rows:
@@ -819,6 +936,10 @@ def _line(r: dict[str, Any]) -> str:
         return f"{head} {_fmt_rate(r['physics_steps_per_s'])} physics steps/s {r['reason']}"
     if r.get("status") != "ok":
         return f"{head} {r.get('status')}: {r.get('reason', '')}"
+    if r["suite"] == "jaxrobo-cli":
+        return (f"{head} {_fmt_rate(r['steps_per_s'])} useful env steps/s over {r['wall_s']:.1f} s wall "
+                f"(compile {r.get('compile_s') or 0:.1f} s, run {r.get('run_s') or 0:.1f} s; "
+                f"{(r.get('useful_share') or 0):.1%} useful slots)")
     comp = f"compile {r['compile_s']:.1f}s{' (cache)' if r.get('compile_cached') else ''}" if "compile_s" in r else ""
     plan = f" {r['execution_plan']}" if "execution_plan" in r else ""
     return f"{head} {_fmt_rate(r['steps_per_s'])} steps/s {comp}{plan}"

@@ -20,12 +20,13 @@ from __future__ import annotations
 
 from jaxrobo.core import rng, spaces
 from jaxrobo.core.config import ConfigError
-from jaxrobo.core.struct import param, pytree_dataclass, static_field
-from jaxrobo.physics.sim import (ClosedFormSim, JointState, Simulator, backend_choices, load_model, make_simulator,
-                                 through_batch)
+from jaxrobo.core.struct import param, pytree_dataclass, range_param, static_field
+from jaxrobo.physics.sim import (ClosedFormSim, JointState, MjxEdit, Simulator, backend_choices, load_model,
+                                 make_simulator, through_batch)
 from jaxrobo.tabular import (AgentParams, AgentState, Learner, argmax_random_ties, epsilon_greedy,
                              epsilon_greedy_probabilities, greedy, greedy_probabilities, pick_among_maxima,
                              row_argmax, row_max, row_min, row_pick)
+from jaxrobo.task import randomise
 from jaxrobo.task.env import BaseParams, Env, EnvState, LearningTarget, TaskEnv
 from jaxrobo.task.registry import deprecated_alias, make, register
 from jaxrobo.task.robot import Robot
@@ -33,12 +34,13 @@ from jaxrobo.task.rollout import greedy_policy, random_policy, rollout, success_
 
 __all__ = [
     # foundation
-    "ConfigError", "param", "pytree_dataclass", "static_field", "rng", "spaces",
+    "ConfigError", "param", "pytree_dataclass", "range_param", "static_field", "rng", "spaces",
     # simulators (the seed's Gazebo layer) and robots
-    "ClosedFormSim", "JointState", "Simulator", "backend_choices", "load_model", "make_simulator", "through_batch",
+    "ClosedFormSim", "JointState", "MjxEdit", "Simulator", "backend_choices", "load_model", "make_simulator", "through_batch",
     "Robot",
     # tasks
     "BaseParams", "Env", "EnvState", "LearningTarget", "TaskEnv", "deprecated_alias", "make", "register",
+    "randomise",
     # policies and episodes
     "greedy_policy", "random_policy", "rollout", "success_rate",
     # learners

@@ -14,6 +14,9 @@ the task hook at fault where it can (``_set_init_pose``, ``_init_env_variables``
   the Box to its upper bound changes the command (a dimension the task ignores fails);
 * ``trace``       - ``reset``/``step`` trace under ``jax.jit`` and ``jax.vmap`` (Python control flow on a traced
   value, or a traced value kept between calls, fails here);
+* ``carry``       - a step keeps the state's pytree, every leaf's dtype and shape as reset made them (a task
+  variable that turns float, or a scalar that becomes ``(1,)``, would stop every ``lax.scan`` over steps with
+  JAX's carry-type error); the failure names the field and the hook that changed it;
 * ``pure``        - the same inputs give the same outputs bit for bit, hook by hook, and the input state is left
   as it was;
 * ``jit_vmap``    - the jitted and the vmapped calls agree with the plain call;
@@ -25,7 +28,11 @@ the task hook at fault where it can (``_set_init_pose``, ``_init_env_variables``
 * ``nan_guard``   - a non-finite physics state ends the episode (``terminated`` and ``physics_nan``) with a finite
   observation and zero reward;
 * ``mjx_native``  - (MJX robots) a few physics steps agree with native MuJoCo from the same states;
-* ``gymnasium``   - Gymnasium's own ``check_env`` through the adapter.
+* ``gymnasium``   - Gymnasium's own ``check_env`` through the adapter;
+* ``long``        - (``long=N``, ``jaxrobo check --long N``) a random rollout of a few envs over ``N`` steps, a fresh
+  episode wherever one ends: every float of the state (physics, observation, reward, task variables) stays within
+  :data:`HUGE` in magnitude. Finite but huge values (velocities of 1e33 in float32) pass the NaN guard and every
+  short rollout, and ruin learning; the failure names the field, the value and the step.
 
 ``quick`` shortens the rollout and skips the two checks that build extra models or compiles (``mjx_native``,
 ``gymnasium``).
@@ -47,6 +54,12 @@ from jaxrobo.core import spaces
 HOOKS = ("_set_init_pose", "_init_env_variables", "_set_action", "_get_obs", "_is_done", "_compute_reward")
 
 OK, FAIL, SKIP = "ok", "FAIL", "skip"
+
+#: The largest magnitude the long rollout accepts in any float of the state: beyond it a simulation has left any
+#: range a robot's SI quantities reach (positions in m, velocities in m/s or rad/s, rewards per step).
+HUGE = 1e6
+#: The longest ``long`` rollout (steps per env).
+MAX_LONG = 10_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,9 +156,31 @@ def _is_task_env(env: Any) -> bool:
 
 
 # ---- the checks ----------------------------------------------------------------------------------------------
+def _leaf_types(tree: Any) -> tuple[Any, dict[str, str]]:
+    """The tree's structure and ``{path: "dtype[shape]"}`` of its leaves (abstract values are fine)."""
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(tree)
+    types = {}
+    for path, leaf in leaves:
+        shape = ",".join(str(d) for d in getattr(leaf, "shape", ()))
+        types[jax.tree_util.keystr(path).lstrip(".")] = f"{leaf.dtype}[{shape}]"
+    return treedef, types
+
+
+def _type_changes(before: Any, after: Any) -> list[str]:
+    """How ``after`` differs from ``before`` in pytree structure, leaf dtypes and shapes (empty: the same types)."""
+    tb, lb = _leaf_types(before)
+    ta, la = _leaf_types(after)
+    changes = [f"{k} changes from {lb[k]} to {la[k]}" for k in lb if k in la and lb[k] != la[k]]
+    changes += [f"{k} ({lb[k]}) is gone" for k in lb if k not in la]
+    changes += [f"{k} ({la[k]}) appears" for k in la if k not in lb]
+    if not changes and tb != ta:
+        changes.append(f"the pytree changes from {tb} to {ta}")
+    return changes
+
+
 class _Checker:
-    def __init__(self, env: Any, env_id: str | None, params: Any, quick: bool, seed: int):
-        self.env, self.env_id, self.quick, self.seed = env, env_id, quick, seed
+    def __init__(self, env: Any, env_id: str | None, params: Any, quick: bool, seed: int, long: int = 0):
+        self.env, self.env_id, self.quick, self.seed, self.long = env, env_id, quick, seed, long
         self.params = env.default_params if params is None else params
         self.task = _is_task_env(env)
         # One jitted reset/step and one jitted vmap of each (two envs), shared by the checks: each compiles once.
@@ -306,6 +341,36 @@ class _Checker:
         except Exception as err:  # noqa: BLE001
             raise _Fail(_traced_error("reset/step after jit", err)) from err
         return "reset and step trace under jit and vmap"
+
+    # -- the carry's types
+    def carry(self) -> str:
+        env, p = self.env, self.params
+        s0 = jax.eval_shape(lambda k: env.reset(k, p), _keys(self.seed, 1)[0])
+        s1 = jax.eval_shape(lambda s, a: env.step(s, a, p), s0, self._action(0))
+        changes = _type_changes(s0, s1)
+        if not changes:
+            return f"a step keeps the state's types ({len(_leaf_types(s0)[1])} leaves)"
+        field = changes[0].split(" ", 1)[0]
+        hook = self._carry_hook(s0, field)
+        raise _Fail(f"{hook}: state.{changes[0]} over a step{' (and ' + str(len(changes) - 1) + ' more)' if len(changes) > 1 else ''}; "
+                    "a lax.scan over steps (training, rollouts, evaluation) needs every field to keep the dtype and "
+                    "shape reset gave it: cast it (jnp.asarray(x, dtype)) or give it that type in "
+                    "_init_env_variables")
+
+    def _carry_hook(self, s0: Any, field: str) -> str:
+        """The hook that changed ``field`` of the state (evaluated abstractly, hook by hook, as ``step`` calls them)."""
+        if not self.task:
+            return "step"
+        env, p = self.env, self.params
+        if field.startswith("task"):
+            action = jnp.asarray(self._action(0), getattr(env, "action_dtype", jnp.int32))
+            _, t1 = jax.eval_shape(lambda a, t: env._set_action(a, t, p), action, s0.task)
+            if _type_changes(s0.task, t1):
+                return "_set_action"
+            return "_compute_reward"
+        return {"obs": "_get_obs", "terminated": "_is_done", "reward": "_compute_reward"}.get(
+            field.split(".")[0].split("[")[0], "step (the robot or its simulator)" if field.startswith("pipeline_state")
+            else "step")
 
     # -- purity
     def pure(self) -> str:
@@ -551,6 +616,75 @@ class _Checker:
         return f"gymnasium check_env passes on {what}" + (f" (warnings: {'; '.join(notes)[:200]})" if notes else "")
 
 
+    # -- a long rollout: nothing finite but huge
+    def long_rollout(self) -> str:
+        if not self.long:
+            return _skip("jaxrobo check --long N (check_env(long=N)) runs N steps")
+        from jaxrobo.task.autoreset import where_done
+
+        env, p, n_envs, n_steps = self.env, self.params, 4, int(self.long)
+        probe = jax.eval_shape(lambda k: env.reset(k, p), _keys(self.seed, 1)[0])
+        flat, _ = jax.tree_util.tree_flatten_with_path(probe)
+        floats = [i for i, (_, leaf) in enumerate(flat) if jnp.issubdtype(leaf.dtype, jnp.floating)]
+        paths = [jax.tree_util.keystr(flat[i][0]).lstrip(".") for i in floats]
+
+        def magnitudes(state):
+            leaves = jax.tree.leaves(state)
+            mags, args = [], []
+            for i in floats:
+                x = jnp.ravel(leaves[i])
+                a = jnp.where(jnp.isfinite(x), jnp.abs(x), 0.0)
+                mags.append(jnp.max(a, initial=0.0))
+                args.append(jnp.argmax(a) if x.size else jnp.int32(0))
+            return jnp.stack(mags), jnp.stack(args).astype(jnp.int32)
+
+        def one(key):
+            k0, k1 = jax.random.split(key)
+            init = (env.reset(k0, p), jnp.zeros(len(floats)), jnp.full(len(floats), -1, jnp.int32),
+                    jnp.zeros(len(floats), jnp.int32), jnp.int32(0), jnp.int32(0))
+
+            def body(carry, k):
+                s, worst, first, arg, t, nan_episodes = carry
+                ka, kr = jax.random.split(k)
+                stepped = env.step(s, self._random_action(ka), p)
+                mags, args = magnitudes(stepped)
+                first = jnp.where((first < 0) & (mags > HUGE), t, first)
+                arg = jnp.where(mags > worst, args, arg)
+                worst = jnp.maximum(worst, mags)
+                nan_episodes = nan_episodes + stepped.physics_nan.astype(jnp.int32)
+                done = stepped.terminated | stepped.truncated
+                s = where_done(done, env.reset(kr, p), stepped)
+                return (s, worst, first, arg, t + 1, nan_episodes), None
+
+            (_, worst, first, arg, _, nans), _ = jax.lax.scan(body, init, jax.random.split(k1, n_steps))
+            return worst, first, arg, nans
+
+        worst, first, arg, nans = jax.tree.map(np.asarray, jax.jit(jax.vmap(one))(_keys(self.seed + 5, n_envs)))
+        nan_note = f"; {int(nans.sum())} episodes ended by the NaN guard" if nans.sum() else ""
+        if np.any(first >= 0):
+            hit = np.where(first >= 0, first, np.iinfo(np.int32).max)
+            e, j = np.unravel_index(np.argmin(hit), hit.shape)
+            name = self._element_name(paths[j], int(arg[e, j]), flat[floats[j]][1])
+            raise _Fail(f"state.{name} passed |x| > {HUGE:.0e} at step {int(first[e, j]) + 1} of env {e} and reached "
+                        f"{worst[e, j]:.3g} (random actions, fresh episodes where one ends){nan_note}: finite, so the NaN guard "
+                        "lets it through; the simulation or the task has left any sane range (a smaller timestep, "
+                        "damping, joint limits, clipped velocities or bounded task variables)")
+        j = int(np.argmax(worst.max(axis=0))) if len(floats) else 0
+        largest = (f"largest |x| {worst.max():.3g} in state.{paths[j]}" if len(floats) else "no float fields")
+        return f"{n_envs} envs x {n_steps} steps: every float within {HUGE:.0e} ({largest}){nan_note}"
+
+    def _element_name(self, path: str, index: int, leaf: Any) -> str:
+        """``path[i, j]`` of the flat ``index`` in a leaf; an observation's dimension by its name where it has one."""
+        shape = tuple(getattr(leaf, "shape", ()))
+        if not shape:
+            return path
+        if path == "obs":
+            names = getattr(self.env.observation_space(self.params), "names", ())
+            if len(shape) == 1 and index < len(names):
+                return f"obs[{index}] ({names[index]})"
+        return f"{path}[{', '.join(str(int(i)) for i in np.unravel_index(index, shape))}]"
+
+
 class _Skip(Exception):
     pass
 
@@ -575,20 +709,24 @@ def _fresh(env: Any) -> Any:
         return copy.copy(env)
 
 
-#: The checks in the order they run; ``spaces`` and ``trace`` failing stops the rest (they need both).
-CHECKS = ("spaces", "actions", "trace", "pure", "jit_vmap", "reset_keys", "rollout", "nan_guard", "mjx_native",
-          "gymnasium")
-_PREREQUISITES = ("spaces", "trace")
+#: The checks in the order they run; ``spaces``, ``trace`` or ``carry`` failing stops the rest (they need them).
+CHECKS = ("spaces", "actions", "trace", "carry", "pure", "jit_vmap", "reset_keys", "rollout", "nan_guard",
+          "mjx_native", "gymnasium", "long")
+_PREREQUISITES = ("spaces", "trace", "carry")
 
 
 def check_env(env_or_id: Any, *, quick: bool = False, seed: int = 0, params: Any = None,
-              checks: tuple[str, ...] | None = None, **overrides: Any) -> list[CheckResult]:
-    """Check a jaxrobo env (an id made with ``overrides``, or an env) and return one result per check.
+              checks: tuple[str, ...] | None = None, long: int = 0, **overrides: Any) -> list[CheckResult]:
+    """Check a jaxrobo env (an id made with ``overrides``, or an env) and return one result per check; ``long``
+    steps per env for the ``long`` check (0: it skips).
 
     Raises :class:`jaxrobo.core.config.ConfigError` for an unknown id or bad overrides (nothing is checked then).
     """
+    from jaxrobo.core.config import ConfigError
     from jaxrobo.task.registry import make
 
+    if isinstance(long, bool) or not isinstance(long, int) or not 0 <= long <= MAX_LONG:
+        raise ConfigError(f"long={long!r}: expected an integer >= 0 and <= {MAX_LONG} (steps per env)")
     if isinstance(env_or_id, str):
         env_id = env_or_id[len("jaxrobo/"):] if env_or_id.startswith("jaxrobo/") else env_or_id
         env = make(env_id, **overrides)
@@ -601,14 +739,14 @@ def check_env(env_or_id: Any, *, quick: bool = False, seed: int = 0, params: Any
     unknown = [c for c in names if c not in CHECKS]
     if unknown:
         raise ValueError(f"checks={unknown}: allowed values are {', '.join(CHECKS)}")
-    checker = _Checker(env, env_id, params, quick, seed)
+    checker = _Checker(env, env_id, params, quick, seed, long)
     results, blocked = [], None
     for name in names:
         if blocked is not None:
             results.append(CheckResult(name, SKIP, f"needs {blocked} to pass"))
             continue
         try:
-            results.append(CheckResult(name, OK, getattr(checker, name)()))
+            results.append(CheckResult(name, OK, getattr(checker, "long_rollout" if name == "long" else name)()))
         except _Skip as why:
             results.append(CheckResult(name, SKIP, str(why)))
         except _Fail as err:

@@ -1,10 +1,12 @@
-"""The ``jaxrobo`` command: ``train``, ``plot``, ``list``, and (when their modules are present) ``show``, ``sweep``.
+"""The ``jaxrobo`` command: ``train``, ``plot``, ``list``, and (when their modules are present) ``show``, ``sweep``,
+``export``.
 
 Examples::
 
     jaxrobo train --env CartPoleStayUp-v0 --agent qlearn --n-envs 256 --set alpha=0.3 --out runs/q
     jaxrobo train --env CartPoleStayUp-v0 --agent sarsa --n-envs 256 --out runs/s
     jaxrobo plot runs/q runs/s --out runs/q_vs_sarsa.png
+    jaxrobo export runs/q --out policy/
 """
 from __future__ import annotations
 
@@ -14,11 +16,13 @@ import importlib
 import os
 import sys
 import time
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
-PLUGINS = {"show": ("jaxrobo.show", "draw greedy flights of a trained quadcopter (top and side views)"),
-           "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation")}
+PLUGINS = {"show": ("jaxrobo.show", "what a policy does, for any task: frames, returns, traces (flights for a quadcopter)"),
+           "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation"),
+           "export": ("jaxrobo.export", "a trained policy as policy.npz + policy.json and a numpy-only runner"),
+           "eval": ("jaxrobo.evaluate", "a trained policy on shifted physics (robustness table and plot)")}
 
 
 #: Default checkpoint cadence of ``jaxrobo train``: at the first chunk boundary this long after the last save.
@@ -26,7 +30,8 @@ CHECKPOINT_SECONDS = 300.0
 
 
 #: ``jaxrobo train`` flags that are also settable with ``--set KEY=VALUE``.
-TRAIN_FLAGS = (("n_envs", "--n-envs"), ("seed", "--seed"), ("nepisodes", "--nepisodes"), ("agent", "--agent"))
+TRAIN_FLAGS = (("n_envs", "--n-envs"), ("seed", "--seed"), ("nepisodes", "--nepisodes"), ("agent", "--agent"),
+               ("total_steps", "--total-steps"), ("total_episodes", "--total-episodes"), ("devices", "--devices"))
 
 
 def train_overrides(args: argparse.Namespace) -> dict:
@@ -41,7 +46,43 @@ def train_overrides(args: argparse.Namespace) -> dict:
 
 def _train(args: argparse.Namespace) -> int:
     """``jaxrobo train``: a fresh run into ``--out``, or ``--resume DIR``; exit 130/143 after SIGINT/SIGTERM with a
-    resumable directory (:mod:`jaxrobo.io.rundir` has the rules of run directories)."""
+    resumable directory (:mod:`jaxrobo.io.rundir` has the rules of run directories).
+
+    Several hosts: the same command on every host under ``jax.distributed`` (``$JAXROBO_COORDINATOR``,
+    ``$JAXROBO_NUM_PROCESSES``, ``$JAXROBO_PROCESS_ID``: docs/scaling.md). The envs are split over every process's
+    devices; process 0 writes the one run directory, the others compute with it and keep their copies of what it
+    writes in a private temporary directory, removed at the end."""
+    import jax
+
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.speed import sharding
+
+    try:
+        sharding.initialize_distributed()
+    except (ConfigError, ValueError, RuntimeError) as err:
+        print(f"jaxrobo train: {err}", file=sys.stderr)
+        return 2
+    if jax.process_count() > 1 and jax.process_index() != 0:
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="jaxrobo-process-") as private, \
+                open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
+            return _train_guarded(args, private)
+    return _train_guarded(args, None)
+
+
+def _private_copy(args: argparse.Namespace, private: str) -> argparse.Namespace:
+    """The arguments of a process other than 0: what it writes goes to ``private``; a resumed run is read from
+    where process 0 reads it (a file system the hosts share)."""
+    copy = argparse.Namespace(**vars(args))
+    copy.private_out = os.path.join(private, "run")
+    copy.no_progress = True
+    return copy
+
+
+def _train_guarded(args: argparse.Namespace, private: str | None) -> int:
+    if private is not None:
+        args = _private_copy(args, private)
     try:
         return _train_checked(args)
     except KeyboardInterrupt:  # before the handlers are installed or after a second signal: nothing half-written
@@ -60,6 +101,7 @@ def _train_spec(args: argparse.Namespace):
     from jaxrobo.training.run import resolve, spec_from_config
 
     resume = args.resume
+    private = getattr(args, "private_out", None)  # a process other than 0 writes only there
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         raise ConfigError(f"--checkpoint-every={args.checkpoint_every}: expected an integer >= 0 (chunks; 0: "
                           "no saves on the way; still saved at the end and when interrupted)")
@@ -70,10 +112,14 @@ def _train_spec(args: argparse.Namespace):
         spec = resolve(env_id, args.preset or "default", overrides, agent=args.agent)
         out = args.out or os.path.join("training_results",
                                        f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
+        if private is not None:
+            return spec, private
         rundir.check_out(out, overwrite=args.overwrite)
         return spec, out
     given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent), ("--preset", args.preset),
                                       ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
+                                      ("--total-steps", getattr(args, "total_steps", None)),
+                                      ("--total-episodes", getattr(args, "total_episodes", None)),
                                       ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
              if value is not None]
     given += ["--overwrite"] if args.overwrite else []
@@ -89,14 +135,60 @@ def _train_spec(args: argparse.Namespace):
     return spec_from_config(saved if isinstance(saved, dict) else {}), resume
 
 
-def _progress_bar(nepisodes: int, initial):
-    """A tqdm bar over episodes, starting where a resumed carry ``initial`` is."""
+def _progress_bar(trainer, initial):
+    """A tqdm bar over the run's budget (episodes per env, steps per env, or the run's episodes), starting where a
+    resumed carry ``initial`` is."""
     import jax
-    import numpy as np
     from tqdm.auto import tqdm
 
-    done0 = 0 if initial is None else int(np.min(np.asarray(jax.device_get(initial.episode))))
-    return tqdm(total=nepisodes, initial=min(done0, nepisodes), unit="ep", desc="training", dynamic_ncols=True)
+    total, unit = trainer.budget_total
+    done0 = 0 if initial is None else int(jax.device_get(trainer.progress(initial))[0])
+    desc = {"episodes": "training (episodes per env)", "steps": "training (steps per env)",
+            "run_episodes": "training (episodes of the run)"}[trainer.budget]
+    return tqdm(total=total, initial=min(done0, total), unit="ep" if unit == "episodes" else "step", desc=desc,
+                dynamic_ncols=True)
+
+
+def budget_line(cfg, trainer) -> str:
+    """How the run is budgeted, in words, for the first line a training prints."""
+    if trainer.budget == "steps":
+        return (f"{cfg.n_envs} envs × {trainer.steps_per_env:,} steps (total_steps {cfg.total_steps:,}; episodes ≤ "
+                f"{cfg.nsteps} steps, the first {cfg.nepisodes} of each env recorded)")
+    if trainer.budget == "run_episodes":
+        return (f"{cfg.n_envs} envs until the run has {cfg.total_episodes:,} episodes (episodes ≤ {cfg.nsteps} "
+                f"steps, the first {cfg.nepisodes} of each env recorded)")
+    return f"{cfg.n_envs} envs × {cfg.nepisodes} episodes ≤ {cfg.nsteps} steps"
+
+
+class LiveScalars:
+    """TensorBoard scalars written as a run goes (tensorboardX, flushed after every chunk), against env steps:
+    ``progress/useful_share``, ``progress/done`` (in the budget's unit), ``train/last_return`` (the mean over
+    envs of each env's latest recorded episode, the same number as the progress bar's ``last_return``) and
+    ``progress/steps_per_second``. Nothing is written if tensorboardX is missing or the folder cannot be made."""
+
+    def __init__(self, run_dir: str) -> None:
+        self.writer = None
+        try:
+            from tensorboardX import SummaryWriter
+
+            self.writer = SummaryWriter(os.path.join(run_dir, "tensorboard"), flush_secs=1)
+        except (ImportError, OSError) as err:
+            print(f"jaxrobo: no live TensorBoard scalars ({err})", file=sys.stderr)
+
+    def __call__(self, p) -> None:
+        if self.writer is None:
+            return
+        step = int(p.useful_steps) if p.useful_steps == p.useful_steps else p.chunks_done
+        self.writer.add_scalar("progress/done", p.done, step)
+        self.writer.add_scalar("progress/useful_share", p.useful_share, step)
+        self.writer.add_scalar("train/last_return", p.last_return, step)
+        if p.seconds > 0:
+            self.writer.add_scalar("progress/steps_per_second", p.useful_steps / p.seconds, step)
+        self.writer.flush()
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
 
 
 def _deep_agent(args: argparse.Namespace) -> str | None:
@@ -121,132 +213,211 @@ def _deep_agent(args: argparse.Namespace) -> str | None:
 
 
 def _deep_spec(args: argparse.Namespace, agent: str):
-    """The deep run asked for and its directory; ConfigError naming the flag."""
+    """The deep run asked for, its directory and, for ``--resume``, its checkpoint
+    (:class:`jaxrobo.deep.checkpoint.Saved`, None for a new run); ConfigError naming the flag or file."""
     from jaxrobo import deep
+    from jaxrobo.deep import checkpoint
     from jaxrobo.io import rundir
     from jaxrobo.core.config import ConfigError, merge_flags, parse_overrides
     from jaxrobo.task.registry import find
 
-    if args.resume is not None:
-        raise ConfigError(f"--resume {args.resume}: a ppo/sac run cannot be resumed (Brax's trainers keep their state "
-                          "inside one call); start it again with --out")
+    total_steps = getattr(args, "total_steps", None)
     if args.checkpoint_every is not None:
-        raise ConfigError(f"--checkpoint-every: --agent {agent} runs do not checkpoint (Brax's trainer runs as one "
-                          "call); drop the flag")
+        raise ConfigError(f"--checkpoint-every: a {agent} run keeps a checkpoint at each of its evaluation points "
+                          "(--set num_evals=N sets how many); drop the flag")
+    if args.resume is not None:
+        given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent if agent != "resume" else None),
+                                          ("--preset", args.preset), ("--n-envs", args.n_envs),
+                                          ("--nepisodes", args.nepisodes), ("--total-steps", total_steps),
+                                          ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
+                 if value is not None]
+        given += ["--overwrite"] if args.overwrite else []
+        if given:
+            raise ConfigError(f"--resume {args.resume}: the run goes on with its own config.yaml and directory; "
+                              f"drop {', '.join(given)}")
+        rundir.check_out(args.resume, resume=True, flag="--resume")
+        from jaxrobo.io.results import load_config
+
+        spec = deep.spec_from_config(load_config(args.resume), os.path.join(args.resume, "config.yaml"))
+        saved = checkpoint.load(os.path.join(args.resume, rundir.CHECKPOINT), checkpoint.fingerprint(spec),
+                                deep.epoch_plan(spec.config), spec.config.eval_episodes)
+        return spec, args.resume, saved
     if args.nepisodes is not None:
         raise ConfigError(f"--nepisodes: --agent {agent} trains for a number of env steps, not episodes; use "
-                          "--set num_timesteps=N")
+                          "--total-steps N")
     overrides = parse_overrides(args.set or [])
     for key in ("agent", "agent.agent"):
         value = overrides.pop(key, agent)
         if value != agent:
             raise ConfigError(f"agent given twice: --agent {agent} and --set {key}={value!r}; give it once")
-    merge_flags(overrides, [("num_envs", "--n-envs", args.n_envs), ("seed", "--seed", args.seed)])
+    for alias in ("num_timesteps", "agent.num_timesteps"):
+        if total_steps is not None and alias in overrides:
+            raise ConfigError(f"total_steps given twice: --total-steps {total_steps} and --set {alias}="
+                              f"{overrides[alias]!r} (the old name of total_steps); give it once")
+    merge_flags(overrides, [("num_envs", "--n-envs", args.n_envs), ("seed", "--seed", args.seed),
+                            ("total_steps", "--total-steps", total_steps)])
     env_id = args.env or "CartPoleContinuous-v0"
     find(env_id, where=f"--env {env_id}")
     spec = deep.resolve(env_id, agent, args.preset or "default", overrides)
     out = args.out or os.path.join("training_results", f"{spec.env_id}_{agent}_{time.strftime('%Y%m%d-%H%M%S')}")
     rundir.check_out(out, overwrite=args.overwrite)
-    return spec, out
+    return spec, out, None
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(max(seconds, 0.0)))
+    h, rest = divmod(seconds, 3600)
+    return f"{h}:{rest // 60:02d}:{rest % 60:02d}" if h else f"{rest // 60}:{rest % 60:02d}"
+
+
+def deep_progress_line(point) -> str:
+    """One line per evaluation point of a ppo/sac run: env steps done of the run's total, the training wall time,
+    steps/s (:func:`jaxrobo.deep.eval_means`), the ETA of the training left, and the evaluation's mean return,
+    length and success rate: the numbers of ``episode_stats.csv`` and TensorBoard."""
+    from jaxrobo import deep
+
+    e, total = point.row, point.plan.total_steps
+    m = deep.eval_means(e)
+    sps = m["env_steps_per_second"]
+    # The ETA takes the pace since this session's first epoch ended (its compile excluded) once there is one.
+    trained = [r for r in point.evaluations if r["env_steps"] > point.session_start_steps]
+    pace = 0.0
+    if len(trained) > 1:
+        pace = (e["env_steps"] - trained[0]["env_steps"]) / max(e["seconds"] - trained[0]["seconds"], 1e-9)
+    elif trained:
+        pace = (e["env_steps"] - point.session_start_steps) / max(e["seconds"] - point.session_start_seconds, 1e-9)
+    eta = (total - e["env_steps"]) / pace if pace > 0 else float("nan")
+    line = (f"  {e['env_steps']:>11,}/{total:,} env steps ({100 * e['env_steps'] / total:3.0f} %)  "
+            f"{_duration(e['seconds'])}  {sps:,.0f} steps/s  ETA {_duration(eta) if eta == eta else '?'}  "
+            f"return {m['return_mean']:.2f}  length {m['length_mean']:.1f}")
+    if "success_rate" in m:
+        line += f"  success {m['success_rate']:.3f}"
+    return line
 
 
 def _train_deep(args: argparse.Namespace, agent: str) -> int:
-    """``jaxrobo train --agent ppo|sac``: Brax's trainer on the env's Brax face, into a run directory that is
-    checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.io.rundir`)."""
+    """``jaxrobo train --agent ppo|sac`` (or ``--resume`` of such a run): Brax's trainer on the env's Brax face, into
+    a run directory that is checked before anything compiles, keeps the run's work at every evaluation point
+    (:class:`jaxrobo.deep.LiveRun`) and is published whole when the run is done (:mod:`jaxrobo.deep`,
+    :mod:`jaxrobo.io.rundir`). A stop (SIGINT/SIGTERM, an error) leaves the last point's checkpoint, latest and
+    best policy: ``--resume`` goes on from there, ``jaxrobo show`` flies them."""
     import shlex
 
-    import numpy as np
-
     from jaxrobo import deep
+    from jaxrobo.deep import checkpoint
     from jaxrobo.io import rundir
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.results import write_config
 
     try:
-        spec, out = _deep_spec(args, agent)
+        spec, out, saved = _deep_spec(args, agent)
+        fingerprint = checkpoint.fingerprint(spec)
     except ConfigError as err:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
-    live = rundir.live_dir(out)
-    write_config(live, spec.to_dict())
-    rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out))
-    c = spec.config
-    print(f"{spec.env_id} · {agent} ({spec.preset}) · {c.num_envs} envs × {c.num_timesteps:,} env steps, episodes "
-          f"≤ {spec.episode_length} steps → {out}")
+    agent = spec.agent
+    resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
+    live = out if saved is not None else rundir.live_dir(out)
+    if saved is None:
+        write_config(live, spec.to_dict())
+    rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), resume=resume_cmd)
+    c, plan = spec.config, deep.epoch_plan(spec.config)
+    going_on = saved is not None and saved.epochs_done > 0
+    print(f"{spec.env_id} · {agent} ({spec.preset}) · {c.num_envs} envs × {plan.total_steps:,} env steps "
+          f"({plan.epochs} epochs), episodes ≤ {spec.episode_length} steps → {out}"
+          + (f" (resuming after epoch {saved.epochs_done}, {saved.evaluations[-1]['env_steps']:,} env steps)"
+             if going_on else ""))
+    if live != out:
+        print(f"checkpoints in {live} until the run is done", file=sys.stderr)
+    keeper = deep.LiveRun(live, fingerprint, resume_cmd, saved, out=out)
 
-    def progress(row: dict) -> None:
-        if args.no_progress:
-            return
-        line = (f"  {row['env_steps']:>12,} env steps  {row['seconds']:7.1f} s  return {np.mean(row['return']):9.2f}"
-                f"  length {np.mean(row['length']):7.1f}")
-        if "success" in row:
-            line += f"  success {np.mean(row['success']):.3f}"
-        print(line, flush=True)
-
-    again = f"(a {agent} run does not resume) jaxrobo train ... --out {shlex.quote(out)} --overwrite"
+    def on_point(point) -> None:
+        keeper.point(point)
+        if not args.no_progress:
+            print(deep_progress_line(point), flush=True)
 
     def stopped(what: str, code: int, **fields) -> int:
-        return _deep_stopped(live, out, again, what, code, **fields)
+        return _deep_stopped(live, out, resume_cmd, what, code, **fields)
 
     def notice(signum: int) -> None:
         import signal
 
-        print(f"\n{signal.Signals(signum).name}: stopping at the trainer's next evaluation point; nothing trained "
-              "is kept (again to quit at once)", file=sys.stderr)
+        print(f"\n{signal.Signals(signum).name}: stopping at the trainer's next evaluation point, its work kept "
+              "(again to quit at once, keeping the last point's)", file=sys.stderr)
 
     # SIGINT/SIGTERM: Brax's trainer cannot be paused, so it is stopped where it hands control back (its next
-    # evaluation point); a second signal exits at once. Either way the run directory says "interrupted".
+    # evaluation point, after that point is kept); a second signal exits at once with the last point kept.
     from jaxrobo.training import driver
 
     try:
         with driver.StopOnSignal(notice, second="exit") as stop:
-            result = deep.train(spec, progress, should_stop=stop)
+            result = deep.train(spec, on_point, should_stop=stop, resume=saved,
+                                checkpoint_path=keeper.checkpoint_path)
     except deep.TrainingStopped as err:
-        return stopped(f"{stop.name}: {err}; nothing trained was kept", 128 + stop.signum, signal=stop.name)
+        return stopped(f"{stop.name}: {err}", 128 + stop.signum, signal=stop.name)
     except SystemExit as err:  # the second signal (StopOnSignal's second="exit")
         name = stop.name or "signal"
-        return stopped(f"{name} twice: quit during training; nothing trained was kept", int(err.code or 1),
-                       signal=name)
+        return stopped(f"{name} twice: quit during training", int(err.code or 1), signal=name)
     except KeyboardInterrupt:
-        return stopped("interrupted during training; nothing trained was kept", 130, signal="SIGINT")
-    # The trained policy goes to disk first, so that no later error loses it.
-    deep.save_policy(live, result.params, result.net)
+        return stopped("interrupted during training", 130, signal="SIGINT")
+    except ConfigError as err:  # the checkpoint's state does not fit the trainer (found at its first epoch)
+        print(f"jaxrobo train: {err}", file=sys.stderr)
+        return 2
+    except Exception as err:
+        if rundir.is_resumable(live):  # the work of the last evaluation point is kept: say how to go on
+            rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
+                               what=f"the run failed ({type(err).__name__}: {err}); the last evaluation point's "
+                                    "checkpoint, latest and best policy are kept")
+        raise
 
     def write(staged: str) -> None:
-        deep.write_run(staged, result)
-        rundir.write_status(staged, rundir.COMPLETE, env_steps=result.env_steps)
+        deep.write_run(staged, result, live)
+        rundir.write_status(staged, rundir.COMPLETE, env_steps=result.env_steps,
+                            **({"resumed_after_env_steps": result.resumed_after_env_steps}
+                               if result.resumed_after_env_steps else {}))
 
     try:
         rundir.publish_results(out, live, write)
-    except Exception as err:  # noqa: BLE001 - the policy is saved in the live directory; say where
-        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", publish_live=True,
+    except Exception as err:  # noqa: BLE001 - the run's checkpoint and policy are in the live directory; say where
+        rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
                            what=f"writing the results failed ({type(err).__name__}: {err}); the trained policy is "
-                                f"in {live}/{deep.POLICY_NPZ}")
+                                f"in {out}/{deep.POLICY_NPZ}")
         return 1
     s = result.summary()
-    print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s, "
-          f"compile included; evaluations {s['eval_seconds']:.1f} s more)")
+    print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s of training ({s['env_steps_per_second']:,.0f} "
+          f"steps/s, compile included; evaluations {s['eval_seconds']:.1f} s more)")
     line = f"final evaluation: mean return {s['final_eval_mean_return']:.2f}, mean length {s['final_eval_mean_length']:.1f}"
     if "final_eval_success_rate" in s:
         line += f", success {s['final_eval_success_rate']:.3f}"
-    print(line + f" over {c.eval_episodes} fresh episodes")
+    print(line + f" over {c.eval_episodes} fresh episodes (best: evaluation {s['best_evaluation']}, in best/)")
     print(f"results in {out}")
     return 0
 
 
-def _deep_stopped(live: str, out: str, again: str, what: str, code: int, **fields) -> int:
-    """A ppo/sac run stopped before it finished training: nothing trained exists to keep. A new directory
-    (``live`` is ``out``) is marked ``interrupted``; an old run that ``--overwrite`` was to replace stays as it was
-    (a stopped deep run cannot be resumed, so it must not replace a finished one) and the new run's staging
-    directory is removed. Returns ``code``."""
+def _deep_stopped(live: str, out: str, resume_cmd: str, what: str, code: int, **fields) -> int:
+    """A ppo/sac run stopped before it finished. Once it reached an evaluation point its checkpoint, latest and
+    best policy are in ``live``: the run is marked interrupted (a staging ``live`` is moved into place as ``out``,
+    replacing the old run that ``--overwrite`` named, as a stopped tabular run does) and ``resume_cmd`` goes on.
+    Stopped before its first point, nothing trained exists: a new directory is marked interrupted (starting again
+    is the way on), an old run that ``--overwrite`` was to replace stays as it was. Returns ``code``."""
+    import shlex
+
     from jaxrobo.io import rundir
 
+    if rundir.is_resumable(live):
+        rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
+                           what=f"{what}; the last evaluation point's checkpoint, latest and best policy are kept",
+                           **fields)
+        return code
+    again = f"jaxrobo train ... --out {shlex.quote(out)} --overwrite"
     if os.path.abspath(live) == os.path.abspath(out):
-        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train", what=what, **fields)
+        rundir.interrupted(live, out=out, resume=again, prog="jaxrobo train",
+                           what=f"{what}; stopped before its first evaluation point: nothing trained to keep",
+                           **fields)
     else:
         rundir.discard(live)
-        print(f"jaxrobo train: {what}; {out} still holds the run it had (not replaced); to go on: {again}",
-              file=sys.stderr)
+        print(f"jaxrobo train: {what} before its first evaluation point; {out} still holds the run it had (not "
+              f"replaced); to start again: {again}", file=sys.stderr)
     return code
 
 
@@ -283,7 +454,7 @@ def _train_checked(args: argparse.Namespace) -> int:
     from jaxrobo.io import rundir
     from jaxrobo.training import train as training
     from jaxrobo.core.config import ConfigError
-    from jaxrobo.io.results import save_run, write_config, write_episodes
+    from jaxrobo.io.results import save_run, write_config, write_episodes, write_summary
 
     resume = args.resume
     agent = _deep_agent(args)
@@ -303,26 +474,36 @@ def _train_checked(args: argparse.Namespace) -> int:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
 
-    live = out if resume is not None else rundir.live_dir(out)
-    if resume is None:
+    private = getattr(args, "private_out", None)
+    if private is not None:  # a process other than 0: everything it writes stays in its private directory
+        out = private
+    live = out if (resume is not None and private is None) else rundir.live_dir(out)
+    if resume is None or private is not None:
         write_config(live, spec.to_dict())
     n_chunks = trainer.max_chunks()
     resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
     rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=start_chunk, chunks=n_chunks,
                         resume=resume_cmd)
     checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
-    print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {cfg.n_envs} envs × {cfg.nepisodes} episodes "
-          f"≤ {cfg.nsteps} steps → {out}" + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
+    print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {budget_line(cfg, trainer)} → {out}"
+          + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
+    if spec.preset == "seed":
+        print(seed_preset_note(spec))
     print(f"running as {trainer.plan!r}")
+    if getattr(spec.env, "randomised", False):
+        print("randomise=true: each env draws its physics at every reset; the Pallas kernels bake the nominal "
+              "model in, so the step runs on XLA")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 
-    bar = None if args.no_progress else _progress_bar(cfg.nepisodes, initial)
+    bar = None if args.no_progress else _progress_bar(trainer, initial)
+    live_scalars = LiveScalars(live)
 
-    def progress(done: int, total: int, last_return: float) -> None:
+    def progress(p) -> None:
+        live_scalars(p)
         if bar is not None:
-            bar.update(done - bar.n)
-            bar.set_postfix(mean_reward=f"{last_return:.1f}")
+            bar.update(p.done - bar.n)
+            bar.set_postfix(last_return=f"{p.last_return:.1f}", useful=f"{p.useful_share:.0%}")
 
     def save(runner, chunks_done: int) -> None:
         checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
@@ -345,6 +526,7 @@ def _train_checked(args: argparse.Namespace) -> int:
                                          should_stop=stop)
         if bar is not None:
             bar.close()
+        live_scalars.close()
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.
@@ -359,14 +541,21 @@ def _train_checked(args: argparse.Namespace) -> int:
             return 128 + stop.signum
 
         def write(staged: str) -> None:
+            t = time.perf_counter()
             save_run(staged, result, spec.to_dict(), trainer.disc)
+            write_summary(staged, {**result.summary(), "write_seconds": round(time.perf_counter() - t, 3)})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
 
+        t_write = time.perf_counter()
         rundir.publish_results(out, live, write)
+        write_seconds = time.perf_counter() - t_write
     s = result.summary()
     print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps']:,} env steps in {s['run_seconds']:.1f} s "
-          f"({s['env_steps_per_second']:,.0f} steps/s)")
+          f"({s['env_steps_per_second']:,.0f} steps/s); {s['useful_share']:.1%} of the "
+          f"{s['env_slots']:,} env slots stepped were useful")
+    print(f"wall: compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
+          f"{s['eval_seconds']:.1f} s, writing {write_seconds:.1f} s")
     print(f"highest reward {s['highest_reward_max']:.0f} · overall mean length {s['overall_mean_length']:.1f} · "
           f"best 100 mean {s['best_100_mean_length']:.1f}")
     if "eval_mean_length" in s:
@@ -405,6 +594,18 @@ def _plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def seed_preset_note(spec: Any) -> str:
+    """What ``--preset seed`` is, printed when a run uses it: the seed's baseline, and what it costs in memory."""
+    from jaxrobo.training.budget import estimate, format_bytes
+    from jaxrobo.training.run import check_discretiser
+
+    parts = estimate(spec.env, spec.config, check_discretiser(spec.env, spec.config))
+    memory = ", ".join(f"{k} {format_bytes(v)}" for k, v in parts.items() if k != "total")
+    return (f"preset seed: the seed's baseline, its own parameters and learners reproduced exactly to compare with; "
+            f"not tuned to learn (the seed's cart-pole never does; the default preset is the one that learns); "
+            f"memory about {format_bytes(parts['total'])} ({memory})")
+
+
 def _list(args: argparse.Namespace) -> int:
     import jaxrobo
     from jaxrobo.task import registry
@@ -436,7 +637,7 @@ def _check(args: argparse.Namespace) -> int:
     from jaxrobo.core.config import ConfigError
 
     try:
-        results = check_env(args.env_id, quick=args.quick, seed=args.seed)
+        results = check_env(args.env_id, quick=args.quick, seed=args.seed, long=args.long)
     except ConfigError as err:
         print(f"jaxrobo check: {err}", file=sys.stderr)
         return 2
@@ -459,8 +660,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default=None,
                    help="parameter preset of the env's agent YAML: default | seed (default: default)")
     p.add_argument("--n-envs", type=int, default=None, help="environments (independent learners) run at once")
-    p.add_argument("--nepisodes", type=int, default=None, help="episodes per environment")
+    p.add_argument("--nepisodes", type=int, default=None,
+                   help="episodes per environment (the default budget); under --total-steps or --total-episodes, "
+                        "how many episodes each environment records")
+    p.add_argument("--total-steps", type=int, default=None, metavar="N",
+                   help="step budget: N env steps for the whole run, all envs together (tabular: every env steps "
+                        "ceil(N / n_envs), episodes restarting as they end: the batch stays full; ppo/sac: Brax's "
+                        "num_timesteps, rounded up to whole epochs)")
+    p.add_argument("--total-episodes", type=int, default=None, metavar="N",
+                   help="episode budget of the whole run: every env steps until the run has finished N episodes "
+                        "(with shared_table: the episodes the table learned from)")
     p.add_argument("--seed", type=int, default=None, help="random seed")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="split the envs over N devices (default 0: every local device, or the most that divide "
+                        "n_envs; under jax.distributed, every host's); the tables are those of one device")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a parameter (repeatable)")
     p.add_argument("--out", default=None, help="run directory (default training_results/<env>_<agent>_<time>)")
     p.add_argument("--overwrite", action="store_true",
@@ -492,6 +705,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("env_id", metavar="ID", help="environment id (see `jaxrobo list`)")
     p.add_argument("--quick", action="store_true", help="shorter rollout; skip the MJX-vs-MuJoCo and Gymnasium checks")
     p.add_argument("--seed", type=int, default=0, help="seed of the keys the checks use")
+    p.add_argument("--long", type=int, default=0, metavar="N",
+                   help="also run N random steps per env (fresh episodes where one ends) and fail on any float of "
+                        "the state beyond 1e6 in magnitude (finite but blown up)")
     p.set_defaults(func=_check)
 
     for name, (module, help_text) in PLUGINS.items():
@@ -505,18 +721,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that never step a simulator: they skip importing MJX (seconds) up front.
+LIGHT_COMMANDS = ("list", "plot")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    from jaxrobo.physics.sim import quiet_imports
-
-    with quiet_imports():
-        import mujoco.mjx  # noqa: F401  (import once, silently: MJX prints warp import noise)
-    try:
-        from jaxrobo.speed.cache import enable_compilation_cache
-
-        enable_compilation_cache()
-    except ImportError:
-        pass
     args = build_parser().parse_args(argv)
+    if args.command not in LIGHT_COMMANDS:
+        from jaxrobo.physics.sim import quiet_imports
+
+        with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
+            import mujoco.mjx  # noqa: F401
+        try:
+            from jaxrobo.speed.cache import enable_compilation_cache
+
+            enable_compilation_cache()
+        except ImportError:
+            pass
     from jaxrobo.core.config import ConfigError
 
     try:

@@ -1,12 +1,15 @@
-"""``jaxrobo show``: top and side views of greedy quadcopter flights (path, start, goal, obstacles) to PNG.
+"""``jaxrobo show``: what a policy does, for every task and learner, to a PNG (and a GIF/MP4 with ``--video``).
 
-Reads a training run directory (``config.yaml`` + ``qtables.npz``, as :mod:`jaxrobo.io.results` writes them) and
-flies the greedy policy of one trained table; or, with ``--env ID``, flies an untrained (random) policy. A
-``--agent ppo|sac`` run (``policy.npz`` + ``policy.json``, :mod:`jaxrobo.deep`) flies its saved deterministic
-policy; for a task that does not fly (the continuous cart-pole) the figure shows each observation over the
-episodes instead. ``--video PATH`` renders one episode of the same policy to a GIF/MP4 instead
-(:func:`jaxrobo.pictures.render.record_episode`; Discrete and Box actions).
-Obstacles and goals are task data (never physics bodies), so they are drawn from each episode's task state.
+The policy comes from a training run directory: a tabular run's greedy table (``qtables.npz``, acting through the
+run's own discretiser, rebuilt from its ``config.yaml``), or a ``--agent ppo|sac`` run's saved deterministic
+policy (``policy.npz`` + ``policy.json``, :func:`jaxrobo.deep.load_policy`); with ``--env ID`` instead, a random
+policy. A quadcopter task is drawn as flights (top and side views: path, start, goal, obstacles; obstacles and
+goals are task data, never physics bodies, so they are drawn from each episode's task state). Any other task
+(the cart-poles, the arm, a user's module task) is drawn as frames of the first episode (MuJoCo's offscreen
+renderer, where an OpenGL library loads; otherwise the figure says why in one line), the return and length of
+each episode, and every observation and action over the steps. ``--video PATH`` renders one episode of the same
+policy to a GIF/MP4 instead (:func:`jaxrobo.pictures.render.record_episode`; Discrete and Box actions).
+Figures are drawn on a :class:`matplotlib.figure.Figure` without pyplot, so a notebook's backend is left alone.
 """
 from __future__ import annotations
 
@@ -18,13 +21,17 @@ import numpy as np
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run_dir", nargs="?", help="training run directory (config.yaml, qtables.npz)")
-    parser.add_argument("--env", dest="env_id", help="fly this env id with a random policy (no run needed)")
+    parser.add_argument("run_dir", nargs="?", help="training run directory (tabular or ppo/sac)")
+    parser.add_argument("--env", dest="env_id", help="show this env id with a random policy (no run needed)")
     parser.add_argument("--preset", default="default", help="agent preset when --env is given")
-    parser.add_argument("--out", default="flights.png", help="PNG to write")
-    parser.add_argument("--episodes", type=int, default=6, help="flights to draw")
-    parser.add_argument("--table", type=int, default=0, help="which trained table (env index) to fly")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the flights")
+    parser.add_argument("--out", default=None,
+                        help="image to write (default: RUN_DIR/show.png, or runs/show/ENV.png with --env)")
+    parser.add_argument("--episodes", type=int, default=6, help="episodes to run and draw")
+    parser.add_argument("--table", type=int, default=0, help="which trained table (env index) to show")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the episodes")
+    parser.add_argument("--policy", default="latest", choices=("latest", "best"),
+                        help="a ppo/sac run's policy: latest (the trained one; a stopped run's last evaluation "
+                             "point's) or best (its best evaluation's)")
     parser.add_argument("--video", metavar="PATH", default=None,
                         help="render one episode of the run's policy (a trained table, a saved ppo/sac policy, or "
                              "random with --env) to this .gif or .mp4 instead of drawing the figure; needs an "
@@ -39,14 +46,9 @@ FLYING_MODULES = ("envs.quadcopter.goto", "envs.quadcopter.goto_v2", "envs.quadc
 MAX_EPISODES = 100
 
 
-def check_flying(spec: Any, source: str) -> None:
-    """ConfigError unless the run's env is a quadcopter task (``jaxrobo show`` draws flights)."""
-    from jaxrobo.core.config import ConfigError
-
-    module = type(spec.env).__module__
-    if module not in FLYING_MODULES:
-        raise ConfigError(f"{source}: env_id={spec.env_id!r} is not a quadcopter task; `jaxrobo show` draws flights "
-                          f"of QuadcopterGoto-v1/-v2 or QuadcopterLiveShow-v0 (use `jaxrobo plot` for other runs)")
+def flies(spec: Any) -> bool:
+    """Whether ``jaxrobo show`` draws the run's episodes as flights (a quadcopter task: a position and a goal)."""
+    return type(spec.env).__module__ in FLYING_MODULES
 
 
 def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
@@ -72,7 +74,6 @@ def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
         spec = resolve(cfg["env_id"], cfg.get("preset", "default"), overrides, check_memory=False)
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
-    check_flying(spec, where)
     q = load_tables(run_dir)["q"]
     from jaxrobo.training.run import check_discretiser
 
@@ -95,22 +96,28 @@ def check_table(q: np.ndarray, table: int, source: str) -> None:
                           "it cannot be flown")
 
 
+def _table_policy(spec: Any, q: np.ndarray | None, table: int) -> Any:
+    """Greedy in ``q[table]`` through the run's own discretiser (rebuilt from its config), or random when ``q`` is
+    None: a :data:`jaxrobo.task.rollout.Policy`."""
+    from jaxrobo.task.rollout import greedy_policy, random_policy
+    from jaxrobo.training.trainer import make_discretiser_for
+
+    if q is None:
+        return random_policy(spec.env.num_actions)
+    return greedy_policy(np.asarray(q[table]), make_discretiser_for(spec.env, spec.config))
+
+
 def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int,
         policy: Any = None) -> dict[str, np.ndarray]:
     """Greedy flights of table ``q[table]`` (random flights when ``q`` is None; ``policy``, a
     :data:`jaxrobo.task.rollout.Policy`, flies that policy instead) as host arrays."""
     import jax
 
-    from jaxrobo.task.rollout import greedy_policy, random_policy, rollout
-    from jaxrobo.training.trainer import make_discretiser_for
+    from jaxrobo.task.rollout import rollout
 
     env = spec.env
-    if policy is not None:
-        pass
-    elif q is None:
-        policy = random_policy(env.num_actions)
-    else:
-        policy = greedy_policy(np.asarray(q[table]), make_discretiser_for(env, spec.config))
+    if policy is None:
+        policy = _table_policy(spec, q, table)
     position = lambda state: env.robot.read_sensors(state.pipeline_state)["pos"]  # noqa: E731
     out = jax.jit(lambda k: rollout(env, policy, k, episodes, observe=position))(jax.random.key(seed))
     task = out["first"].task
@@ -131,15 +138,12 @@ def fly(spec: Any, q: np.ndarray | None, table: int, episodes: int, seed: int,
 def draw(res: dict[str, np.ndarray], title: str, out: str, tolerance: float = 0.5,
          max_altitude: float | None = None) -> None:
     """Top view (x-y) and side view (distance along the path - z) of each flight, obstacles drawn to scale."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.patches import Circle, Rectangle
 
     n = res["pos"].shape[0]
-    fig, (top, side) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1.1, 1]})
-    colors = plt.cm.tab10(np.arange(n) % 10)
+    fig = _figure(figsize=(13, 5.5))
+    top, side = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.1, 1]})
+    colors = _colors(n)
     for i in range(n):
         alive = res["alive"][i]
         path = res["pos"][i][alive]
@@ -153,10 +157,13 @@ def draw(res: dict[str, np.ndarray], title: str, out: str, tolerance: float = 0.
         top.plot(path[-1, 0], path[-1, 1], "x", color=c, ms=8)
         top.add_patch(Circle(goal[:2], tolerance, fill=False, ec=c, ls="--"))
         top.plot(goal[0], goal[1], "*", color=c, ms=14, mec="k")
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1))])
+        # Distance over the ground from the start, for the path and the goal alike: a flight that ends short of
+        # its goal ends short of its star.
+        along = np.linalg.norm(path[:, :2] - path[0, :2], axis=1)
         side.plot(along, path[:, 2], "-", color=c, lw=1.8)
+        side.plot(0.0, path[0, 2], "o", color=c, ms=6)
         side.plot(along[-1], path[-1, 2], "x", color=c, ms=8)
-        side.plot(along[-1], goal[2], "*", color=c, ms=10, mec="k")
+        side.plot(np.linalg.norm(goal[:2] - path[0, :2]), goal[2], "*", color=c, ms=10, mec="k")
         if "obs_kind" in res:
             for k, ctr, size, act in zip(res["obs_kind"][i], res["obs_center"][i], res["obs_size"][i],
                                          res["obs_active"][i]):
@@ -176,15 +183,21 @@ def draw(res: dict[str, np.ndarray], title: str, out: str, tolerance: float = 0.
     if max_altitude is not None:
         side.axhline(max_altitude, color="r", ls=":", label="max altitude")
         side.legend(fontsize=8)
-    side.set_xlabel("distance flown over the ground (m)")
+    side.set_xlabel("distance over the ground from the start (m)")
     side.set_ylabel("altitude z (m)")
-    side.set_title("side view")
+    side.set_title("side view: o start, x end, * goal")
     side.grid(alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=110)
-    plt.close(fig)
+
+
+def default_out(run_dir: str | None, env_id: str | None) -> str:
+    """Where the figure goes without ``--out``: into the run directory, or the git-ignored ``runs/show/``."""
+    if run_dir:
+        return os.path.join(run_dir, "show.png")
+    return os.path.join("runs", "show", "".join(c if c.isalnum() or c in "-_." else "_" for c in env_id) + ".png")
 
 
 def check_args(args: argparse.Namespace) -> None:
@@ -203,6 +216,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--seed {args.seed}: must be an integer >= 0 and <= {INT32_MAX}")
     if args.table < 0:
         raise ConfigError(f"--table {args.table}: must be an integer >= 0")
+    if args.out is None:
+        args.out = default_out(args.run_dir, args.env_id)
     check_image_path(args.out)
     if args.video is not None:
         ext = os.path.splitext(args.video)[1].lower()
@@ -242,7 +257,7 @@ def video(spec: Any, path: str, seed: int, policy: Any = None, q: np.ndarray | N
     return 0
 
 
-def _load_deep_run(run_dir: str, table: int) -> tuple[Any, Any]:
+def _load_deep_run(run_dir: str, table: int, which: str = "latest") -> tuple[Any, Any]:
     """A ``--agent ppo|sac`` run's spec and its saved policy as a :data:`jaxrobo.task.rollout.Policy` of the env."""
     from jaxrobo import deep
     from jaxrobo.interop.brax_env import BraxEnv
@@ -253,7 +268,7 @@ def _load_deep_run(run_dir: str, table: int) -> tuple[Any, Any]:
     spec = deep.spec_from_config(load_config(run_dir), where)
     if table != 0:
         raise ConfigError(f"--table {table}: a {spec.agent} run has one policy (table 0)")
-    loaded = deep.load_policy(run_dir)
+    loaded = deep.load_policy(run_dir, which)
     benv = BraxEnv(spec.env)
     sizes = (loaded.net["observation_size"], loaded.net["action_size"])
     if sizes != (benv.observation_size, benv.action_size):
@@ -262,88 +277,177 @@ def _load_deep_run(run_dir: str, table: int) -> tuple[Any, Any]:
     return spec, deep.env_policy(benv, loaded.make_policy, loaded.params)
 
 
-def trace(spec: Any, policy: Any, episodes: int, seed: int) -> dict[str, np.ndarray]:
-    """Episodes of ``policy`` with every observation recorded (for a task that does not fly)."""
+#: Frames of the first episode drawn above the plots of a task that does not fly (when OpenGL renders).
+FRAMES = 5
+
+
+def episodes(spec: Any, policy: Any, n: int, seed: int) -> dict[str, Any]:
+    """``n`` episodes of ``policy`` (a :data:`jaxrobo.task.rollout.Policy`) with every state recorded: ``obs``
+    ``[n, T+1, n_obs]``, ``action`` ``[n, T]``, ``alive`` ``[n, T+1]``, per-episode ``return``/``length``/
+    ``terminated`` (and ``arrived`` for a goal task) as host arrays, and ``states`` (the whole
+    :class:`jaxrobo.task.env.EnvState` trace as host arrays, to render frames from)."""
     import jax
 
-    from jaxrobo.task.rollout import rollout
+    from jaxrobo.task.rollout import outcomes, rollout
 
-    out = jax.jit(lambda k: rollout(spec.env, policy, k, episodes, observe=lambda st: st.obs))(jax.random.key(seed))
-    return {"obs": np.asarray(out["trace"]), "alive": np.asarray(out["alive"]), "return": np.asarray(out["return"]),
-            "length": np.asarray(out["length"])}
+    out = jax.device_get(jax.jit(lambda k: rollout(spec.env, policy, k, n, observe=lambda st: st))(
+        jax.random.key(seed)))
+    res = {k: np.asarray(v) for k, v in jax.device_get(outcomes(out)).items()}
+    res.update(obs=np.asarray(out["trace"].obs), action=np.asarray(out["action"]), alive=np.asarray(out["alive"]),
+               states=out["trace"])
+    return res
 
 
-def draw_traces(res: dict[str, np.ndarray], names: Any, title: str, out: str) -> None:
-    """One panel per observation dimension, one line per episode, over the episode's steps."""
-    import matplotlib
+def render_frames(spec: Any, res: dict[str, Any], episode: int = 0, count: int = FRAMES,
+                  width: int = 320, height: int = 240) -> tuple[list[tuple[int, np.ndarray]], str | None]:
+    """``count`` frames ``(step, image)`` spread over episode ``episode`` of :func:`episodes`, and None; or no
+    frames and the one-line reason where this machine cannot render (no offscreen OpenGL)."""
+    import jax
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxrobo.pictures import render
 
-    n_obs = res["obs"].shape[-1]
-    fig, axes = plt.subplots(n_obs, 1, figsize=(9, 1.8 * n_obs + 1), sharex=True, squeeze=False)
-    for i in range(res["obs"].shape[0]):
-        alive = res["alive"][i]
-        for d in range(n_obs):
-            axes[d, 0].plot(np.flatnonzero(alive), res["obs"][i][alive, d], lw=1.2,
-                            label=f"episode {i}: {int(res['length'][i])} steps" if d == 0 else None)
-    for d in range(n_obs):
-        axes[d, 0].set_ylabel(names[d] if names is not None and d < len(names) else f"obs[{d}]", fontsize=8)
-        axes[d, 0].grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="best")
-    axes[-1, 0].set_xlabel("step")
-    fig.suptitle(title)
+    reason = render.gl_unavailable_reason()
+    if reason is not None:
+        return [], reason
+    length = int(res["length"][episode])
+    steps = sorted({int(round(t)) for t in np.linspace(0, length, count)})
+    frames = []
+    try:
+        with render.Renderer(spec.env, width, height) as r:
+            for t in steps:
+                state = jax.tree.map(lambda x: x[episode, t], res["states"])
+                frames.append((t, r.render(state)))
+    except (render.RenderUnavailable, ValueError) as err:
+        return [], " ".join(str(err).split())
+    return frames, None
+
+
+def summary_line(res: dict[str, Any]) -> str:
+    """Mean return and length of the episodes (and arrivals for a goal task), for titles and the terminal."""
+    line = f"mean return {res['return'].mean():.2f}, mean length {res['length'].mean():.1f} steps"
+    if "arrived" in res:
+        line += f", arrived {int(res['arrived'].sum())}/{len(res['arrived'])}"
+    return line
+
+
+def draw_episodes(res: dict[str, Any], names: Any, title: str, out: str,
+                  frames: list[tuple[int, np.ndarray]] = (), note: str | None = None) -> None:
+    """The figure of a task that does not fly: frames of episode 0 (when rendered), the return and length of
+    each episode, then every observation and action over the steps of each episode."""
+    n_ep, n_obs = res["obs"].shape[0], res["obs"].shape[-1]
+    action = res["action"].reshape(n_ep, res["action"].shape[1], -1)
+    n_act = action.shape[-1]
+    trace_rows = -(-(n_obs + n_act) // 2)
+    heights = ([2.4] if frames else []) + [1.9] + [1.6] * trace_rows
+    fig = _figure(figsize=(12, sum(heights) + 1.0))
+    grid = fig.add_gridspec(len(heights), 1, height_ratios=heights)
+    row = 0
+    if frames:
+        sub = grid[row].subgridspec(1, len(frames))
+        for j, (t, img) in enumerate(frames):
+            ax = fig.add_subplot(sub[0, j])
+            ax.imshow(img)
+            ax.set_title(f"episode 0, step {t}", fontsize=8)
+            ax.axis("off")
+        row += 1
+    sub = grid[row].subgridspec(1, 2)
+    ep = np.arange(n_ep)
+    colors = _colors(n_ep)
+    for j, (key, label) in enumerate((("return", "return"), ("length", "length (steps)"))):
+        ax = fig.add_subplot(sub[0, j])
+        ax.bar(ep, res[key], color=colors)
+        if "arrived" in res and key == "return":
+            for i in ep[res["arrived"]]:
+                ax.annotate("arrived", (i, res[key][i]), ha="center", va="bottom", fontsize=7)
+        ax.set_xlabel("episode")
+        ax.set_ylabel(label)
+        ax.set_xticks(ep)
+        ax.grid(alpha=0.3, axis="y")
+    row += 1
+    sub = grid[row:].subgridspec(trace_rows, 2)
+    panels = [(res["obs"][:, :, d], names[d] if names is not None and d < len(names) else f"obs[{d}]", 0)
+              for d in range(n_obs)]
+    panels += [(action[:, :, d], "action" if n_act == 1 else f"action[{d}]", 1) for d in range(n_act)]
+    for p, (values, label, shift) in enumerate(panels):
+        ax = fig.add_subplot(sub[p // 2, p % 2])
+        for i in range(n_ep):
+            alive = res["alive"][i][shift:]
+            steps = np.flatnonzero(alive)
+            ax.plot(steps, values[i][alive], lw=1.1, color=colors[i],
+                    label=f"episode {i}: {int(res['length'][i])} steps" if p == 0 else None)
+        ax.set_ylabel(label, fontsize=8)
+        ax.grid(alpha=0.3)
+        if p >= len(panels) - 2:
+            ax.set_xlabel("step")
+        if p == 0:
+            ax.legend(fontsize=7, loc="best")
+    fig.suptitle(title + (f"\n(no frames: {note})" if note else ""), fontsize=10)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    fig.savefig(out, dpi=100)
+
+
+def _figure(**kw: Any) -> Any:
+    """A matplotlib Figure that needs no pyplot and no backend switch (a notebook's inline backend stays)."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kw)
+
+
+def _colors(n: int) -> np.ndarray:
+    import matplotlib
+
+    return matplotlib.colormaps["tab10"](np.arange(n) % 10)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Draw flights from a run directory (greedy) or an env id (random policy); returns a process exit code."""
+    """Draw the episodes of a run's policy (greedy table, saved ppo/sac policy) or of a random policy (``--env``):
+    flights for a quadcopter task, frames and per-episode plots for any other; returns a process exit code."""
     import sys
 
+    from jaxrobo import deep
     from jaxrobo.core.config import ConfigError
     from jaxrobo.training.run import resolve
-
-    from jaxrobo import deep
 
     policy = None
     try:
         check_args(args)
         if args.run_dir and deep.is_deep_run(args.run_dir):
-            spec, policy = _load_deep_run(args.run_dir, args.table)
+            spec, policy = _load_deep_run(args.run_dir, args.table, args.policy)
             q = None
-            what = f"{spec.agent} policy, {args.run_dir}"
-            if args.video is not None:
-                return video(spec, args.video, args.seed, policy=policy)
-            if type(spec.env).__module__ not in FLYING_MODULES:
-                res = trace(spec, policy, args.episodes, args.seed)
-                space = spec.env.observation_space()
-                draw_traces(res, getattr(space, "names", None),
-                            f"{spec.env_id}: {what} - mean return {res['return'].mean():.1f}, mean length "
-                            f"{res['length'].mean():.1f}", args.out)
-                print(f"wrote {args.out}")
-                return 0
+            name = f"{spec.agent} {args.policy} policy"
         elif args.run_dir:
             spec, cfg, q = _load_run(args.run_dir)
             check_table(q, args.table, os.path.join(args.run_dir, "qtables.npz"))
-            what = f"greedy flights of table {args.table}, {args.run_dir}"
+            name = f"greedy {spec.config.agent}, table {args.table}"
         else:
             spec, q = resolve(args.env_id, args.preset, check_memory=False), None
-            check_flying(spec, f"--env {args.env_id}")
-            what = "random policy (untrained)"
+            name = "random policy (untrained)"
     except ConfigError as err:
         print(f"jaxrobo show: {err}", file=sys.stderr)
         return 2
+    what = f"{name}, {os.path.basename(os.path.normpath(args.run_dir))}" if args.run_dir else name
     if args.video is not None:
-        return video(spec, args.video, args.seed, q=q, table=args.table)
-    res = fly(spec, q, args.table, args.episodes, args.seed, policy=policy)
-    p = spec.env.default_params
-    summary = ""
-    if "arrived" in res:
-        summary = f" - arrived {int(res['arrived'].sum())}/{len(res['arrived'])}"
-    draw(res, f"{spec.env_id}: {what}{summary}", args.out, float(getattr(p, "goal_tolerance", 0.5)),
-         float(getattr(p, "max_altitude", 0.0)) or None)
+        return video(spec, args.video, args.seed, policy=policy, q=q, table=args.table)
+    if flies(spec):
+        res = fly(spec, q, args.table, args.episodes, args.seed, policy=policy)
+        p = spec.env.default_params
+        summary = ""
+        if "arrived" in res:
+            summary = f" - arrived {int(res['arrived'].sum())}/{len(res['arrived'])}"
+        draw(res, f"{spec.env_id}: {what}{summary}", args.out, float(getattr(p, "goal_tolerance", 0.5)),
+             float(getattr(p, "max_altitude", 0.0)) or None)
+        print(f"wrote {args.out}")
+        return 0
+    if policy is None:
+        policy = _table_policy(spec, q, args.table)
+    res = episodes(spec, policy, args.episodes, args.seed)
+    frames, note = render_frames(spec, res)
+    names = getattr(spec.env.observation_space(), "names", None)
+    draw_episodes(res, names, f"{spec.env_id}: {what} - {summary_line(res)} over {args.episodes} episodes",
+                  args.out, frames, note)
+    if note is not None:
+        print(f"jaxrobo show: no frames drawn: {note}", file=sys.stderr)
+    print(f"{args.episodes} episodes: {summary_line(res)}")
     print(f"wrote {args.out}")
     return 0

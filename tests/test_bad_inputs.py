@@ -396,8 +396,7 @@ SHOW = [
       setup=lambda tmp, mp: write_run(tmp, config={**goto_config(), "agent_params": {"alpha": 5}})),
     S("config-unknown-env", "environment id: unknown key 'Nope-v0'", "{tmp}/run",
       setup=run_dir(config_text="env_id: Nope-v0\n")),
-    S("cartpole-run", f"env_id='{CP}' is not a quadcopter task", "{tmp}/run",
-      setup=run_dir(config_text=f"env_id: {CP}\n")),
+    S("cartpole-run-no-tables", "no qtables.npz", "{tmp}/run", setup=run_dir(config_text=f"env_id: {CP}\n", q=None)),
     S("no-tables", "no qtables.npz", "{tmp}/run", setup=run_dir(q=None)),
     S("truncated-npz", "cannot be read as plain arrays", "{tmp}/run",
       setup=lambda tmp, mp: write_run(tmp, npz=ok_npz_bytes(tmp)[:100])),
@@ -421,7 +420,7 @@ SHOW = [
     S("seed-negative", "--seed -1: must be an integer >= 0", "{tmp}/run", "--seed", "-1", setup=run_dir()),
     S("run-and-env", "give a RUN_DIR or --env ID, not both", "{tmp}/run", "--env", GOTO, setup=run_dir()),
     S("neither", "give a RUN_DIR (greedy flights of a trained run) or --env ID"),
-    S("env-cartpole", f"env_id='{CP}' is not a quadcopter task", "--env", CP),
+    S("env-cartpole-episodes-zero", "--episodes 0: must be an integer >= 1", "--env", CP, "--episodes", "0"),
     S("env-unknown", "environment id: unknown key 'Nope-v0'", "--env", "Nope-v0"),
     S("env-bad-preset", "preset='nope': allowed values are default, seed", "--env", GOTO, "--preset", "nope"),
     Case("show-out-not-image", "show", ("{tmp}/run", "--out", "{tmp}/flights.txt"),
@@ -545,9 +544,14 @@ DEEP = [
     D("unknown-key", "unknown key 'tau'", "--set", "tau=0.1"),
     D("nepisodes", "--nepisodes: --agent ppo trains for a number of env steps", "--nepisodes", "3"),
     D("unknown-preset", "preset='fast': allowed values are default, tiny", "--preset", "fast"),
-    D("replay-too-large", "min_replay_size=10 must be < num_timesteps=5", "--set", "min_replay_size=10",
-      "--set", "num_timesteps=5", agent="sac"),
-    D("resume", "a ppo/sac run cannot be resumed", "--resume", "{tmp}"),
+    D("replay-too-large", "min_replay_size=10 must be < total_steps=5", "--set", "min_replay_size=10",
+      "--total-steps", "5", agent="sac"),
+    D("resume-with-config-flags", "the run goes on with its own config.yaml and directory; drop --env, --agent",
+      "--resume", "{tmp}"),
+    D("total-steps-twice", "total_steps given twice: --total-steps 10 and --set num_timesteps=20", "--total-steps",
+      "10", "--set", "num_timesteps=20"),
+    D("total-steps-alias-and-name", "name the same setting (num_timesteps is the old name of total_steps)",
+      "--set", "num_timesteps=20", "--set", "total_steps=10"),
     D("sac-tau-range", "tau=0.0: expected a number > 0.0 and <= 1.0", "--set", "tau=0", agent="sac"),
 ]
 
@@ -578,6 +582,7 @@ def nothing_runs(monkeypatch):
     monkeypatch.setattr(train.Trainer, "init", forbidden("Trainer.init"))
     monkeypatch.setattr(sweep_running, "GroupRunner", forbidden("the sweep's compiled group"))
     monkeypatch.setattr(flights, "fly", forbidden("flights.fly"))
+    monkeypatch.setattr(flights, "episodes", forbidden("show.episodes"))
     monkeypatch.setattr(results, "save_run", forbidden("save_run"))
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", forbidden("savefig"))
 

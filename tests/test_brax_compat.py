@@ -102,3 +102,54 @@ def test_evaluator_swap_guard_trips(monkeypatch):
         with brax_compat.keep_evaluator_params():
             pass
     assert acting.Evaluator is NotAnEvaluator
+
+
+def test_epoch_hook_wraps_only_training_epoch_and_is_undone(monkeypatch):
+    """hook_epochs swaps the trainer module's ``jax`` for the block only, wraps the pmap of ``training_epoch`` (its
+    key becomes jaxrobo's, its output state is kept, a restore replaces the first epoch's state) and nothing else."""
+    import types
+
+    import jax
+    import jax.numpy as jnp
+
+    module = types.SimpleNamespace(__name__="fake_trainer", jax=jax)
+    seen = []
+    state = None
+
+    def training_epoch(state, key):
+        return state + 1, key  # (the key as the "metrics": what the epoch was given)
+
+    def reset(x):
+        return x
+
+    with brax_compat.hook_epochs(module, lambda i: jax.random.fold_in(jax.random.PRNGKey(0), i), first_epoch=3,
+                                 restore=lambda fresh: (fresh[0] + 100,)) as hook:
+        epoch = module.jax.pmap(training_epoch)
+        other = module.jax.pmap(reset)
+        assert module.jax.numpy is jnp  # everything else is JAX's own
+        key = jax.random.split(jax.random.PRNGKey(7), 1)
+        for start in (jnp.zeros((1,)), None):
+            state, given = epoch(state if start is None else start, key)
+            seen.append(np.asarray(given))
+        assert np.asarray(other(jnp.ones((1,))))[0] == 1
+    assert module.jax is jax
+    assert float(state[0]) == 102 and hook.epochs_done == 5 and hook.calls == 2
+    assert float(hook.states[0][0]) == 102
+    expected = [np.asarray(jax.random.split(jax.random.fold_in(jax.random.PRNGKey(0), i), 1)) for i in (3, 4)]
+    assert all(np.array_equal(a, b) for a, b in zip(seen, expected))  # not the key the trainer passed
+
+
+def test_epoch_hook_guard_trips():
+    import types
+
+    with pytest.raises(brax_compat.BraxCompatError, match="does not use the jax module"):
+        with brax_compat.hook_epochs(types.SimpleNamespace(__name__="t"), lambda i: None):
+            pass
+    import jax
+
+    with pytest.warns(RuntimeWarning, match=r"brax 0\.99\.0 is outside"):
+        with brax_compat.hook_epochs(types.SimpleNamespace(__name__="t", jax=jax), lambda i: None,
+                                     version="0.99.0") as hook:
+            pass
+    with pytest.raises(brax_compat.BraxCompatError, match="ran no jax.pmap-ed training_epoch"):
+        hook.check()

@@ -14,7 +14,7 @@ from jaxrobo.check import check_env
 from jaxrobo.cli import main
 
 # The checks a broken env is run through (the MJX and Gymnasium ones are for shipped ids, below).
-FAST = ("spaces", "actions", "trace", "pure", "jit_vmap", "reset_keys", "rollout", "nan_guard")
+FAST = ("spaces", "actions", "trace", "carry", "pure", "jit_vmap", "reset_keys", "rollout", "nan_guard")
 
 
 def _make(cls):
@@ -177,7 +177,7 @@ def test_the_ids_left_to_the_cli_are_shipped_ids():
 def test_cli_check_prints_one_line_per_check_and_exits_by_result(capsys):
     assert main(["check", "QuadcopterLiveShow-v0", "--quick"]) == 0
     out = capsys.readouterr().out
-    assert "ok   spaces" in out and "skip gymnasium   --quick" in out and "all 10 checks pass" in out
+    assert "ok   spaces" in out and "skip gymnasium   --quick" in out and "all 12 checks pass" in out
     assert main(["check", "NoSuchEnv-v0"]) == 2
     assert "NoSuchEnv-v0" in capsys.readouterr().err
 
@@ -188,3 +188,65 @@ def test_gymnasium_and_mjx_checks_on_a_made_env():
     results = {r.name: r for r in check_env(_make(CartPoleStayUp), checks=("gymnasium", "mjx_native"))}
     assert results["gymnasium"].status == "ok", results["gymnasium"].message
     assert results["mjx_native"].status == "skip" and "analytic" in results["mjx_native"].message
+
+
+# ---- the carry's types and the long rollout ----------------------------------------------------------------------
+class CountsInFloat(CartPoleStayUp):
+    """A task variable reset as int32 that _compute_reward turns into float32."""
+
+    def _init_env_variables(self, key, pipeline_state, params):
+        return {"base": super()._init_env_variables(key, pipeline_state, params), "n": jnp.int32(0)}
+
+    def _set_action(self, action, task, params):
+        command, base = super()._set_action(action, task["base"], params)
+        return command, {**task, "base": base}
+
+    def _compute_reward(self, obs, done, action, pipeline_state, task, params):
+        return jnp.ones((), jnp.float32), {**task, "n": task["n"] + 0.5}
+
+
+class CommandGrowsAShape(CartPoleStayUp):
+    """_set_action returns the command variable as shape (1,) where reset made it a scalar."""
+
+    def _set_action(self, action, task, params):
+        command, task = super()._set_action(action, task, params)
+        return command, task.replace(command=jnp.reshape(task.command, (1,)))
+
+
+class EnergyBlowsUp(CartPoleStayUp):
+    """A task variable that grows tenfold each step: finite (float32 holds 1e38) but far out of any sane range."""
+
+    def _init_env_variables(self, key, pipeline_state, params):
+        return {"base": super()._init_env_variables(key, pipeline_state, params), "energy": jnp.float32(1.0)}
+
+    def _set_action(self, action, task, params):
+        command, base = super()._set_action(action, task["base"], params)
+        return command, {"base": base, "energy": task["energy"] * 10.0}
+
+
+def test_a_carry_type_change_names_the_hook_and_the_field():
+    results = {r.name: r for r in check_env(_make(CountsInFloat), quick=True, checks=FAST[:4] + ("rollout",))}
+    carry = results["carry"]
+    assert carry.status == "FAIL"
+    assert carry.message.startswith("_compute_reward: state.task['n'] changes from int32[] to float32[] over a step")
+    assert results["rollout"].status == "skip" and results["rollout"].message == "needs carry to pass"
+    (shape,) = check_env(_make(CommandGrowsAShape), checks=("carry",))
+    assert shape.status == "FAIL" and shape.message.startswith(
+        "_set_action: state.task.command changes from float32[] to float32[1] over a step"), shape.message
+
+
+def test_long_rollout_flags_a_finite_but_huge_state_and_passes_a_sound_one(capsys):
+    (blown,) = check_env(_make(EnergyBlowsUp), checks=("long",), long=200)
+    assert blown.status == "FAIL" and blown.message.startswith(
+        "state.task['energy'] passed |x| > 1e+06 at step 7 of env 0 and reached "), blown.message
+    assert "NaN guard lets it through" in blown.message
+    (sound,) = check_env(_make(CartPoleStayUp), checks=("long",), long=300)
+    assert sound.status == "ok" and sound.message.startswith("4 envs x 300 steps: every float within 1e+06")
+    (skipped,) = check_env(_make(CartPoleStayUp), checks=("long",))
+    assert skipped.status == "skip" and "--long N" in skipped.message
+    from jaxrobo.core.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"long=-1: expected an integer >= 0"):
+        check_env(_make(CartPoleStayUp), long=-1)
+    assert main(["check", "CartPoleStayUp-v0", "--long", "-5"]) == 2
+    assert "long=-5" in capsys.readouterr().err

@@ -128,7 +128,7 @@ def test_the_fields_both_trainers_take_are_declared_once_on_their_base():
     from jaxrobo.core.struct import rules
 
     shared = {f.name for f in dataclasses.fields(deep.DeepConfig)} - {"agent"}
-    assert {"num_timesteps", "num_envs", "episode_length", "learning_rate", "batch_size", "seed"} <= shared
+    assert {"total_steps", "num_envs", "episode_length", "learning_rate", "batch_size", "seed"} <= shared
     for cls in (deep.PPOConfig, deep.SACConfig):
         assert issubclass(cls, deep.DeepConfig)
         assert all(rules(cls)[name] is rules(deep.DeepConfig)[name] for name in shared)

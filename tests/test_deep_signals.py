@@ -1,6 +1,7 @@
-"""``jaxrobo train --agent ppo|sac`` stopped by SIGTERM/SIGINT: Brax's trainer cannot be paused, so it is stopped
-where it hands control back; the run directory says ``interrupted``, nothing half-trained is published and an
-old run that ``--overwrite`` was to replace is kept. Brax's trainers are replaced by fakes (nothing compiles)."""
+"""``jaxrobo train --agent ppo|sac`` stopped by SIGTERM/SIGINT before its first evaluation point: Brax's trainer
+cannot be paused, so it is stopped where it hands control back; the run directory says ``interrupted``, nothing
+half-trained is published and an old run that ``--overwrite`` was to replace is kept. Brax's trainers are replaced
+by fakes (nothing compiles). A run stopped after a point keeps its work: tests/test_deep_resume.py."""
 from __future__ import annotations
 
 import json
@@ -70,7 +71,7 @@ def test_sigterm_during_training_marks_the_run_interrupted(tmp_path, monkeypatch
     assert sorted(os.listdir(out)) == ["config.yaml", "status.json"]  # nothing trained, nothing half-written
     assert _hidden(tmp_path) == [] and signal.getsignal(signal.SIGTERM) is before
     err = capsys.readouterr().err
-    assert "SIGTERM: stopping at the trainer's next evaluation point" in err and "nothing trained was kept" in err
+    assert "SIGTERM: stopping at the trainer's next evaluation point" in err and "nothing trained to keep" in err
 
 
 @pytest.mark.parametrize("how", ["KeyboardInterrupt", "second SIGTERM"])

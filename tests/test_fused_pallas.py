@@ -104,6 +104,22 @@ def test_training_gives_the_plain_path_tables_and_records():
     assert int(np.asarray(plain.lengths).min()) > 0  # every env recorded its episodes
 
 
+def test_the_step_budget_follows_the_plain_path():
+    """total_steps: every env steps 60 steps (chunks of 25: the last one part-useful), records capped at 4 episodes
+    an env: tables, records and counters as the plain path's; total_episodes is refused by the kernel's rules."""
+    spec = _cartpole(total_steps=12 * 60, nepisodes=4)
+    plain = train(spec.env, spec.config, spec.agent_params, plan=_plan(spec))
+    fused = train(spec.env, spec.config, spec.agent_params, plan=_plan(spec, fused="pallas"))
+    for name in FIELDS:
+        np.testing.assert_array_equal(np.asarray(getattr(plain, name)), np.asarray(getattr(fused, name)),
+                                      err_msg=name)
+    assert plain.env_steps == 12 * 60 and plain.budget == "steps"
+    from jaxrobo.speed import fused_pallas
+
+    runs = _cartpole(total_episodes=30)
+    assert "total_episodes" in fused_pallas.unsupported_run(runs.env, runs.config)
+
+
 @pytest.mark.parametrize("changes", [dict(record_episodes=False, carry_rows=True), dict(chunk_steps=7)])
 def test_the_carry_follows_the_plain_path_whatever_the_chunking(changes):
     """The whole carry after 75 steps (records off with carried rows) or 77 (chunks of 7): discrete parts bit for bit,

@@ -86,7 +86,7 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
 
     out = tmp_path / "goto.json"
     sets = [f"--set={k}={v}" for k, v in TINY.items()]
-    assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--runs", "3", "--episodes", "5",
+    assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--runs", "3", "--episodes", "5", "--seed-base", "7",
                                "--select-episodes", "3", "--out", str(out), *sets]) == 0
     data = json.loads(out.read_text())
     per_run = data["fresh_success_per_run"]
@@ -96,5 +96,9 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     assert data["fresh_success"]["min"] == min(per_run) and data["fresh_success"]["max"] == max(per_run)
     assert data["best_of_population"]["fresh_success"] == per_run[data["best_of_population"]["run"]]
     assert data["train_seconds"] > 0
+    assert data["seeds"] == [7, 8, 9]
+    worst = data["worst_seeds"]
+    assert [w["fresh_success"] for w in worst] == sorted(per_run)
+    assert all(per_run[data["seeds"].index(w["seed"])] == w["fresh_success"] for w in worst)
     printed = capsys.readouterr().out
-    assert "MEDIAN" in printed and "secondary, best of population" in printed
+    assert "MEDIAN" in printed and "secondary, best of population" in printed and "WORST seeds" in printed

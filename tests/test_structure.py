@@ -43,8 +43,10 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("interop",),              # Gymnasium and Brax faces
     ("deep",),                 # Brax's PPO/SAC trainers on the Brax face
 )
-#: The modules on top of every layer: the package root, its public surface and the commands (``check``, ``show``).
-TOP = frozenset({"jaxrobo", "jaxrobo.api", "jaxrobo.cli", "jaxrobo.check", "jaxrobo.show"})
+#: The modules on top of every layer: the package root, its public surface and the commands (``check``, ``show``,
+#: ``export``, ``evaluate``).
+TOP = frozenset({"jaxrobo", "jaxrobo.api", "jaxrobo.cli", "jaxrobo.check", "jaxrobo.show", "jaxrobo.export",
+                 "jaxrobo.evaluate"})
 #: The one module ``envs/`` and ``agents/`` import from jaxrobo.
 PUBLIC_SURFACE = frozenset({"jaxrobo.api"})
 #: The jaxrobo modules that may import envs/agents (by entry-point name, with importlib, in practice).

@@ -33,6 +33,7 @@ def _forget(module_names, ids):
     for env_id in ids:
         registry._REGISTRY.pop(env_id, None)
         gymnasium.registry.pop(f"jaxrobo/{env_id}", None)
+        gymnasium.registry.pop(env_id, None)
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +93,21 @@ def test_make_and_gym_make_after_import(example_dir):
     obs, reward, terminated, truncated, _ = genv.step(1)
     assert obs.shape == (2,) and reward == 1.0 and not truncated
     genv.close()
+
+
+def test_gymnasiums_own_module_id_form_in_a_fresh_process(example_dir):
+    """``gymnasium.make("my_task:MyPendulum-v0")``, Gymnasium's ``module:Id``, with nothing imported before: Gymnasium
+    imports my_task, whose register call makes the id a Gymnasium id under both names at once (no
+    register_gymnasium_envs() needed); a built-in id keeps only its ``jaxrobo/`` name."""
+    code = ("import gymnasium; e = gymnasium.make('my_task:MyPendulum-v0'); obs, _ = e.reset(seed=0); "
+            "v = gymnasium.make_vec('my_task:jaxrobo/MyPendulum-v0', num_envs=2); "
+            "print(e.spec.id, e.spec.max_episode_steps, obs.shape, v.num_envs, "
+            "'CartPoleStayUp-v0' in gymnasium.registry, 'jaxrobo/CartPoleStayUp-v0' in gymnasium.registry)")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": ROOT}
+    done = subprocess.run([sys.executable, "-c", code], cwd=EXAMPLE, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [ID, "200", "(2,)", "2", "False", "True"]
 
 
 def test_register_paths_beside_the_module_or_absolute(example_dir, tmp_path):

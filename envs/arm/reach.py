@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.arm.robot import BACKENDS, ELBOW_MAX, FORE, UPPER, ArmRobot, fingertip
-from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, rng, spaces
+from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng, spaces
 
 OBS_NAMES = ("elbow", "goal_x", "goal_y")
 #: Action ``i`` adds ``ACTION_DELTAS[i] * joint_step`` to the ``[shoulder, elbow]`` set-points.
@@ -58,6 +58,8 @@ class Options:
     running_step: float = param(0.1, low=0.0, low_open=True, high=1.0, static=True, unit="s", doc="control period")
     timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s",
                             doc="physics step (the servos are stiff: explicit Euler needs <= 0.02 s)")
+    randomise: bool = param(False, static=True,
+                            doc="domain randomisation: draw the physics (the rand_* ranges) at every reset")
 
 
 @pytree_dataclass
@@ -75,6 +77,11 @@ class Params(BaseParams):
                                doc="discretiser range of the elbow: [0, elbow_bound]")
     goal_bound: float = param(0.5, low=0.0, low_open=True, high=GOAL_BOUND, unit="m",
                               doc="discretiser range of goal_x, goal_y: +-goal_bound")
+    # Domain randomisation (read only with the option randomise=true; docs/randomisation.md).
+    rand_link_mass: tuple = range_param((1.0, 1.0), low=0.25, high=4.0, doc="factor on both links' masses")
+    rand_damping: tuple = range_param((1.0, 1.0), low=0.0, high=4.0, doc="factor on the joints' damping")
+    rand_obs_noise: tuple = range_param((0.0, 0.0), low=0.0, high=10.0,
+                                        doc="std of Gaussian noise on every observation component, fresh each step")
 
 
 @pytree_dataclass
@@ -99,6 +106,7 @@ class ArmReach(TaskEnv):
         super().__init__(options, params)
         o = self.options
         self.robot = ArmRobot(o.backend, o.running_step, o.timestep)
+        randomise.check(self)
         self._deltas = jnp.asarray(ACTION_DELTAS, jnp.float32)
 
     # ---- spaces -----------------------------------------------------------------------------------------

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from jaxrobo.api import Robot, backend_choices, load_model, make_simulator
+from jaxrobo.api import MjxEdit, Robot, backend_choices, load_model, make_simulator
 
 #: The robot's MJCF, beside this module.
 MJCF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "arm.xml")
@@ -60,6 +60,19 @@ class ArmRobot(Robot):
         if got != (UPPER, FORE, ELBOW_MAX):
             raise ValueError(f"{MJCF}: upper arm, forearm and elbow range are {got}; envs/arm/robot.py expects "
                              f"{(UPPER, FORE, ELBOW_MAX)}")
+
+    def randomisable(self) -> tuple[str, ...]:
+        """``link_mass`` (a factor on both links' masses and inertias) and ``damping`` (a factor on the joints'
+        damping), on ``mjx``; Brax's pipelines: none."""
+        return ("link_mass", "damping") if self.sim.backend == "mjx" else ()
+
+    def sim_physics(self, domain: dict[str, jax.Array]) -> MjxEdit:
+        """A drawn domain as MJX model fields."""
+        one = jnp.ones((), jnp.float32)
+        m = self.sim.model
+        mass, damping = domain.get("link_mass", one), domain.get("damping", one)
+        return MjxEdit(model={"body_mass": m.body_mass * mass, "body_inertia": m.body_inertia * mass,
+                              "dof_damping": m.dof_damping * damping}, data={})
 
     def init_pose(self, q: jax.Array, qdot: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         """``(qpos, qvel)`` for joint angles ``q = [shoulder, elbow]`` (rad) and their rates (rad/s, default 0)."""

@@ -60,6 +60,13 @@ class CartPoleConstants:
     ctrl_high: np.ndarray
     force_low: np.ndarray
     force_high: np.ndarray
+    # The parts the three sums above are made of, for domain randomisation (:func:`randomised`).
+    cart_mass: float = 0.0  # m_c (kg)
+    pole_mass: float = 0.0  # m_p (kg)
+    pole_length: float = 0.0  # l: hinge to the pole's centre of mass (m)
+    pole_inertia_com: float = 0.0  # I about the centre of mass (kg m²)
+    armature_x: float = 0.0
+    armature_th: float = 0.0
 
 
 def _refuse(condition: bool, why: str) -> None:
@@ -125,7 +132,20 @@ def constants_from_model(mj_model: mujoco.MjModel, cart_joint: str, pole_joint: 
         ctrl_high=np.where(ctrl_lim, m.actuator_ctrlrange[:, 1], np.inf),
         force_low=np.where(force_lim, m.actuator_forcerange[:, 0], -np.inf),
         force_high=np.where(force_lim, m.actuator_forcerange[:, 1], np.inf),
+        cart_mass=mass_c, pole_mass=mass_p, pole_length=length, pole_inertia_com=inertia_y,
+        armature_x=float(arm[m.jnt_dofadr[slide]]), armature_th=float(arm[m.jnt_dofadr[hinge]]),
     )
+
+
+def randomised(c: CartPoleConstants, physics: dict) -> CartPoleConstants:
+    """``c`` for one env's drawn factors (domain randomisation): ``cart_mass``, ``pole_mass`` and ``pole_length``
+    (the pole scaled as a rod: its inertia about the centre of mass by mass x length²); the three sums traced."""
+    mass_p = c.pole_mass * physics["pole_mass"]
+    length = c.pole_length * physics["pole_length"]
+    inertia = c.pole_inertia_com * physics["pole_mass"] * physics["pole_length"] ** 2
+    return dataclasses.replace(c, total_mass=c.cart_mass * physics["cart_mass"] + mass_p + c.armature_x,
+                               pole_mass_length=mass_p * length,
+                               pole_inertia=mass_p * length * length + inertia + c.armature_th)
 
 
 class CartPoleSim(ClosedFormSim):
@@ -136,9 +156,11 @@ class CartPoleSim(ClosedFormSim):
         self.constants = constants_from_model(mj_model, cart_joint, pole_joint)
         super().__init__(mj_model, "analytic", running_step)
 
-    def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
+    def physics_step(self, state: JointState, ctrl: jax.Array, physics: dict | None = None) -> JointState:
+        """One step; ``physics``: one env's factors (domain randomisation, :func:`randomised`)."""
+        c = self.constants if physics is None else randomised(self.constants, physics)
         q, v = state.qpos, state.qvel
-        acc_x, acc_th, inv_det = accelerations(self.constants, q[0], q[1], v[0], v[1], ctrl)
+        acc_x, acc_th, inv_det = accelerations(c, q[0], q[1], v[0], v[1], ctrl)
         # Whole-vector updates: on a CPU they vectorise better than per-coordinate ones over the batch.
         q, v = euler(q, v, jnp.stack([acc_x, acc_th]), inv_det, self.timestep)
         return JointState(q, v)

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import mujoco
 
 from envs.cartpole.dynamics import CartPoleSim
-from jaxrobo.api import Robot, backend_choices, load_model, make_simulator
+from jaxrobo.api import MjxEdit, Robot, backend_choices, load_model, make_simulator
 
 CONTROL_TYPES = ("velocity", "position", "effort")
 CART_JOINT = "foot_to_base"
@@ -52,6 +52,25 @@ class CartPoleRobot(Robot):
         jnt = lambda name: mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, name)  # noqa: E731
         self.cart_q, self.pole_q = (int(mj_model.jnt_qposadr[jnt(n)]) for n in (CART_JOINT, POLE_JOINT))
         self.cart_v, self.pole_v = (int(mj_model.jnt_dofadr[jnt(n)]) for n in (CART_JOINT, POLE_JOINT))
+        self.cart_body, self.pole_body = (int(mj_model.jnt_bodyid[jnt(n)]) for n in (CART_JOINT, POLE_JOINT))
+
+    def randomisable(self) -> tuple[str, ...]:
+        """``cart_mass``, ``pole_mass``, ``pole_length`` (factors; the pole scales as a rod) on ``analytic`` and
+        ``mjx``; Brax's pipelines: none."""
+        return ("cart_mass", "pole_mass", "pole_length") if self.sim.backend in ("analytic", "mjx") else ()
+
+    def sim_physics(self, domain: dict[str, jax.Array]) -> Any:
+        """A drawn domain as the closed form's factors, or as MJX model fields (masses, the pole's inertia and
+        centre of mass)."""
+        one = jnp.ones((), jnp.float32)
+        f = {name: domain.get(name, one) for name in ("cart_mass", "pole_mass", "pole_length")}
+        if self.sim.backend == "analytic":
+            return f
+        m, c, p = self.sim.model, self.cart_body, self.pole_body
+        mass = m.body_mass.at[c].multiply(f["cart_mass"]).at[p].multiply(f["pole_mass"])
+        inertia = m.body_inertia.at[p].multiply(f["pole_mass"] * f["pole_length"] ** 2)
+        return MjxEdit(model={"body_mass": mass, "body_inertia": inertia,
+                              "body_ipos": m.body_ipos.at[p].multiply(f["pole_length"])}, data={})
 
     def init_pose(self, cart_x: jax.Array, pole_angle: jax.Array, cart_v: jax.Array = 0.0,
                   pole_vel: jax.Array = 0.0) -> tuple[jax.Array, jax.Array]:

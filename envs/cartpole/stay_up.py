@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.cartpole.robot import BACKENDS, CONTROL_TYPES, CartPoleRobot
-from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, rng, spaces
+from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng, spaces
 
 #: Action ``i`` adds ``ACTION_STEPS[i] * pos_step`` to the cart command (left, right, left big, right big).
 ACTION_STEPS = (-1.0, 1.0, -10.0, 10.0)
@@ -43,6 +43,9 @@ class Options:
                                 doc="control period")
     timestep: float = param(0.01, low=0.0, low_open=True, high=0.04, static=True, unit="s", doc="physics step")
     round_obs: bool = param(False, static=True, doc="round observations to 0.1 as the seed did")
+    randomise: bool = param(False, static=True,
+                            doc="domain randomisation: draw the physics (the rand_* ranges) at every reset; the "
+                                "Pallas chunk kernel bakes the nominal model, so the run takes the XLA path")
 
 
 @pytree_dataclass
@@ -58,6 +61,13 @@ class Params(BaseParams):
     init_noise: float = param(0.05, low=0.0, high=1.0, doc="uniform noise on each state variable at reset")
     cart_v_bound: float = param(2.0, low=0.0, low_open=True, unit="m/s", doc="discretiser range of cart_v")
     pole_vel_bound: float = param(3.0, low=0.0, low_open=True, unit="rad/s", doc="discretiser range of pole vel")
+    # Domain randomisation (read only with the option randomise=true; docs/randomisation.md).
+    rand_cart_mass: tuple = range_param((1.0, 1.0), low=0.25, high=4.0, doc="factor on the cart's mass")
+    rand_pole_mass: tuple = range_param((1.0, 1.0), low=0.25, high=4.0, doc="factor on the pole's mass")
+    rand_pole_length: tuple = range_param((1.0, 1.0), low=0.5, high=2.0,
+                                          doc="factor on the pole's length (centre of mass and inertia, as a rod)")
+    rand_obs_noise: tuple = range_param((0.0, 0.0), low=0.0, high=10.0,
+                                        doc="std of Gaussian noise on every observation component, fresh each step")
 
 
 @pytree_dataclass
@@ -78,6 +88,7 @@ class CartPoleStayUp(TaskEnv):
         o = self.options
         self.robot = CartPoleRobot(o.control_type, o.backend, o.running_step, o.timestep)
         self._steps = jnp.asarray(ACTION_STEPS[: o.n_actions], jnp.float32)
+        randomise.check(self)
 
     # ---- spaces -----------------------------------------------------------------------------------------
     def action_space(self, params: Params | None = None) -> spaces.Discrete:

@@ -165,28 +165,42 @@ def controller(c: ControllerConstants, q: Sequence[Any], v: Sequence[Any], cmd: 
     return [_clip(_dot(row, wanted), lo, hi) for row, lo, hi in zip(c.unmix, c.ctrl_low, c.ctrl_high)]
 
 
-def physics_step(c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Sequence[Any]) -> tuple[list, list]:
+def physics_step(c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Sequence[Any],
+                 physics: dict | None = None) -> tuple[list, list]:
     """One physics step of the free body (MuJoCo's semi-implicit Euler): Newton–Euler under the actuators'
     body-frame wrench and gravity, velocities first, then positions with the new velocities, the quaternion
     rotated by ``omega dt`` about the body axes and renormalised (``mju_quatIntegrate``). ``q``: 7 position
     coordinates (world position, wxyz quaternion), ``v``: 6 velocity coordinates (world linear velocity, body
-    rates), ``ctrl``: one value per actuator. Returns the new ``(q, v)`` as lists."""
+    rates), ``ctrl``: one value per actuator. ``physics``: one env's drawn domain (domain randomisation,
+    :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`: factors ``mass`` on mass and inertia and ``motor_gain``
+    on the actuators' wrench, a world-frame force ``wind`` [3]): traced values, whose reciprocals are taken in
+    the trace; the kernels bake the nominal airframe and take no domain. Returns the new
+    ``(q, v)`` as lists."""
     dt = c.dt
     ctrl = [_clip(u, lo, hi) for u, lo, hi in zip(ctrl, c.ctrl_low, c.ctrl_high)]
     wr = [_dot(row, ctrl) for row in c.wrench]
+    inertia = c.inertia
+    inv_mass = _f32(1.0 / np.float32(c.mass))
+    inv_inertia = [_f32(1.0 / np.float32(i)) for i in inertia]
+    wind = None
+    if physics is not None:
+        wr = [w * physics["motor_gain"] for w in wr]
+        mass = c.mass * physics["mass"]
+        inertia = [i * physics["mass"] for i in inertia]
+        inv_mass, inv_inertia = 1.0 / mass, [1.0 / i for i in inertia]
+        wind = [physics["wind"][..., i] for i in range(3)]
     qw, qx, qy, qz = q[3], q[4], q[5], q[6]
     rot = rotation(qw, qx, qy, qz)
     force = wr[:3]
     acc = []
     for i in range(3):
         f = rot[i][0] * force[0] + rot[i][1] * force[1] + rot[i][2] * force[2]
-        acc.append(f * _f32(1.0 / np.float32(c.mass)) + c.gravity[i])
+        acc.append(f * inv_mass + c.gravity[i] if wind is None else f * inv_mass + c.gravity[i] + wind[i] * inv_mass)
     om = v[3:6]
-    inertia = c.inertia
     l_mom = [inertia[i] * om[i] for i in range(3)]
     cross = [om[1] * l_mom[2] - om[2] * l_mom[1], om[2] * l_mom[0] - om[0] * l_mom[2],
              om[0] * l_mom[1] - om[1] * l_mom[0]]
-    alpha = [(wr[3 + i] - cross[i]) * _f32(1.0 / np.float32(inertia[i])) for i in range(3)]
+    alpha = [(wr[3 + i] - cross[i]) * inv_inertia[i] for i in range(3)]
     vel = [v[i] + dt * acc[i] for i in range(3)]
     om = [om[i] + dt * alpha[i] for i in range(3)]
     pos = [q[i] + dt * vel[i] for i in range(3)]

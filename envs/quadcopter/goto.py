@@ -37,7 +37,7 @@ import numpy as np
 from envs.quadcopter.robot import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
 from envs.quadcopter.goto_kernel import kernel_step, make_task_step, supports
-from jaxrobo.api import BaseParams, EnvState, LearningTarget, param, pytree_dataclass, rng, spaces
+from jaxrobo.api import BaseParams, EnvState, LearningTarget, param, pytree_dataclass, range_param, rng, spaces
 
 OBS_NAMES = ("goal_dist", "goal_bearing", "goal_dz", "sonar_forward", "sonar_left", "sonar_right", "sonar_down")
 
@@ -82,6 +82,14 @@ class Params(BaseParams):
     dz_bound: float = param(0.75, low=0.0, low_open=True, high=10.0, unit="m", doc="discretiser range, ±goal_dz")
     sonar_bound: float = param(3.0, low=0.0, low_open=True, high=100.0, unit="m", doc="discretiser range, sonars")
     down_bound: float = param(1.2, low=0.0, low_open=True, high=100.0, unit="m", doc="discretiser range, altitude")
+    # Domain randomisation (read only with the option randomise=true; docs/randomisation.md).
+    rand_mass: tuple = range_param((1.0, 1.0), low=0.25, high=4.0, doc="factor on the airframe's mass and inertia")
+    rand_motor_gain: tuple = range_param((1.0, 1.0), low=0.25, high=4.0,
+                                         doc="factor on every rotor's thrust and reaction torque")
+    rand_wind: tuple = range_param((0.0, 0.0), low=0.0, high=5.0, unit="N",
+                                   doc="constant horizontal force on the drone, random direction")
+    rand_obs_noise: tuple = range_param((0.0, 0.0), low=0.0, high=10.0,
+                                        doc="std of Gaussian noise on every observation component, fresh each step")
 
 
 @pytree_dataclass
@@ -111,7 +119,8 @@ class QuadcopterGoto(QuadcopterTask):
         #: The whole step (action, control step, observation, outcome, reward, NaN guard) over a batch as one
         #: Pallas kernel, which ``ExecutionPlan(fused="pallas", task_kernel=True)`` runs; None where the task's
         #: configuration has none (:func:`envs.quadcopter.goto_kernel.supports`).
-        self.step_kernel_refusal = supports(self)
+        self.step_kernel_refusal = supports(self) if not self.randomised else \
+            "randomise=true: the kernel bakes the nominal airframe in (the step runs on XLA)"
         self.step_kernel = make_task_step(self) if self.step_kernel_refusal is None else None
 
     def _kernel_step(self, state: EnvState, action: jax.Array, params: Params) -> EnvState:

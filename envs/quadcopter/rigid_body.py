@@ -90,10 +90,12 @@ class RigidBodySim(ClosedFormSim):
         self.constants = body_constants(self.airframe)
         super().__init__(mj_model, "rigid", running_step)
 
-    def physics_step(self, state: JointState, ctrl: jax.Array) -> JointState:
+    def physics_step(self, state: JointState, ctrl: jax.Array, physics: dict | None = None) -> JointState:
+        """One step; ``physics`` (domain randomisation, :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`):
+        this env's factors on mass (and inertia) and motor gain, and a world-frame force (wind)."""
         # The equations per coordinate (envs/quadcopter/dynamics.py, which the Pallas kernels run too): the state
         # split into its coordinates along the last axis, stepped, and stacked back.
         q = [state.qpos[..., i] for i in range(7)]
         v = [state.qvel[..., i] for i in range(6)]
-        q, v = physics_step(self.constants, q, v, [ctrl[..., j] for j in range(ctrl.shape[-1])])
+        q, v = physics_step(self.constants, q, v, [ctrl[..., j] for j in range(ctrl.shape[-1])], physics)
         return JointState(jnp.stack(q, axis=-1), jnp.stack(v, axis=-1))

@@ -29,7 +29,8 @@ import numpy as np
 
 from envs.quadcopter import dynamics
 from envs.quadcopter.rigid_body import RigidBodySim, airframe_from_model
-from jaxrobo.api import Robot, TaskEnv, backend_choices, load_model, make_simulator, param, pytree_dataclass, spaces
+from jaxrobo.api import (MjxEdit, Robot, TaskEnv, backend_choices, load_model, make_simulator, param, pytree_dataclass,
+                         randomise, spaces)
 
 #: The robot's MJCF, beside this module.
 MJCF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "quadcopter.xml")
@@ -220,10 +221,36 @@ class Quadcopter(Robot):
         af = airframe_from_model(mj_model)  # constants of the controller, from the same model as the physics
         self.control = dynamics.controller_constants(af, gains, self.min_altitude)
         self.hover_thrust = af.mass * self.control.g / af.wrench[2].sum()
+        self._body = int(mj_model.nbody - 1)  # the drone: the one body after the world
         if backend == "rigid":  # the control step as one Pallas kernel, for ExecutionPlan(fused="pallas")
             from envs.quadcopter.kernel import make_advance
 
             self.advance_kernel = make_advance(self)
+
+    #: A wind is a horizontal force: its direction is drawn beside its magnitude.
+    directional = ("wind",)
+
+    def randomisable(self) -> tuple[str, ...]:
+        """``mass`` (a factor on the airframe's mass and inertia: the same shape, heavier or lighter),
+        ``motor_gain`` (a factor on every rotor's thrust and reaction torque per unit control) and ``wind`` (a
+        constant horizontal force on the body, N, in a random direction), on both backends. The on-board
+        controller keeps the nominal values, as a real one would."""
+        return ("mass", "motor_gain", "wind")
+
+    def sim_physics(self, domain: dict[str, jax.Array]) -> Any:
+        """A drawn domain as the backend's physics: the rigid body's factors and force, or MJX model and data fields."""
+        one = jnp.ones((), jnp.float32)
+        mass, gain = domain.get("mass", one), domain.get("motor_gain", one)
+        wind = domain.get("wind", 0.0 * one)
+        heading = domain.get("wind" + randomise.HEADING, 0.0 * one)
+        force = jnp.stack([wind * jnp.cos(heading), wind * jnp.sin(heading), 0.0 * wind])
+        if self.sim.backend == "rigid":
+            return {"mass": mass, "motor_gain": gain, "wind": force}
+        m, b = self.sim.model, self._body
+        return MjxEdit(
+            model={"body_mass": m.body_mass.at[b].multiply(mass), "body_inertia": m.body_inertia.at[b].multiply(mass),
+                   "actuator_gainprm": m.actuator_gainprm.at[:, 0].multiply(gain)},
+            data={"xfrc_applied": jnp.zeros((self.sim.mj_model.nbody, 6), jnp.float32).at[b, :3].set(force)})
 
     def init_pose(self, pos: jax.Array, yaw: jax.Array = 0.0) -> tuple[jax.Array, jax.Array]:
         """``(qpos, qvel)`` hovering at rest at ``pos`` (m) with heading ``yaw`` (rad)."""
@@ -260,6 +287,9 @@ class QuadcopterOptions:
     timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s", doc="physics step")
     min_altitude: float = param(0.0, low=0.0, high=2.0, static=True, unit="m",
                                 doc="on-board altitude floor of descent commands (0: none, ground crashes possible)")
+    randomise: bool = param(False, static=True,
+                            doc="domain randomisation: draw the physics (the task's rand_* ranges) at every reset; "
+                                "the kernels bake the nominal physics, so the step runs on XLA")
 
 
 class QuadcopterTask(TaskEnv):
@@ -270,6 +300,9 @@ class QuadcopterTask(TaskEnv):
         super().__init__(options, params)
         o = self.options
         self.robot = Quadcopter(o.backend, o.running_step, o.timestep, min_altitude=o.min_altitude)
+        if self.randomised:  # the control-step kernel bakes the nominal airframe in
+            self.robot.advance_kernel = None
+        randomise.check(self)
 
     def action_space(self, params: Any = None) -> spaces.Discrete:
         return spaces.Discrete(len(ACTION_NAMES))

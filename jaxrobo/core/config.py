@@ -102,6 +102,8 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
         value = float(value)
         if not math.isfinite(value):
             raise ConfigError(f"{loc}{key}={value!r}: must be finite")
+    elif kind is tuple and rule.pair:
+        return _range(key, value, rule, loc)
     elif kind is tuple:
         if not isinstance(value, (list, tuple)):
             doc = f" ({rule.doc})" if rule.doc else ""
@@ -118,6 +120,20 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
         if rule.high is not None and value > rule.high:
             raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
     return value
+
+
+def _range(key: str, value: Any, rule: Rule, loc: str) -> tuple[float, float]:
+    """A ``[low, high]`` range (:func:`jaxrobo.core.struct.range_param`) as a tuple of two floats, or ConfigError."""
+    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+    if not ok:
+        raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+    low, high = float(value[0]), float(value[1])
+    if low > high:
+        raise ConfigError(f"{loc}{key}={value!r}: low {low} > high {high}; expected {rule.describe()}")
+    if low < rule.low or high > rule.high:
+        raise ConfigError(f"{loc}{key}={value!r}: outside the physical limits; expected {rule.describe()}")
+    return (low, high)
 
 
 def unknown_key(key: str, known: Iterable[str], where: str = "") -> ConfigError:

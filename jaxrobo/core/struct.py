@@ -43,8 +43,11 @@ class Rule:
     unit: str = ""
     low_open: bool = False  # True: the value must be strictly greater than ``low``
     optional: bool = False  # None is allowed (the field's default is None: "not given")
+    pair: bool = False  # a ``[low, high]`` range: two numbers, each within ``low``..``high``, the first <= the second
 
     def describe(self) -> str:
+        if self.pair:
+            return f"a range [low, high] with {self.low} <= low <= high <= {self.high}{' ' + self.unit if self.unit else ''}"
         if self.choices is not None:
             return "one of " + ", ".join(repr(c) for c in self.choices)
         kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string", tuple: "a list"}.get(self.kind, str(self.kind))
@@ -77,6 +80,14 @@ def param(
     if default_factory is not None:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
+
+
+def range_param(default: tuple[float, float], *, low: float, high: float, doc: str = "", unit: str = "") -> Any:
+    """Declare a traced ``(low, high)`` range (a domain-randomisation range, :mod:`jaxrobo.task.randomise`): the
+    config accepts ``[low, high]`` with ``low <= high``, both within the declared ``low``..``high``; a sweep may vary
+    it (a ``[2]`` array per row)."""
+    rule = Rule(tuple, float(low), float(high), None, doc, unit, pair=True)
+    return dataclasses.field(default=tuple(float(v) for v in default), metadata={"static": False, _RULES: rule})
 
 
 def static_field(default: Any = dataclasses.MISSING, **kw: Any) -> Any:

@@ -14,9 +14,13 @@ termination). jaxrobo adds what a run needs around them, one concern per module:
   ``eval_episodes`` fresh episodes of the jaxrobo env itself at each of the trainer's ``num_evals`` points
   (:func:`evaluate`), through :func:`jaxrobo.task.rollout.rollout`, so a task's success flags (the Goto's
   ``arrived``) are counted exactly as for the tabular learners;
-* :mod:`jaxrobo.deep.output`: the run directory (:func:`write_run`: ``config.yaml``, ``evaluations.csv``,
-  ``episode_stats.csv`` with an ``env_steps`` column, ``summary.json``, TensorBoard scalars, ``rewards.png``, the
-  policy) written through :mod:`jaxrobo.io.rundir`;
+* :mod:`jaxrobo.deep.output`: the run directory, kept at every evaluation point while the run trains
+  (:class:`LiveRun`: checkpoint, latest and best policy, ``episode_stats.csv``, live TensorBoard scalars) and
+  written whole at the end (:func:`write_run`: ``config.yaml``, ``evaluations.csv``, ``episode_stats.csv`` with an
+  ``env_steps`` column, ``summary.json``, TensorBoard scalars, ``rewards.png``, the policy) through
+  :mod:`jaxrobo.io.rundir`;
+* :mod:`jaxrobo.deep.checkpoint`: the trainer's whole state at the last evaluation point (optimiser, normaliser,
+  parameters, env state, SAC's replay buffer) and the run's record, what ``jaxrobo train --resume`` continues;
 * :mod:`jaxrobo.deep.policy`: the policy saved without pickle (:func:`save_policy`: the parameter pytree
   flattened to ``policy.npz`` by key path, the network's configuration in ``policy.json``) and loaded back
   (:func:`load_policy`) for ``jaxrobo show`` and rendering.
@@ -32,13 +36,15 @@ from __future__ import annotations
 from jaxrobo.deep.config import (AGENT_CONFIG_DIR, AGENTS, MAX_LAYER, DeepConfig, DeepRunSpec, PPOConfig, SACConfig,
                                  check_action_space, check_combinations, config_class, is_deep, preset_paths, presets,
                                  resolve, spec_from_config)
-from jaxrobo.deep.output import EVAL_COLUMNS, STAT_COLUMNS, is_deep_run, write_run
-from jaxrobo.deep.policy import (POLICY_JSON, POLICY_NPZ, LoadedPolicy, env_policy, load_policy, network_config,
-                                 save_policy)
-from jaxrobo.deep.training import DeepResult, TrainingStopped, evaluate, train
+from jaxrobo.deep.output import EVAL_COLUMNS, STAT_COLUMNS, LiveRun, eval_means, is_deep_run, write_run
+from jaxrobo.deep.policy import (POLICIES, POLICY_JSON, POLICY_NPZ, LoadedPolicy, env_policy, load_policy,
+                                 network_config, policy_dir, save_policy)
+from jaxrobo.deep.training import (DeepResult, EpochPlan, Point, TrainingStopped, best_index, epoch_plan, evaluate,
+                                   train)
 
-__all__ = ["AGENTS", "AGENT_CONFIG_DIR", "DeepConfig", "DeepResult", "DeepRunSpec", "EVAL_COLUMNS", "LoadedPolicy",
-           "MAX_LAYER", "POLICY_JSON", "POLICY_NPZ", "PPOConfig", "SACConfig", "STAT_COLUMNS", "TrainingStopped",
-           "check_action_space", "check_combinations", "config_class", "env_policy", "evaluate", "is_deep",
-           "is_deep_run", "load_policy", "network_config", "preset_paths", "presets", "resolve", "save_policy",
+__all__ = ["AGENTS", "AGENT_CONFIG_DIR", "DeepConfig", "DeepResult", "DeepRunSpec", "EVAL_COLUMNS", "EpochPlan",
+           "LiveRun", "LoadedPolicy", "MAX_LAYER", "POLICIES", "POLICY_JSON", "POLICY_NPZ", "PPOConfig", "Point",
+           "SACConfig", "STAT_COLUMNS", "TrainingStopped", "best_index", "check_action_space", "check_combinations",
+           "config_class", "env_policy", "epoch_plan", "eval_means", "evaluate", "is_deep", "is_deep_run",
+           "load_policy", "network_config", "policy_dir", "preset_paths", "presets", "resolve", "save_policy",
            "spec_from_config", "train", "write_run"]

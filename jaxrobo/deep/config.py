@@ -15,6 +15,8 @@ from jaxrobo.core.struct import param, rules
 AGENTS = ("ppo", "sac")
 AGENT_CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
                                 "agents", "configs")
+#: Accepted old names of config keys (Brax's argument name first): each means its new name; both at once are refused.
+ALIASES = {"num_timesteps": "total_steps"}
 #: The largest network layer jaxrobo accepts from a config (a typo of 1e6 units would exhaust memory, not learn).
 MAX_LAYER = 8192
 
@@ -33,7 +35,8 @@ class DeepConfig:
     are declared once, here; where the trainers' defaults differ, each agent's config gives its own."""
 
     agent: str = _per_agent(str, choices=AGENTS, doc="the trainer")
-    num_timesteps: int = _per_agent(int, low=1, doc="env steps to train for (Brax rounds up to whole epochs)")
+    total_steps: int = _per_agent(int, low=1, doc="env steps of the whole run, all envs together (Brax's "
+                                                 "num_timesteps; Brax rounds up to whole epochs)")
     num_envs: int = _per_agent(int, low=1, doc="environments stepped in parallel")
     episode_length: int | None = param(None, kind=int, low=1,
                                        doc="step cap of a training episode (default: the id's max_episode_steps)")
@@ -59,7 +62,7 @@ class PPOConfig(DeepConfig):
     Brax has a sensible one): :class:`DeepConfig`'s and PPO's own."""
 
     agent: str = param("ppo", choices=("ppo",), doc="the trainer")
-    num_timesteps: int = _agent_default("num_timesteps", 1_000_000)
+    total_steps: int = _agent_default("total_steps", 1_000_000)
     num_envs: int = _agent_default("num_envs", 1024)
     learning_rate: float = _agent_default("learning_rate", 3e-4)
     entropy_cost: float = param(1e-2, low=0.0, high=1.0, doc="weight of the entropy bonus")
@@ -79,13 +82,13 @@ class SACConfig(DeepConfig):
     SAC's own."""
 
     agent: str = param("sac", choices=("sac",), doc="the trainer")
-    num_timesteps: int = _agent_default("num_timesteps", 200_000)
+    total_steps: int = _agent_default("total_steps", 200_000)
     num_envs: int = _agent_default("num_envs", 64)
     learning_rate: float = _agent_default("learning_rate", 6e-4)
     grad_updates_per_step: int = param(8, low=1, doc="gradient steps per env step of all envs")
     tau: float = param(0.005, low=0.0, low_open=True, high=1.0, doc="target network update rate")
     min_replay_size: int = param(1024, low=0, doc="transitions collected before learning starts")
-    max_replay_size: int | None = param(None, kind=int, low=1, doc="replay capacity (null: num_timesteps)")
+    max_replay_size: int | None = param(None, kind=int, low=1, doc="replay capacity (null: total_steps)")
     hidden_layer_sizes: tuple = param((256, 256), kind=tuple, doc="policy and Q MLP layer widths")
 
 
@@ -130,7 +133,8 @@ def presets(agent: str, env_id: str) -> dict[str, dict[str, Any]]:
     base, task = _preset_file(base_path), _preset_file(task_path)
     out: dict[str, dict[str, Any]] = {}
     for name in list(base) + [n for n in task if n not in base]:
-        a, b = dict(base.get(name) or {}), dict(task.get(name) or {})
+        a = _unalias(base.get(name) or {}, f"{base_path}: preset {name}")
+        b = _unalias(task.get(name) or {}, f"{task_path}: preset {name}")
         env = {**(a.pop("env", None) or {}), **(b.pop("env", None) or {})}
         out[name] = {**a, **b, **({"env": env} if env else {})}
     return out
@@ -167,6 +171,23 @@ class DeepRunSpec:
                 "agent_params": {}, "train": as_dict(self.config)}
 
 
+def _unalias(values: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """``values`` with each :data:`ALIASES` key (bare, or with an ``agent.`` prefix) under its new name; a key
+    given under both names is refused."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        prefix, name = ("agent.", key[6:]) if isinstance(key, str) and key.startswith("agent.") else ("", key)
+        new = ALIASES.get(name) if isinstance(name, str) else None
+        if new is not None:
+            for other in (new, f"agent.{new}"):
+                if other in values:
+                    raise ConfigError(f"{where}: {key}={value!r} and {other}={values[other]!r} name the same "
+                                      f"setting ({name} is the old name of {new}); give it once")
+            key = prefix + new
+        out[key] = value
+    return out
+
+
 def check_combinations(config: Any, where: str = "") -> None:
     """Refuse values that are each in range but do not go together (Brax would assert deep inside a compile)."""
     loc = f"{where}: " if where else ""
@@ -182,9 +203,9 @@ def check_combinations(config: Any, where: str = "") -> None:
                               f"= {config.batch_size * config.num_minibatches} must be a multiple of "
                               f"num_envs={config.num_envs} (each minibatch splits the envs' rollouts evenly)")
     else:
-        if config.min_replay_size >= config.num_timesteps:
-            raise ConfigError(f"{loc}min_replay_size={config.min_replay_size} must be < num_timesteps="
-                              f"{config.num_timesteps} (no training would happen)")
+        if config.min_replay_size >= config.total_steps:
+            raise ConfigError(f"{loc}min_replay_size={config.min_replay_size} must be < total_steps="
+                              f"{config.total_steps} (no training would happen)")
         cap = config.max_replay_size
         if cap is not None and cap < max(config.min_replay_size, config.batch_size * config.grad_updates_per_step):
             raise ConfigError(f"{loc}max_replay_size={cap} must be >= min_replay_size ({config.min_replay_size}) "
@@ -224,7 +245,7 @@ def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping
     env_cls = _lookup(env_id).env_class()
     env_keys = {**rules(env_cls.Options), **rules(env_cls.Params)}
     agent_keys = rules(cls)
-    for key, value in (overrides or {}).items():
+    for key, value in _unalias(overrides or {}, "--set").items():
         if not isinstance(key, str):
             raise unknown_key(repr(key), set(agent_keys) | set(env_keys), where="--set")
         side, name = key.split(".", 1) if key.startswith(("env.", "agent.")) else (None, key)

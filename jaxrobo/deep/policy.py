@@ -101,14 +101,17 @@ def _path_name(path: tuple) -> str:
 
 def save_policy(out_dir: str, params: Any, net: Mapping[str, Any]) -> None:
     """``policy.npz`` (each leaf of ``params`` under its key path, e.g. ``1/params/hidden_0/kernel``; plain
-    arrays, no pickle) and ``policy.json`` (:func:`network_config`)."""
+    arrays, no pickle) and ``policy.json`` (:func:`network_config`, with the evaluation point it was saved at
+    where the caller adds it), each written atomically."""
     import jax
+
+    from jaxrobo.io import rundir
 
     leaves = jax.tree_util.tree_flatten_with_path(jax.device_get(params))[0]
     arrays = {_path_name(path): np.asarray(leaf) for path, leaf in leaves}
-    np.savez(os.path.join(out_dir, POLICY_NPZ), **arrays)
-    with open(os.path.join(out_dir, POLICY_JSON), "w") as f:
-        json.dump(dict(net), f, indent=2)
+    # Each file atomically: a run stopped or killed while saving keeps the previous policy whole.
+    rundir.atomic_savez(os.path.join(out_dir, POLICY_NPZ), **arrays)
+    rundir.atomic_write_json(os.path.join(out_dir, POLICY_JSON), dict(net))
 
 
 @dataclasses.dataclass
@@ -127,17 +130,32 @@ class LoadedPolicy:
         return self.make_policy(self.params, deterministic=True)(obs, key)[0]
 
 
-def load_policy(run_dir: str) -> LoadedPolicy:
-    """The policy a deep run saved; :class:`ConfigError` naming the file when it is missing, pickled, or does
-    not match its ``policy.json`` (a missing, extra or misshapen array)."""
+#: The policies a deep run keeps: ``latest`` (the run directory's own ``policy.npz``: the last evaluation point's,
+#: the trained policy of a finished run) and ``best`` (``best/policy.npz``: the point with the best evaluation).
+POLICIES = {"latest": "", "best": "best"}
+
+
+def policy_dir(run_dir: str, which: str = "latest") -> str:
+    """Where a run keeps its ``which`` policy (:data:`POLICIES`)."""
+    if which not in POLICIES:
+        raise ConfigError(f"policy={which!r}: allowed values are {', '.join(POLICIES)}")
+    return os.path.join(run_dir, POLICIES[which]) if POLICIES[which] else run_dir
+
+
+def load_policy(run_dir: str, which: str = "latest") -> LoadedPolicy:
+    """The ``which`` policy (:data:`POLICIES`) a deep run saved (a finished run, or one stopped after its first
+    evaluation point); :class:`ConfigError` naming the file when it is missing, pickled, or does not match its
+    ``policy.json`` (a missing, extra or misshapen array)."""
     import zipfile
 
     import jax
 
-    npz_path, json_path = os.path.join(run_dir, POLICY_NPZ), os.path.join(run_dir, POLICY_JSON)
+    where = policy_dir(run_dir, which)
+    npz_path, json_path = os.path.join(where, POLICY_NPZ), os.path.join(where, POLICY_JSON)
     for path in (npz_path, json_path):
         if not os.path.isfile(path):
-            raise ConfigError(f"{run_dir}: no {os.path.basename(path)}; is it a finished deep-RL run directory?")
+            raise ConfigError(f"{run_dir}: no {os.path.relpath(path, run_dir)}; is it a deep-RL run directory that "
+                              "reached an evaluation point?")
     try:
         with open(json_path) as f:
             net = json.load(f)

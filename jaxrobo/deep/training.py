@@ -34,6 +34,88 @@ def evaluate(env: Any, benv: Any, make_policy: Callable, n_episodes: int, horizo
 
 
 # ---- training ----------------------------------------------------------------------------------------------------
+#: Folded into the seed's key to derive the trainer's per-epoch keys (:func:`epoch_key`).
+_EPOCH_STREAM = 0x65706F63
+
+
+@dataclasses.dataclass(frozen=True)
+class EpochPlan:
+    """How Brax's trainer divides a run of ``config``: ``epochs`` training epochs (an evaluation point before the
+    first and after each), each of ``steps_per_epoch`` env steps, after SAC's ``prefill_steps`` of random actions
+    filling the replay buffer. ``total_steps`` is what the run really steps (``config.total_steps`` rounded up to
+    whole epochs, as Brax does)."""
+
+    epochs: int
+    steps_per_epoch: int
+    prefill_steps: int = 0
+    #: Whether the trainer hands back control before its first epoch (an evaluation point at 0 steps): PPO always,
+    #: SAC only with ``num_evals > 1``.
+    initial_point: bool = True
+
+    def points(self, epochs_done: int) -> int:
+        """Evaluation points reached after ``epochs_done`` epochs."""
+        return epochs_done + int(self.initial_point)
+
+    @property
+    def total_steps(self) -> int:
+        return self.prefill_steps + self.epochs * self.steps_per_epoch
+
+    def trainer_budget(self, epochs_done: int) -> tuple[int, int]:
+        """``(num_timesteps, num_evals)`` that make Brax's trainer run the remaining ``epochs - epochs_done``
+        epochs with this plan's epoch size (Brax derives the epoch size from these two)."""
+        left = self.epochs - epochs_done
+        return self.prefill_steps + left * self.steps_per_epoch, left + 1
+
+
+def epoch_plan(c: Any) -> EpochPlan:
+    """The :class:`EpochPlan` of a PPO or SAC config: Brax's own arithmetic (``ppo.train``: epochs of
+    ``ceil(num_timesteps / (epochs * batch_size * unroll_length * num_minibatches * action_repeat))`` training
+    steps; ``sac.train``: a prefill of ``ceil(min_replay_size / num_envs)`` actor steps, then epochs of
+    ``ceil((num_timesteps - prefill) / (epochs * num_envs * action_repeat))`` actor steps)."""
+    epochs = max(c.num_evals - 1, 1)
+    if c.agent == "ppo":
+        per_step = c.batch_size * c.unroll_length * c.num_minibatches * c.action_repeat
+        return EpochPlan(epochs, -(-c.total_steps // (epochs * per_step)) * per_step)
+    per_step = c.action_repeat * c.num_envs
+    prefill = -(-c.min_replay_size // c.num_envs) * per_step
+    return EpochPlan(epochs, -(-(c.total_steps - prefill) // (epochs * per_step)) * per_step, prefill,
+                     initial_point=c.num_evals > 1)
+
+
+def epoch_key(seed: int, epoch: int) -> Any:
+    """The raw ``uint32[2]`` key of the run's ``epoch``-th training epoch (from 0): a function of the seed and the
+    epoch's index alone, so a resumed run draws the keys the uninterrupted run would have."""
+    import jax
+
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), _EPOCH_STREAM), epoch)
+
+
+@dataclasses.dataclass
+class Point:
+    """An evaluation point the run has reached (what :func:`train` hands ``on_point``): the run's evaluations and
+    Brax's training metrics so far, the epochs done of the plan, the trainer's state after the last epoch (device
+    arrays, valid only during the call; None before the first epoch) and the parameters evaluated (host)."""
+
+    spec: DeepRunSpec
+    net: dict[str, Any]
+    plan: EpochPlan
+    epochs_done: int
+    evaluations: list[dict[str, Any]]
+    training_metrics: list[dict[str, float]]
+    states: Any
+    params: Any
+    #: Training wall time of the whole run so far (all sessions, compile included, evaluations excluded).
+    train_seconds: float
+    #: Env steps the run had when this session started (0, or where a resumed run went on from).
+    session_start_steps: int
+    #: Training wall time of the run when this session started.
+    session_start_seconds: float
+
+    @property
+    def row(self) -> dict[str, Any]:
+        return self.evaluations[-1]
+
+
 @dataclasses.dataclass
 class DeepResult:
     """What a deep run produced (host values)."""
@@ -42,12 +124,17 @@ class DeepResult:
     params: Any
     net: dict[str, Any]
     #: One dict per evaluation: ``env_steps``, ``seconds`` (training wall time so far, compile included, the
-    #: evaluations excluded) and the episodes' ``return``/``length``/``terminated`` (and ``success``) arrays.
+    #: evaluations excluded, over all sessions of a resumed run) and the episodes' ``return``/``length``/
+    #: ``terminated`` (and ``success``) arrays.
     evaluations: list[dict[str, Any]]
     #: Brax's training metrics at each evaluation point after the first (losses, ``training/sps``, ...).
     training_metrics: list[dict[str, float]]
-    seconds: float  # wall time of the trainer call, compile and evaluations included
+    seconds: float  # wall time of this session's trainer call, compile and evaluations included
     eval_seconds: float  # of which the evaluations
+    #: Training wall time of the whole run (all sessions, compile included, evaluations excluded).
+    train_seconds: float = 0.0
+    #: Env steps done before this session (a resumed run), else 0.
+    resumed_after_env_steps: int = 0
 
     @property
     def env_steps(self) -> int:
@@ -56,18 +143,20 @@ class DeepResult:
     def summary(self) -> dict[str, Any]:
         c = self.spec.config
         last = self.evaluations[-1]
-        train_seconds = self.seconds - self.eval_seconds
         out: dict[str, Any] = {
             "env_id": self.spec.env_id, "agent": c.agent, "preset": self.spec.preset,
-            "num_envs": c.num_envs, "num_timesteps": c.num_timesteps, "env_steps": self.env_steps,
+            "num_envs": c.num_envs, "total_steps": c.total_steps, "env_steps": self.env_steps,
             "episode_length": self.spec.episode_length,
-            "train_seconds": round(train_seconds, 3), "eval_seconds": round(self.eval_seconds, 3),
-            "env_steps_per_second": round(self.env_steps / max(train_seconds, 1e-9), 1),
+            "train_seconds": round(self.train_seconds, 3), "eval_seconds": round(self.eval_seconds, 3),
+            "env_steps_per_second": round(self.env_steps / max(self.train_seconds, 1e-9), 1),
             "evaluations": len(self.evaluations), "eval_episodes": c.eval_episodes,
             "final_eval_mean_return": float(np.mean(last["return"])),
             "final_eval_mean_length": float(np.mean(last["length"])),
             "best_eval_mean_return": float(max(np.mean(e["return"]) for e in self.evaluations)),
+            "best_evaluation": best_index(self.evaluations),
         }
+        if self.resumed_after_env_steps:
+            out["resumed_after_env_steps"] = self.resumed_after_env_steps
         sps = [m["training/sps"] for m in self.training_metrics if "training/sps" in m]
         if sps:
             out["training_sps_last_epoch"] = round(float(sps[-1]), 1)
@@ -81,76 +170,125 @@ class DeepResult:
         return out
 
 
+def best_index(evaluations: list[dict[str, Any]]) -> int:
+    """The best evaluation: the highest success rate (a task with one), then the highest mean return; the
+    earliest of equals."""
+    def score(e: dict[str, Any]) -> tuple[float, float]:
+        return (float(np.mean(e["success"])) if "success" in e else 0.0, float(np.mean(e["return"])))
+
+    scores = [score(e) for e in evaluations]
+    return scores.index(max(scores))
+
+
 class TrainingStopped(Exception):
     """:func:`train` stopped at one of the trainer's evaluation points because ``should_stop()`` said so."""
 
 
-def train(spec: DeepRunSpec, progress: Callable[[dict[str, Any]], None] | None = None,
-          should_stop: Callable[[], bool] | None = None) -> DeepResult:
+def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
+          should_stop: Callable[[], bool] | None = None, resume: Any = None,
+          checkpoint_path: str = "checkpoint.npz") -> DeepResult:
     """Train with Brax's trainer on the env's Brax face; evaluate at each of its ``num_evals`` points.
 
-    ``progress(evaluation)`` is called with each evaluation's dict (host arrays). Brax's own evaluator is not
-    run (``run_evals=False`` for PPO; SAC's ``num_eval_envs`` is kept minimal): the run's evaluation is
-    :func:`evaluate` on fresh episodes of the jaxrobo env.
+    At each point the run's evaluation (:func:`evaluate`, fresh episodes of the jaxrobo env; Brax's own evaluator
+    is not run) is made and ``on_point(point)`` (a :class:`Point`) is called, which is where a run keeps its work
+    (:class:`jaxrobo.deep.output.LiveRun`: checkpoint, latest and best policy, CSV, TensorBoard). The trainer's
+    epochs go through :func:`jaxrobo.interop.brax_compat.hook_epochs`: their keys are :func:`epoch_key`, their
+    state is kept, and ``resume`` (a :class:`jaxrobo.deep.checkpoint.Saved` read from ``checkpoint_path``) puts a
+    stopped run's state back at the first epoch, the trainer running only the epochs left.
 
     Brax's trainer runs as one call with no way to pause it: ``should_stop()`` (e.g. a
-    :class:`jaxrobo.training.driver.StopOnSignal`) is asked each time the trainer hands control back (its progress and
-    parameter callbacks, at each evaluation point), and :class:`TrainingStopped` is raised out of the trainer
-    there when it says so; nothing of the unfinished training is returned."""
+    :class:`jaxrobo.training.driver.StopOnSignal`) is asked each time the trainer hands control back; after a
+    point's evaluation and ``on_point`` (so the epoch just trained is kept), or at once before any training,
+    :class:`TrainingStopped` is raised out of the trainer."""
     import jax
 
+    from jaxrobo.deep.checkpoint import restore_states
     from jaxrobo.interop import brax_env  # its import gives Brax 0.14's trainers the JAX calls they need
+    from jaxrobo.interop.brax_compat import hook_epochs
 
     c = spec.config
+    plan = epoch_plan(c)
     benv = brax_env.BraxEnv(spec.env)
     length = spec.episode_length
-    evaluations: list[dict[str, Any]] = []
-    metrics_log: list[dict[str, float]] = []
-    timer = {"eval": 0.0, "start": time.perf_counter(), "net": None, "evaluate": None}
+    done0 = resume.epochs_done if resume is not None else 0
+    evaluations: list[dict[str, Any]] = list(resume.evaluations) if done0 else []
+    metrics_log: list[dict[str, float]] = list(resume.training_metrics) if done0 else []
+    seconds0 = resume.train_seconds if done0 else 0.0
+    steps0 = int(evaluations[-1]["env_steps"]) if done0 else 0
+    timer = {"eval": 0.0, "start": time.perf_counter(), "evaluate": None}
     key = jax.random.fold_in(jax.random.key(c.seed), 7)
     net = network_config(spec, int(benv.observation_size), int(benv.action_size))
+    pending: dict[str, Any] = {}
 
     def stop_here() -> None:
         if should_stop is not None and should_stop():
-            raise TrainingStopped(f"stopped at {len(evaluations)} of {c.num_evals} evaluation points")
+            raise TrainingStopped(f"stopped at {len(evaluations)} of {plan.points(plan.epochs)} evaluation points")
+
+    def train_seconds(now: float) -> float:
+        return seconds0 + now - timer["start"] - timer["eval"]
+
+    def complete(params: Any) -> None:
+        pending.clear()
+        if on_point is not None:
+            on_point(Point(spec, net, plan, hook.epochs_done, evaluations, metrics_log, hook.states, params,
+                           evaluations[-1]["seconds"], steps0, seconds0))
+        stop_here()
 
     def on_params(step: int, make_policy: Callable, params: Any) -> None:
-        stop_here()
+        if step == 0:
+            stop_here()  # nothing trained yet: nothing to keep
+            if done0:
+                return  # a resumed run's first callback: the parameters of the point it stopped at
         t0 = time.perf_counter()
         if timer["evaluate"] is None:
             timer["evaluate"] = evaluate(spec.env, benv, make_policy, c.eval_episodes, length)
         res = jax.device_get(timer["evaluate"](params, jax.random.fold_in(key, len(evaluations))))
         row = {k: np.asarray(v) for k, v in res.items()}
         row["env_steps"] = int(step)
-        row["seconds"] = t0 - timer["start"] - timer["eval"]
+        row["seconds"] = train_seconds(t0)
         evaluations.append(row)
         timer["eval"] += time.perf_counter() - t0
-        if progress is not None:
-            progress(row)
+        host = jax.device_get(params)
+        if c.agent == "ppo" and step != 0:
+            pending["params"] = host  # PPO hands its training metrics over next, in progress_fn
+        else:
+            complete(host)
 
     def on_progress(step: int, metrics: Mapping[str, Any]) -> None:
-        stop_here()
-        if metrics:
+        if metrics and not (done0 and step == 0):
             metrics_log.append({"env_steps": int(step), **{k: float(np.asarray(v)) for k, v in metrics.items()
                                                             if np.size(v) == 1}})
+        if pending:
+            complete(pending["params"])
+        elif c.agent == "ppo" or step == 0:
+            stop_here()  # (SAC evaluates a trained point next, in on_params, and asks there)
 
-    common = dict(environment=benv, num_timesteps=c.num_timesteps, episode_length=length,
+    num_timesteps, num_evals = (c.total_steps, c.num_evals) if not done0 else plan.trainer_budget(done0)
+    common = dict(environment=benv, num_timesteps=num_timesteps, episode_length=length,
                   action_repeat=c.action_repeat, num_envs=c.num_envs, learning_rate=c.learning_rate,
-                  discounting=c.discounting, seed=c.seed, batch_size=c.batch_size, num_evals=c.num_evals,
+                  discounting=c.discounting, seed=c.seed, batch_size=c.batch_size, num_evals=num_evals,
                   normalize_observations=c.normalize_observations, reward_scaling=c.reward_scaling,
                   max_devices_per_host=1, network_factory=_factory(spec), progress_fn=on_progress,
                   wrap_env_fn=brax_env.wrap_for_training)
+    restore = (lambda fresh: restore_states(checkpoint_path, resume, fresh)) if done0 else None
     if c.agent == "ppo":
         from brax.training.agents.ppo import train as ppo
 
-        _, params, _ = ppo.train(**common, entropy_cost=c.entropy_cost, unroll_length=c.unroll_length,
-                                 num_minibatches=c.num_minibatches, num_updates_per_batch=c.num_updates_per_batch,
-                                 clipping_epsilon=c.clipping_epsilon, gae_lambda=c.gae_lambda,
-                                 max_grad_norm=c.max_grad_norm, policy_params_fn=on_params, run_evals=False)
+        with hook_epochs(ppo, lambda i: epoch_key(c.seed, i), done0, restore) as hook:
+            _, params, _ = ppo.train(**common, entropy_cost=c.entropy_cost, unroll_length=c.unroll_length,
+                                     num_minibatches=c.num_minibatches,
+                                     num_updates_per_batch=c.num_updates_per_batch,
+                                     clipping_epsilon=c.clipping_epsilon, gae_lambda=c.gae_lambda,
+                                     max_grad_norm=c.max_grad_norm, policy_params_fn=on_params, run_evals=False)
     else:
-        params = _train_sac(common, c, lambda step, p: on_params(step, _networks(net)[1], p))
+        from brax.training.agents.sac import train as sac
+
+        with hook_epochs(sac, lambda i: epoch_key(c.seed, i), done0, restore) as hook:
+            params = _train_sac(common, c, lambda step, p: on_params(step, _networks(net)[1], p))
+    hook.check()
     seconds = time.perf_counter() - timer["start"]
-    return DeepResult(spec, jax.device_get(params), net, evaluations, metrics_log, seconds, timer["eval"])
+    return DeepResult(spec, jax.device_get(params), net, evaluations, metrics_log, seconds, timer["eval"],
+                      train_seconds=evaluations[-1]["seconds"], resumed_after_env_steps=steps0)
 
 
 def _train_sac(common: dict[str, Any], c: SACConfig, on_params: Callable[[int, Any], None]) -> Any:
@@ -160,7 +298,8 @@ def _train_sac(common: dict[str, Any], c: SACConfig, on_params: Callable[[int, A
     ``acting.Evaluator`` it builds, then calls ``progress_fn(step, metrics)``. For the length of the call
     :func:`jaxrobo.interop.brax_compat.keep_evaluator_params` makes that evaluator one that keeps those parameters (and
     skips Brax's own evaluation rollout), and ``progress_fn`` runs the run's evaluation with them at that step;
-    the trainer itself runs unchanged."""
+    the trainer itself runs unchanged. The replay buffer's size is given explicitly (Brax's default is the
+    call's ``num_timesteps``, which a resumed run's call makes smaller)."""
     from brax.training.agents.sac import train as sac
 
     from jaxrobo.interop.brax_compat import keep_evaluator_params
@@ -173,7 +312,8 @@ def _train_sac(common: dict[str, Any], c: SACConfig, on_params: Callable[[int, A
                 on_params(step, hook.pop())
 
         _, params, _ = sac.train(**{**common, "progress_fn": on_progress}, tau=c.tau,
-                                 min_replay_size=c.min_replay_size, max_replay_size=c.max_replay_size,
+                                 min_replay_size=c.min_replay_size,
+                                 max_replay_size=c.max_replay_size or c.total_steps,
                                  grad_updates_per_step=c.grad_updates_per_step, num_eval_envs=1)
     hook.check()
     return params

@@ -1,4 +1,4 @@
-"""The two places where jaxrobo reaches past Brax's public surface, guarded by the Brax version they were written for.
+"""The three places where jaxrobo reaches past Brax's public surface, guarded by the Brax version they were written for.
 
 1. :func:`install_jax_compat`: Brax 0.14's trainers call ``jax.device_put_replicated`` and
    ``jax.device_put_sharded``, which JAX 0.10 removed. Where JAX lacks them, this sets the drop-in replacements of
@@ -11,7 +11,16 @@
    own evaluation rollout, and puts the original back on the way out, also when training raises. The swap is
    process-wide for its duration: do not run another Brax trainer in another thread meanwhile.
 
-Both follow Brax's internals, so they are guarded: :data:`WRITTEN_FOR` is the range of ``brax`` versions they were
+3. :func:`hook_epochs`: Brax's trainers keep their whole state (optimiser state, normaliser, parameters, env
+   state, SAC's replay buffer) and their random keys inside one call; their ``restore_params`` /
+   ``restore_checkpoint_path`` put back the parameters only. For the length of a ``with`` block this gives the
+   trainer module (``brax.training.agents.ppo.train`` or ``...sac.train``) a ``jax`` whose ``pmap`` wraps the
+   function named ``training_epoch`` (every other name passes through unchanged): each epoch's random key is
+   jaxrobo's own (``epoch_key(i)`` of the epoch's index over the whole run), the state the epoch leaves is kept
+   (:attr:`EpochHook.states`), and a resumed run's saved state replaces the fresh one at its first epoch. The swap
+   is of that module's global only and is undone on the way out, also when training raises.
+
+All three follow Brax's internals, so they are guarded: :data:`WRITTEN_FOR` is the range of ``brax`` versions they were
 written and tested for. Outside it (or where ``acting.Evaluator`` does not have the shape the swap needs),
 :func:`unavailable` gives the reason, and:
 
@@ -23,9 +32,10 @@ written and tested for. Outside it (or where ``acting.Evaluator`` does not have 
   trainer then never handed parameters to the evaluator, :meth:`EvaluatorHook.check` says so with the version
   instead of leaving the run without evaluations.
 
-To widen the range, run ``tests/test_brax_compat.py``, ``tests/test_brax_env.py`` and ``tests/test_deep.py`` on the
-new version. Public surface: :data:`WRITTEN_FOR`, :func:`installed_version`, :func:`unavailable`,
-:func:`install_jax_compat`, :func:`keep_evaluator_params`, :class:`EvaluatorHook`, :class:`BraxCompatError`.
+To widen the range, run ``tests/test_brax_compat.py``, ``tests/test_brax_env.py``, ``tests/test_deep.py`` and
+``tests/test_deep_resume.py`` (resume bit for bit) on the new version. Public surface: :data:`WRITTEN_FOR`,
+:func:`installed_version`, :func:`unavailable`, :func:`install_jax_compat`, :func:`keep_evaluator_params`,
+:class:`EvaluatorHook`, :func:`hook_epochs`, :class:`EpochHook`, :class:`BraxCompatError`.
 """
 from __future__ import annotations
 
@@ -35,7 +45,7 @@ import functools
 import importlib.metadata
 import re
 import warnings
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -181,3 +191,80 @@ def keep_evaluator_params(version: str | None = None) -> Iterator[EvaluatorHook]
         yield hook
     finally:
         acting.Evaluator = original
+
+
+@dataclasses.dataclass
+class EpochHook:
+    """What :func:`hook_epochs` yields. ``epochs_done`` counts the trainer's epochs over the whole run (it starts
+    at ``first_epoch``); ``states`` is the tuple of state pytrees the last epoch returned (PPO: training state,
+    env state; SAC: and the replay buffer), device arrays with Brax's leading device axis, valid until the next
+    epoch starts (Brax donates them to it)."""
+
+    version: str | None
+    epoch_key: Callable[[int], Any]
+    epochs_done: int = 0
+    states: Any = None
+    calls: int = 0
+    _restore: Callable[[tuple], tuple] | None = None
+
+    def wrap(self, epoch_fn: Callable) -> Callable:
+        def run(*args: Any) -> Any:
+            *states, key = args
+            if self._restore is not None:
+                states, self._restore = list(self._restore(tuple(states))), None
+            ours = jax.random.split(self.epoch_key(self.epochs_done), key.shape[0])
+            if ours.shape != key.shape or ours.dtype != key.dtype:
+                raise BraxCompatError(f"brax {self.version}: training_epoch's key is {key.dtype}{list(key.shape)}, "
+                                      f"jaxrobo's epoch key {ours.dtype}{list(ours.shape)} (written for brax "
+                                      f"{_range()})")
+            out = epoch_fn(*states, ours)
+            self.states, self.epochs_done, self.calls = tuple(out[:-1]), self.epochs_done + 1, self.calls + 1
+            return out
+
+        return run
+
+    def check(self) -> None:
+        """Raise :class:`BraxCompatError` if no epoch ran through the hook (a Brax whose trainer no longer builds
+        its epoch with ``jax.pmap`` of a function named ``training_epoch``)."""
+        if self.calls == 0:
+            raise BraxCompatError(f"brax {self.version}: the trainer ran no jax.pmap-ed training_epoch, so its state "
+                                  f"could not be kept; jaxrobo.interop.brax_compat was written for brax {_range()}")
+
+
+class _JaxWithEpochHook:
+    """The ``jax`` module, except that ``pmap`` of a function named ``training_epoch`` goes through the hook."""
+
+    def __init__(self, hook: EpochHook):
+        self._hook = hook
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(jax, name)
+
+    def pmap(self, fun: Callable, *args: Any, **kwargs: Any) -> Any:
+        mapped = jax.pmap(fun, *args, **kwargs)
+        return self._hook.wrap(mapped) if getattr(fun, "__name__", None) == "training_epoch" else mapped
+
+
+@contextlib.contextmanager
+def hook_epochs(trainer_module: Any, epoch_key: Callable[[int], Any], first_epoch: int = 0,
+                restore: Callable[[tuple], tuple] | None = None, version: str | None = None
+                ) -> Iterator[EpochHook]:
+    """For the block, the trainer module's epochs run through the yielded :class:`EpochHook` (see the module
+    docstring): ``epoch_key(i)`` (a raw ``uint32[2]`` key, as Brax's own) is the key of the run's ``i``-th epoch,
+    counting from ``first_epoch``; ``restore(fresh_states) -> states``, if given, replaces the state tuple at the
+    first epoch. ``version`` (default: the installed Brax) exists so the guard can be tested."""
+    version = installed_version() if version is None else version
+    if getattr(trainer_module, "jax", None) is not jax:
+        raise BraxCompatError(f"brax {version}: {getattr(trainer_module, '__name__', trainer_module)} does not use "
+                              f"the jax module by that name, which jaxrobo's epoch hook replaces (written for brax "
+                              f"{_range()})")
+    reason = unavailable(version)
+    if reason is not None:
+        _warn_once(f"jaxrobo.interop.brax_compat: {reason}; hooking {trainer_module.__name__}'s training_epoch "
+                   "anyway, untested with this Brax")
+    hook = EpochHook(version, epoch_key, epochs_done=first_epoch, _restore=restore)
+    trainer_module.jax = _JaxWithEpochHook(hook)
+    try:
+        yield hook
+    finally:
+        trainer_module.jax = jax

@@ -10,7 +10,9 @@ and libraries that expect Gymnasium, over the same pure functions the vectorised
   jitted call, numpy batches out, with any of Gymnasium's autoreset modes (``AutoresetMode.NEXT_STEP`` by
   default, ``SAME_STEP`` with ``final_obs``/``final_info``, ``DISABLED`` with ``reset(options={"reset_mask": m})``).
 * :func:`register_gymnasium_envs` - every jaxrobo id as ``jaxrobo/<id>`` for ``gymnasium.make`` and
-  ``gymnasium.make_vec``. It runs on ``import jaxrobo`` and only records strings (no env is built).
+  ``gymnasium.make_vec``. It runs on ``import jaxrobo`` and only records strings (no env is built); an id
+  registered later (a user's module) becomes a Gymnasium id at once, through :data:`jaxrobo.task.registry.
+  REGISTER_HOOKS`, also under its bare name for Gymnasium's ``gymnasium.make("my_mod:MyEnv-v0")``.
 
 Seeding: ``reset(seed=s)`` starts from ``env.reset(jax.random.key(s))`` of the functional API (for
 ``s < 2**32``), so both give the same trajectory; a later ``reset()`` without a seed continues from the key the
@@ -501,8 +503,12 @@ def register_gymnasium_envs() -> list[str]:
 
 
 def register_gymnasium_id(env_id: str) -> str | None:
-    """Register ``jaxrobo/<env_id>`` with Gymnasium; its id, or ``None`` if it was already registered."""
-    from jaxrobo.task.registry import env_config, max_episode_steps
+    """Register ``jaxrobo/<env_id>`` with Gymnasium; its id, or ``None`` if it was already registered.
+
+    An id a user's module registers (``jaxrobo.register`` called from ``my_mod``) is also registered under its bare
+    name, unless Gymnasium already has that name: Gymnasium's own ``gymnasium.make("my_mod:MyEnv-v0")`` imports
+    ``my_mod`` and looks up ``MyEnv-v0``, so that form works like ``"my_mod:jaxrobo/MyEnv-v0"``."""
+    from jaxrobo.task.registry import env_config, max_episode_steps, registration
 
     gid = gym_id(env_id)
     if gid in gymnasium.registry:
@@ -514,13 +520,17 @@ def register_gymnasium_id(env_id: str) -> str | None:
             steps = max_episode_steps(env_id, with_yaml=False)
         except Exception:  # noqa: BLE001 - the task class is not importable yet (its module is still importing
             steps = None  # the register call): the task truncates by itself at its own limit
-    gymnasium.register(
-        id=gid,
-        entry_point=f"{__name__}:JaxroboEnv",
-        vector_entry_point=f"{__name__}:JaxroboVectorEnv",
-        max_episode_steps=steps,
-        kwargs={"env_id": env_id},
-    )
+    names = [gid]
+    if registration(env_id).module is not None and env_id not in gymnasium.registry:
+        names.append(env_id)
+    for name in names:
+        gymnasium.register(
+            id=name,
+            entry_point=f"{__name__}:JaxroboEnv",
+            vector_entry_point=f"{__name__}:JaxroboVectorEnv",
+            max_episode_steps=steps,
+            kwargs={"env_id": env_id},
+        )
     return gid
 
 

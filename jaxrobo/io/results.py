@@ -52,8 +52,8 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
                    epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None) -> None:
     """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats.
 
-    ``episodes_done`` (per env, for an interrupted run): only finished episodes get CSV rows, ``records.npz``
-    keeps the count, and the stats cover the episodes that every env finished."""
+    ``episodes_done`` (recorded episodes per env: an interrupted run, or a run-wide budget): only those get CSV
+    rows, ``records.npz`` keeps the count, and each episode index's stats cover the envs that recorded it."""
     os.makedirs(out_dir, exist_ok=True)
     returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
     terminated = np.atleast_2d(terminated)
@@ -68,16 +68,35 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
     extra = {} if episodes_done is None else {"episodes_done": done}
     np.savez_compressed(os.path.join(out_dir, "records.npz"), returns=returns, lengths=lengths,
                         terminated=terminated, epsilon=epsilon, **extra)
-    n_ep = int(done.min()) if n_envs else 0
-    returns, lengths, epsilon = returns[:, :n_ep], lengths[:, :n_ep], np.asarray(epsilon)[:n_ep]
-    pct = lambda x, q: np.percentile(x, q, axis=0)  # noqa: E731
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(STAT_COLUMNS)
-        cols = [np.arange(n_ep), returns.mean(0), returns.std(0), pct(returns, 10), pct(returns, 50), pct(returns, 90),
-                lengths.mean(0), lengths.std(0), pct(lengths, 10), pct(lengths, 50), pct(lengths, 90), epsilon]
-        for row in zip(*cols):
+        for row in zip(*episode_stats(returns, lengths, epsilon, done)):
             w.writerow([int(row[0])] + [f"{v:.6g}" for v in row[1:]])
+
+
+def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray, done: np.ndarray) -> list:
+    """The columns of ``episode_stats.csv`` (:data:`STAT_COLUMNS`): per episode index, the mean, spread and
+    percentiles over the envs that recorded that episode (``done``: recorded episodes per env). Where every env
+    recorded the same number (the episode budget) that is every env; under a run-wide budget the envs differ
+    and an index is kept while at least one env recorded it."""
+    n_envs = returns.shape[0]
+    if n_envs == 0:
+        return [np.arange(0)] * len(STAT_COLUMNS)
+    if np.all(done == done[0]):
+        n_ep = int(done[0])
+        returns, lengths, epsilon = returns[:, :n_ep], lengths[:, :n_ep], np.asarray(epsilon)[:n_ep]
+        pct = lambda x, q: np.percentile(x, q, axis=0)  # noqa: E731
+        return [np.arange(n_ep), returns.mean(0), returns.std(0), pct(returns, 10), pct(returns, 50),
+                pct(returns, 90), lengths.mean(0), lengths.std(0), pct(lengths, 10), pct(lengths, 50),
+                pct(lengths, 90), epsilon]
+    n_ep = int(done.max())
+    mask = np.arange(n_ep)[None, :] < done[:, None]
+    r = np.where(mask, returns[:, :n_ep].astype(np.float64), np.nan)
+    ln = np.where(mask, lengths[:, :n_ep].astype(np.float64), np.nan)
+    pct = lambda x, q: np.nanpercentile(x, q, axis=0)  # noqa: E731
+    return [np.arange(n_ep), np.nanmean(r, 0), np.nanstd(r, 0), pct(r, 10), pct(r, 50), pct(r, 90),
+            np.nanmean(ln, 0), np.nanstd(ln, 0), pct(ln, 10), pct(ln, 50), pct(ln, 90), np.asarray(epsilon)[:n_ep]]
 
 
 def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None) -> None:
@@ -104,15 +123,20 @@ def write_eval(out_dir: str, returns: np.ndarray, lengths: np.ndarray) -> None:
                 w.writerow((t, i, f"{returns[t, i]:.6g}", int(lengths[t, i])))
 
 
-def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray) -> None:
-    """Per-episode scalars (mean over envs) for TensorBoard: the seed plotted its reward topic live."""
+def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
+                      episodes_done: np.ndarray | None = None) -> None:
+    """Per-episode scalars (the mean over envs of each episode index: ``episode_stats.csv``'s ``return_mean``
+    and ``length_mean``) for TensorBoard, at the end of a run; the live scalars of each chunk are the CLI's."""
     try:
         from tensorboardX import SummaryWriter
     except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
         return
     writer = SummaryWriter(os.path.join(out_dir, "tensorboard"))
     try:
-        mean_r, mean_l = np.atleast_2d(returns).mean(0), np.atleast_2d(lengths).mean(0)
+        returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
+        done = np.full(returns.shape[0], returns.shape[1]) if episodes_done is None else np.asarray(episodes_done)
+        cols = episode_stats(returns, lengths, epsilon, np.minimum(done, returns.shape[1]))
+        mean_r, mean_l, epsilon = cols[1], cols[6], cols[11]
         for i in range(mean_r.shape[0]):
             writer.add_scalar("episode/reward_mean", float(mean_r[i]), i)
             writer.add_scalar("episode/length_mean", float(mean_l[i]), i)
@@ -132,12 +156,15 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
         write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
                        episodes_done=result.episodes_done)
         return out_dir
-    write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon)
+    partial = result.recorded() is not None if hasattr(result, "recorded") else False
+    write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
+                   episodes_done=result.episodes_done if partial else None)
     write_tables(out_dir, result.q, disc)
     write_summary(out_dir, result.summary())
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)
-    write_tensorboard(out_dir, result.returns, result.lengths, result.epsilon)
+    write_tensorboard(out_dir, result.returns, result.lengths, result.epsilon,
+                      episodes_done=result.episodes_done if partial else None)
     return out_dir
 
 

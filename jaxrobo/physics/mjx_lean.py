@@ -39,16 +39,42 @@ from typing import Any, Callable, Iterator
 import jax
 import jax.numpy as jnp
 
-# MJX reports on import that Warp is missing (jaxrobo.physics.sim.quiet_imports silences it the same way).
-with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-    warnings.filterwarnings("ignore", message=".*warp.*")
-    from mujoco import mjx
 
-    try:  # MJX internals whose com_pos stage this replaces; without them MJX runs as it is
-        from mujoco.mjx._src import math as _mjx_math
-        from mujoco.mjx._src import smooth as _mjx_smooth
+
+class LazyModule:
+    """A module imported on first attribute access, silently (MJX reports on import that Warp is missing, and
+    importing it takes seconds: a command that never steps MJX, such as ``jaxrobo list``, never pays for it)."""
+
+    def __init__(self, name: str):
+        self._name = name
+        self._module: Any = None
+
+    def load(self) -> Any:
+        if self._module is None:
+            with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
+                    contextlib.redirect_stderr(io.StringIO()):
+                warnings.filterwarnings("ignore", message=".*warp.*")
+                warnings.filterwarnings("ignore", message=".*not actively being maintained.*")
+                self._module = importlib.import_module(self._name)
+        return self._module
+
+    def __getattr__(self, attr: str) -> Any:
+        return getattr(self.load(), attr)
+
+
+#: ``mujoco.mjx`` and the MJX internals whose com_pos stage this replaces (without them MJX runs as it is).
+mjx = LazyModule("mujoco.mjx")
+_mjx_math = LazyModule("mujoco.mjx._src.math")
+_mjx_smooth = LazyModule("mujoco.mjx._src.smooth")
+
+
+def _internal(module: LazyModule | None, attr: str) -> bool:
+    if module is None:
+        return False
+    try:
+        return hasattr(module.load(), attr)
     except ImportError:  # pragma: no cover - another MJX layout
-        _mjx_math = _mjx_smooth = None
+        return False
 
 #: The ``mujoco-mjx`` versions the replacement was written and tested for: ``[low, high)`` as (major, minor).
 WRITTEN_FOR = ((3, 17), (3, 18))
@@ -78,7 +104,7 @@ def unavailable() -> str | None:
     if match is None or not low <= (int(match[1]), int(match[2])) < high:
         return (f"mujoco-mjx {version} is outside the versions it was written for "
                 f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
-    if not (hasattr(_mjx_smooth, "com_pos") and hasattr(_mjx_math, "matmul_unroll") and hasattr(mjx, "Impl")):
+    if not (_internal(_mjx_smooth, "com_pos") and _internal(_mjx_math, "matmul_unroll") and _internal(mjx, "Impl")):
         return f"mujoco-mjx {version} does not have the internals it replaces (smooth.com_pos, math.matmul_unroll)"
     return None
 
@@ -120,17 +146,18 @@ def lean(enabled: bool = True) -> Iterator[None]:
             warnings.warn(f"jaxrobo.physics.mjx_lean: MJX runs as it is: {reason}", RuntimeWarning, stacklevel=3)
         yield
         return
-    if getattr(_mjx_smooth.com_pos, "jaxrobo_lean", False):  # an outer block swapped it already
+    smooth = _mjx_smooth.load()
+    if getattr(smooth.com_pos, "jaxrobo_lean", False):  # an outer block swapped it already
         yield
         return
-    original = _mjx_smooth.com_pos
+    original = smooth.com_pos
     replacement = functools.partial(_com_pos_static_triu, original)
     replacement.jaxrobo_lean = True
-    _mjx_smooth.com_pos = replacement
+    smooth.com_pos = replacement
     try:
         yield
     finally:
-        _mjx_smooth.com_pos = original
+        smooth.com_pos = original
 
 
 def wanted() -> bool:

@@ -65,8 +65,7 @@ def quiet_imports():
             yield
 
 
-with quiet_imports():
-    from mujoco import mjx  # noqa: E402
+mjx = mjx_lean.mjx  # imported on first use (seconds, and noisy): listing ids or reading configs never pays for it
 
 
 @pytree_dataclass
@@ -157,19 +156,25 @@ class Simulator(abc.ABC):
         """One physics step of ``timestep`` seconds with actuator controls ``ctrl``."""
 
     def advance(self, state: Any, command: jax.Array, controller: Controller | None = None,
-                kernel: BatchedAdvance | None = None) -> Any:
+                kernel: BatchedAdvance | None = None, physics: Any = None) -> Any:
         """One control step: ``n_substeps`` physics steps, the controller mapping (state, command) to ctrl each time.
 
         ``kernel``: the same control step over a batch (every leaf with a leading env axis), e.g. a robot's Pallas
         kernel (:attr:`jaxrobo.task.robot.Robot.advance_kernel`). Traced under ``ExecutionPlan(fused="pallas")``
         (:func:`jaxrobo.physics.fused.physics_kernels`), a vmapped ``advance`` calls it once on the whole batch
-        (:func:`through_kernel`); otherwise it is not used."""
-        if kernel is not None and fused.physics_kernels():
+        (:func:`through_kernel`); otherwise it is not used.
+
+        ``physics``: one env's physical parameters where they differ from the model's (domain randomisation: the
+        backend's own form, e.g. :meth:`MjxSim.physics_step`'s model and data fields), passed to every
+        ``physics_step``; a kernel, which bakes the model's constants, is then never used."""
+        if kernel is not None and fused.physics_kernels() and physics is None:
             return through_kernel(kernel, state, command)
 
         def substep(s, _):
             ctrl = command if controller is None else controller(s, command)
-            return self.physics_step(s, ctrl), None
+            if physics is None:
+                return self.physics_step(s, ctrl), None
+            return self.physics_step(s, ctrl, physics), None
 
         if self.n_substeps == 1:
             return substep(state, None)[0]
@@ -256,6 +261,15 @@ def constraint_free(m: mujoco.MjModel) -> bool:
                 or (m.ntendon and m.tendon_limited.any()))
 
 
+@pytree_dataclass
+class MjxEdit:
+    """One env's changes to an MJX model (``model``: ``mjx.Model`` field name -> value) and to the data fields
+    the model leaves at their defaults (``data``: e.g. ``xfrc_applied``), for :meth:`MjxSim.physics_step`."""
+
+    model: dict
+    data: dict
+
+
 class MjxSim(Simulator):
     """MuJoCo MJX (backend ``mjx``, the maintained engine). Its state is an :class:`MjxState`."""
 
@@ -295,9 +309,14 @@ class MjxSim(Simulator):
         with mjx_lean.lean(mjx_lean.wanted()):
             return mjx.forward(self.model, self._data0.replace(**state.fields()))
 
-    def physics_step(self, state: MjxState, ctrl: jax.Array) -> MjxState:
+    def physics_step(self, state: MjxState, ctrl: jax.Array, physics: MjxEdit | None = None) -> MjxState:
+        """One MJX step; ``physics`` (domain randomisation) replaces fields of the model and of the data (applied
+        forces) for this env: under ``vmap`` a batched model, as MuJoCo Playground's randomisers build one."""
+        model, data0 = self.model, self._data0
+        if physics is not None:
+            model, data0 = model.replace(**physics.model), data0.replace(**physics.data)
         with mjx_lean.lean(mjx_lean.wanted()):
-            out = MjxState.of(mjx.step(self.model, self._data0.replace(ctrl=ctrl, **state.fields())))
+            out = MjxState.of(mjx.step(model, data0.replace(ctrl=ctrl, **state.fields())))
         if self.constraint_free:
             # MJX keeps each step's accelerations as the constraint solver's next warm start. A model that can
             # have no constraint rows never runs the solver, so nothing reads it; carried, it holds float32

@@ -37,14 +37,17 @@ def check_image_path(path: str, flag: str = "--out") -> None:
         raise ConfigError(f"{flag} {path!r}: {parent!r} is a file, not a directory")
 
 
-def run_label(run_dir: str) -> str:
-    """``env · agent (preset)`` from a run's config, else the directory name."""
-    try:
-        cfg = load_config(run_dir)
-        train = cfg.get("train", {})
-        return f"{cfg.get('env_id', '?')} · {train.get('agent', '?')} ({cfg.get('preset', '?')})"
-    except (FileNotFoundError, OSError, ValueError):  # a label only: a broken config.yaml is not fatal here
-        return os.path.basename(os.path.normpath(run_dir))
+def run_labels(run_dirs: Sequence[str]) -> list[str]:
+    """A distinct legend label per run: its directory's name, with as many parent folders as it takes to tell
+    apart runs whose names are the same (``a/q`` and ``b/q``)."""
+    parts = [os.path.normpath(os.path.abspath(d)).split(os.sep) for d in run_dirs]
+    labels = []
+    for i, p in enumerate(parts):
+        depth = 1
+        while depth < len(p) and any(q[-depth:] == p[-depth:] for j, q in enumerate(parts) if j != i):
+            depth += 1
+        labels.append("/".join(p[-depth:]))
+    return labels
 
 
 #: The x axes ``plot_runs`` draws on.
@@ -81,14 +84,11 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
     """Draw reward and length per episode (or per evaluation, for a deep run) of each run into one PNG, against
     ``x``: ``"episode"``, ``"env_steps"`` or ``"auto"`` (env steps when one run is a deep run); returns its path.
     A deep run's rows are evaluations: they are never smoothed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     if not run_dirs:
         raise ValueError("plot needs at least one run directory")
-    labels = list(labels) if labels else [run_label(d) for d in run_dirs]
+    labels = list(labels) if labels else run_labels(run_dirs)
     if len(labels) != len(run_dirs):
         raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
     if not (isinstance(window, int) and window >= 1):
@@ -99,7 +99,8 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
     if x == "auto":
         x = "env_steps" if any("env_steps" in s for s in all_stats) else "episode"
     xs = [env_steps_axis(d, s) if x == "env_steps" else s["episode"] for d, s in zip(run_dirs, all_stats)]
-    fig, (ax_r, ax_l) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    fig = Figure(figsize=(9, 7))  # no pyplot: a notebook's backend is left as it is
+    ax_r, ax_l = fig.subplots(2, 1, sharex=True)
     for s, label, ep in zip(all_stats, labels, xs):
         w = 1 if "env_steps" in s else window
         for ax, name in ((ax_r, "return"), (ax_l, "length")):
@@ -117,5 +118,33 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
     fig.savefig(out_png, dpi=110)
-    plt.close(fig)
     return out_png
+
+
+def robustness_figure(rows: Sequence[dict], out_png: str, title: str) -> None:
+    """``jaxrobo eval``'s figure: one panel per shifted quantity, the metric (mean over tables, band from the worst
+    to the best table) against the quantity's value."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(dict.fromkeys(r["shift"] for r in rows))
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        sel = sorted((r for r in rows if r["shift"] == name), key=lambda r: r["value"])
+        x = np.array([r["value"] for r in sel])
+        ax.plot(x, [r["mean"] for r in sel], "o-", color="C0", label="mean over tables")
+        if any(r["tables"] > 1 for r in sel):
+            ax.fill_between(x, [r["worst"] for r in sel], [r["best"] for r in sel], color="C0", alpha=0.2,
+                            label="worst-best table")
+        ax.set_xlabel(name)
+        ax.set_ylabel(sel[0]["metric"])
+        if sel[0]["metric"] == "success_rate":
+            ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)

@@ -113,6 +113,8 @@ def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser
     o = env.options
     if type(env.robot.sim).__name__ != "CartPoleSim":
         return f"backend={o.backend!r}; only backend='analytic'"
+    if getattr(o, "randomise", False):
+        return "randomise=true; the kernel bakes the nominal model in (the run takes the XLA path)"
     if o.control_type != "velocity" or o.round_obs:
         return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
     agent = c.agent if agent is None else agent
@@ -132,6 +134,9 @@ def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser
         return f"fused_block={b}; with fused='pallas' the envs per program, a power of two up to {_MAX_BLOCK}"
     if c.n_envs * discretiser.n_states * env.num_actions >= 2**31:
         return "the tables hold 2**31 entries or more (int32 indices)"
+    if getattr(c, "total_episodes", 0):
+        return ("total_episodes: a run-wide episode count needs every env's episodes at every step, which one "
+                "program of the kernel does not see; only the per-env episode budget or total_steps")
     if c.record_episodes and c.n_envs * c.nepisodes >= 2**31:
         return "the episode records hold 2**31 entries or more (int32 indices); set record_episodes=False"
     return None
@@ -186,7 +191,7 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, coordinate_step,
-     n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled) = static
+     n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled, steps_budget) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
@@ -266,7 +271,8 @@ def _make_kernel(static):
             cr = dict(cr)
             key = (cr["k0"], cr["k1"])
             k_next, k_act = _subkey(key, 0), _subkey(key, 1)
-            active = cr["episode"] < nepisodes
+            # The run's budget (Trainer._active): steps per env under total_steps, else episodes per env.
+            active = cr["env_steps"] < steps_budget if steps_budget else cr["episode"] < nepisodes
             r_s = [cr[f"r{k}"] for k in range(n_actions)]
             a = epsilon_greedy(k_act, r_s, cr["epsilon"])
             # env.step: the command, the physics, the guard, the observation, termination, truncation.
@@ -322,9 +328,11 @@ def _make_kernel(static):
             if records:
                 slot = jnp.minimum(cr["episode"], nepisodes - 1)
                 at = env * n_rec + slot
-                plgpu.store(rec_refs[0].at[at], ep_return, mask=record)
-                plgpu.store(rec_refs[1].at[at], env_steps_now, mask=record)
-                plgpu.store(rec_refs[2].at[at], term.astype(jnp.int32), mask=record)
+                # Under the step budget an env records its first nepisodes episodes and counts the rest.
+                kept = record & (cr["episode"] < nepisodes) if steps_budget else record
+                plgpu.store(rec_refs[0].at[at], ep_return, mask=kept)
+                plgpu.store(rec_refs[1].at[at], env_steps_now, mask=kept)
+                plgpu.store(rec_refs[2].at[at], term.astype(jnp.int32), mask=kept)
             else:
                 cr["ret_sum"] = cr["ret_sum"] + jnp.where(record, ep_return, 0.0)
                 cr["len_sum"] = cr["len_sum"] + jnp.where(record, env_steps_now, 0)
@@ -513,7 +521,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
               tuple(int(b) for b in disc.bins), sim.coordinate_step, int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
               bool(SKIP_RESETS), bool(GROUP_RESETS), bool(FAST_SINCOS) and libdevice_sincos.verified(),
-              bool(APPROX_SINCOS) and gpu, tiled)
+              bool(APPROX_SINCOS) and gpu, tiled, trainer.steps_per_env if trainer.budget == "steps" else 0)
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)

@@ -46,6 +46,22 @@ from jaxrobo.task.env import Env, EnvState, layers, simulator_of
 _GPU_ENV_GROUP = 262_144
 
 
+def default_devices(config: Any) -> int:
+    """Devices a training run's envs are split over: the config's ``devices`` (refused if it does not divide
+    ``n_envs`` or exceeds the devices there are), or for 0 (automatic) every device JAX sees (of every process
+    under ``jax.distributed``), or the most of them that divide ``n_envs``."""
+    asked = int(getattr(config, "devices", 1) or 0)
+    available = jax.device_count()
+    n = int(config.n_envs)
+    if asked:
+        if asked > available:
+            raise ConfigError(f"devices={asked}: only {available} device(s) here ({jax.devices()[0].platform})")
+        if n % asked:
+            raise ConfigError(f"devices={asked}: must divide n_envs={n} (each device steps n_envs / devices envs)")
+        return asked
+    return max(d for d in range(1, available + 1) if n % d == 0)
+
+
 def default_env_group(env: Env, backend: str | None = None) -> int | None:
     """How many envs :func:`step_batch` steps at once when the config leaves it automatic: 262,144 for MJX on a
     GPU, otherwise None (the whole batch). Not for Brax's pipelines, which ran slower in groups, nor for a closed
@@ -204,6 +220,12 @@ class ExecutionPlan:
     with a shared table; elsewhere the scatter-add, which a CPU runs in order (its rounding is the one the
     fingerprints hold). The one plan choice that may change values: it rounds the sums in another order.
 
+    ``devices``: how many devices a training run's envs are split over (1: one device). Each device steps its
+    ``n_envs / devices`` envs with no communication (per-env tables; a shared table's update and a run-wide
+    budget's episode count become cross-device reductions), so per-env tables are the one-device ones bit for
+    bit; under ``jax.distributed`` the devices of every process count. With several devices the env axis is not
+    also stepped in groups (``env_group`` None): each device steps its share at once.
+
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
     """
@@ -217,6 +239,7 @@ class ExecutionPlan:
     fused_block: int | None = None
     task_kernel: bool = False
     ordered_sums: bool = False
+    devices: int = 1
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
@@ -226,6 +249,8 @@ class ExecutionPlan:
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
                 raise ValueError(f"ExecutionPlan {name}={value!r}: expected None or an integer >= 1")
+        if not isinstance(self.devices, int) or isinstance(self.devices, bool) or self.devices < 1:
+            raise ValueError(f"ExecutionPlan devices={self.devices!r}: expected an integer >= 1")
         if not isinstance(self.unrolled_groups, int) or isinstance(self.unrolled_groups, bool) \
                 or self.unrolled_groups < 1:
             raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
@@ -274,9 +299,11 @@ class ExecutionPlan:
         # measured there); elsewhere on an accelerator the plain select. The cart-pole's whole-chunk kernel resets
         # in place and reads neither.
         gather = cpu or (fused == "pallas" and physics_kernel(env) and config.n_envs >= _GATHER_MIN_ENVS)
+        devices = default_devices(config)
         return cls(
-            # The config's env_group, 0 meaning automatic.
-            env_group=config.env_group or default_env_group(env, backend),
+            # The config's env_group, 0 meaning automatic; none across devices (each steps its share at once).
+            env_group=(config.env_group or default_env_group(env, backend)) if devices == 1 else None,
+            devices=devices,
             reset_capacity=-(-config.n_envs // 8) if gather else config.n_envs,
             # Carried rows pay only on a CPU, and are wrong with a shared table (see the class docstring).
             carry_rows=cpu and not config.shared_table,
@@ -337,6 +364,8 @@ class ExecutionPlan:
                 parts.append("task_kernel=on")
         if self.ordered_sums:  # likewise
             parts.append("ordered_sums=on")
+        if self.devices > 1:  # likewise
+            parts.append(f"devices={self.devices}")
         if self.compiler_options is not None:
             parts.append("compiler_options={" + ", ".join(f"{k}: {v!r}" for k, v in self.compiler_options) + "}")
         return f"ExecutionPlan({', '.join(parts)})"

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 
 from jaxrobo.physics import fused
 from jaxrobo.core import rng, spaces
+from jaxrobo.task import randomise
 from jaxrobo.core.precision import check_precision
 from jaxrobo.task.robot import Robot
 from jaxrobo.core.struct import param, pytree_dataclass
@@ -49,6 +50,9 @@ class EnvState:
     key: jax.Array
     physics_nan: jax.Array
     info: dict = dataclasses.field(default_factory=dict)
+    #: The episode's randomised physical parameters (:mod:`jaxrobo.task.randomise`), drawn at reset; ``()`` (no
+    #: leaves) unless the task's ``randomise`` option is on.
+    domain: Any = ()
 
     @property
     def done(self) -> jax.Array:
@@ -99,8 +103,12 @@ class LearningTarget:
             raise ValueError(f"LearningTarget metric={self.metric!r}: allowed values are {', '.join(TARGET_METRICS)}")
 
 
-#: The figures a :class:`LearningTarget` can be stated on.
-TARGET_METRICS = ("mean_length", "mean_return", "success_rate")
+#: The figures a :class:`LearningTarget` can be stated on, each with what it measures (docs/extending.md lists them).
+TARGET_METRICS = {
+    "mean_length": "mean greedy episode length per evaluated table (longer is better: a task that is kept going)",
+    "mean_return": "mean greedy episode return per evaluated table",
+    "success_rate": "share of greedy episodes the task counts as a success (its task variables' `arrived` flag)",
+}
 
 
 class Env:
@@ -187,16 +195,25 @@ class TaskEnv(Env):
         raise NotImplementedError
 
     # ---- composition ----------------------------------------------------------------------------------
+    @property
+    def randomised(self) -> bool:
+        """True when the task draws its physics per episode (its ``randomise`` option, :mod:`jaxrobo.task.randomise`)."""
+        return bool(getattr(self.options, "randomise", False))
+
     def reset(self, key: jax.Array, params: Any = None) -> EnvState:
         params = self.default_params if params is None else params
+        # Drawn from the reset key before it is split (folded, not split), so the reset's own draws keep their keys.
+        domain = randomise.draw(key, params, self.robot.directional) if self.randomised else ()
         key, pose_key, var_key = rng.split(key, 3)
         qpos, qvel = self._set_init_pose(pose_key, params)
         pipeline_state = self.robot.sim.init(qpos, qvel)
         task = self._init_env_variables(var_key, pipeline_state, params)
         obs = self._get_obs(pipeline_state, task, params)
         false = jnp.zeros((), bool)
-        return EnvState(pipeline_state, obs, jnp.zeros((), jnp.float32), false, false, jnp.zeros((), jnp.int32),
-                        task, key, false)
+        steps = jnp.zeros((), jnp.int32)
+        obs = randomise.noisy(obs, domain, key, steps)
+        return EnvState(pipeline_state, obs, jnp.zeros((), jnp.float32), false, false, steps, task, key, false,
+                        domain=domain)
 
     def _kernel_step(self, state: EnvState, action: jax.Array, params: Any) -> EnvState:
         """:meth:`step` through :attr:`step_kernel` (one env; a vmapped step makes one call over the batch)."""
@@ -205,10 +222,14 @@ class TaskEnv(Env):
     def step(self, state: EnvState, action: jax.Array, params: Any = None) -> EnvState:
         params = self.default_params if params is None else params
         action = jnp.asarray(action, self.action_dtype)
-        if self.step_kernel is not None and fused.task_kernels():
+        if self.step_kernel is not None and fused.task_kernels() and not state.domain:
             return self._kernel_step(state, action, params)
         command, task = self._set_action(action, state.task, params)
-        pipeline_state = self.robot.advance(state.pipeline_state, command)
+        if state.domain:
+            pipeline_state = self.robot.advance(state.pipeline_state, command,
+                                                domain=randomise.physics_of(state.domain))
+        else:
+            pipeline_state = self.robot.advance(state.pipeline_state, command)
         ok = self.robot._check_all_systems_ready(pipeline_state)
         obs = self._get_obs(pipeline_state, task, params)
         ok = ok & jnp.all(jnp.isfinite(obs))
@@ -220,7 +241,11 @@ class TaskEnv(Env):
         terminated = terminated | ~ok
         steps = state.steps + 1
         truncated = (steps >= params.max_episode_steps) & ~terminated
-        return EnvState(pipeline_state, obs, reward, terminated, truncated, steps, task, state.key, ~ok)
+        # What the agent sees: observation noise (randomised tasks only) after reward and termination, which read
+        # the true state.
+        obs = randomise.noisy(obs, state.domain, state.key, steps)
+        return EnvState(pipeline_state, obs, reward, terminated, truncated, steps, task, state.key, ~ok,
+                        domain=state.domain)
 
 
 # ---- the layers of a wrapped env ---------------------------------------------------------------------------

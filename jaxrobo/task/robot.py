@@ -36,9 +36,25 @@ class Robot:
         """Map a task command to actuator controls; runs every physics substep. Default: pass through."""
         return command
 
-    def advance(self, pipeline_state: Any, command: jax.Array) -> Any:
-        """Apply ``command`` for one control step (the seed's unpause → move → wait → pause)."""
-        return self.sim.advance(pipeline_state, command, self.controller, kernel=self.advance_kernel)
+    #: Randomisable quantities that are forces with a direction (:func:`jaxrobo.task.randomise.draw` adds one).
+    directional: tuple[str, ...] = ()
+
+    def advance(self, pipeline_state: Any, command: jax.Array, domain: dict[str, jax.Array] | None = None) -> Any:
+        """Apply ``command`` for one control step (the seed's unpause → move → wait → pause). ``domain``: the
+        episode's randomised physical quantities (:mod:`jaxrobo.task.randomise`), mapped onto the simulator by
+        :meth:`sim_physics`; None: the model as loaded (and the robot's kernel where the plan runs it)."""
+        if domain is None:
+            return self.sim.advance(pipeline_state, command, self.controller, kernel=self.advance_kernel)
+        return self.sim.advance(pipeline_state, command, self.controller, physics=self.sim_physics(domain))
+
+    def randomisable(self) -> tuple[str, ...]:
+        """The physical quantities this robot can randomise on its backend (the names of a task's ``rand_<name>``
+        ranges); none by default."""
+        return ()
+
+    def sim_physics(self, domain: dict[str, jax.Array]) -> Any:
+        """The simulator's form of a drawn domain (its ``physics_step``'s ``physics`` argument)."""
+        raise NotImplementedError(f"{type(self).__name__} randomises nothing")
 
     def read_sensors(self, pipeline_state: Any) -> Any:
         """What the robot senses; subclasses return named quantities."""

@@ -4,7 +4,8 @@ Every place that runs a policy's episodes goes through here: the trainer's evalu
 (:meth:`jaxrobo.training.trainer.Trainer.evaluate`), the quadcopter flights (:mod:`jaxrobo.show`, the benchmarks) and the
 greedy policy of a video (:func:`jaxrobo.pictures.render.q_policy`). So a greedy policy breaks ties one way everywhere:
 uniformly at random among the maximal action values, drawn from the step's key (:func:`greedy_action`, which is
-:func:`jaxrobo.tabular.learner.greedy`).
+:func:`jaxrobo.tabular.learner.greedy`); only a policy that leaves JAX (``jaxrobo export``) takes the first maximal
+action instead, and ``greedy_policy(..., ties="first")`` is its JAX twin.
 
 Public surface:
 
@@ -12,8 +13,9 @@ Public surface:
     ``policy(key, obs) -> action``: a pure, traceable function of the step's key and one observation.
 :func:`greedy_action` ``(key, values)``
     The greedy action of a row of action values, ties broken at random by ``key``: the one tie-breaking rule.
-:func:`greedy_policy` ``(q, discretiser)``
-    Greedy in one learner's tables ``q [n_tables, n_states, n_actions]`` (Double Q-learning acts on the sum).
+:func:`greedy_policy` ``(q, discretiser, ties="random")``
+    Greedy in one learner's tables ``q [n_tables, n_states, n_actions]`` (Double Q-learning acts on the sum);
+    ``ties="first"``: the first maximal action instead, deterministic (what an exported policy does).
 :func:`random_policy` ``(n_actions)``
     Uniform random actions.
 :func:`rollout` ``(env, policy, key, n_episodes, horizon=None, params=None, observe=None)``
@@ -43,6 +45,9 @@ from jaxrobo.tabular import learner as tabular
 
 __all__ = ["Policy", "greedy_action", "greedy_policy", "random_policy", "rollout", "success_rate", "host_policy"]
 
+#: How a greedy policy breaks ties between equal action values (:func:`greedy_policy`).
+TIES = ("random", "first")
+
 #: ``(key, obs) -> action``.
 Policy = Callable[[jax.Array, jax.Array], jax.Array]
 
@@ -52,14 +57,21 @@ def greedy_action(key: jax.Array, values: jax.Array) -> jax.Array:
     return tabular.greedy(key, values)
 
 
-def greedy_policy(q: jax.Array, discretiser: Callable[[jax.Array], jax.Array]) -> Policy:
+def greedy_policy(q: jax.Array, discretiser: Callable[[jax.Array], jax.Array], ties: str = "random") -> Policy:
     """Greedy in one learner's tables ``q [n_tables, n_states, n_actions]``: the action values of the state
     ``discretiser(obs)`` are the table's row, or the sum of both rows for Double Q-learning
-    (:func:`jaxrobo.tabular.learner.policy_values`, as the learner acts); ties at random (:func:`greedy_action`).
+    (:func:`jaxrobo.tabular.learner.policy_values`, as the learner acts). ``ties``: ``"random"`` breaks them at
+    random with the step's key (:func:`greedy_action`, every evaluation); ``"first"`` takes the first maximal
+    action, a deterministic policy (the one ``jaxrobo export`` writes and its numpy runner acts by).
     ``discretiser`` must be traceable (a :class:`jaxrobo.tabular.discretise.Discretiser`)."""
     q = jnp.asarray(q)
     if q.ndim != 3:
         raise ValueError(f"q has shape {q.shape}; expected [n_tables, n_states, n_actions]")
+    if ties not in TIES:
+        raise ValueError(f"ties={ties!r}: allowed values are {', '.join(TIES)}")
+    if ties == "first":  # the 0-th of the maxima: pick_among_maxima with the uniform draw 0
+        return lambda k, obs: tabular.pick_among_maxima(tabular.policy_values(q[:, discretiser(obs), :]),
+                                                        jnp.float32(0))
     return lambda k, obs: greedy_action(k, tabular.policy_values(q[:, discretiser(obs), :]))
 
 

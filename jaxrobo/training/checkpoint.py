@@ -88,7 +88,13 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
     chunks the carry has run, and ``fingerprint`` the JSON of :func:`carry_fingerprint`."""
     leaves = jax.tree.leaves(runner)
     impls = [str(jax.random.key_impl(x)) if _is_key(x) else None for x in leaves]
-    host = jax.device_get([jax.random.key_data(x) if _is_key(x) else x for x in leaves])
+    data = [jax.random.key_data(x) if _is_key(x) else x for x in leaves]
+    if jax.process_count() > 1:  # a carry split over several processes' devices: every process gathers it
+        from jaxrobo.speed import sharding
+
+        host = sharding.gather(data)
+    else:
+        host = jax.device_get(data)
     arrays = {f"leaf_{i}": np.asarray(x) for i, x in enumerate(host)}
     write_npz(path, **arrays, key_impls=np.array(json.dumps(impls)), chunks_done=np.int64(chunks_done),
               fingerprint=np.array(json.dumps(fingerprint, sort_keys=True)))

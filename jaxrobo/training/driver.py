@@ -14,7 +14,7 @@ rate), a :class:`~jaxrobo.training.summary.TrainResult`. :class:`StopOnSignal` t
 for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
-its :class:`ChunkRun`, :func:`run_training`, :func:`evaluate_tables`, :class:`StopOnSignal`, the hook types
+its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables`, :class:`StopOnSignal`, the hook types
 :data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
 """
 from __future__ import annotations
@@ -31,13 +31,42 @@ import numpy as np
 from jaxrobo.tabular import learner as tabular
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
-from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
 from jaxrobo.training.summary import TrainResult
 from jaxrobo.training.trainer import Runner, Trainer, progress_stats
 
-#: ``progress(episodes_done_min, nepisodes, mean_last_return)``, called after each chunk.
-ProgressFn = Callable[[int, int, float], None]
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """Where a run stands after a chunk: what every progress line, bar and live TensorBoard scalar reads (one
+    definition of each number).
+
+    ``done`` / ``total`` count the run's budget in ``unit`` (:attr:`jaxrobo.training.trainer.Trainer.budget_total`:
+    episodes per env, steps per env, or episodes of the whole run); ``last_return`` is the mean over envs of each
+    env's last recorded episode's return; ``useful_steps`` the env steps that counted towards the budget (an env
+    past its budget, or past its episodes, still occupies its slot: it is not useful); ``slot_steps`` the steps
+    the batch ran (chunks × chunk steps × envs × rows) since the carry's first chunk; ``seconds`` the wall time of
+    this loop, compile excluded."""
+
+    chunks_done: int
+    n_chunks: int
+    done: int
+    total: int
+    unit: str
+    last_return: float
+    useful_steps: float
+    slot_steps: float
+    seconds: float
+
+    @property
+    def useful_share(self) -> float:
+        """Useful env steps / env slots stepped (1.0: every slot of every step did work that counts)."""
+        return self.useful_steps / self.slot_steps if self.slot_steps else 0.0
+
+
+#: ``progress(Progress)`` after each chunk; a callable of three positional parameters is called the earlier way,
+#: ``progress(done, total, mean_last_return)``.
+ProgressFn = Callable[..., None]
 #: ``checkpoint(carry, chunks_done)``, called at the checkpoint cadence and when the run stops early.
 CheckpointFn = Callable[[Any, int], None]
 
@@ -54,17 +83,90 @@ def compile_under(plan: ExecutionPlan, jitted: Any, *args: Any) -> Callable:
         return jitted.lower(*args).compile()
 
 
+def env_mesh(trainer: Trainer) -> Any:
+    """The 1-D mesh the run's envs are split over (``plan.devices`` of JAX's devices, every process's under
+    ``jax.distributed``), or None for one device."""
+    from jaxrobo.speed import sharding
+
+    d = trainer.plan.devices
+    return None if d == 1 else sharding.make_mesh(jax.devices()[:d])
+
+
+def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, env_params: Any) -> Callable:
+    """``trainer.init`` compiled under the plan, its carry split over the plan's devices (:func:`env_mesh`)."""
+    from jaxrobo.speed import sharding
+
+    mesh = env_mesh(trainer)
+    if mesh is None:
+        jitted = jax.jit(trainer.init)
+    else:
+        out = jax.eval_shape(trainer.init, key, agent_params, env_params)
+        jitted = jax.jit(trainer.init, out_shardings=sharding.shardings_like(out, mesh, trainer.config.n_envs))
+    return compile_under(trainer.plan, jitted, key, agent_params, env_params)
+
+
 def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, env_params: Any) -> Callable:
     """``trainer.run_chunk`` compiled for ``runner`` under the trainer's plan (its compiler options, its
-    trace-time choices), the carry donated: ``runner = chunk(runner, agent_params, env_params)``."""
+    trace-time choices), the carry donated: ``runner = chunk(runner, agent_params, env_params)``. Over several
+    devices (``plan.devices``) the carry's env axis is split over them: XLA partitions the chunk (a shared table's
+    update and a run-wide episode count become reductions across devices), and the Pallas chunk kernel, which
+    XLA cannot partition, runs on each device's envs through ``shard_map`` (its envs are independent)."""
+    from jaxrobo.speed import sharding
+
     plan = trainer.plan
-    jitted = jax.jit(trainer.run_chunk, donate_argnums=0, compiler_options=plan.xla_options)
+    mesh = env_mesh(trainer)
+    if mesh is None:
+        jitted = jax.jit(trainer.run_chunk, donate_argnums=0, compiler_options=plan.xla_options)
+        return compile_under(plan, jitted, runner, agent_params, env_params)
+    n = trainer.config.n_envs
+    carry = sharding.shardings_like(runner, mesh, n)
+    rep = sharding.replicated(mesh)
+    params = (jax.tree.map(lambda _: rep, agent_params), jax.tree.map(lambda _: rep, env_params))
+    fn = trainer.run_chunk
+    if plan.fused == "pallas" and not physics_kernel(trainer.env):
+        from jax.sharding import PartitionSpec as P
+
+        local = Trainer(trainer.env, dataclasses.replace(trainer.config, n_envs=n // plan.devices, devices=1),
+                        trainer.disc, trainer.learner, plan=plan.replace(devices=1))
+        specs = jax.tree.map(lambda s: s.spec, carry)
+        fn = jax.shard_map(local.run_chunk, mesh=mesh, in_specs=(specs, P(), P()), out_specs=specs,
+                           check_vma=False)
+    jitted = jax.jit(fn, donate_argnums=0, compiler_options=plan.xla_options, in_shardings=(carry,) + params,
+                     out_shardings=carry)
     return compile_under(plan, jitted, runner, agent_params, env_params)
 
 
-def compiled_progress(carry: Runner) -> Callable:
-    """:func:`jaxrobo.training.trainer.progress_stats` compiled for ``carry`` (one run's, or a sweep's batch of rows)."""
-    return jax.jit(progress_stats).lower(carry).compile()
+def compiled_progress(carry: Runner, trainer: Trainer | None = None) -> Callable:
+    """:meth:`jaxrobo.training.trainer.Trainer.progress` (without a trainer: the episode budget's
+    :func:`~jaxrobo.training.trainer.progress_stats`) compiled for ``carry`` (one run's, or a sweep's rows)."""
+    return jax.jit(progress_stats if trainer is None else trainer.progress).lower(carry).compile()
+
+
+def _caller_of(progress: ProgressFn | None) -> Callable[[Progress], None] | None:
+    """``progress`` as a function of a :class:`Progress`: an earlier three-parameter callback gets
+    ``(done, total, last_return)``."""
+    if progress is None:
+        return None
+    import inspect
+
+    try:
+        params = [p for p in inspect.signature(progress).parameters.values()
+                  if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty]
+    except (TypeError, ValueError):
+        params = []
+    if len(params) == 3:
+        return lambda p: progress(p.done, p.total, p.last_return)
+    return progress
+
+
+def host_get(tree: Any) -> Any:
+    """Device arrays → host numpy, whole: ``jax.device_get`` in one process, every process's shards gathered under
+    ``jax.distributed`` (a collective: every process calls it at the same point)."""
+    if jax.process_count() > 1:
+        from jaxrobo.speed import sharding
+
+        return sharding.gather(tree)
+    return jax.device_get(tree)
 
 
 # ---- the loop ----------------------------------------------------------------------------------------------------
@@ -83,13 +185,15 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
                read: Callable[[Any], Any] | None = None, total: int | None = None,
                progress: ProgressFn | None = None, should_stop: Callable[[], bool] | None = None,
                checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
-               checkpoint_seconds: float | None = None, max_seconds: float | None = None) -> ChunkRun:
+               checkpoint_seconds: float | None = None, max_seconds: float | None = None,
+               unit: str = "episodes", slots_per_chunk: float = 0.0) -> ChunkRun:
     """Run ``carry = chunk(carry)`` until ``n_chunks`` chunks are done (counting the ``start_chunk`` the carry
     has already run) or every env has done ``total`` episodes.
 
-    ``read(carry) -> (episodes_done_min, mean_last_return)`` (e.g. :func:`compiled_progress`) is read before the
-    loop and after each chunk, for the done test and ``progress(int(done), total, last)``; without it the loop
-    runs its chunks without reading anything back (the chunks are dispatched back to back). ``should_stop()``
+    ``read(carry) -> (done, mean_last_return[, useful_steps])`` (e.g. :func:`compiled_progress`) is read before
+    the loop and after each chunk, for the done test (``done >= total``, in ``unit``) and ``progress``, which gets
+    a :class:`Progress` (``slots_per_chunk``: env slots one chunk steps, for its useful share); without ``read``
+    the loop runs its chunks without reading anything back (the chunks are dispatched back to back). ``should_stop()``
     is asked before each chunk: True ends the loop (``stopped``) after the chunk in flight. ``max_seconds`` ends
     it (not ``stopped``) before a chunk once that much time has passed, at least one chunk run.
     ``checkpoint(carry, chunks_done)`` is called every ``checkpoint_every`` chunks and/or at the first chunk
@@ -98,8 +202,9 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     after the loop (evaluating, writing results and plots) may fail, and a resume then starts from the finished
     carry instead of running chunks again."""
     done = last = None
+    report = _caller_of(progress)
     if read is not None:
-        done = float(jax.device_get(read(carry))[0])
+        done = float(host_get(read(carry))[0])
 
     def finished(chunks_done: int) -> bool:
         return chunks_done >= n_chunks or (done is not None and total is not None and done >= total)
@@ -116,9 +221,12 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
         carry = chunk(carry)
         chunks_done += 1
         if read is not None:
-            done, last = (float(x) for x in jax.device_get(read(carry)))
-            if progress is not None:
-                progress(int(done), total, last)
+            values = [float(x) for x in host_get(read(carry))]
+            done, last = values[0], values[1]
+            if report is not None:
+                report(Progress(chunks_done, n_chunks, int(done), total if total is not None else n_chunks, unit,
+                                last, values[2] if len(values) > 2 else float("nan"),
+                                chunks_done * slots_per_chunk, time.perf_counter() - t0))
         due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
             checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
         if checkpoint is not None and due:
@@ -150,22 +258,29 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     budget.check_memory(env, config, trainer.disc.n_states, where=env.name)
     key = jax.random.key(config.seed)
     t0 = time.perf_counter()
-    runner = jax.jit(trainer.init)(key, agent_params, env_params) if initial is None else initial
+    runner = compiled_init(trainer, key, agent_params, env_params)(key, agent_params, env_params) \
+        if initial is None else initial
+    # Read before the first chunk takes the carry's buffers: a resumed run's steps/s counts this process's steps.
+    env_steps_before = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64).sum())
     chunk = compiled_chunk(trainer, runner, agent_params, env_params)
-    stats = compiled_progress(runner)
+    stats = compiled_progress(runner, trainer)
     jax.block_until_ready(runner)
     compile_seconds = time.perf_counter() - t0
 
+    total, unit = trainer.budget_total
     loop = run_chunks(lambda r: chunk(r, agent_params, env_params), runner, trainer.max_chunks(),
-                      start_chunk=start_chunk, read=stats, total=config.nepisodes, progress=progress,
+                      start_chunk=start_chunk, read=stats, total=total, progress=progress,
                       should_stop=should_stop, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
-                      checkpoint_seconds=checkpoint_seconds)
+                      checkpoint_seconds=checkpoint_seconds, unit=unit,
+                      slots_per_chunk=float(config.chunk_steps) * config.n_envs)
     runner = loop.carry
     eval_returns = eval_lengths = selected = eval_success = None
+    t_eval = time.perf_counter()
     if config.eval_episodes > 0 and not loop.stopped:
         eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params)
+    eval_seconds = time.perf_counter() - t_eval
 
-    host = jax.device_get(runner.replace(key=None, env_state=None))
+    host = host_get(runner.replace(key=None, env_state=None))
     q = np.asarray(host.agent.q)
     return TrainResult(
         env_id=env.name, config=config, agent_params=agent_params,
@@ -174,8 +289,10 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_returns=eval_returns,
         eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
-        chunks_done=loop.chunks_done,
+        chunks_done=loop.chunks_done, start_chunk=start_chunk, eval_seconds=eval_seconds,
+        env_steps_before=env_steps_before,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
+        episodes_finished=int(np.asarray(host.episode, np.int64).sum()), budget=trainer.budget,
         learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan))
 
 

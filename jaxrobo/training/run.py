@@ -165,8 +165,22 @@ def check_combinations(config: TrainConfig, given: Mapping[str, Any], where: str
                        if key == "number_splits" and config.discretiser == "bins"
                        else f"discretiser={config.discretiser!r} does not use it")
             raise ConfigError(f"{loc}{key}={given[key]!r} would be ignored: {because}")
+    if config.total_steps and config.total_episodes:
+        raise ConfigError(f"{loc}total_steps={config.total_steps} and total_episodes={config.total_episodes}: give "
+                          "one run-wide budget (or neither: nepisodes per env)")
+    if config.total_steps and -(-config.total_steps // config.n_envs) > INT32_MAX:
+        raise ConfigError(f"{loc}total_steps={config.total_steps:,}: {-(-config.total_steps // config.n_envs):,} "
+                          f"steps per env over n_envs={config.n_envs}; must be <= {INT32_MAX:,} per env (step "
+                          "counters are int32): use more n_envs or fewer total_steps")
+    if config.total_episodes and config.total_episodes + config.n_envs > INT32_MAX:
+        raise ConfigError(f"{loc}total_episodes={config.total_episodes:,}: must be <= "
+                          f"{INT32_MAX - config.n_envs:,} (episode counters are int32)")
+    if config.total_episodes and -(-config.total_episodes // config.n_envs) * config.nsteps > INT32_MAX:
+        raise ConfigError(f"{loc}total_episodes={config.total_episodes:,} over n_envs={config.n_envs} with "
+                          f"nsteps={config.nsteps}: up to {-(-config.total_episodes // config.n_envs) * config.nsteps:,} "
+                          f"steps per env; must be <= {INT32_MAX:,} (step counters are int32)")
     steps = config.nepisodes * config.nsteps
-    if steps > INT32_MAX:
+    if not (config.total_steps or config.total_episodes) and steps > INT32_MAX:
         raise ConfigError(f"{loc}nepisodes x nsteps = {config.nepisodes} x {config.nsteps} = {steps:,} steps per env: "
                           f"must be <= {INT32_MAX:,} (step counters are int32); use fewer nepisodes or nsteps")
     if config.eval_episodes * max(config.nsteps, 1) > INT32_MAX:
@@ -237,9 +251,10 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values)
 
 
-def spec_from_config(run_config: dict[str, Any]):
-    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
-    applied as an override of the saved preset, and the result must give back the same config."""
+def spec_from_config(run_config: dict[str, Any], check_memory: bool = True):
+    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``; ``jaxrobo export`` passes
+    ``check_memory=False``: it trains nothing): every saved value is applied as an override of the saved preset,
+    and the result must give back the same config."""
     try:
         env_id, preset = run_config["env_id"], run_config.get("preset", "default")
         overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
@@ -247,7 +262,7 @@ def spec_from_config(run_config: dict[str, Any]):
     except (KeyError, TypeError, AttributeError) as err:
         raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
     find(env_id, where=f"config.yaml: env_id {env_id}")  # a 'module:Id' imports its module (run from its folder)
-    spec = resolve(env_id, preset, overrides)
+    spec = resolve(env_id, preset, overrides, check_memory=check_memory)
     again = json.loads(json.dumps(spec.to_dict()))
     if again != json.loads(json.dumps(run_config)):
         a, b = flat_keys(run_config), flat_keys(again)

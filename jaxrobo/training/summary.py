@@ -49,32 +49,79 @@ class TrainResult:
     #: The task's declared target (:class:`jaxrobo.task.env.LearningTarget`; None: no target), for :meth:`summary`.
     learning_target: LearningTarget | None = None
     plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it)
+    #: The chunk the carry started from (0, or the checkpoint's on a resume) and the env steps it held then.
+    start_chunk: int = 0
+    env_steps_before: int = 0
+    eval_seconds: float = 0.0
+    #: Every env's finished episodes, recorded or not (under a run-wide budget an env may finish more than the
+    #: ``nepisodes`` it records).
+    episodes_finished: int | None = None
+    budget: str = "episodes"  # jaxrobo.training.trainer.Trainer.budget
 
     @property
     def steps_per_second(self) -> float:
-        return self.env_steps / max(self.run_seconds, 1e-9)
+        """Env steps per second of this process's training loop (steps a resumed carry already held excluded)."""
+        return (self.env_steps - self.env_steps_before) / max(self.run_seconds, 1e-9)
+
+    @property
+    def slot_steps(self) -> int:
+        """Env slots the batch stepped: chunks run (since the start) × chunk steps × envs."""
+        return int(self.chunks_done) * int(self.config.chunk_steps) * int(self.config.n_envs)
+
+    @property
+    def useful_share(self) -> float:
+        """Useful env steps (those counting towards the budget) / env slots stepped."""
+        return self.env_steps / self.slot_steps if self.slot_steps else 0.0
+
+    def recorded(self) -> np.ndarray | None:
+        """``[n_envs, nepisodes]`` mask of the record slots that hold an episode, or None when all do (a complete
+        run under the episode budget)."""
+        done = self.episodes_done
+        n_rec = self.returns.shape[1]
+        if done is None or np.all(np.asarray(done) >= n_rec):
+            return None
+        return np.arange(n_rec)[None, :] < np.asarray(done)[:, None]
 
     def summary(self) -> dict[str, Any]:
         """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run, and
         how many evaluated tables reach the task's declared learning target (``learning_target``)."""
         lengths = self.lengths.astype(np.float64)
-        best100 = np.sort(lengths, axis=1)[:, -100:].mean(axis=1)
+        mask = self.recorded()
+        if mask is None:
+            best100 = np.sort(lengths, axis=1)[:, -100:].mean(axis=1)
+            figures = {"highest_reward_mean": float(self.returns.max(axis=1).mean()),
+                       "highest_reward_max": float(self.returns.max()),
+                       "overall_mean_length": float(lengths.mean()),
+                       "best_100_mean_length": float(best100.mean()),
+                       "final_100_mean_return": float(self.returns[:, -100:].mean())}
+        else:
+            figures = _masked_figures(self.returns.astype(np.float64), lengths, mask)
+        c = self.config
         out = {
             "env_id": self.env_id,
-            "agent": self.config.agent,
-            "n_envs": self.config.n_envs,
-            "nepisodes": self.config.nepisodes,
-            "highest_reward_mean": float(self.returns.max(axis=1).mean()),
-            "highest_reward_max": float(self.returns.max()),
-            "overall_mean_length": float(lengths.mean()),
-            "best_100_mean_length": float(best100.mean()),
-            "final_100_mean_return": float(self.returns[:, -100:].mean()),
+            "agent": c.agent,
+            "n_envs": c.n_envs,
+            "nepisodes": c.nepisodes,
+            "budget": self.budget,
+            **({"total_steps": c.total_steps} if c.total_steps else {}),
+            **({"total_episodes": c.total_episodes} if c.total_episodes else {}),
+            **figures,
             "physics_nan_episodes": int(self.nan_episodes.sum()),
             "env_steps": int(self.env_steps),
+            "env_slots": self.slot_steps,
+            "useful_share": round(self.useful_share, 4),
             "compile_seconds": round(self.compile_seconds, 3),
             "run_seconds": round(self.run_seconds, 3),
+            "eval_seconds": round(self.eval_seconds, 3),
             "env_steps_per_second": round(self.steps_per_second, 1),
         }
+        if self.episodes_finished is not None:
+            out["episodes_finished"] = int(self.episodes_finished)
+            out["episodes_recorded"] = int(np.minimum(self.episodes_done, self.returns.shape[1]).sum()) \
+                if self.episodes_done is not None else int(self.returns.size)
+        if self.start_chunk:
+            out["resumed_after_chunk"] = int(self.start_chunk)
+            out["env_steps_before_resume"] = int(self.env_steps_before)
         target = self.learning_target
         if target is not None:
             out["learning_target"] = target.description
@@ -97,3 +144,23 @@ class TrainResult:
             out["selected_table_fresh_mean_length"] = float(self.selected["lengths"].mean())
             out["selected_table_fresh_mean_return"] = float(self.selected["returns"].mean())
         return out
+
+
+def _masked_figures(returns: np.ndarray, lengths: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """The seed's figures over the recorded episodes only (envs with different numbers of episodes: a run-wide
+    budget, or a stopped run); an env with none recorded is left out."""
+    has = mask.any(axis=1)
+    if not has.any():
+        nan = float("nan")
+        return {"highest_reward_mean": nan, "highest_reward_max": nan, "overall_mean_length": nan,
+                "best_100_mean_length": nan, "final_100_mean_return": nan}
+    r = np.where(mask, returns, -np.inf)[has]
+    count = mask.sum(axis=1)[has]
+    best100, final100 = [], []
+    for row_l, row_r, m, n in zip(lengths[has], returns[has], mask[has], count):
+        kept_l, kept_r = row_l[m], row_r[m]
+        best100.append(np.sort(kept_l)[-100:].mean())
+        final100.append(kept_r[-100:])
+    return {"highest_reward_mean": float(r.max(axis=1).mean()), "highest_reward_max": float(r.max()),
+            "overall_mean_length": float(lengths[mask].mean()), "best_100_mean_length": float(np.mean(best100)),
+            "final_100_mean_return": float(np.concatenate(final100).mean())}

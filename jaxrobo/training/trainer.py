@@ -7,13 +7,22 @@ that finish an episode reset with fresh randomness at once and carry on with the
 environment that has done all its episodes stops learning and recording, so the results do not depend on how
 long the others take, nor on the chunk length.
 
+That per-env episode budget is the seed's experiment and the default, but it leaves the batch idle: the envs
+that learned best (the longest episodes) hold the whole batch until they finish. Two run-wide budgets keep every
+slot busy (:attr:`Trainer.budget`): ``total_steps`` (each env steps ``ceil(total_steps / n_envs)`` steps, whatever
+its episodes' lengths: a full batch until the last chunk) and ``total_episodes`` (every env steps until the run
+has finished that many episodes: for a shared table, the episodes that table learned from). Under either,
+``nepisodes`` is how many episodes each env records (later ones are counted, not stored), an episode cut by the
+end of the budget is not recorded (records count whole episodes), and the results still do not depend on the
+chunk length.
+
 The whole step (act → env step → discretise → learn → record → auto-reset) is one function scanned over
 ``chunk_steps`` steps (:meth:`Trainer.run_chunk`); ``init`` and ``run_chunk`` take the learner and env
 parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`jaxrobo.training.sweep`). Nothing here
 runs a host loop: :mod:`jaxrobo.training.driver` compiles the chunk and runs it chunk after chunk.
 
 Public surface: :class:`TrainConfig`, :class:`Runner`, :class:`Trainer` (``init``, ``step``, ``run_chunk``,
-``max_chunks``, ``evaluate``, ``evaluate_episodes``), :func:`make_discretiser_for` (defined in
+``max_chunks``, ``budget``, ``budget_total``, ``progress``, ``evaluate``, ``evaluate_episodes``), :func:`make_discretiser_for` (defined in
 :mod:`jaxrobo.tabular.discretise`, where the plan's default reads it too), :func:`progress_stats`. Names with a leading
 underscore are private.
 """
@@ -53,10 +62,22 @@ class TrainConfig:
     state_high: tuple | None = param(None, kind=tuple, static=True, doc="discretiser upper bounds")
     edges: tuple | None = param(None, kind=tuple, static=True, doc="interior bin edges per dimension (mode edges)")
     resolution: float = param(0.1, low=0.0, low_open=True, static=True, doc="bin width of mode round")
+    total_steps: int = param(0, low=0, high=2**53, static=True,
+                             doc="step budget: env steps of the whole run, all envs together (Brax's num_timesteps, "
+                                 "SB3's total_timesteps): every env steps ceil(total_steps / n_envs) steps, its "
+                                 "episodes restarting as they end, and nepisodes is then how many episodes each env "
+                                 "records; 0: the episode budget (nepisodes per env)")
+    total_episodes: int = param(0, low=0, static=True,
+                                doc="episode budget of the whole run, all envs together: every env steps until the "
+                                    "run has finished this many episodes (with shared_table: the table's episodes), "
+                                    "and nepisodes is then how many episodes each env records; 0: nepisodes per env")
     chunk_steps: int = param(1000, low=1, static=True, doc="steps per compiled chunk between progress updates")
     record_episodes: bool = param(True, static=True, doc="keep every episode's return and length")
     eval_episodes: int = param(100, low=0, static=True, doc="greedy evaluation episodes per evaluated table")
     eval_envs: int = param(8, low=1, static=True, doc="how many trained tables to evaluate")
+    devices: int = param(0, low=0, static=True,
+                         doc="devices the envs are split over, each stepping n_envs / devices of them (0: every "
+                             "local device, or the most that divide n_envs; of every host under jax.distributed)")
     env_group: int = param(0, low=0, static=True,
                            doc="envs stepped together, group after group (0: automatic, see ExecutionPlan)")
     fused: str = param("auto", choices=("auto",) + FUSED_CHOICES, static=True,
@@ -136,6 +157,56 @@ class Trainer:
     def carry_rows(self, value: bool) -> None:
         self.plan = self.plan.replace(carry_rows=value)
 
+    # ---- the run's budget ------------------------------------------------------------------------------------
+    @property
+    def budget(self) -> str:
+        """Which budget ends the run: ``"episodes"`` (the seed's: ``nepisodes`` per env, the default), ``"steps"``
+        (``total_steps`` env steps for the run, :attr:`steps_per_env` each) or ``"run_episodes"``
+        (``total_episodes`` finished episodes for the run, all envs together)."""
+        c = self.config
+        return "steps" if c.total_steps else "run_episodes" if c.total_episodes else "episodes"
+
+    @property
+    def steps_per_env(self) -> int:
+        """Env steps each env runs under the step budget: ``ceil(total_steps / n_envs)`` (so the run does
+        ``n_envs * steps_per_env >= total_steps``, exactly ``total_steps`` when ``n_envs`` divides it)."""
+        c = self.config
+        return -(-c.total_steps // c.n_envs)
+
+    @property
+    def budget_total(self) -> tuple[int, str]:
+        """``(amount, unit)`` the progress counts towards: episodes per env, steps per env, or episodes of the run."""
+        b = self.budget
+        if b == "steps":
+            return self.steps_per_env, "steps"
+        if b == "run_episodes":
+            return self.config.total_episodes, "episodes"
+        return self.config.nepisodes, "episodes"
+
+    def _active(self, runner: Runner) -> jax.Array:
+        """Which envs still learn and record in this step (``[n_envs]``), by the run's budget."""
+        c, b = self.config, self.budget
+        if b == "steps":
+            return runner.env_steps < self.steps_per_env
+        if b == "run_episodes":  # one total over the batch: every env goes on until the run has its episodes
+            return jnp.broadcast_to(jnp.sum(runner.episode) < c.total_episodes, runner.episode.shape)
+        return runner.episode < c.nepisodes
+
+    def progress(self, runner: Runner) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """``(done, mean_last_return, useful_steps)`` of a carry (over every leading axis too: a sweep's rows):
+        ``done`` in the units of :attr:`budget_total`, the fewest of any env (of any row for the run's episodes),
+        the mean return of each env's last recorded episode, and the env steps that counted towards the budget
+        (all envs, float32: a display figure). The driver's done test and every progress line read it."""
+        b = self.budget
+        if b == "steps":
+            done = jnp.min(runner.env_steps)
+        elif b == "run_episodes":
+            done = jnp.min(jnp.sum(runner.episode, axis=-1))
+        else:
+            done = jnp.min(runner.episode)
+        _, last = progress_stats(runner)
+        return done, last, jnp.sum(runner.env_steps.astype(jnp.float32))
+
     # ---- building blocks -------------------------------------------------------------------------------
     def _rows(self, agent, s, envs=None):
         """Table rows ``[len(s), n_tables, n_actions]`` at states ``s``: of each env's own table (of the tables of
@@ -154,6 +225,11 @@ class Trainer:
         """The updated tables, and ``q_s2`` as it reads after the update (where ``s' == s`` the entry changed)."""
         c, learner = self.config, self.learner
         if c.shared_table:
+            if self.plan.devices > 1:
+                # Every device gets every env's transition and sums them into the one table in env order, as one
+                # device would: the same table bit for bit (a sum of per-device partial tables rounds otherwise).
+                key, s, a, r, s2, a2, terminated, epsilon, active = _everywhere(
+                    self.plan.devices, (key, s, a, r, s2, a2, terminated, epsilon, jnp.broadcast_to(active, s.shape)))
             return tabular.learn_shared(learner, key, agent, s, a, r, s2, a2, terminated, epsilon, params,
                                         c.seed_compat, active, ordered=self.plan.ordered_sums), q_s2
         visited_sa = jax.vmap(lambda v, s, a: v[s, a])(agent.visited, s, a) if c.seed_compat else None
@@ -213,7 +289,7 @@ class Trainer:
         # The five keys of ``split(key, 5)``, each hashed on its own: those a learner does not use cost nothing.
         k_next, k_act, k_act2, k_learn, k_reset = (jax.vmap(rng.subkey, in_axes=(0, None, None))(runner.key, i, 5)
                                                    for i in range(5))
-        active = runner.episode < c.nepisodes
+        active = self._active(runner)
         q_s = self._rows(runner.agent, runner.s) if runner.q_rows is None else runner.q_rows
         a = runner.action if learner.on_policy else self._select(k_act, q_s, runner.epsilon)
 
@@ -231,7 +307,10 @@ class Trainer:
         if c.record_episodes:
             # Only the envs that finished an episode write: the others' slot is out of range and their write is
             # dropped, which leaves their entry as it was without reading it first.
-            slot = jnp.where(record, jnp.minimum(runner.episode, c.nepisodes - 1), c.nepisodes)
+            if self.budget == "episodes":
+                slot = jnp.where(record, jnp.minimum(runner.episode, c.nepisodes - 1), c.nepisodes)
+            else:  # the first nepisodes episodes of each env are recorded; later ones are counted, not stored
+                slot = jnp.where(record & (runner.episode < c.nepisodes), runner.episode, c.nepisodes)
             rows = jnp.arange(c.n_envs)
             put = lambda table, value: table.at[rows, slot].set(value, mode="drop")  # noqa: E731
             returns = put(returns, ep_return)
@@ -302,8 +381,14 @@ class Trainer:
         return map_groups(one_block, runner, block, unrolled=1)
 
     def max_chunks(self) -> int:
-        c = self.config
-        return -(-c.nepisodes * c.nsteps // c.chunk_steps)
+        """Chunks that finish the run: exactly so under the step budget; an upper bound under the episode
+        budgets (every env ends an episode at least every ``nsteps`` steps; the driver stops once the budget is
+        met)."""
+        c, b = self.config, self.budget
+        if b == "steps":
+            return -(-self.steps_per_env // c.chunk_steps)
+        episodes = -(-c.total_episodes // c.n_envs) if b == "run_episodes" else c.nepisodes
+        return -(-episodes * c.nsteps // c.chunk_steps)
 
     def evaluate(self, key: jax.Array, agent: AgentState, n_episodes: int, env_params: Any = None,
                  max_steps: int | None = None) -> tuple[jax.Array, jax.Array]:
@@ -320,6 +405,16 @@ class Trainer:
         horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
         return rollout.outcomes(rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes,
                                                 horizon, env_params))
+
+
+def _everywhere(devices: int, tree: Any) -> Any:
+    """``tree`` replicated on the first ``devices`` devices (the run's mesh, :func:`jaxrobo.training.driver.env_mesh`)."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    import numpy as np
+
+    mesh = Mesh(np.asarray(jax.devices()[:devices]), ("batch",))
+    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec()))
 
 
 def progress_stats(runner: Runner) -> tuple[jax.Array, jax.Array]:

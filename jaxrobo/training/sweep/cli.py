@@ -38,9 +38,9 @@ DESCRIPTION = "Parameter sweeps as one vmapped, jitted computation: ``jaxrobo sw
 SWEEP_FLAGS: dict[str, Any] = {"env": "CartPoleStayUp-v0", "agent": None, "preset": "default", "grid": None,
                                "random": 0, "ranges": None, "seeds": 4, "seed": 0, "n_envs": None, "nepisodes": None,
                                "nsteps": None, "set": None, "eval_episodes": 10, "metric": "final_return",
-                               "no_plots": False}
+                               "no_plots": False, "total_steps": None, "total_episodes": None}
 _FLAG_NAMES = {"ranges": "--range", "n_envs": "--n-envs", "eval_episodes": "--eval-episodes",
-               "no_plots": "--no-plots"}
+               "no_plots": "--no-plots", "total_steps": "--total-steps", "total_episodes": "--total-episodes"}
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -61,6 +61,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-envs", type=int, default=None, help="environments (tables) per row")
     parser.add_argument("--nepisodes", type=int, default=None, help="episodes per environment")
     parser.add_argument("--nsteps", type=int, default=None, help="step cap per episode")
+    parser.add_argument("--total-steps", type=int, default=None, metavar="N",
+                        help="step budget of each row: N env steps, all its envs together (the batch stays full)")
+    parser.add_argument("--total-episodes", type=int, default=None, metavar="N",
+                        help="episode budget of each row: its envs step until the row has finished N episodes")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override for every row")
     parser.add_argument("--eval-episodes", type=int, default=None,
                         help=f"greedy evaluation episodes of each row's first table (0: none; default "
@@ -75,6 +79,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", default=None, metavar="DIR",
                         help="go on with the interrupted sweep in DIR: its saved settings, its unfinished groups")
     parser.add_argument("--no-plots", action="store_true", default=None, help="skip the heatmap PNGs")
+    parser.add_argument("--no-progress", action="store_true", help="no line per training chunk inside a group")
 
 
 def _flag(dest: str) -> str:
@@ -197,13 +202,19 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         points = points_from_args(f)
         overrides = merge_flags(parse_overrides(f.set or []), [("n_envs", "--n-envs", f.n_envs),
                                                                 ("nepisodes", "--nepisodes", f.nepisodes),
-                                                                ("nsteps", "--nsteps", f.nsteps)])
+                                                                ("nsteps", "--nsteps", f.nsteps),
+                                                                ("total_steps", "--total-steps", f.total_steps),
+                                                                ("total_episodes", "--total-episodes",
+                                                                 f.total_episodes)])
         if f.seed < 0 or f.seed + f.seeds - 1 > INT32_MAX:
             raise ConfigError(f"--seed {f.seed} --seeds {f.seeds}: the seeds run from --seed to --seed + --seeds - 1, "
                               f"which must lie in [0, {INT32_MAX}]")
         seeds = list(range(f.seed, f.seed + f.seeds))
         plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes,
                           compiler_options=compiler_options)
+        target = getattr(plan.groups[0].spec.env, "learning_target", None) if plan.groups else None
+        if f.metric == "eval_success_rate" and (target is None or target.metric != "success_rate"):
+            raise ConfigError(f"--metric eval_success_rate: {f.env} declares no success-rate learning target")
         if args.resume is not None:
             open_state(live, plan)  # refuses a state of other settings or code before anything compiles
         mesh = None
@@ -234,7 +245,8 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         should_stop = stop if jax.process_count() == 1 else (lambda: not _all_agree(not stop()))
         saved_in = live or "process 0"
         try:
-            result = run_plan(plan, mesh, log=print, state_dir=state_dir, should_stop=should_stop,
+            result = run_plan(plan, mesh, log=print, progress=None if getattr(args, "no_progress", False) else _chunk_line,
+                              state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
         except KeyboardInterrupt:  # a second Ctrl-C: the group in progress is dropped at once
             rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
@@ -256,9 +268,13 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         return 0
     metric = f.metric
     best = result.best(metric)
+    slots = sum(g.get("env_slots") or 0.0 for g in result.groups)
     summary = {"env_id": f.env, "agent": f.agent, "preset": f.preset, "swept": result.swept,
                "seeds": seeds, "n_rows": len(result.rows), "wall_seconds": result.wall_seconds,
                "env_steps": result.env_steps, "env_steps_per_second": result.env_steps / max(result.wall_seconds, 1e-9),
+               "env_slots": slots, "useful_share": result.env_steps / slots if slots else None,
+               "compile_seconds": sum(g["compile_seconds"] for g in result.groups),
+               "run_seconds": sum(g["run_seconds"] for g in result.groups),
                "groups": result.groups, "best": best, "argv": argv}
     plots: list[str] = []
 
@@ -272,11 +288,21 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
     rundir.publish_results(out, live, write)  # replaces the state (or the old run) in one step
     plots = [os.path.join(out, os.path.basename(p)) for p in plots]
     print(f"{len(result.rows)} rows, {result.env_steps:,} env steps in {result.wall_seconds:.1f} s "
-          f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile)")
+          f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile"
+          + (f"; {summary['useful_share']:.1%} of the env slots useful)" if slots else ")"))
     print("best configuration: " + ", ".join(f"{k}={_fmt(best[k])}" for k in result.swept) +
           f"  ({metric} {best['mean']:.1f} ± {best['std']:.1f} over {best['seeds']} seeds)")
     print(f"results: {os.path.join(out, 'sweep.csv')}" + (f"; plots: {', '.join(plots)}" if plots else ""))
     return 0
+
+
+def _chunk_line(p: Any) -> None:
+    """One line per chunk inside a group: the budget done (fewest of any row), useful share, speed and ETA."""
+    rate = p.done / p.seconds if p.seconds > 0 else 0.0
+    eta = (p.total - p.done) / rate if rate > 0 else float("nan")
+    print(f"    chunk {p.chunks_done}/{p.n_chunks}: {p.done:,}/{p.total:,} {p.unit} (fewest of any row), "
+          f"last_return {p.last_return:.1f}, {p.useful_share:.0%} useful, "
+          f"{p.useful_steps / max(p.seconds, 1e-9):,.0f} steps/s, ETA {eta:.0f} s", flush=True)
 
 
 def main(argv: Sequence[str] | None = None, *, compiler_options: Mapping[str, Any] | None = None) -> int:

@@ -15,12 +15,14 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import re
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from jaxrobo.training import budget
 from jaxrobo.core.config import ConfigError, coerce, parse_value
+from jaxrobo.task import randomise
 from jaxrobo.training.run import KeyRoute, resolve, route
 from jaxrobo.training.trainer import Trainer
 
@@ -44,13 +46,14 @@ def classify(env_id: str, key: str) -> KeyKind:
 
 # ---- which points ----------------------------------------------------------------------------------------------
 def parse_grid(items: Sequence[str]) -> dict[str, list[Any]]:
-    """``["alpha=0.1,0.3", "gamma=0.9"]`` → ``{"alpha": [0.1, 0.3], "gamma": [0.9]}``."""
+    """``["alpha=0.1,0.3", "gamma=0.9"]`` → ``{"alpha": [0.1, 0.3], "gamma": [0.9]}``; a comma inside brackets
+    belongs to a list value (a randomisation range: ``rand_mass=[1,1],[0.8,1.2]``)."""
     axes: dict[str, list[Any]] = {}
     for item in items or []:
         if "=" not in item:
             raise ConfigError(f"--grid {item!r}: expected KEY=V1,V2,...")
         key, text = (s.strip() for s in item.split("=", 1))
-        values = [parse_value(v.strip()) for v in text.split(",") if v.strip()]
+        values = [parse_value(v.strip()) for v in re.split(r",(?![^\[]*\])", text) if v.strip()]
         if not values:
             raise ConfigError(f"--grid {item!r}: no values after '='")
         axes[key] = values
@@ -160,6 +163,10 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
             point = checked[i]
             ap = base_ap.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "agent"})
             ep = base_ep.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "env"})
+            given = randomise.changed(ep)
+            if given and not getattr(env, "randomised", False):
+                raise ConfigError(f"sweep {given[0]}={list(getattr(ep, given[0]))}: a randomisation range in a group "
+                                  "with randomise=false would be ignored; set randomise=true (--set or sweep it)")
             if spec.config.discretiser != "edges" and spec.config.state_low is None:
                 moved = [b for b, b0 in zip(env.state_bounds(ep), bounds) if not np.allclose(np.asarray(b), b0)]
                 if moved:

@@ -27,8 +27,10 @@ from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training.trainer import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
+#: ``eval_success_rate``: the greedy episodes' success for a task whose learning target is a success rate.
 METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
-           "episodes_done", "env_steps", "physics_nan_episodes", "eval_mean_length", "eval_mean_return")
+           "episodes_done", "env_steps", "physics_nan_episodes", "eval_mean_length", "eval_mean_return",
+           "eval_success_rate")
 
 
 class SweepInterrupted(Exception):
@@ -79,8 +81,12 @@ def _stack(trees: list[Any]) -> Any:
     return jax.tree.map(lambda *xs: _as_array(list(xs)), *trees)
 
 
-def _row_metrics(runner: Runner, n_last: int) -> dict[str, jax.Array]:
-    """Per-row performance, reduced on the device (``runner`` leaves are ``[rows, n_envs, ...]``)."""
+def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True) -> dict[str, jax.Array]:
+    """Per-row performance, reduced on the device (``runner`` leaves are ``[rows, n_envs, ...]``).
+    ``every_slot_recorded``: the episode budget, where every env fills its ``nepisodes`` records; under a
+    run-wide budget the envs record different numbers of episodes and each figure covers the recorded ones."""
+    if not every_slot_recorded:
+        return _row_metrics_recorded(runner, n_last)
     returns = runner.returns.astype(jnp.float32)
     lengths = runner.lengths.astype(jnp.float32)
     nep = returns.shape[-1]
@@ -92,6 +98,30 @@ def _row_metrics(runner: Runner, n_last: int) -> dict[str, jax.Array]:
         "mean_length": lengths.mean(axis=(-1, -2)),
         "best_100_mean_length": best.mean(axis=(-1, -2)),
         "highest_reward": returns.max(axis=(-1, -2)),
+        "episodes_done": runner.episode.min(axis=-1),
+        "env_steps": runner.env_steps.sum(axis=-1),
+        "physics_nan_episodes": runner.nan_episodes.sum(axis=-1),
+    }
+
+
+def _row_metrics_recorded(runner: Runner, n_last: int) -> dict[str, jax.Array]:
+    """:func:`_row_metrics` over each env's recorded episodes only (its first ``min(episode, nepisodes)``):
+    ``final_*`` over each env's last ``n_last`` recorded episodes, all envs' episodes pooled."""
+    returns = runner.returns.astype(jnp.float32)
+    lengths = runner.lengths.astype(jnp.float32)
+    nep = returns.shape[-1]
+    count = jnp.minimum(runner.episode, nep)[..., None]
+    index = jnp.arange(nep)
+    rec = index < count
+    last = rec & (index >= count - n_last)
+    pooled = lambda x, m: jnp.sum(jnp.where(m, x, 0.0), axis=(-1, -2)) / jnp.maximum(jnp.sum(m, axis=(-1, -2)), 1)  # noqa: E731
+    top = jnp.sort(jnp.where(rec, lengths, -1.0), axis=-1)[..., -min(100, nep):]
+    return {
+        "final_return": pooled(returns, last),
+        "final_length": pooled(lengths, last),
+        "mean_length": pooled(lengths, rec),
+        "best_100_mean_length": pooled(top, top >= 0),
+        "highest_reward": jnp.max(jnp.where(rec, returns, -jnp.inf), axis=(-1, -2)),
         "episodes_done": runner.episode.min(axis=-1),
         "env_steps": runner.env_steps.sum(axis=-1),
         "physics_nan_episodes": runner.nan_episodes.sum(axis=-1),
@@ -113,6 +143,7 @@ class GroupRunner:
         self.eval_episodes, self.n_last = eval_episodes, n_last
         self.compile_seconds = self.run_seconds = 0.0
         self.complete = False
+        self.slot_steps = 0
 
     def _init(self, key_data, agent_params, env_params):
         keys = jax.random.wrap_key_data(key_data)
@@ -122,19 +153,22 @@ class GroupRunner:
         return jax.vmap(self.trainer.run_chunk)(runner, agent_params, env_params)
 
     def _finish(self, runner, key_data, env_params):
-        out = _row_metrics(runner, self.n_last)
+        out = _row_metrics(runner, self.n_last, self.trainer.budget == "episodes")
         if self.eval_episodes > 0:
             shared = self.trainer.config.shared_table
             table = runner.agent if shared else jax.tree.map(lambda x: x[:, 0], runner.agent)
             keys = jax.vmap(lambda kd: jax.random.fold_in(jax.random.wrap_key_data(kd), 1))(key_data)
-            ev = jax.vmap(self.trainer.evaluate, in_axes=(0, 0, None, 0))
-            ret, length = ev(keys, table, self.eval_episodes, env_params)
-            out["eval_mean_return"] = ret.mean(axis=-1)
-            out["eval_mean_length"] = length.astype(jnp.float32).mean(axis=-1)
+            ev = jax.vmap(self.trainer.evaluate_episodes, in_axes=(0, 0, None, 0))
+            episodes = ev(keys, table, self.eval_episodes, env_params)
+            out["eval_mean_return"] = episodes["return"].mean(axis=-1)
+            out["eval_mean_length"] = episodes["length"].astype(jnp.float32).mean(axis=-1)
+            target = getattr(self.trainer.env, "learning_target", None)
+            if target is not None and target.metric == "success_rate" and "arrived" in episodes:
+                out["eval_success_rate"] = episodes["arrived"].astype(jnp.float32).mean(axis=-1)
         return out
 
     def run(self, key_data: np.ndarray, agent_params: Any, env_params: Any,
-            progress: Callable[[int, int], None] | None = None,
+            progress: Callable[..., None] | None = None,
             max_seconds: float | None = None, stop: Callable[[], bool] | None = None) -> dict[str, np.ndarray]:
         """Train every row to its last episode (or until ``max_seconds`` of running); per-row metrics as host
         arrays of length ``n_rows``. ``self.complete`` says whether every row finished. The chunk loop is the
@@ -154,17 +188,19 @@ class GroupRunner:
         chunk = driver.compile_under(plan, chunk, runner, ap, ep)
         finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
         finish = driver.compile_under(plan, finish, runner, kd, ep)
-        stats = driver.compiled_progress(runner)
+        stats = driver.compiled_progress(runner, self.trainer)
         jax.block_until_ready(runner)
         self.compile_seconds = time.perf_counter() - t0
         t0 = time.perf_counter()
-        nepisodes = self.trainer.config.nepisodes
-        report = None if progress is None else (lambda done, total, _last: progress(done, total))
+        total, unit = self.trainer.budget_total
+        c = self.trainer.config
         loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, self.trainer.max_chunks(), read=stats,
-                                 total=nepisodes, progress=report, should_stop=stop, max_seconds=max_seconds)
+                                 total=total, progress=progress, should_stop=stop, max_seconds=max_seconds,
+                                 unit=unit, slots_per_chunk=float(c.chunk_steps) * c.n_envs * self.n_rows)
         if loop.stopped:
             raise SweepInterrupted(0, 1, None)
-        self.complete = loop.done >= nepisodes
+        self.complete = loop.done >= total
+        self.slot_steps = loop.chunks_done * c.chunk_steps * c.n_envs * self.n_rows
         out = finish(loop.carry, kd, ep)
         out = sharding.gather(out)
         self.run_seconds = time.perf_counter() - t0
@@ -231,29 +267,38 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
             if should_stop is not None and should_stop():
                 raise SweepInterrupted(len(saved), len(planned), state_dir)
             key_data = np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for (_, s, _) in meta])
-            execution = ExecutionPlan.for_run(spec.env, spec.config, compiler_options=plan.compiler_options)
-            trainer = Trainer(spec.env, spec.config, plan=execution)
+            # A sweep splits its rows over the devices (the mesh), not each row's envs.
+            config = dataclasses.replace(spec.config, devices=1)
+            execution = ExecutionPlan.for_run(spec.env, config, compiler_options=plan.compiler_options)
+            trainer = Trainer(spec.env, config, plan=execution)
             group = GroupRunner(trainer, len(meta), mesh, plan.eval_episodes, plan.n_last)
+            budget = {"steps": f"{trainer.steps_per_env:,} steps each (total_steps {spec.config.total_steps:,})",
+                      "run_episodes": f"until {spec.config.total_episodes:,} episodes a row"
+                      }.get(trainer.budget, f"{spec.config.nepisodes} episodes")
             log(f"group {g + 1}/{len(planned)} [{label}]: {len(p.configs)} configs × {len(plan.seeds)} seeds × "
-                f"{spec.config.n_envs} envs, {spec.config.nepisodes} episodes ≤ {spec.config.nsteps} steps")
+                f"{spec.config.n_envs} envs, {budget} ≤ {spec.config.nsteps} steps")
             try:
                 metrics = group.run(key_data, _stack(p.agent_list), _stack(p.env_list), progress, plan.max_seconds,
                                     stop=should_stop)
             except SweepInterrupted:
                 raise SweepInterrupted(len(saved), len(planned), state_dir) from None
             saved[g] = {"metrics": metrics, "compile_seconds": group.compile_seconds,
-                        "run_seconds": group.run_seconds, "complete": group.complete}
+                        "run_seconds": group.run_seconds, "complete": group.complete,
+                        "slot_steps": group.slot_steps}
             if state_dir is not None and jax.process_index() == 0:
                 state.save_checkpoint(state_dir, fingerprint, plan, saved)
         done = saved[g]
         metrics = done["metrics"]
         steps = int(metrics["env_steps"].astype(np.int64).sum())
+        slots = float(done.get("slot_steps", 0.0))
         timings.append({"group": g, "static": dict(static), "rows": len(meta), "n_envs": spec.config.n_envs,
                         "compile_seconds": done["compile_seconds"], "run_seconds": done["run_seconds"],
                         "env_steps": steps, "env_steps_per_second": steps / max(done["run_seconds"], 1e-9),
+                        "env_slots": slots, "useful_share": steps / slots if slots else None,
                         "complete": done["complete"]})
         log(f"  compiled in {done['compile_seconds']:.1f} s; {steps:,} env steps in {done['run_seconds']:.1f} s "
-            f"({steps / max(done['run_seconds'], 1e-9):,.0f} steps/s)")
+            f"({steps / max(done['run_seconds'], 1e-9):,.0f} steps/s)"
+            + (f"; {steps / slots:.1%} of the env slots useful" if slots else ""))
         for r, (i, s, ap) in enumerate(meta):
             row: dict[str, Any] = {"config": i, "seed": s, "group": g}
             row.update(plan.checked[i])

@@ -97,8 +97,8 @@ def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished:
         p = plan.groups[g]
         arrays[f"g{g}_config"] = np.asarray([i for i, _, _ in p.meta], np.int64)
         arrays[f"g{g}_seed"] = np.asarray([s for _, s, _ in p.meta], np.int64)
-        for k in ("compile_seconds", "run_seconds"):
-            arrays[f"g{g}_{k}"] = np.asarray(done[k], np.float64)
+        for k in ("compile_seconds", "run_seconds", "slot_steps"):
+            arrays[f"g{g}_{k}"] = np.asarray(done.get(k, 0.0), np.float64)
         arrays[f"g{g}_complete"] = np.asarray(bool(done["complete"]))
         arrays.update({f"g{g}_metric_{k}": np.asarray(v) for k, v in done["metrics"].items()})
     checkpoint.write_npz(os.path.join(state_dir, rundir.CHECKPOINT), **arrays)
@@ -125,5 +125,6 @@ def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[i
         prefix = f"g{g}_metric_"
         out[g] = {"metrics": {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)},
                   "compile_seconds": float(data[f"g{g}_compile_seconds"]),
-                  "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"])}
+                  "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"]),
+                  "slot_steps": float(data.get(f"g{g}_slot_steps", 0.0))}
     return out

@@ -1,0 +1,84 @@
+"""CartPoleStayUp and CartPoleContinuous in native MuJoCo (``mujoco.MjData``, the C engine, float64, one env): the
+sim-to-sim check of an exported policy (``scripts/sim2sim.py``).
+
+The task's step, ported to numpy: a discrete action adds ``ACTION_STEPS[a] * pos_step`` to the cart command
+(clipped to ``±max_base_velocity`` under velocity control), a continuous one (CartPoleContinuous, ``Box(-1, 1)``) is
+the command ``max_command * clip(a, -1, 1)`` itself; the command is the actuator's control for
+``running_step / timestep`` ``mj_step`` calls, the observation is the joint sensors cast to float32 (rounded to 0.1 with ``round_obs``), the
+episode terminates when the cart or the pole leaves its limits and is cut at ``max_episode_steps``. Success: the
+pole stayed up for the whole horizon. Every number comes from the task object the run built (its options and
+params) and its compiled model; nothing here calls JAX.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import mujoco
+import numpy as np
+
+from envs.cartpole.stay_up import ACTION_STEPS
+
+
+class NativeCartPole:
+    """One cart-pole in native MuJoCo with the task's action mapping, observation and termination."""
+
+    def __init__(self, env: Any, params: Any = None):
+        p = env.default_params if params is None else params
+        o = env.options
+        self.model = env.robot.sim.mj_model
+        self.data = mujoco.MjData(self.model)
+        self.n_substeps = int(env.robot.sim.n_substeps)
+        self.continuous = hasattr(env.action_space(), "low")  # a Box: the action is the command
+        if self.continuous:
+            self.max_command = float(p.max_command)
+        else:
+            self.steps = np.asarray(ACTION_STEPS[: o.n_actions], np.float64) * float(p.pos_step)
+            self.velocity = o.control_type == "velocity"
+            self.vmax = float(p.max_base_velocity)
+        self.round_obs = bool(getattr(o, "round_obs", False))
+        self.x_lim = (float(p.min_base_pose_x), float(p.max_base_pose_x))
+        self.angle_lim = (float(p.min_pole_angle), float(p.max_pole_angle))
+        self.horizon = int(p.max_episode_steps)
+        r = env.robot
+        self.idx = (r.cart_q, r.cart_v, r.pole_q, r.pole_v)
+
+    def observe(self) -> np.ndarray:
+        q, v = self.data.qpos, self.data.qvel
+        c_q, c_v, p_q, p_v = self.idx
+        obs = np.array([q[c_q], v[c_v], q[p_q], v[p_v]]).astype(np.float32)
+        return np.round(obs, 1) if self.round_obs else obs
+
+    def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
+                horizon: int | None = None) -> dict[str, Any]:
+        """One episode from ``(qpos, qvel)`` and, for the discrete task, its start command (``task.command``):
+        ``length``, ``terminated``, ``success`` (up for the horizon), ``actions`` and ``obs`` (the observations
+        the policy saw)."""
+        horizon = self.horizon if horizon is None else int(horizon)
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:], self.data.qvel[:] = qpos, qvel
+        command = 0.0 if self.continuous else float(task.command)
+        obs = self.observe()
+        seen, actions, terminated = [obs], [], False
+        for _ in range(horizon):
+            if self.continuous:
+                a = np.reshape(np.asarray(policy(obs), np.float64), -1)[:1]
+                command = self.max_command * min(max(float(a[0]), -1.0), 1.0)
+            else:
+                a = int(policy(obs))
+                command = command + self.steps[a]
+                if self.velocity:
+                    command = min(max(command, -self.vmax), self.vmax)
+            for _ in range(self.n_substeps):
+                self.data.ctrl[0] = command
+                mujoco.mj_step(self.model, self.data)
+            obs = self.observe()
+            actions.append(a)
+            seen.append(obs)
+            x, angle = obs[0], obs[2]
+            terminated = bool(x <= self.x_lim[0] or x >= self.x_lim[1] or angle <= self.angle_lim[0]
+                              or angle >= self.angle_lim[1])
+            if terminated:
+                break
+        length = len(actions)
+        return {"length": length, "terminated": terminated, "success": length == horizon and not terminated,
+                "actions": np.asarray(actions, np.float32 if self.continuous else np.int32), "obs": np.asarray(seen)}

@@ -1,0 +1,215 @@
+"""QuadcopterGoto-v1/-v2 and QuadcopterGotoTwist-v0 in native MuJoCo (``mujoco.MjData``, the C engine, float64, one env): the sim-to-sim check
+of an exported policy (``scripts/sim2sim.py``).
+
+Ported to numpy from :mod:`envs.quadcopter.robot`, :mod:`envs.quadcopter.goto` and :mod:`envs.quadcopter.goto_v2`:
+the Twist of each action (GotoTwist: ``speed_value * clip(a, -1, 1)`` of its ``Box(-1, 1, (4,))`` action), the
+on-board cascade (velocity -> tilt/thrust -> attitude PD -> rotor thrusts through the
+inverse mixing matrix, clipped to the motor limits) run before every ``mj_step``, the level sonars and v2's
+``goal_clear`` (exact ray tests against the ground and the episode's obstacles), and the outcome (arrival, crash
+into the ground or an obstacle, leaving the workspace, altitude and inclination limits). Every constant is read
+from the task object the run built (its options, params and robot: mass, inertia, mixing, gains, all derived from
+the MJCF) and the model is the robot's own compiled ``MjModel``; nothing here calls JAX.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import mujoco
+import numpy as np
+
+from envs.quadcopter.robot import _ACTION_FIXED, _ACTION_SCALE, _INF, _PARALLEL, BOX, SONAR_RAYS
+
+
+# ---- pose and geometry (numpy ports of envs.quadcopter.robot) --------------------------------------------
+def euler_from_quat(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    return np.array([math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                     math.asin(min(max(2 * (w * y - z * x), -1.0), 1.0)),
+                     math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))])
+
+
+def wrap_angle(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _safe_inv(d: np.ndarray) -> np.ndarray:
+    d = np.asarray(d, np.float64)
+    return 1.0 / np.where(np.abs(d) < _PARALLEL, np.where(d < 0, -_PARALLEL, _PARALLEL), d)
+
+
+def ray_ground(origin: np.ndarray, direction: np.ndarray) -> float:
+    t = -origin[2] * float(_safe_inv(direction[2]))
+    if direction[2] < -_PARALLEL or origin[2] <= 0:
+        return max(t, 0.0) * float(origin[2] > 0)
+    return _INF
+
+
+def ray_box(origin, direction, center, half) -> float:
+    inv = _safe_inv(direction)
+    t1, t2 = (center - half - origin) * inv, (center + half - origin) * inv
+    parallel = np.abs(direction) < _PARALLEL
+    in_slab = np.abs(origin - center) <= half
+    t_near = np.max(np.where(parallel, np.where(in_slab, -_INF, _INF), np.minimum(t1, t2)))
+    t_far = np.min(np.where(parallel, np.where(in_slab, _INF, -_INF), np.maximum(t1, t2)))
+    return max(t_near, 0.0) if (t_near <= t_far and t_far >= 0) else _INF
+
+
+def ray_cylinder(origin, direction, center, radius, half_height) -> float:
+    o = origin - center
+    a = direction[0] ** 2 + direction[1] ** 2
+    b = 2 * (o[0] * direction[0] + o[1] * direction[1])
+    c = o[0] ** 2 + o[1] ** 2 - radius**2
+    if c <= 0 and abs(o[2]) <= half_height:
+        return 0.0
+    disc = b * b - 4 * a * c
+    t_side = (-b - math.sqrt(max(disc, 0.0))) / (2 * max(a, 1e-12))
+    side_ok = a > 1e-12 and disc >= 0 and t_side >= 0 and abs(o[2] + t_side * direction[2]) <= half_height
+    t = t_side if side_ok else _INF
+    if abs(direction[2]) > _PARALLEL:
+        inv_z = float(_safe_inv(direction[2]))
+        for cap in ((half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z):
+            xy = o[:2] + cap * direction[:2]
+            if cap >= 0 and xy @ xy <= radius**2:
+                t = min(t, cap)
+    return t
+
+
+def ray_obstacles(origin, direction, obstacles: dict) -> float:
+    t = _INF
+    for kind, center, size, active in zip(obstacles["kind"], obstacles["center"], obstacles["size"],
+                                          obstacles["active"]):
+        if active:
+            t = min(t, ray_box(origin, direction, center, size) if kind == BOX
+                    else ray_cylinder(origin, direction, center, size[0], size[2]))
+    return t
+
+
+def point_obstacle_distance(p, obstacles: dict) -> float:
+    d = _INF
+    for kind, center, size, active in zip(obstacles["kind"], obstacles["center"], obstacles["size"],
+                                          obstacles["active"]):
+        if not active:
+            continue
+        q = np.abs(p - center)
+        if kind == BOX:
+            d = min(d, math.sqrt(np.sum(np.maximum(q - size, 0.0) ** 2)))
+        else:
+            radial = max(math.hypot(q[0], q[1]) - size[0], 0.0)
+            d = min(d, math.hypot(radial, max(q[2] - size[2], 0.0)))
+    return d
+
+
+class NativeGoto:
+    """One QuadcopterGoto (v1 or v2: v2 when its observation has ``goal_clear``; GotoTwist when its action is a
+    Box) in native MuJoCo."""
+
+    def __init__(self, env: Any, params: Any = None):
+        p = env.default_params if params is None else params
+        r = env.robot
+        self.model = r.sim.mj_model
+        self.data = mujoco.MjData(self.model)
+        self.n_substeps = int(r.sim.n_substeps)
+        self.p = {k: float(getattr(p, k)) for k in (
+            "speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius", "sonar_range")}
+        self.horizon = int(p.max_episode_steps)
+        self.v2 = "goal_clear" in env.observation_space().names
+        self.continuous = hasattr(env.action_space(), "low")  # GotoTwist: the action is the Twist
+        if self.v2:
+            self.grow = float(p.drone_radius) + float(p.clear_margin)
+        c = r.control  # the controller's constants (envs.quadcopter.dynamics.ControllerConstants)
+        self.gains, self.g, self.mass = r.gains, float(c.g), float(c.mass)
+        self.inertia = np.asarray(c.inertia, np.float64)
+        self.unmix = np.asarray(c.unmix, np.float64)
+        self.ctrl_low, self.ctrl_high = np.asarray(c.ctrl_low, np.float64), np.asarray(c.ctrl_high, np.float64)
+        self.min_altitude = float(r.min_altitude)
+
+    # ---- robot ------------------------------------------------------------------------------------------
+    def controller(self, command: np.ndarray) -> np.ndarray:
+        """Twist -> rotor thrusts (N): :meth:`envs.quadcopter.robot.Quadcopter.controller` in float64."""
+        k, g = self.gains, self.g
+        q, v = self.data.qpos, self.data.qvel
+        roll, pitch, yaw = euler_from_quat(q[3:7])
+        omega = v[3:6]
+        vz_cmd = command[2]
+        if self.min_altitude > 0:
+            vz_cmd = max(vz_cmd, k.k_floor * (self.min_altitude - q[2]))
+        c, s = math.cos(yaw), math.sin(yaw)
+        vx_h, vy_h = c * v[0] + s * v[1], -s * v[0] + c * v[1]
+        a_max = g * math.tan(k.max_tilt)
+        clip = lambda x, lo, hi: min(max(x, lo), hi)  # noqa: E731
+        ax = clip(k.k_vel_xy * (command[0] - vx_h), -a_max, a_max)
+        ay = clip(k.k_vel_xy * (command[1] - vy_h), -a_max, a_max)
+        az = clip(k.k_vel_z * (vz_cmd - v[2]), -k.max_acc_down, k.max_acc_up)
+        pitch_d = clip(math.atan2(ax, g + az), -k.max_tilt, k.max_tilt)
+        roll_d = clip(math.atan2(-ay, g + az), -k.max_tilt, k.max_tilt)
+        thrust = self.mass * (g + az) / max(math.cos(roll) * math.cos(pitch), 0.5)
+        torque = self.inertia * np.array([k.k_att * (roll_d - roll) - k.k_rate * omega[0],
+                                          k.k_att * (pitch_d - pitch) - k.k_rate * omega[1],
+                                          k.k_yaw * (command[3] - omega[2])])
+        return np.clip(self.unmix @ np.concatenate([[thrust], torque]), self.ctrl_low, self.ctrl_high)
+
+    # ---- task -------------------------------------------------------------------------------------------
+    def observe(self, goal: np.ndarray, obstacles: dict) -> np.ndarray:
+        pos, rpy = self.data.qpos[:3].copy(), euler_from_quat(self.data.qpos[3:7])
+        delta = goal - pos
+        bearing = wrap_angle(math.atan2(delta[1], delta[0]) - rpy[2])
+        c, s = math.cos(rpy[2]), math.sin(rpy[2])
+        level = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # heading only: gimballed sonars
+        rng = self.p["sonar_range"]
+        sonars = [min(ray_ground(pos, d), ray_obstacles(pos, d, obstacles), rng)
+                  for d in SONAR_RAYS.astype(np.float64) @ level.T]
+        obs = [float(np.linalg.norm(delta)), bearing, delta[2], *sonars]
+        if self.v2:
+            flat = np.array([delta[0], delta[1], 0.0])
+            dist = float(np.linalg.norm(flat))
+            direction = flat / max(dist, 1e-6)
+            grown = dict(obstacles, size=obstacles["size"] + np.array([self.grow, self.grow, 0.0]))
+            ray = ray_obstacles(pos, direction, grown)
+            obs.append(min(ray, rng) if ray < dist else rng)
+        return np.asarray(obs).astype(np.float32)
+
+    def outcome(self, goal: np.ndarray, obstacles: dict) -> tuple[bool, bool]:
+        p = self.p
+        pos, rpy = self.data.qpos[:3], euler_from_quat(self.data.qpos[3:7])
+        failed = (pos[2] <= p["drone_radius"] or point_obstacle_distance(pos, obstacles) <= p["drone_radius"]
+                  or abs(pos[0]) > p["workspace"] or abs(pos[1]) > p["workspace"] or pos[2] > p["max_altitude"]
+                  or abs(rpy[0]) >= p["max_incl"] or abs(rpy[1]) >= p["max_incl"])
+        arrived = bool(np.linalg.norm(goal - pos) < p["goal_tolerance"]) and not failed
+        return arrived, bool(failed)
+
+    def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
+                horizon: int | None = None) -> dict[str, Any]:
+        """One flight from ``(qpos, qvel)`` to the goal among the obstacles of ``task`` (one episode's task
+        variables as host arrays: ``goal``, ``obstacles.kind/center/size/active``): ``length``, ``success``
+        (arrived), ``crashed``, ``actions``, ``obs`` and ``pos`` per step."""
+        horizon = self.horizon if horizon is None else int(horizon)
+        goal = np.asarray(task.goal, np.float64)
+        o = task.obstacles
+        obstacles = {"kind": np.asarray(o.kind), "center": np.asarray(o.center, np.float64),
+                     "size": np.asarray(o.size, np.float64), "active": np.asarray(o.active)}
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:], self.data.qvel[:] = qpos, qvel
+        obs = self.observe(goal, obstacles)
+        seen, actions, pos = [obs], [], [self.data.qpos[:3].copy()]
+        arrived = failed = False
+        for _ in range(horizon):
+            if self.continuous:
+                a = np.clip(np.reshape(np.asarray(policy(obs), np.float64), -1)[:4], -1.0, 1.0)
+                command = self.p["speed_value"] * a
+            else:
+                a = int(policy(obs))
+                command = _ACTION_SCALE[a].astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED[a]
+            for _ in range(self.n_substeps):
+                self.data.ctrl[:] = self.controller(command)
+                mujoco.mj_step(self.model, self.data)
+            obs = self.observe(goal, obstacles)
+            actions.append(a)
+            seen.append(obs)
+            pos.append(self.data.qpos[:3].copy())
+            arrived, failed = self.outcome(goal, obstacles)
+            if arrived or failed:
+                break
+        return {"length": len(actions), "success": arrived, "crashed": failed,
+                "actions": np.asarray(actions, np.float32 if self.continuous else np.int32), "obs": np.asarray(seen),
+                "pos": np.asarray(pos)}

@@ -1,0 +1,91 @@
+"""The run's budget (:attr:`jaxrobo.training.trainer.Trainer.budget`): the seed's per-env episode budget (the
+default, unchanged), the step budget ``total_steps`` and the run-wide episode budget ``total_episodes``, each
+independent of the chunk length, with the useful share of env slots reported."""
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from jaxrobo.core.config import ConfigError
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import Trainer, train
+
+SMALL = dict(n_envs=8, nepisodes=5, nsteps=40, chunk_steps=25, eval_episodes=2, eval_envs=2, backend="analytic")
+
+
+def _run(**overrides):
+    spec = resolve("CartPoleStayUp-v0", overrides={**SMALL, **overrides})
+    return spec, train(spec.env, spec.config, spec.agent_params)
+
+
+def test_the_step_budget_keeps_every_slot_busy_and_counts_whole_episodes():
+    spec, r = _run(total_steps=8 * 100, chunk_steps=25)
+    t = Trainer(spec.env, spec.config)
+    assert t.budget == "steps" and t.steps_per_env == 100 and t.max_chunks() == 4
+    assert r.env_steps == 800 and r.slot_steps == 800 and r.useful_share == 1.0
+    done = np.asarray(r.episodes_done)
+    # records hold whole episodes only: each env's recorded lengths sum to at most its 100 steps
+    for e in range(8):
+        n = int(done[e])
+        assert n >= 1 and int(r.lengths[e, :n].sum()) <= 100
+        assert np.all(r.lengths[e, :n] > 0) and np.all(r.lengths[e, n:] == 0)
+    s = r.summary()
+    assert s["budget"] == "steps" and s["total_steps"] == 800 and s["useful_share"] == 1.0
+    assert s["episodes_finished"] >= s["episodes_recorded"] >= 8
+
+
+def test_the_step_budget_does_not_depend_on_the_chunk_length():
+    _, a = _run(total_steps=8 * 90, chunk_steps=25)
+    _, b = _run(total_steps=8 * 90, chunk_steps=7)
+    for name in ("q", "returns", "lengths", "terminated", "env_steps", "eval_returns"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), err_msg=name)
+    assert a.useful_share < 1.0  # 90 steps in chunks of 25: the last chunk is part-useful
+    assert a.useful_share == pytest.approx(90 / 100)
+
+
+def test_the_run_episode_budget_counts_episodes_of_the_whole_run():
+    spec, r = _run(total_episodes=30, shared_table=True, chunk_steps=10)
+    assert Trainer(spec.env, spec.config).budget == "run_episodes"
+    total = int(r.episodes_finished)
+    # every env keeps feeding the table until the run has 30 episodes; the step that crosses may add a few
+    assert 30 <= total < 30 + 8
+    assert r.summary()["budget"] == "run_episodes"
+
+
+def test_the_episode_budget_is_the_default_and_unchanged():
+    spec, r = _run()
+    assert Trainer(spec.env, spec.config).budget == "episodes"
+    assert np.all(np.asarray(r.episodes_done) == 5) and r.recorded() is None
+    assert 0 < r.useful_share <= 1.0
+
+
+@pytest.mark.parametrize("overrides, fragment", [
+    (dict(total_steps=100, total_episodes=10), "give one run-wide budget"),
+    (dict(total_steps=-1), "total_steps"),
+    (dict(total_episodes=2**31 - 2), "total_episodes"),
+    (dict(total_steps=2**40, n_envs=2), "steps per env"),
+])
+def test_bad_budgets_are_refused_naming_the_key(overrides, fragment):
+    with pytest.raises(ConfigError, match=fragment):
+        resolve("CartPoleStayUp-v0", overrides={**SMALL, **overrides})
+
+
+def test_the_cli_reports_useful_share_and_wall_split(tmp_path, capsys):
+    from jaxrobo.cli import main
+
+    out = tmp_path / "run"
+    rc = main(["train", "--env", "CartPoleStayUp-v0", "--set", "env.backend=analytic", "--n-envs", "4",
+               "--total-steps", "200", "--set", "chunk_steps=25", "--set", "nsteps=40", "--set", "eval_episodes=2",
+               "--no-progress", "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "100.0% of the 200 env slots stepped were useful" in text and "wall: compile" in text
+    s = json.loads((out / "summary.json").read_text())
+    assert s["useful_share"] == 1.0 and s["env_slots"] == 200
+    for key in ("compile_seconds", "run_seconds", "eval_seconds", "write_seconds"):
+        assert s[key] >= 0
+    # live TensorBoard scalars were written during the run (flushed each chunk)
+    assert list((out / "tensorboard").glob("events.out.tfevents.*"))

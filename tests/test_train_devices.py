@@ -1,0 +1,62 @@
+"""``jaxrobo train`` over several devices (``ExecutionPlan.devices``): on 4 forced host devices the tables, records
+and counters are those of one device, bit for bit, per-env tables and a shared table alike, under every budget;
+the CLI splits its envs over every device by default and writes one run directory.
+
+XLA_FLAGS must be set before JAX starts, so the check runs in a subprocess (compiled at a low optimisation level on
+both sides)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+CHILD = r"""
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import jax, numpy as np
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import train
+
+small = dict(n_envs=8, nepisodes=4, nsteps=40, chunk_steps=25, eval_episodes=2, eval_envs=2, backend="analytic")
+out = {"devices": jax.device_count(), "cases": {}}
+for name, extra in {"per_env": {}, "shared": {"shared_table": True}, "steps": {"total_steps": 8 * 60},
+                    "run_episodes": {"total_episodes": 20, "shared_table": True},
+                    "pallas": {"fused": "pallas"}}.items():
+    res = {}
+    for d in (1, 4):
+        spec = resolve("CartPoleStayUp-v0", overrides={**small, **extra, "devices": d})
+        res[d] = train(spec.env, spec.config, spec.agent_params)
+    out["cases"][name] = {
+        "plan": res[4].plan,
+        "same": {k: bool(np.array_equal(np.asarray(getattr(res[1], k)), np.asarray(getattr(res[4], k))))
+                 for k in ("q", "returns", "lengths", "terminated", "env_steps", "eval_returns")}}
+from jaxrobo.cli import main
+rc = main(["train", "--env", "CartPoleStayUp-v0", "--set", "env.backend=analytic", "--n-envs", "6",
+           "--total-steps", "300", "--set", "chunk_steps=25", "--set", "nsteps=40", "--set", "eval_episodes=2",
+           "--no-progress", "--out", sys.argv[2]])
+out["cli_rc"] = rc
+print("RESULT" + json.dumps(out))
+"""
+
+
+def test_several_devices_give_the_one_device_tables(tmp_path):
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": "off",
+           "XLA_FLAGS": "--xla_force_host_platform_device_count=4 --xla_backend_optimization_level=0"}
+    run = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-c", CHILD, ROOT, str(run)], env=env, capture_output=True, text=True,
+                          timeout=1500)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.split("RESULT", 1)[1])
+    assert out["devices"] == 4
+    for name, case in out["cases"].items():
+        assert "devices=4" in case["plan"], (name, case["plan"])
+        assert all(case["same"].values()), (name, case["same"])
+    assert "fused=pallas" in out["cases"]["pallas"]["plan"]
+    # the CLI: 6 envs over the most of the 4 devices that divide 6 (3), one run directory
+    assert out["cli_rc"] == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert "devices=3" in summary["execution_plan"] and summary["env_steps"] == 300
+    assert not list(tmp_path.glob(".run.*"))  # no staging left beside it
