@@ -4,11 +4,12 @@ imports it by name (its ``BUILTIN_ENVS`` entry point) the first time an id is lo
 
 Each family keeps its MJCF, robot, tasks, env YAML and fast kernels side by side::
 
-    cartpole/     cartpole.xml  robot.py (CartPoleRobot)  dynamics.py (closed form, also the kernels' source)
-                  stay_up.py (CartPoleStayUp-v0, -LeftRight-v0)  continuous.py (CartPoleContinuous-v0)
-                  cartpole_stay_up.yaml
-    quadcopter/   quadcopter.xml  robot.py (QuadcopterRobot: Twist controller, sonar)  rigid_body.py (closed form)
-                  kernel.py (the control step as one Pallas kernel)  live_show.py  goto.py  goto_v2.py
+    cartpole/     cartpole.xml  robot.py (CartPoleRobot)  dynamics.py (closed form: the XLA path's and the
+                  Pallas chunk kernel's one source)  stay_up.py (CartPoleStayUp-v0, -LeftRight-v0)
+                  continuous.py (CartPoleContinuous-v0)  cartpole_stay_up.yaml
+    quadcopter/   quadcopter.xml  robot.py (Quadcopter: Twist controller, sonar)  dynamics.py (controller and
+                  rigid-body step per coordinate: the XLA path's and the kernels' one source)  rigid_body.py
+                  (closed form)  kernel.py (the control step as one Pallas kernel)  live_show.py  goto.py  goto_v2.py
                   goto_kernel.py (the Goto step as one Pallas kernel)  goto_twist.py  quadcopter_*.yaml
     arm/          arm.xml  robot.py (ArmRobot)  reach.py (ArmReach-v0)  arm_reach.yaml
 

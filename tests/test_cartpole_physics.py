@@ -14,7 +14,7 @@ import pytest
 
 from envs import asset_path
 from envs.cartpole.robot import CartPoleRobot
-from jaxrobo.physics.sim import MjxState, check_same_dynamics, load_model, make_simulator, mjx
+from jaxrobo.physics.sim import JointState, MjxState, check_same_dynamics, load_model, make_simulator, mjx
 
 # Runs in a fresh interpreter because float64 must be switched on before JAX starts. Each backend steps the
 # robot's own model (the MJCF as shipped) through 500 physics steps of a swinging trajectory beside native MuJoCo.
@@ -208,6 +208,30 @@ def test_analytic_backend_tracks_mjx_in_float32():
         traces.append(np.array(obs))
     assert np.abs(traces[0][:, 2]).max() > 0.1, "the pole should move"
     np.testing.assert_allclose(traces[1], traces[0], atol=2e-4)
+
+
+@pytest.mark.parametrize("control_type", ["velocity", "position", "effort"])
+def test_the_kernels_coordinate_step_is_the_physics_step(control_type):
+    """``CartPoleSim.coordinate_step`` (what the Pallas chunk kernel runs on its ``[block]`` vectors) and
+    ``physics_step`` (the XLA path, on stacked coordinates) are one set of equations: 256 random states and
+    controls, one step, equal bit for bit op by op and compiled, and with the kernel's own ``sin``/``cos``
+    passed in, those are the ones used."""
+    sim = CartPoleRobot(control_type, "analytic", running_step=0.01, timestep=0.01).sim
+    k = jax.random.split(jax.random.key(0), 3)
+    q = jax.random.uniform(k[0], (256, 2), minval=-1.5, maxval=1.5)
+    v = jax.random.uniform(k[1], (256, 2), minval=-3.0, maxval=3.0)
+    u = jax.random.uniform(k[2], (256, 1), minval=-2.0, maxval=2.0)
+    stacked = lambda q, v, u: jax.vmap(sim.physics_step)(JointState(q, v), u)  # noqa: E731
+    columns = lambda q, v, u, sincos=None: sim.coordinate_step(q[:, 0], q[:, 1], v[:, 0], v[:, 1], (u[:, 0],),  # noqa: E731
+                                                               sincos)
+    with jax.disable_jit():
+        runs = [(stacked(q, v, u), columns(q, v, u))]
+    runs.append((jax.jit(stacked)(q, v, u), jax.jit(columns)(q, v, u)))
+    for xla, coords in runs:
+        for got, want in zip(coords, (xla.qpos[:, 0], xla.qpos[:, 1], xla.qvel[:, 0], xla.qvel[:, 1])):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    crude = columns(q, v, u, lambda th: (th, 1.0 - 0.5 * th * th))  # small-angle sin/cos: other values
+    assert not np.array_equal(np.asarray(crude[2]), np.asarray(runs[1][0].qvel[:, 0]))
 
 
 def test_analytic_backend_refuses_what_it_cannot_model():

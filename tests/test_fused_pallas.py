@@ -3,9 +3,10 @@ interpret mode on CPU and held to the plain path as its oracle.
 
 What is exact and what is not: the kernel draws JAX's own threefry numbers and writes the same step in the same
 order, so keys, actions, table updates, resets, records and counters follow the plain path bit for bit. The
-physics is written per coordinate (the env's step stacks the coordinates, which needs slices Pallas's Triton
-lowering lacks), and XLA rounds the two forms differently in the last bit, so the continuous state is compared
-with a tolerance. For these seeds no such difference moves a state across a bin edge, so the tables and records
+physics is the simulator's own equations, per coordinate in the kernel (``CartPoleSim.coordinate_step``) and on
+stacked coordinates in the env's step; op by op they agree bit for bit (``tests/test_cartpole_physics.py``), but
+XLA fuses the two programs differently and contracts a multiply and an add within a fusion into one FMA, so the
+continuous state is compared with a tolerance. For these seeds no such difference moves a state across a bin edge, so the tables and records
 are equal; in a long run one does, after which tabular learning takes another path (docs/benchmarks.md, "Pallas").
 """
 from __future__ import annotations

@@ -2,8 +2,10 @@
 (:mod:`envs.quadcopter.goto_kernel`), run here interpreted on a CPU and held to the task's own hooks (the plain
 ``TaskEnv.step``) as its oracle.
 
-The kernel writes the hooks' equations per coordinate, which XLA rounds differently in the last bits, so a step
-agrees to float32 round-off; the discrete parts (done flags, arrivals, crashes, the NaN guard) agree exactly for
+The kernel flies the robot with the XLA step's own controller and physics (:mod:`envs.quadcopter.dynamics`) and
+writes the task's hooks per coordinate; XLA fuses the two programs differently (contracting a multiply and an add
+within a fusion into one FMA) and reads the sensors through other operations, so a step agrees to float32
+round-off; the discrete parts (done flags, arrivals, crashes, the NaN guard) agree exactly for
 the states here, none of which sits on a threshold to round-off.
 """
 from __future__ import annotations

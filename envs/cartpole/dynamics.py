@@ -22,10 +22,19 @@ mass at distance ``l`` above the hinge, its inertia ``I`` about the hinge-parall
     M q̈ = [F_x + m_p l sin θ θ̇²,  τ_θ + m_p g l sin θ]
 
 with ``a`` the joint armatures and ``F_x``, ``τ_θ`` the actuator forces on the two joints.
+
+Written once: :func:`accelerations` (the actuator forces and the 2×2 solve) and :func:`euler` (the integration)
+are the equations, on scalars or arrays of any common shape. :meth:`CartPoleSim.physics_step`, the XLA path, calls
+them on one env's coordinates and integrates the stacked ``[x, θ]`` vectors; :meth:`CartPoleSim.coordinate_step`
+calls them on the four coordinates held apart, which is what the Pallas chunk kernel
+(:mod:`jaxrobo.speed.fused_pallas`) runs on its ``[block]`` vectors, reaching it through the env's simulator and
+passing its own ``sin``/``cos`` on a GPU. Op by op the two forms give the same bits
+(``tests/test_cartpole_physics.py``).
 """
 from __future__ import annotations
 
 import dataclasses
+from typing import Any, Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -151,32 +160,64 @@ class CartPoleSim(ClosedFormSim):
         """One step; ``physics``: one env's factors (domain randomisation, :func:`randomised`)."""
         c = self.constants if physics is None else randomised(self.constants, physics)
         q, v = state.qpos, state.qvel
-        x, th, xd, thd = q[0], q[1], v[0], v[1]
-        # Actuators (mj_fwdActuation): clamp ctrl, force = gain u + b0 + b1 length + b2 velocity, clamp force,
-        # then map to the joints by the gear. Written per actuator and coordinate over host constants, so only
-        # the non-zero terms are traced and the step stays a chain of scalar multiply-adds that XLA fuses.
-        generalized = [0.0, 0.0]
-        for j in range(c.gain.shape[0]):
-            gear = c.transmission[:, j]
-            length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
-            velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
-            u = _clip(ctrl[j], c.ctrl_low[j], c.ctrl_high[j])
-            force = float(c.gain[j]) * u + float(c.bias[0, j])
-            force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
-            force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
-            force = _clip(force, c.force_low[j], c.force_high[j])
-            generalized = [f + float(g) * force if g else f for f, g in zip(generalized, gear)]
-        # Dynamics: solve the 2×2 system M q̈ = rhs in closed form.
-        sin, cos = jnp.sin(th), jnp.cos(th)
-        coupling = c.pole_mass_length * cos
-        rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
-        rhs_th = generalized[1] + c.pole_mass_length * c.gravity * sin
-        inv_det = 1.0 / (c.total_mass * c.pole_inertia - coupling * coupling)
-        acc = jnp.stack([c.pole_inertia * rhs_x - coupling * rhs_th, c.total_mass * rhs_th - coupling * rhs_x])
-        # Semi-implicit Euler, as MuJoCo: velocities first, positions with the new velocities. (Whole-vector
-        # updates: on a CPU they vectorise better than per-coordinate ones over the batch.)
-        v = v + self.timestep * (acc * inv_det)
-        return JointState(q + self.timestep * v, v)
+        acc_x, acc_th, inv_det = accelerations(c, q[0], q[1], v[0], v[1], ctrl)
+        # Whole-vector updates: on a CPU they vectorise better than per-coordinate ones over the batch.
+        q, v = euler(q, v, jnp.stack([acc_x, acc_th]), inv_det, self.timestep)
+        return JointState(q, v)
+
+    def coordinate_step(self, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
+                        sincos: SinCos = None) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+        """:meth:`physics_step` on the four coordinates ``(x, θ, ẋ, θ̇)`` held apart (scalars or same-shape
+        arrays, as a Pallas kernel holds them: it has no slice), with ``ctrl`` one value per actuator and
+        ``sincos`` the kernel's own ``θ -> (sin θ, cos θ)`` (default ``jnp.sin``/``jnp.cos``). The same
+        functions, hence the same operations on each element, as :meth:`physics_step`."""
+        acc_x, acc_th, inv_det = accelerations(self.constants, x, th, xd, thd, ctrl, sincos)
+        x, xd = euler(x, xd, acc_x, inv_det, self.timestep)
+        th, thd = euler(th, thd, acc_th, inv_det, self.timestep)
+        return x, th, xd, thd
+
+
+#: ``θ -> (sin θ, cos θ)``; None: ``jnp.sin``, ``jnp.cos``.
+SinCos = Optional[Callable[[jax.Array], tuple[jax.Array, jax.Array]]]
+
+
+def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
+                  sincos: SinCos = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The cart-pole's equations of motion, per coordinate: ``(a_x, a_θ, 1/det M)`` with ``q̈ = a / det M``.
+
+    ``ctrl[j]`` is actuator j's control. Every argument may be a scalar or an array of any common shape
+    (``[block]`` vectors in the Pallas kernel, one env's values under ``vmap``); ``sincos`` lets a kernel use its
+    own ``sin``/``cos``. The division by the determinant is left to the caller so that :meth:`CartPoleSim.
+    physics_step` scales both accelerations as one stacked vector (as it always has: the CPU's fixed-seed
+    results stay bit for bit) while a kernel scales each coordinate."""
+    # Actuators (mj_fwdActuation): clamp ctrl, force = gain u + b0 + b1 length + b2 velocity, clamp force,
+    # then map to the joints by the gear. Written per actuator and coordinate over host constants, so only
+    # the non-zero terms are traced and the step stays a chain of scalar multiply-adds that XLA fuses.
+    generalized = [0.0, 0.0]
+    for j in range(c.gain.shape[0]):
+        gear = c.transmission[:, j]
+        length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
+        velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
+        u = _clip(ctrl[j], c.ctrl_low[j], c.ctrl_high[j])
+        force = float(c.gain[j]) * u + float(c.bias[0, j])
+        force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
+        force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
+        force = _clip(force, c.force_low[j], c.force_high[j])
+        generalized = [f + float(g) * force if g else f for f, g in zip(generalized, gear)]
+    # Dynamics: solve the 2×2 system M q̈ = rhs in closed form.
+    sin, cos = (jnp.sin(th), jnp.cos(th)) if sincos is None else sincos(th)
+    coupling = c.pole_mass_length * cos
+    rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
+    rhs_th = generalized[1] + c.pole_mass_length * c.gravity * sin
+    inv_det = 1.0 / (c.total_mass * c.pole_inertia - coupling * coupling)
+    return c.pole_inertia * rhs_x - coupling * rhs_th, c.total_mass * rhs_th - coupling * rhs_x, inv_det
+
+
+def euler(q: jax.Array, v: jax.Array, acc: jax.Array, inv_det: jax.Array, dt: float) -> tuple[jax.Array, jax.Array]:
+    """Semi-implicit Euler, as MuJoCo: velocities first, positions with the new velocities; on one coordinate
+    or on the stacked ``[x, θ]`` vectors alike."""
+    v = v + dt * (acc * inv_det)
+    return q + dt * v, v
 
 
 def _clip(value: jax.Array, low: float, high: float) -> jax.Array:

@@ -15,8 +15,10 @@ What it computes: the task's hooks (:meth:`envs.quadcopter.goto.QuadcopterGoto._
 arrays of any shape (the tests run it on a CPU against the hooks themselves, which stay the task's definition).
 The geometry is the hooks' exact ray tests with the directions the task's rays have written in: the level rays'
 vertical component is 0 and the down ray is ``(0, 0, -1)``, so their parallel-slab branches are chosen while
-tracing. The kernel agrees with the XLA step to float32 round-off (the dot products are written out, and a GPU
-takes ``atan2``/``sin``/``cos`` from another library), not bit for bit.
+tracing. The robot's control step is not written here: :func:`envs.quadcopter.kernel.control_step` runs the
+XLA step's own controller and physics (:mod:`envs.quadcopter.dynamics`). The kernel agrees with the XLA step to
+float32 round-off, not bit for bit (the two programs are fused differently, and a GPU takes
+``atan2``/``sin``/``cos`` from another library).
 
 Scope (:func:`supports`): the Goto tasks with the seed's five discrete actions (v1, v2), backend ``rigid``, any
 ``n_obstacles`` (0-32; more than :data:`UNROLL_OBSTACLES` run as a loop inside the kernel), kinds ``cylinder``,

@@ -117,10 +117,11 @@ class NativeGoto:
         self.continuous = hasattr(env.action_space(), "low")  # GotoTwist: the action is the Twist
         if self.v2:
             self.grow = float(p.drone_radius) + float(p.clear_margin)
-        self.gains, self.g, self.mass = r.gains, float(r.g), float(r.mass)
-        self.inertia = np.asarray(r.inertia, np.float64)
-        self.unmix = np.asarray(r.unmix, np.float64)
-        self.ctrl_low, self.ctrl_high = np.asarray(r.ctrl_low, np.float64), np.asarray(r.ctrl_high, np.float64)
+        c = r.control  # the controller's constants (envs.quadcopter.dynamics.ControllerConstants)
+        self.gains, self.g, self.mass = r.gains, float(c.g), float(c.mass)
+        self.inertia = np.asarray(c.inertia, np.float64)
+        self.unmix = np.asarray(c.unmix, np.float64)
+        self.ctrl_low, self.ctrl_high = np.asarray(c.ctrl_low, np.float64), np.asarray(c.ctrl_high, np.float64)
         self.min_altitude = float(r.min_altitude)
 
     # ---- robot ------------------------------------------------------------------------------------------

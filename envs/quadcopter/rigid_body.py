@@ -6,7 +6,9 @@ reduces to Newton–Euler plus a quaternion update. :class:`RigidBodySim` does e
 read from the compiled :class:`mujoco.MjModel`, so the MJCF stays the single source of truth. It mirrors
 MuJoCo's semi-implicit Euler (velocities first, then positions with the new velocities; quaternions integrated
 in the body frame as ``mju_quatIntegrate`` does), so it agrees with MJX to float32 round-off over seconds of
-flight (see ``tests/test_quadcopter.py``). It subclasses :class:`jaxrobo.physics.sim.ClosedFormSim`, so the robot, the tasks
+flight (see ``tests/test_quadcopter.py``). The equations themselves live in :mod:`envs.quadcopter.dynamics`,
+written per coordinate so that the Pallas kernels run the same source; this module reads the constants and
+splits the state into coordinates and back. It subclasses :class:`jaxrobo.physics.sim.ClosedFormSim`, so the robot, the tasks
 and ``advance`` (the controller every substep) are shared with the MJX backend.
 """
 from __future__ import annotations
@@ -18,6 +20,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from envs.quadcopter.dynamics import body_constants, physics_step
 from jaxrobo.api import ClosedFormSim, JointState
 
 
@@ -76,33 +79,6 @@ def airframe_from_model(mj_model: mujoco.MjModel, body: str = "drone") -> Airfra
                     np.array(mj_model.opt.gravity), float(mj_model.opt.timestep))
 
 
-def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
-    """Hamilton product of wxyz quaternions."""
-    aw, ax, ay, az = a[0], a[1], a[2], a[3]
-    bw, bx, by, bz = b[0], b[1], b[2], b[3]
-    return jnp.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
-
-
-def quat_to_mat(q: jax.Array) -> jax.Array:
-    """Rotation matrix (body → world) of a unit wxyz quaternion."""
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
-def quat_integrate(q: jax.Array, omega_body: jax.Array, dt: float) -> jax.Array:
-    """Rotate ``q`` by ``omega_body * dt`` about the body axes (``mju_quatIntegrate``), renormalised."""
-    angle = jnp.sqrt(jnp.sum(omega_body * omega_body)) * dt
-    half = 0.5 * angle
-    # sin(half)/|omega| written to stay finite (and differentiable) at omega = 0.
-    k = jnp.where(angle > 1e-8, jnp.sin(half) / jnp.maximum(angle, 1e-8), 0.5 - half * half / 12.0) * dt
-    dq = jnp.concatenate([jnp.cos(half)[None], omega_body * k])
-    out = quat_mul(q, dq)
-    return out / jnp.sqrt(jnp.sum(out * out))
-
-
 class RigidBodySim(ClosedFormSim):
     """A :class:`~jaxrobo.physics.sim.ClosedFormSim` over Newton–Euler for one free body (backend ``rigid``).
 
@@ -111,26 +87,15 @@ class RigidBodySim(ClosedFormSim):
 
     def __init__(self, mj_model: mujoco.MjModel, running_step: float | None = None, body: str = "drone"):
         self.airframe = airframe_from_model(mj_model, body)
+        self.constants = body_constants(self.airframe)
         super().__init__(mj_model, "rigid", running_step)
 
     def physics_step(self, state: JointState, ctrl: jax.Array, physics: dict | None = None) -> JointState:
         """One step; ``physics`` (domain randomisation, :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`):
         this env's factors on mass (and inertia) and motor gain, and a world-frame force (wind)."""
-        af = self.airframe
-        dt = af.timestep
-        ctrl = jnp.clip(ctrl, jnp.asarray(af.ctrl_low, jnp.float32), jnp.asarray(af.ctrl_high, jnp.float32))
-        w = jnp.asarray(af.wrench, jnp.float32) @ ctrl
-        quat, omega = state.qpos[3:7], state.qvel[3:6]
-        inertia = jnp.asarray(af.inertia, jnp.float32)
-        mass = af.mass
-        if physics is not None:
-            w, mass, inertia = w * physics["motor_gain"], mass * physics["mass"], inertia * physics["mass"]
-        acc = quat_to_mat(quat) @ w[:3] / mass + jnp.asarray(af.gravity, jnp.float32)
-        if physics is not None:
-            acc = acc + physics["wind"] / mass
-        alpha = (w[3:] - jnp.cross(omega, inertia * omega)) / inertia
-        vel = state.qvel[:3] + dt * acc
-        omega = omega + dt * alpha
-        pos = state.qpos[:3] + dt * vel
-        quat = quat_integrate(quat, omega, dt)
-        return JointState(jnp.concatenate([pos, quat]), jnp.concatenate([vel, omega]))
+        # The equations per coordinate (envs/quadcopter/dynamics.py, which the Pallas kernels run too): the state
+        # split into its coordinates along the last axis, stepped, and stacked back.
+        q = [state.qpos[..., i] for i in range(7)]
+        v = [state.qvel[..., i] for i in range(6)]
+        q, v = physics_step(self.constants, q, v, [ctrl[..., j] for j in range(ctrl.shape[-1])], physics)
+        return JointState(jnp.stack(q, axis=-1), jnp.stack(v, axis=-1))

@@ -6,7 +6,8 @@
   every constant read from the same compiled model; agrees with MJX to round-off and is much faster). On
   ``rigid`` the robot also offers its control step as a Pallas kernel (:mod:`envs.quadcopter.kernel`), which
   ``ExecutionPlan(fused="pallas")`` runs.
-* **On-board controller** (:meth:`Quadcopter.controller`, every physics substep) - the seed's ``cmd_vel`` Twist
+* **On-board controller** (:meth:`Quadcopter.controller`, every physics substep, on every backend; its equations
+  are :func:`envs.quadcopter.dynamics.controller`, which the Pallas kernels run too) - the seed's ``cmd_vel`` Twist
   ``[vx, vy, vz, yaw_rate]`` in the heading frame (body frame with roll and pitch removed) is tracked by a
   cascade: velocity error → desired acceleration (tilt-limited) → desired roll/pitch and collective thrust →
   attitude PD and yaw-rate P → torques → rotor thrusts through the inverse of the model's mixing matrix,
@@ -26,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter.rigid_body import RigidBodySim, airframe_from_model, quat_to_mat
+from envs.quadcopter import dynamics
+from envs.quadcopter.rigid_body import RigidBodySim, airframe_from_model
 from jaxrobo.api import (MjxEdit, Robot, TaskEnv, backend_choices, load_model, make_simulator, param, pytree_dataclass,
                          randomise, spaces)
 
@@ -92,6 +94,11 @@ def euler_from_quat(q: jax.Array) -> jax.Array:
     pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
     yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
     return jnp.stack([roll, pitch, yaw])
+
+
+def quat_to_mat(q: jax.Array) -> jax.Array:
+    """Rotation matrix (body → world) of a unit wxyz quaternion."""
+    return jnp.array(dynamics.rotation(q[0], q[1], q[2], q[3]))
 
 
 def quat_from_yaw(yaw: jax.Array) -> jax.Array:
@@ -212,12 +219,8 @@ class Quadcopter(Robot):
         self.gains = gains
         self.min_altitude = float(min_altitude)
         af = airframe_from_model(mj_model)  # constants of the controller, from the same model as the physics
-        self.mass, self.inertia = af.mass, af.inertia.astype(np.float32)
-        self.g = float(-af.gravity[2])
-        mix = af.wrench[[2, 3, 4, 5], :]  # rows: thrust (body z), roll, pitch, yaw torque per rotor newton
-        self.unmix = np.linalg.inv(mix).astype(np.float32)
-        self.ctrl_low, self.ctrl_high = af.ctrl_low.astype(np.float32), af.ctrl_high.astype(np.float32)
-        self.hover_thrust = self.mass * self.g / mix[0].sum()
+        self.control = dynamics.controller_constants(af, gains, self.min_altitude)
+        self.hover_thrust = af.mass * self.control.g / af.wrench[2].sum()
         self._body = int(mj_model.nbody - 1)  # the drone: the one body after the world
         if backend == "rigid":  # the control step as one Pallas kernel, for ExecutionPlan(fused="pallas")
             from envs.quadcopter.kernel import make_advance
@@ -255,31 +258,12 @@ class Quadcopter(Robot):
         return qpos, jnp.zeros(6, jnp.float32)
 
     def controller(self, pipeline_state: Any, command: jax.Array) -> jax.Array:
-        """Twist → rotor thrusts (N): the on-board velocity → attitude/thrust → mixing cascade."""
-        k, g = self.gains, self.g
+        """Twist → rotor thrusts (N): the on-board velocity → attitude/thrust → mixing cascade
+        (:func:`envs.quadcopter.dynamics.controller`, on the state split into its coordinates)."""
         q, v = self.sim.qpos(pipeline_state), self.sim.qvel(pipeline_state)
-        roll, pitch, yaw = euler_from_quat(q[3:7])
-        omega = v[3:6]
-        vz_cmd = command[2]
-        if self.min_altitude > 0:
-            vz_cmd = jnp.maximum(vz_cmd, k.k_floor * (self.min_altitude - q[2]))
-        c, s = jnp.cos(yaw), jnp.sin(yaw)
-        vx_h, vy_h = c * v[0] + s * v[1], -s * v[0] + c * v[1]
-        a_max = g * np.tan(k.max_tilt)
-        ax = jnp.clip(k.k_vel_xy * (command[0] - vx_h), -a_max, a_max)
-        ay = jnp.clip(k.k_vel_xy * (command[1] - vy_h), -a_max, a_max)
-        az = jnp.clip(k.k_vel_z * (vz_cmd - v[2]), -k.max_acc_down, k.max_acc_up)
-        pitch_d = jnp.clip(jnp.arctan2(ax, g + az), -k.max_tilt, k.max_tilt)
-        roll_d = jnp.clip(jnp.arctan2(-ay, g + az), -k.max_tilt, k.max_tilt)
-        thrust = self.mass * (g + az) / jnp.maximum(jnp.cos(roll) * jnp.cos(pitch), 0.5)
-        inertia = jnp.asarray(self.inertia)
-        torque = inertia * jnp.stack([
-            k.k_att * (roll_d - roll) - k.k_rate * omega[0],
-            k.k_att * (pitch_d - pitch) - k.k_rate * omega[1],
-            k.k_yaw * (command[3] - omega[2]),
-        ])
-        rotors = jnp.asarray(self.unmix) @ jnp.concatenate([thrust[None], torque])
-        return jnp.clip(rotors, jnp.asarray(self.ctrl_low), jnp.asarray(self.ctrl_high))
+        rotors = dynamics.controller(self.control, [q[..., i] for i in range(7)], [v[..., i] for i in range(6)],
+                            [command[..., j] for j in range(4)])
+        return jnp.stack(rotors, axis=-1)
 
     def read_sensors(self, pipeline_state: Any) -> dict[str, jax.Array]:
         """Pose and velocities: ``pos`` (m), ``quat`` (wxyz), ``rpy`` (rad), ``vel`` (world, m/s),

@@ -18,12 +18,16 @@ logic instructions (docs/benchmarks.md, "Pallas"), which these take out.
 It is :meth:`jaxrobo.training.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the same
 random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.core.rng` does
 (Threefry-2x32, JAX's partitionable layout: uint32 add, rotate, xor), so the draws are ``jax.random``'s own. On a
-CPU (``interpret=True``, what the tests run) keys, actions, updates, resets and records follow the plain path bit
-for bit while the physics state agrees to its last bits: the physics is written per coordinate over ``[block]``
-vectors (the env's own step stacks the coordinates and slices them, and the Triton lowering has no slice), which
-XLA rounds differently in the last bit. Once such a bit moves a state across a bin edge the runs part ways, as
-any last-bit change does in tabular learning; on a GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so
-the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
+The physics is the simulator's own: the kernel calls :meth:`CartPoleSim.coordinate_step
+<envs.cartpole.dynamics.CartPoleSim.coordinate_step>` of ``trainer.env``'s simulator (jaxrobo reaches the envs
+only through objects it is given) on ``[block]`` vectors of the four coordinates, the same equations the env's
+step runs on stacked coordinates (the Triton lowering has no slice, so the kernel cannot take the stacked form),
+with its own ``sin``/``cos`` on a GPU. On a CPU (``interpret=True``, what the tests run) keys, actions, updates,
+resets and records follow the plain path bit for bit while the physics state agrees to its last bits: op by op
+the two forms give the same bits, but XLA fuses the kernel's program and the env's step differently and
+contracts a multiply and an add that share a fusion into one FMA, which rounds once instead of twice. Once such
+a bit moves a state across a bin edge the runs part ways, as any last-bit change does in tabular learning; on a
+GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
 
 Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
 for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
@@ -186,9 +190,8 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 
 def _make_kernel(static):
-    (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, consts,
-     timestep, n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled,
-     steps_budget) = static
+    (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, coordinate_step,
+     n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled, steps_budget) = static
     n_cols = len(_COLS)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
@@ -250,41 +253,16 @@ def _make_kernel(static):
             return jnp.where(coin < epsilon, random_action, choice)
 
         def physics(x, th, xd, thd, ctrl, written_out=False):
-            # CartPoleSim.physics_step term by term (same constants, same order).
-            c = consts
-            generalized = [0.0, 0.0]
-            for j in range(c.gain.shape[0]):
-                gear = c.transmission[:, j]
-                length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
-                velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
-                u = ctrl
-                if np.isfinite(c.ctrl_low[j]):
-                    u = jnp.maximum(u, float(c.ctrl_low[j]))
-                if np.isfinite(c.ctrl_high[j]):
-                    u = jnp.minimum(u, float(c.ctrl_high[j]))
-                force = float(c.gain[j]) * u + float(c.bias[0, j])
-                force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
-                force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
-                if np.isfinite(c.force_low[j]):
-                    force = jnp.maximum(force, float(c.force_low[j]))
-                if np.isfinite(c.force_high[j]):
-                    force = jnp.minimum(force, float(c.force_high[j]))
-                generalized = [gf + float(g) * force if g else gf for gf, g in zip(generalized, gear)]
+            # The simulator's own equations (CartPoleSim.coordinate_step), on [block] vectors, with the kernel's
+            # sin/cos; the one actuator takes the command.
             if approx_sincos:
-                sin, cos = (libdevice_sincos.inline_ptx(f"{op}.approx.f32 $0, $1;", th) for op in ("sin", "cos"))
+                sincos = lambda t: tuple(  # noqa: E731
+                    libdevice_sincos.inline_ptx(f"{op}.approx.f32 $0, $1;", t) for op in ("sin", "cos"))
             elif written_out:
-                sin, cos = libdevice_sincos.sincos(th)
+                sincos = libdevice_sincos.sincos
             else:
-                sin, cos = jnp.sin(th), jnp.cos(th)
-            coupling = c.pole_mass_length * cos
-            rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
-            rhs_th = generalized[1] + c.pole_mass_length * c.gravity * sin
-            inv_det = 1.0 / (c.total_mass * c.pole_inertia - coupling * coupling)
-            acc_x = c.pole_inertia * rhs_x - coupling * rhs_th
-            acc_th = c.total_mass * rhs_th - coupling * rhs_x
-            xd = xd + timestep * (acc_x * inv_det)
-            thd = thd + timestep * (acc_th * inv_det)
-            return x + timestep * xd, th + timestep * thd, xd, thd
+                sincos = None
+            return coordinate_step(x, th, xd, thd, (ctrl,), sincos)
 
         def finite(v):
             return jnp.abs(v) < jnp.inf
@@ -540,7 +518,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
 
     strides = tuple(int(v) for v in np.cumprod((disc.bins[1:] + (1,))[::-1])[::-1])
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
-              tuple(int(b) for b in disc.bins), sim.constants, float(sim.timestep), int(sim.n_substeps),
+              tuple(int(b) for b in disc.bins), sim.coordinate_step, int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
               bool(SKIP_RESETS), bool(GROUP_RESETS), bool(FAST_SINCOS) and libdevice_sincos.verified(),
               bool(APPROX_SINCOS) and gpu, tiled, trainer.steps_per_env if trainer.budget == "steps" else 0)
