@@ -43,7 +43,8 @@ def _train(args: argparse.Namespace) -> int:
     """``jaxrobo train``: a fresh run into ``--out``, or ``--resume DIR``; exit 130/143 after SIGINT/SIGTERM with a
     resumable directory (:mod:`jaxrobo.io.rundir` has the rules of run directories)."""
     try:
-        return _train_checked(args)
+        with contextlib.ExitStack() as hold:  # the run directory's lock, released on any exit
+            return _train_checked(args, hold)
     except KeyboardInterrupt:  # before the handlers are installed or after a second signal: nothing half-written
         print("jaxrobo train: interrupted", file=sys.stderr)
         return 130
@@ -70,9 +71,9 @@ def _train_spec(args: argparse.Namespace):
         spec = resolve(env_id, args.preset or "default", overrides, agent=args.agent)
         out = args.out or os.path.join("training_results",
                                        f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
-        rundir.check_out(out, overwrite=args.overwrite)
+        out = rundir.check_out(out, overwrite=args.overwrite)
         return spec, out
-    given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent), ("--preset", args.preset),
+    given = [flag for flag, value in (("--agent", args.agent), ("--preset", args.preset),
                                       ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
                                       ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
              if value is not None]
@@ -80,13 +81,14 @@ def _train_spec(args: argparse.Namespace):
     if given:
         raise ConfigError(f"--resume {resume}: the run goes on with its own config.yaml and directory; "
                           f"drop {', '.join(given)}")
-    rundir.check_out(resume, resume=True, flag="--resume")
-    try:
-        with open(os.path.join(resume, "config.yaml")) as f:
-            saved = yaml.safe_load(f)
-    except (OSError, yaml.YAMLError) as err:
-        raise ConfigError(f"--resume {resume}: cannot read config.yaml ({err})") from err
-    return spec_from_config(saved if isinstance(saved, dict) else {}), resume
+    resume = rundir.check_out(resume, resume=True, flag="--resume")
+    from jaxrobo.core.config import load_yaml
+
+    saved = load_yaml(os.path.join(resume, "config.yaml"), where=f"--resume {resume}: config.yaml")
+    if args.env is not None and args.env != saved.get("env_id"):
+        raise ConfigError(f"--env {args.env}: the run in --resume {resume} is of env_id {saved.get('env_id')!r}; "
+                          "with --resume, --env only confirms a 'module:Id' to import (drop it or give that id)")
+    return spec_from_config(saved, where=f"--resume {resume}", trusted_env=args.env), resume
 
 
 def _progress_bar(nepisodes: int, initial):
@@ -146,11 +148,11 @@ def _deep_spec(args: argparse.Namespace, agent: str):
     find(env_id, where=f"--env {env_id}")
     spec = deep.resolve(env_id, agent, args.preset or "default", overrides)
     out = args.out or os.path.join("training_results", f"{spec.env_id}_{agent}_{time.strftime('%Y%m%d-%H%M%S')}")
-    rundir.check_out(out, overwrite=args.overwrite)
+    out = rundir.check_out(out, overwrite=args.overwrite)
     return spec, out
 
 
-def _train_deep(args: argparse.Namespace, agent: str) -> int:
+def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack) -> int:
     """``jaxrobo train --agent ppo|sac``: Brax's trainer on the env's Brax face, into a run directory that is
     checked before anything compiles and published whole (:mod:`jaxrobo.deep`, :mod:`jaxrobo.io.rundir`)."""
     import shlex
@@ -164,6 +166,7 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
 
     try:
         spec, out = _deep_spec(args, agent)
+        hold.enter_context(rundir.claimed(out, overwrite=args.overwrite))
     except ConfigError as err:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
@@ -276,7 +279,7 @@ def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
         raise
 
 
-def _train_checked(args: argparse.Namespace) -> int:
+def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     import shlex
 
     from jaxrobo.training import checkpoint, driver
@@ -288,9 +291,11 @@ def _train_checked(args: argparse.Namespace) -> int:
     resume = args.resume
     agent = _deep_agent(args)
     if agent is not None:
-        return _train_deep(args, agent)
+        return _train_deep(args, agent, hold)
     try:
         spec, out = _train_spec(args)
+        hold.enter_context(rundir.claimed(out, overwrite=args.overwrite, resume=resume is not None,
+                                          flag="--out" if resume is None else "--resume"))
         cfg = spec.config
         trainer = training.Trainer(spec.env, cfg)
         template = checkpoint.carry_template(trainer, spec.agent_params)

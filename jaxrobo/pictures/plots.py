@@ -15,6 +15,8 @@ from typing import Sequence
 
 import numpy as np
 
+from jaxrobo.io import rundir
+
 from jaxrobo.core.config import ConfigError
 from jaxrobo.io.results import load_config, load_stats
 
@@ -116,6 +118,6 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
         ax.grid(alpha=0.3)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
-    fig.savefig(out_png, dpi=110)
+    rundir.atomic_savefig(fig, out_png, dpi=110)
     plt.close(fig)
     return out_png

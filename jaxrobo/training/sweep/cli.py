@@ -105,7 +105,7 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
         out = args.out or os.path.join("sweep_results", f"{env_id.rpartition(':')[2]}_"
                                                         f"{time.strftime('%Y%m%d-%H%M%S')}")
         if check_out:
-            rundir.check_out(out, overwrite=args.overwrite)
+            out = rundir.check_out(out, overwrite=args.overwrite)
         flags = {k: SWEEP_FLAGS[k] if v is None else v for k, v in given.items()}
         return out, flags, list(sys.argv)
     live = args.resume
@@ -114,7 +114,7 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
                           "other replaces it)")
     if args.out is not None:
         raise ConfigError(f"--out {args.out}: a resumed sweep finishes where it was going to; drop --out")
-    rundir.check_out(live, resume=True, flag="--resume")
+    live = rundir.check_out(live, resume=True, flag="--resume")
     extra = read_state(live).get("extra", {})
     saved = extra.get("flags")
     if not isinstance(saved, dict) or set(saved) != set(SWEEP_FLAGS):
@@ -123,8 +123,13 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
         if v is not None and _canonical(v) != saved[k]:
             raise ConfigError(f"--resume {live}: {_flag(k)} {_show(v)} differs from the saved sweep's "
                               f"{_flag(k)} {_show(saved[k])}; a resumed sweep keeps its settings (drop the flag)")
-    find(saved["env"], where=f"--resume {live}: env {saved['env']}")  # a 'module:Id' imports its module again
-    out = (rundir.read_status(live) or {}).get("out") or live
+    # A 'module:Id' read back from the state imports its module only when --env gives it again (a file read back
+    # never makes jaxrobo run code by itself).
+    find(saved["env"], where=f"--resume {live}: env {saved['env']}", may_import=given["env"] == saved["env"])
+    # Where the results go is derived from DIR itself, never from a path recorded in it: the sweep may have been
+    # moved (a recorded path would write into, and replace, whatever is there now). DIR, or for the hidden
+    # staging sibling of an --overwrite sweep (.NAME.<r>.partial), the run NAME beside it.
+    out = rundir.run_name(live)
     return out, dict(saved), list(extra.get("argv") or [])
 
 
@@ -163,14 +168,17 @@ def run(args: argparse.Namespace, *, compiler_options: Mapping[str, Any] | None 
     """``jaxrobo sweep`` (see :func:`_run`); Ctrl-C before the sweep's own handlers are in place exits with 130
     and one line (nothing is half-written: the state and the results are written atomically).
     ``compiler_options``: XLA options for every group's plan (part of the sweep's saved settings)."""
+    import contextlib
+
     try:
-        return _run(args, compiler_options)
+        with contextlib.ExitStack() as hold:  # the output directory's lock (process 0), released on any exit
+            return _run(args, compiler_options, hold)
     except KeyboardInterrupt:
         print("jaxrobo sweep: interrupted", file=sys.stderr)
         return 128 + signal.SIGINT
 
 
-def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = None) -> int:
+def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = None, hold: Any = None) -> int:
     """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best.
 
     The sweep's state (``status.json``, ``sweep_state.json``, ``checkpoint.npz`` with the finished groups) lives
@@ -186,7 +194,7 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         sharding.initialize_distributed()  # a no-op unless JAXROBO_COORDINATOR & co. are set (docs/scaling.md)
         main_process = jax.process_index() == 0
         out, flags, argv = sweep_flags(args, check_out=main_process)
-        live = args.resume  # where the state is; a new sweep's is chosen by process 0 below
+        live = None if args.resume is None else rundir.resolve_out(args.resume, "--resume")  # where the state is
         f = argparse.Namespace(**flags)
         if f.seeds < 1:
             raise ConfigError(f"--seeds {f.seeds}: must be >= 1")
@@ -204,6 +212,9 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         seeds = list(range(f.seed, f.seed + f.seeds))
         plan = plan_sweep(f.env, points, seeds, f.preset, f.agent, overrides, f.eval_episodes,
                           compiler_options=compiler_options)
+        if main_process and hold is not None:  # one writer per directory (a second is refused with the pid)
+            hold.enter_context(rundir.claimed(live or out, overwrite=args.overwrite, resume=live is not None,
+                                              flag="--out" if live is None else "--resume"))
         if args.resume is not None:
             open_state(live, plan)  # refuses a state of other settings or code before anything compiles
         mesh = None
