@@ -279,6 +279,22 @@ def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
         raise
 
 
+def _drop_if_unresumable(live: str, out: str):
+    """An exit callback (``ExitStack.push``) for a new run: an error (a full or read-only disk) before its first
+    checkpoint removes the directory it had created, so that no run directory is left without a checkpoint, and
+    says so; one with a checkpoint is left to :func:`_resumable_on_error`."""
+    from jaxrobo.io import rundir
+
+    def on_exit(exc_type, _exc, _tb) -> bool:
+        if exc_type is not None and issubclass(exc_type, Exception) and not rundir.is_resumable(live):
+            rundir.discard(live)
+            kept = "" if os.path.abspath(live) == os.path.abspath(out) else f" ({out} still holds the run it had)"
+            print(f"jaxrobo train: the run failed before its first checkpoint; nothing was kept{kept}",
+                  file=sys.stderr)
+        return False
+    return on_exit
+
+
 def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     import shlex
 
@@ -309,6 +325,8 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         return 2
 
     live = out if resume is not None else rundir.live_dir(out)
+    if resume is None:  # a failure before the first checkpoint leaves no run directory without one
+        hold.push(_drop_if_unresumable(live, out))
     if resume is None:
         write_config(live, spec.to_dict())
     n_chunks = trainer.max_chunks()
@@ -515,13 +533,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     with quiet_imports():
         import mujoco.mjx  # noqa: F401  (import once, silently: MJX prints warp import noise)
-    try:
-        from jaxrobo.speed.cache import enable_compilation_cache
+    args = build_parser().parse_args(argv)  # --help and usage errors exit here, before the cache is touched
+    from jaxrobo.speed.cache import enable_or_warn
 
-        enable_compilation_cache()
-    except ImportError:
-        pass
-    args = build_parser().parse_args(argv)
+    enable_or_warn(f"jaxrobo {args.command}")
     from jaxrobo.core.config import ConfigError
 
     try:
@@ -529,6 +544,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:  # a subcommand that does not catch it itself (show), e.g. JAX 64-bit mode is on
         print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # a full, read-only or vanished target: one line naming the path, not a traceback
+        where = f" {err.filename}" if getattr(err, "filename", None) else ""
+        print(f"jaxrobo {args.command}: cannot write{where}: {err.strerror or err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

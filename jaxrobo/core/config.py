@@ -19,6 +19,10 @@ import yaml
 from jaxrobo.core.struct import Rule, rules
 
 
+#: The smallest normal and the largest finite float32 (``np.finfo(np.float32).tiny`` / ``.max``).
+FLOAT32_TINY, FLOAT32_MAX = 1.1754943508222875e-38, 3.4028234663852886e38
+
+
 class ConfigError(ValueError):
     """A configuration value is unknown, of the wrong type or out of range."""
 
@@ -143,6 +147,12 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
         value = float(value)
         if not math.isfinite(value):
             raise ConfigError(f"{loc}{key}={value!r}: must be finite")
+        # Values become float32 arrays: one that is 0, subnormal (flushed to 0 on most devices) or inf there is
+        # not the value given ("alpha=1e-320" would pass "> 0" and train nothing).
+        if value != 0 and not FLOAT32_TINY <= abs(value) <= FLOAT32_MAX:
+            raise ConfigError(f"{loc}{key}={value!r}: is {'inf' if abs(value) > FLOAT32_MAX else '0'} in float32, "
+                              f"the precision a run computes in; give 0 or a magnitude in [{FLOAT32_TINY:.4g}, "
+                              f"{FLOAT32_MAX:.4g}]")
     elif kind is tuple:
         if not isinstance(value, (list, tuple)):
             doc = f" ({rule.doc})" if rule.doc else ""

@@ -253,6 +253,9 @@ def make(id: str, **overrides: Any) -> Env:
     Options (static: control type, backend, number of actions, ...) select the model and code path; parameters
     (limits, gains, goals) become ``env.default_params`` and can later be changed, or vmapped, per call.
     """
+    if not isinstance(id, str):
+        raise ConfigError(f"jaxrobo.make(id={id!r}): expected an environment id string (see jaxrobo.registered()), "
+                          f"got {type(id).__name__}")
     check_precision(f"jaxrobo.make({id!r})")  # before any model is built or code is traced
     reg = _lookup(id)
     cls = reg.env_class()

@@ -22,7 +22,7 @@ from typing import Any, Mapping, Sequence
 import jax
 import numpy as np
 
-from jaxrobo.training import driver
+from jaxrobo.training import budget, driver
 from jaxrobo.core.config import ConfigError, merge_flags, parse_overrides
 from jaxrobo.core.struct import INT32_MAX
 from jaxrobo.training.sweep.output import _fmt, plot_sweep, write_csv
@@ -157,11 +157,32 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
         raise ConfigError("--random N needs at least one --range KEY=LOW:HIGH")
     if args.random < 0:
         raise ConfigError(f"--random {args.random}: must be >= 0")
+    if args.seeds < 1:
+        raise ConfigError(f"--seeds {args.seeds}: must be >= 1")
+    # Before a single point is built: a million-row sweep would fill the host's memory with Python objects.
+    n_configs = int(np.prod([len(v) for v in axes.values()], dtype=object)) * max(args.random, 1)
+    budget.check_sweep_rows(n_configs, args.seeds, where="--grid/--random x --seeds")
     grid = grid_points(axes)
     if not args.random:
         return grid
     sample = random_points(ranges, args.random, args.seed)
     return [{**g, **s} for g in grid for s in sample]
+
+
+def check_swept_and_fixed(f: argparse.Namespace, overrides: Mapping[str, Any]) -> None:
+    """A key both swept (``--grid``/``--range``) and fixed (``--set``, ``--n-envs``, ``--nepisodes``,
+    ``--nsteps``) is refused: one of them would silently win. ``agent.``/``env.`` prefixes name the same key."""
+    bare = lambda k: str(k).rpartition(".")[2]  # noqa: E731
+    flags = {"n_envs": "--n-envs", "nepisodes": "--nepisodes", "nsteps": "--nsteps"}
+    fixed = {bare(k): k for k in overrides}
+    for item in (f.grid or []) + (f.ranges or []):
+        key = item.partition("=")[0].strip()
+        if bare(key) in fixed:
+            k = fixed[bare(key)]
+            given = flags.get(k, f"--set {k}={overrides[k]!r}")
+            if k in flags:
+                given = f"{given} {overrides[k]}"
+            raise ConfigError(f"{key}: swept by --grid/--range and fixed by {given}; give it one way")
 
 
 def run(args: argparse.Namespace, *, compiler_options: Mapping[str, Any] | None = None) -> int:
@@ -206,6 +227,7 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         overrides = merge_flags(parse_overrides(f.set or []), [("n_envs", "--n-envs", f.n_envs),
                                                                 ("nepisodes", "--nepisodes", f.nepisodes),
                                                                 ("nsteps", "--nsteps", f.nsteps)])
+        check_swept_and_fixed(f, overrides)
         if f.seed < 0 or f.seed + f.seeds - 1 > INT32_MAX:
             raise ConfigError(f"--seed {f.seed} --seeds {f.seeds}: the seeds run from --seed to --seed + --seeds - 1, "
                               f"which must lie in [0, {INT32_MAX}]")
