@@ -279,6 +279,19 @@ def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
         raise
 
 
+def _checkpoint_every(given: int | None, run_dir: str) -> int | None:
+    """``--checkpoint-every`` of a resumed run: the one given now, else the one its ``status.json`` kept (a file
+    read back: anything but an integer in 0..2^31-1 is ignored), else None (the time-based default)."""
+    if given is not None:
+        return given
+    from jaxrobo.core.struct import INT32_MAX
+    from jaxrobo.io import rundir
+
+    kept = (rundir.read_status(run_dir) or {}).get("checkpoint_every")
+    ok = isinstance(kept, int) and not isinstance(kept, bool) and 0 <= kept <= INT32_MAX
+    return kept if ok else None
+
+
 def _drop_if_unresumable(live: str, out: str):
     """An exit callback (``ExitStack.push``) for a new run: an error (a full or read-only disk) before its first
     checkpoint removes the directory it had created, so that no run directory is left without a checkpoint, and
@@ -331,8 +344,11 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         write_config(live, spec.to_dict())
     n_chunks = trainer.max_chunks()
     resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
+    # --checkpoint-every is kept in status.json, so that a resumed run saves as often as it was asked to.
+    every_chunks = args.checkpoint_every if resume is None else _checkpoint_every(args.checkpoint_every, out)
+    keep = {} if every_chunks is None else {"checkpoint_every": every_chunks}
     rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=start_chunk, chunks=n_chunks,
-                        resume=resume_cmd)
+                        resume=resume_cmd, **keep)
     checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
     print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {cfg.n_envs} envs × {cfg.nepisodes} episodes "
           f"≤ {cfg.nsteps} steps → {out}" + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
@@ -350,7 +366,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     def save(runner, chunks_done: int) -> None:
         checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
         rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
-                            chunks=n_chunks, resume=resume_cmd)
+                            chunks=n_chunks, resume=resume_cmd, **keep)
 
     def notice(signum: int) -> None:
         import signal
@@ -360,11 +376,11 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
 
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
     with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
-        every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
+        every = CHECKPOINT_SECONDS if every_chunks is None else None
         with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
                                          start_chunk=start_chunk, checkpoint=save,
-                                         checkpoint_every=args.checkpoint_every or 0, checkpoint_seconds=every,
+                                         checkpoint_every=every_chunks or 0, checkpoint_seconds=every,
                                          should_stop=stop)
         if bar is not None:
             bar.close()
@@ -376,7 +392,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
             done_min = int(result.episodes_done.min())
             rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
                                signal=stop.name, chunks_done=result.chunks_done, chunks=n_chunks,
-                               episodes_done_min=done_min, nepisodes=cfg.nepisodes,
+                               episodes_done_min=done_min, nepisodes=cfg.nepisodes, **keep,
                                what=f"{stop.name}: stopped after chunk {result.chunks_done} of {n_chunks} "
                                     f"({done_min} of {cfg.nepisodes} episodes in every env)")
             return 128 + stop.signum
@@ -388,8 +404,9 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
 
         rundir.publish_results(out, live, write)
     s = result.summary()
-    print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps']:,} env steps in {s['run_seconds']:.1f} s "
-          f"({s['env_steps_per_second']:,.0f} steps/s)")
+    restored = f" ({s['restored_env_steps']:,} restored from the checkpoint)" if "restored_env_steps" in s else ""
+    print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps'] - s.get('restored_env_steps', 0):,} env steps "
+          f"in {s['run_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s){restored}")
     print(f"highest reward {s['highest_reward_max']:.0f} · overall mean length {s['overall_mean_length']:.1f} · "
           f"best 100 mean {s['best_100_mean_length']:.1f}")
     if "eval_mean_length" in s:

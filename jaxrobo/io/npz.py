@@ -55,6 +55,8 @@ def read_npz(path: str, what: str = "the file", *, expect: Mapping[str, tuple[tu
                     shape, dtype = _header(zf, info)
                 except (ValueError, SyntaxError, TypeError, OverflowError) as err:
                     raise NpzError(f"{where}: array {name!r} has no valid .npy header ({err})") from None
+                if any(n < 0 for n in shape):
+                    raise NpzError(f"{where}: array {name!r} has no valid .npy header (shape {shape})")
                 if dtype.hasobject:
                     raise NpzError(f"{where}: array {name!r} holds Python objects (pickled): cannot be read as "
                                   "plain arrays; refused")

@@ -169,7 +169,9 @@ def resolve_out(path: str, flag: str = "--out") -> str:
                               "another path") from None
     except OSError as err:
         what = {errno.ELOOP: "a symlink loop", errno.ENAMETOOLONG: "a name too long for the file system"}.get(
-            err.errno, err.strerror or str(err))
+            err.errno)
+        if what is None:  # e.g. a path under a file: check_out names the file
+            return os.path.abspath(path)
         raise ConfigError(f"{where}: {what}") from None
     path = os.path.abspath(path).rstrip(os.sep) or os.sep
     parent, name = os.path.split(path)
@@ -416,12 +418,26 @@ def publish_results(out: str, live: str, write: Callable[[str], None]) -> None:
     staged = staging(out)
     try:
         write(staged)
+        _pause_before_publish()
         publish(staged, out, overwrite=True)
     except BaseException:
         discard(staged)
         raise
     if os.path.abspath(live) != os.path.abspath(out):
         discard(live)
+
+
+#: Seconds :func:`publish_results` waits between filling its staging directory and moving it into place, when
+#: this environment variable is set: the fault tests kill a process there (``kill -9`` during publishing).
+PAUSE_ENV = "JAXROBO_PAUSE_BEFORE_PUBLISH"
+
+
+def _pause_before_publish() -> None:
+    value = os.environ.get(PAUSE_ENV)
+    if value:
+        import time
+
+        time.sleep(float(value))
 
 
 # ---- atomic single files -------------------------------------------------------------------------------------

@@ -108,4 +108,4 @@ class CheckedActions(Wrapper):
                                  f"the action space; expected {allowed}")
         valid = action_is_valid(space, action)
         stepped = self.env.step(state, action, params)
-        return stepped.replace(info={**stepped.info, self.FLAG: ~valid})
+        return stepped.replace(info={**state.info, **stepped.info, self.FLAG: ~valid})

@@ -152,6 +152,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     key = jax.random.key(config.seed)
     t0 = time.perf_counter()
     runner = jax.jit(trainer.init)(key, agent_params, env_params) if initial is None else initial
+    restored = 0 if initial is None else int(np.asarray(jax.device_get(initial.env_steps), np.int64).sum())
     chunk = compiled_chunk(trainer, runner, agent_params, env_params)
     stats = compiled_progress(runner)
     jax.block_until_ready(runner)
@@ -177,7 +178,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
         chunks_done=loop.chunks_done,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
-        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan))
+        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored)
 
 
 def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any

@@ -49,10 +49,14 @@ class TrainResult:
     #: The task's declared target (:class:`jaxrobo.task.env.LearningTarget`; None: no target), for :meth:`summary`.
     learning_target: LearningTarget | None = None
     plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it)
+    #: Env steps the carry had already run when this process restored it (``--resume``): ``env_steps`` counts
+    #: them, the speed does not (they were run, and timed, by an earlier process).
+    restored_env_steps: int = 0
 
     @property
     def steps_per_second(self) -> float:
-        return self.env_steps / max(self.run_seconds, 1e-9)
+        """Env steps run by this process per second of its run time (restored steps left out)."""
+        return (self.env_steps - self.restored_env_steps) / max(self.run_seconds, 1e-9)
 
     def summary(self) -> dict[str, Any]:
         """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run, and
@@ -75,6 +79,9 @@ class TrainResult:
             "run_seconds": round(self.run_seconds, 3),
             "env_steps_per_second": round(self.steps_per_second, 1),
         }
+        if self.restored_env_steps:
+            out["restored_env_steps"] = int(self.restored_env_steps)
+            out["env_steps_this_process"] = int(self.env_steps - self.restored_env_steps)
         target = self.learning_target
         if target is not None:
             out["learning_target"] = target.description
