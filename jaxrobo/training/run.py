@@ -231,9 +231,12 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
                           f"{env_id} has continuous (Box) actions; use --agent ppo or --agent sac (Brax's trainers)")
     n_states = check_discretiser(env, config, where)
     if check_memory:
-        from jaxrobo.training.budget import check_memory as fits
+        from jaxrobo.training.budget import check_eval_memory, check_memory as fits
 
         fits(env, config, n_states, where=where)
+        n_eval = 1 if config.shared_table else min(config.eval_envs, config.n_envs)
+        horizon = env.spec.max_episode_steps if env.spec else 1000
+        check_eval_memory(env, n_eval, config.eval_episodes, horizon, where=where)
     return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values)
 
 
