@@ -150,9 +150,10 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
         # Values become float32 arrays: one that is 0, subnormal (flushed to 0 on most devices) or inf there is
         # not the value given ("alpha=1e-320" would pass "> 0" and train nothing).
         if value != 0 and not FLOAT32_TINY <= abs(value) <= FLOAT32_MAX:
-            raise ConfigError(f"{loc}{key}={value!r}: is {'inf' if abs(value) > FLOAT32_MAX else '0'} in float32, "
-                              f"the precision a run computes in; give 0 or a magnitude in [{FLOAT32_TINY:.4g}, "
-                              f"{FLOAT32_MAX:.4g}]")
+            big = abs(value) > FLOAT32_MAX
+            raise ConfigError(f"{loc}{key}={value!r}: is {'inf' if big else '0'} in float32, the precision a run "
+                              f"computes in; its magnitude must be {'at most' if big else 'at least'} "
+                              f"{FLOAT32_MAX if big else FLOAT32_TINY:.4g}")
     elif kind is tuple:
         if not isinstance(value, (list, tuple)):
             doc = f" ({rule.doc})" if rule.doc else ""
