@@ -723,8 +723,11 @@ def check_env(env_or_id: Any, *, quick: bool = False, seed: int = 0, params: Any
     Raises :class:`jaxrobo.core.config.ConfigError` for an unknown id or bad overrides (nothing is checked then).
     """
     from jaxrobo.core.config import ConfigError
+    from jaxrobo.core.struct import INT32_MAX
     from jaxrobo.task.registry import make
 
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= INT32_MAX:
+        raise ConfigError(f"seed={seed!r}: expected an integer >= 0 and <= {INT32_MAX}")
     if isinstance(long, bool) or not isinstance(long, int) or not 0 <= long <= MAX_LONG:
         raise ConfigError(f"long={long!r}: expected an integer >= 0 and <= {MAX_LONG} (steps per env)")
     if isinstance(env_or_id, str):

@@ -84,7 +84,8 @@ def _train_guarded(args: argparse.Namespace, private: str | None) -> int:
     if private is not None:
         args = _private_copy(args, private)
     try:
-        return _train_checked(args)
+        with contextlib.ExitStack() as hold:  # the run directory's lock, released on any exit
+            return _train_checked(args, hold)
     except KeyboardInterrupt:  # before the handlers are installed or after a second signal: nothing half-written
         print("jaxrobo train: interrupted", file=sys.stderr)
         return 130
@@ -114,9 +115,9 @@ def _train_spec(args: argparse.Namespace):
                                        f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
         if private is not None:
             return spec, private
-        rundir.check_out(out, overwrite=args.overwrite)
+        out = rundir.check_out(out, overwrite=args.overwrite)
         return spec, out
-    given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent), ("--preset", args.preset),
+    given = [flag for flag, value in (("--agent", args.agent), ("--preset", args.preset),
                                       ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
                                       ("--total-steps", getattr(args, "total_steps", None)),
                                       ("--total-episodes", getattr(args, "total_episodes", None)),
@@ -126,13 +127,14 @@ def _train_spec(args: argparse.Namespace):
     if given:
         raise ConfigError(f"--resume {resume}: the run goes on with its own config.yaml and directory; "
                           f"drop {', '.join(given)}")
-    rundir.check_out(resume, resume=True, flag="--resume")
-    try:
-        with open(os.path.join(resume, "config.yaml")) as f:
-            saved = yaml.safe_load(f)
-    except (OSError, yaml.YAMLError) as err:
-        raise ConfigError(f"--resume {resume}: cannot read config.yaml ({err})") from err
-    return spec_from_config(saved if isinstance(saved, dict) else {}), resume
+    resume = rundir.check_out(resume, resume=True, flag="--resume")
+    from jaxrobo.core.config import load_yaml
+
+    saved = load_yaml(os.path.join(resume, "config.yaml"), where=f"--resume {resume}: config.yaml")
+    if args.env is not None and args.env != saved.get("env_id"):
+        raise ConfigError(f"--env {args.env}: the run in --resume {resume} is of env_id {saved.get('env_id')!r}; "
+                          "with --resume, --env only confirms a 'module:Id' to import (drop it or give that id)")
+    return spec_from_config(saved, where=f"--resume {resume}", trusted_env=args.env), resume
 
 
 def _progress_bar(trainer, initial):
@@ -260,7 +262,7 @@ def _deep_spec(args: argparse.Namespace, agent: str):
     find(env_id, where=f"--env {env_id}")
     spec = deep.resolve(env_id, agent, args.preset or "default", overrides)
     out = args.out or os.path.join("training_results", f"{spec.env_id}_{agent}_{time.strftime('%Y%m%d-%H%M%S')}")
-    rundir.check_out(out, overwrite=args.overwrite)
+    out = rundir.check_out(out, overwrite=args.overwrite)
     return spec, out, None
 
 
@@ -295,7 +297,7 @@ def deep_progress_line(point) -> str:
     return line
 
 
-def _train_deep(args: argparse.Namespace, agent: str) -> int:
+def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack) -> int:
     """``jaxrobo train --agent ppo|sac`` (or ``--resume`` of such a run): Brax's trainer on the env's Brax face, into
     a run directory that is checked before anything compiles, keeps the run's work at every evaluation point
     (:class:`jaxrobo.deep.LiveRun`) and is published whole when the run is done (:mod:`jaxrobo.deep`,
@@ -312,6 +314,7 @@ def _train_deep(args: argparse.Namespace, agent: str) -> int:
     try:
         spec, out, saved = _deep_spec(args, agent)
         fingerprint = checkpoint.fingerprint(spec)
+        hold.enter_context(rundir.claimed(out, overwrite=args.overwrite, resume=args.resume is not None))
     except ConfigError as err:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
@@ -447,7 +450,36 @@ def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
         raise
 
 
-def _train_checked(args: argparse.Namespace) -> int:
+def _checkpoint_every(given: int | None, run_dir: str) -> int | None:
+    """``--checkpoint-every`` of a resumed run: the one given now, else the one its ``status.json`` kept (a file
+    read back: anything but an integer in 0..2^31-1 is ignored), else None (the time-based default)."""
+    if given is not None:
+        return given
+    from jaxrobo.core.struct import INT32_MAX
+    from jaxrobo.io import rundir
+
+    kept = (rundir.read_status(run_dir) or {}).get("checkpoint_every")
+    ok = isinstance(kept, int) and not isinstance(kept, bool) and 0 <= kept <= INT32_MAX
+    return kept if ok else None
+
+
+def _drop_if_unresumable(live: str, out: str):
+    """An exit callback (``ExitStack.push``) for a new run: an error (a full or read-only disk) before its first
+    checkpoint removes the directory it had created, so that no run directory is left without a checkpoint, and
+    says so; one with a checkpoint is left to :func:`_resumable_on_error`."""
+    from jaxrobo.io import rundir
+
+    def on_exit(exc_type, _exc, _tb) -> bool:
+        if exc_type is not None and issubclass(exc_type, Exception) and not rundir.is_resumable(live):
+            rundir.discard(live)
+            kept = "" if os.path.abspath(live) == os.path.abspath(out) else f" ({out} still holds the run it had)"
+            print(f"jaxrobo train: the run failed before its first checkpoint; nothing was kept{kept}",
+                  file=sys.stderr)
+        return False
+    return on_exit
+
+
+def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     import shlex
 
     from jaxrobo.training import checkpoint, driver
@@ -459,9 +491,11 @@ def _train_checked(args: argparse.Namespace) -> int:
     resume = args.resume
     agent = _deep_agent(args)
     if agent is not None:
-        return _train_deep(args, agent)
+        return _train_deep(args, agent, hold)
     try:
         spec, out = _train_spec(args)
+        hold.enter_context(rundir.claimed(out, overwrite=args.overwrite, resume=resume is not None,
+                                          flag="--out" if resume is None else "--resume"))
         cfg = spec.config
         trainer = training.Trainer(spec.env, cfg)
         template = checkpoint.carry_template(trainer, spec.agent_params)
@@ -478,12 +512,17 @@ def _train_checked(args: argparse.Namespace) -> int:
     if private is not None:  # a process other than 0: everything it writes stays in its private directory
         out = private
     live = out if (resume is not None and private is None) else rundir.live_dir(out)
+    if resume is None:  # a failure before the first checkpoint leaves no run directory without one
+        hold.push(_drop_if_unresumable(live, out))
     if resume is None or private is not None:
         write_config(live, spec.to_dict())
     n_chunks = trainer.max_chunks()
     resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
+    # --checkpoint-every is kept in status.json, so that a resumed run saves as often as it was asked to.
+    every_chunks = args.checkpoint_every if resume is None else _checkpoint_every(args.checkpoint_every, out)
+    keep = {} if every_chunks is None else {"checkpoint_every": every_chunks}
     rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=start_chunk, chunks=n_chunks,
-                        resume=resume_cmd)
+                        resume=resume_cmd, **keep)
     checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
     print(f"{spec.env_id} · {cfg.agent} ({spec.preset}) · {budget_line(cfg, trainer)} → {out}"
           + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
@@ -508,7 +547,7 @@ def _train_checked(args: argparse.Namespace) -> int:
     def save(runner, chunks_done: int) -> None:
         checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
         rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
-                            chunks=n_chunks, resume=resume_cmd)
+                            chunks=n_chunks, resume=resume_cmd, **keep)
 
     def notice(signum: int) -> None:
         import signal
@@ -518,11 +557,11 @@ def _train_checked(args: argparse.Namespace) -> int:
 
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
     with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
-        every = CHECKPOINT_SECONDS if args.checkpoint_every is None else None
+        every = CHECKPOINT_SECONDS if every_chunks is None else None
         with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
                                          start_chunk=start_chunk, checkpoint=save,
-                                         checkpoint_every=args.checkpoint_every or 0, checkpoint_seconds=every,
+                                         checkpoint_every=every_chunks or 0, checkpoint_seconds=every,
                                          should_stop=stop)
         if bar is not None:
             bar.close()
@@ -535,7 +574,7 @@ def _train_checked(args: argparse.Namespace) -> int:
             done_min = int(result.episodes_done.min())
             rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
                                signal=stop.name, chunks_done=result.chunks_done, chunks=n_chunks,
-                               episodes_done_min=done_min, nepisodes=cfg.nepisodes,
+                               episodes_done_min=done_min, nepisodes=cfg.nepisodes, **keep,
                                what=f"{stop.name}: stopped after chunk {result.chunks_done} of {n_chunks} "
                                     f"({done_min} of {cfg.nepisodes} episodes in every env)")
             return 128 + stop.signum
@@ -551,9 +590,10 @@ def _train_checked(args: argparse.Namespace) -> int:
         rundir.publish_results(out, live, write)
         write_seconds = time.perf_counter() - t_write
     s = result.summary()
-    print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps']:,} env steps in {s['run_seconds']:.1f} s "
-          f"({s['env_steps_per_second']:,.0f} steps/s); {s['useful_share']:.1%} of the "
-          f"{s['env_slots']:,} env slots stepped were useful")
+    restored = f" ({s['restored_env_steps']:,} restored from the checkpoint)" if "restored_env_steps" in s else ""
+    print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps'] - s.get('restored_env_steps', 0):,} env steps "
+          f"in {s['run_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s){restored}; {s['useful_share']:.1%} "
+          f"of the {s['env_slots']:,} env slots stepped were useful")
     print(f"wall: compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
           f"{s['eval_seconds']:.1f} s, writing {write_seconds:.1f} s")
     print(f"highest reward {s['highest_reward_max']:.0f} · overall mean length {s['overall_mean_length']:.1f} · "
@@ -726,18 +766,15 @@ LIGHT_COMMANDS = ("list", "plot")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(argv)  # --help and usage errors exit here, before the cache is touched
     if args.command not in LIGHT_COMMANDS:
         from jaxrobo.physics.sim import quiet_imports
 
         with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
             import mujoco.mjx  # noqa: F401
-        try:
-            from jaxrobo.speed.cache import enable_compilation_cache
+    from jaxrobo.speed.cache import enable_or_warn
 
-            enable_compilation_cache()
-        except ImportError:
-            pass
+    enable_or_warn(f"jaxrobo {args.command}")
     from jaxrobo.core.config import ConfigError
 
     try:
@@ -745,6 +782,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:  # a subcommand that does not catch it itself (show), e.g. JAX 64-bit mode is on
         print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # a full, read-only or vanished target: one line naming the path, not a traceback
+        where = f" {err.filename}" if getattr(err, "filename", None) else ""
+        print(f"jaxrobo {args.command}: cannot write{where}: {err.strerror or err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

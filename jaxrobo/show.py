@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxrobo.io import rundir
+
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", nargs="?", help="training run directory (tabular or ppo/sac)")
@@ -66,6 +68,9 @@ def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
     where = os.path.join(run_dir, "config.yaml")
     if not isinstance(cfg.get("env_id"), str):
         raise ConfigError(f"{where}: env_id is missing; is it a jaxrobo run directory?")
+    from jaxrobo.task.registry import find
+
+    find(cfg["env_id"], where, may_import=False)  # a run directory never makes jaxrobo import code
     overrides = {f"env.{k}": v for k, v in (cfg.get("env_options") or {}).items()}
     overrides.update({f"env.{k}": v for k, v in (cfg.get("env_params") or {}).items()})
     overrides.update({f"agent.{k}": v for k, v in (cfg.get("agent_params") or {}).items()})
@@ -190,7 +195,7 @@ def draw(res: dict[str, np.ndarray], title: str, out: str, tolerance: float = 0.
     fig.suptitle(title)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig.savefig(out, dpi=110)
+    rundir.atomic_savefig(fig, out, dpi=110)
 
 
 def default_out(run_dir: str | None, env_id: str | None) -> str:
@@ -264,8 +269,12 @@ def _load_deep_run(run_dir: str, table: int, which: str = "latest") -> tuple[Any
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.results import load_config
 
+    from jaxrobo.task.registry import find
+
     where = os.path.join(run_dir, "config.yaml")
-    spec = deep.spec_from_config(load_config(run_dir), where)
+    cfg = load_config(run_dir)
+    find(cfg.get("env_id"), where, may_import=False)  # a run directory never makes jaxrobo import code
+    spec = deep.spec_from_config(cfg, where)
     if table != 0:
         raise ConfigError(f"--table {table}: a {spec.agent} run has one policy (table 0)")
     loaded = deep.load_policy(run_dir, which)
@@ -384,7 +393,7 @@ def draw_episodes(res: dict[str, Any], names: Any, title: str, out: str,
     fig.suptitle(title + (f"\n(no frames: {note})" if note else ""), fontsize=10)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig.savefig(out, dpi=100)
+    rundir.atomic_savefig(fig, out, dpi=100)
 
 
 def _figure(**kw: Any) -> Any:

@@ -35,6 +35,7 @@ class Case:
     fragment: str = ""  # must appear in stderr (CLI) or in the error message (api)
     setup: Callable[[str, Any], None] | None = None  # setup(tmp, monkeypatch): write input files first
     code: int = 2  # expected exit code (list survives a broken agent YAML with 0 and a note)
+    out: bool = True  # train/sweep: append --out {tmp}/out (not for a --resume case, which refuses --out)
 
 
 # ---- input builders -------------------------------------------------------------------------------------------
@@ -116,6 +117,106 @@ def agent_yaml(text: str, env_id: str = CP, which: str = "agent_config") -> Call
         spec = dataclasses.replace(reg.spec, **{which: path})
         monkeypatch.setitem(registry._REGISTRY, env_id, dataclasses.replace(reg, spec=spec))
     return setup
+
+
+#: Hostile config.yaml texts, as classes: an alias bomb, nesting past the limit, a file past the size cap, bytes
+#: that are not UTF-8, NUL bytes, an env_id that names a module (which must never be imported).
+ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n" for i in range(8))
+DEEP = "env_id: " + "[" * 5000 + "]" * 5000 + "\n"
+HUGE = "env_id: [" + "1, " * 600_000 + "1]\n"
+EVIL = "evil_jaxrobo_module"
+
+
+def evil_module(tmp: str, monkeypatch: Any) -> None:
+    """A module that, if imported, leaves a file behind (the runner then sees a file written)."""
+    with open(os.path.join(tmp, f"{EVIL}.py"), "w") as f:
+        f.write("import os\nopen(os.path.join(os.path.dirname(__file__), 'IMPORTED'), 'w').write('pwned')\n")
+    monkeypatch.syspath_prepend(tmp)
+
+
+def resumable(config_text: str | bytes | None = None, config: Any = None, env: bool = False
+              ) -> Callable[[str, Any], None]:
+    """An interrupted train run directory ({tmp}/run: a checkpoint, an interrupted status) whose config.yaml is
+    ``config_text`` or ``config``; ``env`` also writes the module an env_id may name."""
+    def setup(tmp: str, monkeypatch: Any) -> None:
+        import json
+
+        import yaml
+
+        d = os.path.join(tmp, "run")
+        os.makedirs(d)
+        with open(os.path.join(d, "checkpoint.npz"), "wb") as f:
+            f.write(b"not read before the config")
+        with open(os.path.join(d, "status.json"), "w") as f:
+            json.dump({"status": "interrupted"}, f)
+        text = config_text if config_text is not None else yaml.safe_dump(config)
+        with open(os.path.join(d, "config.yaml"), "wb") as f:
+            f.write(text.encode() if isinstance(text, str) else text)
+        if env:
+            evil_module(tmp, monkeypatch)
+    return setup
+
+
+def cp_config(**changes: Any) -> dict[str, Any]:
+    from jaxrobo.training.run import resolve
+
+    return {**resolve(CP, check_memory=False).to_dict(), **changes}
+
+
+def interrupted_sweep(env_id: str) -> Callable[[str, Any], None]:
+    """An interrupted sweep ({tmp}/sw) whose saved flags name ``env_id``."""
+    def setup(tmp: str, monkeypatch: Any) -> None:
+        import json
+
+        from jaxrobo.training.sweep.cli import SWEEP_FLAGS
+
+        d = os.path.join(tmp, "sw")
+        os.makedirs(d)
+        with open(os.path.join(d, "checkpoint.npz"), "wb") as f:
+            f.write(b"x")
+        with open(os.path.join(d, "status.json"), "w") as f:
+            json.dump({"status": "interrupted", "out": "/somewhere/else"}, f)
+        with open(os.path.join(d, "sweep_state.json"), "w") as f:
+            json.dump({"format": 1, "extra": {"flags": {**SWEEP_FLAGS, "env": env_id}, "argv": []}}, f)
+        evil_module(tmp, monkeypatch)
+    return setup
+
+
+def setenv(**values: str) -> Callable[[str, Any], None]:
+    def setup(_tmp: str, monkeypatch: Any) -> None:
+        for k, v in values.items():
+            monkeypatch.setenv(k, v)
+    return setup
+
+
+def out_link(target: str) -> Callable[[str, Any], None]:
+    """{tmp}/out as a symlink to ``target`` ({tmp}-relative; "out" itself: a loop)."""
+    return lambda tmp, _mp: os.symlink(os.path.join(tmp, target), os.path.join(tmp, "out"))
+
+
+def forged_npz(tmp: str, shape_prefix: str = "1099511627776, ") -> bytes:
+    """qtables.npz whose q header claims 2^40 more rows than its data holds (a correct zip CRC)."""
+    import io
+    import zipfile
+
+    raw = ok_npz_bytes(tmp)
+    with zipfile.ZipFile(io.BytesIO(raw)) as z:
+        blob = z.read("q.npy")
+    hlen = int.from_bytes(blob[8:10], "little")
+    header = blob[10:10 + hlen].decode("latin1").strip().replace("'shape': (", "'shape': (" + shape_prefix)
+    header += " " * ((64 - (10 + len(header) + 1) % 64) % 64) + "\n"
+    forged = blob[:8] + len(header).to_bytes(2, "little") + header.encode("latin1") + blob[10 + hlen:]
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("q.npy", forged)
+    return buf.getvalue()
+
+
+def flipped_npz(tmp: str) -> bytes:
+    data = bytearray(ok_npz_bytes(tmp))
+    data[len(data) // 2] ^= 0xFF  # in the table's data: the zip's CRC no longer matches
+    return bytes(data)
 
 
 def run_dir(**kw: Any) -> Callable[[str, Any], None]:
@@ -306,6 +407,38 @@ TRAIN = [
       setup=agent_yaml("env: [1, 2]\n", which="config")),
     T("env-yaml-duplicate-key", "duplicate key 'pos_step'",
       setup=agent_yaml("env:\n  pos_step: 0.1\n  pos_step: 0.2\n", which="config")),
+    # floats that are 0, subnormal or inf in float32 (the precision a run computes in)
+    T("alpha-float32-zero", "alpha=1e-320: is 0 in float32", "--set", "alpha=1e-320"),
+    T("alpha-float32-subnormal", "alpha=1e-40: is 0 in float32", "--set", "alpha=1e-40"),
+    T("env-param-float32-zero", "pos_step=1e-45: is 0 in float32", "--set", "pos_step=1e-45"),
+    T("resolution-float32-inf", "resolution=1e+39: is inf in float32", "--preset", "seed", "--set",
+      "resolution=1e39"),
+    T("state-bound-float32-inf", "a value is inf in float32", "--set", "state_high=[1e39, 1, 1, 1]"),
+    # --out that cannot be a run directory
+    T("eval-episodes-huge", "eval_episodes=1000000000: the greedy evaluation of 1 table(s) x 1,000,000,000 episodes",
+      "--set", "eval_episodes=1000000000", "--set", "eval_envs=1"),
+    T("out-symlink-loop", "--out {tmp}/out: a symlink loop", setup=out_link("out")),
+    T("out-dangling-symlink", "--out {tmp}/out: is a dangling symlink", setup=out_link("nowhere")),
+    # --resume of a run directory whose config.yaml is hostile: refused before parsing it all, nothing imported
+    Case("train-resume-alias-bomb", "train", ("--resume", "{tmp}/run"), "YAML aliases (*name) are not accepted",
+         resumable(ALIAS_BOMB), out=False),
+    Case("train-resume-deep-nesting", "train", ("--resume", "{tmp}/run"), "nested deeper than 32 levels",
+         resumable(DEEP), out=False),
+    Case("train-resume-huge-config", "train", ("--resume", "{tmp}/run"), "more than a config holds",
+         resumable(HUGE), out=False),
+    Case("train-resume-binary-config", "train", ("--resume", "{tmp}/run"), "cannot be read as a text file (not UTF-8",
+         resumable(b"env_id: \xff\xfe\x00\x81"), out=False),
+    Case("train-resume-nul-config", "train", ("--resume", "{tmp}/run"), "holds NUL bytes",
+         resumable("env_id: a\0b\n"), out=False),
+    Case("train-resume-not-mapping", "train", ("--resume", "{tmp}/run"), "expected a mapping of key: value",
+         resumable("- 1\n"), out=False),
+    Case("train-resume-module-env-id", "train", ("--resume", "{tmp}/run"),
+         f"names the Python module '{EVIL}', which a file read back never imports", 
+         resumable(config=cp_config(env_id=f"{EVIL}:Foo-v0"), env=True), out=False),
+    Case("train-resume-other-env", "train", ("--resume", "{tmp}/run", "--env", GOTO),
+         f"is of env_id '{CP}'; with --resume, --env only confirms", resumable(config=cp_config()), out=False),
+    Case("train-resume-missing", "train", ("--resume", "{tmp}/nope"), "--resume {tmp}/nope: no such run directory",
+         out=False),
 ]
 
 SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
@@ -332,7 +465,47 @@ SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
     ("group-too-big-for-memory", ("--grid", "alpha=0.1,0.2", "--seeds", "64", "--n-envs", "200000", "--nepisodes", "10"),
      "sweep group 1 (128 rows)"),
     ("second-group-bad", ("--grid", "number_splits=4,100000"), "number_splits"),
+    # silently dropped or overridden: a key given twice, swept and fixed at once, an empty value
+    ("grid-key-twice", ("--grid", "alpha=0.1", "--grid", "alpha=0.2"), "--grid alpha: given twice"),
+    ("grid-and-nsteps", ("--grid", "nsteps=10,30", "--nsteps", "20"),
+     "nsteps: swept by --grid/--range and fixed by --nsteps 20"),
+    ("grid-and-n-envs", ("--grid", "n_envs=2,4", "--n-envs", "8"), "fixed by --n-envs 8"),
+    ("grid-and-set", ("--grid", "alpha=0.1,0.2", "--set", "alpha=0.3"), "alpha: swept by --grid/--range and fixed by "
+     "--set alpha=0.3"),
+    ("grid-and-prefixed-set", ("--grid", "alpha=0.1,0.2", "--set", "agent.alpha=0.3"), "fixed by --set agent.alpha"),
+    ("range-and-set", ("--random", "2", "--range", "alpha=0.1:0.9", "--set", "alpha=0.3"), "alpha: swept by"),
+    ("range-key-twice", ("--random", "2", "--range", "alpha=0.1:0.5", "--range", "alpha=0.2:0.6"),
+     "--range alpha: given twice"),
+    ("grid-empty-value", ("--grid", "alpha=0.1,,0.3"), "--grid 'alpha=0.1,,0.3': value 2 of 3 is empty"),
+    ("grid-trailing-comma", ("--grid", "alpha=0.1,"), "value 2 of 2 is empty"),
+    ("grid-only-commas", ("--grid", "alpha=,"), "value 1 of 2 is empty"),
+    ("set-float32-zero", ("--set", "alpha=1e-320"), "alpha=1e-320: is 0 in float32"),
+    ("grid-float32-zero", ("--grid", "alpha=0.1,1e-320"), "is 0 in float32"),
+    # memory: rows planned, and the evaluation, refused before anything is built or compiled
+    ("random-huge", ("--random", "1000000000", "--range", "alpha=0.1:0.9"),
+     "1,000,000,000 configurations x 4 seeds = 4,000,000,000 rows: planning them needs about"),
+    ("seeds-huge", ("--seeds", "2000000000"), "1 configurations x 2,000,000,000 seeds"),
+    ("grid-product-huge", ("--grid", "alpha=" + ",".join(str(0.001 * (i + 1)) for i in range(1000)),
+                           "--grid", "gamma=" + ",".join(str(0.0009 * (i + 1)) for i in range(1000)),
+                           "--seeds", "1000"), "= 1,000,000,000 rows"),
+    ("eval-episodes-huge", ("--eval-episodes", "1000000000"), "eval_episodes=1000000000: the greedy evaluation of"),
 ]]
+
+SWEEP += [
+    Case("sweep-out-symlink-loop", "sweep", (), "--out {tmp}/out: a symlink loop", out_link("out")),
+    Case("sweep-num-processes-not-int", "sweep", (), "JAXROBO_NUM_PROCESSES='abc': expected an integer >= 1",
+         setenv(JAXROBO_NUM_PROCESSES="abc", JAXROBO_COORDINATOR="localhost:1234", JAXROBO_PROCESS_ID="0")),
+    Case("sweep-process-id-out-of-range", "sweep", (), "JAXROBO_PROCESS_ID=5: must be in 0..1",
+         setenv(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="localhost:1234", JAXROBO_PROCESS_ID="5")),
+    Case("sweep-coordinator-unresolvable", "sweep", (), "JAXROBO_COORDINATOR='nonexistent.invalid:1234': the host "
+         "'nonexistent.invalid' does not resolve",
+         setenv(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="nonexistent.invalid:1234", JAXROBO_PROCESS_ID="0")),
+    Case("sweep-coordinator-no-port", "sweep", (), "JAXROBO_COORDINATOR='myhost': expected host:port",
+         setenv(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="myhost", JAXROBO_PROCESS_ID="0")),
+    Case("sweep-resume-module-env", "sweep", ("--resume", "{tmp}/sw"),
+         f"names the Python module '{EVIL}', which a file read back never imports",
+         interrupted_sweep(f"{EVIL}:Foo-v0"), out=False),
+]
 
 
 def P(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a table row
@@ -425,9 +598,54 @@ SHOW = [
     S("env-bad-preset", "preset='nope': allowed values are default, seed", "--env", GOTO, "--preset", "nope"),
     Case("show-out-not-image", "show", ("{tmp}/run", "--out", "{tmp}/flights.txt"),
          "--out '{tmp}/flights.txt': expected an image file", run_dir()),
+    # hostile config.yaml and qtables.npz
+    S("config-alias-bomb", "YAML aliases (*name) are not accepted", "{tmp}/run", setup=run_dir(config_text=ALIAS_BOMB)),
+    S("config-deep-nesting", "nested deeper than 32 levels", "{tmp}/run", setup=run_dir(config_text=DEEP)),
+    S("config-huge", "more than a config holds", "{tmp}/run", setup=run_dir(config_text=HUGE)),
+    S("config-nul", "holds NUL bytes", "{tmp}/run", setup=run_dir(config_text="env_id: a\0b\n")),
+    S("config-module-env-id", f"names the Python module '{EVIL}'", "{tmp}/run",
+      setup=lambda tmp, mp: (write_run(tmp, config_text=f"env_id: {EVIL}:Foo-v0\n"), evil_module(tmp, mp))),
+    S("npz-header-2-to-the-40-rows", "array 'q' claims shape (1099511627776, 1, 1, 1296, 5)", "{tmp}/run",
+      setup=lambda tmp, mp: write_run(tmp, npz=forged_npz(tmp))),
+    S("npz-header-negative-rows", "has no valid .npy header", "{tmp}/run",
+      setup=lambda tmp, mp: write_run(tmp, npz=forged_npz(tmp, "-5, "))),
+    S("npz-bit-flipped", "cannot be read as plain arrays", "{tmp}/run",
+      setup=lambda tmp, mp: write_run(tmp, npz=flipped_npz(tmp))),
+    S("q-int-dtype", "q must be a float array [n_envs, n_tables, n_states, n_actions], got int32",
+      "{tmp}/run", setup=run_dir(q=np.zeros((1, 1, 1296, 5), np.int32))),
+    S("q-inf-table", "table 0 has 1 non-finite values of 6480", "{tmp}/run",
+      setup=run_dir(q=np.where(np.arange(6480).reshape(1, 1, 1296, 5) == 7, np.inf, 0).astype(np.float32))),
 ]
 
+def _mkstemp_erofs(tmp: str, monkeypatch: Any) -> None:
+    import tempfile
+
+    from jaxrobo.speed import cache
+
+    def erofs(*_a, **_kw):
+        raise OSError(30, "Read-only file system")
+
+    monkeypatch.setenv("JAXROBO_CACHE_DIR", os.path.join(tmp, "cache"))
+    os.makedirs(os.path.join(tmp, "cache"))
+    monkeypatch.setattr(cache.tempfile, "mkstemp", erofs)
+
+
+def _cache_file(sub: str = "") -> Callable[[str, Any], None]:
+    def setup(tmp: str, monkeypatch: Any) -> None:
+        with open(os.path.join(tmp, "file"), "w") as f:
+            f.write("x")
+        monkeypatch.setenv("JAXROBO_CACHE_DIR", os.path.join(tmp, "file", sub) if sub else os.path.join(tmp, "file"))
+    return setup
+
+
 LIST = [
+    # an unusable compilation cache is a warning and the cache off, never an error
+    Case("list-cache-dir-is-a-file", "list", (), "warning: JAXROBO_CACHE_DIR='{tmp}/file': cannot use it",
+         _cache_file(), code=0),
+    Case("list-cache-dir-under-a-file", "list", (), "warning: JAXROBO_CACHE_DIR='{tmp}/file/sub': cannot use it",
+         _cache_file("sub"), code=0),
+    Case("list-cache-dir-read-only", "list", (), "(Read-only file system); the compilation cache is off",
+         _mkstemp_erofs, code=0),
     Case("list-broken-agent-yaml", "list", (), f"note: {CP}: ", agent_yaml("default: [1, 2\n"), code=0),
     Case("list-duplicate-key-agent-yaml", "list", (), "duplicate key 'alpha'",
          agent_yaml("default:\n  alpha: 0.1\n  alpha: 0.2\n"), code=0),
@@ -474,7 +692,72 @@ def A(id: str, fragment: str, call: Any) -> Case:  # noqa: N802 - a table row
     return Case(f"api-{id}", "api", call, fragment)
 
 
+CHECK = [
+    Case("check-seed-int64-overflow", "check", (CP, "--seed", "99999999999999999999"),
+         "seed=99999999999999999999: expected an integer >= 0 and <= 2147483647"),
+    Case("check-seed-negative", "check", (CP, "--seed", "-1"), "seed=-1: expected an integer >= 0"),
+    Case("check-unknown-id", "check", ("Nope-v0",), "environment id: unknown key 'Nope-v0'"),
+]
+
+
+def _env_call(fn: Callable[[Any], Any]) -> Callable[[str], Any]:
+    """A call on a made cart-pole env (analytic: no model to compile for a refusal at trace time)."""
+    def call(_tmp: str) -> Any:
+        import jax
+
+        import jaxrobo
+
+        env = jaxrobo.make(CP, backend="analytic")
+        return fn((env, env.reset(jax.random.key(0)), jax))
+    return call
+
+
+def _distributed(**values: str) -> dict[str, Any]:
+    def call(_tmp: str) -> Any:
+        from jaxrobo.speed import sharding
+
+        return sharding.initialize_distributed()
+    return {"call": call, "setup": setenv(**values)}
+
+
 API = [
+    A("make-int-id", "jaxrobo.make(id=123): expected an environment id string", raises(lambda: _make(123))),
+    A("make-none-id", "jaxrobo.make(id=None): expected an environment id string", raises(lambda: _make(None))),
+    A("make-list-id", "jaxrobo.make(id=['CartPoleStayUp-v0'])", raises(lambda: _make([CP]))),
+    A("reset-int-key", "reset(key): expected one PRNG key such as jax.random.key(seed), got int 0",
+      _env_call(lambda e: e[0].reset(0))),
+    A("reset-float-key", "reset(key): expected one PRNG key", _env_call(lambda e: e[0].reset(1.5))),
+    A("reset-key-batch", "got an array of key<fry> with shape (3,)",
+      _env_call(lambda e: e[0].reset(e[2].random.split(e[2].random.key(0), 3)))),
+    A("reset-key-batch-under-jit", "(vmap over a batch of keys)",
+      _env_call(lambda e: e[2].jit(e[0].reset)(e[2].random.split(e[2].random.key(0), 3)))),
+    A("step-action-vector", "step(state, action): action has shape (2,); one env's action is Discrete(",
+      _env_call(lambda e: e[0].step(e[1], e[2].numpy.array([1, 0])))),
+    A("step-action-vector-under-jit", "action has shape (1,)",
+      _env_call(lambda e: e[2].jit(e[0].step)(e[1], e[2].numpy.array([1])))),
+    A("num-processes-not-int", "JAXROBO_NUM_PROCESSES='abc': expected an integer >= 1",
+      _distributed(JAXROBO_NUM_PROCESSES="abc", JAXROBO_COORDINATOR="localhost:1", JAXROBO_PROCESS_ID="0")),
+    A("num-processes-zero", "JAXROBO_NUM_PROCESSES=0: expected an integer >= 1",
+      _distributed(JAXROBO_NUM_PROCESSES="0", JAXROBO_COORDINATOR="localhost:1", JAXROBO_PROCESS_ID="0")),
+    A("process-id-negative", "JAXROBO_PROCESS_ID=-1: expected an integer >= 0",
+      _distributed(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="localhost:1", JAXROBO_PROCESS_ID="-1")),
+    A("coordinator-unresolvable", "does not resolve",
+      _distributed(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="nope.invalid:1", JAXROBO_PROCESS_ID="0")),
+    A("coordinator-bad-port", "JAXROBO_COORDINATOR='localhost:99999': expected host:port (port 1..65535)",
+      _distributed(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="localhost:99999", JAXROBO_PROCESS_ID="0")),
+    A("resolve-float32-zero", "alpha=1e-320: is 0 in float32", raises(lambda: _resolve(CP, overrides={"alpha": 1e-320}))),
+    A("make-float32-inf", "is inf in float32", raises(lambda: _make(CP, pos_step=1e39))),
+    A("yaml-alias", "YAML aliases (*name) are not accepted", _yaml_file("a: &x 1\nb: *x\n")),
+    A("yaml-merge-key-alias", "YAML aliases", _yaml_file("base: &b {alpha: 1}\nd:\n  <<: *b\n")),
+    A("yaml-alias-bomb", "YAML aliases", _yaml_file(ALIAS_BOMB)),
+    A("yaml-deep-nesting", "nested deeper than 32 levels", _yaml_file(DEEP)),
+    A("yaml-deep-mappings", "nested deeper than 32 levels", _yaml_file("a: " + "{b: " * 40 + "1" + "}" * 40 + "\n")),
+    A("yaml-huge", "more than a config holds", _yaml_file(HUGE)),
+    A("yaml-many-nodes", "more than 100000 values", _yaml_file("a: [" + "1, " * 150_000 + "1]\n")),
+    A("out-name-too-long", "a name too long for the file system", lambda tmp: _check_out(os.path.join(tmp, "x" * 300))),
+    A("out-name-too-long-for-staging", "bytes; at most", lambda tmp: _check_out(os.path.join(tmp, "x" * 250))),
+    A("out-under-proc", "--out /proc/nope/run: cannot write in /proc", lambda tmp: _check_out("/proc/nope/run")),
+    A("out-nul", "a path cannot hold a NUL character", lambda tmp: _check_out(os.path.join(tmp, "a\0b"))),
     A("make-unknown-key", "unknown key 'pos_stepp' (did you mean pos_step", raises(lambda: _make(CP, pos_stepp=1))),
     A("make-unknown-id", "environment id: unknown key 'Nope'", raises(lambda: _make("Nope"))),
     A("make-int32", "max_episode_steps=1099511627776: expected an integer >= 1 and <= 2147483647",
@@ -555,7 +838,13 @@ DEEP = [
     D("sac-tau-range", "tau=0.0: expected a number > 0.0 and <= 1.0", "--set", "tau=0", agent="sac"),
 ]
 
-CASES = TRAIN + SWEEP + PLOT + SHOW + LIST + API + DEEP
+def _check_out(path: str) -> Any:
+    from jaxrobo.io import rundir
+
+    return rundir.check_out(path)
+
+
+CASES = TRAIN + SWEEP + PLOT + SHOW + LIST + CHECK + API + DEEP
 
 
 # ---- the runner -------------------------------------------------------------------------------------------------
@@ -604,31 +893,50 @@ def test_bad_input_is_refused_naming_the_field(case: Case, tmp_path, monkeypatch
     capsys.readouterr()
     fragment = _sub(case.fragment, tmp)
     if case.command == "api":
-        with pytest.raises((ConfigError, ValueError)) as err:
+        with pytest.raises((ConfigError, ValueError, TypeError)) as err:
             case.args(tmp)
         assert fragment in str(err.value), str(err.value)
     else:
         argv = [case.command] + [_sub(a, tmp) for a in case.args]
-        if case.command in ("train", "sweep"):
+        if case.command in ("train", "sweep") and case.out:
             argv += ["--out", os.path.join(tmp, "out")]
         if case.command == "train":
             argv.append("--no-progress")
+        usage = False
         try:
             code = main(argv)
-        except SystemExit as exc:  # argparse's own usage errors
-            code = exc.code
+        except SystemExit as exc:  # argparse's own usage errors (usage line, then the error)
+            code, usage = exc.code, True
         out, err = capsys.readouterr()
         assert code == case.code, (code, out, err)
         assert "Traceback" not in err + out
         assert fragment in err, err
         assert not os.path.exists(os.path.join(tmp, "out"))
+        assert usage or case.code == 0 or len([ln for ln in err.splitlines() if ln.strip()]) == 1, err  # one line
     assert _files(tmp) == before, sorted(_files(tmp) - before)
 
 
 def test_the_table_is_large_and_its_ids_unique():
     assert len(CASES) >= 110
     assert len({c.id for c in CASES}) == len(CASES)
-    assert {c.command for c in CASES} == {"train", "sweep", "plot", "show", "list", "api"}
+    assert {c.command for c in CASES} == {"train", "sweep", "plot", "show", "list", "check", "api"}
+
+
+def test_help_never_touches_an_unusable_cache(tmp_path, monkeypatch, capsys):
+    (tmp_path / "file").write_text("x")
+    monkeypatch.setenv("JAXROBO_CACHE_DIR", str(tmp_path / "file" / "sub"))
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out, err = capsys.readouterr()
+    assert "usage: jaxrobo" in out and err == ""
+
+
+def test_nothing_named_by_a_file_was_imported():
+    """The env_id 'module:Id' cases above wrote a module that would have been imported by a lax reader."""
+    import sys
+
+    assert EVIL not in sys.modules
 
 
 def test_numbers_in_every_float_syntax_are_accepted():

@@ -118,7 +118,7 @@ def test_cli_sigint_in_a_subprocess(uninterrupted, tmp_path, capsys):
     script = ("import sys, jax\n"
               f"jax.config.update('jax_compilation_cache_dir', {jax.config.jax_compilation_cache_dir!r})\n"
               "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.5)\n"
-              "from jaxrobo import sweep\n"
+              "from jaxrobo.training import sweep\n"
               f"sys.exit(sweep.main({[*ARGS, '--out', str(out)]!r}, compiler_options={FAST!r}))\n")
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
     proc = subprocess.Popen([sys.executable, "-c", script], cwd=root, env=env, stdout=subprocess.PIPE,

@@ -65,9 +65,11 @@ def test_train_a_user_module_task_from_its_folder(example_dir, tmp_path):
     with open(os.path.join(out, "summary.json")) as f:
         assert json.load(f)["env_id"] == ID
 
-    # --resume runs in another process: the saved 'module:Id' imports the module again from the run's folder.
+    # --resume runs in another process: the saved 'module:Id' imports the module again from the run's folder, as
+    # `--resume DIR --env my_task:Id` asks (a config.yaml alone never imports code).
     code = ("import sys, yaml; from jaxrobo.training.run import spec_from_config; "
-            f"spec = spec_from_config(yaml.safe_load(open({os.path.join(out, 'config.yaml')!r}))); "
+            f"spec = spec_from_config(yaml.safe_load(open({os.path.join(out, 'config.yaml')!r})), "
+            f"trusted_env='my_task:{ID}'); "
             "print(spec.env_id, spec.env.default_params.max_episode_steps)")
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": ROOT}
     done = subprocess.run([sys.executable, "-c", code], cwd=EXAMPLE, env=env, capture_output=True, text=True,

@@ -19,6 +19,10 @@ import yaml
 from jaxrobo.core.struct import Rule, rules
 
 
+#: The smallest normal and the largest finite float32 (``np.finfo(np.float32).tiny`` / ``.max``).
+FLOAT32_TINY, FLOAT32_MAX = 1.1754943508222875e-38, 3.4028234663852886e38
+
+
 class ConfigError(ValueError):
     """A configuration value is unknown, of the wrong type or out of range."""
 
@@ -53,9 +57,40 @@ def _mapping_without_duplicates(loader: StrictLoader, node: yaml.MappingNode, de
 
 StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
 
+#: Limits on what a YAML file may hold (configs are small: a run's config.yaml is ~2 KB, ~150 nodes). A file read
+#: back is hostile: a 24 MB list takes minutes to parse, an alias bomb grows exponentially, deep nesting
+#: overflows the stack. Bytes are checked before parsing, nesting and nodes while composing.
+YAML_MAX_BYTES = 1 << 20
+YAML_MAX_DEPTH = 32
+YAML_MAX_NODES = 100_000
+
+
+def _compose_node(loader: StrictLoader, parent: Any, index: Any) -> Any:
+    if loader.check_event(yaml.events.AliasEvent):
+        mark = loader.peek_event().start_mark
+        raise ConfigError(f"line {mark.line + 1}: YAML aliases (*name) are not accepted; write the value out")
+    loader._jaxrobo_depth = depth = getattr(loader, "_jaxrobo_depth", 0) + 1
+    loader._jaxrobo_nodes = nodes = getattr(loader, "_jaxrobo_nodes", 0) + 1
+    try:
+        if depth > YAML_MAX_DEPTH:
+            raise ConfigError(f"line {loader.peek_event().start_mark.line + 1}: nested deeper than "
+                              f"{YAML_MAX_DEPTH} levels")
+        if nodes > YAML_MAX_NODES:
+            raise ConfigError(f"more than {YAML_MAX_NODES} values")
+        return yaml.composer.Composer.compose_node(loader, parent, index)
+    finally:
+        loader._jaxrobo_depth = depth - 1
+
+
+StrictLoader.compose_node = _compose_node  # type: ignore[method-assign]
+
 
 def parse_yaml(text: str, where: str) -> Any:
-    """YAML text through :class:`StrictLoader`; any syntax error, unknown tag or duplicate key is a ConfigError."""
+    """YAML text through :class:`StrictLoader`; any syntax error, unknown tag, duplicate key, alias, or a text
+    past :data:`YAML_MAX_BYTES` / :data:`YAML_MAX_DEPTH` / :data:`YAML_MAX_NODES` is a ConfigError."""
+    if len(text) > YAML_MAX_BYTES:
+        raise ConfigError(f"{where}: {len(text):,} characters, more than a config holds (at most "
+                          f"{YAML_MAX_BYTES:,})")
     try:
         return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - StrictLoader is a SafeLoader
     except ConfigError as err:
@@ -66,20 +101,30 @@ def parse_yaml(text: str, where: str) -> Any:
         raise ConfigError(f"{where}: not valid YAML (safe subset only): {msg}") from None
 
 
-def load_yaml(path: str) -> dict[str, Any]:
-    """Read a YAML mapping safely (no arbitrary objects, no duplicate keys); ConfigError on anything else."""
+def load_yaml(path: str, where: str | None = None) -> dict[str, Any]:
+    """Read a YAML mapping safely (no arbitrary objects, no duplicate keys, no aliases, bounded size and
+    nesting: :func:`parse_yaml`); ConfigError starting with ``where`` (default: the path) on anything else."""
+    where = path if where is None else where
     if not os.path.exists(path):
         raise ConfigError(f"config file not found: {path}")
     try:
-        with open(path, encoding="utf-8") as f:
-            text = f.read()
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{path}: cannot be read as a text file ({err})") from None
-    data = parse_yaml(text, path)
+        with open(path, "rb") as f:
+            raw = f.read(YAML_MAX_BYTES + 1)  # never more than the cap, whatever the file's size
+    except OSError as err:
+        raise ConfigError(f"{where}: cannot be read ({err.strerror or err})") from None
+    if len(raw) > YAML_MAX_BYTES:
+        raise ConfigError(f"{where}: larger than {YAML_MAX_BYTES:,} bytes, more than a config holds")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{where}: cannot be read as a text file (not UTF-8 at byte {err.start})") from None
+    if "\0" in text:
+        raise ConfigError(f"{where}: cannot be read as a text file (it holds NUL bytes)")
+    data = parse_yaml(text, where)
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of key: value at the top level, got {type(data).__name__}")
+        raise ConfigError(f"{where}: expected a mapping of key: value at the top level, got {type(data).__name__}")
     return data
 
 
@@ -102,6 +147,13 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
         value = float(value)
         if not math.isfinite(value):
             raise ConfigError(f"{loc}{key}={value!r}: must be finite")
+        # Values become float32 arrays: one that is 0, subnormal (flushed to 0 on most devices) or inf there is
+        # not the value given ("alpha=1e-320" would pass "> 0" and train nothing).
+        if value != 0 and not FLOAT32_TINY <= abs(value) <= FLOAT32_MAX:
+            big = abs(value) > FLOAT32_MAX
+            raise ConfigError(f"{loc}{key}={value!r}: is {'inf' if big else '0'} in float32, the precision a run "
+                              f"computes in; its magnitude must be {'at most' if big else 'at least'} "
+                              f"{FLOAT32_MAX if big else FLOAT32_TINY:.4g}")
     elif kind is tuple and rule.pair:
         return _range(key, value, rule, loc)
     elif kind is tuple:

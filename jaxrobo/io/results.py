@@ -259,19 +259,15 @@ def load_stats(run_dir: str) -> dict[str, np.ndarray]:
 def load_tables(run_dir: str) -> dict[str, np.ndarray]:
     """A run's ``qtables.npz`` as plain arrays (no pickle); ConfigError naming the file when it is missing,
     truncated, pickled or has no ``q`` of shape ``[n_envs, n_tables, n_states, n_actions]``."""
-    import zipfile
-
     from jaxrobo.core.config import ConfigError
+    from jaxrobo.io.npz import read_npz
 
     path = os.path.join(run_dir, "qtables.npz")
     if not os.path.isfile(path):
         raise ConfigError(f"{run_dir}: no qtables.npz; is it a finished jaxrobo run directory?")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
-        raise ConfigError(f"{path}: cannot be read as plain arrays ({type(err).__name__}: {err}); "
-                          "it is truncated, pickled or not an npz file") from None
+    # Headers checked before any data is read (a header claiming 2^40 rows is refused, not allocated); the tables'
+    # finiteness is checked per table by the caller (one NaN table must not hide the others).
+    arrays = read_npz(path, "the q-tables", finite={"q": False})
     if "q" not in arrays:
         raise ConfigError(f"{path}: no array 'q' (found {', '.join(arrays) or 'none'})")
     q = arrays["q"]

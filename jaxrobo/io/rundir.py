@@ -20,13 +20,17 @@ The rules (``jaxrobo train``; ``jaxrobo sweep`` uses the same helpers):
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import errno
+import fcntl
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
-from typing import IO, Any, Callable
+from typing import IO, Any, Callable, Iterator
 
 import numpy as np
 
@@ -90,16 +94,18 @@ def _describe(path: str) -> str:
 
 
 # ---- checks at the boundary ----------------------------------------------------------------------------------
-def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag: str = "--out") -> None:
+def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag: str = "--out") -> str:
     """Refuse an output path that would lose or mix runs, before anything compiles.
 
     ``path`` may be missing (it is created, parents too) or an empty directory. A non-empty directory needs
     ``overwrite`` (and must look like a jaxrobo run: nothing else is ever replaced) or ``resume`` (and must hold
     a checkpoint of an unfinished run). An existing file, or a parent that is a file or not writable, is refused
-    whatever the flags. Raises :class:`ConfigError` naming ``flag`` (``--out`` or ``--resume``)."""
+    whatever the flags. Raises :class:`ConfigError` naming ``flag`` (``--out`` or ``--resume``). Returns the
+    absolute path the run goes to (:func:`resolve_out`: a symlink to a directory is followed)."""
     if not path:
         raise ConfigError(f"{flag}: empty path")
     where = f"{flag} {path}"
+    path = resolve_out(path, flag)
     if os.path.exists(path) and not os.path.isdir(path):
         raise ConfigError(f"{where}: is an existing file, not a directory; give a new or empty directory "
                           "(--overwrite replaces run directories only)")
@@ -130,6 +136,158 @@ def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag:
         raise ConfigError(f"{where}: {ancestor} is a file, not a directory")
     if not os.access(ancestor, os.W_OK | os.X_OK):
         raise ConfigError(f"{where}: cannot write in {ancestor} (permission denied)")
+    # os.access says yes to root on a read-only or pseudo file system (/proc): try a directory there.
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".jaxrobo-probe.", dir=ancestor))
+    except OSError as err:
+        raise ConfigError(f"{where}: cannot write in {ancestor} ({err.strerror or err})") from None
+    return path
+
+
+#: Room a hidden sibling (``.NAME.<8 random>.partial``, ``.NAME.lock``) needs on top of NAME.
+_SIBLING_EXTRA = len("..12345678.partial")
+
+
+def resolve_out(path: str, flag: str = "--out") -> str:
+    """The directory a run at ``path`` is written to, checked at the boundary: a symlink to a directory is
+    followed (the run is published into its target, never replacing the link); a symlink loop, a dangling
+    symlink, a name too long for the file system (with room for the hidden siblings) or a path that cannot be
+    looked up is a :class:`ConfigError` naming ``flag``. Returns the absolute path."""
+    where = f"{flag} {path}"
+    if "\0" in path:
+        raise ConfigError(f"{where!r}: a path cannot hold a NUL character")
+    try:
+        if os.path.islink(path):
+            target = os.path.realpath(path, strict=True)
+            if not os.path.isdir(target):
+                raise ConfigError(f"{where}: is a symlink to {target}, which is not a directory")
+            path = target
+        os.stat(path)
+    except FileNotFoundError:
+        if os.path.islink(path):
+            raise ConfigError(f"{where}: is a dangling symlink (to {os.readlink(path)}); remove it or give "
+                              "another path") from None
+    except OSError as err:
+        what = {errno.ELOOP: "a symlink loop", errno.ENAMETOOLONG: "a name too long for the file system"}.get(
+            err.errno)
+        if what is None:  # e.g. a path under a file: check_out names the file
+            return os.path.abspath(path)
+        raise ConfigError(f"{where}: {what}") from None
+    path = os.path.abspath(path).rstrip(os.sep) or os.sep
+    parent, name = os.path.split(path)
+    try:
+        name_max = os.pathconf(_existing(parent), "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    if len(os.fsencode(name)) + _SIBLING_EXTRA > name_max:
+        raise ConfigError(f"{flag}: the name {name[:40]}... is {len(os.fsencode(name))} bytes; at most "
+                          f"{name_max - _SIBLING_EXTRA} (the file system's {name_max}, less room for the hidden "
+                          "staging sibling)")
+    return path
+
+
+def _existing(path: str) -> str:
+    while path and not os.path.exists(path):
+        up = os.path.dirname(path)
+        if up == path:
+            break
+        path = up
+    return path or os.sep
+
+
+# ---- one writer per run directory ------------------------------------------------------------------------------
+_PARTIAL = re.compile(r"^\.(?P<name>.+)\.[^.]+\.partial$")
+
+
+def run_name(path: str) -> str:
+    """The run a directory belongs to: ``path`` itself, or, for a hidden staging sibling ``.NAME.<r>.partial``
+    (where an ``--overwrite`` run keeps its state), the sibling ``NAME`` it will replace."""
+    path = os.path.abspath(path).rstrip(os.sep)
+    parent, name = os.path.split(path)
+    m = _PARTIAL.match(name)
+    return os.path.join(parent, m.group("name")) if m else path
+
+
+def lock_path(path: str) -> str:
+    """The lock file of the run at ``path`` (and of its staging siblings): ``.NAME.lock`` beside it, so that it
+    outlives the renames that publish the run."""
+    parent, name = os.path.split(run_name(path))
+    return os.path.join(parent, f".{name}.lock")
+
+
+class RunLocked(ConfigError):
+    """Another live process writes this run directory."""
+
+
+@contextlib.contextmanager
+def locked(path: str, flag: str = "--out") -> Iterator[None]:
+    """Hold the run at ``path`` for this process: an OS lock (``flock``) on :func:`lock_path`, so that a second
+    ``jaxrobo train``/``sweep`` on the same directory (or its staging sibling) is refused with
+    :class:`RunLocked` naming the first one's pid, and a process killed with ``kill -9`` releases it (the kernel
+    drops its locks). Once held, leftover staging directories of the run (``.NAME.*.partial`` of a killed
+    publish) that hold no resumable state are removed."""
+    lock = lock_path(path)
+    os.makedirs(os.path.dirname(lock), exist_ok=True)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            finally:
+                os.close(fd)
+            raise RunLocked(f"{flag} {path}: another jaxrobo process (pid {holder}) is writing this run "
+                            "directory; wait for it to end or choose another path") from None
+        # The file may have been unlinked by its last holder between our open and flock: then lock it afresh.
+        try:
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        remove_stale_partials(path)
+        yield
+    finally:
+        try:
+            os.unlink(lock)
+        except OSError:
+            pass
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def claimed(path: str, *, overwrite: bool = False, resume: bool = False, flag: str = "--out") -> Iterator[None]:
+    """:func:`locked`, then :func:`check_out` again: the directory checked before the lock was taken may have
+    been filled by a writer that has since finished."""
+    with locked(path, flag):
+        check_out(path, overwrite=overwrite, resume=resume, flag=flag)
+        yield
+
+
+def remove_stale_partials(path: str) -> list[str]:
+    """Remove the hidden staging siblings ``.NAME.*.partial`` of the run at ``path`` that a killed process left
+    (call it holding :func:`locked`); one that holds a resumable state (an ``--overwrite`` run or sweep
+    interrupted before it replaced the old one) is kept. Returns the removed paths."""
+    name_path = run_name(path)
+    parent, name = os.path.split(name_path)
+    removed = []
+    try:
+        entries = os.listdir(parent)
+    except OSError:
+        return removed
+    for entry in entries:
+        m = _PARTIAL.match(entry)
+        full = os.path.join(parent, entry)
+        if (m and m.group("name") == name and full != os.path.abspath(path) and os.path.isdir(full)
+                and not os.path.islink(full) and not is_resumable(full)):
+            shutil.rmtree(full, ignore_errors=True)
+            removed.append(full)
+    return removed
 
 
 # ---- staging and publishing ----------------------------------------------------------------------------------
@@ -260,12 +418,26 @@ def publish_results(out: str, live: str, write: Callable[[str], None]) -> None:
     staged = staging(out)
     try:
         write(staged)
+        _pause_before_publish()
         publish(staged, out, overwrite=True)
     except BaseException:
         discard(staged)
         raise
     if os.path.abspath(live) != os.path.abspath(out):
         discard(live)
+
+
+#: Seconds :func:`publish_results` waits between filling its staging directory and moving it into place, when
+#: this environment variable is set: the fault tests kill a process there (``kill -9`` during publishing).
+PAUSE_ENV = "JAXROBO_PAUSE_BEFORE_PUBLISH"
+
+
+def _pause_before_publish() -> None:
+    value = os.environ.get(PAUSE_ENV)
+    if value:
+        import time
+
+        time.sleep(float(value))
 
 
 # ---- atomic single files -------------------------------------------------------------------------------------
@@ -289,6 +461,13 @@ def atomic_write(path: str, writer: Callable[[IO], None], mode: str = "wb") -> N
             pass
         raise
     _fsync_dir(directory)
+
+
+def atomic_savefig(fig: Any, path: str, **kwargs: Any) -> None:
+    """``fig.savefig(path, **kwargs)`` through :func:`atomic_write`: a full disk or a crash leaves the old image
+    or none, never a 0-byte or torn one."""
+    fmt = os.path.splitext(path)[1].lstrip(".").lower() or None
+    atomic_write(path, lambda f: fig.savefig(f, format=fmt, **kwargs))
 
 
 def atomic_write_json(path: str, obj: Any) -> None:

@@ -15,6 +15,8 @@ from typing import Sequence
 
 import numpy as np
 
+from jaxrobo.io import rundir
+
 from jaxrobo.core.config import ConfigError
 from jaxrobo.io.results import load_config, load_stats
 
@@ -64,19 +66,24 @@ def env_steps_axis(run_dir: str, stats: dict[str, np.ndarray]) -> np.ndarray:
     n_envs = (cfg.get("train") or {}).get("n_envs")
     if not isinstance(n_envs, int) or isinstance(n_envs, bool) or n_envs < 1:
         raise ValueError(f"{run_dir}: config.yaml has no train.n_envs (an integer >= 1) for the env-steps axis")
-    return np.cumsum(np.asarray(stats["length_mean"], np.float64)) * n_envs
+    length = np.asarray(stats["length_mean"], np.float64)
+    return np.cumsum(np.where(np.isfinite(length), length, 0.0)) * n_envs  # a NaN row adds no steps
 
 
 def smooth(x: np.ndarray, window: int) -> np.ndarray:
-    """Trailing moving average (window 1 = unchanged), the same length as ``x``."""
+    """Trailing moving average (window 1 = unchanged), the same length as ``x``, over the finite values only:
+    a NaN or inf in a CSV (a diverged episode, a hand-edited file) is a gap in the curve, never the end of it
+    (a running sum would carry it to every later point); a window with no finite value is NaN (a gap)."""
+    x = np.asarray(x, np.float64)
+    ok = np.isfinite(x)
     if window <= 1 or x.size == 0:
-        return x
-    c = np.cumsum(np.insert(np.asarray(x, np.float64), 0, 0.0))
-    out = np.empty(x.size)
-    for i in range(x.size):
-        lo = max(0, i + 1 - window)
-        out[i] = (c[i + 1] - c[lo]) / (i + 1 - lo)
-    return out
+        return np.where(ok, x, np.nan)
+    total = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
+    count = np.concatenate([[0], np.cumsum(ok)])
+    i = np.arange(x.size)
+    lo = np.maximum(0, i + 1 - window)
+    n = count[i + 1] - count[lo]
+    return np.where(n > 0, (total[i + 1] - total[lo]) / np.maximum(n, 1), np.nan)
 
 
 def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | None = None, window: int = 10,
@@ -117,7 +124,8 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
         ax.grid(alpha=0.3)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
-    fig.savefig(out_png, dpi=110)
+    rundir.atomic_savefig(fig, out_png, dpi=110)
+    plt.close(fig)
     return out_png
 
 

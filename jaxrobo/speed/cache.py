@@ -15,6 +15,8 @@ actually running in the process.
 from __future__ import annotations
 
 import os
+import sys
+import tempfile
 
 import jax
 
@@ -35,15 +37,21 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     """Turn the persistent compilation cache on (every compile is cached, however small or quick).
 
     Returns the directory in use, or None when the cache is turned off (``path`` or ``$JAXROBO_CACHE_DIR`` set
-    to ``off``). Raises ``OSError`` naming the directory if it cannot be created.
+    to ``off``). Raises ``OSError`` naming the directory if it cannot be created or written (a file, a read-only
+    or full file system, a path under a file): :func:`enable_or_warn` turns that into a warning.
     """
     directory = cache_dir(path)
     if directory is None:
         return None
     try:
         os.makedirs(directory, exist_ok=True)
+        # Writable? (os.access says yes to root on a read-only file system.) A probe file, removed at once.
+        fd, probe = tempfile.mkstemp(prefix=".probe.", dir=directory)
+        os.close(fd)
+        os.unlink(probe)
     except OSError as err:
-        raise OSError(f"{ENV_VAR}={directory!r}: cannot create the compilation cache directory ({err})") from err
+        raise OSError(f"{ENV_VAR}={directory!r}: cannot use it as the compilation cache directory "
+                      f"({err.strerror or err})") from None
     jax.config.update("jax_compilation_cache_dir", directory)
     # JAX only caches compiles slower than 1 s and entries above a filesystem-dependent size by default; our
     # start-up is the sum of many small compiles (init, progress statistics, evaluation), so cache them all.
@@ -51,6 +59,16 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
     _reset_if_initialised()
     return directory
+
+
+def enable_or_warn(prog: str = "jaxrobo") -> str | None:
+    """:func:`enable_compilation_cache` for a command line: an unusable directory is one warning line on stderr
+    and the cache off (every compile then runs afresh), never an error."""
+    try:
+        return enable_compilation_cache()
+    except OSError as err:
+        print(f"{prog}: warning: {err}; the compilation cache is off for this run", file=sys.stderr)
+        return None
 
 
 def entries(directory: str | None) -> int:

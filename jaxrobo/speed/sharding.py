@@ -41,9 +41,12 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
         pass
     coordinator = coordinator or os.environ.get("JAXROBO_COORDINATOR")
     if num_processes is None and os.environ.get("JAXROBO_NUM_PROCESSES"):
-        num_processes = int(os.environ["JAXROBO_NUM_PROCESSES"])
+        num_processes = _env_int("JAXROBO_NUM_PROCESSES", 1)
     if process_id is None and os.environ.get("JAXROBO_PROCESS_ID"):
-        process_id = int(os.environ["JAXROBO_PROCESS_ID"])
+        process_id = _env_int("JAXROBO_PROCESS_ID", 0)
+    if num_processes is not None and process_id is not None and not 0 <= process_id < num_processes:
+        raise ValueError(f"JAXROBO_PROCESS_ID={process_id}: must be in 0..{num_processes - 1} "
+                         f"(JAXROBO_NUM_PROCESSES={num_processes})")
     if coordinator is None and num_processes is None and process_id is None:
         if os.environ.get("JAXROBO_DISTRIBUTED", "").lower() != "auto":
             return False
@@ -52,9 +55,48 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
         if coordinator is None or num_processes is None or process_id is None:
             raise ValueError("multi-host: set all of JAXROBO_COORDINATOR (host:port), JAXROBO_NUM_PROCESSES and "
                              f"JAXROBO_PROCESS_ID (got {coordinator!r}, {num_processes!r}, {process_id!r})")
+        check_coordinator(coordinator)
+        # Bounded: a coordinator that never answers is an error after this long, not a silent wait.
         jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
-                                   process_id=process_id)
+                                   process_id=process_id, initialization_timeout=_env_int(
+                                       "JAXROBO_INIT_TIMEOUT", 1, default=INIT_TIMEOUT_SECONDS))
     return jax.process_count() > 1
+
+
+#: Seconds ``jax.distributed.initialize`` waits for every process to join (``$JAXROBO_INIT_TIMEOUT``).
+INIT_TIMEOUT_SECONDS = 120
+
+
+def _env_int(name: str, low: int, default: int | None = None) -> int:
+    """An integer environment variable ``>= low``; ValueError naming it otherwise."""
+    text = os.environ.get(name)
+    if text is None or not text.strip():
+        if default is None:
+            raise ValueError(f"{name} is not set")
+        return default
+    try:
+        value = int(text.strip())
+    except ValueError:
+        raise ValueError(f"{name}={text!r}: expected an integer >= {low}") from None
+    if value < low:
+        raise ValueError(f"{name}={value}: expected an integer >= {low}")
+    return value
+
+
+def check_coordinator(address: str) -> None:
+    """``host:port`` whose host resolves (``socket.getaddrinfo``) and whose port is a number in 1..65535:
+    otherwise a ValueError naming ``JAXROBO_COORDINATOR`` now, instead of a silent wait for a coordinator that
+    cannot be reached."""
+    import socket
+
+    host, sep, port = address.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"JAXROBO_COORDINATOR={address!r}: expected host:port (port 1..65535)")
+    try:
+        socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError, OSError) as err:
+        raise ValueError(f"JAXROBO_COORDINATOR={address!r}: the host {host!r} does not resolve ({err})") from None
 
 
 def make_mesh(devices: list | None = None) -> Mesh:

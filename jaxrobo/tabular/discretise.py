@@ -95,6 +95,10 @@ def _vector(value: object, name: str, dims: int | None, other: str = "") -> np.n
         raise ValueError(f"{name}=[]: expected at least one value")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}={_show(value)}: every value must be finite")
+    with np.errstate(over="ignore"):
+        in_float32 = arr.astype(np.float32)
+    if not np.all(np.isfinite(in_float32)):  # the bounds are float32 arrays in the run
+        raise ValueError(f"{name}={_show(value)}: a value is inf in float32 (magnitude above 3.4e38)")
     return arr
 
 
@@ -130,8 +134,8 @@ def check(low: Sequence[float], high: Sequence[float], mode: str = "bins", numbe
             if not _is_seq(e) or not all(_is_number(x) for x in e):
                 raise ValueError(f"{n['edges']}[{i}]={_show(e)}: expected a list of numbers (the interior bin edges)")
             e = tuple(float(x) for x in e)
-            if not all(math.isfinite(x) for x in e):
-                raise ValueError(f"{n['edges']}[{i}]={list(e)}: every edge must be finite")
+            if not all(math.isfinite(x) and abs(x) <= np.finfo(np.float32).max for x in e):
+                raise ValueError(f"{n['edges']}[{i}]={list(e)}: every edge must be finite (in float32 too)")
             if any(b <= a for a, b in zip(e, e[1:])):
                 raise ValueError(f"{n['edges']}[{i}]={list(e)}: edges must be strictly increasing")
             out.append(e)

@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxrobo.physics import fused
 from jaxrobo.core import rng, spaces
@@ -161,6 +162,30 @@ class Env:
         return f"<{type(self).__name__} {self.name} {self.options}>"
 
 
+def check_key(key: Any, where: str) -> None:
+    """Refuse, naming ``where``, anything but one PRNG key (a typed key of shape ``()`` or a raw ``uint32[2]``);
+    only its type and shape are read, so it works on tracers too."""
+    dtype, shape = getattr(key, "dtype", None), getattr(key, "shape", None)
+    if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key) and shape == ():
+        return
+    if dtype is not None and dtype == jnp.uint32 and shape == (2,):
+        return
+    got = f"{type(key).__name__} {key!r}" if dtype is None else f"an array of {dtype} with shape {shape}"
+    hint = " (vmap over a batch of keys)" if dtype is not None and shape not in ((), None) else ""
+    raise TypeError(f"{where}: expected one PRNG key such as jax.random.key(seed){hint}, got {got}")
+
+
+def check_action_shape(space: Any, action: Any, where: str) -> None:
+    """Refuse, naming ``where``, an action whose shape does not fit ``space`` (one env's action); shapes are
+    known when traced, values are not (see :meth:`TaskEnv.step`)."""
+    shape = np.shape(action)
+    want = () if isinstance(space, spaces.Discrete) else tuple(getattr(space, "shape", shape))
+    if shape != want:
+        kind = f"Discrete({space.n}): a scalar" if isinstance(space, spaces.Discrete) else f"shape {want}"
+        raise ValueError(f"{where}: action has shape {shape}; one env's action is {kind} (vmap step over envs "
+                         "for a batch)")
+
+
 class TaskEnv(Env):
     """An environment built from a robot and the seed's six task hooks."""
 
@@ -201,6 +226,10 @@ class TaskEnv(Env):
         return bool(getattr(self.options, "randomise", False))
 
     def reset(self, key: jax.Array, params: Any = None) -> EnvState:
+        """A new episode's first state from ``key``, a PRNG key of one env (``jax.random.key(seed)``; vmap
+        ``reset`` over split keys for a batch). Anything else is refused when traced (its type and shape are known
+        then), naming the argument."""
+        check_key(key, f"{type(self).__name__}.reset(key)")
         params = self.default_params if params is None else params
         # Drawn from the reset key before it is split (folded, not split), so the reset's own draws keep their keys.
         domain = randomise.draw(key, params, self.robot.directional) if self.randomised else ()
@@ -220,7 +249,17 @@ class TaskEnv(Env):
         raise NotImplementedError
 
     def step(self, state: EnvState, action: jax.Array, params: Any = None) -> EnvState:
+        """One step of one env (vmap it for a batch): pure, jittable, no Python control flow on ``action``.
+
+        The jit contract: ``action``'s *shape* is checked when traced (a Discrete task takes a scalar, a Box task a
+        vector of the space's shape; anything else raises naming the argument), but its *value* cannot be: it
+        is cast to :attr:`action_dtype` and used as is. For a ``Discrete(n)`` task an action outside ``0 .. n-1``,
+        a NaN or a fraction therefore acts as some other action (a float is truncated, an index out of range is
+        clamped by the table lookups) and nothing says so. Code whose actions may be bad wraps the env in
+        :class:`jaxrobo.task.wrappers.CheckedActions`: it raises on the host for a concrete bad action and, under
+        jit, sets ``state.info["invalid_action"]``. The Gymnasium adapter checks every action on the host."""
         params = self.default_params if params is None else params
+        check_action_shape(self.action_space(params), action, f"{type(self).__name__}.step(state, action)")
         action = jnp.asarray(action, self.action_dtype)
         if self.step_kernel is not None and fused.task_kernels() and not state.domain:
             return self._kernel_step(state, action, params)

@@ -147,9 +147,12 @@ def _import_user_module(module: str, where: str) -> None:
         raise ConfigError(f"{where}: importing module {module!r} failed: {type(err).__name__}: {err}") from err
 
 
-def find(id: str, where: str | None = None) -> Registration:
+def find(id: str, where: str | None = None, *, may_import: bool = True) -> Registration:
     """The registration of ``id`` or ``"module:Id"`` (importing ``module`` first); for a missing module or id, a
-    :class:`ConfigError` that starts with ``where`` (e.g. ``"--env ID"``), then ``environment id``."""
+    :class:`ConfigError` that starts with ``where`` (e.g. ``"--env ID"``), then ``environment id``.
+
+    ``may_import=False`` (an id read from a file: a run directory's ``config.yaml``) imports nothing: a
+    ``module:Id`` whose module is not imported yet is refused (the caller says which flag would allow it)."""
     where = "environment id" if where is None else f"{where}: environment id"
     if not isinstance(id, str):
         raise ConfigError(f"{where}: expected an environment id string, got {type(id).__name__} {id!r}")
@@ -157,6 +160,9 @@ def find(id: str, where: str | None = None) -> Registration:
         module, _, name = id.partition(":")
         if not module or not name:
             raise ConfigError(f"{where}: {id!r}: expected 'module:Id' (e.g. my_task:MyTask-v0) or a registered id")
+        if not may_import and (module not in sys.modules or name not in _REGISTRY):
+            raise ConfigError(f"{where}: {id!r} names the Python module {module!r}, which a file read back never "
+                              f"imports (it would run its code); if you trust it, pass --env {id} explicitly")
         try:
             _import_user_module(module, where)
         except ConfigError:
@@ -247,6 +253,9 @@ def make(id: str, **overrides: Any) -> Env:
     Options (static: control type, backend, number of actions, ...) select the model and code path; parameters
     (limits, gains, goals) become ``env.default_params`` and can later be changed, or vmapped, per call.
     """
+    if not isinstance(id, str):
+        raise ConfigError(f"jaxrobo.make(id={id!r}): expected an environment id string (see jaxrobo.registered()), "
+                          f"got {type(id).__name__}")
     check_precision(f"jaxrobo.make({id!r})")  # before any model is built or code is traced
     reg = _lookup(id)
     cls = reg.env_class()

@@ -142,3 +142,57 @@ def check_memory(env: Any, config: Any, n_states: int, limit: int | None = None,
             f"nepisodes={config.nepisodes} recorded) but {what} is {format_bytes(limit)}; use fewer n_envs, "
             f"nepisodes or bins (or shared_table=true, record_episodes=false)")
     return parts
+
+
+#: Bytes per step of one evaluation episode kept by the rollout (reward, alive, action, return and length
+#: temporaries): a bound, so that a huge ``eval_episodes`` is refused before the compile rather than by XLA.
+EVAL_STEP_BYTES = 16
+
+
+def eval_bytes(env: Any, n_tables: int, n_episodes: int, horizon: int, exact_env: bool = False) -> int:
+    """Bytes of a greedy evaluation of ``n_tables`` tables x ``n_episodes`` episodes at once, ``horizon`` steps
+    each (:meth:`jaxrobo.training.trainer.Trainer.evaluate_episodes` vmapped over tables)."""
+    per_env = ENV_COPIES * env_state_bytes(env) if exact_env else ENV_BOUND_BYTES
+    return n_tables * n_episodes * (per_env + horizon * EVAL_STEP_BYTES)
+
+
+def check_eval_memory(env: Any, n_tables: int, n_episodes: int, horizon: int, where: str = "",
+                      limit: int | None = None, what: str | None = None) -> int:
+    """Refuse (ConfigError with the estimate and the limit) an evaluation that would not fit; returns the
+    estimate (0 when there is no evaluation or no known limit). The exact env-state size is traced only when
+    the generous bound does not fit."""
+    if n_episodes <= 0 or n_tables <= 0:
+        return 0
+    if limit is None:
+        limit, what = available_bytes()
+    if limit is None:
+        return 0
+    need = eval_bytes(env, n_tables, n_episodes, horizon)
+    if need > limit:
+        need = eval_bytes(env, n_tables, n_episodes, horizon, exact_env=True)
+    if need > limit:
+        loc = f"{where}: " if where else ""
+        raise ConfigError(f"{loc}eval_episodes={n_episodes}: the greedy evaluation of {n_tables} table(s) x "
+                          f"{n_episodes:,} episodes of up to {horizon} steps needs about {format_bytes(need)} but "
+                          f"{what or 'the limit'} is {format_bytes(limit)}; evaluate fewer episodes")
+    return need
+
+
+#: A bound on the host memory one sweep row takes while it is planned (its point, its validated values, its
+#: learner and env parameters, its metrics): rows are Python objects before they are stacked into arrays.
+SWEEP_ROW_HOST_BYTES = 16 << 10
+
+
+def check_sweep_rows(n_configs: int, n_seeds: int, where: str = "", limit: int | None = None) -> int:
+    """Refuse (ConfigError with the estimate and the limit) a sweep of more rows (configurations x seeds) than
+    the host can plan, before a single row is built; returns the number of rows."""
+    rows = n_configs * n_seeds
+    if limit is None:
+        limit = host_available_bytes()
+    need = rows * SWEEP_ROW_HOST_BYTES
+    if limit is not None and need > limit:
+        loc = f"{where}: " if where else ""
+        raise ConfigError(f"{loc}{n_configs:,} configurations x {n_seeds:,} seeds = {rows:,} rows: planning them "
+                          f"needs about {format_bytes(need)} of host memory but available host RAM is "
+                          f"{format_bytes(limit)}; sweep fewer points or seeds")
+    return rows

@@ -47,14 +47,23 @@ def write_npz(path: str, **arrays: Any) -> None:
     rundir.atomic_savez(path, **arrays)
 
 
-def read_npz(path: str, what: str = "the checkpoint") -> dict[str, np.ndarray]:
-    """Every array of the ``.npz`` at ``path`` (read without unpickling); :class:`CheckpointError` naming
-    ``what`` when it cannot be read."""
+def read_npz(path: str, what: str = "the checkpoint", **checks: Any) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` at ``path``, read as a hostile file (:func:`jaxrobo.io.npz.read_npz`: headers
+    checked for dtype, shape and size before any data is read; ``checks`` are its ``expect``, ``finite``,
+    ``max_bytes``); :class:`CheckpointError` naming ``what`` when it cannot be used."""
+    from jaxrobo.io.npz import NpzError, read_npz as read_checked
+
+    checks.setdefault("finite", False)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError) as err:
-        raise CheckpointError(f"{path}: cannot read {what} ({err})") from err
+        return read_checked(path, what, **checks)
+    except NpzError as err:
+        raise CheckpointError(str(err)) from None
+
+
+#: Leaves of the carry that must be finite in a checkpoint (the learner's tables and exploration rate): a table of
+#: NaN under a copied fingerprint would otherwise resume into a "complete" run of NaN. The env state may hold a
+#: non-finite physics state that the next step resets, so it is not checked.
+FINITE_LEAVES = (".agent", ".q_rows", ".epsilon")
 
 
 def _is_key(x: Any) -> bool:
@@ -101,9 +110,12 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
 
 
 def read_fingerprint(path: str) -> tuple[dict[str, Any], int]:
-    """A checkpoint's fingerprint and chunk count, without loading the carry."""
-    with np.load(path, allow_pickle=False) as data:
+    """A checkpoint's fingerprint and chunk count (the whole file is checked as :func:`read_npz` does)."""
+    data = read_npz(path, "the checkpoint")
+    try:
         return json.loads(str(data["fingerprint"])), int(data["chunks_done"])
+    except (KeyError, ValueError, TypeError) as err:
+        raise CheckpointError(f"{path}: not a jaxrobo checkpoint ({err})") from None
 
 
 def fingerprint_mismatch(saved: dict[str, Any], expected: dict[str, Any]) -> str | None:
@@ -129,23 +141,37 @@ def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) ->
     """The carry saved at ``path`` and its chunk count, on the default device, checked against ``fingerprint``
     (:func:`carry_fingerprint` of this run) and ``template``'s structure: refused with :class:`CheckpointError`
     saying why, rather than loaded, when they differ."""
-    data = read_npz(path, "the checkpoint")
+    with_paths, treedef = jax.tree_util.tree_flatten_with_path(template)
+    specs = [spec for _, spec in with_paths]
+    expect, finite = {}, {}
+    for i, (keypath, spec) in enumerate(with_paths):
+        shape, dtype = spec.shape, spec.dtype
+        if _is_key(spec):  # saved as its key data
+            data_spec = jax.eval_shape(jax.random.key_data, spec)
+            shape, dtype = data_spec.shape, data_spec.dtype
+        expect[f"leaf_{i}"] = (tuple(shape), dtype)
+        finite[f"leaf_{i}"] = jax.tree_util.keystr(keypath).startswith(FINITE_LEAVES)
+    data = read_npz(path, "the checkpoint", expect=expect, finite=finite)
     try:
         saved = json.loads(str(data["fingerprint"]))
         impls = json.loads(str(data["key_impls"]))
         chunks_done = int(data["chunks_done"])
-    except (KeyError, ValueError) as err:
-        raise CheckpointError(f"{path}: not a jaxrobo checkpoint ({err})") from err
+        if not isinstance(saved, dict) or not isinstance(impls, list) or len(impls) != len(specs):
+            raise ValueError("fingerprint or key_impls malformed")
+    except (KeyError, ValueError, TypeError) as err:
+        raise CheckpointError(f"{path}: not a jaxrobo checkpoint ({err})") from None
     why = fingerprint_mismatch(saved, fingerprint)
     if why is not None:
         raise CheckpointError(f"{path}: refusing to resume: {why}")
-    specs, treedef = jax.tree.flatten(template)
     leaves = []
     for i, (spec, impl) in enumerate(zip(specs, impls)):
         x = data.get(f"leaf_{i}")
         if x is None:
             raise CheckpointError(f"{path}: leaf {i} is missing")
-        leaf = jax.random.wrap_key_data(x, impl=impl) if impl is not None else jnp.asarray(x)
+        try:
+            leaf = jax.random.wrap_key_data(x, impl=impl) if impl is not None else jnp.asarray(x)
+        except (TypeError, ValueError) as err:
+            raise CheckpointError(f"{path}: leaf {i} cannot be restored ({err})") from None
         if leaf.shape != spec.shape or leaf.dtype != spec.dtype:
             raise CheckpointError(f"{path}: leaf {i} is {leaf.shape} {leaf.dtype}, expected {spec.shape} "
                                   f"{spec.dtype}")

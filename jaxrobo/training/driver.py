@@ -20,6 +20,7 @@ its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evalua
 from __future__ import annotations
 
 import dataclasses
+import os
 import signal
 import threading
 import time
@@ -261,7 +262,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     runner = compiled_init(trainer, key, agent_params, env_params)(key, agent_params, env_params) \
         if initial is None else initial
     # Read before the first chunk takes the carry's buffers: a resumed run's steps/s counts this process's steps.
-    env_steps_before = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64).sum())
+    restored = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64).sum())
     chunk = compiled_chunk(trainer, runner, agent_params, env_params)
     stats = compiled_progress(runner, trainer)
     jax.block_until_ready(runner)
@@ -290,10 +291,9 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_returns=eval_returns,
         eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
         chunks_done=loop.chunks_done, start_chunk=start_chunk, eval_seconds=eval_seconds,
-        env_steps_before=env_steps_before,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
         episodes_finished=int(np.asarray(host.episode, np.int64).sum()), budget=trainer.budget,
-        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan))
+        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored)
 
 
 def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any
@@ -346,12 +346,54 @@ class StopOnSignal:
         self.notice, self.second = notice, second
         self.signum: int | None = None
         self._old: dict[int, Any] = {}
+        self._pipe: tuple[int, int] | None = None
+        self._wakeup_old = -1
+
+    #: Seconds after a second signal that the process ends even if Python code cannot run its handler (the main
+    #: thread inside a long XLA compile or a device wait runs no Python signal handler until it returns).
+    GRACE_SECONDS = 2.0
 
     def __enter__(self) -> "StopOnSignal":
         if threading.current_thread() is threading.main_thread():
             for sig in self.SIGNALS:
                 self._old[sig] = signal.signal(sig, self._handle)
+            self._start_watchdog()
         return self
+
+    def _start_watchdog(self) -> None:
+        """Python runs a signal handler only between bytecodes of the main thread; the C-level handler still
+        writes the signal number to the wakeup fd at once. A thread reading it counts the signals: after the
+        second, if the main thread has not ended the process within :data:`GRACE_SECONDS`, the process ends
+        with the signal's default action (the run's last checkpoint stays on disk)."""
+        try:
+            r, w = os.pipe()
+            os.set_blocking(w, False)
+            self._wakeup_old = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        except (OSError, ValueError):
+            return
+        self._pipe = (r, w)
+
+        def watch() -> None:
+            seen = 0
+            while True:
+                try:
+                    data = os.read(r, 64)
+                except OSError:
+                    return
+                if not data:
+                    return
+                for signum in data:
+                    if signum in self.SIGNALS:
+                        seen += 1
+                        if seen >= 2:
+                            time.sleep(self.GRACE_SECONDS)
+                            if self._pipe is None:  # handled and left meanwhile
+                                return
+                            os.write(2, f"\n{signal.Signals(signum).name} twice: quitting now\n".encode())
+                            _default_action(signum)
+
+        self._watchdog = threading.Thread(target=watch, name="StopOnSignal-watchdog", daemon=True)
+        self._watchdog.start()
 
     def _handle(self, signum: int, _frame: Any) -> None:
         if self.second == "exit" and self.signum is not None:
@@ -374,3 +416,14 @@ class StopOnSignal:
     def __exit__(self, *_exc: Any) -> None:
         for sig, old in self._old.items():
             signal.signal(sig, old)
+        pipe, self._pipe = self._pipe, None
+        if pipe is not None:
+            signal.set_wakeup_fd(self._wakeup_old)
+            for fd in reversed(pipe):  # the write end first: the watchdog's read then returns b""
+                os.close(fd)
+
+
+def _default_action(signum: int) -> None:
+    """End the process at once, from any thread, with the exit status a shell reports for ``signum`` (Python
+    cannot restore a signal's default disposition outside the main thread)."""
+    os._exit(128 + signum)

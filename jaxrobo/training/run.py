@@ -245,23 +245,31 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
                           f"{env_id} has continuous (Box) actions; use --agent ppo or --agent sac (Brax's trainers)")
     n_states = check_discretiser(env, config, where)
     if check_memory:
-        from jaxrobo.training.budget import check_memory as fits
+        from jaxrobo.training.budget import check_eval_memory, check_memory as fits
 
         fits(env, config, n_states, where=where)
+        n_eval = 1 if config.shared_table else min(config.eval_envs, config.n_envs)
+        horizon = env.spec.max_episode_steps if env.spec else 1000
+        check_eval_memory(env, n_eval, config.eval_episodes, horizon, where=where)
     return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values)
 
 
-def spec_from_config(run_config: dict[str, Any], check_memory: bool = True):
-    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``; ``jaxrobo export`` passes
-    ``check_memory=False``: it trains nothing): every saved value is applied as an override of the saved preset,
-    and the result must give back the same config."""
+def spec_from_config(run_config: Any, where: str = "config.yaml", trusted_env: str | None = None,
+                     check_memory: bool = True):
+    """The :class:`RunSpec` a run's ``config.yaml`` describes (for ``--resume``): every saved value is
+    applied as an override of the saved preset, and the result must give back the same config. Its
+    ``env_id`` must be a registered id: a ``module:Id`` is imported only when it equals ``trusted_env`` (the
+    id the user passed with ``--env``); a run directory never makes jaxrobo run code. ``jaxrobo export`` passes
+    ``check_memory=False``: it trains nothing."""
+    if not isinstance(run_config, dict):
+        raise ConfigError(f"{where}: config.yaml is not a jaxrobo run configuration (a mapping)")
     try:
         env_id, preset = run_config["env_id"], run_config.get("preset", "default")
         overrides = {f"env.{k}": v for part in ("env_options", "env_params") for k, v in run_config[part].items()}
         overrides.update({f"agent.{k}": v for part in ("agent_params", "train") for k, v in run_config[part].items()})
     except (KeyError, TypeError, AttributeError) as err:
-        raise ConfigError(f"config.yaml: not a jaxrobo run configuration (missing {err})") from err
-    find(env_id, where=f"config.yaml: env_id {env_id}")  # a 'module:Id' imports its module (run from its folder)
+        raise ConfigError(f"{where}: config.yaml is not a jaxrobo run configuration (missing {err})") from err
+    find(env_id, where=f"{where}: config.yaml env_id", may_import=trusted_env is not None and env_id == trusted_env)
     spec = resolve(env_id, preset, overrides, check_memory=check_memory)
     again = json.loads(json.dumps(spec.to_dict()))
     if again != json.loads(json.dumps(run_config)):

@@ -49,9 +49,12 @@ class TrainResult:
     #: The task's declared target (:class:`jaxrobo.task.env.LearningTarget`; None: no target), for :meth:`summary`.
     learning_target: LearningTarget | None = None
     plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it)
-    #: The chunk the carry started from (0, or the checkpoint's on a resume) and the env steps it held then.
+    #: Env steps the carry had already run when this process restored it (``--resume``): ``env_steps`` counts
+    #: them, the speed does not (they were run, and timed, by an earlier process).
+    restored_env_steps: int = 0
+
+    #: The chunk the carry started from (0, or the checkpoint's on a resume).
     start_chunk: int = 0
-    env_steps_before: int = 0
     eval_seconds: float = 0.0
     #: Every env's finished episodes, recorded or not (under a run-wide budget an env may finish more than the
     #: ``nepisodes`` it records).
@@ -60,9 +63,8 @@ class TrainResult:
 
     @property
     def steps_per_second(self) -> float:
-        """Env steps per second of this process's training loop (steps a resumed carry already held excluded)."""
-        return (self.env_steps - self.env_steps_before) / max(self.run_seconds, 1e-9)
-
+        """Env steps run by this process per second of its run time (restored steps left out)."""
+        return (self.env_steps - self.restored_env_steps) / max(self.run_seconds, 1e-9)
     @property
     def slot_steps(self) -> int:
         """Env slots the batch stepped: chunks run (since the start) × chunk steps × envs."""
@@ -121,7 +123,9 @@ class TrainResult:
                 if self.episodes_done is not None else int(self.returns.size)
         if self.start_chunk:
             out["resumed_after_chunk"] = int(self.start_chunk)
-            out["env_steps_before_resume"] = int(self.env_steps_before)
+        if self.restored_env_steps:
+            out["restored_env_steps"] = int(self.restored_env_steps)
+            out["env_steps_this_process"] = int(self.env_steps - self.restored_env_steps)
         target = self.learning_target
         if target is not None:
             out["learning_target"] = target.description

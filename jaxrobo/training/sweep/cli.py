@@ -22,7 +22,7 @@ from typing import Any, Mapping, Sequence
 import jax
 import numpy as np
 
-from jaxrobo.training import driver
+from jaxrobo.training import budget, driver
 from jaxrobo.core.config import ConfigError, merge_flags, parse_overrides
 from jaxrobo.core.struct import INT32_MAX
 from jaxrobo.training.sweep.output import _fmt, plot_sweep, write_csv
@@ -110,7 +110,7 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
         out = args.out or os.path.join("sweep_results", f"{env_id.rpartition(':')[2]}_"
                                                         f"{time.strftime('%Y%m%d-%H%M%S')}")
         if check_out:
-            rundir.check_out(out, overwrite=args.overwrite)
+            out = rundir.check_out(out, overwrite=args.overwrite)
         flags = {k: SWEEP_FLAGS[k] if v is None else v for k, v in given.items()}
         return out, flags, list(sys.argv)
     live = args.resume
@@ -119,7 +119,7 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
                           "other replaces it)")
     if args.out is not None:
         raise ConfigError(f"--out {args.out}: a resumed sweep finishes where it was going to; drop --out")
-    rundir.check_out(live, resume=True, flag="--resume")
+    live = rundir.check_out(live, resume=True, flag="--resume")
     extra = read_state(live).get("extra", {})
     saved = extra.get("flags")
     if not isinstance(saved, dict) or set(saved) != set(SWEEP_FLAGS):
@@ -128,8 +128,13 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
         if v is not None and _canonical(v) != saved[k]:
             raise ConfigError(f"--resume {live}: {_flag(k)} {_show(v)} differs from the saved sweep's "
                               f"{_flag(k)} {_show(saved[k])}; a resumed sweep keeps its settings (drop the flag)")
-    find(saved["env"], where=f"--resume {live}: env {saved['env']}")  # a 'module:Id' imports its module again
-    out = (rundir.read_status(live) or {}).get("out") or live
+    # A 'module:Id' read back from the state imports its module only when --env gives it again (a file read back
+    # never makes jaxrobo run code by itself).
+    find(saved["env"], where=f"--resume {live}: env {saved['env']}", may_import=given["env"] == saved["env"])
+    # Where the results go is derived from DIR itself, never from a path recorded in it: the sweep may have been
+    # moved (a recorded path would write into, and replace, whatever is there now). DIR, or for the hidden
+    # staging sibling of an --overwrite sweep (.NAME.<r>.partial), the run NAME beside it.
+    out = rundir.run_name(live)
     return out, dict(saved), list(extra.get("argv") or [])
 
 
@@ -157,6 +162,11 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
         raise ConfigError("--random N needs at least one --range KEY=LOW:HIGH")
     if args.random < 0:
         raise ConfigError(f"--random {args.random}: must be >= 0")
+    if args.seeds < 1:
+        raise ConfigError(f"--seeds {args.seeds}: must be >= 1")
+    # Before a single point is built: a million-row sweep would fill the host's memory with Python objects.
+    n_configs = int(np.prod([len(v) for v in axes.values()], dtype=object)) * max(args.random, 1)
+    budget.check_sweep_rows(n_configs, args.seeds, where="--grid/--random x --seeds")
     grid = grid_points(axes)
     if not args.random:
         return grid
@@ -164,18 +174,37 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
     return [{**g, **s} for g in grid for s in sample]
 
 
+def check_swept_and_fixed(f: argparse.Namespace, overrides: Mapping[str, Any]) -> None:
+    """A key both swept (``--grid``/``--range``) and fixed (``--set``, ``--n-envs``, ``--nepisodes``,
+    ``--nsteps``) is refused: one of them would silently win. ``agent.``/``env.`` prefixes name the same key."""
+    bare = lambda k: str(k).rpartition(".")[2]  # noqa: E731
+    flags = {"n_envs": "--n-envs", "nepisodes": "--nepisodes", "nsteps": "--nsteps"}
+    fixed = {bare(k): k for k in overrides}
+    for item in (f.grid or []) + (f.ranges or []):
+        key = item.partition("=")[0].strip()
+        if bare(key) in fixed:
+            k = fixed[bare(key)]
+            given = flags.get(k, f"--set {k}={overrides[k]!r}")
+            if k in flags:
+                given = f"{given} {overrides[k]}"
+            raise ConfigError(f"{key}: swept by --grid/--range and fixed by {given}; give it one way")
+
+
 def run(args: argparse.Namespace, *, compiler_options: Mapping[str, Any] | None = None) -> int:
     """``jaxrobo sweep`` (see :func:`_run`); Ctrl-C before the sweep's own handlers are in place exits with 130
     and one line (nothing is half-written: the state and the results are written atomically).
     ``compiler_options``: XLA options for every group's plan (part of the sweep's saved settings)."""
+    import contextlib
+
     try:
-        return _run(args, compiler_options)
+        with contextlib.ExitStack() as hold:  # the output directory's lock (process 0), released on any exit
+            return _run(args, compiler_options, hold)
     except KeyboardInterrupt:
         print("jaxrobo sweep: interrupted", file=sys.stderr)
         return 128 + signal.SIGINT
 
 
-def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = None) -> int:
+def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = None, hold: Any = None) -> int:
     """``jaxrobo sweep``: train every row, write sweep.csv, summary.json and heatmaps, print the best.
 
     The sweep's state (``status.json``, ``sweep_state.json``, ``checkpoint.npz`` with the finished groups) lives
@@ -191,7 +220,7 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         sharding.initialize_distributed()  # a no-op unless JAXROBO_COORDINATOR & co. are set (docs/scaling.md)
         main_process = jax.process_index() == 0
         out, flags, argv = sweep_flags(args, check_out=main_process)
-        live = args.resume  # where the state is; a new sweep's is chosen by process 0 below
+        live = None if args.resume is None else rundir.resolve_out(args.resume, "--resume")  # where the state is
         f = argparse.Namespace(**flags)
         if f.seeds < 1:
             raise ConfigError(f"--seeds {f.seeds}: must be >= 1")
@@ -206,6 +235,7 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
                                                                 ("total_steps", "--total-steps", f.total_steps),
                                                                 ("total_episodes", "--total-episodes",
                                                                  f.total_episodes)])
+        check_swept_and_fixed(f, overrides)
         if f.seed < 0 or f.seed + f.seeds - 1 > INT32_MAX:
             raise ConfigError(f"--seed {f.seed} --seeds {f.seeds}: the seeds run from --seed to --seed + --seeds - 1, "
                               f"which must lie in [0, {INT32_MAX}]")
@@ -215,6 +245,9 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         target = getattr(plan.groups[0].spec.env, "learning_target", None) if plan.groups else None
         if f.metric == "eval_success_rate" and (target is None or target.metric != "success_rate"):
             raise ConfigError(f"--metric eval_success_rate: {f.env} declares no success-rate learning target")
+        if main_process and hold is not None:  # one writer per directory (a second is refused with the pid)
+            hold.enter_context(rundir.claimed(live or out, overwrite=args.overwrite, resume=live is not None,
+                                              flag="--out" if live is None else "--resume"))
         if args.resume is not None:
             open_state(live, plan)  # refuses a state of other settings or code before anything compiles
         mesh = None

@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxrobo.io import rundir
+
 from jaxrobo.training.sweep.running import SweepResult
 
 
@@ -89,6 +91,6 @@ def _save(fig: Any, out_dir: str, name: str) -> str:
 
     path = os.path.join(out_dir, name)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    rundir.atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
     return path

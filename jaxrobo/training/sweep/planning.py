@@ -53,10 +53,17 @@ def parse_grid(items: Sequence[str]) -> dict[str, list[Any]]:
         if "=" not in item:
             raise ConfigError(f"--grid {item!r}: expected KEY=V1,V2,...")
         key, text = (s.strip() for s in item.split("=", 1))
-        values = [parse_value(v.strip()) for v in re.split(r",(?![^\[]*\])", text) if v.strip()]
-        if not values:
+        if not text.strip():
             raise ConfigError(f"--grid {item!r}: no values after '='")
-        axes[key] = values
+        parts = re.split(r",(?![^\[]*\])", text)  # a comma inside brackets belongs to a list value
+        empty = [i + 1 for i, v in enumerate(parts) if not v.strip()]
+        if empty:  # "0.1,,0.3" or a trailing comma: a value was left out, not meant to be skipped
+            raise ConfigError(f"--grid {item!r}: value {empty[0]} of {len(parts)} is empty; give each value once, "
+                              "separated by single commas")
+        if key in axes:
+            raise ConfigError(f"--grid {key}: given twice ({','.join(map(str, axes[key]))} and {text}); give each "
+                              "key once, with all its values")
+        axes[key] = [parse_value(v.strip(), key) for v in parts]
     return axes
 
 
@@ -75,6 +82,8 @@ def parse_ranges(items: Sequence[str]) -> dict[str, tuple[float, float, bool]]:
         log = len(parts) == 3 and parts[2] == "log"
         if not lo < hi or (log and lo <= 0):
             raise ConfigError(f"--range {item!r}: need LOW < HIGH{' and LOW > 0 for log' if log else ''}")
+        if key.strip() in out:
+            raise ConfigError(f"--range {key.strip()}: given twice; give each key once")
         out[key.strip()] = (lo, hi, log)
     return out
 
@@ -177,9 +186,13 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
                 agent_list.append(ap)
                 env_list.append(ep)
                 meta.append((i, s, ap))
-        # Every row of a group trains its own n_envs envs at once: the group's memory is that of rows x n_envs.
+        # Every row of a group trains its own n_envs envs at once: the group's memory is that of rows x n_envs;
+        # then each row's first table is evaluated, eval_episodes at once per row.
+        where = f"sweep group {g + 1} ({len(meta)} rows)"
         budget.check_memory(env, spec.config.replace(n_envs=len(meta) * spec.config.n_envs),
-                            Trainer(env, spec.config).disc.n_states, where=f"sweep group {g + 1} ({len(meta)} rows)")
+                            Trainer(env, spec.config).disc.n_states, where=where)
+        horizon = env.spec.max_episode_steps if env.spec else 1000
+        budget.check_eval_memory(env, len(meta), eval_episodes, horizon, where=f"{where}: --eval-episodes")
         planned.append(PlannedGroup(g, static, spec, list(members), meta, agent_list, env_list))
     settings = {"env_id": env_id, "points": checked, "seeds": seeds, "preset": preset, "agent": agent,
                 "overrides": overrides, "eval_episodes": eval_episodes, "n_last": n_last,

@@ -117,14 +117,24 @@ def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[i
         raise ConfigError(f"{path}: saved by another sweep than {os.path.join(state_dir, STATE_FILE)}; "
                           "start it again with --overwrite")
     out = {}
-    for g in (int(x) for x in data["finished"]):
-        p = plan.groups[g]
-        if not (np.array_equal(data[f"g{g}_config"], [i for i, _, _ in p.meta])
-                and np.array_equal(data[f"g{g}_seed"], [s for _, s, _ in p.meta])):
-            raise ConfigError(f"{path}: group {g} holds other rows than the sweep plans")
-        prefix = f"g{g}_metric_"
-        out[g] = {"metrics": {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)},
-                  "compile_seconds": float(data[f"g{g}_compile_seconds"]),
-                  "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"]),
-                  "slot_steps": float(data.get(f"g{g}_slot_steps", 0.0))}
+    try:
+        for g in (int(x) for x in np.asarray(data["finished"]).reshape(-1)):
+            if not 0 <= g < len(plan.groups):
+                raise ValueError(f"group {g} is not one of the sweep's {len(plan.groups)} groups")
+            p = plan.groups[g]
+            if not (np.array_equal(data[f"g{g}_config"], [i for i, _, _ in p.meta])
+                    and np.array_equal(data[f"g{g}_seed"], [s for _, s, _ in p.meta])):
+                raise ConfigError(f"{path}: group {g} holds other rows than the sweep plans")
+            prefix = f"g{g}_metric_"
+            metrics = {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}
+            if any(np.shape(v)[:1] != (len(p.meta),) for v in metrics.values()):
+                raise ValueError(f"group {g}: metrics of another number of rows than its {len(p.meta)}")
+            out[g] = {"metrics": metrics, "compile_seconds": float(data[f"g{g}_compile_seconds"]),
+                      "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"]),
+                      "slot_steps": float(data.get(f"g{g}_slot_steps", 0.0))}
+    except (KeyError, ValueError, TypeError) as err:
+        if isinstance(err, ConfigError):
+            raise
+        raise ConfigError(f"{path}: not a checkpoint of this sweep ({type(err).__name__}: {err}); start it again "
+                          "with --overwrite") from None
     return out

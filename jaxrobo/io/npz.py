@@ -1,0 +1,90 @@
+"""``.npz`` files read back as hostile input: every array's header is checked before its data is read.
+
+A checkpoint or a q-table file may be truncated, bit-flipped, pickled, or claim an array of 2^40 rows in its
+header; ``np.load`` would raise one of half a dozen exceptions or try to allocate terabytes. :func:`read_npz`
+reads each member's ``.npy`` header with :mod:`numpy.lib.format` first (dtype, shape, and the bytes they need
+against a cap and against the member's own size in the zip), compares it with an expected template when one
+is given, then reads the data (the zip's CRC checks it) and refuses non-finite float arrays. Every failure is
+one :class:`NpzError` (a :class:`~jaxrobo.core.config.ConfigError`) naming the file and the array.
+"""
+from __future__ import annotations
+
+import math
+import zipfile
+import zlib
+from typing import Any, Mapping
+
+import numpy as np
+
+from jaxrobo.core.config import ConfigError
+
+#: Largest array (bytes) read from a file by default: a run's tables and carry are far below it.
+MAX_ARRAY_BYTES = 16 << 30
+
+
+class NpzError(ConfigError):
+    """An ``.npz`` file that cannot be used: unreadable, or not holding the arrays expected."""
+
+
+def _header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
+    from numpy.lib import format as npy
+
+    with zf.open(info) as f:
+        version = npy.read_magic(f)
+        reader = {(1, 0): npy.read_array_header_1_0, (2, 0): npy.read_array_header_2_0}.get(tuple(version))
+        if reader is None:
+            raise ValueError(f"unknown .npy format version {version}")
+        shape, _fortran, dtype = reader(f)
+    return tuple(int(n) for n in shape), np.dtype(dtype)
+
+
+def read_npz(path: str, what: str = "the file", *, expect: Mapping[str, tuple[tuple[int, ...], Any]] | None = None,
+             finite: bool | Mapping[str, bool] = True, max_bytes: int = MAX_ARRAY_BYTES) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` at ``path``, checked before and after reading (see the module).
+
+    ``expect``: ``{name: (shape, dtype)}`` the arrays must have (a name missing from the file is an error; names
+    not in ``expect`` are read too, under ``max_bytes``). ``finite``: refuse float arrays holding NaN or inf (all,
+    or per name). Raises :class:`NpzError` naming ``what``, the file and the array."""
+    where = f"{path}: {what}"
+    try:
+        with zipfile.ZipFile(path) as zf:
+            infos = {i.filename[:-4] if i.filename.endswith(".npy") else i.filename: i for i in zf.infolist()}
+            headers = {}
+            for name, info in infos.items():
+                try:
+                    shape, dtype = _header(zf, info)
+                except (ValueError, SyntaxError, TypeError, OverflowError) as err:
+                    raise NpzError(f"{where}: array {name!r} has no valid .npy header ({err})") from None
+                if any(n < 0 for n in shape):
+                    raise NpzError(f"{where}: array {name!r} has no valid .npy header (shape {shape})")
+                if dtype.hasobject:
+                    raise NpzError(f"{where}: array {name!r} holds Python objects (pickled): cannot be read as "
+                                  "plain arrays; refused")
+                nbytes = math.prod(shape) * dtype.itemsize
+                if nbytes > max_bytes or nbytes > info.file_size:
+                    raise NpzError(f"{where}: array {name!r} claims shape {shape} {dtype} ({nbytes:,} bytes) but "
+                                   f"the file holds {info.file_size:,} bytes for it (limit {max_bytes:,}); it is "
+                                   "truncated or corrupt")
+                headers[name] = (shape, dtype)
+            for name, (shape, dtype) in (expect or {}).items():
+                if name not in headers:
+                    raise NpzError(f"{where}: no array {name!r} (found {', '.join(headers) or 'none'})")
+                want = (tuple(shape), np.dtype(dtype))
+                if headers[name] != want:
+                    raise NpzError(f"{where}: array {name!r} is {headers[name][0]} {headers[name][1]}, expected "
+                                   f"{want[0]} {want[1]}")
+            out = {}
+            with np.load(path, allow_pickle=False) as z:
+                for name in headers:
+                    out[name] = z[name]
+    except NpzError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, KeyError, RuntimeError) as err:
+        raise NpzError(f"{where}: cannot be read as plain arrays ({type(err).__name__}: {err}); it is truncated, "
+                       "corrupt, pickled or not an npz file") from None
+    for name, x in out.items():
+        check = finite if isinstance(finite, bool) else finite.get(name, True)
+        if check and np.issubdtype(x.dtype, np.inexact) and not np.all(np.isfinite(x)):
+            bad = int(x.size - np.count_nonzero(np.isfinite(x)))
+            raise NpzError(f"{where}: array {name!r} has {bad} non-finite values (NaN or inf) of {x.size}; refused")
+    return out

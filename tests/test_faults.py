@@ -1,0 +1,415 @@
+"""Faults from outside a run: two writers, a killed publish, a full or read-only disk, a moved directory, a corrupt
+or hostile checkpoint, a second signal while the main thread is stuck in C. Each leaves the run whole or
+resumable, says so in one line, and never replaces or deletes what it was not asked to.
+
+The tests that train use the analytic cart-pole with a few envs and episodes (seconds on a CPU); the rest run
+no JAX computation at all.
+"""
+from __future__ import annotations
+
+import errno
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from jaxrobo.cli import main
+from jaxrobo.core.config import ConfigError
+from jaxrobo.io import rundir
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ENV = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": ROOT}
+CP = "CartPoleStayUp-v0"
+TINY = ["--env", CP, "--n-envs", "2", "--nepisodes", "4", "--set", "nsteps=20", "--set", "chunk_steps=10",
+        "--set", "backend=analytic", "--set", "eval_episodes=1", "--no-progress"]
+
+
+def _python(code: str, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], env={**ENV, **kw.pop("env", {})},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _holder(path: str) -> subprocess.Popen:
+    """Another process that holds the run at ``path`` (as a running ``jaxrobo train`` does) until killed."""
+    p = _python(f"""
+        import sys, time
+        from jaxrobo.io import rundir
+        with rundir.locked({path!r}):
+            print("locked", flush=True)
+            time.sleep(120)
+    """)
+    assert p.stdout.readline().strip() == "locked", p.stderr.read()
+    return p
+
+
+# ---- two writers -------------------------------------------------------------------------------------------------
+def test_a_second_writer_is_refused_with_the_first_ones_pid(tmp_path, capsys):
+    out = str(tmp_path / "run")
+    first = _holder(out)
+    try:
+        for argv in (["train", *TINY, "--out", out], ["sweep", "--n-envs", "2", "--nepisodes", "2", "--seeds", "1",
+                                                      "--out", out]):
+            assert main(argv) == 2
+            err = capsys.readouterr().err
+            assert f"(pid {first.pid}) is writing this run directory" in err and "Traceback" not in err
+        # its staging sibling (where an --overwrite run keeps its state) is the same run
+        with pytest.raises(rundir.RunLocked, match=f"pid {first.pid}"):
+            with rundir.locked(str(tmp_path / ".run.abcd1234.partial")):
+                pass
+    finally:
+        first.kill()
+        first.wait()
+    assert not os.path.exists(out)  # nothing written by the refused writers
+
+
+def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
+    out = str(tmp_path / "run")
+    first = _holder(out)
+    first.send_signal(signal.SIGKILL)
+    first.wait()
+    assert os.path.exists(rundir.lock_path(out))  # the file stays; the kernel dropped the lock
+    with rundir.locked(out):
+        assert open(rundir.lock_path(out)).read().strip() == str(os.getpid())
+    assert not os.path.exists(rundir.lock_path(out))
+
+
+def test_two_trainings_at_once_one_wins_the_other_is_refused(tmp_path):
+    """Two real ``jaxrobo train`` processes on one --out: exactly one writes the run, the other exits 2."""
+    out = str(tmp_path / "run")
+    cmd = [sys.executable, "-m", "jaxrobo.cli", "train", *TINY, "--out", out]
+    procs = [subprocess.Popen(cmd, env={**ENV, "JAXROBO_CACHE_DIR": str(tmp_path / "cache")},
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    codes = sorted(code for code, _ in results)
+    refused = [err for code, err in results if code == 2]
+    # Either the second found the lock (pid named) or, started after the first had finished, a complete run.
+    assert codes == [0, 2], results
+    assert "is writing this run directory" in refused[0] or "directory is not empty" in refused[0], refused
+    assert rundir.is_complete(out)
+
+
+# ---- kill -9 while publishing ---------------------------------------------------------------------------------
+def test_kill_9_during_publish_leaves_a_partial_that_the_next_run_removes(tmp_path):
+    out = str(tmp_path / "run")
+    code = f"""
+        import os
+        from jaxrobo.io import rundir
+        out = {out!r}
+        with rundir.locked(out):
+            live = rundir.live_dir(out)
+            rundir.write_status(live, rundir.RUNNING)
+            def write(staged):
+                open(os.path.join(staged, "summary.json"), "w").write("{{}}")
+                rundir.write_status(staged, rundir.COMPLETE)
+            rundir.publish_results(out, live, write)
+    """
+    p = _python(code, env={rundir.PAUSE_ENV: "60"})
+    deadline = time.time() + 60
+    partials = []
+    while time.time() < deadline and not partials:
+        partials = [n for n in os.listdir(tmp_path) if n.startswith(".run.") and n.endswith(".partial")
+                    and rundir.is_complete(os.path.join(tmp_path, n))]
+        time.sleep(0.05)
+    assert partials, p.stderr.read() if p.poll() is not None else "no staging directory appeared"
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    assert os.path.isdir(tmp_path / partials[0])  # left behind by the kill
+    with rundir.locked(out):  # the next run on that --out
+        pass
+    assert not [n for n in os.listdir(tmp_path) if n.endswith(".partial")]
+    assert rundir.read_status(out)["status"] == rundir.RUNNING  # the run's own state untouched
+
+
+def test_a_partial_with_resumable_state_is_kept(tmp_path):
+    """The hidden state directory of an interrupted --overwrite run is not litter: it stays."""
+    keep = tmp_path / ".run.abcd1234.partial"
+    keep.mkdir()
+    (keep / rundir.CHECKPOINT).write_bytes(b"x")
+    rundir.write_status(str(keep), rundir.INTERRUPTED)
+    with rundir.locked(str(tmp_path / "run")):
+        pass
+    assert keep.is_dir()
+
+
+# ---- --out that is a symlink, too long, unwritable ------------------------------------------------------------
+def test_out_through_a_symlink_to_an_empty_folder_publishes_into_its_target(tmp_path):
+    target = tmp_path / "target"
+    target.mkdir()
+    link = tmp_path / "link"
+    link.symlink_to(target)
+    assert rundir.check_out(str(link)) == str(target)
+    live = rundir.live_dir(str(target))
+    rundir.publish_results(str(target), live, lambda d: rundir.write_status(d, rundir.COMPLETE))
+    assert link.is_symlink() and rundir.is_complete(str(link))
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]
+
+
+@pytest.mark.parametrize("make, fragment", [
+    (lambda t: (t / "loop").symlink_to(t / "loop"), "a symlink loop"),
+    (lambda t: (t / "loop").symlink_to(t / "other") or (t / "other").symlink_to(t / "loop"), "a symlink loop"),
+    (lambda t: (t / "loop").symlink_to(t / "nowhere"), "is a dangling symlink"),
+    (lambda t: ((t / "f").write_text("x"), (t / "loop").symlink_to(t / "f")), "which is not a directory"),
+])
+def test_bad_symlinks_as_out_are_refused(tmp_path, make, fragment):
+    make(tmp_path)
+    with pytest.raises(ConfigError, match=fragment):
+        rundir.check_out(str(tmp_path / "loop"))
+
+
+def test_read_only_target_is_refused_before_anything_runs(tmp_path, monkeypatch):
+    """As root os.access says yes to everything: the check tries a directory there (faked EROFS)."""
+    import tempfile
+
+    def erofs(*_a, **_kw):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", erofs)
+    with pytest.raises(ConfigError, match="Read-only file system"):
+        rundir.check_out(str(tmp_path / "run"))
+
+
+# ---- a full disk -----------------------------------------------------------------------------------------------
+def _enospc(*_a, **_kw):
+    raise OSError(errno.ENOSPC, "No space left on device", "/full/disk")
+
+
+def test_plot_on_a_full_disk_fails_in_one_line_and_leaves_no_png(tmp_path, monkeypatch, capsys):
+    import matplotlib.figure
+
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "episode_stats.csv").write_text(
+        "episode,return_mean,return_std,return_p10,return_p50,return_p90,length_mean,length_std,length_p10,"
+        "length_p50,length_p90,epsilon\n0,1,0,1,1,1,5,0,5,5,5,0.1\n1,2,0,1,2,3,6,0,5,6,7,0.1\n")
+    real = matplotlib.figure.Figure.savefig
+
+    def half_then_full(self, f, **kw):  # writes some bytes, then the disk is full
+        f.write(b"\x89PNG")
+        _enospc()
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", half_then_full)
+    assert main(["plot", str(run), "--out", str(tmp_path / "p.png")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "No space left on device" in err and "Traceback" not in err
+    assert sorted(os.listdir(tmp_path)) == ["r"]  # no 0-byte or torn PNG, no temporary file
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", real)
+
+
+def test_train_on_a_full_disk_before_its_first_checkpoint_leaves_nothing(tmp_path, monkeypatch, capsys):
+    from jaxrobo.io import results
+
+    monkeypatch.setattr(results, "write_config", _enospc)
+    out = tmp_path / "run"
+    assert main(["train", *TINY, "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "nothing was kept" in err and "Traceback" not in err
+    assert not out.exists() and os.listdir(tmp_path) == []
+
+
+# ---- a moved run directory or sweep ----------------------------------------------------------------------------
+def _interrupted_run(out, extra=()):
+    """A tiny ``jaxrobo train`` stopped by SIGTERM after its first checkpoint (exit 143, resumable)."""
+    from jaxrobo.training import checkpoint
+
+    real = checkpoint.save_checkpoint
+
+    def save_then_signal(path, runner, chunks_done, fingerprint):
+        real(path, runner, chunks_done, fingerprint)
+        if chunks_done == 1:
+            signal.raise_signal(signal.SIGTERM)
+
+    checkpoint.save_checkpoint = save_then_signal
+    try:
+        assert main(["train", *TINY, "--checkpoint-every", "1", *extra, "--out", str(out)]) == 143
+    finally:
+        checkpoint.save_checkpoint = real
+
+
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("interrupted") / "run"
+    _interrupted_run(out)
+    return out
+
+
+def test_a_moved_run_resumes_where_it_is_and_keeps_checkpoint_every(interrupted, tmp_path, monkeypatch, capsys):
+    from jaxrobo.training import checkpoint
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(interrupted, a)
+    assert rundir.read_status(str(a))["checkpoint_every"] == 1
+    shutil.move(str(a), str(b))
+    a.mkdir()  # an unrelated directory now at the old place
+    (a / "mine.txt").write_text("not a run")
+    saves = []
+    real = checkpoint.save_checkpoint
+    monkeypatch.setattr(checkpoint, "save_checkpoint", lambda *a, **kw: (saves.append(a[2]), real(*a, **kw)))
+    assert main(["train", "--resume", str(b), "--no-progress"]) == 0
+    assert rundir.is_complete(str(b)) and sorted(os.listdir(a)) == ["mine.txt"]
+    # --checkpoint-every 1 came back from status.json: a save after every chunk (the default saves by time)
+    assert sorted(set(saves)) == list(range(2, max(saves) + 1)) and len(set(saves)) > 2
+    summary = json.loads((b / "summary.json").read_text())
+    assert 0 < summary["restored_env_steps"] < summary["env_steps"]
+    assert summary["env_steps_per_second"] == pytest.approx(
+        summary["env_steps_this_process"] / summary["run_seconds"], rel=0.01)
+
+
+def test_a_moved_sweep_resumes_where_it_is_and_touches_nothing_else(tmp_path, monkeypatch, capsys):
+    from jaxrobo.training import sweep
+    from jaxrobo.training.sweep import state as sweep_state
+
+    args = ["--env", CP, "--grid", "number_splits=4,6", "--seeds", "1", "--n-envs", "2", "--nepisodes", "2",
+            "--nsteps", "20", "--set", "chunk_steps=10", "--set", "backend=analytic", "--set", "bins=null",
+            "--eval-episodes", "1", "--no-plots"]
+    save = sweep_state.save_checkpoint
+
+    def save_then_signal(state_dir, fingerprint, plan, finished):
+        save(state_dir, fingerprint, plan, finished)
+        if len(finished) == 1:
+            signal.raise_signal(signal.SIGTERM)
+
+    monkeypatch.setattr(sweep_state, "save_checkpoint", save_then_signal)
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert sweep.main([*args, "--out", str(a)]) == 143
+    monkeypatch.setattr(sweep_state, "save_checkpoint", save)
+    shutil.move(str(a), str(b))
+    a.mkdir()  # an unrelated complete run now where the sweep was
+    rundir.write_status(str(a), rundir.COMPLETE)
+    (a / "summary.json").write_text("{}")
+    before = sorted(os.listdir(a))
+    capsys.readouterr()
+    assert sweep.main(["--resume", str(b)]) == 0
+    assert sorted(os.listdir(a)) == before and json.loads((a / "summary.json").read_text()) == {}
+    assert rundir.is_complete(str(b)) and (b / "sweep.csv").is_file()
+
+
+def test_resume_out_is_derived_from_the_directory_never_from_a_recorded_path(tmp_path):
+    assert rundir.run_name(str(tmp_path / "b")) == str(tmp_path / "b")
+    assert rundir.run_name(str(tmp_path / ".b.x1y2z3w4.partial")) == str(tmp_path / "b")
+
+
+# ---- a corrupt or hostile checkpoint ---------------------------------------------------------------------------
+def _flip(path, at):
+    data = bytearray(open(path, "rb").read())
+    data[at] ^= 0xFF
+    open(path, "wb").write(bytes(data))
+
+
+def _huge_header(path):
+    """Rewrite leaf_0's .npy header to claim 2^40 more rows (the data stays as it was; the zip's CRC is right)."""
+    import zipfile
+
+    with zipfile.ZipFile(path) as z:
+        members = {i.filename: z.read(i) for i in z.infolist()}
+    raw = members["leaf_0.npy"]
+    assert raw[6:8] == b"\x01\x00"  # format 1.0: a 2-byte header length
+    hlen = int.from_bytes(raw[8:10], "little")
+    header = raw[10:10 + hlen].decode("latin1").strip()
+    header = header.replace("'shape': (", "'shape': (1099511627776, ")
+    header += " " * ((64 - (10 + len(header) + 1) % 64) % 64) + "\n"
+    forged = raw[:8] + len(header).to_bytes(2, "little") + header.encode("latin1") + raw[10 + hlen:]
+    with zipfile.ZipFile(path, "w") as z:
+        for name, blob in members.items():
+            z.writestr(name, forged if name == "leaf_0.npy" else blob)
+
+
+def _nan_tables(path):
+    import zipfile
+
+    with zipfile.ZipFile(path) as z:
+        members = {i.filename: z.read(i) for i in z.infolist()}
+    arrays = {k[:-4]: np.load(path, allow_pickle=False)[k[:-4]] for k in members}
+    q_leaf = max((k for k in arrays if k.startswith("leaf_")), key=lambda k: arrays[k].size)  # the q-tables
+    arrays[q_leaf] = np.full_like(arrays[q_leaf], np.nan)
+    np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize("corrupt, fragment", [
+    (lambda p: open(p, "r+b").truncate(os.path.getsize(p) // 2), "cannot be read as plain arrays"),
+    (lambda p: open(p, "r+b").truncate(10), "cannot be read as plain arrays"),
+    (lambda p: _flip(p, os.path.getsize(p) // 3), "the checkpoint"),
+    (lambda p: open(p, "wb").write(b"not a zip"), "cannot be read as plain arrays"),
+    (_huge_header, "claims shape (1099511627776"),
+    (_nan_tables, "non-finite values (NaN or inf)"),
+])
+def test_a_corrupt_checkpoint_is_refused_in_one_line(interrupted, tmp_path, capsys, corrupt, fragment):
+    out = tmp_path / "run"
+    shutil.copytree(interrupted, out)
+    corrupt(str(out / rundir.CHECKPOINT))
+    before = {n: (out / n).read_bytes() for n in os.listdir(out) if (out / n).is_file()}
+    assert main(["train", "--resume", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and "Traceback" not in err and err.count("\n") == 1, err
+    assert {n: (out / n).read_bytes() for n in os.listdir(out) if (out / n).is_file()} == before
+
+
+def test_npz_headers_are_checked_before_any_data_is_read(tmp_path):
+    from jaxrobo.io.npz import NpzError, read_npz
+
+    path = str(tmp_path / "a.npz")
+    np.savez(path, q=np.zeros((2, 3), np.float32), n=np.int64(3))
+    assert read_npz(path, expect={"q": ((2, 3), np.float32)})["q"].shape == (2, 3)
+    with pytest.raises(NpzError, match=r"array 'q' is \(2, 3\) float32, expected \(2, 4\) float32"):
+        read_npz(path, expect={"q": ((2, 4), np.float32)})
+    with pytest.raises(NpzError, match="array 'q' is .* expected .* float64"):
+        read_npz(path, expect={"q": ((2, 3), np.float64)})
+    with pytest.raises(NpzError, match="no array 'r'"):
+        read_npz(path, expect={"r": ((1,), np.float32)})
+    with pytest.raises(NpzError, match="limit 8"):
+        read_npz(path, max_bytes=8)
+
+
+# ---- a second signal while the main thread is stuck in C ---------------------------------------------------------
+@pytest.mark.parametrize("second", ["default", "exit"])
+def test_sigterm_twice_ends_a_process_stuck_in_c(second):
+    """The main thread blocked in a C call (as in an XLA compile or a device wait) runs no Python handler: the
+    second SIGTERM still ends the process within the grace period, not when the call returns (30 s)."""
+    p = _python(f"""
+        import ctypes, signal
+        from jaxrobo.training.driver import StopOnSignal
+        with StopOnSignal(second={second!r}):
+            signal.pthread_sigmask(signal.SIG_BLOCK, {{signal.SIGTERM, signal.SIGINT}})
+            print("ready", flush=True)
+            ctypes.CDLL(None).sleep(30)
+    """)
+    assert p.stdout.readline().strip() == "ready"
+    t0 = time.time()
+    p.send_signal(signal.SIGTERM)
+    time.sleep(0.2)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=20)
+    assert p.returncode == 128 + signal.SIGTERM and time.time() - t0 < 10
+    assert "SIGTERM twice: quitting now" in err
+
+
+# ---- the checked step ------------------------------------------------------------------------------------------
+def test_checked_actions_raise_on_the_host_and_flag_under_jit():
+    import jax
+    import jax.numpy as jnp
+
+    import jaxrobo
+    from jaxrobo.task.wrappers import CheckedActions
+
+    env = CheckedActions(jaxrobo.make(CP, backend="analytic"))
+    state = env.reset(jax.random.key(0))
+    assert not bool(state.info["invalid_action"])
+    assert not bool(env.step(state, 1).info["invalid_action"])
+    n = env.action_space().n
+    for bad in (n, -1, float("nan"), 2.7, 1e9):
+        with pytest.raises(ValueError, match=r"action=.* is not in the action space; expected an integer in 0\.\."):
+            env.step(state, bad)
+    step = jax.jit(env.step)
+    flags = [bool(step(state, jnp.asarray(a)).info["invalid_action"]) for a in (0, n - 1, n, -1)]
+    assert flags == [False, False, True, True]
+    flags = [bool(step(state, jnp.asarray(a, jnp.float32)).info["invalid_action"]) for a in (1.0, 2.7, np.nan)]
+    assert flags == [False, True, True]
+    # a whole rollout keeps one carry structure
+    final, _ = jax.lax.scan(lambda s, a: (step(s, a), None), state, jnp.asarray([0, 7, 1]))
+    assert bool(final.info["invalid_action"]) is False  # the flag is per step: the last action was valid
