@@ -95,7 +95,8 @@ def headline_bars(rows: list[dict[str, Any]], fam: str) -> list[dict[str, Any]]:
         top = max(r["n_envs"] for r in group)
         for r in (r for r in group if r["n_envs"] == top):
             command, budget = mode.split("-")
-            bars.append({"label": f"jaxrobo {command} {r['env']} ({budget} budget), end to end", "value": r[key],
+            backend = "" if r["backend"] == "default" else f" [{r['backend']}]"
+            bars.append({"label": f"jaxrobo {command} {r['env']}{backend} ({budget} budget), end to end", "value": r[key],
                          "n_envs": top, "published": False})
     peers: dict[str, list[dict[str, Any]]] = {}
     for r in rows:

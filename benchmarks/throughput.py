@@ -86,17 +86,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--commands", default=None,
                    help="the user's own commands as rows, timed end to end in a fresh process (compile, training, "
                         "evaluation and writing included): comma list of train-episodes, train-steps, "
-                        "sweep-episodes, sweep-steps, or 'none' (default: all four on a GPU, train-steps and "
-                        "sweep-steps on a CPU)")
+                        "sweep-episodes, sweep-steps, or 'none' (default: all four on a GPU, train-steps on a "
+                        "CPU)")
     p.add_argument("--command-envs", default="CartPoleStayUp-v0,QuadcopterGoto-v2",
                    help="env ids the --commands rows run, default presets (ID:BACKEND runs another backend, e.g. "
                         "CartPoleStayUp-v0:analytic)")
     p.add_argument("--command-n-envs", default=None,
                    help="comma list of n_envs for the --commands rows (default: 65536,262144,1048576 on a GPU, "
-                        "1024 on a CPU)")
-    p.add_argument("--steps-per-env", type=int, default=10000,
-                   help="the step budget of the --commands rows: --total-steps n_envs x this (default 10,000: "
-                        "about the useful work of the episode-budget rows)")
+                        "256 on a CPU)")
+    p.add_argument("--steps-per-env", type=int, default=None,
+                   help="the step budget of the --commands rows: --total-steps n_envs x this (default on a GPU "
+                        "10,000, about the useful work of the episode-budget rows; on a CPU 1,000)")
     p.add_argument("--out", default=None,
                    help="output folder (default benchmarks/results/local/<device-name>, git-ignored; the committed "
                         "tables are updated on purpose, e.g. --out benchmarks/results/h100)")
@@ -180,7 +180,8 @@ def measure_command(kind: str, env_id: str, n: int, args, ctx) -> dict[str, Any]
 
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "run")
-        argv = command_argv(kind, env_id, n, args.steps_per_env, out)
+        per_env = args.steps_per_env or (10_000 if ctx["gpu"] else 1_000)
+        argv = command_argv(kind, env_id, n, per_env, out)
         env = dict(os.environ)
         if args.device:
             env["JAX_PLATFORMS"] = "cuda" if args.device == "gpu" else "cpu"
@@ -195,10 +196,10 @@ def measure_command(kind: str, env_id: str, n: int, args, ctx) -> dict[str, Any]
     import jaxrobo
 
     name, _, backend = env_id.partition(":")
-    n_sub, dt = sim_info(jaxrobo.make(name, **({"backend": backend} if backend else {})))
+    n_sub, running = sim_info(jaxrobo.make(name, **({"backend": backend} if backend else {})))
     row = {"suite": "jaxrobo-cli", "env": name, "backend": backend or "default", "mode": kind, "n_envs": n,
-           "n_substeps": n_sub, "physics_dt": dt, "physics_steps_per_s": s["env_steps"] * n_sub / wall,
-           "sim_seconds_per_s": s["env_steps"] * n_sub * dt / wall,
+           "n_substeps": n_sub, "physics_dt": running / n_sub, "physics_steps_per_s": s["env_steps"] * n_sub / wall,
+           "sim_seconds_per_s": s["env_steps"] * running / wall,
            "status": "ok", "command": "jaxrobo " + " ".join(a if a != out else "OUT" for a in argv),
            "wall_s": wall, "env_steps": s["env_steps"], "steps_per_s": s["env_steps"] / wall,
            "useful_share": s.get("useful_share"), "compile_s": s.get("compile_seconds"),
@@ -222,13 +223,12 @@ def command_plan(args, gpu: bool) -> list[tuple]:
     """``(kind, env_id, n)`` of every --commands row."""
     if args.commands == "none":
         return []
-    kinds = tuple(args.commands.split(",")) if args.commands else (
-        COMMANDS if gpu else ("train-steps", "sweep-steps"))
+    kinds = tuple(args.commands.split(",")) if args.commands else (COMMANDS if gpu else ("train-steps",))
     for k in kinds:
         if k not in COMMANDS:
             raise SystemExit(f"--commands {k!r}: allowed values are {', '.join(COMMANDS)} or none")
     sizes = tuple(int(x) for x in args.command_n_envs.split(",")) if args.command_n_envs else (
-        (65536, 262144, 1048576) if gpu else (1024,))
+        (65536, 262144, 1048576) if gpu else (256,))
     return [(k, e, n) for e in args.command_envs.split(",") for n in sizes for k in kinds]
 
 

@@ -558,11 +558,16 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
     with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
         every = CHECKPOINT_SECONDS if every_chunks is None else None
+        def announce(line: str) -> None:  # the bar is done; the evaluation is the next long phase
+            if bar is not None:
+                bar.close()
+            print(line, file=sys.stderr, flush=True)
+
         with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
                                          start_chunk=start_chunk, checkpoint=save,
                                          checkpoint_every=every_chunks or 0, checkpoint_seconds=every,
-                                         should_stop=stop)
+                                         should_stop=stop, announce=announce)
         if bar is not None:
             bar.close()
         live_scalars.close()

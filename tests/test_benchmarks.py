@@ -17,8 +17,10 @@ def test_throughput_smoke(tmp_path):
            "XLA_FLAGS": "--xla_backend_optimization_level=0"}
     cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "throughput.py"), "--n-envs", "4", "--steps", "10",
            "--repeats", "1", "--envs", "CartPoleStayUp-v0,NoSuchEnv-v0", "--backends", "mjx,analytic",
-           "--learners", "qlearn", "--peers", "gymnasium,seed-loop,gymnax,l2f", "--out", str(tmp_path / "out")]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+           "--learners", "qlearn", "--peers", "gymnasium,seed-loop,gymnax,l2f", "--out", str(tmp_path / "out"),
+           "--commands", "train-steps", "--command-envs", "CartPoleStayUp-v0:analytic", "--command-n-envs", "4",
+           "--steps-per-env", "30"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads((tmp_path / "out" / "throughput.json").read_text())
     rows = {(r["suite"], r["env"], r["mode"]): r for r in data["rows"]}
@@ -41,6 +43,10 @@ def test_throughput_smoke(tmp_path):
     assert not (tmp_path / "out" / "throughput_quadcopter.png").exists()  # L2F's figure has no batch size to plot
     backends = {r["backend"] for r in data["rows"] if r["suite"] == "jaxrobo" and r["status"] == "ok"}
     assert backends == {"mjx", "analytic"}
+    # the user's own command as a row: jaxrobo train end to end under the step budget, every slot useful
+    cli = rows[("jaxrobo-cli", "CartPoleStayUp-v0", "train-steps")]
+    assert cli["status"] == "ok" and cli["env_steps"] == 4 * 30 and cli["useful_share"] == 1.0, cli
+    assert cli["wall_s"] > cli["compile_s"] > 0 and "--total-steps 120" in cli["command"]
 
 
 def test_time_to_learn_smoke_covers_the_cartpole_and_the_goto_task(tmp_path):

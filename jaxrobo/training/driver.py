@@ -247,10 +247,12 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                  progress: ProgressFn | None = None, *, initial: Runner | None = None, start_chunk: int = 0,
                  checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
                  checkpoint_seconds: float | None = None,
-                 should_stop: Callable[[], bool] | None = None) -> TrainResult:
+                 should_stop: Callable[[], bool] | None = None,
+                 announce: Callable[[str], None] | None = None) -> TrainResult:
     """Train with ``trainer`` from ``initial`` (a carry after ``start_chunk`` chunks; default: a fresh
     ``trainer.init``), then evaluate (unless stopped): the body of :func:`jaxrobo.training.train.train`, which runs it
-    inside the trainer's plan's tracing block. The hooks are :func:`run_chunks`'s."""
+    inside the trainer's plan's tracing block. The hooks are :func:`run_chunks`'s; ``announce(line)`` is told when
+    the evaluation starts."""
     env, config = trainer.env, trainer.config
     check_precision(env.name)  # x64 may have been switched on since the env was built; nothing is traced yet
     agent_params = agent_params or AgentParams()
@@ -278,6 +280,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     eval_returns = eval_lengths = selected = eval_success = None
     t_eval = time.perf_counter()
     if config.eval_episodes > 0 and not loop.stopped:
+        if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
+            tables = 1 if config.shared_table else min(config.eval_envs, config.n_envs)
+            announce(f"evaluating {tables} table(s) × {config.eval_episodes} greedy episodes ≤ "
+                     f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
+                     "(compile, then fly)")
         eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params)
     eval_seconds = time.perf_counter() - t_eval
 

@@ -251,7 +251,8 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
         fingerprint = opened["fingerprint"]
         saved = state.load_checkpoint(state_dir, plan, fingerprint)
         if saved:
-            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}")
+            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}; the others "
+                "start from their first chunk (a compiled group is saved when it finishes, not chunk by chunk)")
         elif jax.process_index() == 0:
             state.save_checkpoint(state_dir, fingerprint, plan, saved)
 
