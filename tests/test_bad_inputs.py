@@ -415,8 +415,10 @@ TRAIN = [
       "resolution=1e39"),
     T("state-bound-float32-inf", "a value is inf in float32", "--set", "state_high=[1e39, 1, 1, 1]"),
     # --out that cannot be a run directory
-    T("eval-episodes-huge", "eval_episodes=1000000000: the greedy evaluation of 1 table(s) x 1,000,000,000 episodes",
+    T("eval-episodes-huge", "eval_episodes=1000000000: too many greedy evaluation episodes",
       "--set", "eval_episodes=1000000000", "--set", "eval_envs=1"),
+    T("eval-episodes-memory", "eval_episodes=2000000: the greedy evaluation of 1 table(s) x 2,000,000 episodes",
+      "--set", "eval_episodes=2000000", "--set", "eval_envs=1", "--set", "nsteps=1000"),
     T("out-symlink-loop", "--out {tmp}/out: a symlink loop", setup=out_link("out")),
     T("out-dangling-symlink", "--out {tmp}/out: is a dangling symlink", setup=out_link("nowhere")),
     # --resume of a run directory whose config.yaml is hostile: refused before parsing it all, nothing imported

@@ -96,5 +96,5 @@ def test_train_help_and_readme_say_what_a_new_user_needs(capsys):
     for env_id in registry.registered():
         reg = registry.registration(env_id)
         if reg.module is None and isinstance(registry.make(env_id).action_space(), spaces.Box):
-            module = reg.env_class().__module__.split(".")[-1]
+            module = "/".join(reg.env_class().__module__.split(".")[1:])  # family/module, e.g. cartpole/continuous
             assert f"``{module}.py``" in envs.__doc__ and f"``{env_id}``" in envs.__doc__, env_id

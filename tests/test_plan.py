@@ -125,7 +125,9 @@ def test_repr_is_short_and_names_every_choice():
                           "carry_rows=on, compiler_options={xla_backend_optimization_level: 0})")
     assert json.loads(json.dumps(fast.to_dict())) == {
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
-        "fused": "off", "fused_block": None, "task_kernel": False, "ordered_sums": False, "compiler_options": FAST}
+        "fused": "off", "fused_block": None, "task_kernel": False, "ordered_sums": False, "devices": 1,
+        "compiler_options": FAST}
+    assert repr(plan.replace(devices=2)).endswith("carry_rows=on, devices=2)")  # named only when more than one
 
 
 def test_plans_are_validated_frozen_and_hashable():
@@ -138,6 +140,7 @@ def test_plans_are_validated_frozen_and_hashable():
     for bad, field in (({"env_group": 0}, "env_group"), ({"reset_capacity": -1}, "reset_capacity"),
                        ({"unrolled_groups": 0}, "unrolled_groups"), ({"lean_mjx": 1}, "lean_mjx"),
                        ({"carry_rows": "yes"}, "carry_rows"), ({"compiler_options": {"a": []}}, "compiler_options"),
+                       ({"devices": 0}, "devices"),
                        ({"env_group": True}, "env_group")):
         with pytest.raises(ValueError, match=f"ExecutionPlan {field}="):
             ExecutionPlan(**bad)

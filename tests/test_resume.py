@@ -23,7 +23,9 @@ from jaxrobo.io.results import save_run
 from jaxrobo.training.run import resolve
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-TIMING = {"compile_seconds", "run_seconds", "env_steps_per_second", "restored_env_steps", "env_steps_this_process"}
+#: How the run was executed (timings, what a resume restored), not what it computed.
+TIMING = {"compile_seconds", "run_seconds", "eval_seconds", "write_seconds", "env_steps_per_second",
+          "restored_env_steps", "env_steps_this_process", "resumed_after_chunk"}
 CARTPOLE = dict(n_envs=4, nepisodes=6, nsteps=40, chunk_steps=15, eval_episodes=2, eval_envs=2,
                 bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
 QUADCOPTER = dict(n_envs=4, nepisodes=6, nsteps=30, chunk_steps=10, eval_episodes=2, eval_envs=2)

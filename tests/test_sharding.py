@@ -62,7 +62,7 @@ r2 = st.run_chunk(st.init(key, ap, ep), ap, ep)
 out["train_sharded_over"] = len(r2.agent.q.sharding.device_set)
 # A trainer that steps its envs in groups: sharded, each device steps its own envs at once (a copy; the original
 # keeps its groups).
-grouped = Trainer(spec.env, spec.config.replace(env_group=3))
+grouped = Trainer(spec.env, spec.config.replace(env_group=3, devices=1))  # one device: its own groups
 out["groups"] = [grouped.env_group, sharding.ShardedTrainer(grouped, mesh).trainer.env_group]
 out["train_equal"] = all(np.array_equal(a, b) for a, b in zip(leaves(r1), leaves(sharding.gather(r2))))
 print(json.dumps(out))

@@ -125,7 +125,6 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
     rundir.atomic_savefig(fig, out_png, dpi=110)
-    plt.close(fig)
     return out_png
 
 

@@ -162,11 +162,12 @@ def points_from_args(args: argparse.Namespace) -> list[dict[str, Any]]:
         raise ConfigError("--random N needs at least one --range KEY=LOW:HIGH")
     if args.random < 0:
         raise ConfigError(f"--random {args.random}: must be >= 0")
-    if args.seeds < 1:
-        raise ConfigError(f"--seeds {args.seeds}: must be >= 1")
+    seeds = getattr(args, "seeds", 1)  # points_from_args also serves callers that give no seeds
+    if seeds < 1:
+        raise ConfigError(f"--seeds {seeds}: must be >= 1")
     # Before a single point is built: a million-row sweep would fill the host's memory with Python objects.
     n_configs = int(np.prod([len(v) for v in axes.values()], dtype=object)) * max(args.random, 1)
-    budget.check_sweep_rows(n_configs, args.seeds, where="--grid/--random x --seeds")
+    budget.check_sweep_rows(n_configs, seeds, where="--grid/--random x --seeds")
     grid = grid_points(axes)
     if not args.random:
         return grid
