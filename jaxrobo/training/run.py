@@ -237,6 +237,9 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     agent_kw, train_kw = split_and_validate(agent_values, AgentParams, TrainConfig, where=where)
     config = TrainConfig(**train_kw)
     check_combinations(config, given, where)
+    if config.total_steps and config.chunk_steps > -(-config.total_steps // config.n_envs):
+        # A chunk longer than each env's budget would step idle slots to its end: it is cut to the budget.
+        config = dataclasses.replace(config, chunk_steps=-(-config.total_steps // config.n_envs))
     env = make(env_id, **env_values)
     from jaxrobo.core import spaces
 
