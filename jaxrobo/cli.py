@@ -121,6 +121,7 @@ def _train_spec(args: argparse.Namespace):
                                       ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
                                       ("--total-steps", getattr(args, "total_steps", None)),
                                       ("--total-episodes", getattr(args, "total_episodes", None)),
+                                      ("--devices", getattr(args, "devices", None)),
                                       ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
              if value is not None]
     given += ["--overwrite"] if args.overwrite else []
