@@ -441,17 +441,17 @@ def _pause_before_publish() -> None:
 
 
 # ---- atomic single files -------------------------------------------------------------------------------------
-def atomic_write(path: str, writer: Callable[[IO], None], mode: str = "wb") -> None:
-    """Write ``path`` through ``writer(file)`` all at once: into a temporary file in the same directory, flushed
-    and ``fsync``-ed, then ``os.replace``-d over ``path`` and the directory ``fsync``-ed."""
+@contextlib.contextmanager
+def atomic_path(path: str, suffix: str = ".tmp") -> Iterator[str]:
+    """A temporary file name beside ``path`` (ending in ``suffix``, for writers that pick a format by it) to write
+    into; when the block ends normally it is ``os.replace``-d over ``path`` and the directory ``fsync``-ed, and on
+    any error it is removed: a full disk or a crash leaves the old file or none, never a torn one."""
     directory, name = os.path.split(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=directory)
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=suffix, dir=directory)
+    os.close(fd)
     try:
-        with os.fdopen(fd, mode, **({} if "b" in mode else {"newline": ""})) as f:
-            writer(f)
-            f.flush()
-            os.fsync(f.fileno())
+        yield tmp
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private
         os.replace(tmp, path)
     except BaseException:
@@ -461,6 +461,15 @@ def atomic_write(path: str, writer: Callable[[IO], None], mode: str = "wb") -> N
             pass
         raise
     _fsync_dir(directory)
+
+
+def atomic_write(path: str, writer: Callable[[IO], None], mode: str = "wb") -> None:
+    """Write ``path`` through ``writer(file)`` all at once (:func:`atomic_path`), flushed and ``fsync``-ed."""
+    with atomic_path(path) as tmp:
+        with open(tmp, mode, **({} if "b" in mode else {"newline": ""})) as f:
+            writer(f)
+            f.flush()
+            os.fsync(f.fileno())
 
 
 def atomic_savefig(fig: Any, path: str, **kwargs: Any) -> None:

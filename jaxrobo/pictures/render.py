@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import ctypes
 import os
-import tempfile
 import platform
 import sys
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -437,12 +436,10 @@ def write_video(path: str, frames: Sequence[np.ndarray], fps: float = 25.0) -> s
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".gif", ".mp4", ".mov", ".avi", ".mkv"):
         raise ValueError(f"write_video: {path!r}: use a .gif or .mp4 file name")
-    directory = os.path.dirname(os.path.abspath(path)) or "."
-    os.makedirs(directory, exist_ok=True)
+    from jaxrobo.io.rundir import atomic_path
+
     # Written beside, then renamed: a full disk or a failed encoder leaves no truncated video at ``path``.
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=ext, dir=directory)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=ext) as tmp:
         if ext == ".gif":
             imageio.mimsave(tmp, list(frames), duration=1000.0 / fps, loop=0)  # duration per frame, in ms
         else:
@@ -451,14 +448,6 @@ def write_video(path: str, frames: Sequence[np.ndarray], fps: float = 25.0) -> s
             except (ImportError, ValueError, RuntimeError) as err:
                 raise RuntimeError(f"{path}: writing {ext} needs imageio-ffmpeg (pip install imageio-ffmpeg); "
                                    f"a .gif needs nothing more ({err})") from err
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
     return path
 
 
