@@ -26,7 +26,7 @@ FAST = {"xla_backend_optimization_level": 0}
 ARGS = ["--env", ENV, "--agent", "qlearn", "--grid", "number_splits=4,6", "--grid", "alpha=0.1,0.5",
         "--seeds", "2", "--n-envs", "2", "--nepisodes", "3", "--nsteps", "30", "--set", "chunk_steps=10",
         "--set", "backend=analytic", "--set", "bins=null", "--eval-episodes", "1", "--no-plots"]
-TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds"}
+TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds", "eval_seconds", "write_seconds"}
 
 
 def _main(argv):
