@@ -166,12 +166,15 @@ class CartPoleSim(ClosedFormSim):
         return JointState(q, v)
 
     def coordinate_step(self, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
-                        sincos: SinCos = None) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+                        sincos: SinCos = None, physics: dict | None = None
+                        ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
         """:meth:`physics_step` on the four coordinates ``(x, θ, ẋ, θ̇)`` held apart (scalars or same-shape
-        arrays, as a Pallas kernel holds them: it has no slice), with ``ctrl`` one value per actuator and
-        ``sincos`` the kernel's own ``θ -> (sin θ, cos θ)`` (default ``jnp.sin``/``jnp.cos``). The same
+        arrays, as a Pallas kernel holds them: it has no slice), with ``ctrl`` one value per actuator,
+        ``sincos`` the kernel's own ``θ -> (sin θ, cos θ)`` (default ``jnp.sin``/``jnp.cos``) and ``physics``
+        each env's drawn factors (domain randomisation, :func:`randomised`; same-shape arrays). The same
         functions, hence the same operations on each element, as :meth:`physics_step`."""
-        acc_x, acc_th, inv_det = accelerations(self.constants, x, th, xd, thd, ctrl, sincos)
+        c = self.constants if physics is None else randomised(self.constants, physics)
+        acc_x, acc_th, inv_det = accelerations(c, x, th, xd, thd, ctrl, sincos)
         x, xd = euler(x, xd, acc_x, inv_det, self.timestep)
         th, thd = euler(th, thd, acc_th, inv_det, self.timestep)
         return x, th, xd, thd

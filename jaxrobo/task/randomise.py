@@ -38,8 +38,10 @@ PREFIX = "rand_"
 OBS_NOISE = "obs_noise"
 #: Suffix of the direction drawn beside a directional quantity's magnitude.
 HEADING = "_heading"
-#: Folded into the reset key for the draws, and into the env's key for the observation noise.
-_DRAW_TAG, _NOISE_TAG = 0x5244, 0x4E53
+#: Folded into the reset key for the draws, and into the env's key for the observation noise (public: the
+#: cart-pole's chunk kernel, which resets in-kernel, draws from the same keys).
+DRAW_TAG, NOISE_TAG = 0x5244, 0x4E53
+_DRAW_TAG, _NOISE_TAG = DRAW_TAG, NOISE_TAG
 
 
 def range_fields(params_cls: Any) -> tuple[str, ...]:
