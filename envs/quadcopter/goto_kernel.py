@@ -20,6 +20,11 @@ XLA step's own controller and physics (:mod:`envs.quadcopter.dynamics`). The ker
 float32 round-off, not bit for bit (the two programs are fused differently, and a GPU takes
 ``atan2``/``sin``/``cos`` from another library).
 
+Domain randomisation (``randomise=true``): the kernel is built with :attr:`Layout.randomised` and reads each
+env's drawn physics as per-env inputs (:data:`envs.quadcopter.kernel.PHYSICS`, from the env state's ``domain``
+through the robot's ``sim_physics``, as the XLA step); :func:`kernel_step` adds the observation noise to the
+kernel's observation as :meth:`jaxrobo.task.env.TaskEnv.step` adds it.
+
 Scope (:func:`supports`): the Goto tasks with the seed's five discrete actions (v1, v2), backend ``rigid``, any
 ``n_obstacles`` (0-32; more than :data:`UNROLL_OBSTACLES` run as a loop inside the kernel), kinds ``cylinder``,
 ``box`` or ``mixed``. A subclass that overrides a hook gets no kernel (its meaning would be lost): the plan

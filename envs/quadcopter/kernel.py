@@ -14,6 +14,11 @@ step's bit for bit (``tests/test_quadcopter_kernel.py``); compiled, the two prog
 a CPU XLA contracts a multiply and an add within a fusion into one FMA; on a GPU Triton compiles the kernel and
 takes ``atan2``/``sin``/``cos`` from libdevice), so they agree to float32 round-off.
 
+Domain randomisation: a randomised task's step hands each env's drawn physics (mass and motor-gain factors, the
+wind's force: :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`) to the kernel as per-env inputs
+(:data:`PHYSICS`), which :func:`envs.quadcopter.dynamics.physics_step` takes as the XLA step does; without them
+the kernel is the nominal program it always was.
+
 How it is used: :func:`make_advance` builds the batch function the robot offers as ``advance_kernel``
 (:class:`jaxrobo.task.robot.Robot`); under ``ExecutionPlan(fused="pallas")`` :meth:`jaxrobo.physics.sim.Simulator.advance`
 runs a vmapped control step through it, one kernel call for the whole batch. On a CPU it runs interpreted (the

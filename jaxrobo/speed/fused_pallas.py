@@ -29,9 +29,21 @@ contracts a multiply and an add that share a fusion into one FMA, which rounds o
 a bit moves a state across a bin edge the runs part ways, as any last-bit change does in tabular learning; on a
 GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
 
+Domain randomisation (the task's ``randomise``, :mod:`jaxrobo.task.randomise`): the kernel resets envs in-kernel,
+so it draws each fresh episode's cart mass, pole mass, pole length and observation noise there, from the keys
+``randomise.draw`` folds out of the reset key (the bounds are traced parameters in the kernel's parameter
+vector), carries them as per-env columns into :meth:`CartPoleSim.coordinate_step
+<envs.cartpole.dynamics.CartPoleSim.coordinate_step>` (``physics=``, the XLA step's own
+:func:`envs.cartpole.dynamics.randomised`), and adds the observation noise from the keys ``randomise.noisy``
+folds out of the env key (JAX's normal draw: a uniform per component, then ``sqrt(2) erfinv``; the episode's
+noise key, the env key folded with the noise tag, is carried): fifteen more hashes per reset (nine for the draws,
+six for the first observation's noise) and five per step, which a program whose envs all draw a zero noise level
+skips (one scalar branch). A randomised reset hashes lane by lane (:data:`GROUP_RESETS` is not used). Off, the
+kernel has none of these columns: the program it was.
+
 Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
 for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
-with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not ``seed_compat``), one table
+with ``control_type="velocity"`` and ``round_obs`` off, randomised or not; Q-learning, textbook form (not ``seed_compat``), one table
 per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys with
 ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
 the call (tested interpreted; on a GPU it compiled and trained, docs/benchmarks.md, "Pallas").
@@ -201,8 +213,11 @@ _NAMES = tuple(name for name, _ in _COLS)
 
 
 def _columns(domain: tuple[str, ...]) -> tuple:
-    """The carry's columns: :data:`_COLS`, and under domain randomisation one float column per drawn quantity."""
-    return _COLS + tuple((name, jnp.float32) for name in domain)
+    """The carry's columns: :data:`_COLS`, and under domain randomisation one float column per drawn quantity and,
+    with observation noise, the episode's noise key (the env key folded with the noise tag: one hash per step
+    fewer than folding it every step; an input only, the env state keeps the env key)."""
+    noise = ((("nk0", jnp.uint32), ("nk1", jnp.uint32)) if randomise.OBS_NOISE in domain else ())
+    return _COLS + tuple((name, jnp.float32) for name in domain) + noise
 
 
 def _float_names(domain: tuple[str, ...]) -> tuple[str, ...]:
@@ -293,11 +308,10 @@ def _make_kernel(static):
                 out.append(low + u * (high - low))
             return out
 
-        def noisy(obs, env_key, steps, std):
+        def noisy(obs, episode_key, steps, std):
             # randomise.noisy: obs + std * jax.random.normal(fold_in(fold_in(env_key, tag), steps), (4,)), the
             # normal draw as JAX's: a uniform in [nextafter(-1, 0), 1) per component (counter (0, j)), then
-            # sqrt(2) erfinv.
-            episode_key = _subkey(env_key, randomise.NOISE_TAG)
+            # sqrt(2) erfinv. ``episode_key``: fold_in(env_key, tag), carried per episode.
             zero = jnp.zeros_like(episode_key[0])
             step_key = _threefry(episode_key[0], episode_key[1], zero, steps.astype(jnp.uint32))
             out = []
@@ -370,7 +384,11 @@ def _make_kernel(static):
             trunc = (env_steps_now >= max_episode_steps) & ~term
             pnan = ~ok
             if noise_on:  # what the agent sees (TaskEnv.step: after the guard; termination read the true state)
-                obs = noisy(obs, (cr["ek0"], cr["ek1"]), env_steps_now, cr[randomise.OBS_NOISE])
+                std = cr[randomise.OBS_NOISE]
+                # A program whose envs all draw no noise skips its hashes (one scalar branch): obs + 0 * z is obs
+                # (z is finite), up to the sign of a zero.
+                obs = jax.lax.cond(jnp.max(std) > 0, lambda o: noisy(o, (cr["nk0"], cr["nk1"]), env_steps_now, std),
+                                   lambda o: o, obs)
             s2 = discretise(obs)
             done = term | trunc | (env_steps_now >= nsteps)
             r_s2 = row(s2)
@@ -463,19 +481,21 @@ def _make_kernel(static):
                 fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1 = hashed[:6]
                 drawn = hashed[6:]  # the fresh episode's domain, in the order of ``domain``
                 obs_fresh = (fresh_x, fresh_xd, fresh_th, fresh_thd)
+                episode_key = ()
                 if noise_on:  # env.reset's observation, noisy from the fresh env key at step 0
                     std = drawn[domain.index(randomise.OBS_NOISE)]
-                    obs_fresh = noisy(obs_fresh, (rk0, rk1), jnp.zeros_like(env_steps_now), std)
+                    episode_key = _subkey((rk0, rk1), randomise.NOISE_TAG)
+                    obs_fresh = noisy(obs_fresh, episode_key, jnp.zeros_like(env_steps_now), std)
                 s_fresh = discretise(obs_fresh)
                 r_fresh = row(s_fresh, done)
                 r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
-                extra = (*obs_fresh, *drawn) if domain else ()
+                extra = (*obs_fresh, *drawn, *episode_key) if domain else ()
                 return (fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1, s_fresh, *r_fresh, *extra)
 
             if skip_resets:
                 def none_done(_):
                     zf, zu = jnp.zeros_like(x), jnp.zeros_like(key[0])
-                    extra = [zf] * (4 + len(domain)) if domain else []
+                    extra = ([zf] * (4 + len(domain)) + [zu] * (2 * noise_on)) if domain else []
                     return (zf, zf, zf, zf, zu, zu, jnp.zeros_like(s2), *([zf] * n_actions), *extra)
 
                 n_done = jnp.sum(done.astype(jnp.int32))
@@ -496,6 +516,8 @@ def _make_kernel(static):
                 cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(o_new, o) for o_new, o in zip(obs_fresh, obs))
                 for name, value in zip(domain, drawn):
                     cr[name] = w(value, cr[name])
+                if noise_on:
+                    cr["nk0"], cr["nk1"] = w(drawn[-2], cr["nk0"]), w(drawn[-1], cr["nk1"])
             else:
                 cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(fresh[0], obs[0]), w(fresh[2], obs[1]),
                                                           w(fresh[1], obs[2]), w(fresh[3], obs[3]))
@@ -588,6 +610,9 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     else:
         cols.update(ret_sum=runner.returns[:, 0], len_sum=runner.lengths[:, 0], term_any=i32(runner.terminated[:, 0]))
     cols.update({name: es.domain[name] for name in domain})
+    if randomise.OBS_NOISE in domain:
+        noise_key = jax.random.key_data(jax.vmap(lambda k: jax.random.fold_in(k, randomise.NOISE_TAG))(es.key))
+        cols.update(nk0=noise_key[:, 0], nk1=noise_key[:, 1])
     columns = _columns(domain)
     col_in = [jnp.asarray(cols[name]).astype(dtype) for name, dtype in columns]
     block = _block_for(n, trainer.plan.fused_block)

@@ -18,8 +18,11 @@ traced: the step is the one it always was, bit for bit. With it on:
 The ranges are traced parameters: a sweep can vary the ranges themselves, and a zero-width range ``[v, v]`` pins
 a quantity at ``v`` (what ``jaxrobo eval`` uses to fly a policy on shifted physics). A robot names what it can
 randomise per backend (:meth:`jaxrobo.task.robot.Robot.randomisable`); asking for more is refused at construction.
-The kernels bake the model's constants into their code, so with ``randomise`` on a task offers none (its
-``step_kernel_refusal`` says so) and the run takes the XLA path.
+The Pallas kernels take the draws as per-env inputs, so a randomised run keeps its kernel: the quadcopter's
+control-step and Goto task kernels read the physics :meth:`~jaxrobo.task.robot.Robot.sim_physics` gives (the
+noise is added around them, as :meth:`jaxrobo.task.env.TaskEnv.step` adds it), and the cart-pole's chunk kernel,
+which resets in-kernel, draws the domain and the noise from the same keys as :func:`draw` and :func:`noisy`
+(:data:`DRAW_TAG`, :data:`NOISE_TAG`). With ``randomise`` off they have none of these inputs.
 """
 from __future__ import annotations
 
