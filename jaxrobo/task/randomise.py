@@ -44,7 +44,6 @@ HEADING = "_heading"
 #: Folded into the reset key for the draws, and into the env's key for the observation noise (public: the
 #: cart-pole's chunk kernel, which resets in-kernel, draws from the same keys).
 DRAW_TAG, NOISE_TAG = 0x5244, 0x4E53
-_DRAW_TAG, _NOISE_TAG = DRAW_TAG, NOISE_TAG
 
 
 def range_fields(params_cls: Any) -> tuple[str, ...]:
@@ -79,7 +78,7 @@ def draw(key: jax.Array, params: Any, directional: tuple[str, ...] = ()) -> dict
     """One episode's values, ``{name: value}``, one uniform draw per range of ``params`` from ``key`` (the reset's
     key, folded, so the reset's own splits are unchanged). Each name in ``directional`` (a force such as a wind)
     also gets ``<name>_heading``, a direction uniform in [-pi, pi)."""
-    base = jax.random.fold_in(key, _DRAW_TAG)
+    base = jax.random.fold_in(key, DRAW_TAG)
     out = {}
     for i, (name, bounds) in enumerate(ranges(params).items()):
         out[name] = uniform(jax.random.fold_in(base, 2 * i), bounds)
@@ -98,7 +97,7 @@ def noisy(obs: jax.Array, domain: Any, key: jax.Array, steps: jax.Array) -> jax.
     each step: the key is the env state's, folded with the step count."""
     if not domain or OBS_NOISE not in domain:
         return obs
-    k = jax.random.fold_in(jax.random.fold_in(key, _NOISE_TAG), steps)
+    k = jax.random.fold_in(jax.random.fold_in(key, NOISE_TAG), steps)
     return (obs + domain[OBS_NOISE] * jax.random.normal(k, obs.shape, jnp.float32)).astype(obs.dtype)
 
 
