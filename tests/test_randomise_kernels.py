@@ -173,6 +173,21 @@ def test_the_cartpole_chunk_kernel_follows_the_randomised_plain_path():
     assert not np.array_equal(np.asarray(nominal.agent.q), np.asarray(kernel.agent.q))
 
 
+def test_a_randomised_cartpole_step_at_nominal_factors_is_the_nominal_one_op_by_op():
+    """The equations the kernel and the XLA step share (``CartPoleSim.coordinate_step``) given factors of 1 give
+    the nominal step's bits, operation by operation (no XLA fusion): :func:`envs.cartpole.dynamics.randomised`
+    writes each constant as the nominal one plus a change that is exactly 0 there."""
+    sim = jaxrobo.make("CartPoleStayUp-v0", backend="analytic").robot.sim
+    state = list(jax.random.normal(jax.random.key(4), (4, 64)) * jnp.array([1.0, 0.3, 1.0, 2.0])[:, None])
+    ctrl = (jax.random.uniform(jax.random.key(5), (64,), minval=-3.0, maxval=3.0),)
+    one = jnp.ones(64)
+    with jax.disable_jit():
+        nominal = sim.coordinate_step(*state, ctrl)
+        drawn = sim.coordinate_step(*state, ctrl, None, {"cart_mass": one, "pole_mass": one, "pole_length": one})
+    for a, b in zip(nominal, drawn):
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(a))
+
+
 def test_cartpole_zero_width_ranges_train_the_nominal_kernel_tables():
     """randomise=true with every range at its nominal value (the defaults): the nominal kernel's tables, records
     and counters bit for bit, its physics state to round-off (the factors are inputs, so XLA compiles the
