@@ -1,15 +1,25 @@
-"""Throughput cost of domain randomisation: training env steps/s with ``randomise`` off and on, same run otherwise.
+"""Throughput cost of domain randomisation: training env steps/s of the kernels' tasks with ``randomise`` off and on.
 
-With ``randomise`` on, each env carries its drawn physics and the step reads them; the Pallas kernels bake the
-nominal model in, so a run the plan would give a kernel (the rigid Goto tasks, the analytic cart-pole with
-Q-learning, on a GPU from 1,024 envs) takes the XLA path instead. This measures what that costs, per env id and
-batch size, each configuration trained twice in the same process (the better of the two timings kept)::
+The Pallas kernels take each env's drawn physics as per-env inputs, so a randomised run keeps the kernel the plan
+gives a nominal one (the rigid Goto tasks, the analytic cart-pole with Q-learning, on one GPU from 1,024 envs).
+This measures, per env id and batch size, each configuration trained twice in the same process (the better of the
+two timings kept)::
 
-    python benchmarks/randomisation_cost.py --device gpu --n-envs 4096,65536,262144
-    python benchmarks/randomisation_cost.py --device cpu --n-envs 64 --nepisodes 4     # smoke test
+    kernel-nominal       randomise off, the default plan (the kernel on a GPU)
+    kernel-randomised    randomise on with ranges that change the physics (and observation noise), default plan
+    xla-randomised       the same ranges on the XLA path (what the plan ran before the kernels took the draws:
+                         fused="xla" for Goto, "off" for the cart-pole)
+    kernel-physics-only  (only with --variants) randomise on, observation noise pinned at 0: the cart-pole's
+                         kernel then skips the noise's hashes
 
-``--ranges`` (default: every range of the task at a width that changes the physics) decides what is drawn; the
-cost does not depend on the widths (the same arithmetic runs at any width).
+and prints the cost of randomisation in the kernel (1 - randomised / nominal, in %) and the kernel's gain over the
+XLA path under randomisation::
+
+    python benchmarks/randomisation_cost.py --device gpu --n-envs 4096,65536,262144 --out rand_cost.json
+    python benchmarks/randomisation_cost.py --device cpu --n-envs 64 --nepisodes 2     # smoke test
+
+The ranges' widths do not change the cost (the same arithmetic runs at any width), except a noise level of exactly
+0 in every env of a cart-pole program (kernel-physics-only).
 """
 from __future__ import annotations
 
@@ -20,15 +30,31 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-#: Per env id: the overrides of its fast backend and randomisation ranges that change the physics.
+#: Per env id: the overrides of its fast backend, its randomisation ranges that change the physics, and the fused
+#: choice of its XLA path under randomisation.
 CASES = {
-    "QuadcopterGoto-v2": ({"shared_table": False},
+    "QuadcopterGoto-v2": ({"backend": "rigid", "shared_table": False},
                           {"rand_mass": [0.9, 1.1], "rand_motor_gain": [0.9, 1.1], "rand_wind": [0.0, 0.5],
-                           "rand_obs_noise": [0.0, 0.05]}),
+                           "rand_obs_noise": [0.0, 0.05]}, "xla"),
     "CartPoleStayUp-v0": ({"backend": "analytic"},
                           {"rand_cart_mass": [0.8, 1.2], "rand_pole_mass": [0.8, 1.2], "rand_pole_length": [0.9, 1.1],
-                           "rand_obs_noise": [0.0, 0.01]}),
+                           "rand_obs_noise": [0.0, 0.01]}, "off"),
 }
+VARIANTS = ("kernel-nominal", "kernel-randomised", "xla-randomised", "kernel-physics-only")
+
+
+def overrides_for(env_id: str, variant: str) -> dict:
+    """The config overrides of one variant (beside the batch size and budget)."""
+    base, ranges, xla = CASES[env_id]
+    if variant == "kernel-nominal":
+        return dict(base)
+    if variant == "kernel-randomised":
+        return {**base, "randomise": True, **ranges}
+    if variant == "xla-randomised":
+        return {**base, "randomise": True, **ranges, "fused": xla}
+    if variant == "kernel-physics-only":
+        return {**base, "randomise": True, **ranges, "rand_obs_noise": [0.0, 0.0]}
+    raise ValueError(f"variant {variant!r}: one of {', '.join(VARIANTS)}")
 
 
 def main() -> int:
@@ -37,6 +63,7 @@ def main() -> int:
     ap.add_argument("--envs", default=",".join(CASES), help="comma list of env ids")
     ap.add_argument("--n-envs", default="4096,65536", help="comma list of batch sizes")
     ap.add_argument("--nepisodes", type=int, default=20, help="episodes per env of each timed training")
+    ap.add_argument("--variants", default=",".join(VARIANTS[:3]), help=f"comma list of {', '.join(VARIANTS)}")
     ap.add_argument("--out", default=None, help="JSON of the rows")
     args = ap.parse_args()
     if args.device:
@@ -45,20 +72,32 @@ def main() -> int:
     from jaxrobo.training.train import train
     from jaxrobo.training.trainer import Trainer
 
+    variants = args.variants.split(",")
     rows = []
     for env_id in args.envs.split(","):
-        base, ranges = CASES[env_id]
         for n in (int(v) for v in args.n_envs.split(",")):
             rates = {}
-            for label, extra in (("off", {}), ("on", {"randomise": True, **ranges})):
-                spec = resolve(env_id, "default", {**base, **extra, "n_envs": n, "nepisodes": args.nepisodes,
-                                                   "eval_episodes": 0})
+            for variant in variants:
+                spec = resolve(env_id, "default", {**overrides_for(env_id, variant), "n_envs": n,
+                                                   "nepisodes": args.nepisodes, "eval_episodes": 0})
                 plan = Trainer(spec.env, spec.config).plan
+                if variant.startswith("kernel") and plan.fused != "pallas":
+                    print(f"note: {variant} runs without the kernel here ({plan!r}): the plan gives it on one GPU "
+                          "from 1,024 envs", flush=True)
                 best = max(train(spec.env, spec.config, spec.agent_params).steps_per_second for _ in range(2))
-                rates[label] = best
-                rows.append({"env": env_id, "n_envs": n, "randomise": label, "steps_per_s": best, "plan": repr(plan)})
-                print(f"{env_id:20s} n={n:<8d} randomise={label:3s} {best / 1e6:9.3f} M steps/s   {plan!r}", flush=True)
-            print(f"{env_id:20s} n={n:<8d} cost of randomisation: on/off = {rates['on'] / rates['off']:.3f}", flush=True)
+                rates[variant] = best
+                rows.append({"env": env_id, "n_envs": n, "variant": variant, "steps_per_s": best, "plan": repr(plan)})
+                print(f"{env_id:20s} n={n:<8d} {variant:20s} {best / 1e6:9.3f} M steps/s   {plan!r}", flush=True)
+            nominal = rates.get("kernel-nominal")
+            for variant in ("kernel-randomised", "kernel-physics-only"):
+                if nominal and variant in rates:
+                    cost = 100.0 * (1.0 - rates[variant] / nominal)
+                    rows.append({"env": env_id, "n_envs": n, "variant": variant, "cost_percent": cost})
+                    print(f"{env_id:20s} n={n:<8d} cost of randomisation in the kernel ({variant}): {cost:.1f} %",
+                          flush=True)
+            if "kernel-randomised" in rates and "xla-randomised" in rates:
+                print(f"{env_id:20s} n={n:<8d} randomised: kernel / XLA path = "
+                      f"{rates['kernel-randomised'] / rates['xla-randomised']:.2f}x", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=1)

@@ -531,8 +531,10 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         print(seed_preset_note(spec))
     print(f"running as {trainer.plan!r}")
     if getattr(spec.env, "randomised", False):
-        print("randomise=true: each env draws its physics at every reset; the Pallas kernels bake the nominal "
-              "model in, so the step runs on XLA")
+        # The plan's kernels take each env's drawn physics as per-env inputs, so randomisation keeps them.
+        where = "the Pallas kernel takes each env's draw as per-env inputs" if trainer.plan.fused == "pallas" \
+            else "the step runs on XLA (the plan runs no Pallas kernel)"
+        print(f"randomise=true: each env draws its physics at every reset; {where}")
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 

@@ -67,6 +67,9 @@ class CartPoleConstants:
     pole_inertia_com: float = 0.0  # I about the centre of mass (kg m²)
     armature_x: float = 0.0
     armature_th: float = 0.0
+    # Two products of the above the equations use, computed once on the host (float64, as the trace always did).
+    mass_inertia: float = 0.0  # total_mass * pole_inertia
+    weight_arm: float = 0.0  # pole_mass_length * gravity
 
 
 def _refuse(condition: bool, why: str) -> None:
@@ -120,11 +123,12 @@ def constants_from_model(mj_model: mujoco.MjModel, cart_joint: str, pole_joint: 
     affine = (m.actuator_biastype == int(mujoco.mjtBias.mjBIAS_AFFINE))[None, :]
     ctrl_lim = m.actuator_ctrllimited.astype(bool)
     force_lim = m.actuator_forcelimited.astype(bool)
+    total_mass = mass_c + mass_p + float(arm[m.jnt_dofadr[slide]])
+    pole_mass_length = mass_p * length
+    pole_inertia = mass_p * length**2 + inertia_y + float(arm[m.jnt_dofadr[hinge]])
+    gravity = float(-m.opt.gravity[2])
     return CartPoleConstants(
-        total_mass=mass_c + mass_p + float(arm[m.jnt_dofadr[slide]]),
-        pole_mass_length=mass_p * length,
-        pole_inertia=mass_p * length**2 + inertia_y + float(arm[m.jnt_dofadr[hinge]]),
-        gravity=float(-m.opt.gravity[2]),
+        total_mass=total_mass, pole_mass_length=pole_mass_length, pole_inertia=pole_inertia, gravity=gravity,
         transmission=transmission,
         gain=np.array(m.actuator_gainprm[:, 0]),
         bias=np.where(affine, m.actuator_biasprm[:, :3].T, 0.0),
@@ -134,18 +138,25 @@ def constants_from_model(mj_model: mujoco.MjModel, cart_joint: str, pole_joint: 
         force_high=np.where(force_lim, m.actuator_forcerange[:, 1], np.inf),
         cart_mass=mass_c, pole_mass=mass_p, pole_length=length, pole_inertia_com=inertia_y,
         armature_x=float(arm[m.jnt_dofadr[slide]]), armature_th=float(arm[m.jnt_dofadr[hinge]]),
+        mass_inertia=total_mass * pole_inertia, weight_arm=pole_mass_length * gravity,
     )
 
 
 def randomised(c: CartPoleConstants, physics: dict) -> CartPoleConstants:
     """``c`` for one env's drawn factors (domain randomisation): ``cart_mass``, ``pole_mass`` and ``pole_length``
-    (the pole scaled as a rod: its inertia about the centre of mass by mass x length²); the three sums traced."""
-    mass_p = c.pole_mass * physics["pole_mass"]
-    length = c.pole_length * physics["pole_length"]
-    inertia = c.pole_inertia_com * physics["pole_mass"] * physics["pole_length"] ** 2
-    return dataclasses.replace(c, total_mass=c.cart_mass * physics["cart_mass"] + mass_p + c.armature_x,
-                               pole_mass_length=mass_p * length,
-                               pole_inertia=mass_p * length * length + inertia + c.armature_th)
+    (the pole scaled as a rod: its inertia about the centre of mass by mass x length²); the sums and products
+    traced. Each is written as the nominal value plus a change that is exactly 0 at factors of 1 (or the nominal
+    value times a factor product), so that a randomised step at the nominal values computes the nominal step's
+    operations on the same values: a zero-width range gives the nominal bits, op by op."""
+    f_cart, f_mass, f_length = physics["cart_mass"], physics["pole_mass"], physics["pole_length"]
+    f_ml = f_mass * f_length  # on m_p l
+    f_inertia = f_ml * f_length  # on m_p l² + I (a rod)
+    total = c.total_mass + c.cart_mass * (f_cart - 1.0) + c.pole_mass * (f_mass - 1.0)
+    inertia = c.pole_inertia + (c.pole_inertia - c.armature_th) * (f_inertia - 1.0)
+    return dataclasses.replace(
+        c, total_mass=total, pole_mass_length=c.pole_mass_length * f_ml, pole_inertia=inertia,
+        mass_inertia=c.mass_inertia + (total - c.total_mass) * inertia + c.total_mass * (inertia - c.pole_inertia),
+        weight_arm=c.weight_arm * f_ml)
 
 
 class CartPoleSim(ClosedFormSim):
@@ -166,12 +177,15 @@ class CartPoleSim(ClosedFormSim):
         return JointState(q, v)
 
     def coordinate_step(self, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
-                        sincos: SinCos = None) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+                        sincos: SinCos = None, physics: dict | None = None
+                        ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
         """:meth:`physics_step` on the four coordinates ``(x, θ, ẋ, θ̇)`` held apart (scalars or same-shape
-        arrays, as a Pallas kernel holds them: it has no slice), with ``ctrl`` one value per actuator and
-        ``sincos`` the kernel's own ``θ -> (sin θ, cos θ)`` (default ``jnp.sin``/``jnp.cos``). The same
+        arrays, as a Pallas kernel holds them: it has no slice), with ``ctrl`` one value per actuator,
+        ``sincos`` the kernel's own ``θ -> (sin θ, cos θ)`` (default ``jnp.sin``/``jnp.cos``) and ``physics``
+        each env's drawn factors (domain randomisation, :func:`randomised`; same-shape arrays). The same
         functions, hence the same operations on each element, as :meth:`physics_step`."""
-        acc_x, acc_th, inv_det = accelerations(self.constants, x, th, xd, thd, ctrl, sincos)
+        c = self.constants if physics is None else randomised(self.constants, physics)
+        acc_x, acc_th, inv_det = accelerations(c, x, th, xd, thd, ctrl, sincos)
         x, xd = euler(x, xd, acc_x, inv_det, self.timestep)
         th, thd = euler(th, thd, acc_th, inv_det, self.timestep)
         return x, th, xd, thd
@@ -208,8 +222,8 @@ def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Arr
     sin, cos = (jnp.sin(th), jnp.cos(th)) if sincos is None else sincos(th)
     coupling = c.pole_mass_length * cos
     rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
-    rhs_th = generalized[1] + c.pole_mass_length * c.gravity * sin
-    inv_det = 1.0 / (c.total_mass * c.pole_inertia - coupling * coupling)
+    rhs_th = generalized[1] + c.weight_arm * sin
+    inv_det = 1.0 / (c.mass_inertia - coupling * coupling)
     return c.pole_inertia * rhs_x - coupling * rhs_th, c.total_mass * rhs_th - coupling * rhs_x, inv_det
 
 

@@ -45,7 +45,7 @@ class Options:
     round_obs: bool = param(False, static=True, doc="round observations to 0.1 as the seed did")
     randomise: bool = param(False, static=True,
                             doc="domain randomisation: draw the physics (the rand_* ranges) at every reset; the "
-                                "Pallas chunk kernel bakes the nominal model, so the run takes the XLA path")
+                                "Pallas chunk kernel draws them at its in-kernel resets")
 
 
 @pytree_dataclass

@@ -173,9 +173,10 @@ def physics_step(c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Seq
     coordinates (world position, wxyz quaternion), ``v``: 6 velocity coordinates (world linear velocity, body
     rates), ``ctrl``: one value per actuator. ``physics``: one env's drawn domain (domain randomisation,
     :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`: factors ``mass`` on mass and inertia and ``motor_gain``
-    on the actuators' wrench, a world-frame force ``wind`` [3]): traced values, whose reciprocals are taken in
-    the trace; the kernels bake the nominal airframe and take no domain. Returns the new
-    ``(q, v)`` as lists."""
+    on the actuators' wrench, a world-frame force ``wind``, an array whose last axis holds its 3 components or,
+    as a kernel holds it, a list of 3 per-coordinate values): traced values, whose reciprocals are taken in the
+    trace; the kernels pass each env's domain as per-env inputs of the same names. Returns the new ``(q, v)`` as
+    lists."""
     dt = c.dt
     ctrl = [_clip(u, lo, hi) for u, lo, hi in zip(ctrl, c.ctrl_low, c.ctrl_high)]
     wr = [_dot(row, ctrl) for row in c.wrench]
@@ -188,7 +189,8 @@ def physics_step(c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Seq
         mass = c.mass * physics["mass"]
         inertia = [i * physics["mass"] for i in inertia]
         inv_mass, inv_inertia = 1.0 / mass, [1.0 / i for i in inertia]
-        wind = [physics["wind"][..., i] for i in range(3)]
+        wind = physics["wind"]
+        wind = list(wind) if isinstance(wind, (list, tuple)) else [wind[..., i] for i in range(3)]
     qw, qx, qy, qz = q[3], q[4], q[5], q[6]
     rot = rotation(qw, qx, qy, qz)
     force = wr[:3]

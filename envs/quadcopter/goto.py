@@ -119,8 +119,7 @@ class QuadcopterGoto(QuadcopterTask):
         #: The whole step (action, control step, observation, outcome, reward, NaN guard) over a batch as one
         #: Pallas kernel, which ``ExecutionPlan(fused="pallas", task_kernel=True)`` runs; None where the task's
         #: configuration has none (:func:`envs.quadcopter.goto_kernel.supports`).
-        self.step_kernel_refusal = supports(self) if not self.randomised else \
-            "randomise=true: the kernel bakes the nominal airframe in (the step runs on XLA)"
+        self.step_kernel_refusal = supports(self)
         self.step_kernel = make_task_step(self) if self.step_kernel_refusal is None else None
 
     def _kernel_step(self, state: EnvState, action: jax.Array, params: Params) -> EnvState:

@@ -20,6 +20,11 @@ XLA step's own controller and physics (:mod:`envs.quadcopter.dynamics`). The ker
 float32 round-off, not bit for bit (the two programs are fused differently, and a GPU takes
 ``atan2``/``sin``/``cos`` from another library).
 
+Domain randomisation (``randomise=true``): the kernel is built with :attr:`Layout.randomised` and reads each
+env's drawn physics as per-env inputs (:data:`envs.quadcopter.kernel.PHYSICS`, from the env state's ``domain``
+through the robot's ``sim_physics``, as the XLA step); :func:`kernel_step` adds the observation noise to the
+kernel's observation as :meth:`jaxrobo.task.env.TaskEnv.step` adds it.
+
 Scope (:func:`supports`): the Goto tasks with the seed's five discrete actions (v1, v2), backend ``rigid``, any
 ``n_obstacles`` (0-32; more than :data:`UNROLL_OBSTACLES` run as a loop inside the kernel), kinds ``cylinder``,
 ``box`` or ``mixed``. A subclass that overrides a hook gets no kernel (its meaning would be lost): the plan
@@ -44,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.quadcopter.robot import _ACTION_FIXED, _ACTION_SCALE, _INF, _PARALLEL, BOX, SONAR_RAYS, wrap_angle
-from envs.quadcopter.kernel import BLOCK, Constants, constants_of, control_step
+from envs.quadcopter.kernel import BLOCK, PHYSICS, Constants, constants_of, control_step
 
 #: Obstacles written out one after another in the kernel; more run in a loop (a long unrolled body compiles
 #: slowly and gains nothing once the loop's few instructions are amortised over an obstacle's ray tests).
@@ -61,11 +66,14 @@ HOOKS = ("step", "_set_action", "_get_obs", "_sonar", "_goal_clear", "_outcome",
 
 @dataclasses.dataclass(frozen=True)
 class Layout:
-    """What the kernel is specialised for (static): obstacles per env, their kind, and v2's additions."""
+    """What the kernel is specialised for (static): obstacles per env, their kind, v2's additions, and whether
+    each env brings its drawn physics (domain randomisation: the inputs :data:`envs.quadcopter.kernel.PHYSICS`;
+    off, the kernel has none of them and is the program it was before randomisation existed)."""
 
     n_obstacles: int
     obstacle_kind: str  # "cylinder", "box" or "mixed"
     v2: bool
+    randomised: bool = False
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -180,14 +188,17 @@ Obstacle = Callable[[Any], tuple[Any, list, list, Any]]
 
 
 def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, old_obs: Callable[[Any], Sequence],
-              task: dict, p: dict, obstacle: Obstacle) -> dict:
+              task: dict, p: dict, obstacle: Obstacle, physics: dict | None = None) -> dict:
     """One Goto step per coordinate, on arrays of any (common) shape: ``q`` (7), ``v`` (6) the robot's state,
     ``action`` int, ``old_obs(ok)`` the last observation (kept where ``ok``, the new state is finite, is False:
     the kernel reads it only there), ``task`` the
     per-step task variables (``goal`` [3], ``prev_dist``, ``arrived``, ``crashed`` as bools; v2 ``prev_bearing``,
-    ``prev_dz``), ``p`` the parameters by name, ``obstacle`` the obstacles' accessor. Returns the new ``q``,
-    ``v``, ``obs``, ``reward``, ``terminated``, ``nan`` (the guard fired) and the task variables."""
-    q, v = control_step(c, q, v, _twist(action, p["speed_value"]))
+    ``prev_dz``), ``p`` the parameters by name, ``obstacle`` the obstacles' accessor, ``physics`` the env's
+    drawn physics (domain randomisation; None: nominal). Returns the new ``q``, ``v``, ``obs``, ``reward``,
+    ``terminated``, ``nan`` (the guard fired) and the task variables. The observation noise of a randomised task
+    is not added here: :func:`kernel_step` adds it around the kernel, as :meth:`jaxrobo.task.env.TaskEnv.step`
+    does after the hooks."""
+    q, v = control_step(c, q, v, _twist(action, p["speed_value"]), physics)
     # read_sensors / euler_from_quat
     w, x, y, z = q[3], q[4], q[5], q[6]
     roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
@@ -292,6 +303,8 @@ def _fields(layout: Layout) -> tuple[list, list]:
     if k:
         ins += ([("kind", k, I32)] if layout.obstacle_kind == "mixed" else []) + \
             [("center", 3 * k, F32), ("size", 3 * k, F32), ("active", k, BOOL)]
+    if layout.randomised:
+        ins += [(name, width, F32) for name, width in PHYSICS]
     outs = [("qpos", 7, F32), ("qvel", 6, F32), ("obs", layout.obs_size, F32), ("reward", 1, F32),
             ("terminated", 1, BOOL), ("nan", 1, BOOL), ("prev_dist", 1, F32), ("arrived", 1, BOOL),
             ("crashed", 1, BOOL)] + extra
@@ -318,8 +331,14 @@ def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bo
         def load(name, width, j, dtype):
             return plgpu.load(in_refs[name].at[env * width + j], mask=mask, other=_zero(dtype))
 
+        skip = {"obs", "kind", "center", "size", "active"} | {name for name, _ in PHYSICS}
         row = {name: [load(name, width, j, dtype) for j in range(width)]
-               for name, width, dtype in ins if name not in ("obs", "kind", "center", "size", "active")}
+               for name, width, dtype in ins if name not in skip}
+        physics = None
+        if layout.randomised:  # each env's drawn physics (masked lanes read 1: finite, and never stored)
+            loaded = {name: [plgpu.load(in_refs[name].at[env * width + j], mask=mask, other=1.0)
+                             for j in range(width)] for name, width in PHYSICS}
+            physics = {name: values if len(values) > 1 else values[0] for name, values in loaded.items()}
 
         def old_obs(ok):  # read only where the guard fires: a warp of finite states loads nothing
             return [plgpu.load(in_refs["obs"].at[env * layout.obs_size + j], mask=mask & ~ok, other=0.0)
@@ -340,7 +359,7 @@ def _kernel(c: Constants, layout: Layout, n: int, block: int, params_per_env: bo
                 "crashed": row["crashed"][0]}
         if layout.v2:
             task.update(prev_bearing=row["prev_bearing"][0], prev_dz=row["prev_dz"][0])
-        out = task_step(c, layout, row["qpos"], row["qvel"], row["action"][0], old_obs, task, p, obstacle)
+        out = task_step(c, layout, row["qpos"], row["qvel"], row["action"][0], old_obs, task, p, obstacle, physics)
         values = {"qpos": out["q"], "qvel": out["v"], "obs": out["obs"], "reward": [out["reward"]],
                   "terminated": [out["terminated"]], "nan": [out["nan"]],
                   **{name: [value] for name, value in out["task"].items()}}
@@ -390,15 +409,18 @@ def make_task_step(env: Any, block: int | None = None, interpret: bool | None = 
     if why is not None:
         raise ValueError(f"no task kernel: {why}")
     o = env.options
-    layout = Layout(int(o.n_obstacles), str(o.obstacle_kind), env.step_kernel_variant == "v2")
+    layout = Layout(int(o.n_obstacles), str(o.obstacle_kind), env.step_kernel_variant == "v2", env.randomised)
     return TaskStep(constants_of(env.robot), layout, block, interpret)
 
 
 # ---- one env's step through the batch kernel ---------------------------------------------------------------
 def kernel_step(env: Any, state: Any, action: jax.Array, params: Any) -> Any:
     """``env.step(state, action, params)`` (one env; vmap it) through ``env.step_kernel``: the same
-    :class:`jaxrobo.task.env.EnvState` as :meth:`jaxrobo.task.env.TaskEnv.step`, to float32 round-off."""
-    from jaxrobo.api import EnvState, JointState, through_batch
+    :class:`jaxrobo.task.env.EnvState` as :meth:`jaxrobo.task.env.TaskEnv.step`, to float32 round-off. A
+    randomised task's env brings its drawn domain (``state.domain``, drawn at reset): its physics, in the form
+    the robot's XLA step takes (:meth:`envs.quadcopter.robot.Quadcopter.sim_physics`), go into the kernel as
+    per-env inputs, and its observation noise is added to the kernel's observation as the XLA step adds it."""
+    from jaxrobo.api import EnvState, JointState, randomise, through_batch
 
     kernel: TaskStep = env.step_kernel
     layout = kernel.layout
@@ -408,6 +430,11 @@ def kernel_step(env: Any, state: Any, action: jax.Array, params: Any) -> Any:
               "prev_dist": task.prev_dist, "arrived": task.arrived, "crashed": task.crashed}
     if layout.v2:
         inputs.update(prev_bearing=task.prev_bearing, prev_dz=task.prev_dz)
+    if layout.randomised != bool(state.domain):
+        raise ValueError(f"the task kernel was built for randomised={layout.randomised}; the state "
+                         f"{'carries' if state.domain else 'carries no'} drawn domain")
+    if layout.randomised:
+        inputs.update(env.robot.sim_physics(randomise.physics_of(state.domain)))
     if layout.n_obstacles:
         obs = task.obstacles
         inputs.update(center=obs.center, size=obs.size, active=obs.active)
@@ -420,5 +447,6 @@ def kernel_step(env: Any, state: Any, action: jax.Array, params: Any) -> Any:
     terminated = out["terminated"]
     steps = state.steps + 1
     truncated = (steps >= params.max_episode_steps) & ~terminated
-    return EnvState(JointState(out["qpos"], out["qvel"]), out["obs"], out["reward"], terminated, truncated, steps,
-                    task.replace(**changes), state.key, out["nan"])
+    obs = randomise.noisy(out["obs"], state.domain, state.key, steps)  # the identity without a domain
+    return EnvState(JointState(out["qpos"], out["qvel"]), obs, out["reward"], terminated, truncated, steps,
+                    task.replace(**changes), state.key, out["nan"], domain=state.domain)

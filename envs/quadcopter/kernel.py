@@ -14,6 +14,11 @@ step's bit for bit (``tests/test_quadcopter_kernel.py``); compiled, the two prog
 a CPU XLA contracts a multiply and an add within a fusion into one FMA; on a GPU Triton compiles the kernel and
 takes ``atan2``/``sin``/``cos`` from libdevice), so they agree to float32 round-off.
 
+Domain randomisation: a randomised task's step hands each env's drawn physics (mass and motor-gain factors, the
+wind's force: :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`) to the kernel as per-env inputs
+(:data:`PHYSICS`), which :func:`envs.quadcopter.dynamics.physics_step` takes as the XLA step does; without them
+the kernel is the nominal program it always was.
+
 How it is used: :func:`make_advance` builds the batch function the robot offers as ``advance_kernel``
 (:class:`jaxrobo.task.robot.Robot`); under ``ExecutionPlan(fused="pallas")`` :meth:`jaxrobo.physics.sim.Simulator.advance`
 runs a vmapped control step through it, one kernel call for the whole batch. On a CPU it runs interpreted (the
@@ -54,24 +59,34 @@ def constants_of(robot: Any) -> Constants:
     return Constants(int(robot.sim.n_substeps), robot.control, robot.sim.constants)
 
 
-def control_step(c: Constants, q: Sequence[Any], v: Sequence[Any], cmd: Sequence[Any]) -> tuple[list, list]:
+def control_step(c: Constants, q: Sequence[Any], v: Sequence[Any], cmd: Sequence[Any],
+                 physics: dict | None = None) -> tuple[list, list]:
     """One control step (``c.n_substeps`` substeps of controller + physics) on per-coordinate arrays of any
-    shape: 7 position coordinates, 6 velocity coordinates and 4 command values."""
+    shape: 7 position coordinates, 6 velocity coordinates and 4 command values. ``physics``: each env's drawn
+    domain (domain randomisation; :func:`envs.quadcopter.dynamics.physics_step`'s argument, ``wind`` as a list of
+    3 coordinates), None for the nominal airframe; the controller keeps the nominal values, as on the XLA path."""
 
     def substep(_, carry):
         q, v = list(carry[:7]), list(carry[7:])
-        q, v = physics_step(c.body, q, v, controller(c.controller, q, v, cmd))
+        q, v = physics_step(c.body, q, v, controller(c.controller, q, v, cmd), physics)
         return tuple(q) + tuple(v)
 
     out = jax.lax.fori_loop(0, c.n_substeps, substep, tuple(q) + tuple(v))
     return list(out[:7]), list(out[7:])
 
 
-def _kernel(c: Constants, n: int, block: int) -> Callable:
+#: The per-env inputs of a randomised control step (domain randomisation), with their values per env: the
+#: physics of :meth:`envs.quadcopter.robot.Quadcopter.sim_physics` (factors on mass and motor gain, the wind's
+#: world-frame force).
+PHYSICS = (("mass", 1), ("motor_gain", 1), ("wind", 3))
+
+
+def _kernel(c: Constants, n: int, block: int, randomised: bool = False) -> Callable:
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
 
-    def kernel(qpos_ref, qvel_ref, cmd_ref, qpos_out, qvel_out):
+    def kernel(qpos_ref, qvel_ref, cmd_ref, *refs):
+        domain_refs, (qpos_out, qvel_out) = refs[:-2], refs[-2:]
         env = pl.program_id(0) * block + jax.lax.iota(jnp.int32, block)
         mask = env < n
         # Each env's row read and written word by word: the rows of a block are contiguous, so the words of
@@ -79,7 +94,12 @@ def _kernel(c: Constants, n: int, block: int) -> Callable:
         q = [plgpu.load(qpos_ref.at[env * 7 + j], mask=mask, other=0.0) for j in range(7)]
         v = [plgpu.load(qvel_ref.at[env * 6 + j], mask=mask, other=0.0) for j in range(6)]
         cmd = [plgpu.load(cmd_ref.at[env * 4 + j], mask=mask, other=0.0) for j in range(4)]
-        q, v = control_step(c, q, v, cmd)
+        physics = None
+        if randomised:  # each env's drawn physics, read once per control step (masked lanes: 1, harmless)
+            loaded = {name: [plgpu.load(ref.at[env * width + j], mask=mask, other=1.0) for j in range(width)]
+                      for (name, width), ref in zip(PHYSICS, domain_refs)}
+            physics = {name: values if len(values) > 1 else values[0] for name, values in loaded.items()}
+        q, v = control_step(c, q, v, cmd, physics)
         for j in range(7):
             plgpu.store(qpos_out.at[env * 7 + j], q[j], mask=mask)
         for j in range(6):
@@ -89,14 +109,16 @@ def _kernel(c: Constants, n: int, block: int) -> Callable:
 
 
 def make_advance(robot: Any, block: int | None = None, num_warps: int | None = None,
-                 interpret: bool | None = None) -> Callable[[JointState, jax.Array], JointState]:
-    """The robot's control step over a batch: ``(JointState [n], command [n, 4]) -> JointState [n]``, one
-    Pallas call. ``block``/``num_warps``: envs and warps per program (defaults :data:`BLOCK` and one
-    thread per env); ``interpret``: run the kernel interpreted (default: unless JAX's default backend is a
-    GPU)."""
+                 interpret: bool | None = None) -> Callable[..., JointState]:
+    """The robot's control step over a batch: ``(JointState [n], command [n, 4], physics=None) -> JointState
+    [n]``, one Pallas call. ``physics``: each env's drawn domain (domain randomisation), the dict
+    :meth:`envs.quadcopter.robot.Quadcopter.sim_physics` gives with a leading env axis (:data:`PHYSICS`); None
+    (the nominal airframe) traces the kernel without those inputs, the program it always was.
+    ``block``/``num_warps``: envs and warps per program (defaults :data:`BLOCK` and one thread per env);
+    ``interpret``: run the kernel interpreted (default: unless JAX's default backend is a GPU)."""
     c = constants_of(robot)
 
-    def advance(state: JointState, command: jax.Array) -> JointState:
+    def advance(state: JointState, command: jax.Array, physics: dict | None = None) -> JointState:
         from jax.experimental import pallas as pl
         from jax.experimental.pallas import triton as plgpu
 
@@ -110,11 +132,15 @@ def make_advance(robot: Any, block: int | None = None, num_warps: int | None = N
         params = None if run_interpreted else plgpu.CompilerParams(num_warps=warps, num_stages=1)
         whole = pl.BlockSpec(memory_space=pl.ANY)
         flat = lambda x: jnp.asarray(x, jnp.float32).reshape(-1)  # noqa: E731
+        domain = [] if physics is None else [flat(physics[name]) for name, _ in PHYSICS]
         qpos, qvel = pl.pallas_call(
-            _kernel(c, n, size), grid=(-(-n // size),), in_specs=[whole] * 3, out_specs=[whole] * 2,
+            _kernel(c, n, size, physics is not None), grid=(-(-n // size),), in_specs=[whole] * (3 + len(domain)),
+            out_specs=[whole] * 2,
             out_shape=[jax.ShapeDtypeStruct((n * 7,), jnp.float32), jax.ShapeDtypeStruct((n * 6,), jnp.float32)],
             interpret=run_interpreted, compiler_params=params, name="quadcopter_control_step",
-        )(flat(state.qpos), flat(state.qvel), flat(command))
+        )(flat(state.qpos), flat(state.qvel), flat(command), *domain)
         return JointState(qpos.reshape(n, 7), qvel.reshape(n, 6))
 
+    #: It takes each env's drawn physics (:meth:`jaxrobo.physics.sim.Simulator.advance` hands them to it).
+    advance.takes_physics = True
     return advance

@@ -289,7 +289,7 @@ class QuadcopterOptions:
                                 doc="on-board altitude floor of descent commands (0: none, ground crashes possible)")
     randomise: bool = param(False, static=True,
                             doc="domain randomisation: draw the physics (the task's rand_* ranges) at every reset; "
-                                "the kernels bake the nominal physics, so the step runs on XLA")
+                                "the Pallas kernels take each env's draw as per-env inputs")
 
 
 class QuadcopterTask(TaskEnv):
@@ -300,8 +300,6 @@ class QuadcopterTask(TaskEnv):
         super().__init__(options, params)
         o = self.options
         self.robot = Quadcopter(o.backend, o.running_step, o.timestep, min_altitude=o.min_altitude)
-        if self.randomised:  # the control-step kernel bakes the nominal airframe in
-            self.robot.advance_kernel = None
         randomise.check(self)
 
     def action_space(self, params: Any = None) -> spaces.Discrete:

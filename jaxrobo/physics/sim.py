@@ -50,8 +50,9 @@ from jaxrobo.physics import fused, mjx_lean
 from jaxrobo.core.struct import pytree_dataclass
 
 Controller = Callable[[Any, jax.Array], jax.Array]
-#: A control step over a batch of envs: ``(states, commands) -> states``, every leaf with a leading env axis.
-BatchedAdvance = Callable[[Any, jax.Array], Any]
+#: A control step over a batch of envs: ``(states, commands) -> states``, every leaf with a leading env axis; one
+#: with the attribute ``takes_physics`` also takes ``(states, commands, physics)``, each env's drawn domain.
+BatchedAdvance = Callable[..., Any]
 
 
 @contextlib.contextmanager
@@ -166,9 +167,11 @@ class Simulator(abc.ABC):
 
         ``physics``: one env's physical parameters where they differ from the model's (domain randomisation: the
         backend's own form, e.g. :meth:`MjxSim.physics_step`'s model and data fields), passed to every
-        ``physics_step``; a kernel, which bakes the model's constants, is then never used."""
-        if kernel is not None and fused.physics_kernels() and physics is None:
-            return through_kernel(kernel, state, command)
+        ``physics_step``, and to a kernel that takes them (its attribute ``takes_physics``: ``kernel(state,
+        command, physics)`` on the batch); a kernel that does not is then never used."""
+        if kernel is not None and fused.physics_kernels() and (
+                physics is None or getattr(kernel, "takes_physics", False)):
+            return through_kernel(kernel, state, command, physics)
 
         def substep(s, _):
             ctrl = command if controller is None else controller(s, command)
@@ -248,9 +251,11 @@ def through_batch(kernel: Callable[[Any, Any], Any], rows: Any, shared: Any = ()
     return one(rows, shared)
 
 
-def through_kernel(kernel: BatchedAdvance, state: Any, command: jax.Array) -> Any:
-    """One env's control step computed by ``kernel``, a function of a batch (:func:`through_batch`)."""
-    return through_batch(lambda rows, _: kernel(*rows), (state, command))
+def through_kernel(kernel: BatchedAdvance, state: Any, command: jax.Array, physics: Any = None) -> Any:
+    """One env's control step computed by ``kernel``, a function of a batch (:func:`through_batch`); ``physics``
+    (one env's drawn domain, for a kernel that takes it) travels as rows beside the state."""
+    rows = (state, command) if physics is None else (state, command, physics)
+    return through_batch(lambda rows, _: kernel(*rows), rows)
 
 
 def constraint_free(m: mujoco.MjModel) -> bool:

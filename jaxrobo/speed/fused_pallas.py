@@ -29,9 +29,21 @@ contracts a multiply and an add that share a fusion into one FMA, which rounds o
 a bit moves a state across a bin edge the runs part ways, as any last-bit change does in tabular learning; on a
 GPU Triton compiles ``sin``/``cos`` and the multiply-adds, so the same holds there. Learning results stay within the seed-to-seed spread (docs/benchmarks.md, "Pallas").
 
+Domain randomisation (the task's ``randomise``, :mod:`jaxrobo.task.randomise`): the kernel resets envs in-kernel,
+so it draws each fresh episode's cart mass, pole mass, pole length and observation noise there, from the keys
+``randomise.draw`` folds out of the reset key (the bounds are traced parameters in the kernel's parameter
+vector), carries them as per-env columns into :meth:`CartPoleSim.coordinate_step
+<envs.cartpole.dynamics.CartPoleSim.coordinate_step>` (``physics=``, the XLA step's own
+:func:`envs.cartpole.dynamics.randomised`), and adds the observation noise from the keys ``randomise.noisy``
+folds out of the env key (JAX's normal draw: a uniform per component, then ``sqrt(2) erfinv``; the episode's
+noise key, the env key folded with the noise tag, is carried): fifteen more hashes per reset (nine for the draws,
+six for the first observation's noise) and five per step, which a program whose envs all draw a zero noise level
+skips (one scalar branch). A randomised reset hashes lane by lane (:data:`GROUP_RESETS` is not used). Off, the
+kernel has none of these columns: the program it was.
+
 Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
 for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
-with ``control_type="velocity"`` and ``round_obs`` off; Q-learning, textbook form (not ``seed_compat``), one table
+with ``control_type="velocity"`` and ``round_obs`` off, randomised or not; Q-learning, textbook form (not ``seed_compat``), one table
 per env (not ``shared_table``); the ``bins`` or ``round`` discretiser; threefry keys with
 ``jax_threefry_partitionable`` (JAX's default). A sweep vmaps the chunk over its configurations: Pallas batches
 the call (tested interpreted; on a GPU it compiled and trained, docs/benchmarks.md, "Pallas").
@@ -51,6 +63,7 @@ import numpy as np
 
 from jaxrobo.physics import libdevice_sincos
 from jaxrobo.core.config import ConfigError
+from jaxrobo.task import randomise
 
 #: Envs per Pallas program when the plan's ``fused_block`` is None (a power of two; smaller where ``n_envs`` has
 #: fewer factors of two), one per GPU thread: ``num_warps`` is ``block / 32`` (1 to 8) unless :data:`NUM_WARPS`
@@ -90,6 +103,12 @@ _F = ("pos_step", "max_base_velocity", "min_pole_angle", "max_pole_angle", "min_
       "init_pos", "init_pole_angle", "init_noise", "alpha", "gamma", "epsilon_discount", "epsilon_min",
       "low0", "low1", "low2", "low3", "width0", "width1", "width2", "width3")
 _PARAMS = 32
+#: What a randomised run's kernel draws per env at every reset (domain randomisation: the cart-pole's ranges,
+#: :mod:`jaxrobo.task.randomise`), carried as per-env columns of these names beside the state.
+_DOMAIN = ("cart_mass", "pole_mass", "pole_length", randomise.OBS_NOISE)
+#: ``jax.random.normal``'s float32 interval: its uniform draws lie in ``[nextafter(-1, 0), 1)``.
+_NORMAL_LOW = np.nextafter(np.float32(-1.0), np.float32(0.0))
+_NORMAL_SPAN = np.float32(1.0) - _NORMAL_LOW
 
 
 def unsupported(trainer: Any) -> str | None:
@@ -114,7 +133,11 @@ def unsupported_run(env: Any, config: Any, agent: str | None = None, discretiser
     if type(env.robot.sim).__name__ != "CartPoleSim":
         return f"backend={o.backend!r}; only backend='analytic'"
     if getattr(o, "randomise", False):
-        return "randomise=true; the kernel bakes the nominal model in (the run takes the XLA path)"
+        names = randomise.range_fields(type(env.default_params))
+        other = [n for n in names if n not in _DOMAIN]
+        if other or env.robot.directional:
+            return (f"randomise=true with the ranges {', '.join(randomise.PREFIX + n for n in other)}; the kernel "
+                    f"draws only {', '.join(randomise.PREFIX + n for n in _DOMAIN)}")
     if o.control_type != "velocity" or o.round_obs:
         return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
     agent = c.agent if agent is None else agent
@@ -189,10 +212,30 @@ _COLS = (  # per-env carry columns: name, dtype
 _NAMES = tuple(name for name, _ in _COLS)
 
 
+def _columns(domain: tuple[str, ...]) -> tuple:
+    """The carry's columns: :data:`_COLS`, and under domain randomisation one float column per drawn quantity and,
+    with observation noise, the episode's noise key (the env key folded with the noise tag: one hash per step
+    fewer than folding it every step; an input only, the env state keeps the env key)."""
+    noise = ((("nk0", jnp.uint32), ("nk1", jnp.uint32)) if randomise.OBS_NOISE in domain else ())
+    return _COLS + tuple((name, jnp.float32) for name in domain) + noise
+
+
+def _float_names(domain: tuple[str, ...]) -> tuple[str, ...]:
+    """The kernel's float parameters: :data:`_F`, and under domain randomisation each range's two bounds."""
+    return _F + tuple(f"rand_{bound}{i}" for i in range(len(domain)) for bound in ("low", "high"))
+
+
 def _make_kernel(static):
     (block, steps_per_chunk, n_states, n_actions, n_rec, records, nepisodes, nsteps, strides, bins, coordinate_step,
-     n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled, steps_budget) = static
-    n_cols = len(_COLS)
+     n_substeps, action_steps, skip_resets, group_resets, fast_sincos, approx_sincos, tiled, steps_budget,
+     domain) = static
+    columns = _columns(domain)
+    names = tuple(name for name, _ in columns)
+    n_cols = len(columns)
+    # Domain randomisation (``domain``: the drawn quantities, in the order of the task's ranges; empty: off, and
+    # the kernel is the program it was before randomisation existed).
+    noise_on = randomise.OBS_NOISE in domain
+    physics_names = tuple(n for n in _DOMAIN if n != randomise.OBS_NOISE)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
 
@@ -203,12 +246,12 @@ def _make_kernel(static):
         outs = rest[n_big:n_big + n_cols]
         q_ref = rest[n_big + n_cols]
         rec_refs = rest[n_big + n_cols + 1:n_big + n_cols + 4] if records else None
-        fvals = {name: fp_ref[i] for i, name in enumerate(_F)}  # read once, kept in registers
+        fvals = {name: fp_ref[i] for i, name in enumerate(_float_names(domain))}  # read once, kept in registers
         f = fvals.__getitem__
         max_episode_steps = ip_ref[0]
         env0 = pl.program_id(0) * block
         env = env0 + jax.lax.iota(jnp.int32, block)
-        carry = {name: ref[...] for name, ref in zip(_NAMES, ins)}
+        carry = {name: ref[...] for name, ref in zip(names, ins)}
         if tiled:  # [program, state, env of the program, action]
             # program_id read here, not in the reset's branch (interpret mode cannot discharge it inside a cond).
             tile = block * n_actions
@@ -252,9 +295,37 @@ def _make_kernel(static):
                 seen = seen + m.astype(jnp.int32)
             return jnp.where(coin < epsilon, random_action, choice)
 
-        def physics(x, th, xd, thd, ctrl, written_out=False):
+        def draws(k_reset):
+            # randomise.draw(k_reset, params): one uniform per range from the reset key folded with the draw tag
+            # (fold_in is the hash of counter (0, data), as _subkey), each from its own fold, in range order.
+            base = _subkey(k_reset, randomise.DRAW_TAG)
+            out = []
+            for i in range(len(domain)):
+                key_i = _subkey(base, 2 * i)
+                zero = jnp.zeros_like(key_i[0])
+                u = _unit(functools.reduce(jnp.bitwise_xor, _threefry(key_i[0], key_i[1], zero, zero)))
+                low, high = f(f"rand_low{i}"), f(f"rand_high{i}")
+                out.append(low + u * (high - low))
+            return out
+
+        def noisy(obs, episode_key, steps, std):
+            # randomise.noisy: obs + std * jax.random.normal(fold_in(fold_in(env_key, tag), steps), (4,)), the
+            # normal draw as JAX's: a uniform in [nextafter(-1, 0), 1) per component (counter (0, j)), then
+            # sqrt(2) erfinv. ``episode_key``: fold_in(env_key, tag), carried per episode.
+            zero = jnp.zeros_like(episode_key[0])
+            step_key = _threefry(episode_key[0], episode_key[1], zero, steps.astype(jnp.uint32))
+            out = []
+            for j, o in enumerate(obs):
+                bits = functools.reduce(jnp.bitwise_xor, _threefry(step_key[0], step_key[1], zero, zero + jnp.uint32(j)))
+                u = jnp.maximum(jnp.float32(_NORMAL_LOW), _unit(bits) * jnp.float32(_NORMAL_SPAN)
+                                + jnp.float32(_NORMAL_LOW))
+                out.append(o + std * (jnp.float32(np.sqrt(2)) * jax.lax.erf_inv(u)))
+            return tuple(out)
+
+        def physics(x, th, xd, thd, ctrl, factors, written_out=False):
             # The simulator's own equations (CartPoleSim.coordinate_step), on [block] vectors, with the kernel's
-            # sin/cos; the one actuator takes the command.
+            # sin/cos and, under domain randomisation, each env's drawn factors; the one actuator takes the
+            # command.
             if approx_sincos:
                 sincos = lambda t: tuple(  # noqa: E731
                     libdevice_sincos.inline_ptx(f"{op}.approx.f32 $0, $1;", t) for op in ("sin", "cos"))
@@ -262,7 +333,7 @@ def _make_kernel(static):
                 sincos = libdevice_sincos.sincos
             else:
                 sincos = None
-            return coordinate_step(x, th, xd, thd, (ctrl,), sincos)
+            return coordinate_step(x, th, xd, thd, (ctrl,), sincos, factors)
 
         def finite(v):
             return jnp.abs(v) < jnp.inf
@@ -282,10 +353,13 @@ def _make_kernel(static):
             command = cr["command"] + delta * f("pos_step")
             command = jnp.minimum(jnp.maximum(command, -f("max_base_velocity")), f("max_base_velocity"))
             x, th, xd, thd = cr["x"], cr["th"], cr["xd"], cr["thd"]
+            # The episode's drawn factors (Robot.sim_physics: 1 for a quantity the task does not draw).
+            factors = {n: cr[n] if n in domain else 1.0 for n in physics_names} if domain else None
+
             def substeps(written_out):
                 state = (x, th, xd, thd)
                 for _sub in range(n_substeps):
-                    state = physics(*state, command, written_out)
+                    state = physics(*state, command, factors, written_out)
                 return state
 
             if fast_sincos:
@@ -294,7 +368,7 @@ def _make_kernel(static):
                 state, beyond = (x, th, xd, thd), jnp.zeros(x.shape, jnp.int32)
                 for _sub in range(n_substeps):
                     beyond = beyond | (~(jnp.abs(state[1]) <= libdevice_sincos.LIMIT)).astype(jnp.int32)  # NaN too
-                    state = physics(*state, command, True)
+                    state = physics(*state, command, factors, True)
                 x, th, xd, thd = jax.lax.cond(jnp.max(beyond) > 0, lambda _: substeps(False), lambda _: state, None)
             else:
                 x, th, xd, thd = substeps(False)
@@ -309,6 +383,12 @@ def _make_kernel(static):
             env_steps_now = cr["steps"] + 1
             trunc = (env_steps_now >= max_episode_steps) & ~term
             pnan = ~ok
+            if noise_on:  # what the agent sees (TaskEnv.step: after the guard; termination read the true state)
+                std = cr[randomise.OBS_NOISE]
+                # A program whose envs all draw no noise skips its hashes (one scalar branch): obs + 0 * z is obs
+                # (z is finite), up to the sign of a zero.
+                obs = jax.lax.cond(jnp.max(std) > 0, lambda o: noisy(o, (cr["nk0"], cr["nk1"]), env_steps_now, std),
+                                   lambda o: o, obs)
             s2 = discretise(obs)
             done = term | trunc | (env_steps_now >= nsteps)
             r_s2 = row(s2)
@@ -352,7 +432,8 @@ def _make_kernel(static):
                 rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
                 zero = jnp.zeros_like(pose_key[0])
                 noise = [noise_of(*_threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))) for j in range(4)]
-                return (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3], *rk)
+                return (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3], *rk,
+                        *draws(k_reset))
 
             def hashed_by_group(n_done):
                 # The same seven hashes of each done env, shared by a group of four lanes: three hash rounds
@@ -397,16 +478,25 @@ def _make_kernel(static):
                 return as_f(v[0]), as_f(v[2]), as_f(v[1]), as_f(v[3]), u32(v[4]), u32(v[5])
 
             def fresh_episode(hashed):
-                fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1 = hashed
-                s_fresh = discretise((fresh_x, fresh_xd, fresh_th, fresh_thd))
+                fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1 = hashed[:6]
+                drawn = hashed[6:]  # the fresh episode's domain, in the order of ``domain``
+                obs_fresh = (fresh_x, fresh_xd, fresh_th, fresh_thd)
+                episode_key = ()
+                if noise_on:  # env.reset's observation, noisy from the fresh env key at step 0
+                    std = drawn[domain.index(randomise.OBS_NOISE)]
+                    episode_key = _subkey((rk0, rk1), randomise.NOISE_TAG)
+                    obs_fresh = noisy(obs_fresh, episode_key, jnp.zeros_like(env_steps_now), std)
+                s_fresh = discretise(obs_fresh)
                 r_fresh = row(s_fresh, done)
                 r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
-                return (fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1, s_fresh, *r_fresh)
+                extra = (*obs_fresh, *drawn, *episode_key) if domain else ()
+                return (fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1, s_fresh, *r_fresh, *extra)
 
             if skip_resets:
                 def none_done(_):
                     zf, zu = jnp.zeros_like(x), jnp.zeros_like(key[0])
-                    return (zf, zf, zf, zf, zu, zu, jnp.zeros_like(s2), *([zf] * n_actions))
+                    extra = ([zf] * (4 + len(domain)) + [zu] * (2 * noise_on)) if domain else []
+                    return (zf, zf, zf, zf, zu, zu, jnp.zeros_like(s2), *([zf] * n_actions), *extra)
 
                 n_done = jnp.sum(done.astype(jnp.int32))
                 if group_resets and block >= 4:  # groups of four lanes for up to block / 4 done envs, else lane by lane
@@ -417,12 +507,20 @@ def _make_kernel(static):
                 reset = jax.lax.cond(n_done > 0, some_done, none_done, n_done)
             else:
                 reset = fresh_episode(hashed_by_lane(None))
-            fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:]
+            fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:7 + n_actions]
             plgpu.store(q_ref.at[row_at(cr["s"]) + a], written)
             w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
             cr["x"], cr["th"], cr["xd"], cr["thd"] = w(fresh[0], x), w(fresh[1], th), w(fresh[2], xd), w(fresh[3], thd)
-            cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(fresh[0], obs[0]), w(fresh[2], obs[1]), w(fresh[1], obs[2]),
-                                                      w(fresh[3], obs[3]))
+            if domain:  # the fresh episode's (noisy) observation and its drawn domain
+                obs_fresh, drawn = reset[7 + n_actions:11 + n_actions], reset[11 + n_actions:]
+                cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(o_new, o) for o_new, o in zip(obs_fresh, obs))
+                for name, value in zip(domain, drawn):
+                    cr[name] = w(value, cr[name])
+                if noise_on:
+                    cr["nk0"], cr["nk1"] = w(drawn[-2], cr["nk0"]), w(drawn[-1], cr["nk1"])
+            else:
+                cr["o0"], cr["o1"], cr["o2"], cr["o3"] = (w(fresh[0], obs[0]), w(fresh[2], obs[1]),
+                                                          w(fresh[1], obs[2]), w(fresh[3], obs[3]))
             cr["reward"] = w(jnp.float32(0.0), reward)
             cr["term"] = w(0, term.astype(jnp.int32))
             cr["trunc"] = w(0, trunc.astype(jnp.int32))
@@ -444,7 +542,7 @@ def _make_kernel(static):
             return cr
 
         carry = jax.lax.fori_loop(0, steps_per_chunk, step, carry)
-        for name, ref in zip(_NAMES, outs):
+        for name, ref in zip(names, outs):
             ref[...] = carry[name].astype(ref.dtype)
 
     return kernel
@@ -481,6 +579,11 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     fvals = [f32(getattr(ep, name)) for name in _F[:9]]
     fvals += [f32(getattr(agent_params, name)) for name in ("alpha", "gamma", "epsilon_discount", "epsilon_min")]
     fvals += [disc.low[d] for d in range(4)] + [disc.width[d] for d in range(4)]
+    # Domain randomisation: the quantities the task draws (its ranges, in order) and each range's bounds.
+    domain = tuple(randomise.range_fields(type(ep))) if env.randomised else ()
+    for bounds in randomise.ranges(ep).values() if domain else ():
+        bounds = jnp.asarray(bounds, jnp.float32)
+        fvals += [bounds[0], bounds[1]]
     fvals += [jnp.float32(0.0)] * (_PARAMS - len(fvals))  # Triton blocks are powers of two long
     fp = jnp.stack([jnp.reshape(v, ()).astype(jnp.float32) for v in fvals])
     ip = jnp.reshape(jnp.asarray(ep.max_episode_steps, jnp.int32), (1,))
@@ -506,7 +609,12 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
         cols.update(ret_sum=jnp.zeros(n, jnp.float32), len_sum=jnp.zeros(n, jnp.int32), term_any=jnp.zeros(n, jnp.int32))
     else:
         cols.update(ret_sum=runner.returns[:, 0], len_sum=runner.lengths[:, 0], term_any=i32(runner.terminated[:, 0]))
-    col_in = [jnp.asarray(cols[name]).astype(dtype) for name, dtype in _COLS]
+    cols.update({name: es.domain[name] for name in domain})
+    if randomise.OBS_NOISE in domain:
+        noise_key = jax.random.key_data(jax.vmap(lambda k: jax.random.fold_in(k, randomise.NOISE_TAG))(es.key))
+        cols.update(nk0=noise_key[:, 0], nk1=noise_key[:, 1])
+    columns = _columns(domain)
+    col_in = [jnp.asarray(cols[name]).astype(dtype) for name, dtype in columns]
     block = _block_for(n, trainer.plan.fused_block)
     tiled = bool(TILED_TABLES)
     q_in = runner.agent.q.reshape(n, n_states, n_actions)
@@ -520,15 +628,16 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
               tuple(int(b) for b in disc.bins), sim.coordinate_step, int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
-              bool(SKIP_RESETS), bool(GROUP_RESETS), bool(FAST_SINCOS) and libdevice_sincos.verified(),
-              bool(APPROX_SINCOS) and gpu, tiled, trainer.steps_per_env if trainer.budget == "steps" else 0)
+              # A randomised reset hashes the draws lane by lane (the groups of four share only the pose's).
+              bool(SKIP_RESETS), bool(GROUP_RESETS) and not domain, bool(FAST_SINCOS) and libdevice_sincos.verified(),
+              bool(APPROX_SINCOS) and gpu, tiled, trainer.steps_per_env if trainer.budget == "steps" else 0, domain)
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)
-    n_cols = len(_COLS)
+    n_cols = len(columns)
     in_specs = [pl.BlockSpec((_PARAMS,), lambda i: (0,)), pl.BlockSpec((1,), lambda i: (0,))] + [col_spec] * n_cols + [whole] * len(big)
     out_specs = [col_spec] * n_cols + [whole] * len(big)
-    out_shape = [jax.ShapeDtypeStruct((n,), dtype) for _, dtype in _COLS] + \
+    out_shape = [jax.ShapeDtypeStruct((n,), dtype) for _, dtype in columns] + \
                 [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in big]
     aliases = {2 + n_cols + i: n_cols + i for i in range(len(big))}
     interpret = jax.default_backend() != "gpu"
@@ -539,7 +648,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     outs = pl.pallas_call(kernel, out_shape=out_shape, grid=(n // block,), in_specs=in_specs, out_specs=out_specs,
                           input_output_aliases=aliases, interpret=interpret, compiler_params=params,
                           name="cartpole_qlearn_chunk")(fp, ip, *col_in, *big)
-    o = dict(zip(_NAMES, outs[:n_cols]))
+    o = dict(zip((name for name, _ in columns), outs[:n_cols]))
     big_out = outs[n_cols:]
     boolean = lambda v: v.astype(bool)  # noqa: E731
     impl = jax.random.key_impl(runner.key)
@@ -547,7 +656,8 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
         JointState(jnp.stack([o["x"], o["th"]], 1), jnp.stack([o["xd"], o["thd"]], 1)),
         jnp.stack([o["o0"], o["o1"], o["o2"], o["o3"]], 1), o["reward"], boolean(o["term"]), boolean(o["trunc"]),
         o["steps"], type(es.task)(command=o["command"]),
-        jax.random.wrap_key_data(jnp.stack([o["ek0"], o["ek1"]], 1), impl=impl), boolean(o["pnan"]))
+        jax.random.wrap_key_data(jnp.stack([o["ek0"], o["ek1"]], 1), impl=impl), boolean(o["pnan"]),
+        **({"domain": {name: o[name] for name in domain}} if domain else {}))
     q = big_out[0]
     if tiled:
         q = q.reshape(n // block, n_states, block, n_actions).transpose(0, 2, 1, 3)

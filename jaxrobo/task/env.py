@@ -261,7 +261,8 @@ class TaskEnv(Env):
         params = self.default_params if params is None else params
         check_action_shape(self.action_space(params), action, f"{type(self).__name__}.step(state, action)")
         action = jnp.asarray(action, self.action_dtype)
-        if self.step_kernel is not None and fused.task_kernels() and not state.domain:
+        # A task's kernel takes the drawn domain of a randomised task as per-env inputs (the Goto tasks').
+        if self.step_kernel is not None and fused.task_kernels():
             return self._kernel_step(state, action, params)
         command, task = self._set_action(action, state.task, params)
         if state.domain:

@@ -18,8 +18,11 @@ traced: the step is the one it always was, bit for bit. With it on:
 The ranges are traced parameters: a sweep can vary the ranges themselves, and a zero-width range ``[v, v]`` pins
 a quantity at ``v`` (what ``jaxrobo eval`` uses to fly a policy on shifted physics). A robot names what it can
 randomise per backend (:meth:`jaxrobo.task.robot.Robot.randomisable`); asking for more is refused at construction.
-The kernels bake the model's constants into their code, so with ``randomise`` on a task offers none (its
-``step_kernel_refusal`` says so) and the run takes the XLA path.
+The Pallas kernels take the draws as per-env inputs, so a randomised run keeps its kernel: the quadcopter's
+control-step and Goto task kernels read the physics :meth:`~jaxrobo.task.robot.Robot.sim_physics` gives (the
+noise is added around them, as :meth:`jaxrobo.task.env.TaskEnv.step` adds it), and the cart-pole's chunk kernel,
+which resets in-kernel, draws the domain and the noise from the same keys as :func:`draw` and :func:`noisy`
+(:data:`DRAW_TAG`, :data:`NOISE_TAG`). With ``randomise`` off they have none of these inputs.
 """
 from __future__ import annotations
 
@@ -38,8 +41,9 @@ PREFIX = "rand_"
 OBS_NOISE = "obs_noise"
 #: Suffix of the direction drawn beside a directional quantity's magnitude.
 HEADING = "_heading"
-#: Folded into the reset key for the draws, and into the env's key for the observation noise.
-_DRAW_TAG, _NOISE_TAG = 0x5244, 0x4E53
+#: Folded into the reset key for the draws, and into the env's key for the observation noise (public: the
+#: cart-pole's chunk kernel, which resets in-kernel, draws from the same keys).
+DRAW_TAG, NOISE_TAG = 0x5244, 0x4E53
 
 
 def range_fields(params_cls: Any) -> tuple[str, ...]:
@@ -74,7 +78,7 @@ def draw(key: jax.Array, params: Any, directional: tuple[str, ...] = ()) -> dict
     """One episode's values, ``{name: value}``, one uniform draw per range of ``params`` from ``key`` (the reset's
     key, folded, so the reset's own splits are unchanged). Each name in ``directional`` (a force such as a wind)
     also gets ``<name>_heading``, a direction uniform in [-pi, pi)."""
-    base = jax.random.fold_in(key, _DRAW_TAG)
+    base = jax.random.fold_in(key, DRAW_TAG)
     out = {}
     for i, (name, bounds) in enumerate(ranges(params).items()):
         out[name] = uniform(jax.random.fold_in(base, 2 * i), bounds)
@@ -93,7 +97,7 @@ def noisy(obs: jax.Array, domain: Any, key: jax.Array, steps: jax.Array) -> jax.
     each step: the key is the env state's, folded with the step count."""
     if not domain or OBS_NOISE not in domain:
         return obs
-    k = jax.random.fold_in(jax.random.fold_in(key, _NOISE_TAG), steps)
+    k = jax.random.fold_in(jax.random.fold_in(key, NOISE_TAG), steps)
     return (obs + domain[OBS_NOISE] * jax.random.normal(k, obs.shape, jnp.float32)).astype(obs.dtype)
 
 

@@ -42,10 +42,12 @@ class Robot:
     def advance(self, pipeline_state: Any, command: jax.Array, domain: dict[str, jax.Array] | None = None) -> Any:
         """Apply ``command`` for one control step (the seed's unpause → move → wait → pause). ``domain``: the
         episode's randomised physical quantities (:mod:`jaxrobo.task.randomise`), mapped onto the simulator by
-        :meth:`sim_physics`; None: the model as loaded (and the robot's kernel where the plan runs it)."""
+        :meth:`sim_physics`; None: the model as loaded. The robot's kernel runs where the plan runs it, with a
+        domain only if it takes one (``advance_kernel.takes_physics``)."""
         if domain is None:
             return self.sim.advance(pipeline_state, command, self.controller, kernel=self.advance_kernel)
-        return self.sim.advance(pipeline_state, command, self.controller, physics=self.sim_physics(domain))
+        return self.sim.advance(pipeline_state, command, self.controller, kernel=self.advance_kernel,
+                                physics=self.sim_physics(domain))
 
     def randomisable(self) -> tuple[str, ...]:
         """The physical quantities this robot can randomise on its backend (the names of a task's ``rand_<name>``
