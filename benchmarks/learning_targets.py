@@ -46,6 +46,9 @@ def train_population(env_id: str, runs: int, seed_base: int, overrides: dict) ->
     the ``seconds`` of training (compile included) and evaluation."""
     spec = resolve(env_id, overrides=overrides)
     env, config = spec.env, spec.config
+    print(f"{env_id}: {runs} runs of the default preset, budget "
+          f"{'total_steps ' + format(config.total_steps, ',') if config.total_steps else 'nepisodes ' + str(config.nepisodes)}"
+          " ...", flush=True)
     target = getattr(env, "learning_target", None)
     if target is None:
         raise ValueError(f"{env_id} declares no learning_target")
@@ -65,18 +68,7 @@ def train_population(env_id: str, runs: int, seed_base: int, overrides: dict) ->
     env_steps = np.asarray(jax.device_get(runner.env_steps), np.int64).reshape(runs, -1).sum(axis=1)
     train_s = time.perf_counter() - t0
     t1 = time.perf_counter()
-    scores = []
-    for i, seed in enumerate(seeds):  # the driver's evaluation, compiled once and reused by every run
-        one = jax.tree.map(lambda x: x[i], runner)
-        returns, lengths, selected, success = driver.evaluate_tables(trainer, one, jax.random.key(seed), ep)
-        per_table = {"mean_length": lengths, "mean_return": returns}
-        if success is not None:
-            per_table["success_rate"] = success
-        if selected is not None and target.metric in ("mean_length", "mean_return"):
-            score = float(np.mean(selected["lengths" if target.metric == "mean_length" else "returns"]))
-        else:  # the shared table, or the best evaluated table by the target's own figure
-            score = float(per_table[target.metric].astype(np.float64).mean(axis=1).max())
-        scores.append(score)
+    scores = judge(trainer, runner.agent, seeds, ep, target)
     scores = np.asarray(scores)
     chunks = loop.chunks_done
     slots = chunks * config.chunk_steps * config.n_envs
@@ -89,6 +81,35 @@ def train_population(env_id: str, runs: int, seed_base: int, overrides: dict) ->
             "share_met": float((scores >= target.threshold).mean()),
             "train_seconds": round(train_s, 2), "eval_seconds": round(time.perf_counter() - t1, 2),
             "execution_plan": repr(plan)}
+
+
+def judge(trainer: Trainer, agent, seeds: list[int], env_params, target) -> list[float]:
+    """Each run's learning-target figure, judged as :func:`jaxrobo.training.driver.evaluate_tables` judges a run of
+    ``jaxrobo train --seed S`` (the same keys, tables and selection), for all runs in one vmapped program: the
+    shared table's figure, or for per-env tables the best of the first ``eval_envs`` (by mean return) flown again
+    on fresh episodes."""
+    config = trainer.config
+    shared = config.shared_table
+    n_eval = 1 if shared else min(config.eval_envs, config.n_envs)
+    tables = agent if shared else jax.tree.map(lambda x: x[:, :n_eval], agent)
+    run_keys = [jax.random.key(s) for s in seeds]
+    keys = jnp.stack([jax.random.split(jax.random.fold_in(k, 1), n_eval) for k in run_keys])
+    one_run = jax.vmap(trainer.evaluate_episodes, in_axes=(0, None if shared else 0, None, None))
+    out = jax.device_get(jax.jit(jax.vmap(one_run, in_axes=(0, 0, None, None)), static_argnums=2)(
+        keys, tables, config.eval_episodes, env_params))
+    per_table = {"mean_length": np.asarray(out["length"]), "mean_return": np.asarray(out["return"])}
+    if "arrived" in out:
+        per_table["success_rate"] = np.asarray(out["arrived"])
+    if n_eval > 1 and target.metric in ("mean_length", "mean_return"):
+        best = per_table["mean_return"].mean(axis=2).argmax(axis=1)  # [runs]
+        chosen = jax.tree.map(lambda x: x[np.arange(len(seeds)), best], tables)
+        fresh = jnp.stack([jax.random.fold_in(k, 2) for k in run_keys])
+        returns, lengths = jax.device_get(jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0, None, None)),
+                                                  static_argnums=2)(fresh, chosen, config.eval_episodes, env_params))
+        figure = np.asarray(lengths if target.metric == "mean_length" else returns)
+        return [float(v) for v in figure.astype(np.float64).mean(axis=1)]
+    # the shared table, or the best evaluated table by the target's own figure
+    return [float(v) for v in per_table[target.metric].astype(np.float64).mean(axis=2).max(axis=1)]
 
 
 def main(argv=None) -> int:

@@ -67,7 +67,7 @@ def main() -> int:
     ap.add_argument("--out", default=None, help="JSON of the rows")
     args = ap.parse_args()
     if args.device:
-        os.environ["JAX_PLATFORMS"] = args.device
+        os.environ["JAX_PLATFORMS"] = {"cpu": "cpu", "gpu": "cuda"}[args.device]
     from jaxrobo.training.run import resolve
     from jaxrobo.training.train import train
     from jaxrobo.training.trainer import Trainer

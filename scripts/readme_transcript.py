@@ -1,0 +1,127 @@
+"""Run every command of the README's "Use it" section and the quickstart notebook, as a newcomer would, and write
+a transcript with each command's wall time, exit code and last lines of output.
+
+    python scripts/readme_transcript.py --out docs/transcripts/cpu-2cores.md          # in a fresh clone
+    python scripts/readme_transcript.py --device gpu --out docs/transcripts/h100.md
+
+The commands are read from the README itself (the ``bash`` and ``python`` blocks between "## Use it" and
+"## Layout"), so the transcript cannot drift from what the README says; they run one after the other in the
+checkout this script belongs to, in order (later commands read the runs earlier ones wrote). A line that cannot
+run unattended (``...`` placeholders, a Ctrl-C) is listed as skipped, with why. ``--device gpu`` sets
+``JAX_PLATFORMS=cuda`` for every command. The README's outputs land in ``runs/`` (git-ignored); this script
+removes ``runs/`` and ``policy/`` first (``--keep`` leaves them), so every command starts as on a fresh clone.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import re
+import shutil
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+#: Lines of the README that need a person at the keyboard or stand for "your own arguments".
+UNATTENDED = ((re.compile(r"\.\.\."), "a placeholder (`...`), not a command"),
+              (re.compile(r"Ctrl-C"), "needs a Ctrl-C by hand (tests/test_resume.py does it by signal)"))
+
+
+def readme_commands(path: str) -> list[tuple[str, str]]:
+    """``(kind, text)`` for each command of the README's "Use it" part: ``bash`` lines and whole ``python``
+    blocks, in order."""
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    start, end = text.index("## Use it"), text.index("## Layout")
+    out = []
+    for lang, body in re.findall(r"```(bash|python)\n(.*?)```", text[start:end], flags=re.S):
+        if lang == "python":
+            out.append(("python", body))
+            continue
+        out.extend(("bash", line.strip()) for line in body.splitlines() if line.strip())
+    return out
+
+
+def run(kind: str, text: str, env: dict, timeout: float) -> dict:
+    argv = ["bash", "-c", text] if kind == "bash" else [sys.executable, "-c", text]
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+        rc, output = p.returncode, (p.stdout + p.stderr)
+    except subprocess.TimeoutExpired as err:
+        rc = "timeout"
+        output = (err.stdout or b"").decode(errors="replace") if isinstance(err.stdout, bytes) else (err.stdout or "")
+    return {"rc": rc, "seconds": time.perf_counter() - t0, "tail": output.strip().splitlines()[-4:]}
+
+
+def notebook(env: dict, timeout: float) -> dict:
+    """The quickstart notebook top to bottom in a fresh kernel (nbclient, as tests/test_notebook.py runs it)."""
+    code = ("import nbformat, nbclient; nb = nbformat.read('notebooks/quickstart.ipynb', as_version=4); "
+            "nbclient.NotebookClient(nb, timeout=600, kernel_name='python3', "
+            "resources={'metadata': {'path': '.'}}).execute(); "
+            "outs = [o for c in nb.cells if c.cell_type == 'code' for o in c.get('outputs', [])]; "
+            "print(len(outs), 'outputs,', sum('image/png' in o.get('data', {}) for o in outs), 'PNG images,', "
+            "sum(o.get('output_type') == 'error' for o in outs), 'errors')")
+    return run("python", code, env, timeout)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True, help="markdown transcript to write")
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed to one command")
+    ap.add_argument("--only", default=None, help="run only the commands containing this text")
+    ap.add_argument("--no-notebook", action="store_true")
+    ap.add_argument("--keep", action="store_true", help="keep runs/ and policy/ from an earlier transcript")
+    args = ap.parse_args(argv)
+    if not args.keep:
+        for d in ("runs", "policy"):
+            shutil.rmtree(os.path.join(ROOT, d), ignore_errors=True)
+    env = {**os.environ, "JAX_PLATFORMS": {"cpu": "cpu", "gpu": "cuda"}[args.device], "PYTHONUNBUFFERED": "1"}
+    bindir = os.path.dirname(sys.executable)  # the venv's `jaxrobo` before any other on PATH
+    env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
+    rows = []
+    for kind, text in readme_commands(os.path.join(ROOT, "README.md")):
+        if args.only and args.only not in text:
+            continue
+        why = next((w for pat, w in UNATTENDED if pat.search(text)), None)
+        if why:
+            rows.append({"kind": kind, "text": text, "skipped": why})
+            print(f"skip  {text[:100]}  ({why})", flush=True)
+            continue
+        r = run(kind, text, env, args.timeout)
+        rows.append({"kind": kind, "text": text, **r})
+        print(f"{r['seconds']:7.1f} s  rc={r['rc']}  {text[:100]}", flush=True)
+    if not args.no_notebook and not args.only:
+        r = notebook(env, args.timeout)
+        rows.append({"kind": "notebook", "text": "notebooks/quickstart.ipynb (nbclient, fresh kernel)", **r})
+        print(f"{r['seconds']:7.1f} s  rc={r['rc']}  notebooks/quickstart.ipynb", flush=True)
+    import jax  # after the commands: the versions and device of this machine, for the header
+
+    head = [f"# README transcript: {jax.devices()[0].device_kind} ({os.cpu_count()} cores visible)", "",
+            f"`python scripts/readme_transcript.py --device {args.device}` on {time.strftime('%Y-%m-%d')}, "
+            f"Python {platform.python_version()}, jax {jax.__version__}, commit "
+            f"{subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=ROOT, capture_output=True, text=True).stdout.strip()}. "
+            "Each command ran in order in one checkout, as the README gives it; times are wall seconds from start to "
+            "exit (compile included; the compile cache as the earlier commands left it).", "",
+            "| # | command | wall (s) | exit | last lines of output |", "|---|---|---|---|---|"]
+    esc = lambda s: s.replace("|", "\\|").replace("\n", " ")  # noqa: E731
+    for i, r in enumerate(rows, 1):
+        cmd = esc(r["text"] if r["kind"] != "python" else "python block: " + r["text"].strip().splitlines()[0] + " …")
+        if "skipped" in r:
+            head.append(f"| {i} | `{cmd}` | – | skipped | {esc(r['skipped'])} |")
+        else:
+            head.append(f"| {i} | `{cmd}` | {r['seconds']:.1f} | {r['rc']} | {esc(' ⏎ '.join(r['tail']))[:400]} |")
+    total = sum(r.get("seconds", 0.0) for r in rows)
+    head += ["", f"Total {total / 60:.1f} min; {sum(r.get('rc') not in (0, None) for r in rows if 'rc' in r)} "
+             "command(s) failed."]
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w", encoding="utf-8") as f:
+        f.write("\n".join(head) + "\n")
+    print(f"transcript: {args.out}")
+    return 0 if all(r.get("rc", 0) == 0 for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
