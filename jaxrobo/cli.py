@@ -602,13 +602,15 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
           f"of the {s['env_slots']:,} env slots stepped were useful")
     print(f"wall: compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
           f"{s['eval_seconds']:.1f} s, writing {write_seconds:.1f} s")
-    print(f"highest reward {s['highest_reward_max']:.0f} · overall mean length {s['overall_mean_length']:.1f} · "
-          f"best 100 mean {s['best_100_mean_length']:.1f}")
+    print(_training_figures(s))
     if "eval_mean_length" in s:
         print(f"greedy evaluation: mean length {s['eval_mean_length']:.1f}, mean return {s['eval_mean_return']:.1f} "
               f"over {result.eval_lengths.shape[0]} tables × {result.eval_lengths.shape[1]} episodes")
     if "eval_success_rate" in s:
         print(f"greedy arrival rate {s['eval_success_rate']:.1%} (best table {s['eval_best_table_success_rate']:.1%})")
+    if "eval_best_table" in s:
+        print(f"best evaluated table ({s['eval_best_table']}, by {s['best_ranked_by']}): mean length "
+              f"{s['eval_best_table_mean_length']:.1f}, mean return {s['eval_best_table_mean_return']:.1f}")
     if "selected_table" in s:
         print(f"best table ({s['selected_table']}) on fresh episodes: mean length "
               f"{s['selected_table_fresh_mean_length']:.1f}, mean return {s['selected_table_fresh_mean_return']:.1f}")
@@ -616,6 +618,15 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
     print(f"results in {out}")
     return 0
+
+
+def _training_figures(s: dict) -> str:
+    """The printed line of a run summary's training figures, each saying what it is of; the best window is the
+    one the task's learning target calls best (``best_ranked_by``)."""
+    figure = "return" if "best_100_window_mean_return" in s else "length"
+    return (f"highest episode return {s['highest_reward_max']:.0f} · overall mean episode length "
+            f"{s['overall_mean_length']:.1f} · best 100-episode window of mean {figure}: "
+            f"{s[f'best_100_window_mean_{figure}']:.1f} ({s['best_ranked_by']})")
 
 
 def _plot(args: argparse.Namespace) -> int:

@@ -34,6 +34,7 @@ from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
+from jaxrobo.task.env import ranking
 from jaxrobo.training.summary import TrainResult
 from jaxrobo.training.trainer import Runner, Trainer, progress_stats
 
@@ -307,8 +308,10 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, np.ndarray | None]:
     """Greedy evaluation of the first ``eval_envs`` trained tables (the shared one: once), ``eval_episodes``
     each: ``(returns, lengths, selected, success)``, the first two ``[tables, eval_episodes]``. With several tables
-    the best one (by mean return) is evaluated again on fresh episodes (``selected``: its index, returns and
-    lengths), so its figure is not the maximum of noisy estimates. ``key`` is the run's key.
+    the best one is evaluated again on fresh episodes (``selected``: its index, returns and lengths), so its
+    figure is not the maximum of noisy estimates; "best" follows the task's learning target
+    (:func:`jaxrobo.task.env.ranking`: by success rate, return or length, in its direction). ``key`` is the run's
+    key.
 
     ``success``: for a task whose learning target is a ``success_rate`` and whose task variables carry an
     ``arrived`` flag (QuadcopterGoto, ArmReach), whether each of those episodes arrived, ``[tables,
@@ -326,7 +329,9 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
     success = np.asarray(out["arrived"]) if counts_success else None
     selected = None
     if n_eval > 1:
-        best = int(np.argmax(eval_returns.mean(axis=1)))
+        per_table = {"mean_return": eval_returns, "mean_length": eval_lengths,
+                     **({"success_rate": success} if success is not None else {})}
+        best = ranking(target).best_table(per_table)  # the summary's best table: the task's target decides
         table = jax.tree.map(lambda x: x[best], tables)
         sel_returns, sel_lengths = jax.jit(trainer.evaluate, static_argnums=2)(
             jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)

@@ -309,7 +309,9 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
                "env_slots": slots, "useful_share": result.env_steps / slots if slots else None,
                "compile_seconds": sum(g["compile_seconds"] for g in result.groups),
                "run_seconds": sum(g["run_seconds"] for g in result.groups),
-               "groups": result.groups, "best": best, "argv": argv}
+               "groups": result.groups, "best": best, "argv": argv,
+               # What "best" followed (the task's learning target), and what the window column is of.
+               "best_100_window_of": result.ranking.words}
     plots: list[str] = []
 
     def write(staged: str) -> None:
@@ -325,7 +327,9 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
           f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile"
           + (f"; {summary['useful_share']:.1%} of the env slots useful)" if slots else ")"))
     print("best configuration: " + ", ".join(f"{k}={_fmt(best[k])}" for k in result.swept) +
-          f"  ({metric} {best['mean']:.1f} ± {best['std']:.1f} over {best['seeds']} seeds)")
+          f"  ({metric} {best['mean']:.1f} ± {best['std']:.1f} over {best['seeds']} seeds, "
+          f"{'higher' if best['higher'] else 'lower'} is better"
+          + (f"; best_100_window is of the {result.ranking.words})" if metric == "best_100_window" else ")"))
     print(f"results: {os.path.join(out, 'sweep.csv')}" + (f"; plots: {', '.join(plots)}" if plots else ""))
     return 0
 

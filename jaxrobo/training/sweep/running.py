@@ -24,13 +24,33 @@ from jaxrobo.core.struct import rules
 from jaxrobo.training.sweep import state
 from jaxrobo.training.sweep.planning import SweepPlan, plan_sweep
 from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.task.env import Ranking, ranking
 from jaxrobo.training.trainer import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
 #: ``eval_success_rate``: the greedy episodes' success for a task whose learning target is a success rate.
+#: ``best_100_window``: each env's best 100-episode moving mean of the figure the task's learning target ranks
+#: by (:func:`jaxrobo.task.env.ranking`: return or length, best in its direction), averaged over envs;
+#: ``best_100_mean_length`` stays the seed's mean of the 100 longest episodes.
 METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
            "episodes_done", "env_steps", "physics_nan_episodes", "eval_mean_length", "eval_mean_return",
-           "eval_success_rate")
+           "eval_success_rate", "best_100_window")
+
+#: Metrics where a lower value is better whatever the task (no direction from its learning target).
+_LOWER_IS_BETTER = ("physics_nan_episodes",)
+#: Metrics of episode lengths, whose direction is the target's when it ranks by length (a minimum-time task).
+_LENGTH_METRICS = ("final_length", "mean_length", "eval_mean_length")
+
+
+def higher_is_better(metric: str, rank: Ranking) -> bool:
+    """Which way ``metric`` improves for a task ranked by ``rank``: returns and success rates up; lengths the
+    way the target says when it ranks by length (else up: the seed's tasks are kept going); ``best_100_window``
+    the target's way; NaN episodes down; ``best_100_mean_length`` (the longest, by definition) up."""
+    if metric in _LOWER_IS_BETTER:
+        return False
+    if metric == "best_100_window" or (metric in _LENGTH_METRICS and rank.episode_figure == "length"):
+        return rank.higher
+    return True
 
 
 class SweepInterrupted(Exception):
@@ -50,21 +70,25 @@ class SweepResult:
     rows: list[dict[str, Any]]
     groups: list[dict[str, Any]]
     wall_seconds: float
+    #: What "best" means for the task (its learning target's :class:`~jaxrobo.task.env.Ranking`).
+    ranking: Ranking = Ranking("length", "mean_length", True)
 
     @property
     def env_steps(self) -> int:
         return int(sum(r["env_steps"] for r in self.rows))
 
     def best(self, metric: str = "final_return") -> dict[str, Any]:
-        """The configuration with the highest mean of ``metric`` over its seeds."""
+        """The configuration with the best mean of ``metric`` over its seeds: the highest, or the lowest where
+        lower is better (:func:`higher_is_better`; ``higher`` in the answer says which)."""
         by_config: dict[int, list[dict[str, Any]]] = {}
         for r in self.rows:
             by_config.setdefault(r["config"], []).append(r)
+        higher = higher_is_better(metric, self.ranking)
         scored = [(float(np.mean([r[metric] for r in rs])), rs) for rs in by_config.values()]
-        score, rs = max(scored, key=lambda t: t[0])
+        score, rs = (max if higher else min)(scored, key=lambda t: t[0])
         out = {k: rs[0][k] for k in self.swept}
         out.update(config=rs[0]["config"], metric=metric, mean=score,
-                   std=float(np.std([r[metric] for r in rs])), seeds=len(rs))
+                   std=float(np.std([r[metric] for r in rs])), seeds=len(rs), higher=higher)
         return out
 
 
@@ -81,15 +105,39 @@ def _stack(trees: list[Any]) -> Any:
     return jax.tree.map(lambda *xs: _as_array(list(xs)), *trees)
 
 
-def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True) -> dict[str, jax.Array]:
+def _best_window(figure: jax.Array, count: jax.Array, rank: Ranking, window: int = 100) -> jax.Array:
+    """Per row, each env's best ``window``-episode moving mean of ``figure`` (``[rows, n_envs, episodes]``) over
+    its first ``count`` (``[rows, n_envs]``) recorded episodes, best in ``rank``'s direction, averaged over the
+    envs with any (an env with fewer than ``window`` gives the mean of all of its own):
+    :func:`jaxrobo.training.summary.best_window` on the device."""
+    nep = figure.shape[-1]
+    count = jnp.minimum(count, nep)[..., None]
+    w = jnp.maximum(jnp.minimum(window, count), 1)
+    sums = jnp.concatenate([jnp.zeros_like(figure[..., :1]), jnp.cumsum(figure, axis=-1)], axis=-1)
+    end = jnp.arange(nep) + 1  # a window ending after episode ``end - 1``
+    start = jnp.maximum(end - w, 0)
+    means = (jnp.take_along_axis(sums, jnp.broadcast_to(end, figure.shape), -1)
+             - jnp.take_along_axis(sums, start, -1)) / w
+    valid = (end >= w) & (end <= count)
+    best = (jnp.max(jnp.where(valid, means, -jnp.inf), axis=-1) if rank.higher
+            else jnp.min(jnp.where(valid, means, jnp.inf), axis=-1))
+    has = count[..., 0] > 0
+    return jnp.sum(jnp.where(has, best, 0.0), axis=-1) / jnp.maximum(jnp.sum(has, axis=-1), 1)
+
+
+def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True,
+                 rank: Ranking = Ranking("length", "mean_length", True)) -> dict[str, jax.Array]:
     """Per-row performance, reduced on the device (``runner`` leaves are ``[rows, n_envs, ...]``).
     ``every_slot_recorded``: the episode budget, where every env fills its ``nepisodes`` records; under a
     run-wide budget the envs record different numbers of episodes and each figure covers the recorded ones."""
-    if not every_slot_recorded:
-        return _row_metrics_recorded(runner, n_last)
     returns = runner.returns.astype(jnp.float32)
     lengths = runner.lengths.astype(jnp.float32)
     nep = returns.shape[-1]
+    figure = returns if rank.episode_figure == "return" else lengths
+    count = runner.episode if not every_slot_recorded else jnp.full(runner.episode.shape, nep)
+    window = {"best_100_window": _best_window(figure, count, rank)}
+    if not every_slot_recorded:
+        return {**_row_metrics_recorded(runner, n_last), **window}
     k = min(n_last, nep)
     best = jnp.sort(lengths, axis=-1)[..., -min(100, nep):]
     return {
@@ -101,6 +149,7 @@ def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True) 
         "episodes_done": runner.episode.min(axis=-1),
         "env_steps": runner.env_steps.sum(axis=-1),
         "physics_nan_episodes": runner.nan_episodes.sum(axis=-1),
+        **window,
     }
 
 
@@ -153,7 +202,8 @@ class GroupRunner:
         return jax.vmap(self.trainer.run_chunk)(runner, agent_params, env_params)
 
     def _finish(self, runner, key_data, env_params):
-        out = _row_metrics(runner, self.n_last, self.trainer.budget == "episodes")
+        rank = ranking(getattr(self.trainer.env, "learning_target", None))
+        out = _row_metrics(runner, self.n_last, self.trainer.budget == "episodes", rank)
         if self.eval_episodes > 0:
             shared = self.trainer.config.shared_table
             table = runner.agent if shared else jax.tree.map(lambda x: x[:, 0], runner.agent)
@@ -309,4 +359,5 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                 row[m] = int(v) if np.issubdtype(values.dtype, np.integer) else float(v)
             rows.append(row)
     rows.sort(key=lambda r: (r["config"], r["seed"]))
-    return SweepResult(plan.env_id, plan.swept, rows, timings, time.perf_counter() - t_all)
+    target = getattr(planned[0].spec.env, "learning_target", None) if planned else None
+    return SweepResult(plan.env_id, plan.swept, rows, timings, time.perf_counter() - t_all, ranking(target))
