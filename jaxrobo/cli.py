@@ -568,7 +568,8 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
                                          start_chunk=start_chunk, checkpoint=save,
                                          checkpoint_every=every_chunks or 0, checkpoint_seconds=every,
-                                         should_stop=stop, announce=announce)
+                                         should_stop=stop, announce=announce,
+                                         eval_progress=None if args.no_progress else eval_line)
         if bar is not None:
             bar.close()
         live_scalars.close()
@@ -618,6 +619,14 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
     print(f"results in {out}")
     return 0
+
+
+def eval_line(p) -> None:
+    """One stderr line per segment of the greedy evaluation (:class:`jaxrobo.training.driver.EvalProgress`): the
+    steps done, the episodes still running and an ETA, an upper bound (the flight ends with its last episode)."""
+    eta = "done" if p.running == 0 else f"ETA ≤ {p.eta:.0f} s"
+    print(f"  evaluation ({p.what}): step {p.step:,}/{p.horizon:,}, {p.running:,} of {p.episodes:,} episodes "
+          f"running, {p.seconds:.0f} s, {eta}", file=sys.stderr, flush=True)
 
 
 def _training_figures(s: dict) -> str:

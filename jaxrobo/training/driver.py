@@ -14,8 +14,9 @@ rate), a :class:`~jaxrobo.training.summary.TrainResult`. :class:`StopOnSignal` t
 for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
-its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables`, :class:`StopOnSignal`, the hook types
-:data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
+its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables` (flown in segments by
+:func:`fly`, reporting :class:`EvalProgress`), :class:`StopOnSignal`, the hook types :data:`ProgressFn` and
+:data:`CheckpointFn`. Names with a leading underscore are private.
 """
 from __future__ import annotations
 
@@ -249,11 +250,12 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                  checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
                  checkpoint_seconds: float | None = None,
                  should_stop: Callable[[], bool] | None = None,
-                 announce: Callable[[str], None] | None = None) -> TrainResult:
+                 announce: Callable[[str], None] | None = None,
+                 eval_progress: Callable[[EvalProgress], None] | None = None) -> TrainResult:
     """Train with ``trainer`` from ``initial`` (a carry after ``start_chunk`` chunks; default: a fresh
     ``trainer.init``), then evaluate (unless stopped): the body of :func:`jaxrobo.training.train.train`, which runs it
     inside the trainer's plan's tracing block. The hooks are :func:`run_chunks`'s; ``announce(line)`` is told when
-    the evaluation starts."""
+    the evaluation starts, ``eval_progress`` after each segment of it (:func:`evaluate_tables`)."""
     env, config = trainer.env, trainer.config
     check_precision(env.name)  # x64 may have been switched on since the env was built; nothing is traced yet
     agent_params = agent_params or AgentParams()
@@ -286,7 +288,8 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
             announce(f"evaluating {tables} table(s) × {config.eval_episodes} greedy episodes ≤ "
                      f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
                      "(compile, then fly)")
-        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params)
+        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
+                                                                             eval_progress)
     eval_seconds = time.perf_counter() - t_eval
 
     host = host_get(runner.replace(key=None, env_state=None))
@@ -304,7 +307,70 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored)
 
 
-def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any
+@dataclasses.dataclass(frozen=True)
+class EvalProgress:
+    """Where a greedy evaluation stands after a segment of its steps (:func:`evaluate_tables`): ``what`` it flies
+    (``"tables"``: every evaluated table; ``"best table"``: the selected one on fresh episodes), ``step`` of
+    ``horizon`` steps done, ``running`` of ``episodes`` still running, ``seconds`` since it started (compile
+    included). The flight ends once no episode runs, so :attr:`eta` is an upper bound."""
+
+    what: str
+    step: int
+    horizon: int
+    running: int
+    episodes: int
+    seconds: float
+
+    @property
+    def eta(self) -> float:
+        """Seconds left if every remaining step takes as long as the ones so far (0 once no episode runs)."""
+        if self.running == 0 or self.step >= self.horizon:
+            return 0.0
+        return self.seconds / max(self.step, 1) * (self.horizon - self.step)
+
+
+#: Segments a greedy evaluation's horizon is cut into (:func:`fly`): a progress report after each, and the
+#: flight ends at the first boundary after its last episode ended.
+EVAL_SEGMENTS = 10
+
+
+def fly(trainer: Trainer, keys: jax.Array, agents: Any, n_episodes: int, env_params: Any, *, over_tables: bool,
+        shared: bool = False, progress: Callable[[EvalProgress], None] | None = None,
+        what: str = "tables") -> dict[str, np.ndarray]:
+    """Greedy episodes (:meth:`~jaxrobo.training.trainer.Trainer.evaluate_episodes`'s outcomes, host arrays)
+    flown in :data:`EVAL_SEGMENTS` segments of the horizon (:func:`jaxrobo.task.rollout.rollout_advance`: the same
+    keys and steps, so the same numbers) with ``progress`` after each. ``over_tables``: ``keys`` and ``agents``
+    have a leading table axis (``shared``: one agent for every key, as a shared table is evaluated)."""
+    from jaxrobo.task import rollout
+
+    env = trainer.env
+    horizon = trainer.eval_horizon()
+    steps = -(-horizon // EVAL_SEGMENTS)
+
+    def start(k):
+        return rollout.rollout_start(env, k, n_episodes, env_params)
+
+    def advance(carry, agent, t0):
+        return rollout.rollout_advance(env, trainer.eval_policy(agent), carry, t0, steps, horizon, env_params)
+
+    if over_tables:
+        start, advance = jax.vmap(start), jax.vmap(advance, in_axes=(0, None if shared else 0, None))
+    t0 = time.perf_counter()
+    carry = jax.jit(start)(keys)
+    advance = jax.jit(advance)
+    running = count = int(np.prod(carry["alive"].shape))
+    step = 0
+    while step < horizon and running:
+        carry = advance(carry, agents, np.int32(step))  # traced: one compiled segment for every start
+        step = min(step + steps, horizon)
+        running = int(np.asarray(carry["alive"]).sum())  # the host waits for the segment here
+        if progress is not None:
+            progress(EvalProgress(what, step, horizon, running, count, time.perf_counter() - t0))
+    return jax.device_get(rollout.outcomes(rollout.rollout_end(carry)))
+
+
+def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any,
+                    progress: Callable[[EvalProgress], None] | None = None
                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, np.ndarray | None]:
     """Greedy evaluation of the first ``eval_envs`` trained tables (the shared one: once), ``eval_episodes``
     each: ``(returns, lengths, selected, success)``, the first two ``[tables, eval_episodes]``. With several tables
@@ -313,16 +379,17 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
     (:func:`jaxrobo.task.env.ranking`: by success rate, return or length, in its direction). ``key`` is the run's
     key.
 
+    Both flights go in segments (:func:`fly`): ``progress`` hears an :class:`EvalProgress` after each.
+
     ``success``: for a task whose learning target is a ``success_rate`` and whose task variables carry an
     ``arrived`` flag (QuadcopterGoto, ArmReach), whether each of those episodes arrived, ``[tables,
     eval_episodes]``, read from the same flight as the returns; None for any other task."""
     config = trainer.config
     n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
     tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
-    evaluate = jax.jit(jax.vmap(trainer.evaluate_episodes,
-                                in_axes=(0, 0 if not config.shared_table else None, None, None)), static_argnums=2)
     keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)
-    out = jax.device_get(evaluate(keys, tables, config.eval_episodes, env_params))
+    out = fly(trainer, keys, tables, config.eval_episodes, env_params, over_tables=True,
+              shared=config.shared_table, progress=progress)
     eval_returns, eval_lengths = np.asarray(out["return"]), np.asarray(out["length"])
     target = getattr(trainer.env, "learning_target", None)
     counts_success = target is not None and target.metric == "success_rate" and "arrived" in out
@@ -333,9 +400,9 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
                      **({"success_rate": success} if success is not None else {})}
         best = ranking(target).best_table(per_table)  # the summary's best table: the task's target decides
         table = jax.tree.map(lambda x: x[best], tables)
-        sel_returns, sel_lengths = jax.jit(trainer.evaluate, static_argnums=2)(
-            jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)
-        selected = {"table": best, "returns": np.asarray(sel_returns), "lengths": np.asarray(sel_lengths)}
+        sel = fly(trainer, jax.random.fold_in(key, 2), table, config.eval_episodes, env_params, over_tables=False,
+                  progress=progress, what="best table")
+        selected = {"table": best, "returns": np.asarray(sel["return"]), "lengths": np.asarray(sel["length"])}
     return eval_returns, eval_lengths, selected, success
 
 
