@@ -285,3 +285,39 @@ def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkey
     assert _main(["--resume", live]) == 0
     assert _outputs(out) == _outputs(uninterrupted)
     assert not os.path.exists(live) and os.listdir(tmp_path) == ["sweep"]
+
+
+def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chunk(uninterrupted, tmp_path,
+                                                                                    capsys):
+    """A stop after two chunks of the first group saves that group's carry (group_0.npz); --resume goes on from
+    chunk 2, runs only the chunks left, and writes the uninterrupted sweep's sweep.csv byte for byte. A damaged
+    group carry is refused naming the file and how to start the group over."""
+    state = str(tmp_path / "state")
+    os.makedirs(state)
+    plan = _plan()
+    chunks: list[int] = []
+    with pytest.raises(sweep.SweepInterrupted) as info:
+        sweep.run_plan(plan, state_dir=state, progress=lambda p: chunks.append(p.chunks_done),
+                       should_stop=lambda: len(chunks) == 2)
+    assert info.value.partial == (0, 2, 9) and "group 1 saved after chunk 2 of 9" in info.value.where
+    assert _finished_groups(state) == 0 and os.path.exists(sweep_state.group_carry_path(state, 0))
+
+    lines: list[str] = []
+    chunks.clear()
+    result = sweep.run_plan(plan, log=lines.append, state_dir=state, progress=lambda p: chunks.append(p.chunks_done))
+    assert any("group 1 goes on from its last saved chunk" in line for line in lines), lines
+    assert any("going on from chunk 2 of 9" in line for line in lines), lines
+    assert chunks[0] == 3  # the first chunk run is the third: chunks 1 and 2 came from the carry
+    assert not os.path.exists(sweep_state.group_carry_path(state, 0))  # dropped once the group was finished
+    sweep.write_csv(result, str(tmp_path / "resumed.csv"))
+    with open(tmp_path / "resumed.csv") as f:
+        assert f.read() == _outputs(uninterrupted)[0]
+
+    # A damaged carry is refused before a chunk runs.
+    bad = str(tmp_path / "bad")
+    os.makedirs(bad)
+    sweep_state.open_state(bad, plan)
+    with open(sweep_state.group_carry_path(bad, 0), "wb") as f:
+        f.write(b"PK\x03\x04 not an npz")
+    with pytest.raises(ConfigError, match=r"group_0\.npz.*remove .*group_0\.npz to run group 1 from its first"):
+        sweep.run_plan(plan, state_dir=bad)

@@ -189,7 +189,7 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
                progress: ProgressFn | None = None, should_stop: Callable[[], bool] | None = None,
                checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
                checkpoint_seconds: float | None = None, max_seconds: float | None = None,
-               unit: str = "episodes", slots_per_chunk: float = 0.0) -> ChunkRun:
+               unit: str = "episodes", slots_per_chunk: float = 0.0, save_at_end: bool = True) -> ChunkRun:
     """Run ``carry = chunk(carry)`` until ``n_chunks`` chunks are done (counting the ``start_chunk`` the carry
     has already run) or every env has done ``total`` episodes.
 
@@ -203,7 +203,8 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     boundary ``checkpoint_seconds`` after the last call (neither: none on the way), and once more with the carry
     the loop ends with (stopped, finished or out of time) unless that one was just saved: what the caller does
     after the loop (evaluating, writing results and plots) may fail, and a resume then starts from the finished
-    carry instead of running chunks again."""
+    carry instead of running chunks again. ``save_at_end=False`` leaves that last call to a stopped loop (a
+    sweep's group saves its metrics, not its carry, once it has run: :mod:`jaxrobo.training.sweep.running`)."""
     done = last = None
     report = _caller_of(progress)
     if read is not None:
@@ -239,7 +240,7 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     seconds = time.perf_counter() - t0
     # A resumed carry that ran no chunk is its checkpoint already, unless a stop asks for one explicitly.
     unsaved = saved_at != chunks_done and (chunks_done > start_chunk or stopped)
-    if checkpoint is not None and unsaved:
+    if checkpoint is not None and unsaved and (save_at_end or stopped):
         checkpoint(carry, chunks_done)
     return ChunkRun(carry, chunks_done, done, stopped, seconds)
 

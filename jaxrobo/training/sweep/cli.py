@@ -282,16 +282,18 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
             result = run_plan(plan, mesh, log=print, progress=None if getattr(args, "no_progress", False) else _chunk_line,
                               state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
-        except KeyboardInterrupt:  # a second Ctrl-C: the group in progress is dropped at once
+        except KeyboardInterrupt:  # a second Ctrl-C: the chunk in flight is dropped at once
             rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
-                               what=f"interrupted by SIGINT: the finished groups are saved in {saved_in}")
+                               what=f"interrupted by SIGINT: the finished groups (and the last saved carry of the "
+                                    f"group in progress, if any) are saved in {saved_in}")
             return 128 + signal.SIGINT
         except SweepInterrupted as err:
             name = stop.name or "a signal to another process"
             rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
                                finished_groups=err.done, groups=err.total,
-                               what=f"interrupted by {name}: {err.done} of {err.total} groups finished, saved in "
-                                    f"{saved_in}")
+                               **({"group_in_progress": err.partial[0] + 1, "group_chunks_done": err.partial[1],
+                                   "group_chunks": err.partial[2]} if err.partial else {}),
+                               what=f"interrupted by {name}: {err.where}, saved in {saved_in}")
             return 128 + (stop.signum or signal.SIGINT)
         except Exception as err:  # the finished groups are saved: say how to go on, then fail as before
             rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",

@@ -11,6 +11,7 @@ Public surface: :data:`METRICS`, :class:`SweepResult`, :class:`GroupRunner`, :fu
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from typing import Any, Callable, Mapping, Sequence
 
@@ -54,11 +55,23 @@ def higher_is_better(metric: str, rank: Ranking) -> bool:
 
 
 class SweepInterrupted(Exception):
-    """The sweep's stop hook fired; ``done`` of ``total`` groups are finished (and saved in ``state_dir``)."""
+    """The sweep's stop hook fired; ``done`` of ``total`` groups are finished (and saved in ``state_dir``);
+    ``partial``: ``(group, chunks_done, n_chunks)`` of the group in progress when its carry was saved at that
+    chunk boundary (a resume goes on from there), else None."""
 
-    def __init__(self, done: int, total: int, state_dir: str | None):
+    def __init__(self, done: int, total: int, state_dir: str | None,
+                 partial: tuple[int, int, int] | None = None):
         super().__init__(f"interrupted with {done} of {total} groups finished")
-        self.done, self.total, self.state_dir = done, total, state_dir
+        self.done, self.total, self.state_dir, self.partial = done, total, state_dir, partial
+
+    @property
+    def where(self) -> str:
+        """``"1 of 2 groups finished"`` and, with a saved carry, ``"; group 2 saved after chunk 3 of 9"``."""
+        out = f"{self.done} of {self.total} groups finished"
+        if self.partial is not None:
+            g, k, n = self.partial
+            out += f"; group {g + 1} saved after chunk {k} of {n}"
+        return out
 
 
 @dataclasses.dataclass
@@ -193,6 +206,7 @@ class GroupRunner:
         self.compile_seconds = self.run_seconds = 0.0
         self.complete = False
         self.slot_steps = 0
+        self.start_chunk = 0  # the chunk a restored carry went on from (0: the group ran from its start)
 
     def _init(self, key_data, agent_params, env_params):
         keys = jax.random.wrap_key_data(key_data)
@@ -219,11 +233,17 @@ class GroupRunner:
 
     def run(self, key_data: np.ndarray, agent_params: Any, env_params: Any,
             progress: Callable[..., None] | None = None,
-            max_seconds: float | None = None, stop: Callable[[], bool] | None = None) -> dict[str, np.ndarray]:
+            max_seconds: float | None = None, stop: Callable[[], bool] | None = None,
+            restore: Callable[[Any], tuple[Any, int] | None] | None = None,
+            checkpoint: driver.CheckpointFn | None = None,
+            checkpoint_seconds: float | None = None) -> dict[str, np.ndarray]:
         """Train every row to its last episode (or until ``max_seconds`` of running); per-row metrics as host
         arrays of length ``n_rows``. ``self.complete`` says whether every row finished. The chunk loop is the
-        host driver's (:func:`jaxrobo.training.driver.run_chunks`): ``stop`` is polled before every chunk; when it returns
-        True the group is abandoned with :class:`SweepInterrupted`."""
+        host driver's (:func:`jaxrobo.training.driver.run_chunks`): ``stop`` is polled before every chunk; when it
+        returns True the group is abandoned with :class:`SweepInterrupted`, after ``checkpoint(carry,
+        chunks_done)`` saved its carry. ``restore(fresh_carry)`` may give a saved ``(carry, chunks_done)`` to go
+        on from (the chunks are deterministic functions of the carry, so the rows end the same);
+        ``checkpoint`` is also called every ``checkpoint_seconds`` at a chunk boundary."""
         from jaxrobo.speed import sharding
 
         mesh, n = self.mesh, self.n_padded
@@ -241,14 +261,21 @@ class GroupRunner:
         stats = driver.compiled_progress(runner, self.trainer)
         jax.block_until_ready(runner)
         self.compile_seconds = time.perf_counter() - t0
+        start_chunk = 0
+        saved = restore(runner) if restore is not None else None
+        if saved is not None:  # the saved carry, placed as the fresh one is (its shapes were checked)
+            runner, start_chunk = jax.device_put(saved[0], jax.tree.map(lambda x: x.sharding, runner)), saved[1]
+        self.start_chunk = start_chunk
         t0 = time.perf_counter()
         total, unit = self.trainer.budget_total
         c = self.trainer.config
-        loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, self.trainer.max_chunks(), read=stats,
+        n_chunks = self.trainer.max_chunks()
+        loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, n_chunks, start_chunk=start_chunk, read=stats,
                                  total=total, progress=progress, should_stop=stop, max_seconds=max_seconds,
-                                 unit=unit, slots_per_chunk=float(c.chunk_steps) * c.n_envs * self.n_rows)
+                                 unit=unit, slots_per_chunk=float(c.chunk_steps) * c.n_envs * self.n_rows,
+                                 checkpoint=checkpoint, checkpoint_seconds=checkpoint_seconds, save_at_end=False)
         if loop.stopped:
-            raise SweepInterrupted(0, 1, None)
+            raise SweepInterrupted(0, 1, None, None if checkpoint is None else (0, loop.chunks_done, n_chunks))
         self.complete = loop.done >= total
         self.slot_steps = loop.chunks_done * c.chunk_steps * c.n_envs * self.n_rows
         out = finish(loop.carry, kd, ep)
@@ -276,33 +303,46 @@ def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[
     return run_plan(plan, mesh, log, progress, state_dir, should_stop)
 
 
+#: Default cadence of a sweep's group carry: at the first chunk boundary this long after the last save (as
+#: ``jaxrobo train`` saves its carry), besides the save when the sweep is stopped.
+GROUP_CHECKPOINT_SECONDS = 300.0
+
+
 def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | None = None,
              progress: Callable[[int, int], None] | None = None, state_dir: str | None = None,
-             should_stop: Callable[[], bool] | None = None, state_extra: Mapping[str, Any] | None = None
-             ) -> SweepResult:
+             should_stop: Callable[[], bool] | None = None, state_extra: Mapping[str, Any] | None = None,
+             checkpoint_seconds: float | None = GROUP_CHECKPOINT_SECONDS) -> SweepResult:
     """Run a planned sweep, group by group.
 
-    ``state_dir`` makes the sweep resumable by finished groups: the sweep's settings, the code's versions and
-    their fingerprint go to ``state_dir/sweep_state.json`` before the first compile (with ``state_extra``, kept
-    but not compared), and the row metrics of every finished group to ``state_dir/checkpoint.npz`` (rewritten
-    atomically after each group; an empty one at the start). Running the same plan again on the same
-    ``state_dir`` skips the saved groups and gives the same rows; a state saved by other settings or other code
+    ``state_dir`` makes the sweep resumable: the sweep's settings, the code's versions and their fingerprint go
+    to ``state_dir/sweep_state.json`` before the first compile (with ``state_extra``, kept but not compared), the
+    row metrics of every finished group to ``state_dir/checkpoint.npz`` (rewritten atomically after each group;
+    an empty one at the start), and the carry of the group in progress to ``state_dir/group_<g>.npz`` every
+    ``checkpoint_seconds`` at a chunk boundary and when the sweep is stopped (removed once the group is
+    finished). Running the same plan again on the same ``state_dir`` skips the saved groups, goes on inside a
+    saved group from its last chunk, and gives the same rows; a state saved by other settings or other code
     raises :class:`ConfigError` before anything compiles. ``should_stop`` is polled before each group and before
-    each training chunk; when it returns True the sweep abandons the group it is in (a compiled group cannot be
-    split) and raises :class:`SweepInterrupted`, the finished groups staying saved. With several processes only
-    process 0 writes; the others read ``state_dir`` if they are given it (a shared file system).
+    each training chunk; when it returns True the sweep saves the carry of the group it is in and raises
+    :class:`SweepInterrupted`. With several processes only process 0 writes and the group carries are not
+    saved (a resumed group starts from its first chunk); the others read ``state_dir`` if they are given it (a
+    shared file system).
     """
     log = log or (lambda _msg: None)
     planned = plan.groups
     saved: dict[int, dict[str, Any]] = {}
     fingerprint = None
+    # A group's carry is saved and read by one process only (a sharded carry over several hosts is not).
+    carries = state_dir is not None and jax.process_count() == 1
     if state_dir is not None:
         opened = state.open_state(state_dir, plan, state_extra)
         fingerprint = opened["fingerprint"]
         saved = state.load_checkpoint(state_dir, plan, fingerprint)
-        if saved:
-            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}; the others "
-                "start from their first chunk (a compiled group is saved when it finishes, not chunk by chunk)")
+        in_progress = [g for g in range(len(planned))
+                       if g not in saved and os.path.exists(state.group_carry_path(state_dir, g))]
+        if saved or in_progress:
+            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}"
+                + (f"; group {in_progress[0] + 1} goes on from its last saved chunk" if in_progress else "")
+                + ("" if carries else "; with several processes an unfinished group starts from its first chunk"))
         elif jax.process_index() == 0:
             state.save_checkpoint(state_dir, fingerprint, plan, saved)
 
@@ -328,16 +368,32 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                       }.get(trainer.budget, f"{spec.config.nepisodes} episodes")
             log(f"group {g + 1}/{len(planned)} [{label}]: {len(p.configs)} configs × {len(plan.seeds)} seeds × "
                 f"{spec.config.n_envs} envs, {budget} ≤ {spec.config.nsteps} steps")
+            hooks: dict[str, Any] = {}
+            if carries:
+                def restore(fresh: Any, g: int = g) -> tuple[Any, int] | None:
+                    got = state.load_group_carry(state_dir, fingerprint, g, fresh)
+                    if got is not None:
+                        log(f"  going on from chunk {got[1]} of {trainer.max_chunks()} (saved in "
+                            f"{state.group_carry_path(state_dir, g)})")
+                    return got
+
+                def save_carry(carry: Any, chunks_done: int, g: int = g) -> None:
+                    state.save_group_carry(state_dir, fingerprint, g, carry, chunks_done)
+
+                hooks = {"restore": restore, "checkpoint": save_carry, "checkpoint_seconds": checkpoint_seconds}
             try:
                 metrics = group.run(key_data, _stack(p.agent_list), _stack(p.env_list), progress, plan.max_seconds,
-                                    stop=should_stop)
-            except SweepInterrupted:
-                raise SweepInterrupted(len(saved), len(planned), state_dir) from None
+                                    stop=should_stop, **hooks)
+            except SweepInterrupted as err:
+                partial = None if err.partial is None else (g, *err.partial[1:])
+                raise SweepInterrupted(len(saved), len(planned), state_dir, partial) from None
             saved[g] = {"metrics": metrics, "compile_seconds": group.compile_seconds,
                         "run_seconds": group.run_seconds, "complete": group.complete,
                         "slot_steps": group.slot_steps}
             if state_dir is not None and jax.process_index() == 0:
                 state.save_checkpoint(state_dir, fingerprint, plan, saved)
+                if carries:  # the metrics are saved: the carry is no longer needed
+                    state.drop_group_carry(state_dir, g)
         done = saved[g]
         metrics = done["metrics"]
         steps = int(metrics["env_steps"].astype(np.int64).sum())
