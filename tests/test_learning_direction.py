@@ -93,3 +93,16 @@ def test_a_sweep_ranks_lengths_the_targets_way():
     assert result.best("physics_nan_episodes")["alpha"] == 0.1
     assert higher_is_better("final_length", Ranking("length", "mean_length", True))
     assert higher_is_better("best_100_window", short) is False
+
+
+def test_a_deep_runs_best_evaluation_follows_the_target():
+    """PPO/SAC keep a best policy: for a minimum-time target the evaluation with the shortest episodes."""
+    from jaxrobo.deep.training import best_index
+
+    points = [{"return": np.array([-300.0, -280.0]), "length": np.array([300, 280])},
+              {"return": np.array([-90.0, -110.0]), "length": np.array([90, 110])},
+              {"return": np.array([-500.0, -500.0]), "length": np.array([500, 500])}]
+    assert best_index(points, SHORT) == 1 and best_index(points, FAST) == 1
+    longest = LearningTarget("up", "mean_length", 500.0, "kept up")
+    assert best_index(points, longest) == 2
+    assert best_index(points) == 1  # no target: the highest return, as before
