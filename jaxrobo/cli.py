@@ -609,12 +609,11 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
               f"over {result.eval_lengths.shape[0]} tables × {result.eval_lengths.shape[1]} episodes")
     if "eval_success_rate" in s:
         print(f"greedy arrival rate {s['eval_success_rate']:.1%} (best table {s['eval_best_table_success_rate']:.1%})")
-    if "eval_best_table" in s:
-        print(f"best evaluated table ({s['eval_best_table']}, by {s['best_ranked_by']}): mean length "
-              f"{s['eval_best_table_mean_length']:.1f}, mean return {s['eval_best_table_mean_return']:.1f}")
-    if "selected_table" in s:
-        print(f"best table ({s['selected_table']}) on fresh episodes: mean length "
-              f"{s['selected_table_fresh_mean_length']:.1f}, mean return {s['selected_table_fresh_mean_return']:.1f}")
+    if "selected_table" in s:  # several tables: the best one (by the task's target), then on fresh episodes
+        print(f"best table ({s['selected_table']}, by {s['best_ranked_by']}): mean length "
+              f"{s['eval_best_table_mean_length']:.1f}, mean return {s['eval_best_table_mean_return']:.1f}; on "
+              f"fresh episodes: mean length {s['selected_table_fresh_mean_length']:.1f}, mean return "
+              f"{s['selected_table_fresh_mean_return']:.1f}")
     if s["physics_nan_episodes"]:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
     print(f"results in {out}")
@@ -626,7 +625,7 @@ def eval_line(p) -> None:
     steps done, the episodes still running and an ETA, an upper bound (the flight ends with its last episode)."""
     eta = "done" if p.running == 0 else f"ETA ≤ {p.eta:.0f} s"
     print(f"  evaluation ({p.what}): step {p.step:,}/{p.horizon:,}, {p.running:,} of {p.episodes:,} episodes "
-          f"running, {p.seconds:.0f} s, {eta}", file=sys.stderr, flush=True)
+          f"running, {p.seconds:.0f} s (compiled in {p.compile_seconds:.0f} s), {eta}", file=sys.stderr, flush=True)
 
 
 def _training_figures(s: dict) -> str:
