@@ -87,7 +87,8 @@ def run_one(args, gpus: int, tmp: str) -> dict:
     run_s = s.get("run_seconds") or sum(g["run_seconds"] for g in s.get("groups", []))
     compile_s = s.get("compile_seconds") or sum(g["compile_seconds"] for g in s.get("groups", []))
     return {"gpus": gpus, "processes": gpus if args.distributed else 1, "status": "ok", "wall_s": wall,
-            "compile_s": compile_s, "run_s": run_s, "env_steps": s["env_steps"],
+            "compile_s": compile_s, "run_s": run_s, "eval_s": s.get("eval_seconds"),
+            "write_s": s.get("write_seconds"), "env_steps": s["env_steps"],
             "useful_share": s.get("useful_share"), "steps_per_s_run": s["env_steps"] / max(run_s, 1e-9),
             "steps_per_s_wall": s["env_steps"] / wall, "checksum": checksum(args.kind, out),
             "plan": s.get("execution_plan"), "tail": text[-600:]}

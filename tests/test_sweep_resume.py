@@ -26,7 +26,9 @@ FAST = {"xla_backend_optimization_level": 0}
 ARGS = ["--env", ENV, "--agent", "qlearn", "--grid", "number_splits=4,6", "--grid", "alpha=0.1,0.5",
         "--seeds", "2", "--n-envs", "2", "--nepisodes", "3", "--nsteps", "30", "--set", "chunk_steps=10",
         "--set", "backend=analytic", "--set", "bins=null", "--eval-episodes", "1", "--no-plots"]
-TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds"}
+#: How a sweep ran, not what it found: timings, and the chunk a group resumed from.
+TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds", "eval_seconds", "write_seconds",
+          "resumed_after_chunk"}
 
 
 def _main(argv):
@@ -308,6 +310,7 @@ def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chun
     assert any("group 1 goes on from its last saved chunk" in line for line in lines), lines
     assert any("going on from chunk 2 of 9" in line for line in lines), lines
     assert chunks[0] == 3  # the first chunk run is the third: chunks 1 and 2 came from the carry
+    assert result.groups[0]["resumed_after_chunk"] == 2 and "resumed_after_chunk" not in result.groups[1]
     assert not os.path.exists(sweep_state.group_carry_path(state, 0))  # dropped once the group was finished
     sweep.write_csv(result, str(tmp_path / "resumed.csv"))
     with open(tmp_path / "resumed.csv") as f:

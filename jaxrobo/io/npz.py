@@ -26,6 +26,16 @@ class NpzError(ConfigError):
     """An ``.npz`` file that cannot be used: unreadable, or not holding the arrays expected."""
 
 
+def write_npz_deflated(path: str, **arrays: Any) -> None:
+    """``arrays`` to ``path`` as a compressed ``.npz`` that ``np.load`` reads like ``np.savez_compressed``'s, at
+    deflate level 1: a run's tables (gigabytes for 262,144 per-env tables) compress nearly as small as at zlib's
+    default level in about half the time, and writing them is part of every ``jaxrobo train``'s wall."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1, allowZip64=True) as zf:
+        for name, value in arrays.items():
+            with zf.open(f"{name}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
+
+
 def _header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
     from numpy.lib import format as npy
 

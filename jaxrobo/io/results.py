@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from jaxrobo.io.npz import write_npz_deflated
 from jaxrobo.tabular.discretise import Discretiser
 
 EPISODE_COLUMNS = ("env", "episode", "return", "length", "terminated", "epsilon")
@@ -66,8 +67,8 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
             for i in range(int(done[e])):
                 w.writerow((e, i, f"{returns[e, i]:.6g}", int(lengths[e, i]), int(terminated[e, i]), f"{epsilon[i]:.6g}"))
     extra = {} if episodes_done is None else {"episodes_done": done}
-    np.savez_compressed(os.path.join(out_dir, "records.npz"), returns=returns, lengths=lengths,
-                        terminated=terminated, epsilon=epsilon, **extra)
+    write_npz_deflated(os.path.join(out_dir, "records.npz"), returns=returns, lengths=lengths,
+                       terminated=terminated, epsilon=epsilon, **extra)
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(STAT_COLUMNS)
@@ -106,7 +107,7 @@ def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None) -
         if disc.edges is not None:
             for i, e in enumerate(disc.edges):
                 arrays[f"edges_{i}"] = np.asarray(e)
-    np.savez_compressed(os.path.join(out_dir, "qtables.npz"), **arrays)
+    write_npz_deflated(os.path.join(out_dir, "qtables.npz"), **arrays)
 
 
 def write_summary(out_dir: str, summary: dict[str, Any]) -> None:

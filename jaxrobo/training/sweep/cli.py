@@ -311,16 +311,19 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
                "env_slots": slots, "useful_share": result.env_steps / slots if slots else None,
                "compile_seconds": sum(g["compile_seconds"] for g in result.groups),
                "run_seconds": sum(g["run_seconds"] for g in result.groups),
+               "eval_seconds": sum(g.get("eval_seconds", 0.0) for g in result.groups),
                "groups": result.groups, "best": best, "argv": argv,
                # What "best" followed (the task's learning target), and what the window column is of.
                "best_100_window_of": result.ranking.words}
     plots: list[str] = []
 
     def write(staged: str) -> None:
+        t = time.perf_counter()
         write_csv(result, os.path.join(staged, "sweep.csv"))
+        plots.extend([] if f.no_plots else plot_sweep(result, staged, metric))
+        summary["write_seconds"] = round(time.perf_counter() - t, 3)  # the table and plots; the summary is tiny
         with open(os.path.join(staged, "summary.json"), "w") as fh:
             json.dump(summary, fh, indent=2, default=str)
-        plots.extend([] if f.no_plots else plot_sweep(result, staged, metric))
         rundir.write_status(staged, rundir.COMPLETE, command="sweep")
 
     rundir.publish_results(out, live, write)  # replaces the state (or the old run) in one step

@@ -203,7 +203,7 @@ class GroupRunner:
         self.trainer, self.mesh, self.n_rows = trainer, mesh, n_rows
         self.n_padded = sharding.padded_size(n_rows, mesh)
         self.eval_episodes, self.n_last = eval_episodes, n_last
-        self.compile_seconds = self.run_seconds = 0.0
+        self.compile_seconds = self.run_seconds = self.eval_seconds = 0.0
         self.complete = False
         self.slot_steps = 0
         self.start_chunk = 0  # the chunk a restored carry went on from (0: the group ran from its start)
@@ -278,9 +278,11 @@ class GroupRunner:
             raise SweepInterrupted(0, 1, None, None if checkpoint is None else (0, loop.chunks_done, n_chunks))
         self.complete = loop.done >= total
         self.slot_steps = loop.chunks_done * c.chunk_steps * c.n_envs * self.n_rows
+        self.run_seconds = loop.seconds
+        t0 = time.perf_counter()  # the rows' greedy evaluation and metrics, gathered to the host
         out = finish(loop.carry, kd, ep)
         out = sharding.gather(out)
-        self.run_seconds = time.perf_counter() - t0
+        self.eval_seconds = time.perf_counter() - t0
         return {k: np.asarray(v)[: self.n_rows] for k, v in out.items()}
 
 
@@ -388,7 +390,9 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                 partial = None if err.partial is None else (g, *err.partial[1:])
                 raise SweepInterrupted(len(saved), len(planned), state_dir, partial) from None
             saved[g] = {"metrics": metrics, "compile_seconds": group.compile_seconds,
-                        "run_seconds": group.run_seconds, "complete": group.complete,
+                        "run_seconds": group.run_seconds, "eval_seconds": group.eval_seconds,
+                        "start_chunk": group.start_chunk,
+                        "complete": group.complete,
                         "slot_steps": group.slot_steps}
             if state_dir is not None and jax.process_index() == 0:
                 state.save_checkpoint(state_dir, fingerprint, plan, saved)
@@ -400,12 +404,17 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
         slots = float(done.get("slot_steps", 0.0))
         timings.append({"group": g, "static": dict(static), "rows": len(meta), "n_envs": spec.config.n_envs,
                         "compile_seconds": done["compile_seconds"], "run_seconds": done["run_seconds"],
+                        "eval_seconds": done.get("eval_seconds", 0.0),
+                        # A group resumed from its saved carry: its env steps include the chunks run before,
+                        # its seconds do not (they were another process's).
+                        **({"resumed_after_chunk": int(done["start_chunk"])} if done.get("start_chunk") else {}),
                         "env_steps": steps, "env_steps_per_second": steps / max(done["run_seconds"], 1e-9),
                         "env_slots": slots, "useful_share": steps / slots if slots else None,
                         "complete": done["complete"]})
         log(f"  compiled in {done['compile_seconds']:.1f} s; {steps:,} env steps in {done['run_seconds']:.1f} s "
             f"({steps / max(done['run_seconds'], 1e-9):,.0f} steps/s)"
-            + (f"; {steps / slots:.1%} of the env slots useful" if slots else ""))
+            + (f"; {steps / slots:.1%} of the env slots useful" if slots else "")
+            + f"; evaluated in {done.get('eval_seconds', 0.0):.1f} s")
         for r, (i, s, ap) in enumerate(meta):
             row: dict[str, Any] = {"config": i, "seed": s, "group": g}
             row.update(plan.checked[i])

@@ -102,7 +102,7 @@ def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished:
         p = plan.groups[g]
         arrays[f"g{g}_config"] = np.asarray([i for i, _, _ in p.meta], np.int64)
         arrays[f"g{g}_seed"] = np.asarray([s for _, s, _ in p.meta], np.int64)
-        for k in ("compile_seconds", "run_seconds", "slot_steps"):
+        for k in ("compile_seconds", "run_seconds", "eval_seconds", "slot_steps", "start_chunk"):
             arrays[f"g{g}_{k}"] = np.asarray(done.get(k, 0.0), np.float64)
         arrays[f"g{g}_complete"] = np.asarray(bool(done["complete"]))
         arrays.update({f"g{g}_metric_{k}": np.asarray(v) for k, v in done["metrics"].items()})
@@ -136,7 +136,9 @@ def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[i
                 raise ValueError(f"group {g}: metrics of another number of rows than its {len(p.meta)}")
             out[g] = {"metrics": metrics, "compile_seconds": float(data[f"g{g}_compile_seconds"]),
                       "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"]),
-                      "slot_steps": float(data.get(f"g{g}_slot_steps", 0.0))}
+                      "slot_steps": float(data.get(f"g{g}_slot_steps", 0.0)),
+                      "eval_seconds": float(data.get(f"g{g}_eval_seconds", 0.0)),
+                      "start_chunk": int(data.get(f"g{g}_start_chunk", 0))}
     except (KeyError, ValueError, TypeError) as err:
         if isinstance(err, ConfigError):
             raise
