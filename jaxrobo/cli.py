@@ -186,7 +186,7 @@ class LiveScalars:
         self.writer.add_scalar("progress/useful_share", p.useful_share, step)
         self.writer.add_scalar("train/last_return", p.last_return, step)
         if p.seconds > 0:
-            self.writer.add_scalar("progress/steps_per_second", p.useful_steps / p.seconds, step)
+            self.writer.add_scalar("progress/steps_per_second", p.steps_per_second, step)  # this process's
         self.writer.flush()
 
     def close(self) -> None:

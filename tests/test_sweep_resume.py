@@ -306,11 +306,17 @@ def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chun
 
     lines: list[str] = []
     chunks.clear()
-    result = sweep.run_plan(plan, log=lines.append, state_dir=state, progress=lambda p: chunks.append(p.chunks_done))
+    reports: list = []
+    result = sweep.run_plan(plan, log=lines.append, state_dir=state,
+                            progress=lambda p: chunks.append(p.chunks_done) or reports.append(p))
     assert any("group 1 goes on from its last saved chunk" in line for line in lines), lines
     assert any("going on from chunk 2 of 9" in line for line in lines), lines
     assert chunks[0] == 3  # the first chunk run is the third: chunks 1 and 2 came from the carry
     assert result.groups[0]["resumed_after_chunk"] == 2 and "resumed_after_chunk" not in result.groups[1]
+    # The rates count this process's work: the restored carry's steps are its starting point, not its speed.
+    first = reports[0]
+    assert first.useful_before > 0 and first.useful_steps > first.useful_before
+    assert first.steps_per_second == pytest.approx((first.useful_steps - first.useful_before) / first.seconds)
     assert not os.path.exists(sweep_state.group_carry_path(state, 0))  # dropped once the group was finished
     sweep.write_csv(result, str(tmp_path / "resumed.csv"))
     with open(tmp_path / "resumed.csv") as f:

@@ -60,11 +60,26 @@ class Progress:
     useful_steps: float
     slot_steps: float
     seconds: float
+    #: ``done`` and ``useful_steps`` of the carry this loop started from (a resumed carry's are not 0): the rates
+    #: count this loop's work only.
+    done_before: int = 0
+    useful_before: float = 0.0
 
     @property
     def useful_share(self) -> float:
         """Useful env steps / env slots stepped (1.0: every slot of every step did work that counts)."""
         return self.useful_steps / self.slot_steps if self.slot_steps else 0.0
+
+    @property
+    def steps_per_second(self) -> float:
+        """Useful env steps this loop ran per second of it (a resumed carry's earlier steps left out)."""
+        return (self.useful_steps - self.useful_before) / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def eta(self) -> float:
+        """Seconds left at this loop's pace of the budget (NaN before any of it was done)."""
+        rate = (self.done - self.done_before) / self.seconds if self.seconds > 0 else 0.0
+        return max(self.total - self.done, 0) / rate if rate > 0 else float("nan")
 
 
 #: ``progress(Progress)`` after each chunk; a callable of three positional parameters is called the earlier way,
@@ -207,8 +222,12 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     sweep's group saves its metrics, not its carry, once it has run: :mod:`jaxrobo.training.sweep.running`)."""
     done = last = None
     report = _caller_of(progress)
+    before: list[float] = [0.0, 0.0, 0.0]
     if read is not None:
-        done = float(host_get(read(carry))[0])
+        before = [float(x) for x in host_get(read(carry))] + [0.0]
+        done = before[0]
+        if before[2] != before[2]:  # a read without useful steps (NaN): nothing to subtract
+            before[2] = 0.0
 
     def finished(chunks_done: int) -> bool:
         return chunks_done >= n_chunks or (done is not None and total is not None and done >= total)
@@ -230,7 +249,8 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
             if report is not None:
                 report(Progress(chunks_done, n_chunks, int(done), total if total is not None else n_chunks, unit,
                                 last, values[2] if len(values) > 2 else float("nan"),
-                                chunks_done * slots_per_chunk, time.perf_counter() - t0))
+                                chunks_done * slots_per_chunk, time.perf_counter() - t0, int(before[0]),
+                                before[2] if len(values) > 2 else 0.0))
         due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
             checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
         if checkpoint is not None and due:

@@ -341,11 +341,10 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
 
 def _chunk_line(p: Any) -> None:
     """One line per chunk inside a group: the budget done (fewest of any row), useful share, speed and ETA."""
-    rate = p.done / p.seconds if p.seconds > 0 else 0.0
-    eta = (p.total - p.done) / rate if rate > 0 else float("nan")
+    eta = "?" if p.eta != p.eta else f"{p.eta:.0f} s"  # nothing of the budget done yet: no pace to go by
     print(f"    chunk {p.chunks_done}/{p.n_chunks}: {p.done:,}/{p.total:,} {p.unit} (fewest of any row), "
           f"last_return {p.last_return:.1f}, {p.useful_share:.0%} useful, "
-          f"{p.useful_steps / max(p.seconds, 1e-9):,.0f} steps/s, ETA {eta:.0f} s", flush=True)
+          f"{p.steps_per_second:,.0f} steps/s, ETA {eta}", flush=True)
 
 
 def main(argv: Sequence[str] | None = None, *, compiler_options: Mapping[str, Any] | None = None) -> int:
