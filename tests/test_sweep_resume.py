@@ -311,6 +311,7 @@ def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chun
                             progress=lambda p: chunks.append(p.chunks_done) or reports.append(p))
     assert any("group 1 goes on from its last saved chunk" in line for line in lines), lines
     assert any("going on from chunk 2 of 9" in line for line in lines), lines
+    assert any("more restored from chunk 2" in line for line in lines), lines  # its speed: this process's steps
     assert chunks[0] == 3  # the first chunk run is the third: chunks 1 and 2 came from the carry
     assert result.groups[0]["resumed_after_chunk"] == 2 and "resumed_after_chunk" not in result.groups[1]
     # The rates count this process's work: the restored carry's steps are its starting point, not its speed.

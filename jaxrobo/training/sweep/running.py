@@ -207,6 +207,7 @@ class GroupRunner:
         self.complete = False
         self.slot_steps = 0
         self.start_chunk = 0  # the chunk a restored carry went on from (0: the group ran from its start)
+        self.restored_env_steps = 0  # the env steps of the rows that carry had run (another process timed them)
 
     def _init(self, key_data, agent_params, env_params):
         keys = jax.random.wrap_key_data(key_data)
@@ -266,6 +267,8 @@ class GroupRunner:
         if saved is not None:  # the saved carry, placed as the fresh one is (its shapes were checked)
             runner, start_chunk = jax.device_put(saved[0], jax.tree.map(lambda x: x.sharding, runner)), saved[1]
         self.start_chunk = start_chunk
+        if saved is not None:
+            self.restored_env_steps = int(np.asarray(saved[0].env_steps, np.int64)[: self.n_rows].sum())
         t0 = time.perf_counter()
         total, unit = self.trainer.budget_total
         c = self.trainer.config
@@ -391,7 +394,7 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                 raise SweepInterrupted(len(saved), len(planned), state_dir, partial) from None
             saved[g] = {"metrics": metrics, "compile_seconds": group.compile_seconds,
                         "run_seconds": group.run_seconds, "eval_seconds": group.eval_seconds,
-                        "start_chunk": group.start_chunk,
+                        "start_chunk": group.start_chunk, "restored_env_steps": group.restored_env_steps,
                         "complete": group.complete,
                         "slot_steps": group.slot_steps}
             if state_dir is not None and jax.process_index() == 0:
@@ -401,6 +404,7 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
         done = saved[g]
         metrics = done["metrics"]
         steps = int(metrics["env_steps"].astype(np.int64).sum())
+        timed = steps - int(done.get("restored_env_steps", 0))  # this process's steps, those its seconds ran
         slots = float(done.get("slot_steps", 0.0))
         timings.append({"group": g, "static": dict(static), "rows": len(meta), "n_envs": spec.config.n_envs,
                         "compile_seconds": done["compile_seconds"], "run_seconds": done["run_seconds"],
@@ -408,11 +412,12 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                         # A group resumed from its saved carry: its env steps include the chunks run before,
                         # its seconds do not (they were another process's).
                         **({"resumed_after_chunk": int(done["start_chunk"])} if done.get("start_chunk") else {}),
-                        "env_steps": steps, "env_steps_per_second": steps / max(done["run_seconds"], 1e-9),
+                        "env_steps": steps, "env_steps_per_second": timed / max(done["run_seconds"], 1e-9),
                         "env_slots": slots, "useful_share": steps / slots if slots else None,
                         "complete": done["complete"]})
-        log(f"  compiled in {done['compile_seconds']:.1f} s; {steps:,} env steps in {done['run_seconds']:.1f} s "
-            f"({steps / max(done['run_seconds'], 1e-9):,.0f} steps/s)"
+        log(f"  compiled in {done['compile_seconds']:.1f} s; {timed:,} env steps in {done['run_seconds']:.1f} s "
+            f"({timed / max(done['run_seconds'], 1e-9):,.0f} steps/s)"
+            + (f", {steps - timed:,} more restored from chunk {done['start_chunk']}" if steps != timed else "")
             + (f"; {steps / slots:.1%} of the env slots useful" if slots else "")
             + f"; evaluated in {done.get('eval_seconds', 0.0):.1f} s")
         for r, (i, s, ap) in enumerate(meta):

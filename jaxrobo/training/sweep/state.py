@@ -102,7 +102,8 @@ def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished:
         p = plan.groups[g]
         arrays[f"g{g}_config"] = np.asarray([i for i, _, _ in p.meta], np.int64)
         arrays[f"g{g}_seed"] = np.asarray([s for _, s, _ in p.meta], np.int64)
-        for k in ("compile_seconds", "run_seconds", "eval_seconds", "slot_steps", "start_chunk"):
+        for k in ("compile_seconds", "run_seconds", "eval_seconds", "slot_steps", "start_chunk",
+                  "restored_env_steps"):
             arrays[f"g{g}_{k}"] = np.asarray(done.get(k, 0.0), np.float64)
         arrays[f"g{g}_complete"] = np.asarray(bool(done["complete"]))
         arrays.update({f"g{g}_metric_{k}": np.asarray(v) for k, v in done["metrics"].items()})
@@ -138,7 +139,8 @@ def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[i
                       "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"]),
                       "slot_steps": float(data.get(f"g{g}_slot_steps", 0.0)),
                       "eval_seconds": float(data.get(f"g{g}_eval_seconds", 0.0)),
-                      "start_chunk": int(data.get(f"g{g}_start_chunk", 0))}
+                      "start_chunk": int(data.get(f"g{g}_start_chunk", 0)),
+                      "restored_env_steps": int(data.get(f"g{g}_restored_env_steps", 0))}
     except (KeyError, ValueError, TypeError) as err:
         if isinstance(err, ConfigError):
             raise
