@@ -5,9 +5,11 @@
 
 * ``throughput.png``, the headline: at the largest batch, each jaxrobo env with learning in the loop beside
   each peer (its own largest batch), one panel per family, log scale, every bar labelled with its value;
-  published figures (a peer's own, on its own hardware) hatched.
+  published figures (a peer's own, on its own hardware) hatched, labelled "published, other machine" and
+  explained in the legend, so a CPU bar is never read as beaten on this machine by a GPU figure.
 * ``throughput_<family>.png``, one scaling plot per family (rate against ``n_envs``), one colour and one marker
-  per series, never more series than distinct colours.
+  per series, never more series than distinct colours; published series dotted with hollow markers, labelled
+  the same way.
 
 Cart-pole bars and curves are env steps per second (every cart-pole row here controls at 0.02-0.04 s); the
 quadcopter ones are physics steps per second, the unit crazyflow and L2F publish.
@@ -67,6 +69,16 @@ def _label(r: dict[str, Any]) -> str:
     return f"{r['suite']}: {r['env']}{backend}"
 
 
+def published_label(r: dict[str, Any]) -> str:
+    """The tag of a published figure: measured elsewhere, on the hardware its authors name (one wording for the
+    bars, the curves and the legend)."""
+    return f"(published, other machine: {r.get('hardware', '?')})"
+
+
+#: The legend entry of the hatched bars: what they are, and that no ratio uses them.
+PUBLISHED_NOTE = "published, other machine: the peer's own figure on its hardware, not measured here"
+
+
 def _usable(r: dict[str, Any], key: str) -> bool:
     return r.get("status") in ("ok", "published") and bool(r.get(key))
 
@@ -105,7 +117,7 @@ def headline_bars(rows: list[dict[str, Any]], fam: str) -> list[dict[str, Any]]:
     for (suite, status), group in peers.items():
         if status == "published":
             for r in group:
-                bars.append({"label": f"{_label(r)} (published, {r.get('hardware', '?')})", "value": r[key],
+                bars.append({"label": f"{_label(r)} {published_label(r)}", "value": r[key],
                              "n_envs": r.get("n_envs"), "published": True})
             continue
         top = max(r["n_envs"] for r in group)
@@ -117,16 +129,31 @@ def headline_bars(rows: list[dict[str, Any]], fam: str) -> list[dict[str, Any]]:
 
 def headline(rows: list[dict[str, Any]], path: str, device: str) -> bool:
     """Write the headline bar chart; False (nothing written) when no family has a bar."""
+    import matplotlib.pyplot as plt
+
+    fig = headline_figure(rows, device)
+    if fig is None:
+        return False
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def headline_figure(rows: list[dict[str, Any]], device: str) -> Any:
+    """The headline bar chart as a figure (None when no family has a bar): a panel with a published bar gets a
+    legend telling the measured bars (this device) from the hatched published ones (another machine)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
     panels = [(fam, headline_bars(rows, fam)) for fam in FAMILY_MEASURE]
     panels = [(fam, bars) for fam, bars in panels if bars]
     if not panels:
-        return False
-    heights = [max(2.0, 0.42 * len(bars) + 1.2) for _, bars in panels]
+        return None
+    # A panel with published bars carries a two-line legend above it: room for it.
+    heights = [max(2.0, 0.42 * len(bars) + 1.2) + 0.4 * any(b["published"] for b in bars) for _, bars in panels]
     fig, axes = plt.subplots(len(panels), 1, figsize=(11, sum(heights)), squeeze=False,
                              gridspec_kw={"height_ratios": heights})
     for ax, (fam, bars) in zip(axes[:, 0], panels):
@@ -146,13 +173,17 @@ def headline(rows: list[dict[str, Any]], path: str, device: str) -> bool:
         hi = max(b["value"] for b in bars)
         ax.set_xlim(lo / 3, hi * 20)  # room for the labels right of the longest bar
         ax.set_xlabel(FAMILY_MEASURE[fam][1] + " (log)")
-        ax.set_title(f"{fam}: largest batch, jaxrobo with learning vs peers", fontsize=10, loc="left")
+        published = any(b["published"] for b in bars)
+        ax.set_title(f"{fam}: largest batch, jaxrobo with learning vs peers", fontsize=10, loc="left",
+                     pad=30 if published else 6)  # above the legend, when there is one
         ax.grid(True, axis="x", which="major", alpha=0.3)
+        if published:
+            ax.legend(handles=[Patch(facecolor="#999999", edgecolor="black", label=f"measured on {device}"),
+                               Patch(facecolor="white", edgecolor="#555555", hatch="///", label=PUBLISHED_NOTE)],
+                      fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), frameon=False)  # above the bars
     fig.suptitle(f"throughput on {device}", fontsize=11)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return True
+    return fig
 
 
 def scaling_series(rows: list[dict[str, Any]], fam: str) -> dict[str, list[tuple[int, float]]]:
@@ -167,7 +198,7 @@ def scaling_series(rows: list[dict[str, Any]], fam: str) -> dict[str, list[tuple
             continue
         name = _label(r) + ("" if r["mode"] == "env" and r["suite"] != "jaxrobo" else f" {r['mode']}")
         if r["status"] == "published":
-            name += f" (published, {r.get('hardware', '?')})"
+            name += f" {published_label(r)}"
         series.setdefault(name, []).append((r["n_envs"], r[key]))
         if r["suite"] == "jaxrobo":
             rank[name] = (r["mode"] not in MAIN_MODES, r["backend"] not in MAIN_BACKENDS)
@@ -194,15 +225,18 @@ def scaling(rows: list[dict[str, Any]], fam: str, path: str, device: str) -> boo
         return False
     fig, ax = plt.subplots(figsize=(10, 6))
     for i, (name, pts) in enumerate(series.items()):
-        style = "-" if name.startswith("jaxrobo") else ":" if "(published" in name else "--"
+        published = "(published" in name
+        style = "-" if name.startswith("jaxrobo") else ":" if published else "--"
         ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker=MARKERS[i % len(MARKERS)],
-                color=PALETTE[i], label=name, markersize=6, linewidth=1.6)
+                color=PALETTE[i], label=name, markersize=6, linewidth=1.6,
+                fillstyle="none" if published else "full")  # hollow: a figure not measured here
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.xaxis.set_minor_formatter(NullFormatter())  # a narrow span of sizes would label every minor tick
     ax.set_xlabel("n_envs (parallel environments)")
     ax.set_ylabel(FAMILY_MEASURE[fam][1])
-    ax.set_title(f"{fam} on {device}\nsolid: jaxrobo, dashed: peers, dotted: published", fontsize=10)
+    ax.set_title(f"{fam} on {device}\nsolid: jaxrobo, dashed: peers\ndotted, hollow: published, other machine",
+                 fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()

@@ -29,7 +29,8 @@ of the same task and size.
 
 Output: a table on stdout (each row's physics step and substeps; each jaxrobo row's ratio per env step, per
 physics step and per simulated second to the fastest peer of its family at the same n_envs, to Brax and to the
-seed-style loop), ``throughput.{json,csv}`` and the figures of ``figures.py`` under
+seed-style loop), ``throughput.{json,csv}``, the same table as plain text (``throughput.txt``) and the
+figures of ``figures.py`` (published figures hatched: "published, other machine") under
 ``benchmarks/results/local/<device>/`` (git-ignored; ``--out benchmarks/results/h100`` updates a committed table
 on purpose). ``--replot JSON`` redraws the table and figures of a results file without measuring.
 """
@@ -522,7 +523,7 @@ def published_rows(names) -> list[dict[str, Any]]:
         row["steps_per_s"] = fig["physics_steps_per_s"] / fig["n_substeps"]
         dt = fig["physics_dt"]
         row["sim_seconds_per_s"] = fig["physics_steps_per_s"] * dt if dt else None
-        row["reason"] = f"published, {fig['hardware']}: {fig['source']}"
+        row["reason"] = f"published, other machine ({fig['hardware']}): {fig['source']}"
         rows.append(row)
     return rows
 
@@ -833,6 +834,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(table(rows))
     _common.write_json({"meta": meta, "rows": rows}, os.path.join(out_dir, "throughput.json"), default=str)
+    write_table(rows, meta, os.path.join(out_dir, "throughput.txt"))
     if os.path.exists(partial):
         os.remove(partial)
     keys = list(dict.fromkeys(k for r in rows for k in r))
@@ -842,7 +844,7 @@ def main(argv: list[str] | None = None) -> int:
         w.writerows(rows)
     written = [] if args.no_plot else figures.write_figures({"meta": meta, "rows": rows}, out_dir)
     pngs = ",".join(os.path.basename(w)[:-4] for w in written)
-    print(f"\nwrote {out_dir}/throughput.{{json,csv}}{f' and {{{pngs}}}.png' if pngs else ''} "
+    print(f"\nwrote {out_dir}/throughput.{{json,csv,txt}}{f' and {{{pngs}}}.png' if pngs else ''} "
           f"in {meta['total_seconds']:.0f} s")
     return 0
 
@@ -988,7 +990,8 @@ def table(rows: list[dict[str, Any]]) -> str:
                  "per measure (peer names it); x brax = env steps/s over Brax inverted_pendulum/mjx at the same "
                  "n_envs; x seed = env steps/s over the seed-style loop (cart-pole rows)")
     lines.append("compile: * = served from the persistent cache; B/env = training carry (env state + Q-table + "
-                 "records) per env; published = a peer's own figure on its hardware, never in a ratio")
+                 "records) per env; published = a peer's own figure on another machine (its hardware named), never in "
+                 "a ratio")
     plans = list(dict.fromkeys(r["execution_plan"] for r in rows if r.get("execution_plan")))
     if plans:
         lines.append("jaxrobo rows ran under " + "; ".join(plans))
@@ -998,13 +1001,27 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def write_table(rows: list[dict[str, Any]], meta: dict[str, Any], path: str) -> None:
+    """The stdout table as plain text beside the JSON (``throughput.txt``), headed by the device and the
+    command it was measured with, for a reader without Python or a JSON viewer."""
+    head = [f"jaxrobo throughput on {meta.get('device', '?')} ({meta.get('backend', '?')}, "
+            f"{meta.get('cpu_count', '?')} CPU cores)",
+            "command: " + " ".join(str(a) for a in meta.get("argv") or []), ""]
+    with open(path, "w") as f:
+        f.write("\n".join([*head, table(rows)]) + "\n")
+
+
 def replot(path: str, out_dir: str | None) -> int:
-    """``--replot``: the table and the figures again from a results JSON alone (nothing is measured)."""
+    """``--replot``: the table (stdout and ``throughput.txt``) and the figures again from a results JSON alone
+    (nothing is measured)."""
     with open(path) as f:
         data = json.load(f)
     _ratios(data["rows"])
     print(table(data["rows"]))
-    for written in figures.write_figures(data, out_dir or os.path.dirname(os.path.abspath(path))):
+    out_dir = out_dir or os.path.dirname(os.path.abspath(path))
+    os.makedirs(out_dir, exist_ok=True)
+    write_table(data["rows"], data.get("meta") or {}, os.path.join(out_dir, "throughput.txt"))
+    for written in figures.write_figures(data, out_dir):
         print(f"wrote {written}")
     return 0
 

@@ -186,7 +186,7 @@ class LiveScalars:
         self.writer.add_scalar("progress/useful_share", p.useful_share, step)
         self.writer.add_scalar("train/last_return", p.last_return, step)
         if p.seconds > 0:
-            self.writer.add_scalar("progress/steps_per_second", p.useful_steps / p.seconds, step)
+            self.writer.add_scalar("progress/steps_per_second", p.steps_per_second, step)  # this process's
         self.writer.flush()
 
     def close(self) -> None:
@@ -570,7 +570,8 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
                                          start_chunk=start_chunk, checkpoint=save,
                                          checkpoint_every=every_chunks or 0, checkpoint_seconds=every,
-                                         should_stop=stop, announce=announce)
+                                         should_stop=stop, announce=announce,
+                                         eval_progress=None if args.no_progress else eval_line)
         if bar is not None:
             bar.close()
         live_scalars.close()
@@ -604,20 +605,38 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
           f"of the {s['env_slots']:,} env slots stepped were useful")
     print(f"wall: compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
           f"{s['eval_seconds']:.1f} s, writing {write_seconds:.1f} s")
-    print(f"highest reward {s['highest_reward_max']:.0f} · overall mean length {s['overall_mean_length']:.1f} · "
-          f"best 100 mean {s['best_100_mean_length']:.1f}")
+    print(_training_figures(s))
     if "eval_mean_length" in s:
         print(f"greedy evaluation: mean length {s['eval_mean_length']:.1f}, mean return {s['eval_mean_return']:.1f} "
               f"over {result.eval_lengths.shape[0]} tables × {result.eval_lengths.shape[1]} episodes")
     if "eval_success_rate" in s:
         print(f"greedy arrival rate {s['eval_success_rate']:.1%} (best table {s['eval_best_table_success_rate']:.1%})")
-    if "selected_table" in s:
-        print(f"best table ({s['selected_table']}) on fresh episodes: mean length "
-              f"{s['selected_table_fresh_mean_length']:.1f}, mean return {s['selected_table_fresh_mean_return']:.1f}")
+    if "selected_table" in s:  # several tables: the best one (by the task's target), then on fresh episodes
+        print(f"best table ({s['selected_table']}, by {s['best_ranked_by']}): mean length "
+              f"{s['eval_best_table_mean_length']:.1f}, mean return {s['eval_best_table_mean_return']:.1f}; on "
+              f"fresh episodes: mean length {s['selected_table_fresh_mean_length']:.1f}, mean return "
+              f"{s['selected_table_fresh_mean_return']:.1f}")
     if s["physics_nan_episodes"]:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
     print(f"results in {out}")
     return 0
+
+
+def eval_line(p) -> None:
+    """One stderr line per segment of the greedy evaluation (:class:`jaxrobo.training.driver.EvalProgress`): the
+    steps done, the episodes still running and an ETA, an upper bound (the flight ends with its last episode)."""
+    eta = "done" if p.running == 0 else f"ETA ≤ {p.eta:.0f} s"
+    print(f"  evaluation ({p.what}): step {p.step:,}/{p.horizon:,}, {p.running:,} of {p.episodes:,} episodes "
+          f"running, {p.seconds:.0f} s (compiled in {p.compile_seconds:.0f} s), {eta}", file=sys.stderr, flush=True)
+
+
+def _training_figures(s: dict) -> str:
+    """The printed line of a run summary's training figures, each saying what it is of; the best window is the
+    one the task's learning target calls best (``best_ranked_by``)."""
+    figure = "return" if "best_100_window_mean_return" in s else "length"
+    return (f"highest episode return {s['highest_reward_max']:.0f} · overall mean episode length "
+            f"{s['overall_mean_length']:.1f} · best 100-episode window of mean {figure}: "
+            f"{s[f'best_100_window_mean_{figure}']:.1f} ({s['best_ranked_by']})")
 
 
 def _plot(args: argparse.Namespace) -> int:

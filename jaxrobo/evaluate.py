@@ -118,6 +118,7 @@ def evaluate(spec: Any, q: np.ndarray | None, policy: Any, shifts: dict[str, lis
     env = randomised_env(spec.env)
     target = getattr(env, "learning_target", None)
     metric = target.metric if target is not None else "mean_return"
+    higher = target is None or target.better == "higher"
     nominal = {f.name: f.default for f in __import__("dataclasses").fields(type(env.default_params))}
     base = env.default_params.replace(**{randomise.PREFIX + n: nominal[randomise.PREFIX + n]
                                          for n in randomise.range_fields(type(env.default_params))})
@@ -149,8 +150,9 @@ def evaluate(spec: Any, q: np.ndarray | None, policy: Any, shifts: dict[str, lis
     for name, values in shifts.items():
         for v in values:
             got = np.asarray(run(tables, key, randomise.pinned(base, {name: v})))
+            lo, hi = float(got.min()), float(got.max())  # best and worst the way the target improves
             rows.append({"shift": name, "value": v, "metric": metric, "mean": float(got.mean()),
-                         "worst": float(got.min()), "best": float(got.max()), "tables": int(got.size),
+                         "worst": lo if higher else hi, "best": hi if higher else lo, "tables": int(got.size),
                          "episodes": episodes})
     return rows
 

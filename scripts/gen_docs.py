@@ -71,9 +71,13 @@ def render() -> str:
     for name, cls in (("ppo", deep.PPOConfig), ("sac", deep.SACConfig)):
         lines += ["", f"### `--agent {name}` keys (Brax's trainer; `--set KEY=VALUE` or `agents/configs/{name}.yaml`)",
                   "", *_table(cls, skip=("agent",))]
-    lines += ["", "### Learning targets (`LearningTarget(name, metric, threshold, description)` on a task class)", "",
+    lines += ["", "### Learning targets (`LearningTarget(name, metric, threshold, description, better=\"higher\")` "
+              "on a task class)", "",
               "| metric | what the summary measures |", "|---|---|"]
     lines += [f"| `{metric}` | {meaning} |" for metric, meaning in TARGET_METRICS.items()]
+    lines += ["", "`better` (`\"higher\"` or `\"lower\"`) is the metric's direction; every \"best\" of the summary, the "
+              "printed summary and `jaxrobo sweep` (`best_100_window_mean_*`, `eval_best_table*`, the best "
+              "configuration) follows it (`jaxrobo.task.env.ranking`)."]
     lines += ["", END]
     return "\n".join(lines)
 

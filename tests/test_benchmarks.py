@@ -37,6 +37,8 @@ def test_throughput_smoke(tmp_path):
     with open(tmp_path / "out" / "throughput.csv") as f:
         assert len(list(csv.DictReader(f))) == len(data["rows"])
     assert (tmp_path / "out" / "throughput.png").stat().st_size > 0
+    text = (tmp_path / "out" / "throughput.txt").read_text()  # the stdout table, as a plain file beside the JSON
+    assert text.startswith("jaxrobo throughput on ") and "x phys" in text and "published, other machine" in text
     assert "x phys" in proc.stdout and rows[("l2f", "quadrotor", "env")]["status"] == "published"
     assert (tmp_path / "out" / "throughput_cartpole.png").stat().st_size > 0
     assert not (tmp_path / "out" / "throughput.partial.json").exists()  # the rows-so-far file, gone once complete

@@ -66,7 +66,37 @@ def test_ratios_compare_like_for_like_per_env_step_physics_step_and_simulated_se
     for col in ("x env", "x phys", "x sim", "x brax", "x seed", " dt ", "sub"):
         assert col in text.splitlines()[0], col
     assert "per env step, per physics step and per simulated second" in text
-    assert "published, RTX 4090: crazyflow" in text and "not installed (x)" in text
+    assert "published, other machine (RTX 4090): crazyflow" in text and "not installed (x)" in text
+
+
+def test_published_figures_are_marked_other_machine_and_the_table_is_written_as_text(tmp_path):
+    """A CPU figure beside a peer's published RTX 4090 figure: that bar is hatched, labelled "published, other
+    machine" and explained in the panel's legend; its scaling curve is hollow and labelled the same; the table
+    goes to a plain throughput.txt headed by the device and the command."""
+    from matplotlib.patches import Rectangle
+
+    rows = fake_rows()
+    throughput._ratios(rows)
+    fig = figures.headline_figure(rows, "cpu")
+    quad = next(ax for ax in fig.axes if ax.get_title(loc="left").startswith("quadcopter"))
+    labels = [t.get_text() for t in quad.get_yticklabels()]
+    marked = [i for i, text in enumerate(labels) if "(published, other machine: " in text]
+    assert len(marked) == 2 and any("RTX 4090" in labels[i] for i in marked)  # crazyflow's and L2F's figures
+    bars = [p for p in quad.patches if isinstance(p, Rectangle) and p.get_width() > 0]
+    assert sorted(i for i, b in enumerate(bars) if b.get_hatch()) == marked
+    legend = [t.get_text() for t in quad.get_legend().get_texts()]
+    assert legend == ["measured on cpu", figures.PUBLISHED_NOTE] and "other machine" in legend[1]
+    cart = next(ax for ax in fig.axes if ax.get_title(loc="left").startswith("cart-pole"))
+    assert cart.get_legend() is None  # no published bar there: nothing to explain
+    series = figures.scaling_series(rows, "quadcopter")
+    assert [k for k in series if "published" in k] == ["crazyflow: quadrotor cf21B_500 [first-principles] "
+                                                       "(published, other machine: RTX 4090)"]
+    path = tmp_path / "throughput.txt"
+    throughput.write_table(rows, {"device": "cpu", "backend": "cpu", "cpu_count": 2,
+                                  "argv": ["throughput.py", "--quick"]}, str(path))
+    text = path.read_text()
+    assert text.startswith("jaxrobo throughput on cpu (cpu, 2 CPU cores)\ncommand: throughput.py --quick\n\n")
+    assert throughput.table(rows) in text and "published, other machine (RTX 4090)" in text
 
 
 def test_published_rows_and_missing_peers_are_rows_with_their_reason():

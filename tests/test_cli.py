@@ -17,12 +17,33 @@ TINY = ["--set", "nsteps=40", "--set", "chunk_steps=50", "--set", "eval_episodes
         "--set", "state_high=[2.4, 1.0, 0.3, 2.0]"]
 
 
+#: What the module's one training printed on stderr (its progress: the bar and the evaluation's lines).
+STDERR: list[str] = []
+
+
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
+    import contextlib
+    import io
+
     out = str(tmp_path_factory.mktemp("runs") / "q")
-    assert main(["train", "--env", "CartPoleStayUp-v0", "--agent", "qlearn", "--n-envs", "4", "--nepisodes", "6",
-                 "--no-progress", "--out", out, *TINY]) == 0
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main(["train", "--env", "CartPoleStayUp-v0", "--agent", "qlearn", "--n-envs", "4", "--nepisodes",
+                     "6", "--out", out, *TINY]) == 0
+    STDERR.append(err.getvalue())
     return out
+
+
+def test_the_evaluation_reports_its_progress_with_an_eta(run_dir):
+    """After the bar's 100 % the greedy evaluation is not silent: a line per segment of its steps, with the
+    episodes still running and an ETA, for the tables and for the best table's fresh episodes."""
+    log = STDERR[0]
+    assert "evaluating 2 table(s) × 2 greedy episodes" in log
+    lines = [ln for ln in log.splitlines() if ln.startswith("  evaluation (")]
+    assert any(ln.startswith("  evaluation (tables): step ") for ln in lines), log
+    assert any(ln.startswith("  evaluation (best table): step ") for ln in lines), log
+    assert all("episodes running" in ln and ("ETA ≤" in ln or ln.endswith("done")) for ln in lines), lines
 
 
 def test_train_writes_config_records_tables_summary_and_tensorboard(run_dir):

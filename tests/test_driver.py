@@ -121,8 +121,8 @@ def test_train_and_the_sweep_run_their_chunks_through_the_same_driver(monkeypatc
     ("ArmReach-v0", {"nsteps": 10, "chunk_steps": 10, "eval_episodes": 8, "goal_tolerance": 0.3})])
 def test_the_greedy_evaluation_flies_once_and_counts_arrivals_as_a_second_flight_would(env_id, overrides,
                                                                                        monkeypatch):
-    """The arrivals come from the evaluation's own flight: one rollout traced, and the same flags a second flight
-    of the same tables on the same keys (how they used to be counted, the oracle here) finds."""
+    """The arrivals come from the evaluation's own flight: one flight traced, and the same flags a second flight
+    of the same tables on the same keys (one scan, how they used to be counted, the oracle here) finds."""
     import jax
 
     from jaxrobo.task import rollout
@@ -131,8 +131,10 @@ def test_the_greedy_evaluation_flies_once_and_counts_arrivals_as_a_second_flight
 
     spec = resolve(env_id, overrides={"n_envs": 2, "nepisodes": 2, "eval_envs": 1, **overrides})
     env, config = spec.env, spec.config
-    flown = rollout.rollout
+    flown, started = rollout.rollout, rollout.rollout_start
     flights = []
+    # The evaluation flies in segments (progress between them): a flight is one rollout_start.
+    monkeypatch.setattr(rollout, "rollout_start", lambda *a, **kw: flights.append(a[2]) or started(*a, **kw))
     monkeypatch.setattr(rollout, "rollout", lambda *a, **kw: flights.append(a[3]) or flown(*a, **kw))
     res = train(env, config, spec.agent_params)
     assert flights == [config.eval_episodes]  # one table evaluated: one flight, none more for the arrivals

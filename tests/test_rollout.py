@@ -81,6 +81,27 @@ def test_trainer_evaluate_is_the_greedy_rollout_with_its_key_layout(cartpole):
     assert len(set(np.asarray(got[1]).tolist())) > 1  # the episodes differ: the test is not vacuous
 
 
+def test_a_rollout_in_segments_is_the_one_scan_rollout_bit_for_bit(cartpole):
+    """The evaluation's segments (a progress line between them) fly the same episodes: the same keys, steps
+    and figures, byte for byte, a segment length that does not divide the horizon included; the flight may end
+    early once no episode runs."""
+    from jaxrobo.training import driver
+
+    policy = rollout.random_policy(cartpole.num_actions)
+    key, params = jax.random.key(11), cartpole.default_params
+    want = jax.device_get(rollout.outcomes(jax.jit(lambda k: rollout.rollout(cartpole, policy, k, 6, HORIZON))(key)))
+    carry = jax.jit(lambda k: rollout.rollout_start(cartpole, k, 6, params))(key)
+    advance = jax.jit(lambda c, t0: rollout.rollout_advance(cartpole, policy, c, t0, 7, HORIZON, params))
+    for t0 in range(0, HORIZON, 7):
+        carry = advance(carry, np.int32(t0))
+    got = jax.device_get(rollout.outcomes(rollout.rollout_end(carry)))
+    assert set(got) == set(want) and len(set(want["length"].tolist())) > 1
+    for k in want:
+        assert np.asarray(got[k]).tobytes() == np.asarray(want[k]).tobytes(), k
+    assert driver.EvalProgress("tables", 3, 10, 2, 4, 6.0).eta == pytest.approx(14.0)
+    assert driver.EvalProgress("tables", 3, 10, 0, 4, 6.0).eta == 0.0
+
+
 def test_render_q_policy_breaks_ties_by_the_same_rule():
     """The video policy ties like the trainer's evaluation (random among maxima, from the step's key), not by
     taking the first maximum: an untrained (all-zero) table does not always push the same way."""

@@ -26,7 +26,9 @@ FAST = {"xla_backend_optimization_level": 0}
 ARGS = ["--env", ENV, "--agent", "qlearn", "--grid", "number_splits=4,6", "--grid", "alpha=0.1,0.5",
         "--seeds", "2", "--n-envs", "2", "--nepisodes", "3", "--nsteps", "30", "--set", "chunk_steps=10",
         "--set", "backend=analytic", "--set", "bins=null", "--eval-episodes", "1", "--no-plots"]
-TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds", "eval_seconds", "write_seconds"}
+#: How a sweep ran, not what it found: timings, and the chunk a group resumed from.
+TIMING = {"wall_seconds", "env_steps_per_second", "compile_seconds", "run_seconds", "eval_seconds", "write_seconds",
+          "resumed_after_chunk"}
 
 
 def _main(argv):
@@ -285,3 +287,47 @@ def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkey
     assert _main(["--resume", live]) == 0
     assert _outputs(out) == _outputs(uninterrupted)
     assert not os.path.exists(live) and os.listdir(tmp_path) == ["sweep"]
+
+
+def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chunk(uninterrupted, tmp_path,
+                                                                                    capsys):
+    """A stop after two chunks of the first group saves that group's carry (group_0.npz); --resume goes on from
+    chunk 2, runs only the chunks left, and writes the uninterrupted sweep's sweep.csv byte for byte. A damaged
+    group carry is refused naming the file and how to start the group over."""
+    state = str(tmp_path / "state")
+    os.makedirs(state)
+    plan = _plan()
+    chunks: list[int] = []
+    with pytest.raises(sweep.SweepInterrupted) as info:
+        sweep.run_plan(plan, state_dir=state, progress=lambda p: chunks.append(p.chunks_done),
+                       should_stop=lambda: len(chunks) == 2)
+    assert info.value.partial == (0, 2, 9) and "group 1 saved after chunk 2 of 9" in info.value.where
+    assert _finished_groups(state) == 0 and os.path.exists(sweep_state.group_carry_path(state, 0))
+
+    lines: list[str] = []
+    chunks.clear()
+    reports: list = []
+    result = sweep.run_plan(plan, log=lines.append, state_dir=state,
+                            progress=lambda p: chunks.append(p.chunks_done) or reports.append(p))
+    assert any("group 1 goes on from its last saved chunk" in line for line in lines), lines
+    assert any("going on from chunk 2 of 9" in line for line in lines), lines
+    assert any("more restored from chunk 2" in line for line in lines), lines  # its speed: this process's steps
+    assert chunks[0] == 3  # the first chunk run is the third: chunks 1 and 2 came from the carry
+    assert result.groups[0]["resumed_after_chunk"] == 2 and "resumed_after_chunk" not in result.groups[1]
+    # The rates count this process's work: the restored carry's steps are its starting point, not its speed.
+    first = reports[0]
+    assert first.useful_before > 0 and first.useful_steps > first.useful_before
+    assert first.steps_per_second == pytest.approx((first.useful_steps - first.useful_before) / first.seconds)
+    assert not os.path.exists(sweep_state.group_carry_path(state, 0))  # dropped once the group was finished
+    sweep.write_csv(result, str(tmp_path / "resumed.csv"))
+    with open(tmp_path / "resumed.csv") as f:
+        assert f.read() == _outputs(uninterrupted)[0]
+
+    # A damaged carry is refused before a chunk runs.
+    bad = str(tmp_path / "bad")
+    os.makedirs(bad)
+    sweep_state.open_state(bad, plan)
+    with open(sweep_state.group_carry_path(bad, 0), "wb") as f:
+        f.write(b"PK\x03\x04 not an npz")
+    with pytest.raises(ConfigError, match=r"group_0\.npz.*remove .*group_0\.npz to run group 1 from its first"):
+        sweep.run_plan(plan, state_dir=bad)

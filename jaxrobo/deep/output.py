@@ -109,7 +109,7 @@ class LiveRun:
         e, i = p.row, len(p.evaluations) - 1
         net = {**p.net, "evaluation": i, "env_steps": int(e["env_steps"])}
         save_policy(self.live, p.params, net)
-        if best_index(p.evaluations) == i:
+        if best_index(p.evaluations, getattr(p.spec.env, "learning_target", None)) == i:
             os.makedirs(os.path.join(self.live, POLICIES["best"]), exist_ok=True)
             save_policy(os.path.join(self.live, POLICIES["best"]), p.params, net)
         checkpoint.save(self.checkpoint_path, self.fingerprint, p.epochs_done, p.states, p.evaluations,

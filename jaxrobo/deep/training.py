@@ -153,7 +153,7 @@ class DeepResult:
             "final_eval_mean_return": float(np.mean(last["return"])),
             "final_eval_mean_length": float(np.mean(last["length"])),
             "best_eval_mean_return": float(max(np.mean(e["return"]) for e in self.evaluations)),
-            "best_evaluation": best_index(self.evaluations),
+            "best_evaluation": best_index(self.evaluations, getattr(self.spec.env, "learning_target", None)),
         }
         if self.resumed_after_env_steps:
             out["resumed_after_env_steps"] = self.resumed_after_env_steps
@@ -170,9 +170,22 @@ class DeepResult:
         return out
 
 
-def best_index(evaluations: list[dict[str, Any]]) -> int:
-    """The best evaluation: the highest success rate (a task with one), then the highest mean return; the
-    earliest of equals."""
+def best_index(evaluations: list[dict[str, Any]], target: Any = None) -> int:
+    """The best evaluation: for a task with a learning ``target``, the best by it
+    (:meth:`jaxrobo.task.env.Ranking.best_table` over the evaluations: its metric in its direction, a tie broken
+    by the higher mean return); without one, the highest success rate (a task with one), then the highest mean
+    return. The earliest of equals."""
+    if target is not None:
+        from jaxrobo.task.env import ranking
+
+        per_point = {"mean_return": [np.ravel(e["return"]) for e in evaluations],
+                     "mean_length": [np.ravel(e["length"]) for e in evaluations]}
+        if all("success" in e for e in evaluations):
+            per_point["success_rate"] = [np.ravel(e["success"]) for e in evaluations]
+        # Each point's mean (its episodes may differ in number across sessions): one column per point.
+        means = {k: np.asarray([[np.mean(x)] for x in v], np.float64) for k, v in per_point.items()}
+        return ranking(target).best_table(means)
+
     def score(e: dict[str, Any]) -> tuple[float, float]:
         return (float(np.mean(e["success"])) if "success" in e else 0.0, float(np.mean(e["return"])))
 

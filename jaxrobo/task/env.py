@@ -85,7 +85,8 @@ class LearningTarget:
     """What "has learned" means for a task, declared on the task class (:attr:`Env.learning_target`) and read by
     the training summary (:meth:`jaxrobo.training.summary.TrainResult.summary`), so the trainer knows no task's threshold.
 
-    A table reaches the target when its greedy evaluation's ``metric`` is ``>= threshold``. ``metric`` is one of
+    A table reaches the target when its greedy evaluation's ``metric`` is ``>= threshold`` (``better="higher"``,
+    the default) or ``<= threshold`` (``better="lower"``: e.g. a minimum-time task's ``mean_length``). ``metric`` is one of
     :data:`TARGET_METRICS`: ``"mean_length"`` / ``"mean_return"`` (mean greedy episode length / return, which the
     trainer's evaluation records per table: the summary gives the share of evaluated tables that reach the
     target as ``eval_share_of_tables_<name>``), or ``"success_rate"`` (share of greedy episodes the task counts as
@@ -98,15 +99,76 @@ class LearningTarget:
     metric: str
     threshold: float
     description: str
+    #: Which way the metric improves: ``"higher"`` (default) or ``"lower"``; every "best" the summaries and sweeps
+    #: pick (best 100-episode window, best table) follows it (:func:`ranking`).
+    better: str = "higher"
 
     def __post_init__(self) -> None:
         if self.metric not in TARGET_METRICS:
             raise ValueError(f"LearningTarget metric={self.metric!r}: allowed values are {', '.join(TARGET_METRICS)}")
+        if self.better not in ("higher", "lower"):
+            raise ValueError(f"LearningTarget better={self.better!r}: allowed values are higher, lower")
+        if self.better == "lower" and self.metric == "success_rate":
+            raise ValueError("LearningTarget better='lower': a success_rate target is reached from above "
+                             "(better='lower' is for mean_length or mean_return)")
+
+    def reached(self, score: Any) -> Any:
+        """Whether a per-table ``score`` of :attr:`metric` reaches the threshold, in the target's direction."""
+        return score >= self.threshold if self.better == "higher" else score <= self.threshold
+
+
+@dataclasses.dataclass(frozen=True)
+class Ranking:
+    """What "best" means for a task's figures, from its learning target (:func:`ranking`): one home for the
+    choice, read by the run summary, the printed summary and the sweep's metrics.
+
+    ``episode_figure`` (``"return"`` or ``"length"``) is the per-episode record a best 100-episode window is
+    taken of, ``table_metric`` (a :data:`TARGET_METRICS` key) the per-table greedy figure the best table is
+    chosen by, ``higher`` whether larger values of both are better. A ``success_rate`` target ranks training
+    episodes by return (the training records hold no arrivals; a goal task rewards arriving)."""
+
+    episode_figure: str
+    table_metric: str
+    higher: bool
+
+    @property
+    def words(self) -> str:
+        """``"return, higher is better"``: what a best figure was chosen by, for a person."""
+        return f"{self.episode_figure}, {'higher' if self.higher else 'lower'} is better"
+
+    def best_index(self, scores: Any) -> int:
+        """Index of the best of ``scores`` (the first on a tie)."""
+        s = np.asarray(scores, np.float64)
+        return int(np.argmax(s) if self.higher else np.argmin(s))
+
+    def best_table(self, per_table: dict[str, Any]) -> int:
+        """The best evaluated table: ``per_table`` maps :data:`TARGET_METRICS` keys to ``[tables, episodes]``
+        greedy records (``mean_return`` at least). Ranked by :attr:`table_metric` (by the mean return where that
+        was not recorded), a tie broken by the higher mean return (a success rate often ties at 1.0)."""
+        ret = np.asarray(per_table["mean_return"], np.float64).mean(axis=1)
+        if self.table_metric not in per_table:
+            return int(np.argmax(ret))
+        score = np.asarray(per_table[self.table_metric], np.float64).mean(axis=1)
+        score = score if self.higher else -score
+        return int(np.lexsort((-ret, -score))[0])  # lexsort's last key is the primary one; ascending, so negated
+
+
+def ranking(target: LearningTarget | None) -> Ranking:
+    """The :class:`Ranking` a task's ``learning_target`` implies. Without a target, the seed's: longer episodes
+    are better (its tasks are kept going as long as they can)."""
+    if target is None:
+        return Ranking("length", "mean_length", True)
+    higher = target.better == "higher"
+    if target.metric == "mean_length":
+        return Ranking("length", "mean_length", higher)
+    if target.metric == "mean_return":
+        return Ranking("return", "mean_return", higher)
+    return Ranking("return", "success_rate", higher)
 
 
 #: The figures a :class:`LearningTarget` can be stated on, each with what it measures (docs/extending.md lists them).
 TARGET_METRICS = {
-    "mean_length": "mean greedy episode length per evaluated table (longer is better: a task that is kept going)",
+    "mean_length": "mean greedy episode length per evaluated table (longer is better, or shorter with better=\"lower\")",
     "mean_return": "mean greedy episode return per evaluated table",
     "success_rate": "share of greedy episodes the task counts as a success (its task variables' `arrived` flag)",
 }

@@ -30,6 +30,9 @@ Public surface:
     A ``Policy`` as a host function ``obs -> int`` with its own key chain, for host loops such as
     :func:`jaxrobo.pictures.render.rollout_frames`.
 
+:func:`rollout_start`, :func:`rollout_advance`, :func:`rollout_end`
+    The same episodes as :func:`rollout` (without ``observe``) in segments of steps, for progress between them.
+
 Keys: episode ``i`` uses ``k = split(key, n_episodes)[i]``, resets from ``split(k)[0]`` and takes its ``t``-th
 action with ``split(split(k)[1], horizon)[t]``; the trainer's evaluation figures depend on this layout.
 """
@@ -43,7 +46,8 @@ import numpy as np
 
 from jaxrobo.tabular import learner as tabular
 
-__all__ = ["Policy", "greedy_action", "greedy_policy", "random_policy", "rollout", "success_rate", "host_policy"]
+__all__ = ["Policy", "greedy_action", "greedy_policy", "random_policy", "rollout", "rollout_start", "rollout_advance",
+           "rollout_end", "outcomes", "success_rate", "host_policy"]
 
 #: How a greedy policy breaks ties between equal action values (:func:`greedy_policy`).
 TIES = ("random", "first")
@@ -115,11 +119,7 @@ def rollout(env: Any, policy: Policy, key: jax.Array, n_episodes: int, horizon: 
 
         def body(carry, k_step):
             state, last, ret, length, alive = carry
-            a = policy(k_step, state.obs)
-            nxt = env.step(state, a, params)
-            ret = ret + jnp.where(alive, nxt.reward, 0.0)
-            length = length + alive.astype(jnp.int32)
-            last = jax.tree.map(lambda n, o: jnp.where(alive, n, o), nxt, last)
+            nxt, last, ret, length, a = _step(env, policy, params, state, last, ret, length, alive, k_step)
             out = None if observe is None else (observe(last), alive, jnp.where(alive, nxt.reward, 0.0), a)
             alive = alive & ~nxt.done
             return (nxt, last, ret, length, alive), out
@@ -135,6 +135,68 @@ def rollout(env: Any, policy: Policy, key: jax.Array, n_episodes: int, horizon: 
         return out
 
     return jax.vmap(episode)(jax.random.split(key, n_episodes))
+
+
+def _step(env: Any, policy: Policy, params: Any, state: Any, last: Any, ret: jax.Array, length: jax.Array,
+          live: jax.Array, k_step: jax.Array) -> tuple[Any, Any, jax.Array, jax.Array, jax.Array]:
+    """One step of one episode, counted where ``live``: the one home of an episode's step, for :func:`rollout`
+    and the segments of :func:`rollout_advance` (the same operations, so the same numbers)."""
+    a = policy(k_step, state.obs)
+    nxt = env.step(state, a, params)
+    ret = ret + jnp.where(live, nxt.reward, 0.0)
+    length = length + live.astype(jnp.int32)
+    last = jax.tree.map(lambda n, o: jnp.where(live, n, o), nxt, last)
+    return nxt, last, ret, length, a
+
+
+# ---- a rollout in segments: the same episodes, run a few hundred steps per call --------------------------------
+# A long evaluation is one compiled scan of ``horizon`` steps with nothing to report until it ends; cut into
+# segments, the host sees the steps done and the episodes still running between calls (progress with an ETA),
+# and stops once every episode has ended (nothing after the end is counted, so the figures are the same).
+def rollout_start(env: Any, key: jax.Array, n_episodes: int, params: Any = None) -> dict[str, Any]:
+    """The carry of :func:`rollout`'s ``n_episodes`` episodes before their first step (the same keys): ``state``,
+    ``last``, ``first``, ``return``, ``length``, ``alive`` and ``key`` (each episode's step keys' root)."""
+    params = env.default_params if params is None else params
+
+    def episode(k):
+        k_reset, k_run = jax.random.split(k)
+        state = env.reset(k_reset, params)
+        return {"state": state, "last": state, "first": state, "return": jnp.float32(0), "length": jnp.int32(0),
+                "alive": jnp.bool_(True), "key": k_run}
+
+    return jax.vmap(episode)(jax.random.split(key, n_episodes))
+
+
+def rollout_advance(env: Any, policy: Policy, carry: dict[str, Any], t0: jax.Array, steps: int, horizon: int,
+                    params: Any = None) -> dict[str, Any]:
+    """``carry`` (:func:`rollout_start`) after steps ``t0 .. t0 + steps - 1`` of its episodes, those below
+    ``horizon`` (``t0`` may be traced: one compiled segment serves all; ``steps`` is static)."""
+    params = env.default_params if params is None else params
+
+    def episode(c):
+        # Step t's key is split(key, horizon)[t] as in rollout; the segment past the horizon steps uncounted.
+        keys = jax.random.split(c["key"], horizon)
+        keys = jnp.concatenate([keys, keys[:steps]])
+        seg = jax.lax.dynamic_slice_in_dim(keys, t0, steps)
+        valid = (t0 + jnp.arange(steps)) < horizon
+
+        def body(inner, xs):
+            state, last, ret, length, alive = inner
+            k_step, ok = xs
+            nxt, last, ret, length, _ = _step(env, policy, params, state, last, ret, length, alive & ok, k_step)
+            return (nxt, last, ret, length, alive & ~(nxt.done & ok)), None
+
+        init = (c["state"], c["last"], c["return"], c["length"], c["alive"])
+        (state, last, ret, length, alive), _ = jax.lax.scan(body, init, (seg, valid))
+        return {**c, "state": state, "last": last, "return": ret, "length": length, "alive": alive}
+
+    return jax.vmap(episode)(carry)
+
+
+def rollout_end(carry: dict[str, Any]) -> dict[str, Any]:
+    """What :func:`rollout` returns (without ``observe``) from a carry advanced to the horizon or until no
+    episode is ``alive``."""
+    return {"return": carry["return"], "length": carry["length"], "first": carry["first"], "last": carry["last"]}
 
 
 def outcomes(out: dict[str, Any]) -> dict[str, jax.Array]:

@@ -14,8 +14,9 @@ rate), a :class:`~jaxrobo.training.summary.TrainResult`. :class:`StopOnSignal` t
 for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
-its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables`, :class:`StopOnSignal`, the hook types
-:data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
+its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables` (flown in segments by
+:func:`fly`, reporting :class:`EvalProgress`), :class:`StopOnSignal`, the hook types :data:`ProgressFn` and
+:data:`CheckpointFn`. Names with a leading underscore are private.
 """
 from __future__ import annotations
 
@@ -34,6 +35,7 @@ from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
+from jaxrobo.task.env import ranking
 from jaxrobo.training.summary import TrainResult
 from jaxrobo.training.trainer import Runner, Trainer, progress_stats
 
@@ -58,11 +60,26 @@ class Progress:
     useful_steps: float
     slot_steps: float
     seconds: float
+    #: ``done`` and ``useful_steps`` of the carry this loop started from (a resumed carry's are not 0): the rates
+    #: count this loop's work only.
+    done_before: int = 0
+    useful_before: float = 0.0
 
     @property
     def useful_share(self) -> float:
         """Useful env steps / env slots stepped (1.0: every slot of every step did work that counts)."""
         return self.useful_steps / self.slot_steps if self.slot_steps else 0.0
+
+    @property
+    def steps_per_second(self) -> float:
+        """Useful env steps this loop ran per second of it (a resumed carry's earlier steps left out)."""
+        return (self.useful_steps - self.useful_before) / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def eta(self) -> float:
+        """Seconds left at this loop's pace of the budget (NaN before any of it was done)."""
+        rate = (self.done - self.done_before) / self.seconds if self.seconds > 0 else 0.0
+        return max(self.total - self.done, 0) / rate if rate > 0 else float("nan")
 
 
 #: ``progress(Progress)`` after each chunk; a callable of three positional parameters is called the earlier way,
@@ -187,7 +204,7 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
                progress: ProgressFn | None = None, should_stop: Callable[[], bool] | None = None,
                checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
                checkpoint_seconds: float | None = None, max_seconds: float | None = None,
-               unit: str = "episodes", slots_per_chunk: float = 0.0) -> ChunkRun:
+               unit: str = "episodes", slots_per_chunk: float = 0.0, save_at_end: bool = True) -> ChunkRun:
     """Run ``carry = chunk(carry)`` until ``n_chunks`` chunks are done (counting the ``start_chunk`` the carry
     has already run) or every env has done ``total`` episodes.
 
@@ -201,11 +218,16 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     boundary ``checkpoint_seconds`` after the last call (neither: none on the way), and once more with the carry
     the loop ends with (stopped, finished or out of time) unless that one was just saved: what the caller does
     after the loop (evaluating, writing results and plots) may fail, and a resume then starts from the finished
-    carry instead of running chunks again."""
+    carry instead of running chunks again. ``save_at_end=False`` leaves that last call to a stopped loop (a
+    sweep's group saves its metrics, not its carry, once it has run: :mod:`jaxrobo.training.sweep.running`)."""
     done = last = None
     report = _caller_of(progress)
+    before: list[float] = [0.0, 0.0, 0.0]
     if read is not None:
-        done = float(host_get(read(carry))[0])
+        before = [float(x) for x in host_get(read(carry))] + [0.0]
+        done = before[0]
+        if before[2] != before[2]:  # a read without useful steps (NaN): nothing to subtract
+            before[2] = 0.0
 
     def finished(chunks_done: int) -> bool:
         return chunks_done >= n_chunks or (done is not None and total is not None and done >= total)
@@ -227,7 +249,8 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
             if report is not None:
                 report(Progress(chunks_done, n_chunks, int(done), total if total is not None else n_chunks, unit,
                                 last, values[2] if len(values) > 2 else float("nan"),
-                                chunks_done * slots_per_chunk, time.perf_counter() - t0))
+                                chunks_done * slots_per_chunk, time.perf_counter() - t0, int(before[0]),
+                                before[2] if len(values) > 2 else 0.0))
         due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
             checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
         if checkpoint is not None and due:
@@ -237,7 +260,7 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     seconds = time.perf_counter() - t0
     # A resumed carry that ran no chunk is its checkpoint already, unless a stop asks for one explicitly.
     unsaved = saved_at != chunks_done and (chunks_done > start_chunk or stopped)
-    if checkpoint is not None and unsaved:
+    if checkpoint is not None and unsaved and (save_at_end or stopped):
         checkpoint(carry, chunks_done)
     return ChunkRun(carry, chunks_done, done, stopped, seconds)
 
@@ -248,11 +271,12 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                  checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
                  checkpoint_seconds: float | None = None,
                  should_stop: Callable[[], bool] | None = None,
-                 announce: Callable[[str], None] | None = None) -> TrainResult:
+                 announce: Callable[[str], None] | None = None,
+                 eval_progress: Callable[[EvalProgress], None] | None = None) -> TrainResult:
     """Train with ``trainer`` from ``initial`` (a carry after ``start_chunk`` chunks; default: a fresh
     ``trainer.init``), then evaluate (unless stopped): the body of :func:`jaxrobo.training.train.train`, which runs it
     inside the trainer's plan's tracing block. The hooks are :func:`run_chunks`'s; ``announce(line)`` is told when
-    the evaluation starts."""
+    the evaluation starts, ``eval_progress`` after each segment of it (:func:`evaluate_tables`)."""
     env, config = trainer.env, trainer.config
     check_precision(env.name)  # x64 may have been switched on since the env was built; nothing is traced yet
     agent_params = agent_params or AgentParams()
@@ -285,7 +309,8 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
             announce(f"evaluating {tables} table(s) × {config.eval_episodes} greedy episodes ≤ "
                      f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
                      "(compile, then fly)")
-        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params)
+        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
+                                                                             eval_progress)
     eval_seconds = time.perf_counter() - t_eval
 
     host = host_get(runner.replace(key=None, env_state=None))
@@ -303,12 +328,85 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored)
 
 
-def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any
+@dataclasses.dataclass(frozen=True)
+class EvalProgress:
+    """Where a greedy evaluation stands after a segment of its steps (:func:`evaluate_tables`): ``what`` it flies
+    (``"tables"``: every evaluated table; ``"best table"``: the selected one on fresh episodes), ``step`` of
+    ``horizon`` steps done, ``running`` of ``episodes`` still running, ``seconds`` of flying so far (after
+    ``compile_seconds`` of compiling, which the ETA leaves out). The flight ends once no episode runs, so
+    :attr:`eta` is an upper bound."""
+
+    what: str
+    step: int
+    horizon: int
+    running: int
+    episodes: int
+    seconds: float
+    compile_seconds: float = 0.0
+
+    @property
+    def eta(self) -> float:
+        """Seconds left if every remaining step takes as long as the ones so far (0 once no episode runs)."""
+        if self.running == 0 or self.step >= self.horizon:
+            return 0.0
+        return self.seconds / max(self.step, 1) * (self.horizon - self.step)
+
+
+#: Segments a greedy evaluation's horizon is cut into (:func:`fly`): a progress report after each, and the
+#: flight ends at the first boundary after its last episode ended.
+EVAL_SEGMENTS = 10
+
+
+def fly(trainer: Trainer, keys: jax.Array, agents: Any, n_episodes: int, env_params: Any, *, over_tables: bool,
+        shared: bool = False, progress: Callable[[EvalProgress], None] | None = None,
+        what: str = "tables") -> dict[str, np.ndarray]:
+    """Greedy episodes (:meth:`~jaxrobo.training.trainer.Trainer.evaluate_episodes`'s outcomes, host arrays)
+    flown in :data:`EVAL_SEGMENTS` segments of the horizon (:func:`jaxrobo.task.rollout.rollout_advance`: the same
+    keys and steps, so the same numbers) with ``progress`` after each. ``over_tables``: ``keys`` and ``agents``
+    have a leading table axis (``shared``: one agent for every key, as a shared table is evaluated)."""
+    from jaxrobo.task import rollout
+
+    env = trainer.env
+    horizon = trainer.eval_horizon()
+    steps = -(-horizon // EVAL_SEGMENTS)
+
+    def start(k):
+        return rollout.rollout_start(env, k, n_episodes, env_params)
+
+    def advance(carry, agent, t0):
+        return rollout.rollout_advance(env, trainer.eval_policy(agent), carry, t0, steps, horizon, env_params)
+
+    if over_tables:
+        start, advance = jax.vmap(start), jax.vmap(advance, in_axes=(0, None if shared else 0, None))
+    t_compile = time.perf_counter()
+    carry = jax.jit(start)(keys)
+    # Compiled before the first segment (``t0``: a traced start step, one program for all), so the ETA is
+    # measured on flying alone.
+    advance = jax.jit(advance).lower(carry, agents, np.int32(0)).compile()
+    running = count = int(np.prod(carry["alive"].shape))
+    t0 = time.perf_counter()
+    compile_seconds = t0 - t_compile
+    step = 0
+    while step < horizon and running:
+        carry = advance(carry, agents, np.int32(step))
+        step = min(step + steps, horizon)
+        running = int(np.asarray(carry["alive"]).sum())  # the host waits for the segment here
+        if progress is not None:
+            progress(EvalProgress(what, step, horizon, running, count, time.perf_counter() - t0, compile_seconds))
+    return jax.device_get(rollout.outcomes(rollout.rollout_end(carry)))
+
+
+def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any,
+                    progress: Callable[[EvalProgress], None] | None = None
                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, np.ndarray | None]:
     """Greedy evaluation of the first ``eval_envs`` trained tables (the shared one: once), ``eval_episodes``
     each: ``(returns, lengths, selected, success)``, the first two ``[tables, eval_episodes]``. With several tables
-    the best one (by mean return) is evaluated again on fresh episodes (``selected``: its index, returns and
-    lengths), so its figure is not the maximum of noisy estimates. ``key`` is the run's key.
+    the best one is evaluated again on fresh episodes (``selected``: its index, returns and lengths), so its
+    figure is not the maximum of noisy estimates; "best" follows the task's learning target
+    (:func:`jaxrobo.task.env.ranking`: by success rate, return or length, in its direction). ``key`` is the run's
+    key.
+
+    Both flights go in segments (:func:`fly`): ``progress`` hears an :class:`EvalProgress` after each.
 
     ``success``: for a task whose learning target is a ``success_rate`` and whose task variables carry an
     ``arrived`` flag (QuadcopterGoto, ArmReach), whether each of those episodes arrived, ``[tables,
@@ -316,21 +414,22 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
     config = trainer.config
     n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
     tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
-    evaluate = jax.jit(jax.vmap(trainer.evaluate_episodes,
-                                in_axes=(0, 0 if not config.shared_table else None, None, None)), static_argnums=2)
     keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)
-    out = jax.device_get(evaluate(keys, tables, config.eval_episodes, env_params))
+    out = fly(trainer, keys, tables, config.eval_episodes, env_params, over_tables=True,
+              shared=config.shared_table, progress=progress)
     eval_returns, eval_lengths = np.asarray(out["return"]), np.asarray(out["length"])
     target = getattr(trainer.env, "learning_target", None)
     counts_success = target is not None and target.metric == "success_rate" and "arrived" in out
     success = np.asarray(out["arrived"]) if counts_success else None
     selected = None
     if n_eval > 1:
-        best = int(np.argmax(eval_returns.mean(axis=1)))
+        per_table = {"mean_return": eval_returns, "mean_length": eval_lengths,
+                     **({"success_rate": success} if success is not None else {})}
+        best = ranking(target).best_table(per_table)  # the summary's best table: the task's target decides
         table = jax.tree.map(lambda x: x[best], tables)
-        sel_returns, sel_lengths = jax.jit(trainer.evaluate, static_argnums=2)(
-            jax.random.fold_in(key, 2), table, config.eval_episodes, env_params)
-        selected = {"table": best, "returns": np.asarray(sel_returns), "lengths": np.asarray(sel_lengths)}
+        sel = fly(trainer, jax.random.fold_in(key, 2), table, config.eval_episodes, env_params, over_tables=False,
+                  progress=progress, what="best table")
+        selected = {"table": best, "returns": np.asarray(sel["return"]), "lengths": np.asarray(sel["length"])}
     return eval_returns, eval_lengths, selected, success
 
 

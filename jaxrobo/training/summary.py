@@ -1,9 +1,12 @@
 """What a training run produced: :class:`TrainResult` (host arrays) and its :meth:`~TrainResult.summary`.
 
-The summary holds the seed's figures (highest cumulated reward, overall mean length, mean of the best 100
+The summary holds the seed's figures (highest cumulated reward, overall mean length, mean of the 100 longest
 episodes), timings, the execution plan the run used, the greedy evaluation, and how many evaluated tables reach
 the task's declared learning target (:class:`jaxrobo.task.env.LearningTarget`: the task says what "learned" means,
-not the trainer). :func:`jaxrobo.io.results.save_run` writes it all to a run directory.
+not the trainer). Every "best" it picks (the best 100-episode window, the best table) follows that target's
+direction (:func:`jaxrobo.task.env.ranking`): for a minimum-time task the shortest episodes, not the longest; the
+seed's ``best_100_mean_length`` keeps its meaning (the longest) for the records that compare with it.
+:func:`jaxrobo.io.results.save_run` writes it all to a run directory.
 
 Public surface: :class:`TrainResult`.
 """
@@ -15,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo.tabular.learner import AgentParams
-from jaxrobo.task.env import LearningTarget
+from jaxrobo.task.env import LearningTarget, Ranking, ranking
 from jaxrobo.training.trainer import TrainConfig
 
 
@@ -98,6 +101,10 @@ class TrainResult:
                        "final_100_mean_return": float(self.returns[:, -100:].mean())}
         else:
             figures = _masked_figures(self.returns.astype(np.float64), lengths, mask)
+        rank = ranking(self.learning_target)
+        figure = self.returns if rank.episode_figure == "return" else self.lengths
+        figures[f"best_100_window_mean_{rank.episode_figure}"] = best_window(figure, mask, rank)
+        figures["best_ranked_by"] = rank.words
         c = self.config
         out = {
             "env_id": self.env_id,
@@ -134,20 +141,41 @@ class TrainResult:
         if self.eval_lengths is not None and self.eval_lengths.size:
             out["eval_mean_length"] = float(self.eval_lengths.mean())
             out["eval_mean_return"] = float(self.eval_returns.mean())
-            out["eval_best_table_mean_length"] = float(self.eval_lengths.mean(axis=1).max())
             per_table = {"mean_length": self.eval_lengths, "mean_return": self.eval_returns}
             if self.eval_success is not None and self.eval_success.size:
                 per_table["success_rate"] = self.eval_success
                 out["eval_success_rate"] = float(self.eval_success.mean())
-                out["eval_best_table_success_rate"] = float(self.eval_success.mean(axis=1).max())
+            # The best table by the task's target (the longest only where longer is better), and its figures.
+            best = rank.best_table(per_table)
+            out["eval_best_table"] = best
+            out["eval_best_table_mean_length"] = float(self.eval_lengths[best].mean())
+            out["eval_best_table_mean_return"] = float(self.eval_returns[best].mean())
+            if "success_rate" in per_table:
+                out["eval_best_table_success_rate"] = float(self.eval_success[best].mean())
             if target is not None and target.metric in per_table:
                 score = per_table[target.metric].astype(np.float64).mean(axis=1)
-                out[f"eval_share_of_tables_{target.name}"] = float((score >= target.threshold).mean())
+                out[f"eval_share_of_tables_{target.name}"] = float(target.reached(score).mean())
         if self.selected is not None:
             out["selected_table"] = self.selected["table"]
             out["selected_table_fresh_mean_length"] = float(self.selected["lengths"].mean())
             out["selected_table_fresh_mean_return"] = float(self.selected["returns"].mean())
         return out
+
+
+def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, window: int = 100) -> float:
+    """The best ``window``-episode moving mean of ``figure`` (``[n_envs, episodes]``) in each env, best by
+    ``rank``'s direction, averaged over envs; an env with fewer recorded episodes than ``window`` gives the
+    mean of all of them, one with none (``mask``: the recorded slots; None: all) is left out."""
+    best = []
+    for e, row in enumerate(np.asarray(figure, np.float64)):
+        kept = row if mask is None else row[mask[e]]
+        if kept.size == 0:
+            continue
+        w = min(window, kept.size)
+        sums = np.cumsum(np.concatenate([[0.0], kept]))
+        means = (sums[w:] - sums[:-w]) / w
+        best.append(means[rank.best_index(means)])
+    return float(np.mean(best)) if best else float("nan")
 
 
 def _masked_figures(returns: np.ndarray, lengths: np.ndarray, mask: np.ndarray) -> dict[str, float]:

@@ -402,9 +402,16 @@ class Trainer:
         """The episodes of :meth:`evaluate` (the same keys, so the same episodes) with how each ended, from the
         one rollout (:func:`jaxrobo.task.rollout.outcomes`)."""
         env_params = self.env.default_params if env_params is None else env_params
-        horizon = int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
-        return rollout.outcomes(rollout.rollout(self.env, rollout.greedy_policy(agent.q, self.disc), key, n_episodes,
-                                                horizon, env_params))
+        return rollout.outcomes(rollout.rollout(self.env, self.eval_policy(agent), key, n_episodes,
+                                                self.eval_horizon(max_steps), env_params))
+
+    def eval_policy(self, agent: AgentState) -> rollout.Policy:
+        """The greedy policy the evaluation flies with one table (ties broken at random by the step's key)."""
+        return rollout.greedy_policy(agent.q, self.disc)
+
+    def eval_horizon(self, max_steps: int | None = None) -> int:
+        """The evaluation's step cap per episode: ``max_steps``, else the env spec's ``max_episode_steps``."""
+        return int(max_steps or (self.env.spec.max_episode_steps if self.env.spec else 1000))
 
 
 def _everywhere(devices: int, tree: Any) -> Any:

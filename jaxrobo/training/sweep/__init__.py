@@ -20,11 +20,12 @@ with a single ``jaxrobo train`` run.
 
 Nothing is lost: ``--out`` is checked before anything compiles (an existing file, a non-empty directory without
 ``--overwrite``, a parent that cannot be written are refused, exit status 2). While the sweep runs, ``--out``
-holds its state: the settings and code versions (``sweep_state.json``) and the metrics of every finished group
-(``checkpoint.npz``, rewritten atomically after each group). Ctrl-C or SIGTERM abandons the group in progress
-(a compiled group cannot be split) and exits with 130 / 143; ``jaxrobo sweep --resume DIR`` reads the saved
-settings back, skips the finished groups and writes the same ``sweep.csv`` and ``summary.json`` as an
-uninterrupted sweep (timings aside). The results are written into a hidden sibling directory and replace the
+holds its state: the settings and code versions (``sweep_state.json``), the metrics of every finished group
+(``checkpoint.npz``, rewritten atomically after each group) and the carry of the group in progress
+(``group_<g>.npz``, every 5 minutes at a chunk boundary and when stopped). Ctrl-C or SIGTERM finishes the chunk
+in flight, saves that carry and exits with 130 / 143; ``jaxrobo sweep --resume DIR`` reads the saved settings
+back, skips the finished groups, goes on inside the saved group from its last chunk and writes the same
+``sweep.csv`` and ``summary.json`` as an uninterrupted sweep (timings aside). The results are written into a hidden sibling directory and replace the
 state in one rename, so a directory with a ``sweep.csv`` is always a whole sweep.
 
 One concern per module:

@@ -282,16 +282,18 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
             result = run_plan(plan, mesh, log=print, progress=None if getattr(args, "no_progress", False) else _chunk_line,
                               state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
-        except KeyboardInterrupt:  # a second Ctrl-C: the group in progress is dropped at once
+        except KeyboardInterrupt:  # a second Ctrl-C: the chunk in flight is dropped at once
             rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
-                               what=f"interrupted by SIGINT: the finished groups are saved in {saved_in}")
+                               what=f"interrupted by SIGINT: the finished groups (and the last saved carry of the "
+                                    f"group in progress, if any) are saved in {saved_in}")
             return 128 + signal.SIGINT
         except SweepInterrupted as err:
             name = stop.name or "a signal to another process"
             rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
                                finished_groups=err.done, groups=err.total,
-                               what=f"interrupted by {name}: {err.done} of {err.total} groups finished, saved in "
-                                    f"{saved_in}")
+                               **({"group_in_progress": err.partial[0] + 1, "group_chunks_done": err.partial[1],
+                                   "group_chunks": err.partial[2]} if err.partial else {}),
+                               what=f"interrupted by {name}: {err.where}, saved in {saved_in}")
             return 128 + (stop.signum or signal.SIGINT)
         except Exception as err:  # the finished groups are saved: say how to go on, then fail as before
             rundir.interrupted(owned, out=out, resume=resume_hint, prog="jaxrobo sweep", command="sweep",
@@ -310,7 +312,9 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
                "compile_seconds": sum(g["compile_seconds"] for g in result.groups),
                "run_seconds": sum(g["run_seconds"] for g in result.groups),
                "eval_seconds": sum(g.get("eval_seconds", 0.0) for g in result.groups),
-               "groups": result.groups, "best": best, "argv": argv}
+               "groups": result.groups, "best": best, "argv": argv,
+               # What "best" followed (the task's learning target), and what the window column is of.
+               "best_100_window_of": result.ranking.words}
     plots: list[str] = []
 
     def write(staged: str) -> None:
@@ -328,18 +332,19 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
           f"({summary['env_steps_per_second']:,.0f} steps/s incl. compile"
           + (f"; {summary['useful_share']:.1%} of the env slots useful)" if slots else ")"))
     print("best configuration: " + ", ".join(f"{k}={_fmt(best[k])}" for k in result.swept) +
-          f"  ({metric} {best['mean']:.1f} ± {best['std']:.1f} over {best['seeds']} seeds)")
+          f"  ({metric} {best['mean']:.1f} ± {best['std']:.1f} over {best['seeds']} seeds, "
+          f"{'higher' if best['higher'] else 'lower'} is better"
+          + (f"; best_100_window is of the {result.ranking.words})" if metric == "best_100_window" else ")"))
     print(f"results: {os.path.join(out, 'sweep.csv')}" + (f"; plots: {', '.join(plots)}" if plots else ""))
     return 0
 
 
 def _chunk_line(p: Any) -> None:
     """One line per chunk inside a group: the budget done (fewest of any row), useful share, speed and ETA."""
-    rate = p.done / p.seconds if p.seconds > 0 else 0.0
-    eta = (p.total - p.done) / rate if rate > 0 else float("nan")
+    eta = "?" if p.eta != p.eta else f"{p.eta:.0f} s"  # nothing of the budget done yet: no pace to go by
     print(f"    chunk {p.chunks_done}/{p.n_chunks}: {p.done:,}/{p.total:,} {p.unit} (fewest of any row), "
           f"last_return {p.last_return:.1f}, {p.useful_share:.0%} useful, "
-          f"{p.useful_steps / max(p.seconds, 1e-9):,.0f} steps/s, ETA {eta:.0f} s", flush=True)
+          f"{p.steps_per_second:,.0f} steps/s, ETA {eta}", flush=True)
 
 
 def main(argv: Sequence[str] | None = None, *, compiler_options: Mapping[str, Any] | None = None) -> int:

@@ -11,6 +11,7 @@ Public surface: :data:`METRICS`, :class:`SweepResult`, :class:`GroupRunner`, :fu
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from typing import Any, Callable, Mapping, Sequence
 
@@ -24,21 +25,53 @@ from jaxrobo.core.struct import rules
 from jaxrobo.training.sweep import state
 from jaxrobo.training.sweep.planning import SweepPlan, plan_sweep
 from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.task.env import Ranking, ranking
 from jaxrobo.training.trainer import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
 #: ``eval_success_rate``: the greedy episodes' success for a task whose learning target is a success rate.
+#: ``best_100_window``: each env's best 100-episode moving mean of the figure the task's learning target ranks
+#: by (:func:`jaxrobo.task.env.ranking`: return or length, best in its direction), averaged over envs;
+#: ``best_100_mean_length`` stays the seed's mean of the 100 longest episodes.
 METRICS = ("final_return", "final_length", "mean_length", "best_100_mean_length", "highest_reward",
            "episodes_done", "env_steps", "physics_nan_episodes", "eval_mean_length", "eval_mean_return",
-           "eval_success_rate")
+           "eval_success_rate", "best_100_window")
+
+#: Metrics where a lower value is better whatever the task (no direction from its learning target).
+_LOWER_IS_BETTER = ("physics_nan_episodes",)
+#: Metrics of episode lengths, whose direction is the target's when it ranks by length (a minimum-time task).
+_LENGTH_METRICS = ("final_length", "mean_length", "eval_mean_length")
+
+
+def higher_is_better(metric: str, rank: Ranking) -> bool:
+    """Which way ``metric`` improves for a task ranked by ``rank``: returns and success rates up; lengths the
+    way the target says when it ranks by length (else up: the seed's tasks are kept going); ``best_100_window``
+    the target's way; NaN episodes down; ``best_100_mean_length`` (the longest, by definition) up."""
+    if metric in _LOWER_IS_BETTER:
+        return False
+    if metric == "best_100_window" or (metric in _LENGTH_METRICS and rank.episode_figure == "length"):
+        return rank.higher
+    return True
 
 
 class SweepInterrupted(Exception):
-    """The sweep's stop hook fired; ``done`` of ``total`` groups are finished (and saved in ``state_dir``)."""
+    """The sweep's stop hook fired; ``done`` of ``total`` groups are finished (and saved in ``state_dir``);
+    ``partial``: ``(group, chunks_done, n_chunks)`` of the group in progress when its carry was saved at that
+    chunk boundary (a resume goes on from there), else None."""
 
-    def __init__(self, done: int, total: int, state_dir: str | None):
+    def __init__(self, done: int, total: int, state_dir: str | None,
+                 partial: tuple[int, int, int] | None = None):
         super().__init__(f"interrupted with {done} of {total} groups finished")
-        self.done, self.total, self.state_dir = done, total, state_dir
+        self.done, self.total, self.state_dir, self.partial = done, total, state_dir, partial
+
+    @property
+    def where(self) -> str:
+        """``"1 of 2 groups finished"`` and, with a saved carry, ``"; group 2 saved after chunk 3 of 9"``."""
+        out = f"{self.done} of {self.total} groups finished"
+        if self.partial is not None:
+            g, k, n = self.partial
+            out += f"; group {g + 1} saved after chunk {k} of {n}"
+        return out
 
 
 @dataclasses.dataclass
@@ -50,21 +83,25 @@ class SweepResult:
     rows: list[dict[str, Any]]
     groups: list[dict[str, Any]]
     wall_seconds: float
+    #: What "best" means for the task (its learning target's :class:`~jaxrobo.task.env.Ranking`).
+    ranking: Ranking = Ranking("length", "mean_length", True)
 
     @property
     def env_steps(self) -> int:
         return int(sum(r["env_steps"] for r in self.rows))
 
     def best(self, metric: str = "final_return") -> dict[str, Any]:
-        """The configuration with the highest mean of ``metric`` over its seeds."""
+        """The configuration with the best mean of ``metric`` over its seeds: the highest, or the lowest where
+        lower is better (:func:`higher_is_better`; ``higher`` in the answer says which)."""
         by_config: dict[int, list[dict[str, Any]]] = {}
         for r in self.rows:
             by_config.setdefault(r["config"], []).append(r)
+        higher = higher_is_better(metric, self.ranking)
         scored = [(float(np.mean([r[metric] for r in rs])), rs) for rs in by_config.values()]
-        score, rs = max(scored, key=lambda t: t[0])
+        score, rs = (max if higher else min)(scored, key=lambda t: t[0])
         out = {k: rs[0][k] for k in self.swept}
         out.update(config=rs[0]["config"], metric=metric, mean=score,
-                   std=float(np.std([r[metric] for r in rs])), seeds=len(rs))
+                   std=float(np.std([r[metric] for r in rs])), seeds=len(rs), higher=higher)
         return out
 
 
@@ -81,15 +118,39 @@ def _stack(trees: list[Any]) -> Any:
     return jax.tree.map(lambda *xs: _as_array(list(xs)), *trees)
 
 
-def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True) -> dict[str, jax.Array]:
+def _best_window(figure: jax.Array, count: jax.Array, rank: Ranking, window: int = 100) -> jax.Array:
+    """Per row, each env's best ``window``-episode moving mean of ``figure`` (``[rows, n_envs, episodes]``) over
+    its first ``count`` (``[rows, n_envs]``) recorded episodes, best in ``rank``'s direction, averaged over the
+    envs with any (an env with fewer than ``window`` gives the mean of all of its own):
+    :func:`jaxrobo.training.summary.best_window` on the device."""
+    nep = figure.shape[-1]
+    count = jnp.minimum(count, nep)[..., None]
+    w = jnp.maximum(jnp.minimum(window, count), 1)
+    sums = jnp.concatenate([jnp.zeros_like(figure[..., :1]), jnp.cumsum(figure, axis=-1)], axis=-1)
+    end = jnp.arange(nep) + 1  # a window ending after episode ``end - 1``
+    start = jnp.maximum(end - w, 0)
+    means = (jnp.take_along_axis(sums, jnp.broadcast_to(end, figure.shape), -1)
+             - jnp.take_along_axis(sums, start, -1)) / w
+    valid = (end >= w) & (end <= count)
+    best = (jnp.max(jnp.where(valid, means, -jnp.inf), axis=-1) if rank.higher
+            else jnp.min(jnp.where(valid, means, jnp.inf), axis=-1))
+    has = count[..., 0] > 0
+    return jnp.sum(jnp.where(has, best, 0.0), axis=-1) / jnp.maximum(jnp.sum(has, axis=-1), 1)
+
+
+def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True,
+                 rank: Ranking = Ranking("length", "mean_length", True)) -> dict[str, jax.Array]:
     """Per-row performance, reduced on the device (``runner`` leaves are ``[rows, n_envs, ...]``).
     ``every_slot_recorded``: the episode budget, where every env fills its ``nepisodes`` records; under a
     run-wide budget the envs record different numbers of episodes and each figure covers the recorded ones."""
-    if not every_slot_recorded:
-        return _row_metrics_recorded(runner, n_last)
     returns = runner.returns.astype(jnp.float32)
     lengths = runner.lengths.astype(jnp.float32)
     nep = returns.shape[-1]
+    figure = returns if rank.episode_figure == "return" else lengths
+    count = runner.episode if not every_slot_recorded else jnp.full(runner.episode.shape, nep)
+    window = {"best_100_window": _best_window(figure, count, rank)}
+    if not every_slot_recorded:
+        return {**_row_metrics_recorded(runner, n_last), **window}
     k = min(n_last, nep)
     best = jnp.sort(lengths, axis=-1)[..., -min(100, nep):]
     return {
@@ -101,6 +162,7 @@ def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True) 
         "episodes_done": runner.episode.min(axis=-1),
         "env_steps": runner.env_steps.sum(axis=-1),
         "physics_nan_episodes": runner.nan_episodes.sum(axis=-1),
+        **window,
     }
 
 
@@ -144,6 +206,8 @@ class GroupRunner:
         self.compile_seconds = self.run_seconds = self.eval_seconds = 0.0
         self.complete = False
         self.slot_steps = 0
+        self.start_chunk = 0  # the chunk a restored carry went on from (0: the group ran from its start)
+        self.restored_env_steps = 0  # the env steps of the rows that carry had run (another process timed them)
 
     def _init(self, key_data, agent_params, env_params):
         keys = jax.random.wrap_key_data(key_data)
@@ -153,7 +217,8 @@ class GroupRunner:
         return jax.vmap(self.trainer.run_chunk)(runner, agent_params, env_params)
 
     def _finish(self, runner, key_data, env_params):
-        out = _row_metrics(runner, self.n_last, self.trainer.budget == "episodes")
+        rank = ranking(getattr(self.trainer.env, "learning_target", None))
+        out = _row_metrics(runner, self.n_last, self.trainer.budget == "episodes", rank)
         if self.eval_episodes > 0:
             shared = self.trainer.config.shared_table
             table = runner.agent if shared else jax.tree.map(lambda x: x[:, 0], runner.agent)
@@ -169,11 +234,17 @@ class GroupRunner:
 
     def run(self, key_data: np.ndarray, agent_params: Any, env_params: Any,
             progress: Callable[..., None] | None = None,
-            max_seconds: float | None = None, stop: Callable[[], bool] | None = None) -> dict[str, np.ndarray]:
+            max_seconds: float | None = None, stop: Callable[[], bool] | None = None,
+            restore: Callable[[Any], tuple[Any, int] | None] | None = None,
+            checkpoint: driver.CheckpointFn | None = None,
+            checkpoint_seconds: float | None = None) -> dict[str, np.ndarray]:
         """Train every row to its last episode (or until ``max_seconds`` of running); per-row metrics as host
         arrays of length ``n_rows``. ``self.complete`` says whether every row finished. The chunk loop is the
-        host driver's (:func:`jaxrobo.training.driver.run_chunks`): ``stop`` is polled before every chunk; when it returns
-        True the group is abandoned with :class:`SweepInterrupted`."""
+        host driver's (:func:`jaxrobo.training.driver.run_chunks`): ``stop`` is polled before every chunk; when it
+        returns True the group is abandoned with :class:`SweepInterrupted`, after ``checkpoint(carry,
+        chunks_done)`` saved its carry. ``restore(fresh_carry)`` may give a saved ``(carry, chunks_done)`` to go
+        on from (the chunks are deterministic functions of the carry, so the rows end the same);
+        ``checkpoint`` is also called every ``checkpoint_seconds`` at a chunk boundary."""
         from jaxrobo.speed import sharding
 
         mesh, n = self.mesh, self.n_padded
@@ -191,14 +262,23 @@ class GroupRunner:
         stats = driver.compiled_progress(runner, self.trainer)
         jax.block_until_ready(runner)
         self.compile_seconds = time.perf_counter() - t0
+        start_chunk = 0
+        saved = restore(runner) if restore is not None else None
+        if saved is not None:  # the saved carry, placed as the fresh one is (its shapes were checked)
+            runner, start_chunk = jax.device_put(saved[0], jax.tree.map(lambda x: x.sharding, runner)), saved[1]
+        self.start_chunk = start_chunk
+        if saved is not None:
+            self.restored_env_steps = int(np.asarray(saved[0].env_steps, np.int64)[: self.n_rows].sum())
         t0 = time.perf_counter()
         total, unit = self.trainer.budget_total
         c = self.trainer.config
-        loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, self.trainer.max_chunks(), read=stats,
+        n_chunks = self.trainer.max_chunks()
+        loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, n_chunks, start_chunk=start_chunk, read=stats,
                                  total=total, progress=progress, should_stop=stop, max_seconds=max_seconds,
-                                 unit=unit, slots_per_chunk=float(c.chunk_steps) * c.n_envs * self.n_rows)
+                                 unit=unit, slots_per_chunk=float(c.chunk_steps) * c.n_envs * self.n_rows,
+                                 checkpoint=checkpoint, checkpoint_seconds=checkpoint_seconds, save_at_end=False)
         if loop.stopped:
-            raise SweepInterrupted(0, 1, None)
+            raise SweepInterrupted(0, 1, None, None if checkpoint is None else (0, loop.chunks_done, n_chunks))
         self.complete = loop.done >= total
         self.slot_steps = loop.chunks_done * c.chunk_steps * c.n_envs * self.n_rows
         self.run_seconds = loop.seconds
@@ -228,33 +308,46 @@ def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[
     return run_plan(plan, mesh, log, progress, state_dir, should_stop)
 
 
+#: Default cadence of a sweep's group carry: at the first chunk boundary this long after the last save (as
+#: ``jaxrobo train`` saves its carry), besides the save when the sweep is stopped.
+GROUP_CHECKPOINT_SECONDS = 300.0
+
+
 def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | None = None,
              progress: Callable[[int, int], None] | None = None, state_dir: str | None = None,
-             should_stop: Callable[[], bool] | None = None, state_extra: Mapping[str, Any] | None = None
-             ) -> SweepResult:
+             should_stop: Callable[[], bool] | None = None, state_extra: Mapping[str, Any] | None = None,
+             checkpoint_seconds: float | None = GROUP_CHECKPOINT_SECONDS) -> SweepResult:
     """Run a planned sweep, group by group.
 
-    ``state_dir`` makes the sweep resumable by finished groups: the sweep's settings, the code's versions and
-    their fingerprint go to ``state_dir/sweep_state.json`` before the first compile (with ``state_extra``, kept
-    but not compared), and the row metrics of every finished group to ``state_dir/checkpoint.npz`` (rewritten
-    atomically after each group; an empty one at the start). Running the same plan again on the same
-    ``state_dir`` skips the saved groups and gives the same rows; a state saved by other settings or other code
+    ``state_dir`` makes the sweep resumable: the sweep's settings, the code's versions and their fingerprint go
+    to ``state_dir/sweep_state.json`` before the first compile (with ``state_extra``, kept but not compared), the
+    row metrics of every finished group to ``state_dir/checkpoint.npz`` (rewritten atomically after each group;
+    an empty one at the start), and the carry of the group in progress to ``state_dir/group_<g>.npz`` every
+    ``checkpoint_seconds`` at a chunk boundary and when the sweep is stopped (removed once the group is
+    finished). Running the same plan again on the same ``state_dir`` skips the saved groups, goes on inside a
+    saved group from its last chunk, and gives the same rows; a state saved by other settings or other code
     raises :class:`ConfigError` before anything compiles. ``should_stop`` is polled before each group and before
-    each training chunk; when it returns True the sweep abandons the group it is in (a compiled group cannot be
-    split) and raises :class:`SweepInterrupted`, the finished groups staying saved. With several processes only
-    process 0 writes; the others read ``state_dir`` if they are given it (a shared file system).
+    each training chunk; when it returns True the sweep saves the carry of the group it is in and raises
+    :class:`SweepInterrupted`. With several processes only process 0 writes and the group carries are not
+    saved (a resumed group starts from its first chunk); the others read ``state_dir`` if they are given it (a
+    shared file system).
     """
     log = log or (lambda _msg: None)
     planned = plan.groups
     saved: dict[int, dict[str, Any]] = {}
     fingerprint = None
+    # A group's carry is saved and read by one process only (a sharded carry over several hosts is not).
+    carries = state_dir is not None and jax.process_count() == 1
     if state_dir is not None:
         opened = state.open_state(state_dir, plan, state_extra)
         fingerprint = opened["fingerprint"]
         saved = state.load_checkpoint(state_dir, plan, fingerprint)
-        if saved:
-            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}; the others "
-                "start from their first chunk (a compiled group is saved when it finishes, not chunk by chunk)")
+        in_progress = [g for g in range(len(planned))
+                       if g not in saved and os.path.exists(state.group_carry_path(state_dir, g))]
+        if saved or in_progress:
+            log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}"
+                + (f"; group {in_progress[0] + 1} goes on from its last saved chunk" if in_progress else "")
+                + ("" if carries else "; with several processes an unfinished group starts from its first chunk"))
         elif jax.process_index() == 0:
             state.save_checkpoint(state_dir, fingerprint, plan, saved)
 
@@ -280,29 +373,51 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                       }.get(trainer.budget, f"{spec.config.nepisodes} episodes")
             log(f"group {g + 1}/{len(planned)} [{label}]: {len(p.configs)} configs × {len(plan.seeds)} seeds × "
                 f"{spec.config.n_envs} envs, {budget} ≤ {spec.config.nsteps} steps")
+            hooks: dict[str, Any] = {}
+            if carries:
+                def restore(fresh: Any, g: int = g) -> tuple[Any, int] | None:
+                    got = state.load_group_carry(state_dir, fingerprint, g, fresh)
+                    if got is not None:
+                        log(f"  going on from chunk {got[1]} of {trainer.max_chunks()} (saved in "
+                            f"{state.group_carry_path(state_dir, g)})")
+                    return got
+
+                def save_carry(carry: Any, chunks_done: int, g: int = g) -> None:
+                    state.save_group_carry(state_dir, fingerprint, g, carry, chunks_done)
+
+                hooks = {"restore": restore, "checkpoint": save_carry, "checkpoint_seconds": checkpoint_seconds}
             try:
                 metrics = group.run(key_data, _stack(p.agent_list), _stack(p.env_list), progress, plan.max_seconds,
-                                    stop=should_stop)
-            except SweepInterrupted:
-                raise SweepInterrupted(len(saved), len(planned), state_dir) from None
+                                    stop=should_stop, **hooks)
+            except SweepInterrupted as err:
+                partial = None if err.partial is None else (g, *err.partial[1:])
+                raise SweepInterrupted(len(saved), len(planned), state_dir, partial) from None
             saved[g] = {"metrics": metrics, "compile_seconds": group.compile_seconds,
                         "run_seconds": group.run_seconds, "eval_seconds": group.eval_seconds,
+                        "start_chunk": group.start_chunk, "restored_env_steps": group.restored_env_steps,
                         "complete": group.complete,
                         "slot_steps": group.slot_steps}
             if state_dir is not None and jax.process_index() == 0:
                 state.save_checkpoint(state_dir, fingerprint, plan, saved)
+                if carries:  # the metrics are saved: the carry is no longer needed
+                    state.drop_group_carry(state_dir, g)
         done = saved[g]
         metrics = done["metrics"]
         steps = int(metrics["env_steps"].astype(np.int64).sum())
+        timed = steps - int(done.get("restored_env_steps", 0))  # this process's steps, those its seconds ran
         slots = float(done.get("slot_steps", 0.0))
         timings.append({"group": g, "static": dict(static), "rows": len(meta), "n_envs": spec.config.n_envs,
                         "compile_seconds": done["compile_seconds"], "run_seconds": done["run_seconds"],
                         "eval_seconds": done.get("eval_seconds", 0.0),
-                        "env_steps": steps, "env_steps_per_second": steps / max(done["run_seconds"], 1e-9),
+                        # A group resumed from its saved carry: its env steps include the chunks run before,
+                        # its seconds do not (they were another process's).
+                        **({"resumed_after_chunk": int(done["start_chunk"])} if done.get("start_chunk") else {}),
+                        "env_steps": steps, "env_steps_per_second": timed / max(done["run_seconds"], 1e-9),
                         "env_slots": slots, "useful_share": steps / slots if slots else None,
                         "complete": done["complete"]})
-        log(f"  compiled in {done['compile_seconds']:.1f} s; {steps:,} env steps in {done['run_seconds']:.1f} s "
-            f"({steps / max(done['run_seconds'], 1e-9):,.0f} steps/s)"
+        log(f"  compiled in {done['compile_seconds']:.1f} s; {timed:,} env steps in {done['run_seconds']:.1f} s "
+            f"({timed / max(done['run_seconds'], 1e-9):,.0f} steps/s)"
+            + (f", {steps - timed:,} more restored from chunk {done['start_chunk']}" if steps != timed else "")
             + (f"; {steps / slots:.1%} of the env slots useful" if slots else "")
             + f"; evaluated in {done.get('eval_seconds', 0.0):.1f} s")
         for r, (i, s, ap) in enumerate(meta):
@@ -314,4 +429,5 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                 row[m] = int(v) if np.issubdtype(values.dtype, np.integer) else float(v)
             rows.append(row)
     rows.sort(key=lambda r: (r["config"], r["seed"]))
-    return SweepResult(plan.env_id, plan.swept, rows, timings, time.perf_counter() - t_all)
+    target = getattr(planned[0].spec.env, "learning_target", None) if planned else None
+    return SweepResult(plan.env_id, plan.swept, rows, timings, time.perf_counter() - t_all, ranking(target))

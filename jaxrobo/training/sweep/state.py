@@ -3,10 +3,15 @@
 While a sweep runs, its state directory holds ``sweep_state.json`` (the settings of the
 :class:`~jaxrobo.training.sweep.planning.SweepPlan`, the code's versions and their fingerprint: :func:`open_state`) and
 ``checkpoint.npz`` (the row metrics of every finished group: :func:`save_checkpoint`, read back by
-:func:`load_checkpoint`). A state saved by other settings or other code is refused, naming what differs.
+:func:`load_checkpoint`) and, for the group in progress, ``group_<g>.npz``: its whole carry (every row's tables,
+envs and records) at a chunk boundary (:func:`save_group_carry`, :func:`load_group_carry`), so that a resumed
+sweep goes on inside that group from its last saved chunk. A state saved by other settings or other code is
+refused, naming what differs; a group carry is read as a hostile file (:func:`jaxrobo.io.npz.read_npz`) and
+checked against the sweep's fingerprint, the group and the carry's shapes before it is used.
 
 Public surface: :data:`STATE_FILE`, :data:`STATE_FORMAT`, :func:`code_version`, :func:`read_state`,
-:func:`open_state`, :func:`save_checkpoint`, :func:`load_checkpoint`.
+:func:`open_state`, :func:`save_checkpoint`, :func:`load_checkpoint`, :func:`group_carry_path`,
+:func:`save_group_carry`, :func:`load_group_carry`, :func:`drop_group_carry`.
 """
 from __future__ import annotations
 
@@ -97,7 +102,8 @@ def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished:
         p = plan.groups[g]
         arrays[f"g{g}_config"] = np.asarray([i for i, _, _ in p.meta], np.int64)
         arrays[f"g{g}_seed"] = np.asarray([s for _, s, _ in p.meta], np.int64)
-        for k in ("compile_seconds", "run_seconds", "eval_seconds", "slot_steps"):
+        for k in ("compile_seconds", "run_seconds", "eval_seconds", "slot_steps", "start_chunk",
+                  "restored_env_steps"):
             arrays[f"g{g}_{k}"] = np.asarray(done.get(k, 0.0), np.float64)
         arrays[f"g{g}_complete"] = np.asarray(bool(done["complete"]))
         arrays.update({f"g{g}_metric_{k}": np.asarray(v) for k, v in done["metrics"].items()})
@@ -132,10 +138,52 @@ def load_checkpoint(state_dir: str, plan: SweepPlan, fingerprint: str) -> dict[i
             out[g] = {"metrics": metrics, "compile_seconds": float(data[f"g{g}_compile_seconds"]),
                       "run_seconds": float(data[f"g{g}_run_seconds"]), "complete": bool(data[f"g{g}_complete"]),
                       "slot_steps": float(data.get(f"g{g}_slot_steps", 0.0)),
-                      "eval_seconds": float(data.get(f"g{g}_eval_seconds", 0.0))}
+                      "eval_seconds": float(data.get(f"g{g}_eval_seconds", 0.0)),
+                      "start_chunk": int(data.get(f"g{g}_start_chunk", 0)),
+                      "restored_env_steps": int(data.get(f"g{g}_restored_env_steps", 0))}
     except (KeyError, ValueError, TypeError) as err:
         if isinstance(err, ConfigError):
             raise
         raise ConfigError(f"{path}: not a checkpoint of this sweep ({type(err).__name__}: {err}); start it again "
                           "with --overwrite") from None
     return out
+
+
+# ---- the carry of the group in progress ---------------------------------------------------------------------------
+def group_carry_path(state_dir: str, group: int) -> str:
+    """Where group ``group``'s carry is saved while it runs (``group_<g>.npz`` beside ``checkpoint.npz``)."""
+    return os.path.join(state_dir, f"group_{int(group)}.npz")
+
+
+def _carry_fingerprint(fingerprint: str, group: int, carry: Any) -> dict[str, Any]:
+    """What a group's carry must match: the sweep's fingerprint (settings and code), the group, and the carry's
+    structure and leaf shapes (:func:`jaxrobo.training.checkpoint.carry_fingerprint`)."""
+    return checkpoint.carry_fingerprint(carry, {"sweep": fingerprint, "group": int(group)})
+
+
+def save_group_carry(state_dir: str, fingerprint: str, group: int, carry: Any, chunks_done: int) -> None:
+    """Group ``group``'s carry after ``chunks_done`` chunks to :func:`group_carry_path`, atomically
+    (:func:`jaxrobo.training.checkpoint.save_checkpoint`: plain arrays, keys as their data)."""
+    checkpoint.save_checkpoint(group_carry_path(state_dir, group), carry, chunks_done,
+                               _carry_fingerprint(fingerprint, group, carry))
+
+
+def load_group_carry(state_dir: str, fingerprint: str, group: int, template: Any) -> tuple[Any, int] | None:
+    """Group ``group``'s saved carry and its chunk count, or None when none is saved. ``template``: a carry of
+    the group's structure (its fresh ``init``). A file that is unreadable, of another sweep, group or carry
+    shape raises :class:`ConfigError` naming it, and how to start the group over."""
+    path = group_carry_path(state_dir, group)
+    if not os.path.exists(path):
+        return None
+    try:
+        return checkpoint.load_checkpoint(path, template, _carry_fingerprint(fingerprint, group, template))
+    except ConfigError as err:
+        raise ConfigError(f"{err} (remove {path} to run group {group + 1} from its first chunk)") from None
+
+
+def drop_group_carry(state_dir: str, group: int) -> None:
+    """Remove group ``group``'s carry once its metrics are saved (the group is finished)."""
+    try:
+        os.remove(group_carry_path(state_dir, group))
+    except FileNotFoundError:
+        pass
