@@ -33,6 +33,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxrobo.task.env import ranking  # noqa: E402
 from jaxrobo.training import driver  # noqa: E402
 from jaxrobo.training.run import resolve  # noqa: E402
 from jaxrobo.training.trainer import Trainer  # noqa: E402
@@ -70,15 +71,17 @@ def train_population(env_id: str, runs: int, seed_base: int, overrides: dict) ->
     t1 = time.perf_counter()
     scores = judge(trainer, runner.agent, seeds, ep, target)
     scores = np.asarray(scores)
+    higher = ranking(target).higher
+    met = scores >= target.threshold if higher else scores <= target.threshold
     chunks = loop.chunks_done
     slots = chunks * config.chunk_steps * config.n_envs
     return {"target": target.description, "metric": target.metric, "threshold": float(target.threshold),
             "n_envs": config.n_envs, "chunk_steps": config.chunk_steps, "nepisodes": config.nepisodes, "total_steps": config.total_steps,
             "budget": trainer.budget, "seeds": seeds, "score": [round(float(s), 4) for s in scores],
-            "met": [bool(s >= target.threshold) for s in scores], "env_steps": env_steps.tolist(),
+            "met": [bool(m) for m in met], "env_steps": env_steps.tolist(),
             "useful_share": [round(float(s) / slots, 4) for s in env_steps],
-            "median_score": float(np.median(scores)), "worst_score": float(scores.min()),
-            "share_met": float((scores >= target.threshold).mean()),
+            "median_score": float(np.median(scores)),
+            "worst_score": float(scores.min() if higher else scores.max()), "share_met": float(met.mean()),
             "train_seconds": round(train_s, 2), "eval_seconds": round(time.perf_counter() - t1, 2),
             "execution_plan": repr(plan)}
 
@@ -101,7 +104,8 @@ def judge(trainer: Trainer, agent, seeds: list[int], env_params, target) -> list
     if "arrived" in out:
         per_table["success_rate"] = np.asarray(out["arrived"])
     if n_eval > 1 and target.metric in ("mean_length", "mean_return"):
-        best = per_table["mean_return"].mean(axis=2).argmax(axis=1)  # [runs]
+        rank = ranking(target)  # the driver's choice of the best table, run by run
+        best = np.asarray([rank.best_table({k: v[i] for k, v in per_table.items()}) for i in range(len(seeds))])
         chosen = jax.tree.map(lambda x: x[np.arange(len(seeds)), best], tables)
         fresh = jnp.stack([jax.random.fold_in(k, 2) for k in run_keys])
         returns, lengths = jax.device_get(jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0, None, None)),
@@ -109,7 +113,8 @@ def judge(trainer: Trainer, agent, seeds: list[int], env_params, target) -> list
         figure = np.asarray(lengths if target.metric == "mean_length" else returns)
         return [float(v) for v in figure.astype(np.float64).mean(axis=1)]
     # the shared table, or the best evaluated table by the target's own figure
-    return [float(v) for v in per_table[target.metric].astype(np.float64).mean(axis=2).max(axis=1)]
+    figure = per_table[target.metric].astype(np.float64).mean(axis=2)
+    return [float(v) for v in (figure.max(axis=1) if ranking(target).higher else figure.min(axis=1))]
 
 
 def main(argv=None) -> int:
