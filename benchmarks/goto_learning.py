@@ -1,15 +1,18 @@
 """Does the Goto task learn in every run? Train independent runs at once, fly each on fresh goals, report the median.
 
 Each run is the env's default preset (one table shared by ``n_envs`` environments); ``--runs`` of them train side
-by side as one vmapped computation, each from its own seed (0 .. runs-1). Every run's own greedy table then
-flies the same ``--episodes`` *fresh* random goals (obstacle present, a key no run trained on): the headline is
-the **median over runs** of that arrival rate, with every run listed and the min / max. A secondary line keeps
-the older best-of-population figure (the run best on ``--select-episodes`` selection goals, re-flown on the
-fresh goals), which says what selection can reach, not what one run does.
+by side as one vmapped computation, each from its own seed (``--seed-base`` .. ``--seed-base`` + runs - 1, or
+the list ``--seeds``). Every run's own greedy table then flies the same ``--episodes`` *fresh* random goals
+(obstacle present, a key no run trained on): the headline is the **median over runs** of that arrival rate, with
+every run listed, the min / max and the worst seeds. A secondary line keeps the older best-of-population figure
+(the run best on ``--select-episodes`` selection goals, re-flown on the fresh goals), which says what selection
+can reach, not what one run does.
 
     python benchmarks/goto_learning.py --env QuadcopterGoto-v2 --runs 16      # CPU or GPU
     python benchmarks/goto_learning.py --env QuadcopterGoto-v1 --runs 32      # the original task
     python benchmarks/goto_learning.py --fused pallas                          # the same runs through the kernel
+    python benchmarks/goto_learning.py --runs 64 --seed-base 1000              # prints the worst seeds
+    python benchmarks/goto_learning.py --seeds 1015,1051                       # retrain chosen seeds
 
 ``--fused pallas``: train under ``ExecutionPlan(fused="pallas")`` with the task's whole step as one kernel where it
 has one (``task_kernel``), which the presets' small batches do not get by default, so that the learning of the
@@ -52,8 +55,8 @@ def spread(rates) -> dict[str, float]:
 def train_population(env_id: str, runs: int, overrides: dict, fused: str = "default", seed_base: int = 0,
                      seeds: list[int] | None = None) -> tuple[object, object, np.ndarray, float]:
     """Train ``runs`` independent runs of ``env_id``'s default preset (seeds seed_base..seed_base+runs-1, or the
-    list ``seeds``) as one vmapped computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds include the compile). ``fused``:
-    ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that choice; ``pallas`` with the task's kernel
+    list ``seeds``) as one vmapped computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds
+    include the compile). ``fused``: ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that choice; ``pallas`` with the task's kernel
     where it has one)."""
     from jaxrobo.speed.plan import ExecutionPlan, task_kernel
 
@@ -108,9 +111,15 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None,
                     help="JSON path (default benchmarks/results/<device>/goto_learning_<env>.json)")
     args = ap.parse_args(argv)
-    seeds = list(range(args.seed_base, args.seed_base + args.runs)) if args.seeds is None else \
-        [int(s) for s in args.seeds.split(",") if s.strip()]
-    if args.seeds is not None:
+    if args.seeds is None:
+        seeds = list(range(args.seed_base, args.seed_base + args.runs))
+    else:
+        try:
+            seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+        except ValueError:
+            ap.error(f"--seeds takes whole numbers separated by commas (got {args.seeds!r})")
+        if not seeds:
+            ap.error("--seeds names no seed")
         args.runs = len(seeds)
     for name in ("runs", "episodes", "select_episodes"):
         if getattr(args, name) < 1:

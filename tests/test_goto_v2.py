@@ -102,3 +102,10 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     assert all(per_run[data["seeds"].index(w["seed"])] == w["fresh_success"] for w in worst)
     printed = capsys.readouterr().out
     assert "MEDIAN" in printed and "secondary, best of population" in printed and "WORST seeds" in printed
+    # --seeds retrains chosen seeds (e.g. a larger run's worst): each run depends on its own seed only.
+    again = tmp_path / "again.json"
+    assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--seeds", "9,7", "--episodes", "5",
+                               "--select-episodes", "3", "--out", str(again), *sets]) == 0
+    chosen = json.loads(again.read_text())
+    assert chosen["seeds"] == [9, 7] and chosen["runs"] == 2
+    assert chosen["fresh_success_per_run"] == [per_run[2], per_run[0]]
