@@ -56,8 +56,8 @@ def train_population(env_id: str, runs: int, overrides: dict, fused: str = "defa
                      seeds: list[int] | None = None) -> tuple[object, object, np.ndarray, float]:
     """Train ``runs`` independent runs of ``env_id``'s default preset (seeds seed_base..seed_base+runs-1, or the
     list ``seeds``) as one vmapped computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds
-    include the compile). ``fused``: ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that choice; ``pallas`` with the task's kernel
-    where it has one)."""
+    include the compile). ``fused``: ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that
+    choice; ``pallas`` with the task's kernel where it has one)."""
     from jaxrobo.speed.plan import ExecutionPlan, task_kernel
 
     spec = resolve(env_id, overrides={"eval_episodes": 0, **overrides})
