@@ -1,15 +1,18 @@
 """Does the Goto task learn in every run? Train independent runs at once, fly each on fresh goals, report the median.
 
 Each run is the env's default preset (one table shared by ``n_envs`` environments); ``--runs`` of them train side
-by side as one vmapped computation, each from its own seed (0 .. runs-1). Every run's own greedy table then
-flies the same ``--episodes`` *fresh* random goals (obstacle present, a key no run trained on): the headline is
-the **median over runs** of that arrival rate, with every run listed and the min / max. A secondary line keeps
-the older best-of-population figure (the run best on ``--select-episodes`` selection goals, re-flown on the
-fresh goals), which says what selection can reach, not what one run does.
+by side as one vmapped computation, each from its own seed (``--seed-base`` .. ``--seed-base`` + runs - 1, or
+the list ``--seeds``). Every run's own greedy table then flies the same ``--episodes`` *fresh* random goals
+(obstacle present, a key no run trained on): the headline is the **median over runs** of that arrival rate, with
+every run listed, the min / max and the worst seeds. A secondary line keeps the older best-of-population figure
+(the run best on ``--select-episodes`` selection goals, re-flown on the fresh goals), which says what selection
+can reach, not what one run does.
 
     python benchmarks/goto_learning.py --env QuadcopterGoto-v2 --runs 16      # CPU or GPU
     python benchmarks/goto_learning.py --env QuadcopterGoto-v1 --runs 32      # the original task
     python benchmarks/goto_learning.py --fused pallas                          # the same runs through the kernel
+    python benchmarks/goto_learning.py --runs 64 --seed-base 1000              # prints the worst seeds
+    python benchmarks/goto_learning.py --seeds 1015,1051                       # retrain chosen seeds
 
 ``--fused pallas``: train under ``ExecutionPlan(fused="pallas")`` with the task's whole step as one kernel where it
 has one (``task_kernel``), which the presets' small batches do not get by default, so that the learning of the
@@ -49,12 +52,12 @@ def spread(rates) -> dict[str, float]:
             "share_of_runs_at_target": float((r >= TARGET).mean())}
 
 
-def train_population(env_id: str, runs: int, overrides: dict, fused: str = "default", seed_base: int = 0
-                     ) -> tuple[object, object, np.ndarray, float]:
-    """Train ``runs`` independent runs of ``env_id``'s default preset (seeds seed_base..seed_base+runs-1) as one vmapped
-    computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds include the compile). ``fused``:
-    ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that choice; ``pallas`` with the task's kernel
-    where it has one)."""
+def train_population(env_id: str, runs: int, overrides: dict, fused: str = "default", seed_base: int = 0,
+                     seeds: list[int] | None = None) -> tuple[object, object, np.ndarray, float]:
+    """Train ``runs`` independent runs of ``env_id``'s default preset (seeds seed_base..seed_base+runs-1, or the
+    list ``seeds``) as one vmapped computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds
+    include the compile). ``fused``: ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that
+    choice; ``pallas`` with the task's kernel where it has one)."""
     from jaxrobo.speed.plan import ExecutionPlan, task_kernel
 
     spec = resolve(env_id, overrides={"eval_episodes": 0, **overrides})
@@ -64,7 +67,8 @@ def train_population(env_id: str, runs: int, overrides: dict, fused: str = "defa
     if fused != "default":
         plan = plan.replace(fused=fused, task_kernel=fused == "pallas" and task_kernel(spec.env))
     trainer = Trainer(spec.env, spec.config, plan=plan)
-    keys = jnp.stack([jax.random.key(s) for s in range(seed_base, seed_base + runs)])
+    seeds = list(range(seed_base, seed_base + runs)) if seeds is None else list(seeds)
+    keys = jnp.stack([jax.random.key(s) for s in seeds])
     t0 = time.perf_counter()
     ap_, ep = spec.agent_params, spec.env.default_params
     runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
@@ -95,6 +99,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed-base", type=int, default=0,
                     help="first seed (each run's seed is that of `jaxrobo train --seed S`); e.g. 1000 for seeds "
                          "nobody tuned on")
+    ap.add_argument("--seeds", default=None, metavar="S1,S2,...",
+                    help="train exactly these seeds (comma-separated; replaces --runs and --seed-base), e.g. the "
+                         "worst seeds of a larger run")
     ap.add_argument("--episodes", type=int, default=200, help="fresh evaluation goals flown by every run's table")
     ap.add_argument("--select-episodes", type=int, default=100,
                     help="selection goals for the secondary best-of-population line")
@@ -104,13 +111,23 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None,
                     help="JSON path (default benchmarks/results/<device>/goto_learning_<env>.json)")
     args = ap.parse_args(argv)
+    if args.seeds is None:
+        seeds = list(range(args.seed_base, args.seed_base + args.runs))
+    else:
+        try:
+            seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+        except ValueError:
+            ap.error(f"--seeds takes whole numbers separated by commas (got {args.seeds!r})")
+        if not seeds:
+            ap.error("--seeds names no seed")
+        args.runs = len(seeds)
     for name in ("runs", "episodes", "select_episodes"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
     from jaxrobo.core.config import parse_overrides
 
     spec, trainer, q, train_s = train_population(args.env, args.runs, parse_overrides(args.set), args.fused,
-                                                 args.seed_base)
+                                                 seeds=seeds)
     env, disc = spec.env, trainer.disc
     fresh = evaluate(env, disc, q, jax.random.key(FRESH_KEY), args.episodes)
     select = evaluate(env, disc, q, jax.random.key(10_000), args.select_episodes)
@@ -123,7 +140,7 @@ def main(argv=None) -> int:
            "execution_plan": repr(trainer.plan),
            "train_seconds": round(train_s, 2),
            "fresh_success": {k: r3(v) for k, v in spread(fresh["success"]).items()},
-           "seeds": list(range(args.seed_base, args.seed_base + args.runs)),
+           "seeds": seeds,
            "overrides": args.set,
            "fresh_success_per_run": [r3(v) for v in fresh["success"]],
            "fresh_failure_per_run": [r3(v) for v in fresh["failure"]],
@@ -137,7 +154,7 @@ def main(argv=None) -> int:
     print("fresh-goal arrival rate per run: " + " ".join(f"{v:.3f}" for v in out["fresh_success_per_run"]))
     print(f"MEDIAN {s['median']:.3f}  (min {s['min']:.3f}, max {s['max']:.3f}; "
           f"{s['share_of_runs_at_target']:.0%} of runs >= {TARGET:.0%})")
-    order = np.argsort(fresh["success"], kind="stable")[:5]
+    order = np.argsort(fresh["success"], kind="stable")[:8]
     worst = [(out["seeds"][i], float(fresh["success"][i])) for i in order]
     out["worst_seeds"] = [{"seed": sd, "fresh_success": r3(v)} for sd, v in worst]
     print("WORST seeds (fresh-goal arrival rate): " + ", ".join(f"seed {sd} {v:.3f}" for sd, v in worst))

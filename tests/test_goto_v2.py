@@ -55,6 +55,28 @@ def test_goal_clear_sees_the_grown_obstacle_on_the_way_and_ignores_one_beyond_th
     assert obs.shape == (8,) and bool(jnp.all(jnp.isfinite(obs)))
 
 
+def test_goal_dz_is_read_where_the_climb_stops():
+    """goal_dz - dz_lead x vertical velocity: after an "up" step the observed goal_dz is the one the drone settles
+    at once it levels off (the velocity loop's lag), within a few cm."""
+    env = jaxrobo.make("QuadcopterGoto-v2")
+    p = env.default_params
+    state = env.reset(jax.random.key(0), p)
+    z = lambda s: float(env.robot.read_sensors(s.pipeline_state)["pos"][2])  # noqa: E731
+    vz = lambda s: float(env.robot.read_sensors(s.pipeline_state)["vel"][2])  # noqa: E731
+    goal_z = float(state.task.goal[2])
+    assert float(state.obs[2]) == pytest.approx(goal_z - z(state), abs=1e-5)  # at rest: the drone's own
+    up = env.step(state, jnp.int32(3), p)
+    assert vz(up) > 0.5
+    assert float(up.obs[2]) == pytest.approx(goal_z - z(up) - float(p.dz_lead) * vz(up), abs=1e-5)
+    settled = up
+    for _ in range(4):  # "forward" commands no climb: the drone levels off
+        settled = env.step(settled, jnp.int32(0), p)
+    assert abs(vz(settled)) < 0.05
+    assert float(up.obs[2]) == pytest.approx(goal_z - z(settled), abs=0.03)
+    v1_dz = env.step(state, jnp.int32(3), p.replace(dz_lead=0.0)).obs[2]  # dz_lead 0: v1's goal_dz
+    assert float(v1_dz) == pytest.approx(goal_z - z(up), abs=1e-5)
+
+
 def test_tiny_train_summary_has_the_greedy_arrival_rate():
     from jaxrobo.training.run import resolve
     from jaxrobo.training.train import train
@@ -102,3 +124,10 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     assert all(per_run[data["seeds"].index(w["seed"])] == w["fresh_success"] for w in worst)
     printed = capsys.readouterr().out
     assert "MEDIAN" in printed and "secondary, best of population" in printed and "WORST seeds" in printed
+    # --seeds retrains chosen seeds (e.g. a larger run's worst): each run depends on its own seed only.
+    again = tmp_path / "again.json"
+    assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--seeds", "9,7", "--episodes", "5",
+                               "--select-episodes", "3", "--out", str(again), *sets]) == 0
+    chosen = json.loads(again.read_text())
+    assert chosen["seeds"] == [9, 7] and chosen["runs"] == 2
+    assert chosen["fresh_success_per_run"] == [per_run[2], per_run[0]]

@@ -58,8 +58,9 @@ UNROLL_OBSTACLES = 2
 #: The parameters (:class:`envs.quadcopter.goto.Params`) a step reads, in the order of the kernel's vector.
 V1_PARAMS = ("speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius",
              "sonar_range", "progress_reward", "step_cost", "altitude_cost", "arrival_bonus", "crash_penalty")
-#: v2's (:class:`envs.quadcopter.goto_v2.Params`): v1's and the goal_clear margin and the two shaping weights.
-V2_PARAMS = V1_PARAMS + ("clear_margin", "heading_reward", "climb_reward")
+#: v2's (:class:`envs.quadcopter.goto_v2.Params`): v1's, the goal_clear margin, the two shaping weights and the
+#: lead of goal_dz.
+V2_PARAMS = V1_PARAMS + ("clear_margin", "heading_reward", "climb_reward", "dz_lead")
 #: The hooks whose meaning the kernel holds: a subclass overriding one of them gets no kernel.
 HOOKS = ("step", "_set_action", "_get_obs", "_sonar", "_goal_clear", "_outcome", "_is_done", "_compute_reward")
 
@@ -257,7 +258,8 @@ def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, ol
             nearest = one(i, nearest)
     pz = pos[2]
     sonar_range = p["sonar_range"]
-    obs = [dist, bearing, delta[2]]
+    # v2's goal_dz is read where the climb stops: v[2] is the world vertical velocity (qvel's linear part).
+    obs = [dist, bearing, delta[2] - p["dz_lead"] * v[2] if layout.v2 else delta[2]]
     for d, t in zip(rays, nearest):
         ground = jnp.where(pz > 0, pz, 0.0) if d[2] is not None else jnp.where(pz <= 0, 0.0, _INF)
         obs.append(jnp.minimum(jnp.minimum(ground, t), sonar_range))
@@ -276,7 +278,7 @@ def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, ol
               + jnp.where(arrived, p["arrival_bonus"], 0.0) - jnp.where(failed, p["crash_penalty"], 0.0))
     new_task = {"prev_dist": dist, "arrived": task["arrived"] | arrived, "crashed": task["crashed"] | failed}
     if layout.v2:
-        b_abs, dz_abs = jnp.abs(bearing), jnp.abs(delta[2])
+        b_abs, dz_abs = jnp.abs(bearing), jnp.abs(obs[2])
         reward = reward + (p["heading_reward"] * (task["prev_bearing"] - b_abs)
                            + p["climb_reward"] * (task["prev_dz"] - dz_abs))
         new_task.update(prev_bearing=b_abs, prev_dz=dz_abs)

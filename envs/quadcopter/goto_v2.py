@@ -11,7 +11,11 @@ Observation  v1's seven values plus ``goal_clear`` (m): how far the straight fli
              ``sonar_range``; an obstacle beyond the goal does not count (free up to the goal reads
              ``sonar_range``). v1's forward sonar looks along the heading only: whether to head for the goal or
              go round the obstacle depended on where the drone had been, which a memoryless table cannot hold;
-             ``goal_clear`` makes that choice a function of the state.
+             ``goal_clear`` makes that choice a function of the state. ``goal_dz`` is read where the current
+             climb or descent stops, ``goal_dz - dz_lead * vz`` (``dz_lead`` 0.25 s, the vertical velocity
+             loop's time constant): an "up" or "down" step goes on for ~0.17 m after its command ends, and a
+             table that sees no velocity mistook that motion for standing still, so greedy flights cycled
+             up/down across the level band 1-1.5 m from the goal (v1's ``goal_dz`` is the drone's own).
 Reward       v1's terms with three changes. ``crash_penalty`` 150 (v1 50): at 50 a crash cost less than the
              steps of a detour (``step_cost`` 2 each), so diving into the obstacle or the ground was the cheap way
              out of a hard start. ``altitude_cost`` 0 (v1 0.5 per m and step): the table sees altitude only as
@@ -20,10 +24,13 @@ Reward       v1's terms with three changes. ``crash_penalty`` 150 (v1 50): at 50
              they sum to zero and a loop still costs its steps): ``heading_reward`` per rad the goal bearing's
              magnitude shrank and ``climb_reward`` per m ``|goal_dz|`` shrank: turning or climbing towards the
              goal pays at once, instead of only through the progress a later forward step makes, which aliased
-             bins blurred into left/right and up/down cycles.
+             bins blurred into left/right and up/down cycles. ``climb_reward``'s potential is the observed
+             ``goal_dz`` (where the climb stops), so a climb pays when commanded, not a step later.
 Discretiser  ``state_bounds`` cover ``goal_clear`` like the sonars (``sonar_bound``); the agent preset
-             (``agents/configs/quadcopter_goto_v2.yaml``) cuts every dimension at explicit edges.
-Parameters   :class:`Params` adds ``clear_margin``, ``heading_reward``, ``climb_reward``; the rest (and
+             (``agents/configs/quadcopter_goto_v2.yaml``) cuts every dimension at explicit edges and learns
+             with ``alpha`` 0.05 (not 0.2), so that the table frozen after training does not keep a greedy
+             choice that the last updates were still swapping between close action values.
+Parameters   :class:`Params` adds ``clear_margin``, ``heading_reward``, ``climb_reward``, ``dz_lead``; the rest (and
              :class:`Options`) as v1's.
 """
 from __future__ import annotations
@@ -57,6 +64,9 @@ class Params(V1Params):
                                   doc="per rad the goal bearing |shrank| this step: turning towards the goal pays")
     climb_reward: float = param(5.0, low=0.0, high=1e4, unit="1/m",
                                 doc="per m the goal altitude difference |shrank| this step: climbing towards it pays")
+    dz_lead: float = param(0.25, low=0.0, high=10.0, unit="s",
+                           doc="goal_dz is read where the climb stops: goal_dz - dz_lead * vertical velocity (the "
+                               "vertical velocity loop's time constant, 1 / ControllerGains.k_vel_z; 0: v1's goal_dz)")
 
 
 @pytree_dataclass
@@ -97,6 +107,7 @@ class QuadcopterGoto2(QuadcopterGoto):
         task = super()._init_env_variables(key, pipeline_state, params)
         obs = super()._get_obs(pipeline_state, task, params)
         fields = {f.name: getattr(task, f.name) for f in dataclasses.fields(task)}
+        # At reset the drone hovers at rest: v1's goal_dz is v2's.
         return TaskVars2(**fields, prev_bearing=jnp.abs(obs[1]), prev_dz=jnp.abs(obs[2]))
 
     def _compute_reward(self, obs, done, action, pipeline_state, task, params) -> tuple[jax.Array, TaskVars2]:
@@ -109,7 +120,11 @@ class QuadcopterGoto2(QuadcopterGoto):
 
     def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
         head = super()._get_obs(pipeline_state, task, params)
-        pos = self.robot.read_sensors(pipeline_state)["pos"]
+        s = self.robot.read_sensors(pipeline_state)
+        pos = s["pos"]
+        # goal_dz where the climb stops, not where the drone is: a climb or descent goes on ~dz_lead x its speed
+        # after the command ends, which the table, seeing no velocity, could not tell from standing still.
+        head = head.at[2].add(-params.dz_lead * s["vel"][2])
         return jnp.concatenate([head, self._goal_clear(pos, task, params)[None]]).astype(jnp.float32)
 
 
