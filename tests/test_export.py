@@ -240,3 +240,23 @@ def test_greedy_policy_first_ties():
         assert got == [1, 0, 3]
     with pytest.raises(ValueError, match="ties='last'"):
         greedy_policy(q, lambda obs: 0, ties="last")
+
+
+def test_eval_flies_a_deep_run_on_shifted_physics(tmp_path, capsys):
+    """``jaxrobo eval`` on a PPO run: the saved policy (no table) flown on each shift value, one row each, and a
+    shift value equal to the nominal physics gives the nominal figure."""
+    import csv
+
+    run = _train(str(tmp_path / "twist"), "--env", "QuadcopterGotoTwist-v0", "--agent", "ppo", "--preset", "tiny",
+                 "--set", "episode_length=20", "--set", "eval_episodes=2", "--set", "num_timesteps=256")
+    out = str(tmp_path / "rob")
+    assert main(["eval", run, "--shift", "wind=0,0.6", "--shift", "mass=1,1.2", "--episodes", "3",
+                 "--out", out]) == 0
+    rows = list(csv.DictReader(open(os.path.join(out, "robustness.csv"))))
+    assert [(r["shift"], float(r["value"])) for r in rows] == [("wind", 0.0), ("wind", 0.6), ("mass", 1.0),
+                                                               ("mass", 1.2)]
+    assert {r["metric"] for r in rows} == {"success_rate"}
+    for r in rows:
+        assert 0.0 <= float(r["worst"]) <= float(r["mean"]) <= float(r["best"]) <= 1.0
+    assert rows[0]["mean"] == rows[2]["mean"]  # wind 0 and mass 1 are both the nominal physics, the same episodes
+    assert os.path.getsize(os.path.join(out, "robustness.png")) > 1000
