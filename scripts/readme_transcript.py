@@ -25,7 +25,8 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: Lines of the README that need a person at the keyboard or stand for "your own arguments".
 UNATTENDED = ((re.compile(r"\.\.\."), "a placeholder (`...`), not a command"),
-              (re.compile(r"Ctrl-C"), "needs a Ctrl-C by hand (tests/test_resume.py does it by signal)"))
+              (re.compile(r"Ctrl-C"), "needs a Ctrl-C by hand (tests/test_resume.py does it by signal)"),
+              (re.compile(r"GPU-sized"), "sized for a GPU (its CPU time is in its comment)"))
 
 
 def readme_commands(path: str) -> list[tuple[str, str]]:
@@ -74,6 +75,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=None, help="run only the commands containing this text")
     ap.add_argument("--no-notebook", action="store_true")
     ap.add_argument("--keep", action="store_true", help="keep runs/ and policy/ from an earlier transcript")
+    ap.add_argument("--start-at", default=None, metavar="TEXT",
+                    help="skip the commands before the first one containing TEXT (with --keep: go on with a transcript)")
     args = ap.parse_args(argv)
     if not args.keep:
         for d in ("runs", "policy"):
@@ -82,8 +85,10 @@ def main(argv=None) -> int:
     bindir = os.path.dirname(sys.executable)  # the venv's `jaxrobo` before any other on PATH
     env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
     rows = []
+    started = args.start_at is None
     for kind, text in readme_commands(os.path.join(ROOT, "README.md")):
-        if args.only and args.only not in text:
+        started = started or args.start_at in text
+        if not started or (args.only and args.only not in text):
             continue
         why = next((w for pat, w in UNATTENDED if pat.search(text)), None)
         if why:
