@@ -56,9 +56,11 @@ def _under(choice: str, fn):
 
 def _close(a: JointState, b: JointState) -> None:
     # Round-off of 30 substeps (FMA contraction, amplified by the spinning states): measured |kernel - XLA| /
-    # (1 + |x|) <= 2e-7 (qpos) and 2.2e-6 (qvel).
+    # (1 + |x|) <= 2e-7 (qpos) and 2.2e-6 (qvel) on a CPU, up to 7e-7 and 4e-6 before the dynamics were shared;
+    # 1e-5 failed on an H100 (its libdevice sin/cos and contractions differ from XLA's), so the bound stays at the
+    # 2e-5 that held there before.
     for name in ("qpos", "qvel"):
-        np.testing.assert_allclose(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), rtol=1e-5, atol=1e-5,
+        np.testing.assert_allclose(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), rtol=2e-5, atol=2e-5,
                                    err_msg=name)
 
 
