@@ -33,6 +33,8 @@ def cases() -> list[dict]:
     for env_id in ("CartPoleStayUp-v0", "CartPoleStayUpLeftRight-v0", "QuadcopterLiveShow-v0", "QuadcopterGoto-v1"):
         for preset in ("default", "seed"):
             out.append(dict(env_id=env_id, preset=preset, agent=None, extra={}))
+    for env_id in ("QuadcopterGoto-v2", "ArmReach-v0"):  # their one preset
+        out.append(dict(env_id=env_id, preset="default", agent=None, extra={}))
     for backend in ("analytic", "mjx"):
         for agent in ("qlearn", "sarsa", "expected_sarsa", "double_q"):
             out.append(dict(env_id="CartPoleStayUp-v0", preset="default", agent=agent,
