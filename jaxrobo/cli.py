@@ -14,6 +14,7 @@ import argparse
 import contextlib
 import importlib
 import os
+import shutil
 import sys
 import time
 from typing import Any, Iterator, Sequence
@@ -161,6 +162,20 @@ def budget_line(cfg, trainer) -> str:
         return (f"{cfg.n_envs} envs until the run has {cfg.total_episodes:,} episodes (episodes ≤ {cfg.nsteps} "
                 f"steps, the first {cfg.nepisodes} of each env recorded)")
     return f"{cfg.n_envs} envs × {cfg.nepisodes} episodes ≤ {cfg.nsteps} steps"
+
+
+def keep_live_scalars(live: str, staged: str) -> None:
+    """Copy the event files :class:`LiveScalars` wrote into ``live`` while the run trained into the ``staged``
+    run that replaces it, beside the per-episode scalars written at the end: the finished run keeps the curve a
+    user watched. A name the final writer also took (the same second) gets a ``.live`` suffix."""
+    src, dst = os.path.join(live, "tensorboard"), os.path.join(staged, "tensorboard")
+    if os.path.abspath(src) == os.path.abspath(dst) or not os.path.isdir(src):
+        return
+    os.makedirs(dst, exist_ok=True)
+    for name in os.listdir(src):
+        if name.startswith("events.") and os.path.isfile(os.path.join(src, name)):
+            target = os.path.join(dst, name if not os.path.exists(os.path.join(dst, name)) else name + ".live")
+            shutil.copy2(os.path.join(src, name), target)
 
 
 class LiveScalars:
@@ -591,6 +606,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         def write(staged: str) -> None:
             t = time.perf_counter()
             save_run(staged, result, spec.to_dict(), trainer.disc)
+            keep_live_scalars(live, staged)
             write_summary(staged, {**result.summary(), "write_seconds": round(time.perf_counter() - t, 3)})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
@@ -641,7 +657,7 @@ def _training_figures(s: dict) -> str:
 
 def _plot(args: argparse.Namespace) -> int:
     from jaxrobo.core.config import ConfigError
-    from jaxrobo.pictures.plots import check_image_path, plot_runs
+    from jaxrobo.pictures.plots import check_image_path, plot_runs, plot_scalars
 
     try:
         for d in args.runs:
@@ -651,9 +667,12 @@ def _plot(args: argparse.Namespace) -> int:
             raise ConfigError(f"--window {args.window}: must be an integer >= 1 (episodes averaged)")
         if args.labels is not None and len(args.labels) != len(args.runs):
             raise ConfigError(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs; give one per run")
-        out = args.out or os.path.join(args.runs[0], "rewards.png")
+        out = args.out or os.path.join(args.runs[0], "scalars.png" if args.scalars else "rewards.png")
         check_image_path(out)
-        plot_runs(args.runs, out, labels=args.labels, window=args.window, x=args.x)
+        if args.scalars:
+            plot_scalars(args.runs, out, labels=args.labels)
+        else:
+            plot_runs(args.runs, out, labels=args.labels, window=args.window, x=args.x)
     except (FileNotFoundError, ValueError) as err:
         print(f"jaxrobo plot: {err}", file=sys.stderr)
         return 2
@@ -763,6 +782,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--x", default="auto", choices=("auto", "episode", "env_steps"),
                    help="x axis: episodes, or env steps of training (all envs; the common axis of a tabular and a "
                         "ppo/sac run); auto: env steps when a ppo/sac run is given")
+    p.add_argument("--scalars", action="store_true",
+                   help="draw the runs' TensorBoard scalars instead (RUN/tensorboard; works while a run trains: "
+                        "default <first run>/scalars.png)")
     p.set_defaults(func=_plot)
 
     p = sub.add_parser("list", help="registered environments, presets and agents")

@@ -87,5 +87,25 @@ def test_the_cli_reports_useful_share_and_wall_split(tmp_path, capsys):
     assert s["useful_share"] == 1.0 and s["env_slots"] == 200
     for key in ("compile_seconds", "run_seconds", "eval_seconds", "write_seconds"):
         assert s[key] >= 0
-    # live TensorBoard scalars were written during the run (flushed each chunk)
-    assert list((out / "tensorboard").glob("events.out.tfevents.*"))
+    # live TensorBoard scalars were written during the run (flushed each chunk), one point per chunk
+    events = list((out / "tensorboard").glob("events.out.tfevents.*"))
+    assert events
+    from jaxrobo.io.results import read_scalars
+
+    scalars = read_scalars(str(out / "tensorboard"))
+    assert [v for _, v in scalars["progress/useful_share"]] == [1.0, 1.0]  # 200 steps / 4 envs: 2 chunks of 25
+    # `jaxrobo plot --scalars`: those scalars as a picture (TensorBoard's page without a browser)
+    assert main(["plot", str(out), "--scalars"]) == 0
+    assert (out / "scalars.png").stat().st_size > 5000
+    # a record cut in the middle (a writer mid-flush, or a damaged file) ends the reading, never raises
+    assert "episode/reward_mean" in scalars  # the per-episode scalars written at the end, beside the live ones
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    live = next(e for e in events if b"progress/useful_share" in e.read_bytes())
+    data = live.read_bytes()
+    (cut / live.name).write_bytes(data[:-7])  # the last record torn
+    assert read_scalars(str(cut))["progress/useful_share"] == scalars["progress/useful_share"]
+    (cut / live.name).write_bytes(data[: len(data) - 60])  # torn inside the last chunk's records
+    assert len(read_scalars(str(cut)).get("progress/steps_per_second", [])) < 2
+    (cut / live.name).write_bytes(data[:40] + b"\xff" * 64)
+    assert read_scalars(str(cut)) == {}

@@ -9,7 +9,6 @@ import json
 import os
 import shutil
 import signal
-import struct
 
 import numpy as np
 import pytest
@@ -17,6 +16,7 @@ import pytest
 from jaxrobo import deep
 from jaxrobo.cli import main
 from jaxrobo.core.config import ConfigError
+from jaxrobo.io.results import read_scalars
 
 CPC = "CartPoleContinuous-v0"
 #: Five epochs of 256 env steps (PPO) / 96 after a 32-step prefill (SAC): the stop after epoch 3 is at 60 %.
@@ -27,26 +27,6 @@ STOP_AFTER_EPOCH = 3
 def _args(agent: str) -> list[str]:
     return ["train", "--env", CPC, "--agent", agent, "--preset", "tiny", "--set", "episode_length=20",
             "--set", "eval_episodes=3", "--set", "num_evals=6", *ARGS[agent], "--no-progress"]
-
-
-def read_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:
-    """The scalars of every TensorBoard event file under ``logdir`` (TFRecord framing, tensorboardX's protos)."""
-    from tensorboardX.proto import event_pb2
-
-    out: dict[str, list[tuple[int, float]]] = {}
-    for name in sorted(os.listdir(logdir)):
-        with open(os.path.join(logdir, name), "rb") as f:
-            data = f.read()
-        pos = 0
-        while pos + 12 <= len(data):
-            (n,) = struct.unpack("<Q", data[pos:pos + 8])
-            if pos + 12 + n + 4 > len(data):
-                break  # a record being written
-            event = event_pb2.Event.FromString(data[pos + 12:pos + 12 + n])
-            pos += 12 + n + 4
-            for v in event.summary.value:
-                out.setdefault(v.tag, []).append((event.step, v.simple_value))
-    return out
 
 
 def _arrays(path: str) -> dict[str, np.ndarray]:

@@ -224,6 +224,43 @@ def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndar
 PLOTTED_STATS = ("episode", "return_mean", "return_p10", "return_p90", "length_mean", "length_p10", "length_p90")
 
 
+#: A TensorBoard record longer than this is not one jaxrobo wrote (its scalars are a few hundred bytes).
+MAX_TB_RECORD = 1 << 20
+
+
+def read_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:
+    """The scalars of the TensorBoard event files in ``logdir`` (a run's ``tensorboard/``), ``{tag: [(step,
+    value), ...]}``, readable while the run writes them: the records a writer has flushed, a record half written
+    at the end left out. The files are read as hostile: a record that does not parse or is longer than
+    :data:`MAX_TB_RECORD` ends that file's reading (TFRecord framing; tensorboardX's protos)."""
+    import struct
+
+    from tensorboardX.proto import event_pb2
+
+    out: dict[str, list[tuple[int, float]]] = {}
+    if not os.path.isdir(logdir):
+        raise FileNotFoundError(f"{logdir}: no TensorBoard folder (was the run started by `jaxrobo train`?)")
+    for name in sorted(os.listdir(logdir)):
+        path = os.path.join(logdir, name)
+        if not (name.startswith("events.") and os.path.isfile(path)):
+            continue
+        with open(path, "rb") as f:
+            data = f.read()
+        pos = 0
+        while pos + 12 <= len(data):
+            (n,) = struct.unpack("<Q", data[pos:pos + 8])
+            if n > MAX_TB_RECORD or pos + 12 + n + 4 > len(data):
+                break  # not one of ours, or a record being written
+            try:
+                event = event_pb2.Event.FromString(data[pos + 12:pos + 12 + n])
+            except Exception:  # protobuf's DecodeError: a damaged file ends here
+                break
+            pos += 12 + n + 4
+            for v in event.summary.value:
+                out.setdefault(v.tag, []).append((int(event.step), float(v.simple_value)))
+    return out
+
+
 def load_stats(run_dir: str) -> dict[str, np.ndarray]:
     """Per-episode statistics of a run (from ``episode_stats.csv``, else computed from ``episodes.csv``)."""
     path = os.path.join(run_dir, "episode_stats.csv")

@@ -11,6 +11,7 @@ row per evaluation and an ``env_steps`` column. Runs of both kinds share one x a
 from __future__ import annotations
 
 import os
+import time
 from typing import Sequence
 
 import numpy as np
@@ -122,6 +123,47 @@ def plot_runs(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | Non
     ax_r.set_title(title or f"mean over envs, band 10-90 %, moving average {window}")
     for ax in (ax_r, ax_l):
         ax.grid(alpha=0.3)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
+    rundir.atomic_savefig(fig, out_png, dpi=110)
+    return out_png
+
+
+def plot_scalars(run_dirs: Sequence[str], out_png: str, labels: Sequence[str] | None = None) -> str:
+    """The runs' live TensorBoard scalars (``RUN/tensorboard``, as a running ``jaxrobo train`` flushes them every
+    chunk or evaluation) in one PNG, a panel per tag and a line per run, against the step TensorBoard shows:
+    TensorBoard's scalar page without a browser, readable mid-run. Returns the path."""
+    from matplotlib.figure import Figure
+
+    from jaxrobo.io.results import read_scalars
+
+    labels = list(labels) if labels else run_labels(run_dirs)
+    if len(labels) != len(run_dirs):
+        raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    runs = [read_scalars(os.path.join(d, "tensorboard")) for d in run_dirs]
+    tags = sorted({t for r in runs for t in r})
+    if not tags:
+        raise ValueError(f"{', '.join(run_dirs)}: no TensorBoard scalars written yet (the first come after the "
+                         "first chunk or evaluation)")
+    cols = min(3, len(tags))
+    rows = -(-len(tags) // cols)
+    fig = Figure(figsize=(4.2 * cols, 3.0 * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols)).reshape(-1)
+    for ax, tag in zip(axes, tags):
+        for r, label in zip(runs, labels):
+            if tag in r:
+                steps, values = zip(*r[tag])
+                ax.plot(steps, values, marker="o", ms=2.5, lw=1.3, label=label)
+        ax.set_title(tag, fontsize=9)
+        ax.set_xlabel("step", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    for ax in axes[len(tags):]:
+        ax.set_visible(False)
+    if len(run_dirs) > 1:
+        axes[0].legend(fontsize=7)
+    points = sum(len(v) for r in runs for v in r.values())
+    fig.suptitle(f"TensorBoard scalars, {points} points read at {time.strftime('%H:%M:%S')}", fontsize=10)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
     rundir.atomic_savefig(fig, out_png, dpi=110)
