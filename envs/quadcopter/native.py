@@ -117,6 +117,7 @@ class NativeGoto:
         self.continuous = hasattr(env.action_space(), "low")  # GotoTwist: the action is the Twist
         if self.v2:
             self.grow = float(p.drone_radius) + float(p.clear_margin)
+            self.dz_lead = float(getattr(p, "dz_lead", 0.0))
         c = r.control  # the controller's constants (envs.quadcopter.dynamics.ControllerConstants)
         self.gains, self.g, self.mass = r.gains, float(c.g), float(c.mass)
         self.inertia = np.asarray(c.inertia, np.float64)
@@ -161,6 +162,7 @@ class NativeGoto:
                   for d in SONAR_RAYS.astype(np.float64) @ level.T]
         obs = [float(np.linalg.norm(delta)), bearing, delta[2], *sonars]
         if self.v2:
+            obs[2] -= self.dz_lead * float(self.data.qvel[2])  # goal_dz where the climb stops (goto_v2._get_obs)
             flat = np.array([delta[0], delta[1], 0.0])
             dist = float(np.linalg.norm(flat))
             direction = flat / max(dist, 1e-6)
