@@ -118,17 +118,12 @@ def _train_spec(args: argparse.Namespace):
             return spec, private
         out = rundir.check_out(out, overwrite=args.overwrite)
         return spec, out
-    given = [flag for flag, value in (("--agent", args.agent), ("--preset", args.preset),
-                                      ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
-                                      ("--total-steps", getattr(args, "total_steps", None)),
-                                      ("--total-episodes", getattr(args, "total_episodes", None)),
-                                      ("--devices", getattr(args, "devices", None)),
-                                      ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
-             if value is not None]
-    given += ["--overwrite"] if args.overwrite else []
-    if given:
-        raise ConfigError(f"--resume {resume}: the run goes on with its own config.yaml and directory; "
-                          f"drop {', '.join(given)}")
+    refuse_resume_flags(resume, (("--agent", args.agent), ("--preset", args.preset),
+                                 ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
+                                 ("--total-steps", getattr(args, "total_steps", None)),
+                                 ("--total-episodes", getattr(args, "total_episodes", None)),
+                                 ("--devices", getattr(args, "devices", None)),
+                                 ("--seed", args.seed), ("--set", args.set), ("--out", args.out)), args.overwrite)
     resume = rundir.check_out(resume, resume=True, flag="--resume")
     from jaxrobo.core.config import load_yaml
 
@@ -162,6 +157,17 @@ def budget_line(cfg, trainer) -> str:
         return (f"{cfg.n_envs} envs until the run has {cfg.total_episodes:,} episodes (episodes ≤ {cfg.nsteps} "
                 f"steps, the first {cfg.nepisodes} of each env recorded)")
     return f"{cfg.n_envs} envs × {cfg.nepisodes} episodes ≤ {cfg.nsteps} steps"
+
+
+def refuse_resume_flags(resume: str, flags: Sequence[tuple[str, Any]], overwrite: bool) -> None:
+    """``--resume`` goes on with the run's own config.yaml and directory: any of ``flags`` (``(flag, value)``,
+    given when the value is not None) or ``--overwrite`` is refused, naming them, before anything is read."""
+    from jaxrobo.core.config import ConfigError
+
+    given = [flag for flag, value in flags if value is not None] + (["--overwrite"] if overwrite else [])
+    if given:
+        raise ConfigError(f"--resume {resume}: the run goes on with its own config.yaml and directory; "
+                          f"drop {', '.join(given)}")
 
 
 def keep_live_scalars(live: str, staged: str) -> None:
@@ -244,15 +250,12 @@ def _deep_spec(args: argparse.Namespace, agent: str):
         raise ConfigError(f"--checkpoint-every: a {agent} run keeps a checkpoint at each of its evaluation points "
                           "(--set num_evals=N sets how many); drop the flag")
     if args.resume is not None:
-        given = [flag for flag, value in (("--env", args.env), ("--agent", args.agent if agent != "resume" else None),
+        refuse_resume_flags(args.resume, (("--env", args.env),
+                                          ("--agent", args.agent if agent != "resume" else None),
                                           ("--preset", args.preset), ("--n-envs", args.n_envs),
                                           ("--nepisodes", args.nepisodes), ("--total-steps", total_steps),
-                                          ("--seed", args.seed), ("--set", args.set), ("--out", args.out))
-                 if value is not None]
-        given += ["--overwrite"] if args.overwrite else []
-        if given:
-            raise ConfigError(f"--resume {args.resume}: the run goes on with its own config.yaml and directory; "
-                              f"drop {', '.join(given)}")
+                                          ("--seed", args.seed), ("--set", args.set), ("--out", args.out)),
+                            args.overwrite)
         rundir.check_out(args.resume, resume=True, flag="--resume")
         from jaxrobo.io.results import load_config
 
