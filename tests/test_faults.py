@@ -371,13 +371,17 @@ def test_npz_headers_are_checked_before_any_data_is_read(tmp_path):
 def test_sigterm_twice_ends_a_process_stuck_in_c(second):
     """The main thread blocked in a C call (as in an XLA compile or a device wait) runs no Python handler: the
     second SIGTERM still ends the process within the grace period, not when the call returns (30 s)."""
+    # "ready" comes from a shell that system(3) starts, so the main thread is already inside the C call when the
+    # signals arrive (printing it from Python left a window in which, on a loaded machine, the Python handler
+    # ran before the call and the second signal met the default action). The shell execs a 15 s sleep with its
+    # output closed, so the orphan left behind holds none of our pipes.
     p = _python(f"""
         import ctypes, signal
         from jaxrobo.training.driver import StopOnSignal
+        system = ctypes.CDLL(None).system
         with StopOnSignal(second={second!r}):
             signal.pthread_sigmask(signal.SIG_BLOCK, {{signal.SIGTERM, signal.SIGINT}})
-            print("ready", flush=True)
-            ctypes.CDLL(None).sleep(30)
+            system(b"echo ready; exec sleep 15 </dev/null >/dev/null 2>&1")
     """)
     assert p.stdout.readline().strip() == "ready"
     t0 = time.time()
