@@ -124,10 +124,15 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=16, help="runs per task and budget (>= 1)")
     ap.add_argument("--seed-base", type=int, default=1000, help="first seed (default 1000: seeds nobody tuned on)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="preset override (both budgets)")
+    ap.add_argument("--total-steps", type=int, default=None, metavar="N",
+                    help="the step budget of each run, given: only the step-budget runs train (default: the median "
+                         "env steps of the episode budget's runs, which train first)")
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/<device>/learning_targets.json)")
     args = ap.parse_args(argv)
     if args.runs < 1:
         ap.error(f"--runs must be >= 1 (got {args.runs})")
+    if args.total_steps is not None and args.total_steps < 1:
+        ap.error(f"--total-steps must be >= 1 (got {args.total_steps})")
     from jaxrobo.core.config import parse_overrides
 
     base = parse_overrides(args.set)
@@ -135,12 +140,16 @@ def main(argv=None) -> int:
         ap.error("--set total_steps/total_episodes: the benchmark sets the step budget itself")
     rows = []
     for env_id in [e for e in args.envs.split(",") if e]:
-        episodes = train_population(env_id, args.runs, args.seed_base, base)
-        # Whole chunks of every env: a last chunk cut short would leave slots idle that the budget could use.
-        n = episodes["n_envs"] * episodes["chunk_steps"]
-        steps_budget = int(-(-int(np.median(episodes["env_steps"])) // n) * n)
+        if args.total_steps is None:
+            episodes = train_population(env_id, args.runs, args.seed_base, base)
+            # Whole chunks of every env: a last chunk cut short would leave slots idle that the budget could use.
+            n = episodes["n_envs"] * episodes["chunk_steps"]
+            steps_budget = int(-(-int(np.median(episodes["env_steps"])) // n) * n)
+            budgets = [episodes]
+        else:
+            steps_budget, budgets = args.total_steps, []
         steps = train_population(env_id, args.runs, args.seed_base, {**base, "total_steps": steps_budget})
-        for row in (episodes, steps):
+        for row in budgets + [steps]:
             row["env"] = env_id
             rows.append(row)
             print(f"{env_id} [{row['budget']}{'' if row['budget'] == 'episodes' else f' {steps_budget:,}'}]: "
