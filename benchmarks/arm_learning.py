@@ -17,20 +17,17 @@ import argparse
 import json
 import os
 import sys
-import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import _common  # noqa: E402
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from _population import train_population  # noqa: E402
 
-from jaxrobo.training import driver  # noqa: E402
 from jaxrobo.task.rollout import greedy_policy, random_policy, rollout  # noqa: E402
 from jaxrobo.training.run import resolve  # noqa: E402
-from jaxrobo.training.trainer import Trainer  # noqa: E402
 
 ENV_ID = "ArmReach-v0"
 #: Evaluation keys: apart from the training seeds (0..runs-1), the same for every run.
@@ -53,21 +50,11 @@ def main(argv=None) -> int:
 
     spec = resolve(ENV_ID, overrides={"eval_episodes": 0, **parse_overrides(args.set)})
     env, target = spec.env, spec.env.learning_target
-    trainer = Trainer(env, spec.config)
     seeds = list(range(args.seed_base, args.seed_base + args.runs))
-    keys = jnp.stack([jax.random.key(s) for s in seeds])
-    t0 = time.perf_counter()
-    ap_, ep = spec.agent_params, env.default_params
-    runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
-    plan = trainer.plan  # the runs' chunk vmapped, compiled and looped by the host driver as jaxrobo train's
-    chunk = driver.compile_under(plan, jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)), donate_argnums=0,
-                                               compiler_options=plan.xla_options), runner, ap_, ep)
-    runner = driver.run_chunks(lambda r: chunk(r, ap_, ep), runner, trainer.max_chunks(),
-                               read=driver.compiled_progress(runner), total=spec.config.nepisodes).carry
-    jax.block_until_ready(runner)
-    train_s = time.perf_counter() - t0  # compile included
-    q = runner.agent.q  # [runs, n_tables, S, A]; one shared table per run with the default preset
-    disc = trainer.disc
+    runs = train_population(spec, seeds)
+    train_s = runs.seconds  # compile included
+    q = runs.runner.agent.q  # [runs, n_tables, S, A]; one shared table per run with the default preset
+    disc = runs.trainer.disc
 
     def outcome(last) -> dict[str, jax.Array]:
         return {"success": last.task.arrived.mean(), "mean_steps": last.steps.mean()}

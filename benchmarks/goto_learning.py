@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -32,11 +31,10 @@ import _common  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from _population import train_population  # noqa: E402
 
-from jaxrobo.training import driver  # noqa: E402
 from jaxrobo.task.rollout import greedy_policy, random_policy, rollout  # noqa: E402
 from jaxrobo.training.run import resolve  # noqa: E402
-from jaxrobo.training.trainer import Trainer  # noqa: E402
 
 ENVS = ("QuadcopterGoto-v1", "QuadcopterGoto-v2")
 FRESH_KEY = 123_456  # the fresh evaluation goals: no run trains or selects on this key
@@ -52,10 +50,10 @@ def spread(rates) -> dict[str, float]:
             "share_of_runs_at_target": float((r >= TARGET).mean())}
 
 
-def train_population(env_id: str, runs: int, overrides: dict, fused: str = "default", seed_base: int = 0,
-                     seeds: list[int] | None = None) -> tuple[object, object, np.ndarray, float]:
-    """Train ``runs`` independent runs of ``env_id``'s default preset (seeds seed_base..seed_base+runs-1, or the
-    list ``seeds``) as one vmapped computation: ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds
+def train(env_id: str, seeds: list[int], overrides: dict,
+          fused: str = "default") -> tuple[object, object, np.ndarray, float]:
+    """Train one run of ``env_id``'s default preset per seed in ``seeds``, as one vmapped computation
+    (:func:`_population.train_population`): ``(spec, trainer, q [runs, n_tables, S, A], seconds)`` (seconds
     include the compile). ``fused``: ``default`` (the plan ``for_run`` builds), or ``off``/``pallas`` (that
     choice; ``pallas`` with the task's kernel where it has one)."""
     from jaxrobo.speed.plan import ExecutionPlan, task_kernel
@@ -66,19 +64,9 @@ def train_population(env_id: str, runs: int, overrides: dict, fused: str = "defa
     plan = ExecutionPlan.for_run(spec.env, spec.config)
     if fused != "default":
         plan = plan.replace(fused=fused, task_kernel=fused == "pallas" and task_kernel(spec.env))
-    trainer = Trainer(spec.env, spec.config, plan=plan)
-    seeds = list(range(seed_base, seed_base + runs)) if seeds is None else list(seeds)
-    keys = jnp.stack([jax.random.key(s) for s in seeds])
-    t0 = time.perf_counter()
-    ap_, ep = spec.agent_params, spec.env.default_params
-    runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
-    plan = trainer.plan  # the runs' chunk vmapped, compiled and looped by the host driver as jaxrobo train's
-    chunk = driver.compile_under(plan, jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)), donate_argnums=0,
-                                               compiler_options=plan.xla_options), runner, ap_, ep)
-    runner = driver.run_chunks(lambda r: chunk(r, ap_, ep), runner, trainer.max_chunks(),
-                               read=driver.compiled_progress(runner), total=spec.config.nepisodes).carry
-    q = np.asarray(runner.agent.q)  # [runs, n_tables, S, A]: the one shared table of each run
-    return spec, trainer, q, time.perf_counter() - t0
+    runs = train_population(spec, seeds, plan)
+    q = np.asarray(runs.runner.agent.q)  # [runs, n_tables, S, A]: the one shared table of each run
+    return spec, runs.trainer, q, runs.seconds
 
 
 def evaluate(env, disc, q: np.ndarray, key: jax.Array, episodes: int) -> dict[str, np.ndarray]:
@@ -126,8 +114,7 @@ def main(argv=None) -> int:
             ap.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
     from jaxrobo.core.config import parse_overrides
 
-    spec, trainer, q, train_s = train_population(args.env, args.runs, parse_overrides(args.set), args.fused,
-                                                 seeds=seeds)
+    spec, trainer, q, train_s = train(args.env, seeds, parse_overrides(args.set), args.fused)
     env, disc = spec.env, trainer.disc
     fresh = evaluate(env, disc, q, jax.random.key(FRESH_KEY), args.episodes)
     select = evaluate(env, disc, q, jax.random.key(10_000), args.select_episodes)

@@ -32,6 +32,7 @@ if __name__ == "__main__":  # the platform is chosen before JAX starts
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from _population import train_population  # noqa: E402
 
 from jaxrobo.task.env import ranking  # noqa: E402
 from jaxrobo.training import driver  # noqa: E402
@@ -41,7 +42,7 @@ from jaxrobo.training.trainer import Trainer  # noqa: E402
 ENVS = ("CartPoleStayUp-v0", "QuadcopterGoto-v2", "ArmReach-v0")
 
 
-def train_population(env_id: str, runs: int, seed_base: int, overrides: dict) -> dict:
+def train_and_judge(env_id: str, runs: int, seed_base: int, overrides: dict) -> dict:
     """Train ``runs`` runs of ``env_id``'s default preset (with ``overrides``) as one vmapped computation and judge
     each by its learning target: a dict with the per-run ``score``, ``met``, ``env_steps``, ``useful_share`` and
     the ``seconds`` of training (compile included) and evaluation."""
@@ -53,27 +54,15 @@ def train_population(env_id: str, runs: int, seed_base: int, overrides: dict) ->
     target = getattr(env, "learning_target", None)
     if target is None:
         raise ValueError(f"{env_id} declares no learning_target")
-    trainer = Trainer(env, config)
     seeds = list(range(seed_base, seed_base + runs))
-    keys = jnp.stack([jax.random.key(s) for s in seeds])
-    ap_, ep = spec.agent_params, env.default_params
-    t0 = time.perf_counter()
-    runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
-    plan = trainer.plan
-    chunk = driver.compile_under(plan, jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)),
-                                               donate_argnums=0, compiler_options=plan.xla_options), runner, ap_, ep)
-    total, unit = trainer.budget_total
-    loop = driver.run_chunks(lambda r: chunk(r, ap_, ep), runner, trainer.max_chunks(),
-                             read=driver.compiled_progress(runner), total=total, unit=unit)
-    runner = loop.carry
+    population = train_population(spec, seeds)
+    trainer, runner = population.trainer, population.runner
     env_steps = np.asarray(jax.device_get(runner.env_steps), np.int64).reshape(runs, -1).sum(axis=1)
-    train_s = time.perf_counter() - t0
     t1 = time.perf_counter()
-    scores = judge(trainer, runner.agent, seeds, ep, target)
-    scores = np.asarray(scores)
+    scores = np.asarray(judge(trainer, runner.agent, seeds, env.default_params, target))
     higher = ranking(target).higher
-    met = scores >= target.threshold if higher else scores <= target.threshold
-    chunks = loop.chunks_done
+    met = target.reached(scores)
+    chunks = population.loop.chunks_done
     slots = chunks * config.chunk_steps * config.n_envs
     return {"target": target.description, "metric": target.metric, "threshold": float(target.threshold),
             "n_envs": config.n_envs, "chunk_steps": config.chunk_steps, "nepisodes": config.nepisodes, "total_steps": config.total_steps,
@@ -82,39 +71,36 @@ def train_population(env_id: str, runs: int, seed_base: int, overrides: dict) ->
             "useful_share": [round(float(s) / slots, 4) for s in env_steps],
             "median_score": float(np.median(scores)),
             "worst_score": float(scores.min() if higher else scores.max()), "share_met": float(met.mean()),
-            "train_seconds": round(train_s, 2), "eval_seconds": round(time.perf_counter() - t1, 2),
-            "execution_plan": repr(plan)}
+            "train_seconds": round(population.seconds, 2), "eval_seconds": round(time.perf_counter() - t1, 2),
+            "execution_plan": repr(trainer.plan)}
 
 
 def judge(trainer: Trainer, agent, seeds: list[int], env_params, target) -> list[float]:
     """Each run's learning-target figure, judged as :func:`jaxrobo.training.driver.evaluate_tables` judges a run of
-    ``jaxrobo train --seed S`` (the same keys, tables and selection), for all runs in one vmapped program: the
-    shared table's figure, or for per-env tables the best of the first ``eval_envs`` (by mean return) flown again
-    on fresh episodes."""
+    ``jaxrobo train --seed S`` (the driver's keys, tables, best table and figure:
+    :func:`~jaxrobo.training.driver.evaluation_keys`, :func:`~jaxrobo.training.driver.choose_table`), for all runs
+    in one vmapped program: the figure of the shared table or of the best evaluated one, or that best table's
+    figure on fresh episodes where the driver flies it again for the run's figure."""
     config = trainer.config
     shared = config.shared_table
-    n_eval = 1 if shared else min(config.eval_envs, config.n_envs)
+    n_eval = driver.evaluated_tables(config)
     tables = agent if shared else jax.tree.map(lambda x: x[:, :n_eval], agent)
-    run_keys = [jax.random.key(s) for s in seeds]
-    keys = jnp.stack([jax.random.split(jax.random.fold_in(k, 1), n_eval) for k in run_keys])
+    run_keys = [driver.evaluation_keys(jax.random.key(s), n_eval) for s in seeds]  # [(per table, fresh)] per run
+    keys, fresh = jnp.stack([k for k, _ in run_keys]), jnp.stack([f for _, f in run_keys])
     one_run = jax.vmap(trainer.evaluate_episodes, in_axes=(0, None if shared else 0, None, None))
     out = jax.device_get(jax.jit(jax.vmap(one_run, in_axes=(0, 0, None, None)), static_argnums=2)(
         keys, tables, config.eval_episodes, env_params))
-    per_table = {"mean_length": np.asarray(out["length"]), "mean_return": np.asarray(out["return"])}
-    if "arrived" in out:
-        per_table["success_rate"] = np.asarray(out["arrived"])
-    if n_eval > 1 and target.metric in ("mean_length", "mean_return"):
-        rank = ranking(target)  # the driver's choice of the best table, run by run
-        best = np.asarray([rank.best_table({k: v[i] for k, v in per_table.items()}) for i in range(len(seeds))])
-        chosen = jax.tree.map(lambda x: x[np.arange(len(seeds)), best], tables)
-        fresh = jnp.stack([jax.random.fold_in(k, 2) for k in run_keys])
-        returns, lengths = jax.device_get(jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0, None, None)),
-                                                  static_argnums=2)(fresh, chosen, config.eval_episodes, env_params))
-        figure = np.asarray(lengths if target.metric == "mean_length" else returns)
-        return [float(v) for v in figure.astype(np.float64).mean(axis=1)]
-    # the shared table, or the best evaluated table by the target's own figure
-    figure = per_table[target.metric].astype(np.float64).mean(axis=2)
-    return [float(v) for v in (figure.max(axis=1) if ranking(target).higher else figure.min(axis=1))]
+    runs = [{k: out[k][i] for k in ("return", "length", "arrived") if k in out} for i in range(len(seeds))]
+    best, figures = zip(*(driver.choose_table(driver.table_figures(run, target), target) for run in runs))
+    if all(f is not None for f in figures):
+        return list(figures)
+    if target.metric not in ("mean_length", "mean_return"):
+        raise ValueError(f"{trainer.env.name}: its greedy evaluation records no {target.metric}")
+    chosen = jax.tree.map(lambda x: x[np.arange(len(seeds)), np.asarray(best)], tables)
+    returns, lengths = jax.device_get(jax.jit(jax.vmap(trainer.evaluate, in_axes=(0, 0, None, None)),
+                                              static_argnums=2)(fresh, chosen, config.eval_episodes, env_params))
+    figure = np.asarray(lengths if target.metric == "mean_length" else returns)
+    return [float(v) for v in figure.astype(np.float64).mean(axis=1)]
 
 
 def main(argv=None) -> int:
@@ -141,14 +127,14 @@ def main(argv=None) -> int:
     rows = []
     for env_id in [e for e in args.envs.split(",") if e]:
         if args.total_steps is None:
-            episodes = train_population(env_id, args.runs, args.seed_base, base)
+            episodes = train_and_judge(env_id, args.runs, args.seed_base, base)
             # Whole chunks of every env: a last chunk cut short would leave slots idle that the budget could use.
             n = episodes["n_envs"] * episodes["chunk_steps"]
             steps_budget = int(-(-int(np.median(episodes["env_steps"])) // n) * n)
             budgets = [episodes]
         else:
             steps_budget, budgets = args.total_steps, []
-        steps = train_population(env_id, args.runs, args.seed_base, {**base, "total_steps": steps_budget})
+        steps = train_and_judge(env_id, args.runs, args.seed_base, {**base, "total_steps": steps_budget})
         for row in budgets + [steps]:
             row["env"] = env_id
             rows.append(row)

@@ -72,3 +72,15 @@ def test_sim2sim_script(tmp_path, capsys):
     agree, total = line.split(": ")[1].split(" ")[0].split("/")
     assert agree == total and int(total) > 0
     assert mod.main([str(tmp_path / "nothing"), "--episodes", "5"]) == 2
+
+
+def test_native_base_imports_no_jax():
+    """The native side of the check runs an export without JAX: the ports' shared base (``jaxrobo/interop/native.py``)
+    imports MuJoCo and numpy only."""
+    import ast
+
+    with open(os.path.join(ROOT, "jaxrobo", "interop", "native.py")) as f:
+        tree = ast.parse(f.read())
+    names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    names |= {(n.module or "").split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    assert names <= {"__future__", "typing", "mujoco", "numpy"}, names

@@ -12,11 +12,11 @@ from __future__ import annotations
 import math
 from typing import Any, Callable
 
-import mujoco
 import numpy as np
 
 from envs.arm.reach import ACTION_DELTAS
 from envs.arm.robot import ELBOW_MAX, FORE, UPPER
+from jaxrobo.interop.native import NativeSim
 
 
 def fingertip(q: np.ndarray) -> np.ndarray:
@@ -24,15 +24,13 @@ def fingertip(q: np.ndarray) -> np.ndarray:
     return np.array([UPPER * math.cos(q[0]) + FORE * math.cos(a), UPPER * math.sin(q[0]) + FORE * math.sin(a)])
 
 
-class NativeArm:
+class NativeArm(NativeSim):
     """One ArmReach in native MuJoCo with the task's action mapping, observation and success test."""
 
     def __init__(self, env: Any, params: Any = None):
         p = env.default_params if params is None else params
         r = env.robot
-        self.model = r.sim.mj_model
-        self.data = mujoco.MjData(self.model)
-        self.n_substeps = int(r.sim.n_substeps)
+        super().__init__(r.sim)
         self.deltas = np.asarray(ACTION_DELTAS, np.float64) * float(p.joint_step)
         self.tolerance = float(p.goal_tolerance)
         self.horizon = int(p.max_episode_steps)
@@ -49,8 +47,7 @@ class NativeArm:
         """One episode from ``(qpos, qvel)`` with the task's set-points (``task.command``) and ``task.goal``:
         ``length``, ``success`` (reached), ``actions`` and ``obs``."""
         horizon = self.horizon if horizon is None else int(horizon)
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[:], self.data.qvel[:] = qpos, qvel
+        self.reset(qpos, qvel)
         command = np.asarray(task.command, np.float64).copy()
         goal = np.asarray(task.goal, np.float64)
         obs = self.observe(goal)
@@ -59,9 +56,7 @@ class NativeArm:
             a = int(policy(obs))
             command = command + self.deltas[a]
             command[1] = min(max(command[1], 0.0), ELBOW_MAX)
-            for _ in range(self.n_substeps):
-                self.data.ctrl[:] = command
-                mujoco.mj_step(self.model, self.data)
+            self.advance(command)
             obs = self.observe(goal)
             actions.append(a)
             seen.append(obs)

@@ -13,21 +13,19 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-import mujoco
 import numpy as np
 
 from envs.cartpole.stay_up import ACTION_STEPS
+from jaxrobo.interop.native import NativeSim
 
 
-class NativeCartPole:
+class NativeCartPole(NativeSim):
     """One cart-pole in native MuJoCo with the task's action mapping, observation and termination."""
 
     def __init__(self, env: Any, params: Any = None):
         p = env.default_params if params is None else params
         o = env.options
-        self.model = env.robot.sim.mj_model
-        self.data = mujoco.MjData(self.model)
-        self.n_substeps = int(env.robot.sim.n_substeps)
+        super().__init__(env.robot.sim)
         self.continuous = hasattr(env.action_space(), "low")  # a Box: the action is the command
         if self.continuous:
             self.max_command = float(p.max_command)
@@ -54,8 +52,7 @@ class NativeCartPole:
         ``length``, ``terminated``, ``success`` (up for the horizon), ``actions`` and ``obs`` (the observations
         the policy saw)."""
         horizon = self.horizon if horizon is None else int(horizon)
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[:], self.data.qvel[:] = qpos, qvel
+        self.reset(qpos, qvel)
         command = 0.0 if self.continuous else float(task.command)
         obs = self.observe()
         seen, actions, terminated = [obs], [], False
@@ -68,9 +65,7 @@ class NativeCartPole:
                 command = command + self.steps[a]
                 if self.velocity:
                     command = min(max(command, -self.vmax), self.vmax)
-            for _ in range(self.n_substeps):
-                self.data.ctrl[0] = command
-                mujoco.mj_step(self.model, self.data)
+            self.advance(command)  # the model keeps one actuator: the control type's
             obs = self.observe()
             actions.append(a)
             seen.append(obs)

@@ -15,10 +15,10 @@ from __future__ import annotations
 import math
 from typing import Any, Callable
 
-import mujoco
 import numpy as np
 
 from envs.quadcopter.robot import _ACTION_FIXED, _ACTION_SCALE, _INF, _PARALLEL, BOX, SONAR_RAYS
+from jaxrobo.interop.native import NativeSim
 
 
 # ---- pose and geometry (numpy ports of envs.quadcopter.robot) --------------------------------------------
@@ -100,16 +100,14 @@ def point_obstacle_distance(p, obstacles: dict) -> float:
     return d
 
 
-class NativeGoto:
+class NativeGoto(NativeSim):
     """One QuadcopterGoto (v1 or v2: v2 when its observation has ``goal_clear``; GotoTwist when its action is a
     Box) in native MuJoCo."""
 
     def __init__(self, env: Any, params: Any = None):
         p = env.default_params if params is None else params
         r = env.robot
-        self.model = r.sim.mj_model
-        self.data = mujoco.MjData(self.model)
-        self.n_substeps = int(r.sim.n_substeps)
+        super().__init__(r.sim)
         self.p = {k: float(getattr(p, k)) for k in (
             "speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius", "sonar_range")}
         self.horizon = int(p.max_episode_steps)
@@ -190,8 +188,7 @@ class NativeGoto:
         o = task.obstacles
         obstacles = {"kind": np.asarray(o.kind), "center": np.asarray(o.center, np.float64),
                      "size": np.asarray(o.size, np.float64), "active": np.asarray(o.active)}
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[:], self.data.qvel[:] = qpos, qvel
+        self.reset(qpos, qvel)
         obs = self.observe(goal, obstacles)
         seen, actions, pos = [obs], [], [self.data.qpos[:3].copy()]
         arrived = failed = False
@@ -202,9 +199,7 @@ class NativeGoto:
             else:
                 a = int(policy(obs))
                 command = _ACTION_SCALE[a].astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED[a]
-            for _ in range(self.n_substeps):
-                self.data.ctrl[:] = self.controller(command)
-                mujoco.mj_step(self.model, self.data)
+            self.advance(lambda: self.controller(command))  # the cascade runs on the state before every mj_step
             obs = self.observe(goal, obstacles)
             actions.append(a)
             seen.append(obs)

@@ -15,7 +15,8 @@ for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itsel
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
 its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables` (flown in segments by
-:func:`fly`, reporting :class:`EvalProgress`), :class:`StopOnSignal`, the hook types :data:`ProgressFn` and
+:func:`fly`, reporting :class:`EvalProgress`; its pieces :func:`evaluated_tables`, :func:`evaluation_keys`,
+:func:`table_figures` and :func:`choose_table`, which the learning benchmarks judge runs by), :class:`StopOnSignal`, the hook types :data:`ProgressFn` and
 :data:`CheckpointFn`. Names with a leading underscore are private.
 """
 from __future__ import annotations
@@ -305,8 +306,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     t_eval = time.perf_counter()
     if config.eval_episodes > 0 and not loop.stopped:
         if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
-            tables = 1 if config.shared_table else min(config.eval_envs, config.n_envs)
-            announce(f"evaluating {tables} table(s) × {config.eval_episodes} greedy episodes ≤ "
+            announce(f"evaluating {evaluated_tables(config)} table(s) × {config.eval_episodes} greedy episodes ≤ "
                      f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
                      "(compile, then fly)")
         eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
@@ -396,6 +396,45 @@ def fly(trainer: Trainer, keys: jax.Array, agents: Any, n_episodes: int, env_par
     return jax.device_get(rollout.outcomes(rollout.rollout_end(carry)))
 
 
+def evaluated_tables(config: Any) -> int:
+    """How many of a run's trained tables its greedy evaluation flies: the shared one, or the first ``eval_envs``."""
+    return 1 if config.shared_table else min(config.eval_envs, config.n_envs)
+
+
+def evaluation_keys(key: jax.Array, n_tables: int) -> tuple[jax.Array, jax.Array]:
+    """The greedy evaluation's keys from the run's ``key``: one per evaluated table (``[n_tables]``), and the key
+    of the best table's second flight, on fresh episodes."""
+    return jax.random.split(jax.random.fold_in(key, 1), n_tables), jax.random.fold_in(key, 2)
+
+
+def table_figures(out: dict[str, Any], target: Any) -> dict[str, np.ndarray]:
+    """A greedy flight's outcomes (``return``, ``length``, maybe ``arrived``; ``[tables, episodes]`` each) as
+    per-table records keyed by :data:`jaxrobo.task.env.TARGET_METRICS`: ``mean_return``, ``mean_length`` and, for a
+    task whose learning target is a ``success_rate`` and whose flight records arrivals, ``success_rate``."""
+    per_table = {"mean_return": np.asarray(out["return"]), "mean_length": np.asarray(out["length"])}
+    if target is not None and target.metric == "success_rate" and "arrived" in out:
+        per_table["success_rate"] = np.asarray(out["arrived"])
+    return per_table
+
+
+def choose_table(per_table: dict[str, Any], target: Any) -> tuple[int, float | None]:
+    """The best of a run's evaluated tables and, where this flight decides it, the figure the run is judged by.
+
+    ``per_table``: :func:`table_figures` of the evaluated tables. The best table follows the task's learning
+    target (:meth:`jaxrobo.task.env.Ranking.best_table` of :func:`~jaxrobo.task.env.ranking`). The figure is the
+    target's metric of that table on these episodes (the mean over them), or None where the run is judged by the
+    best table flown again on fresh episodes (:func:`evaluate_tables`' ``selected``: several tables and a
+    ``mean_length`` / ``mean_return`` target, since the best of several noisy estimates flatters the table; a
+    ``success_rate`` stays this flight's, the only one that records arrivals) or where this flight does not record
+    the target's metric (no target; no arrivals)."""
+    best = ranking(target).best_table(per_table)
+    metric = None if target is None else target.metric
+    several = len(per_table["mean_return"]) > 1
+    if metric not in per_table or (several and metric in ("mean_length", "mean_return")):
+        return best, None
+    return best, float(np.asarray(per_table[metric], np.float64).mean(axis=1)[best])
+
+
 def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any,
                     progress: Callable[[EvalProgress], None] | None = None
                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, np.ndarray | None]:
@@ -412,22 +451,20 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
     ``arrived`` flag (QuadcopterGoto, ArmReach), whether each of those episodes arrived, ``[tables,
     eval_episodes]``, read from the same flight as the returns; None for any other task."""
     config = trainer.config
-    n_eval = min(config.eval_envs, config.n_envs) if not config.shared_table else 1
+    n_eval = evaluated_tables(config)
     tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
-    keys = jax.random.split(jax.random.fold_in(key, 1), n_eval)
+    keys, fresh = evaluation_keys(key, n_eval)
     out = fly(trainer, keys, tables, config.eval_episodes, env_params, over_tables=True,
               shared=config.shared_table, progress=progress)
-    eval_returns, eval_lengths = np.asarray(out["return"]), np.asarray(out["length"])
     target = getattr(trainer.env, "learning_target", None)
-    counts_success = target is not None and target.metric == "success_rate" and "arrived" in out
-    success = np.asarray(out["arrived"]) if counts_success else None
+    per_table = table_figures(out, target)
+    eval_returns, eval_lengths = per_table["mean_return"], per_table["mean_length"]
+    success = per_table.get("success_rate")
     selected = None
     if n_eval > 1:
-        per_table = {"mean_return": eval_returns, "mean_length": eval_lengths,
-                     **({"success_rate": success} if success is not None else {})}
-        best = ranking(target).best_table(per_table)  # the summary's best table: the task's target decides
+        best, _ = choose_table(per_table, target)  # the summary's best table: the task's target decides
         table = jax.tree.map(lambda x: x[best], tables)
-        sel = fly(trainer, jax.random.fold_in(key, 2), table, config.eval_episodes, env_params, over_tables=False,
+        sel = fly(trainer, fresh, table, config.eval_episodes, env_params, over_tables=False,
                   progress=progress, what="best table")
         selected = {"table": best, "returns": np.asarray(sel["return"]), "lengths": np.asarray(sel["length"])}
     return eval_returns, eval_lengths, selected, success
