@@ -16,8 +16,8 @@ for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itsel
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
 its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables` (flown in segments by
 :func:`fly`, reporting :class:`EvalProgress`; its pieces :func:`evaluated_tables`, :func:`evaluation_keys`,
-:func:`table_figures` and :func:`choose_table`, which the learning benchmarks judge runs by), :class:`StopOnSignal`, the hook types :data:`ProgressFn` and
-:data:`CheckpointFn`. Names with a leading underscore are private.
+:func:`table_figures` and :func:`choose_table`, which the learning benchmarks judge runs by),
+:class:`StopOnSignal`, the hook types :data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
 """
 from __future__ import annotations
 
