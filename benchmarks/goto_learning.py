@@ -96,6 +96,10 @@ def main(argv=None) -> int:
     ap.add_argument("--fused", default="default", choices=("default", "off", "pallas"),
                     help="the plan's fused choice (default: as for_run builds it)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="preset override")
+    ap.add_argument("--fly-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="env override for the evaluation flights only, after --set's (e.g. tables trained on "
+                         "nominal physics flown under randomised physics: --fly-set randomise=true --fly-set "
+                         "rand_wind=[0,0.6])")
     ap.add_argument("--out", default=None,
                     help="JSON path (default benchmarks/results/<device>/goto_learning_<env>.json)")
     args = ap.parse_args(argv)
@@ -114,8 +118,18 @@ def main(argv=None) -> int:
             ap.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
     from jaxrobo.core.config import parse_overrides
 
-    spec, trainer, q, train_s = train(args.env, seeds, parse_overrides(args.set), args.fused)
+    overrides, fly = parse_overrides(args.set), parse_overrides(args.fly_set)
+    probe = resolve(args.env)
+    for key in fly:  # env keys only: a learner or loop key would change nothing the flights do
+        if not (hasattr(probe.env.default_params, key) or hasattr(probe.env.options, key)):
+            ap.error(f"--fly-set {key}: not a parameter or option of {args.env}'s env (the flights change only "
+                     "the env)")
+    spec, trainer, q, train_s = train(args.env, seeds, overrides, args.fused)
     env, disc = spec.env, trainer.disc
+    if fly:
+        env = resolve(args.env, overrides={"eval_episodes": 0, **overrides, **fly}).env
+        if env.observation_space().shape != spec.env.observation_space().shape:
+            ap.error(f"--fly-set {', '.join(fly)}: changes the observation the tables were trained on")
     fresh = evaluate(env, disc, q, jax.random.key(FRESH_KEY), args.episodes)
     select = evaluate(env, disc, q, jax.random.key(10_000), args.select_episodes)
     best = int(np.argmax(select["success"]))
@@ -129,6 +143,7 @@ def main(argv=None) -> int:
            "fresh_success": {k: r3(v) for k, v in spread(fresh["success"]).items()},
            "seeds": seeds,
            "overrides": args.set,
+           "fly_overrides": args.fly_set,
            "fresh_success_per_run": [r3(v) for v in fresh["success"]],
            "fresh_failure_per_run": [r3(v) for v in fresh["failure"]],
            "fresh_timeout_per_run": [r3(v) for v in fresh["timeout"]],

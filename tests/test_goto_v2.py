@@ -131,3 +131,15 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     chosen = json.loads(again.read_text())
     assert chosen["seeds"] == [9, 7] and chosen["runs"] == 2
     assert chosen["fresh_success_per_run"] == [per_run[2], per_run[0]]
+    # --fly-set changes only the flights' env: randomisation on with every range at its nominal value flies the
+    # nominal physics, so the same tables arrive as often; a key of the learner or the loop is refused.
+    flown = tmp_path / "flown.json"
+    assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--seeds", "9,7", "--episodes", "5",
+                               "--select-episodes", "3", "--out", str(flown), "--fly-set", "randomise=true",
+                               *sets]) == 0
+    flown = json.loads(flown.read_text())
+    assert flown["fly_overrides"] == ["randomise=true"]
+    assert flown["fresh_success_per_run"] == chosen["fresh_success_per_run"]
+    with pytest.raises(SystemExit):
+        goto_learning.main(["--env", "QuadcopterGoto-v2", "--runs", "1", "--fly-set", "alpha=0.1", *sets])
+    assert "--fly-set alpha: not a parameter or option" in capsys.readouterr().err
