@@ -12,6 +12,10 @@ A learner::
 
     from jaxrobo.api import Learner, epsilon_greedy, row_max, rng
 
+A task's port to native MuJoCo (the sim-to-sim check, ``envs/*/native.py``)::
+
+    from jaxrobo.api import NativeSim
+
 Modules written against the earlier flat layout (``jaxrobo.env``, ``jaxrobo.sim``, ``jaxrobo.robot``,
 ``jaxrobo.struct``, ``jaxrobo.spaces``, ``jaxrobo.rng``, ``jaxrobo.registry``, ``jaxrobo.rollout``) keep
 working: ``import jaxrobo`` maps those names onto their homes (:data:`jaxrobo.LEGACY_MODULES`).
@@ -21,6 +25,7 @@ from __future__ import annotations
 from jaxrobo.core import rng, spaces
 from jaxrobo.core.config import ConfigError
 from jaxrobo.core.struct import param, pytree_dataclass, range_param, static_field
+from jaxrobo.interop.native import NativeSim
 from jaxrobo.physics.sim import (ClosedFormSim, JointState, MjxEdit, Simulator, backend_choices, load_model,
                                  make_simulator, through_batch)
 from jaxrobo.tabular import (AgentParams, AgentState, Learner, argmax_random_ties, epsilon_greedy,
@@ -37,7 +42,7 @@ __all__ = [
     "ConfigError", "param", "pytree_dataclass", "range_param", "static_field", "rng", "spaces",
     # simulators (the seed's Gazebo layer) and robots
     "ClosedFormSim", "JointState", "MjxEdit", "Simulator", "backend_choices", "load_model", "make_simulator", "through_batch",
-    "Robot",
+    "NativeSim", "Robot",
     # tasks
     "BaseParams", "Env", "EnvState", "LearningTarget", "TaskEnv", "deprecated_alias", "make", "register",
     "randomise",

@@ -16,7 +16,7 @@ import numpy as np
 
 from envs.arm.reach import ACTION_DELTAS
 from envs.arm.robot import ELBOW_MAX, FORE, UPPER
-from jaxrobo.interop.native import NativeSim
+from jaxrobo.api import NativeSim
 
 
 def fingertip(q: np.ndarray) -> np.ndarray:

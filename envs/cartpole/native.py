@@ -16,7 +16,7 @@ from typing import Any, Callable
 import numpy as np
 
 from envs.cartpole.stay_up import ACTION_STEPS
-from jaxrobo.interop.native import NativeSim
+from jaxrobo.api import NativeSim
 
 
 class NativeCartPole(NativeSim):

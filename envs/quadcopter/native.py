@@ -18,7 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from envs.quadcopter.robot import _ACTION_FIXED, _ACTION_SCALE, _INF, _PARALLEL, BOX, SONAR_RAYS
-from jaxrobo.interop.native import NativeSim
+from jaxrobo.api import NativeSim
 
 
 # ---- pose and geometry (numpy ports of envs.quadcopter.robot) --------------------------------------------
