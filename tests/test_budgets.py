@@ -73,7 +73,7 @@ def test_bad_budgets_are_refused_naming_the_key(overrides, fragment):
         resolve("CartPoleStayUp-v0", overrides={**SMALL, **overrides})
 
 
-def test_the_cli_reports_useful_share_and_wall_split(tmp_path, capsys):
+def test_the_cli_reports_useful_share_and_wall_split(tmp_path, capsys, monkeypatch):
     from jaxrobo.cli import main
 
     out = tmp_path / "run"
@@ -109,3 +109,9 @@ def test_the_cli_reports_useful_share_and_wall_split(tmp_path, capsys):
     assert len(read_scalars(str(cut)).get("progress/steps_per_second", [])) < 2
     (cut / live.name).write_bytes(data[:40] + b"\xff" * 64)
     assert read_scalars(str(cut)) == {}
+    # a file is read up to MAX_TB_FILE bytes only: what lies beyond (here the second chunk's records) is not read
+    import jaxrobo.io.results as results
+
+    (cut / live.name).write_bytes(data)
+    monkeypatch.setattr(results, "MAX_TB_FILE", len(data) - 60)
+    assert len(read_scalars(str(cut)).get("progress/steps_per_second", [])) < 2

@@ -226,13 +226,16 @@ PLOTTED_STATS = ("episode", "return_mean", "return_p10", "return_p90", "length_m
 
 #: A TensorBoard record longer than this is not one jaxrobo wrote (its scalars are a few hundred bytes).
 MAX_TB_RECORD = 1 << 20
+#: Bytes read of one event file at most: a run's scalars take kilobytes; a larger file is read up to here.
+MAX_TB_FILE = 256 << 20
 
 
 def read_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:
     """The scalars of the TensorBoard event files in ``logdir`` (a run's ``tensorboard/``), ``{tag: [(step,
     value), ...]}``, readable while the run writes them: the records a writer has flushed, a record half written
     at the end left out. The files are read as hostile: a record that does not parse or is longer than
-    :data:`MAX_TB_RECORD` ends that file's reading (TFRecord framing; tensorboardX's protos)."""
+    :data:`MAX_TB_RECORD` ends that file's reading, and no more than :data:`MAX_TB_FILE` bytes of a file are read
+    (TFRecord framing; tensorboardX's protos)."""
     import struct
 
     from tensorboardX.proto import event_pb2
@@ -245,7 +248,7 @@ def read_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:
         if not (name.startswith("events.") and os.path.isfile(path)):
             continue
         with open(path, "rb") as f:
-            data = f.read()
+            data = f.read(MAX_TB_FILE)  # bounded: a hostile or runaway file cannot exhaust the memory
         pos = 0
         while pos + 12 <= len(data):
             (n,) = struct.unpack("<Q", data[pos:pos + 8])
