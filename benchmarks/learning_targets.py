@@ -11,6 +11,7 @@ The headline per task and budget is the **median run** and the share of runs mee
 
     python benchmarks/learning_targets.py --device gpu --runs 16 --seed-base 1000
     python benchmarks/learning_targets.py --envs ArmReach-v0 --runs 2 --set nepisodes=20     # a CPU smoke run
+    python benchmarks/learning_targets.py --envs CartPoleStayUp-v0 --total-steps 16128000    # the step budget only
 """
 from __future__ import annotations
 
