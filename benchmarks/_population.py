@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -33,21 +33,30 @@ class Population:
     seconds: float
 
 
-def train_population(spec: Any, seeds: list[int], plan: Any = None) -> Population:
-    """Train one run of ``spec`` (a resolved preset: :func:`jaxrobo.training.run.resolve`) per seed in ``seeds``,
-    as one vmapped computation. ``plan``: the :class:`~jaxrobo.speed.plan.ExecutionPlan` to train under (None: the
-    trainer's default for the run, as ``jaxrobo train`` builds it)."""
+def compiled_population(spec: Any, seeds: list[int], plan: Any = None) -> tuple[Trainer, Any, Callable[[Any], Any]]:
+    """One run of ``spec`` (a resolved preset: :func:`jaxrobo.training.run.resolve`) per seed in ``seeds``, ready
+    to train as one vmapped computation: ``(trainer, runner, chunk)``, the fresh vmapped carry and its compiled
+    chunk, ``chunk(runner) -> runner`` (the carry donated). ``plan``: the
+    :class:`~jaxrobo.speed.plan.ExecutionPlan` to train under (None: the trainer's default for the run, as
+    ``jaxrobo train`` builds it)."""
     trainer = Trainer(spec.env, spec.config, plan=plan)
-    seeds = list(seeds)
     keys = jnp.stack([jax.random.key(s) for s in seeds])
     ap_, ep = spec.agent_params, spec.env.default_params
-    t0 = time.perf_counter()
     runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap_, ep)
     plan = trainer.plan
     chunk = driver.compile_under(plan, jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)),
                                                donate_argnums=0, compiler_options=plan.xla_options), runner, ap_, ep)
+    return trainer, runner, lambda r: chunk(r, ap_, ep)
+
+
+def train_population(spec: Any, seeds: list[int], plan: Any = None) -> Population:
+    """Train one run of ``spec`` per seed in ``seeds`` as one vmapped computation (:func:`compiled_population`),
+    to the end of its budget, looped by the host driver as ``jaxrobo train`` loops its chunks."""
+    seeds = list(seeds)
+    t0 = time.perf_counter()
+    trainer, runner, chunk = compiled_population(spec, seeds, plan)
     total, unit = trainer.budget_total
-    loop = driver.run_chunks(lambda r: chunk(r, ap_, ep), runner, trainer.max_chunks(),
+    loop = driver.run_chunks(chunk, runner, trainer.max_chunks(),
                              read=driver.compiled_progress(runner), total=total, unit=unit)
     jax.block_until_ready(loop.carry)
     return Population(trainer, seeds, loop.carry, loop, time.perf_counter() - t0)

@@ -134,30 +134,26 @@ def goto_row(args) -> dict[str, Any]:
     when the best run arrives in >= 80 % of them. That table is then flown on 200 fresh goals, so the reported
     rate is not the maximum of noisy estimates."""
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
     import jaxrobo
+    from _population import compiled_population
     from jaxrobo.task.rollout import greedy_policy, rollout
-    from jaxrobo.training import driver
     from jaxrobo.training.run import resolve
-    from jaxrobo.training.trainer import Trainer
 
     if GOTO_ID not in jaxrobo.registered():
         return {"side": "jaxrobo", "env": GOTO_ID, "status": "skipped", "reason": f"{GOTO_ID} is not registered"}
     spec = resolve(GOTO_ID, overrides={"eval_episodes": 0})
-    trainer, env, ap, ep = Trainer(spec.env, spec.config), spec.env, spec.agent_params, spec.env.default_params
+    env, ep = spec.env, spec.env.default_params
     runs = args.goto_runs
+
+    t0 = time.perf_counter()
+    # The runs' chunk vmapped, compiled as the driver compiles the single-run one (benchmarks/_population.py).
+    trainer, runner, chunk = compiled_population(spec, [args.seed + i for i in range(runs)])
 
     def success(table, key, n):
         return rollout(env, greedy_policy(table, trainer.disc), key, n, params=ep)["last"].task.arrived.mean()
 
-    t0 = time.perf_counter()
-    keys = jnp.stack([jax.random.key(args.seed + i) for i in range(runs)])
-    runner = jax.jit(jax.vmap(trainer.init, in_axes=(0, None, None)))(keys, ap, ep)
-    plan = trainer.plan  # the runs' chunk vmapped, compiled as the driver compiles the single-run one
-    chunk = driver.compile_under(plan, jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None, None)), donate_argnums=0,
-                                               compiler_options=plan.xla_options), runner, ap, ep)
     select = jax.jit(jax.vmap(lambda t, k: success(t, k, 100))).lower(
         runner.agent.q, jax.random.split(jax.random.key(0), runs)).compile()
     compile_s = time.perf_counter() - t0
@@ -169,7 +165,7 @@ def goto_row(args) -> dict[str, Any]:
         return best, {"best_success": best, "mean_success": float(rates.mean())}, \
             f"best greedy success {best:.2f} (mean over {runs} runs {rates.mean():.2f})"
 
-    runner, train_s, evals, best, met = train_until(runner, lambda r: chunk(r, ap, ep), score, GOTO_TARGET, args,
+    runner, train_s, evals, best, met = train_until(runner, chunk, score, GOTO_TARGET, args,
                                                     trainer.max_chunks(), "goto   ")
     rates = last["rates"] if "rates" in last else np.asarray(  # no chunk ran (--budget 0): untrained tables
         select(runner.agent.q, jax.random.split(jax.random.key(5000), runs)))
