@@ -29,6 +29,9 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import _common  # noqa: E402
 
 #: Per env id: the overrides of its fast backend, its randomisation ranges that change the physics, and the fused
 #: choice of its XLA path under randomisation.
@@ -66,13 +69,15 @@ def main() -> int:
     ap.add_argument("--variants", default=",".join(VARIANTS[:3]), help=f"comma list of {', '.join(VARIANTS)}")
     ap.add_argument("--out", default=None, help="JSON of the rows")
     args = ap.parse_args()
-    if args.device:
-        os.environ["JAX_PLATFORMS"] = {"cpu": "cpu", "gpu": "cuda"}[args.device]
+    variants = args.variants.split(",")
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:  # before anything compiles or trains
+        ap.error(f"--variants {','.join(unknown)}: expected a comma list of {', '.join(VARIANTS)}")
+    _common.select_device(args.device)
     from jaxrobo.training.run import resolve
     from jaxrobo.training.train import train
     from jaxrobo.training.trainer import Trainer
 
-    variants = args.variants.split(",")
     rows = []
     for env_id in args.envs.split(","):
         for n in (int(v) for v in args.n_envs.split(",")):

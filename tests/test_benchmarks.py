@@ -168,3 +168,11 @@ def test_fused_plan_tokens_name_the_kernel_knobs():
     assert all(hasattr(fused_pallas, name) for name in knobs)
     with pytest.raises(ValueError, match="apply to pallas only"):
         fused.plan_of(ExecutionPlan(), "xla:lanes")
+
+
+def test_randomisation_cost_refuses_an_unknown_variant_before_anything_runs():
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "randomisation_cost.py"),
+                           "--variants", "kernel-nominal,kernel-randomized"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2
+    assert "--variants kernel-randomized: expected a comma list of kernel-nominal" in proc.stderr
