@@ -27,6 +27,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 UNATTENDED = ((re.compile(r"\.\.\."), "a placeholder (`...`), not a command"),
               (re.compile(r"Ctrl-C"), "needs a Ctrl-C by hand (tests/test_resume.py does it by signal)"),
               (re.compile(r"GPU-sized"), "sized for a GPU (its CPU time is in its comment)"))
+#: Of those, the ones that run unattended on a GPU.
+GPU_RUNS = ("GPU-sized",)
 
 
 def readme_commands(path: str) -> list[tuple[str, str]]:
@@ -67,46 +69,18 @@ def notebook(env: dict, timeout: float) -> dict:
     return run("python", code, env, timeout)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", required=True, help="markdown transcript to write")
-    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
-    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed to one command")
-    ap.add_argument("--only", default=None, help="run only the commands containing this text")
-    ap.add_argument("--no-notebook", action="store_true")
-    ap.add_argument("--keep", action="store_true", help="keep runs/ and policy/ from an earlier transcript")
-    ap.add_argument("--start-at", default=None, metavar="TEXT",
-                    help="skip the commands before the first one containing TEXT (with --keep: go on with a transcript)")
-    args = ap.parse_args(argv)
-    if not args.keep:
-        for d in ("runs", "policy"):
-            shutil.rmtree(os.path.join(ROOT, d), ignore_errors=True)
-    env = {**os.environ, "JAX_PLATFORMS": {"cpu": "cpu", "gpu": "cuda"}[args.device], "PYTHONUNBUFFERED": "1"}
-    bindir = os.path.dirname(sys.executable)  # the venv's `jaxrobo` before any other on PATH
-    env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
-    rows = []
-    started = args.start_at is None
-    for kind, text in readme_commands(os.path.join(ROOT, "README.md")):
-        started = started or args.start_at in text
-        if not started or (args.only and args.only not in text):
-            continue
-        why = next((w for pat, w in UNATTENDED if pat.search(text)), None)
-        if why:
-            rows.append({"kind": kind, "text": text, "skipped": why})
-            print(f"skip  {text[:100]}  ({why})", flush=True)
-            continue
-        r = run(kind, text, env, args.timeout)
-        rows.append({"kind": kind, "text": text, **r})
-        print(f"{r['seconds']:7.1f} s  rc={r['rc']}  {text[:100]}", flush=True)
-    if not args.no_notebook and not args.only:
-        r = notebook(env, args.timeout)
-        rows.append({"kind": "notebook", "text": "notebooks/quickstart.ipynb (nbclient, fresh kernel)", **r})
-        print(f"{r['seconds']:7.1f} s  rc={r['rc']}  notebooks/quickstart.ipynb", flush=True)
-    import jax  # after the commands: the versions and device of this machine, for the header
+def machine(env: dict) -> tuple[str, str]:
+    """``(device kind, jax version)``, asked of a child process: jax in this one would hold the GPU's memory."""
+    code = "import jax; print(jax.devices()[0].device_kind); print(jax.__version__)"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True).stdout.split("\n")
+    return (out[0], out[1]) if len(out) > 1 else ("unknown device", "unknown")
 
-    head = [f"# README transcript: {jax.devices()[0].device_kind} ({os.cpu_count()} cores visible)", "",
+
+def write(args, rows: list[dict], kind: str, version: str) -> None:
+    """The transcript of the rows so far (written after every command, so a stopped transcript keeps its rows)."""
+    head = [f"# README transcript: {kind} ({os.cpu_count()} cores visible)", "",
             f"`python scripts/readme_transcript.py --device {args.device}` on {time.strftime('%Y-%m-%d')}, "
-            f"Python {platform.python_version()}, jax {jax.__version__}, commit "
+            f"Python {platform.python_version()}, jax {version}, commit "
             f"{subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=ROOT, capture_output=True, text=True).stdout.strip()}. "
             "Each command ran in order in one checkout, as the README gives it; times are wall seconds from start to "
             "exit (compile included; the compile cache as the earlier commands left it).", "",
@@ -124,6 +98,47 @@ def main(argv=None) -> int:
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as f:
         f.write("\n".join(head) + "\n")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True, help="markdown transcript to write")
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed to one command")
+    ap.add_argument("--only", default=None, help="run only the commands containing this text")
+    ap.add_argument("--no-notebook", action="store_true")
+    ap.add_argument("--keep", action="store_true", help="keep runs/ and policy/ from an earlier transcript")
+    ap.add_argument("--start-at", default=None, metavar="TEXT",
+                    help="skip the commands before the first one containing TEXT (with --keep: go on with a transcript)")
+    args = ap.parse_args(argv)
+    if not args.keep:
+        for d in ("runs", "policy"):
+            shutil.rmtree(os.path.join(ROOT, d), ignore_errors=True)
+    env = {**os.environ, "JAX_PLATFORMS": {"cpu": "cpu", "gpu": "cuda"}[args.device], "PYTHONUNBUFFERED": "1"}
+    bindir = os.path.dirname(sys.executable)  # the venv's `jaxrobo` before any other on PATH
+    env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
+    info = machine(env)
+    rows = []
+    started = args.start_at is None
+    for kind, text in readme_commands(os.path.join(ROOT, "README.md")):
+        started = started or args.start_at in text
+        if not started or (args.only and args.only not in text):
+            continue
+        why = next((w for pat, w in UNATTENDED if pat.search(text)
+                    and not (args.device == "gpu" and pat.pattern in GPU_RUNS)), None)
+        if why:
+            rows.append({"kind": kind, "text": text, "skipped": why})
+            print(f"skip  {text[:100]}  ({why})", flush=True)
+            continue
+        r = run(kind, text, env, args.timeout)
+        rows.append({"kind": kind, "text": text, **r})
+        print(f"{r['seconds']:7.1f} s  rc={r['rc']}  {text[:100]}", flush=True)
+        write(args, rows, *info)
+    if not args.no_notebook and not args.only:
+        r = notebook(env, args.timeout)
+        rows.append({"kind": "notebook", "text": "notebooks/quickstart.ipynb (nbclient, fresh kernel)", **r})
+        print(f"{r['seconds']:7.1f} s  rc={r['rc']}  notebooks/quickstart.ipynb", flush=True)
+    write(args, rows, *info)
     print(f"transcript: {args.out}")
     return 0 if all(r.get("rc", 0) == 0 for r in rows) else 1
 
