@@ -104,15 +104,10 @@ def _agent(cfg: dict[str, Any], where: str) -> str:
 def _pick_table(run_dir: str, q: np.ndarray, table: int | None) -> int:
     from jaxrobo.core.config import ConfigError
 
+    from jaxrobo.io.results import selected_table
+
     if table is None:
-        table = 0
-        try:
-            with open(os.path.join(run_dir, "summary.json")) as f:
-                chosen = json.load(f).get("selected_table", 0)
-        except (OSError, ValueError, AttributeError):
-            chosen = 0
-        if isinstance(chosen, int) and not isinstance(chosen, bool) and 0 <= chosen < q.shape[0]:
-            table = chosen
+        table = selected_table(run_dir, q.shape[0])
     elif not 0 <= table < q.shape[0]:
         raise ConfigError(f"--table {table}: must be in 0..{q.shape[0] - 1} (the run has {q.shape[0]} tables)")
     if not np.all(np.isfinite(q[table])):

@@ -29,7 +29,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None,
                         help="image to write (default: RUN_DIR/show.png, or runs/show/ENV.png with --env)")
     parser.add_argument("--episodes", type=int, default=6, help="episodes to run and draw")
-    parser.add_argument("--table", type=int, default=0, help="which trained table (env index) to show")
+    parser.add_argument("--table", type=int, default=None,
+                        help="which trained table (env index) to show; default the run's selected best table "
+                             "(summary.json), else 0")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the episodes")
     parser.add_argument("--policy", default="latest", choices=("latest", "best"),
                         help="a ppo/sac run's policy: latest (the trained one; a stopped run's last evaluation "
@@ -219,7 +221,7 @@ def check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--episodes {args.episodes}: must be an integer >= 1 and <= {MAX_EPISODES}")
     if not 0 <= args.seed <= INT32_MAX:
         raise ConfigError(f"--seed {args.seed}: must be an integer >= 0 and <= {INT32_MAX}")
-    if args.table < 0:
+    if args.table is not None and args.table < 0:
         raise ConfigError(f"--table {args.table}: must be an integer >= 0")
     if args.out is None:
         args.out = default_out(args.run_dir, args.env_id)
@@ -416,26 +418,32 @@ def run(args: argparse.Namespace) -> int:
 
     from jaxrobo import deep
     from jaxrobo.core.config import ConfigError
+    from jaxrobo.io.results import selected_table
     from jaxrobo.training.run import resolve
 
     policy = None
     try:
         check_args(args)
         if args.run_dir and deep.is_deep_run(args.run_dir):
+            args.table = args.table or 0
             spec, policy = _load_deep_run(args.run_dir, args.table, args.policy)
             q = None
             name = f"{spec.agent} {args.policy} policy"
         elif args.run_dir:
             spec, cfg, q = _load_run(args.run_dir)
+            if args.table is None:
+                args.table = selected_table(args.run_dir, q.shape[0])
             check_table(q, args.table, os.path.join(args.run_dir, "qtables.npz"))
             name = f"greedy {spec.config.agent}, table {args.table}"
         else:
             spec, q = resolve(args.env_id, args.preset, check_memory=False), None
+            args.table = 0
             name = "random policy (untrained)"
     except ConfigError as err:
         print(f"jaxrobo show: {err}", file=sys.stderr)
         return 2
     what = f"{name}, {os.path.basename(os.path.normpath(args.run_dir))}" if args.run_dir else name
+    print(f"policy: {what}")
     if args.video is not None:
         return video(spec, args.video, args.seed, policy=policy, q=q, table=args.table)
     if flies(spec):

@@ -127,3 +127,35 @@ def test_goto_side_view_draws_each_goal_at_its_distance_from_the_start(tmp_path,
     assert [float(a[0]) for a in stars] == [5.0, 5.0]  # top view: x of the goal; side view: 5 m from the start
     ends = [a for _, a in drawn if len(a) == 3 and a[2] == "x"]
     assert float(ends[-1][0]) == 2.0
+
+
+def test_show_and_export_act_with_the_run_s_selected_table_by_default(tmp_path, capsys):
+    """A run of several tables: ``show`` (like ``export``) flies the table its evaluation selected
+    (``summary.json``), not table 0, unless ``--table`` says otherwise; a summary that names no table of the run
+    (hostile, out of range, missing) falls back to 0."""
+    import json
+
+    from jaxrobo.io.results import selected_table
+
+    run = str(tmp_path / "cp")
+    assert main(["train", "--env", "CartPoleStayUp-v0", *TINY, "--out", run]) == 0
+    path = os.path.join(run, "summary.json")
+    with open(path) as f:
+        summary = json.load(f)
+    for chosen, expect in ((1, 1), (0, 0), (2, 0), (True, 0), ("1", 0), (-1, 0)):
+        with open(path, "w") as f:
+            json.dump({**summary, "selected_table": chosen}, f)
+        assert selected_table(run, 2) == expect
+    with open(path, "w") as f:
+        json.dump({**summary, "selected_table": 1}, f)
+    capsys.readouterr()
+    assert main(["show", run, "--episodes", "2"]) == 0
+    assert "policy: greedy qlearn, table 1, cp" in capsys.readouterr().out
+    assert main(["show", run, "--episodes", "2", "--table", "0"]) == 0
+    assert "policy: greedy qlearn, table 0, cp" in capsys.readouterr().out
+    for hostile in ("[1, 2]", "{not json", ""):
+        with open(path, "w") as f:
+            f.write(hostile)
+        assert selected_table(run, 2) == 0
+    os.remove(path)
+    assert selected_table(run, 2) == 0

@@ -297,6 +297,23 @@ def load_stats(run_dir: str) -> dict[str, np.ndarray]:
     return stats
 
 
+#: Most bytes of a ``summary.json`` read back for its selected table (a hostile file is not read whole).
+MAX_SUMMARY_BYTES = 16 << 20
+
+
+def selected_table(run_dir: str, n_tables: int) -> int:
+    """The table a run's greedy evaluation selected (``summary.json``'s ``selected_table``), which ``jaxrobo show``,
+    ``export`` and ``sim2sim`` act with by default; 0 where the run has no summary or it names no table of the
+    ``n_tables`` (an older, interrupted or hostile run directory)."""
+    try:
+        with open(os.path.join(run_dir, "summary.json"), encoding="utf-8") as f:
+            chosen = json.loads(f.read(MAX_SUMMARY_BYTES)).get("selected_table", 0)
+    except (OSError, ValueError, AttributeError):
+        return 0
+    ok = isinstance(chosen, int) and not isinstance(chosen, bool) and 0 <= chosen < n_tables
+    return chosen if ok else 0
+
+
 def load_tables(run_dir: str) -> dict[str, np.ndarray]:
     """A run's ``qtables.npz`` as plain arrays (no pickle); ConfigError naming the file when it is missing,
     truncated, pickled or has no ``q`` of shape ``[n_envs, n_tables, n_states, n_actions]``."""
