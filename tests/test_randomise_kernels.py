@@ -70,9 +70,17 @@ def test_the_goto_kernels_fly_the_randomised_xla_flights(task):
     got, calls = _goto_steps("pallas", task)
     assert (calls_ref, calls) == (0, 1)
     for (path, a), (_, b) in zip(_leaves(ref), _leaves(got)):
-        a, b = np.asarray(a), np.asarray(b)
-        if np.issubdtype(a.dtype, np.floating) and "domain" not in jax.tree_util.keystr(path):
-            np.testing.assert_allclose(b, a, rtol=2e-5, atol=5e-5, err_msg=jax.tree_util.keystr(path))
+        a, b, name = np.asarray(a), np.asarray(b), jax.tree_util.keystr(path)
+        if name == ".obs":
+            # A level sonar ray that grazes a cylinder has a range whose derivative in the heading is unbounded at
+            # tangency: the last-ulp difference of Triton's and XLA's sin/cos on a GPU moved three of 296 readings
+            # by up to 3 mm on an H100 (the discretiser's sonar bins are 0.5-1 m wide). The sonars are held to 1 cm,
+            # the goal's terms to round-off.
+            sonars = slice(3, 7)
+            np.testing.assert_allclose(b[:, sonars], a[:, sonars], rtol=0, atol=1e-2, err_msg=name + " sonars")
+            b, a = np.delete(b, np.s_[3:7], axis=1), np.delete(a, np.s_[3:7], axis=1)
+        if np.issubdtype(a.dtype, np.floating) and "domain" not in name:
+            np.testing.assert_allclose(b, a, rtol=2e-5, atol=5e-5, err_msg=name)
         else:
             np.testing.assert_array_equal(b, a, err_msg=jax.tree_util.keystr(path))
     nominal, _ = _goto_steps("pallas", task, None)
