@@ -51,12 +51,19 @@ def compiled_population(spec: Any, seeds: list[int], plan: Any = None) -> tuple[
 
 def train_population(spec: Any, seeds: list[int], plan: Any = None) -> Population:
     """Train one run of ``spec`` per seed in ``seeds`` as one vmapped computation (:func:`compiled_population`),
-    to the end of its budget, looped by the host driver as ``jaxrobo train`` loops its chunks."""
+    to the end of its budget, looped by the host driver as ``jaxrobo train`` loops its chunks; with ``snapshots``
+    each run's carry then holds the table ``jaxrobo train`` keeps (:meth:`Trainer.final_table`, from its seed's
+    key)."""
     seeds = list(seeds)
     t0 = time.perf_counter()
     trainer, runner, chunk = compiled_population(spec, seeds, plan)
     total, unit = trainer.budget_total
     loop = driver.run_chunks(chunk, runner, trainer.max_chunks(),
                              read=driver.compiled_progress(runner), total=total, unit=unit)
-    jax.block_until_ready(loop.carry)
-    return Population(trainer, seeds, loop.carry, loop, time.perf_counter() - t0)
+    carry = loop.carry
+    if carry.snapshots is not None:  # each run keeps the table `jaxrobo train` would keep (Trainer.final_table)
+        keys = jnp.stack([jax.random.key(s) for s in seeds])
+        final = jax.jit(jax.vmap(trainer.final_table, in_axes=(0, 0, None)))
+        carry = final(carry, keys, spec.env.default_params)[0]
+    jax.block_until_ready(carry)
+    return Population(trainer, seeds, carry, loop, time.perf_counter() - t0)

@@ -1,5 +1,7 @@
 """QuadcopterGoto-v2: registered, its goal_clear feature, the quick check, a tiny train whose summary carries the
-greedy arrival rate, and benchmarks/goto_learning.py's median over runs (tiny sizes; the figures are a benchmark)."""
+greedy arrival rate, benchmarks/goto_learning.py's median over runs, and the run's final table chosen among its
+late snapshots as `jaxrobo train` and the benchmark's population choose it (tiny sizes; the figures are a
+benchmark)."""
 from __future__ import annotations
 
 import json
@@ -143,3 +145,91 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     with pytest.raises(SystemExit):
         goto_learning.main(["--env", "QuadcopterGoto-v2", "--runs", "1", "--fly-set", "alpha=0.1", *sets])
     assert "--fly-set alpha: not a parameter or option" in capsys.readouterr().err
+
+
+# ---- the run's final table: the best of its final table and late snapshots (Trainer.final_table) --------------
+SNAP = {"n_envs": 2, "nepisodes": 20, "nsteps": 12, "chunk_steps": 12, "eval_episodes": 0, "snapshot_episodes": 6}
+
+
+@pytest.fixture(scope="module")
+def snapped():
+    """A short Goto-v2 run chunk by chunk: its trainer, final carry and every chunk's (done, table)."""
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.trainer import Trainer
+
+    spec = resolve("QuadcopterGoto-v2", overrides=SNAP)
+    assert spec.config.snapshots == 4  # the preset's
+    trainer = Trainer(spec.env, spec.config)
+    ap, ep = spec.agent_params, spec.env.default_params
+    runner = jax.jit(trainer.init)(jax.random.key(0), ap, ep)
+    chunk = jax.jit(trainer.run_chunk)
+    history = []
+    for _ in range(trainer.max_chunks()):
+        runner = chunk(runner, ap, ep)
+        history.append((int(trainer.progress(runner)[0]), np.asarray(runner.agent.q)))
+        if history[-1][0] >= spec.config.nepisodes:
+            break
+    return trainer, runner, history
+
+
+def test_snapshot_k_is_the_table_at_the_last_chunk_boundary_at_or_before_its_share_of_the_budget(snapped):
+    from jaxrobo.training.trainer import SNAPSHOT_SPACING
+
+    trainer, runner, history = snapped
+    assert runner.snapshots.shape == (4,) + runner.agent.q.shape
+    assert SNAPSHOT_SPACING == 0.05 and trainer.snapshot_points() == [19, 18, 17, 16]  # of 20 episodes per env
+    for k, point in enumerate(trainer.snapshot_points(), start=1):
+        before = [q for done, q in history if done <= point]
+        assert before, f"no chunk ended at or before {point} episodes"
+        np.testing.assert_array_equal(np.asarray(runner.snapshots[k - 1]), before[-1], err_msg=f"snapshot {k}")
+    assert any(not np.array_equal(np.asarray(s), history[-1][1]) for s in runner.snapshots)
+
+
+def test_final_table_keeps_the_candidate_best_by_the_learning_target(snapped):
+    """The choice equals the summary's ranking (success rate, then mean return, the first on a tie) of the
+    candidates flown on the same episodes from fold_in(key, 3); a tie keeps the final table."""
+    from jaxrobo.task.env import ranking
+
+    trainer, runner, _ = snapped
+    key = jax.random.key(0)
+    # Candidates that differ: the final table, its negation (greedy flies the worst action), the snapshots.
+    runner = runner.replace(snapshots=runner.snapshots.at[0].set(-runner.agent.q))
+    chosen, choice = jax.jit(trainer.final_table)(runner, key)
+    candidates = np.concatenate([np.asarray(runner.agent.q)[None], np.asarray(runner.snapshots)])
+    flights = [trainer.evaluate_episodes(jax.random.fold_in(key, 3), runner.agent.replace(q=jnp.asarray(q)),
+                                         trainer.config.snapshot_episodes) for q in candidates]
+    per_table = {"mean_return": np.stack([np.asarray(f["return"]) for f in flights]),
+                 "success_rate": np.stack([np.asarray(f["arrived"]) for f in flights])}
+    assert int(choice) == ranking(trainer.env.learning_target).best_table(per_table)
+    np.testing.assert_array_equal(np.asarray(chosen.agent.q), candidates[int(choice)])
+    same = runner.replace(snapshots=jnp.broadcast_to(runner.agent.q, runner.snapshots.shape))
+    assert int(jax.jit(trainer.final_table)(same, key)[1]) == 0
+
+
+def test_snapshots_need_a_shared_table_and_stay_in_range():
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.training.run import resolve
+
+    with pytest.raises(ConfigError, match="snapshots=4 needs shared_table=true"):
+        resolve("QuadcopterGoto-v2", overrides={"shared_table": False})
+    with pytest.raises(ConfigError, match="snapshots"):
+        resolve("QuadcopterGoto-v2", overrides={"snapshots": 11})
+    assert resolve("QuadcopterGoto-v2", overrides={"shared_table": False, "snapshots": 0}).config.snapshots == 0
+
+
+def test_train_and_the_benchmark_population_keep_the_same_table(tmp_path):
+    """`jaxrobo train --seed 9` and goto_learning's vmapped population of that seed end with the same table, and
+    the summary says which candidate it is. (A population of several seeds matches it too, but only to the
+    last bits of float32 here: XLA vectorises the batched physics differently.)"""
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    import goto_learning
+
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
+
+    sizes = {k: v for k, v in SNAP.items() if k != "eval_episodes"}
+    _, _, q, _ = goto_learning.train("QuadcopterGoto-v2", [9], sizes)
+    spec = resolve("QuadcopterGoto-v2", overrides={**SNAP, "seed": 9})
+    res = train(spec.env, spec.config, spec.agent_params)
+    np.testing.assert_array_equal(res.q[0], q[0])
+    assert res.summary()["final_table_choice"] in range(5)

@@ -324,3 +324,30 @@ def test_changed_config_message(tmp_path, capsys):
     assert main(["train", "--resume", out, "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "refusing to resume" in err and "agent_params.alpha: 0.3 in the checkpoint vs 0.25 now" in err
+
+
+def test_a_run_with_snapshots_resumes_to_the_same_final_table(tmp_path):
+    """The late tables kept for the final choice (QuadcopterGoto-v2's ``snapshots``) are part of the carry: a run
+    stopped between them and resumed keeps the same snapshots, chooses the same table and reports the same choice."""
+    spec = resolve("QuadcopterGoto-v2", overrides=dict(n_envs=2, nepisodes=10, nsteps=12, chunk_steps=12,
+                                                       eval_episodes=2, snapshot_episodes=4))
+    assert spec.config.snapshots > 0
+    full = training.train(spec.env, spec.config, spec.agent_params)
+    trainer = training.Trainer(spec.env, spec.config)
+    template = training.carry_template(trainer, spec.agent_params)
+    fingerprint = training.carry_fingerprint(template, spec.to_dict())
+    path = str(tmp_path / rundir.CHECKPOINT)
+    asked = []
+
+    def should_stop():
+        asked.append(1)
+        return len(asked) > 4
+
+    part = training.train(spec.env, spec.config, spec.agent_params, should_stop=should_stop,
+                          checkpoint=lambda r, n: training.save_checkpoint(path, r, n, fingerprint))
+    assert not part.complete and part.final_table_choice is None  # a stopped run has not chosen
+    runner, chunks_done = training.load_checkpoint(path, template, fingerprint)
+    resumed = training.train(spec.env, spec.config, spec.agent_params, initial=runner, start_chunk=chunks_done)
+    for field in ("q", "returns", "lengths", "eval_returns", "eval_lengths", "eval_success"):
+        np.testing.assert_array_equal(getattr(resumed, field), getattr(full, field), err_msg=field)
+    assert resumed.final_table_choice == full.final_table_choice is not None

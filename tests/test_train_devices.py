@@ -24,7 +24,9 @@ from jaxrobo.training.train import train
 small = dict(n_envs=8, nepisodes=4, nsteps=40, chunk_steps=25, eval_episodes=2, eval_envs=2, backend="analytic")
 out = {"devices": jax.device_count(), "cases": {}}
 for name, extra in {"per_env": {}, "shared": {"shared_table": True}, "steps": {"total_steps": 8 * 60},
-                    "pallas": {"fused": "pallas"}}.items():
+                    "pallas": {"fused": "pallas"},
+                    # 8 snapshots of the shared table: as many as the envs, yet not split over the devices
+                    "snapshots": {"shared_table": True, "snapshots": 8, "snapshot_episodes": 2}}.items():
     res = {}
     for d in (1, 4):
         spec = resolve("CartPoleStayUp-v0", overrides={**small, **extra, "devices": d})
@@ -32,7 +34,8 @@ for name, extra in {"per_env": {}, "shared": {"shared_table": True}, "steps": {"
     out["cases"][name] = {
         "plan": res[4].plan,
         "same": {k: bool(np.array_equal(np.asarray(getattr(res[1], k)), np.asarray(getattr(res[4], k))))
-                 for k in ("q", "returns", "lengths", "terminated", "env_steps", "eval_returns")}}
+                 for k in ("q", "returns", "lengths", "terminated", "env_steps", "eval_returns",
+                           "final_table_choice")}}
 from jaxrobo.cli import main
 rc = main(["train", "--env", "CartPoleStayUp-v0", "--set", "env.backend=analytic", "--n-envs", "6",
            "--total-steps", "300", "--set", "chunk_steps=25", "--set", "nsteps=40", "--set", "eval_episodes=2",

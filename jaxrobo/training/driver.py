@@ -120,7 +120,7 @@ def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, e
         jitted = jax.jit(trainer.init)
     else:
         out = jax.eval_shape(trainer.init, key, agent_params, env_params)
-        jitted = jax.jit(trainer.init, out_shardings=sharding.shardings_like(out, mesh, trainer.config.n_envs))
+        jitted = jax.jit(trainer.init, out_shardings=_carry_shardings(out, mesh, trainer.config.n_envs))
     return compile_under(trainer.plan, jitted, key, agent_params, env_params)
 
 
@@ -138,7 +138,7 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
         jitted = jax.jit(trainer.run_chunk, donate_argnums=0, compiler_options=plan.xla_options)
         return compile_under(plan, jitted, runner, agent_params, env_params)
     n = trainer.config.n_envs
-    carry = sharding.shardings_like(runner, mesh, n)
+    carry = _carry_shardings(runner, mesh, n)
     rep = sharding.replicated(mesh)
     params = (jax.tree.map(lambda _: rep, agent_params), jax.tree.map(lambda _: rep, env_params))
     fn = trainer.run_chunk
@@ -148,11 +148,22 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
         local = Trainer(trainer.env, dataclasses.replace(trainer.config, n_envs=n // plan.devices, devices=1),
                         trainer.disc, trainer.learner, plan=plan.replace(devices=1))
         specs = jax.tree.map(lambda s: s.spec, carry)
-        fn = jax.shard_map(local.run_chunk, mesh=mesh, in_specs=(specs, P(), P()), out_specs=specs,
-                           check_vma=False)
+        steps = jax.shard_map(local._run_steps, mesh=mesh, in_specs=(specs, P(), P()), out_specs=specs,
+                              check_vma=False)
+        # The snapshots follow the whole run's progress, so they are kept outside the per-device kernels.
+        fn = lambda r, ap, ep: trainer.keep_snapshots(steps(r, ap, ep))  # noqa: E731
     jitted = jax.jit(fn, donate_argnums=0, compiler_options=plan.xla_options, in_shardings=(carry,) + params,
                      out_shardings=carry)
     return compile_under(plan, jitted, runner, agent_params, env_params)
+
+
+def _carry_shardings(carry: Runner, mesh: Any, n_envs: int) -> Any:
+    """The carry's shardings over ``mesh``: the env axis split, the rest replicated; the snapshots (one run's
+    tables, whose leading axis may happen to have ``n_envs`` entries) replicated as the shared table is."""
+    from jaxrobo.speed import sharding
+
+    out = sharding.shardings_like(carry, mesh, n_envs)
+    return out if carry.snapshots is None else out.replace(snapshots=sharding.replicated(mesh))
 
 
 def compiled_progress(carry: Runner, trainer: Trainer | None = None) -> Callable:
@@ -304,6 +315,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     runner = loop.carry
     eval_returns = eval_lengths = selected = eval_success = None
     t_eval = time.perf_counter()
+    final_choice = None
+    if not loop.stopped and runner.snapshots is not None:
+        # A stopped run keeps its carry as it is: the resumed run chooses once it has finished.
+        runner, choice = jax.jit(trainer.final_table)(runner, key, env_params)
+        final_choice = int(choice)
     if config.eval_episodes > 0 and not loop.stopped:
         if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
             announce(f"evaluating {evaluated_tables(config)} table(s) × {config.eval_episodes} greedy episodes ≤ "
@@ -325,7 +341,8 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         chunks_done=loop.chunks_done, start_chunk=start_chunk, eval_seconds=eval_seconds,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
         episodes_finished=int(np.asarray(host.episode, np.int64).sum()), budget=trainer.budget,
-        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored)
+        learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored,
+        final_table_choice=final_choice)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -165,6 +165,10 @@ def check_combinations(config: TrainConfig, given: Mapping[str, Any], where: str
                        if key == "number_splits" and config.discretiser == "bins"
                        else f"discretiser={config.discretiser!r} does not use it")
             raise ConfigError(f"{loc}{key}={given[key]!r} would be ignored: {because}")
+    if config.snapshots and not config.shared_table:
+        raise ConfigError(f"{loc}snapshots={config.snapshots} needs shared_table=true (the final choice flies one "
+                          "table's candidates; per-env tables would keep snapshots x n_envs tables); set snapshots=0 "
+                          "or shared_table=true")
     if config.total_steps and config.total_episodes:
         raise ConfigError(f"{loc}total_steps={config.total_steps} and total_episodes={config.total_episodes}: give "
                           "one run-wide budget (or neither: nepisodes per env)")

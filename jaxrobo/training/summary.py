@@ -55,6 +55,9 @@ class TrainResult:
     #: Env steps the carry had already run when this process restored it (``--resume``): ``env_steps`` counts
     #: them, the speed does not (they were run, and timed, by an earlier process).
     restored_env_steps: int = 0
+    #: Which table the finished run kept (:meth:`jaxrobo.training.trainer.Trainer.final_table`: 0 the final one,
+    #: k the snapshot at ``1 - k * SNAPSHOT_SPACING`` of the budget); None without ``snapshots``.
+    final_table_choice: int | None = None
 
     #: The chunk the carry started from (0, or the checkpoint's on a resume).
     start_chunk: int = 0
@@ -133,6 +136,8 @@ class TrainResult:
         if self.restored_env_steps:
             out["restored_env_steps"] = int(self.restored_env_steps)
             out["env_steps_this_process"] = int(self.env_steps - self.restored_env_steps)
+        if self.final_table_choice is not None:
+            out["final_table_choice"] = int(self.final_table_choice)
         target = self.learning_target
         if target is not None:
             out["learning_target"] = target.description

@@ -21,8 +21,13 @@ The whole step (act → env step → discretise → learn → record → auto-re
 parameters as arguments, so a sweep vmaps them over a configuration axis (:mod:`jaxrobo.training.sweep`). Nothing here
 runs a host loop: :mod:`jaxrobo.training.driver` compiles the chunk and runs it chunk after chunk.
 
+With ``snapshots`` (a shared table only) the carry also keeps a few late tables (:meth:`Trainer.keep_snapshots`,
+at chunk boundaries near 95 %, 90 %, ... of the budget), and a finished run keeps the best of them and its final
+table on greedy flights of its own (:meth:`Trainer.final_table`): see that method for why.
+
 Public surface: :class:`TrainConfig`, :class:`Runner`, :class:`Trainer` (``init``, ``step``, ``run_chunk``,
-``max_chunks``, ``budget``, ``budget_total``, ``progress``, ``evaluate``, ``evaluate_episodes``), :func:`make_discretiser_for` (defined in
+``keep_snapshots``, ``snapshot_points``, ``final_table``, ``max_chunks``, ``budget``, ``budget_total``, ``progress``, ``evaluate``,
+``evaluate_episodes``), :data:`SNAPSHOT_SPACING`, :data:`MAX_SNAPSHOTS`, :func:`make_discretiser_for` (defined in
 :mod:`jaxrobo.tabular.discretise`, where the plan's default reads it too), :func:`progress_stats`. Names with a leading
 underscore are private.
 """
@@ -39,9 +44,16 @@ from jaxrobo.tabular.learner import AgentParams, AgentState, Learner
 from jaxrobo.task import autoreset, registry, rollout
 from jaxrobo.core import rng
 from jaxrobo.tabular.discretise import MODES, Discretiser, make_discretiser_for
-from jaxrobo.task.env import Env, EnvState
+from jaxrobo.task.env import Env, EnvState, ranking
 from jaxrobo.speed.plan import FUSED_CHOICES, ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
 from jaxrobo.core.struct import param, pytree_dataclass
+
+
+#: Spacing of the late tables kept for the final choice (:attr:`TrainConfig.snapshots`), as a share of the
+#: budget: snapshot k is the table at the last chunk boundary at or before ``1 - k * SNAPSHOT_SPACING`` of it.
+SNAPSHOT_SPACING = 0.05
+#: Most snapshots: the earliest then lies at half the budget.
+MAX_SNAPSHOTS = 10
 
 
 @pytree_dataclass
@@ -83,6 +95,13 @@ class TrainConfig:
     fused: str = param("auto", choices=("auto",) + FUSED_CHOICES, static=True,
                        doc="how a closed form's substeps and kernels run (auto: ExecutionPlan.for_run's choice for "
                            "the device and run; off, xla or pallas: that one, pallas refused where it cannot run)")
+    snapshots: int = param(0, low=0, high=MAX_SNAPSHOTS, static=True,
+                           doc="late tables kept for the final choice (shared_table only): the table at the last "
+                               "chunk boundary at or before 95 %, 90 %, ... of the budget; at the end of the run the "
+                               "final table and these fly snapshot_episodes greedy episodes and the best, by the "
+                               "task's learning target, becomes the run's table; 0: the final table")
+    snapshot_episodes: int = param(100, low=1, static=True,
+                                   doc="greedy episodes each candidate table flies for the final choice (snapshots)")
 
 
 @pytree_dataclass
@@ -106,6 +125,9 @@ class Runner:
     terminated: jax.Array
     nan_episodes: jax.Array
     env_steps: jax.Array
+    #: The late tables kept for the final choice (``[snapshots, n_tables, n_states, n_actions]``,
+    #: :meth:`Trainer.final_table`); ``None`` without ``snapshots``.
+    snapshots: jax.Array | None = None
 
 
 class Trainer:
@@ -274,6 +296,7 @@ class Trainer:
         q_rows = self._rows(agent, s)
         action = self._select(jax.random.split(k_act, n), q_rows, epsilon)
         n_rec = c.nepisodes if c.record_episodes else 1
+        snapshots = jnp.broadcast_to(agent.q, (c.snapshots,) + agent.q.shape) if c.snapshots else None
         return Runner(
             env_state=env_state, agent=agent, s=s, q_rows=q_rows if self.carry_rows else None, action=action,
             epsilon=epsilon,
@@ -281,7 +304,7 @@ class Trainer:
             key=jax.random.split(k_run, n),
             returns=jnp.zeros((n, n_rec), jnp.float32), lengths=jnp.zeros((n, n_rec), jnp.int32),
             terminated=jnp.zeros((n, n_rec), bool), nan_episodes=jnp.zeros(n, jnp.int32),
-            env_steps=jnp.zeros(n, jnp.int32))
+            env_steps=jnp.zeros(n, jnp.int32), snapshots=snapshots)
 
     def step(self, runner: Runner, agent_params: AgentParams, env_params: Any) -> Runner:
         """One training step of every environment."""
@@ -335,11 +358,59 @@ class Trainer:
             episode=runner.episode + record.astype(jnp.int32), ep_return=jnp.where(done, 0.0, ep_return),
             key=k_next, returns=returns, lengths=lengths, terminated=terminated,
             nan_episodes=runner.nan_episodes + (record & stepped.physics_nan).astype(jnp.int32),
-            env_steps=runner.env_steps + active.astype(jnp.int32))
+            env_steps=runner.env_steps + active.astype(jnp.int32), snapshots=runner.snapshots)
 
     def run_chunk(self, runner: Runner, agent_params: AgentParams, env_params: Any = None) -> Runner:
         """``chunk_steps`` training steps as one ``lax.scan`` (under a fused plan with ``fused_block``, one scan per
-        block of envs: :meth:`run_chunk_blocked`)."""
+        block of envs: :meth:`run_chunk_blocked`), then the late tables kept (:meth:`keep_snapshots`)."""
+        return self.keep_snapshots(self._run_steps(runner, agent_params, env_params))
+
+    def keep_snapshots(self, runner: Runner) -> Runner:
+        """The carry with snapshot k set to its table while the run's progress (:meth:`progress`'s ``done``) is at
+        or before ``1 - k * SNAPSHOT_SPACING`` of the budget: after the run, the table at the last chunk boundary
+        before each of those points. Unchanged without ``snapshots``."""
+        if runner.snapshots is None:
+            return runner
+        points = jnp.asarray(self.snapshot_points())
+        take = (self.progress(runner)[0] <= points).reshape((-1,) + (1,) * runner.agent.q.ndim)
+        return runner.replace(snapshots=jnp.where(take, runner.agent.q[None], runner.snapshots))
+
+    def snapshot_points(self) -> list[int]:
+        """Where the snapshots are kept, in the units of :attr:`budget_total`: ``floor((1 - k * SNAPSHOT_SPACING) *
+        total)`` for k = 1 .. ``snapshots`` (e.g. 285, 270, 255, 240 of 300 episodes)."""
+        total = self.budget_total[0]
+        # The small lift keeps a product such as 0.65 * 100 = 64.99999... at 65.
+        return [int(total * (1 - k * SNAPSHOT_SPACING) + 1e-9) for k in range(1, self.config.snapshots + 1)]
+
+    def final_table(self, runner: Runner, key: jax.Array, env_params: Any = None) -> tuple[Runner, jax.Array]:
+        """The carry of a finished run with its final table chosen among the final one and the late snapshots,
+        and the choice (0: the final table; k: snapshot k, the one at ``1 - k * SNAPSHOT_SPACING`` of the budget).
+
+        Why: the last updates of a run come from the few envs still flying, and a greedy flight that loops between
+        two near-tied states lowers the loop's values on every lap until another action wins there; the table
+        frozen at the end keeps whichever flip came last, and its greedy policy may loop where a table a few
+        chunks earlier did not (docs/quadcopter.md, "Seeds that fail"). Each candidate flies the same
+        ``snapshot_episodes`` greedy episodes, from ``fold_in(key, 3)`` of the run's ``key`` (the evaluation's
+        are 1 and 2: :func:`jaxrobo.training.driver.evaluation_keys`), and the best by the task's learning target
+        (:func:`jaxrobo.task.env.ranking`; a tie by the higher mean return, then the later table) is kept. Pure
+        and traceable: ``jaxrobo train``, the sweep and the benchmarks' vmapped populations choose alike."""
+        if runner.snapshots is None:
+            return runner, jnp.int32(0)
+        env_params = self.env.default_params if env_params is None else env_params
+        candidates = jnp.concatenate([runner.agent.q[None], runner.snapshots])
+        k = jax.random.fold_in(key, 3)
+        out = jax.vmap(lambda q: self.evaluate_episodes(k, runner.agent.replace(q=q), self.config.snapshot_episodes,
+                                                        env_params))(candidates)
+        rank = ranking(getattr(self.env, "learning_target", None))
+        figure = {"success_rate": "arrived", "mean_return": "return", "mean_length": "length"}[rank.table_metric]
+        ret = out["return"].mean(axis=1)
+        score = out[figure].astype(jnp.float32).mean(axis=1) if figure in out else ret
+        score = score if rank.higher else -score
+        best = jnp.argmax(jnp.where(score == score.max(), ret, -jnp.inf))  # the first (latest) of the best
+        return runner.replace(agent=runner.agent.replace(q=candidates[best])), best.astype(jnp.int32)
+
+    def _run_steps(self, runner: Runner, agent_params: AgentParams, env_params: Any = None) -> Runner:
+        """``chunk_steps`` training steps (:meth:`run_chunk` without the snapshots)."""
         env_params = self.env.default_params if env_params is None else env_params
         plan = self.plan
         if plan.fused == "pallas" and not physics_kernel(self.env):  # the whole chunk as one kernel (fused_pallas)

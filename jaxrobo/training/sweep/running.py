@@ -217,6 +217,8 @@ class GroupRunner:
         return jax.vmap(self.trainer.run_chunk)(runner, agent_params, env_params)
 
     def _finish(self, runner, key_data, env_params):
+        if runner.snapshots is not None:  # each row keeps the table its `jaxrobo train` run would keep
+            runner = jax.vmap(self.trainer.final_table)(runner, jax.random.wrap_key_data(key_data), env_params)[0]
         rank = ranking(getattr(self.trainer.env, "learning_target", None))
         out = _row_metrics(runner, self.n_last, self.trainer.budget == "episodes", rank)
         if self.eval_episodes > 0:
