@@ -80,6 +80,13 @@ def _assert_steps_agree(ref, got) -> None:
         if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
             a, b = jax.random.key_data(a), jax.random.key_data(b)
         name, a, b = jax.tree_util.keystr(path), np.asarray(a), np.asarray(b)
+        if name == ".obs":
+            # The sonars (and v2's goal_clear ray) from column 3 on: a level ray grazing an obstacle has a range
+            # whose derivative in the pose is unbounded at tangency, so on a GPU the last-ulp differences of
+            # Triton's and XLA's arithmetic move a few readings by up to a millimetre (0.6 mm on an H100; the
+            # sonar bins are 0.5-1 m wide). They are held to 1 cm, the goal's terms to round-off.
+            np.testing.assert_allclose(b[:, 3:], a[:, 3:], rtol=0, atol=1e-2, err_msg=name + " sonars")
+            a, b = a[:, :3], b[:, :3]
         if np.issubdtype(a.dtype, np.floating):
             # 30 substeps' round-off (see tests/test_quadcopter_kernel.py), then the distances read from them.
             np.testing.assert_allclose(b, a, rtol=2e-5, atol=5e-5, err_msg=name)

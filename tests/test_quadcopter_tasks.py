@@ -122,6 +122,21 @@ def test_goto_arrival_ground_and_workspace(goto):
     assert bool(out.terminated) and bool(out.task.crashed)
 
 
+def test_a_non_finite_step_keeps_the_task_variables_as_they_were(goto):
+    """The NaN guard: the episode ends with zero reward, the last finite observation and the task's variables
+    (goal, prev_dist, arrived, crashed) as they were; an outcome read from NaNs is not taken. The task kernel does
+    the same (tests/test_quadcopter_goto_kernel.py flies a NaN env against these hooks)."""
+    env, reset, step = goto
+    s = reset(jax.random.key(4))
+    ps = s.pipeline_state
+    bad = s.replace(pipeline_state=ps.replace(qpos=ps.qpos.at[2].set(jnp.nan)))
+    out = step(bad, 0)
+    assert bool(out.physics_nan) and bool(out.terminated) and float(out.reward) == 0.0
+    np.testing.assert_array_equal(np.asarray(out.obs), np.asarray(s.obs))
+    for (path, new), old in zip(jax.tree_util.tree_flatten_with_path(out.task)[0], jax.tree.leaves(s.task)):
+        np.testing.assert_array_equal(np.asarray(new), np.asarray(old), err_msg=jax.tree_util.keystr(path))
+
+
 def test_goto_box_and_random_placement():
     env = jaxrobo.make("QuadcopterGoto-v1", obstacle_kind="mixed", obstacle_placement="random", n_obstacles=4)
     s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), 16))

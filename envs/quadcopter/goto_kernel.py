@@ -287,6 +287,7 @@ def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, ol
     for value in list(q[1:]) + list(v) + obs:
         ok = ok & _finite(value)
     obs = [jnp.where(ok, o, old) for o, old in zip(obs, old_obs(ok))]
+    new_task = {name: jnp.where(ok, value, task[name]) for name, value in new_task.items()}  # the task as it was
     return {"q": q, "v": v, "obs": obs, "reward": jnp.where(ok, reward, 0.0), "terminated": arrived | failed | ~ok,
             "nan": ~ok, "task": new_task}
 

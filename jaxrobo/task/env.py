@@ -337,7 +337,10 @@ class TaskEnv(Env):
         ok = ok & jnp.all(jnp.isfinite(obs))
         terminated = self._is_done(obs, pipeline_state, task, params)
         reward, task = self._compute_reward(obs, terminated, action, pipeline_state, task, params)
-        # A non-finite physics state ends the episode with zero reward and the last finite observation.
+        # A non-finite physics state ends the episode with zero reward, the last finite observation and the task's
+        # variables as they were: its outcome (a crash, an arrival) read from NaNs is not defined (comparisons with
+        # a NaN are False on XLA, but a kernel's min/max may drop a NaN operand), so it is not taken.
+        task = jax.tree.map(lambda new, old: jnp.where(ok, new, old), task, state.task)
         obs = jnp.where(ok, obs, state.obs)
         reward = jnp.where(ok, reward, 0.0).astype(jnp.float32)
         terminated = terminated | ~ok
