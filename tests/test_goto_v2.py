@@ -198,8 +198,10 @@ def test_final_table_keeps_the_candidate_best_by_the_learning_target(snapped):
     runner = runner.replace(snapshots=runner.snapshots.at[0].set(-runner.agent.q))
     chosen, choice = jax.jit(trainer.final_table)(runner, key)
     candidates = np.concatenate([np.asarray(runner.agent.q)[None], np.asarray(runner.snapshots)])
-    flights = [trainer.evaluate_episodes(jax.random.fold_in(key, 3), runner.agent.replace(q=jnp.asarray(q)),
-                                         trainer.config.snapshot_episodes) for q in candidates]
+    # Each candidate flown on its own (one compiled flight, called per table), not through final_table's vmap.
+    fly = jax.jit(lambda q: trainer.evaluate_episodes(jax.random.fold_in(key, 3), runner.agent.replace(q=q),
+                                                      trainer.config.snapshot_episodes))
+    flights = [fly(jnp.asarray(q)) for q in candidates]
     per_table = {"mean_return": np.stack([np.asarray(f["return"]) for f in flights]),
                  "success_rate": np.stack([np.asarray(f["arrived"]) for f in flights])}
     assert int(choice) == ranking(trainer.env.learning_target).best_table(per_table)
