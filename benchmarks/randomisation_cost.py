@@ -2,8 +2,8 @@
 
 The Pallas kernels take each env's drawn physics as per-env inputs, so a randomised run keeps the kernel the plan
 gives a nominal one (the rigid Goto tasks, the analytic cart-pole with Q-learning, on one GPU from 1,024 envs).
-This measures, per env id and batch size, each configuration trained twice in the same process (the better of the
-two timings kept)::
+This measures, per env id and batch size, each configuration trained ``--repeats`` times (2) in the same process
+(the fastest timing kept)::
 
     kernel-nominal       randomise off, the default plan (the kernel on a GPU)
     kernel-randomised    randomise on with ranges that change the physics (and observation noise), default plan
@@ -11,9 +11,13 @@ two timings kept)::
                          fused="xla" for Goto, "off" for the cart-pole)
     kernel-physics-only  (only with --variants) randomise on, observation noise pinned at 0: the cart-pole's
                          kernel then skips the noise's hashes
+    kernel-pinned        (only with --variants) randomise on, every range at its nominal value: the randomised
+                         program on the nominal run's very episodes (its tables are the nominal kernel's bit for
+                         bit), so the cost is the machinery's alone and not that of a harder task's shorter episodes
 
-and prints the cost of randomisation in the kernel (1 - randomised / nominal, in %) and the kernel's gain over the
-XLA path under randomisation::
+and prints the cost of randomisation in the kernel (1 - randomised / nominal, in %), each training's mean episode
+length (randomised physics changes how long episodes last, and a chunk kernel's speed depends on how often envs
+reset) and the kernel's gain over the XLA path under randomisation::
 
     python benchmarks/randomisation_cost.py --device gpu --n-envs 4096,65536,262144 --out rand_cost.json
     python benchmarks/randomisation_cost.py --device cpu --n-envs 64 --nepisodes 2     # smoke test
@@ -43,7 +47,7 @@ CASES = {
                           {"rand_cart_mass": [0.8, 1.2], "rand_pole_mass": [0.8, 1.2], "rand_pole_length": [0.9, 1.1],
                            "rand_obs_noise": [0.0, 0.01]}, "off"),
 }
-VARIANTS = ("kernel-nominal", "kernel-randomised", "xla-randomised", "kernel-physics-only")
+VARIANTS = ("kernel-nominal", "kernel-randomised", "xla-randomised", "kernel-physics-only", "kernel-pinned")
 
 
 def overrides_for(env_id: str, variant: str) -> dict:
@@ -57,6 +61,8 @@ def overrides_for(env_id: str, variant: str) -> dict:
         return {**base, "randomise": True, **ranges, "fused": xla}
     if variant == "kernel-physics-only":
         return {**base, "randomise": True, **ranges, "rand_obs_noise": [0.0, 0.0]}
+    if variant == "kernel-pinned":  # the ranges' defaults are the nominal values
+        return {**base, "randomise": True}
     raise ValueError(f"variant {variant!r}: one of {', '.join(VARIANTS)}")
 
 
@@ -67,16 +73,27 @@ def main() -> int:
     ap.add_argument("--n-envs", default="4096,65536", help="comma list of batch sizes")
     ap.add_argument("--nepisodes", type=int, default=20, help="episodes per env of each timed training")
     ap.add_argument("--variants", default=",".join(VARIANTS[:3]), help=f"comma list of {', '.join(VARIANTS)}")
+    ap.add_argument("--repeats", type=int, default=2, help="timed trainings per variant (the fastest is kept)")
     ap.add_argument("--out", default=None, help="JSON of the rows")
     args = ap.parse_args()
     variants = args.variants.split(",")
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:  # before anything compiles or trains
         ap.error(f"--variants {','.join(unknown)}: expected a comma list of {', '.join(VARIANTS)}")
+    if args.repeats < 1:
+        ap.error(f"--repeats {args.repeats}: expected 1 or more")
     _common.select_device(args.device)
+    from jaxrobo.speed.cache import enable_or_warn
+
+    enable_or_warn("randomisation_cost")  # a variant's later trainings load its compiled program from the cache
     from jaxrobo.training.run import resolve
     from jaxrobo.training.train import train
     from jaxrobo.training.trainer import Trainer
+
+    def write(rows):
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump(rows, f, indent=1)
 
     rows = []
     for env_id in args.envs.split(","):
@@ -89,12 +106,18 @@ def main() -> int:
                 if variant.startswith("kernel") and plan.fused != "pallas":
                     print(f"note: {variant} runs without the kernel here ({plan!r}): the plan gives it on one GPU "
                           "from 1,024 envs", flush=True)
-                best = max(train(spec.env, spec.config, spec.agent_params).steps_per_second for _ in range(2))
+                runs = [train(spec.env, spec.config, spec.agent_params) for _ in range(args.repeats)]
+                best = max(r.steps_per_second for r in runs)
+                length = runs[0].env_steps / (n * args.nepisodes)  # every env runs its nepisodes episodes
                 rates[variant] = best
-                rows.append({"env": env_id, "n_envs": n, "variant": variant, "steps_per_s": best, "plan": repr(plan)})
-                print(f"{env_id:20s} n={n:<8d} {variant:20s} {best / 1e6:9.3f} M steps/s   {plan!r}", flush=True)
+                rows.append({"env": env_id, "n_envs": n, "variant": variant, "steps_per_s": best,
+                             "mean_episode_length": length, "compile_s": [r.compile_seconds for r in runs],
+                             "run_s": [r.run_seconds for r in runs], "plan": repr(plan)})
+                print(f"{env_id:20s} n={n:<8d} {variant:20s} {best / 1e6:9.3f} M steps/s   mean episode "
+                      f"{length:7.1f} steps   {plan!r}", flush=True)
+                write(rows)  # after every variant: a stopped call keeps what it measured
             nominal = rates.get("kernel-nominal")
-            for variant in ("kernel-randomised", "kernel-physics-only"):
+            for variant in ("kernel-randomised", "kernel-physics-only", "kernel-pinned"):
                 if nominal and variant in rates:
                     cost = 100.0 * (1.0 - rates[variant] / nominal)
                     rows.append({"env": env_id, "n_envs": n, "variant": variant, "cost_percent": cost})
@@ -103,9 +126,7 @@ def main() -> int:
             if "kernel-randomised" in rates and "xla-randomised" in rates:
                 print(f"{env_id:20s} n={n:<8d} randomised: kernel / XLA path = "
                       f"{rates['kernel-randomised'] / rates['xla-randomised']:.2f}x", flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(rows, f, indent=1)
+    write(rows)
     return 0
 
 

@@ -184,17 +184,24 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
-def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(monkeypatch):
+#: Domain randomisation's ranges (cart mass, pole mass, pole length, observation noise), as
+#: tests/test_randomise_kernels.py holds the randomised kernel to the plain path.
+RANDOMISED = dict(randomise=True, rand_cart_mass=[0.5, 2.0], rand_pole_mass=[0.5, 2.0], rand_pole_length=[0.5, 2.0],
+                  rand_obs_noise=[0.0, 0.05])
+
+
+@pytest.mark.parametrize("domain", [{}, RANDOMISED], ids=["nominal", "randomised"])
+def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeypatch):
     """Where at most a quarter of a program's envs are done, groups of four lanes share their reset's hashes
-    (:data:`jaxrobo.speed.fused_pallas.GROUP_RESETS`); beyond that each lane hashes its own. 32 envs in programs of 16
-    over 80 steps, in which a program has one, two or three and more than four envs done in one step (counted on
-    the plain path, step by step): the carry equals the lane-by-lane kernel's, and the kernel that hashes every
-    reset in every env every step, bit for bit."""
+    (:data:`jaxrobo.speed.fused_pallas.GROUP_RESETS`), the randomised draws' too; beyond that each lane hashes its
+    own. 32 envs in programs of 16 over 80 steps, in which a program has one, two or three and more than four envs
+    done in one step (counted on the plain path, step by step): the carry equals the lane-by-lane kernel's, and
+    (nominal) the kernel that hashes every reset in every env every step, bit for bit."""
     from jaxrobo.speed import fused_pallas
 
-    spec = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=80)
+    spec = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=80, **domain)
     # How many envs of each program of 16 are done in each step, on the plain path.
-    one = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=1)
+    one = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=1, **domain)
     trainer = Trainer(one.env, one.config, plan=_plan(one, fused="off"))
     runner = jax.jit(trainer.init)(jax.random.key(3), one.agent_params, one.env.default_params)
     step = jax.jit(trainer.run_chunk)
@@ -205,14 +212,17 @@ def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(monkeypatch):
         counts |= set((np.asarray(runner.episode) - before).reshape(2, 16).sum(1).tolist())
     assert {1, 2, 3} <= counts and max(counts) > 4, counts
     out = {}
-    for group, skip in ((True, True), (False, True), (False, False)):
+    for group, skip in ((True, True), (False, True), (False, False))[:3 if not domain else 2]:
         monkeypatch.setattr(fused_pallas, "GROUP_RESETS", group)
         monkeypatch.setattr(fused_pallas, "SKIP_RESETS", skip)
         trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=16))
         runner = jax.jit(trainer.init)(jax.random.key(3), spec.agent_params, spec.env.default_params)
         out[group, skip] = jax.jit(trainer.run_chunk)(runner, spec.agent_params, spec.env.default_params)
     assert np.asarray(out[True, True].episode).sum() > 60
-    for other in ((False, True), (False, False)):
+    if domain:  # the draws moved through the groups: fresh episodes drew distinct pole lengths in range
+        drawn = np.asarray(out[True, True].env_state.domain["pole_length"])
+        assert ((drawn >= 0.5) & (drawn <= 2.0)).all() and len(np.unique(drawn)) > 16
+    for other in set(out) - {(True, True)}:
         for (path, a), (_, b) in zip(_leaves(out[True, True]), _leaves(out[other])):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f"{other} {jax.tree_util.keystr(path)}")
 

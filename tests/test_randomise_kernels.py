@@ -165,11 +165,13 @@ def _assert_carries_agree(a_runner, b_runner, rtol=1e-5, atol=1e-6) -> None:
             np.testing.assert_array_equal(b, a, err_msg=name)
 
 
-def test_the_cartpole_chunk_kernel_follows_the_randomised_plain_path():
+@pytest.mark.parametrize("noise", [CART_RANGES["rand_obs_noise"], [0.0, 0.0]], ids=["noisy", "physics-only"])
+def test_the_cartpole_chunk_kernel_follows_the_randomised_plain_path(noise):
     """6 envs, 75 steps in chunks of 25 (every env resets several times, each reset drawing a new cart mass, pole
     mass, pole length and noise level in-kernel): keys, draws, actions, tables, records and counters as the plain
-    path's bit for bit, the physics state and the noisy observations to float32 round-off."""
-    spec = _cartpole(randomise=True, **CART_RANGES)
+    path's bit for bit, the physics state and the noisy observations to float32 round-off. With the noise level
+    pinned at 0 the kernel skips the noise's hashes, at the resets too, and still follows the plain path."""
+    spec = _cartpole(randomise=True, **{**CART_RANGES, "rand_obs_noise": noise})
     plain, calls_plain = _carry(spec, "off")
     kernel, calls = _carry(spec, "pallas")
     assert calls_plain == 0 and calls > 0  # the plain path, and the chunk as the kernel

@@ -37,9 +37,11 @@ vector), carries them as per-env columns into :meth:`CartPoleSim.coordinate_step
 :func:`envs.cartpole.dynamics.randomised`), and adds the observation noise from the keys ``randomise.noisy``
 folds out of the env key (JAX's normal draw: a uniform per component, then ``sqrt(2) erfinv``; the episode's
 noise key, the env key folded with the noise tag, is carried): fifteen more hashes per reset (nine for the draws,
-six for the first observation's noise) and five per step, which a program whose envs all draw a zero noise level
-skips (one scalar branch). A randomised reset hashes lane by lane (:data:`GROUP_RESETS` is not used). Off, the
-kernel has none of these columns: the program it was.
+six for the first observation's noise) and five per step; a program whose fresh episodes, or whose envs, all drew
+a noise level of 0 skips the noise's (one scalar branch each). Under :data:`GROUP_RESETS` the groups of four lanes hash the draws too (the draws' base
+key beside the env and pose keys, then range i's key and uniform in slot i: five hash rounds for the program
+instead of fourteen); the first observation's noise is hashed lane by lane. Off, the kernel has none of these
+columns: the program it was.
 
 Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
 for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
@@ -456,18 +458,32 @@ def _make_kernel(static):
                 zi = jnp.zeros_like(lane)
                 _, owner, g0, g1 = jax.lax.fori_loop(0, n_done, to_groups, (done, zi, zi, zi))
                 zero = jnp.zeros_like(key[0])
-                b = [i32(v) for v in _threefry(u32(g0), u32(g1), zero, u32(slot))]  # slot 0: env key, 1: pose key
+                # Slot 0: the env key, 1: the pose key, and under domain randomisation 2: the draws' base key
+                # (randomise.draw's fold of the reset key with the draw tag).
+                counter = jnp.where(slot == 2, jnp.uint32(randomise.DRAW_TAG), u32(slot)) if domain else u32(slot)
+                b = [i32(v) for v in _threefry(u32(g0), u32(g1), zero, counter)]
 
-                def pose_to_group(m, c):
-                    at, mine = lane == 4 * m + 1, group == m
-                    return jnp.where(mine, take(at, b[0]), c[0]), jnp.where(mine, take(at, b[1]), c[1])
+                def to_group(m, c):  # slot j's key to every lane of group m: the pose key, the draws' base key
+                    mine = group == m
+                    return tuple(jnp.where(mine, take(lane == 4 * m + j, b[w]), cw)
+                                 for (j, w), cw in zip(shared, c))
 
-                p0, p1 = jax.lax.fori_loop(0, n_done, pose_to_group, (zi, zi))
-                noise = noise_of(*_threefry(u32(p0), u32(p1), zero, u32(slot)))
+                shared = [(1, 0), (1, 1)] + ([(2, 0), (2, 1)] if domain else [])
+                got = jax.lax.fori_loop(0, n_done, to_group, (zi,) * len(shared))
+                noise = noise_of(*_threefry(u32(got[0]), u32(got[1]), zero, u32(slot)))
                 value = jnp.where(slot == 0, f("init_pos") + noise,
                                   jnp.where(slot == 2, f("init_pole_angle") + noise, noise))
                 # Back to the done lane: slot j's value (x, xd, th, thd) and slot 0's env key.
                 sources = [(j, i32(value)) for j in range(4)] + [(0, b[0]), (0, b[1])]
+                if domain:  # slot i draws range i as draws() does: its key folded out of the base, one uniform
+                    key_i = _threefry(u32(got[2]), u32(got[3]), zero, u32(2 * slot))
+                    u = _unit(functools.reduce(jnp.bitwise_xor, _threefry(key_i[0], key_i[1], zero, zero)))
+                    low, high = jnp.zeros_like(u), jnp.zeros_like(u)
+                    for i in range(len(domain)):
+                        low = jnp.where(slot == i, f(f"rand_low{i}"), low)
+                        high = jnp.where(slot == i, f(f"rand_high{i}"), high)
+                    drawn = low + u * (high - low)
+                    sources += [(i, i32(drawn)) for i in range(len(domain))]
 
                 def to_owner(m, c):
                     dest = lane == take(lane == 4 * m, owner)
@@ -475,7 +491,8 @@ def _make_kernel(static):
 
                 v = jax.lax.fori_loop(0, n_done, to_owner, (zi,) * len(sources))
                 as_f = lambda w: jax.lax.bitcast_convert_type(w, jnp.float32)  # noqa: E731
-                return as_f(v[0]), as_f(v[2]), as_f(v[1]), as_f(v[3]), u32(v[4]), u32(v[5])
+                return (as_f(v[0]), as_f(v[2]), as_f(v[1]), as_f(v[3]), u32(v[4]), u32(v[5]),
+                        *(as_f(w) for w in v[6:]))
 
             def fresh_episode(hashed):
                 fresh_x, fresh_th, fresh_xd, fresh_thd, rk0, rk1 = hashed[:6]
@@ -484,8 +501,19 @@ def _make_kernel(static):
                 episode_key = ()
                 if noise_on:  # env.reset's observation, noisy from the fresh env key at step 0
                     std = drawn[domain.index(randomise.OBS_NOISE)]
-                    episode_key = _subkey((rk0, rk1), randomise.NOISE_TAG)
-                    obs_fresh = noisy(obs_fresh, episode_key, jnp.zeros_like(env_steps_now), std)
+
+                    def with_noise(o):
+                        k = _subkey((rk0, rk1), randomise.NOISE_TAG)
+                        return (*noisy(o, k, jnp.zeros_like(env_steps_now), std), *k)
+
+                    def without_noise(o):  # the episode key serves only a noise level above 0: left unhashed
+                        return (*o, jnp.zeros_like(rk0), jnp.zeros_like(rk1))
+
+                    # A program whose fresh episodes all drew no noise skips the six hashes (a scalar branch), as
+                    # the step skips its five: obs + 0 * z is obs up to the sign of a zero.
+                    fresh = jax.lax.cond(jnp.max(jnp.where(done, std, 0.0)) > 0, with_noise, without_noise,
+                                         obs_fresh)
+                    obs_fresh, episode_key = fresh[:4], fresh[4:]
                 s_fresh = discretise(obs_fresh)
                 r_fresh = row(s_fresh, done)
                 r_fresh = [jnp.where((s_fresh == cr["s"]) & (a == k), written, r_fresh[k]) for k in range(n_actions)]
@@ -628,8 +656,7 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any) -> 
     static = (block, c.chunk_steps, n_states, n_actions, n_rec, records, c.nepisodes, c.nsteps, strides,
               tuple(int(b) for b in disc.bins), sim.coordinate_step, int(sim.n_substeps),
               tuple(float(v) for v in np.asarray(env._steps)),  # the task's command step per action
-              # A randomised reset hashes the draws lane by lane (the groups of four share only the pose's).
-              bool(SKIP_RESETS), bool(GROUP_RESETS) and not domain, bool(FAST_SINCOS) and libdevice_sincos.verified(),
+              bool(SKIP_RESETS), bool(GROUP_RESETS), bool(FAST_SINCOS) and libdevice_sincos.verified(),
               bool(APPROX_SINCOS) and gpu, tiled, trainer.steps_per_env if trainer.budget == "steps" else 0, domain)
     kernel = _make_kernel(static)
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
