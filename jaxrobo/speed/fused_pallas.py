@@ -38,10 +38,10 @@ vector), carries them as per-env columns into :meth:`CartPoleSim.coordinate_step
 folds out of the env key (JAX's normal draw: a uniform per component, then ``sqrt(2) erfinv``; the episode's
 noise key, the env key folded with the noise tag, is carried): fifteen more hashes per reset (nine for the draws,
 six for the first observation's noise) and five per step; a program whose fresh episodes, or whose envs, all drew
-a noise level of 0 skips the noise's (one scalar branch each). Under :data:`GROUP_RESETS` the groups of four lanes hash the draws too (the draws' base
-key beside the env and pose keys, then range i's key and uniform in slot i: five hash rounds for the program
-instead of fourteen); the first observation's noise is hashed lane by lane. Off, the kernel has none of these
-columns: the program it was.
+a noise level of 0 skips the noise's (one scalar branch each). Under :data:`GROUP_RESETS` the groups of four lanes
+hash the draws too (the draws' base key beside the env and pose keys, then range i's key and uniform in slot i:
+five hash rounds for the program instead of fourteen); the first observation's noise is hashed lane by lane. Off,
+the kernel has none of these columns: the program it was.
 
 Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
 for the runs it takes, and the plan's boundary refuses the rest): ``CartPoleStayUp`` on the ``analytic`` backend
@@ -89,7 +89,8 @@ APPROX_SINCOS = False
 #: gains less than the two transposes cost, at every size measured (docs/benchmarks.md, "Pallas").
 TILED_TABLES = False
 #: True: a program whose done envs number at most a quarter of its lanes hashes their resets in groups of four
-#: lanes (three hash rounds for the program instead of seven; the same values). False: each lane its own env's.
+#: lanes (three hash rounds for the program instead of seven, under domain randomisation five instead of fourteen:
+#: the draws' too; the same values). False: each lane its own env's.
 GROUP_RESETS = True
 #: True: on a GPU, in a step where every pole angle of a program stays within
 #: :data:`jaxrobo.physics.libdevice_sincos.LIMIT` in every substep (one scalar branch per program and step), the physics'
