@@ -298,18 +298,20 @@ def _make_kernel(static):
                 seen = seen + m.astype(jnp.int32)
             return jnp.where(coin < epsilon, random_action, choice)
 
+        def draw(base, fold, low, high):
+            # One range's value: its key folded out of the draws' base key (the hash of counter (0, fold), fold
+            # = 2 i for range i), one uniform from that key (counter (0, 0), the two words xor-ed), scaled to
+            # [low, high). ``fold``: uint32, per lane where the groups of four draw range i in lane i.
+            zero = jnp.zeros_like(base[0])
+            key_i = _threefry(base[0], base[1], zero, zero + fold)
+            u = _unit(functools.reduce(jnp.bitwise_xor, _threefry(key_i[0], key_i[1], zero, zero)))
+            return low + u * (high - low)
+
         def draws(k_reset):
             # randomise.draw(k_reset, params): one uniform per range from the reset key folded with the draw tag
             # (fold_in is the hash of counter (0, data), as _subkey), each from its own fold, in range order.
             base = _subkey(k_reset, randomise.DRAW_TAG)
-            out = []
-            for i in range(len(domain)):
-                key_i = _subkey(base, 2 * i)
-                zero = jnp.zeros_like(key_i[0])
-                u = _unit(functools.reduce(jnp.bitwise_xor, _threefry(key_i[0], key_i[1], zero, zero)))
-                low, high = f(f"rand_low{i}"), f(f"rand_high{i}")
-                out.append(low + u * (high - low))
-            return out
+            return [draw(base, jnp.uint32(2 * i), f(f"rand_low{i}"), f(f"rand_high{i}")) for i in range(len(domain))]
 
         def noisy(obs, episode_key, steps, std):
             # randomise.noisy: obs + std * jax.random.normal(fold_in(fold_in(env_key, tag), steps), (4,)), the
@@ -476,14 +478,12 @@ def _make_kernel(static):
                                   jnp.where(slot == 2, f("init_pole_angle") + noise, noise))
                 # Back to the done lane: slot j's value (x, xd, th, thd) and slot 0's env key.
                 sources = [(j, i32(value)) for j in range(4)] + [(0, b[0]), (0, b[1])]
-                if domain:  # slot i draws range i as draws() does: its key folded out of the base, one uniform
-                    key_i = _threefry(u32(got[2]), u32(got[3]), zero, u32(2 * slot))
-                    u = _unit(functools.reduce(jnp.bitwise_xor, _threefry(key_i[0], key_i[1], zero, zero)))
-                    low, high = jnp.zeros_like(u), jnp.zeros_like(u)
+                if domain:  # slot i draws range i, as draws() does
+                    low = high = jnp.zeros(slot.shape, jnp.float32)
                     for i in range(len(domain)):
                         low = jnp.where(slot == i, f(f"rand_low{i}"), low)
                         high = jnp.where(slot == i, f(f"rand_high{i}"), high)
-                    drawn = low + u * (high - low)
+                    drawn = draw((u32(got[2]), u32(got[3])), u32(2 * slot), low, high)
                     sources += [(i, i32(drawn)) for i in range(len(domain))]
 
                 def to_owner(m, c):
