@@ -176,3 +176,20 @@ def test_randomisation_cost_refuses_an_unknown_variant_before_anything_runs():
                           timeout=120)
     assert proc.returncode == 2
     assert "--variants kernel-randomized: expected a comma list of kernel-nominal" in proc.stderr
+
+
+def test_kernel_occupancy_reads_ncu_details_and_refuses_without_ncu():
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    try:
+        import kernel_occupancy
+    finally:
+        sys.path.pop(0)
+    recorded = os.path.join(ROOT, "benchmarks", "results", "h100", "round_2026-11-26d", "ncu_kernel-nominal.txt")
+    with open(recorded) as f:
+        row = kernel_occupancy.parse(f.read())
+    assert row == {"registers": 96.0, "blocks_per_sm_by_registers": 20.0, "theoretical_occupancy_percent": 31.25,
+                   "achieved_occupancy_percent": 27.82, "issued_ipc": 2.71, "duration": 13.8, "duration_unit": "ms"}
+    if kernel_occupancy.find_ncu() is None:  # CI: no Nsight Compute; the script says so before anything runs
+        proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "kernel_occupancy.py")],
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and "no ncu found" in proc.stderr
