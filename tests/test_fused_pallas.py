@@ -196,8 +196,8 @@ def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeyp
     (:data:`jaxrobo.speed.fused_pallas.GROUP_RESETS`), the randomised draws' too; beyond that each lane hashes its
     own. 32 envs in programs of 16 over 80 steps, in which a program has one, two or three and more than four envs
     done in one step (counted on the plain path, step by step): the carry equals the lane-by-lane kernel's and the
-    kernel's that hashes every reset in every env every step (randomised: the first observation's noise, computed at
-    the end of the step, in every env too), bit for bit."""
+    kernel's that hashes every reset in every env every step (randomised: its draws and its first observation's
+    noise too), bit for bit."""
     from jaxrobo.speed import fused_pallas
 
     spec = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=80, **domain)
