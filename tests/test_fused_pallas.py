@@ -228,6 +228,24 @@ def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeyp
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f"{other} {jax.tree_util.keystr(path)}")
 
 
+def test_the_kernels_erfinv_is_jaxs_bit_for_bit():
+    """The kernel's noise evaluates ``erfinv`` with each branch's constants in the instructions
+    (:func:`jaxrobo.speed.fused_pallas._erf_inv`), for registers; its values are ``jax.lax.erf_inv``'s bit for bit,
+    here under ``jit`` across the uniform draws' whole range and at its ends (on the GPU inside a Pallas kernel:
+    benchmarks/results/h100/round_2026-11-26e). If JAX changes its ``erf_inv``, this fails first."""
+    import jax.numpy as jnp
+
+    from jaxrobo.speed import fused_pallas
+
+    low = np.nextafter(np.float32(-1), np.float32(0))
+    x = np.concatenate([np.linspace(low, 1, 400_000, endpoint=False, dtype=np.float32),
+                        np.float32([low, -0.5, 0.0, 1e-30, 0.5, np.nextafter(np.float32(1), np.float32(0)), 1.0])])
+    ours = np.asarray(jax.jit(fused_pallas._erf_inv)(jnp.asarray(x)))
+    jaxs = np.asarray(jax.jit(jax.lax.erf_inv)(jnp.asarray(x)))
+    np.testing.assert_array_equal(ours.view(np.int32), jaxs.view(np.int32))
+    assert np.isinf(ours[-1]) and np.abs(ours[:-1]).max() > 3.5  # the tails were reached
+
+
 @pytest.mark.parametrize("limit", [0.0, 0.05, 10.0])
 def test_a_step_beyond_the_written_out_sin_cos_is_redone_with_the_calls(limit, monkeypatch):
     """Under :data:`jaxrobo.speed.fused_pallas.FAST_SINCOS` a step whose pole angles all stay within the written-out

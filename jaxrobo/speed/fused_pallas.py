@@ -35,8 +35,9 @@ so it draws each fresh episode's cart mass, pole mass, pole length and observati
 vector), carries them as per-env columns into :meth:`CartPoleSim.coordinate_step
 <envs.cartpole.dynamics.CartPoleSim.coordinate_step>` (``physics=``, the XLA step's own
 :func:`envs.cartpole.dynamics.randomised`), and adds the observation noise from the keys ``randomise.noisy``
-folds out of the env key (JAX's normal draw: a uniform per component, then ``sqrt(2) erfinv``; the episode's
-noise key, the env key folded with the noise tag, is carried): fifteen more hashes per reset (nine for the draws,
+folds out of the env key (JAX's normal draw: a uniform per component, then ``sqrt(2) erfinv``, the latter as
+:func:`_erf_inv`, JAX's values with fewer registers; the episode's noise key, the env key folded with the noise
+tag, is carried): fifteen more hashes per reset (nine for the draws,
 six for the first observation's noise) and five per step; a program whose fresh episodes, or whose envs, all drew
 a noise level of 0 skips the noise's (one scalar branch each). Under :data:`GROUP_RESETS` the groups of four lanes
 hash the draws too (the draws' base key beside the env and pose keys, then range i's key and uniform in slot i:
@@ -202,6 +203,30 @@ def _unit(words):
                                         jnp.float32) - 1.0
 
 
+# XLA's float32 ErfInv (JAX's own lowering of it in Pallas, pallas.utils._erf_inv_32_lowering_helper): one polynomial
+# in w - 2.5 where w = -log1p(-x^2) < 5, another in sqrt(w) - 3 elsewhere.
+_ERFINV_BELOW_5 = (2.81022636e-08, 3.43273939e-07, -3.5233877e-06, -4.39150654e-06, 0.00021858087, -0.00125372503,
+                   -0.00417768164, 0.246640727, 1.50140941)
+_ERFINV_ABOVE_5 = (-0.000200214257, 0.000100950558, 0.00134934322, -0.00367342844, 0.00573950773, -0.0076224613,
+                   0.00943887047, 1.00167406, 2.83297682)
+
+
+def _erf_inv(x):
+    """``jax.lax.erf_inv`` as its lowering computes it, each branch's polynomial evaluated with its own constants and
+    the result selected, rather than each coefficient selected ahead of one polynomial: the same operations on each
+    lane's branch, with the constants in the instructions instead of nine selected registers per value."""
+    w = -jnp.log1p(x * -x)
+
+    def horner(constants, t):
+        p = jnp.full_like(t, constants[0])
+        for c in constants[1:]:
+            p = c + p * t
+        return p
+
+    p = jnp.where(w < 5.0, horner(_ERFINV_BELOW_5, w - 2.5), horner(_ERFINV_ABOVE_5, jnp.sqrt(w) - 3.0))
+    return jnp.where(jnp.abs(x) == 1.0, jnp.inf * x, p * x)
+
+
 # ---- the kernel --------------------------------------------------------------------------------------------
 _COLS = (  # per-env carry columns: name, dtype
     ("x", jnp.float32), ("th", jnp.float32), ("xd", jnp.float32), ("thd", jnp.float32),
@@ -324,7 +349,7 @@ def _make_kernel(static):
                 bits = functools.reduce(jnp.bitwise_xor, _threefry(step_key[0], step_key[1], zero, zero + jnp.uint32(j)))
                 u = jnp.maximum(jnp.float32(_NORMAL_LOW), _unit(bits) * jnp.float32(_NORMAL_SPAN)
                                 + jnp.float32(_NORMAL_LOW))
-                out.append(o + std * (jnp.float32(np.sqrt(2)) * jax.lax.erf_inv(u)))
+                out.append(o + std * (jnp.float32(np.sqrt(2)) * _erf_inv(u)))
             return tuple(out)
 
         def physics(x, th, xd, thd, ctrl, factors, written_out=False):
