@@ -40,7 +40,7 @@ import _common  # noqa: E402
 #: Per env id: the overrides of its fast backend, its randomisation ranges that change the physics, and the fused
 #: choice of its XLA path under randomisation.
 CASES = {
-    "QuadcopterGoto-v2": ({"backend": "rigid", "shared_table": False},
+    "QuadcopterGoto-v2": ({"backend": "rigid", "shared_table": False, "snapshots": 0},
                           {"rand_mass": [0.9, 1.1], "rand_motor_gain": [0.9, 1.1], "rand_wind": [0.0, 0.5],
                            "rand_obs_noise": [0.0, 0.05]}, "xla"),
     "CartPoleStayUp-v0": ({"backend": "analytic"},

@@ -178,6 +178,23 @@ def test_randomisation_cost_refuses_an_unknown_variant_before_anything_runs():
     assert "--variants kernel-randomized: expected a comma list of kernel-nominal" in proc.stderr
 
 
+def test_randomisation_cost_configures_every_case_and_variant():
+    """Every env id and variant the benchmark times resolves to a valid run (a preset's later default, such as the
+    Goto presets' snapshots, must not stop its GPU rows after minutes of compiling the others)."""
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    try:
+        import randomisation_cost
+    finally:
+        sys.path.pop(0)
+    from jaxrobo.training.run import resolve
+
+    for env_id in randomisation_cost.CASES:
+        for variant in randomisation_cost.VARIANTS:
+            spec = resolve(env_id, "default", {**randomisation_cost.overrides_for(env_id, variant), "n_envs": 8,
+                                               "nepisodes": 2, "eval_episodes": 0})
+            assert spec.env.randomised == (variant != "kernel-nominal"), (env_id, variant)
+
+
 def test_kernel_occupancy_reads_ncu_details_and_refuses_without_ncu():
     sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
     try:
