@@ -72,6 +72,33 @@ def test_the_best_table_breaks_a_success_tie_by_return_and_validates_the_directi
         LearningTarget("x", "success_rate", 0.5, "", better="lower")
 
 
+@pytest.mark.parametrize("higher", [True, False])
+def test_the_host_and_the_traced_choice_of_a_table_follow_one_rule(higher):
+    """:meth:`Ranking.best_of` on numpy (a run's evaluated tables) and traced on jax.numpy (its late snapshots,
+    ``Trainer.final_table``): the best score in the target's direction, a tie by the higher return, then the
+    first; a NaN ranks last; without the score, the higher return alone."""
+    import jax
+    import jax.numpy as jnp
+
+    rank = Ranking("return", "success_rate", higher)
+    nan = float("nan")
+    cases = [  # score, return, the best table
+        ([0.5, 0.9, 0.9, 0.1], [3.0, 1.0, 2.0, 9.0], 2 if higher else 3),
+        ([0.9, 0.9], [2.0, 2.0], 0),
+        ([nan, 0.2, 0.4], [9.0, 1.0, 1.0], 2 if higher else 1),
+        ([0.2, 0.2], [nan, 1.0], 1),
+        (None, [1.0, 4.0, 4.0, 2.0], 1),
+    ]
+    for score, ret, best in cases:
+        assert rank.best_of(None if score is None else np.array(score), np.array(ret)) == best, (score, ret)
+        traced = jax.jit(lambda s, r: rank.best_of(s, r, jnp))(None if score is None else jnp.array(score, jnp.float32),
+                                                              jnp.array(ret, jnp.float32))
+        assert int(traced) == best, (score, ret)
+        if score is not None:
+            table = {"success_rate": np.array(score)[:, None], "mean_return": np.array(ret)[:, None]}
+            assert rank.best_table(table) == best
+
+
 @pytest.mark.parametrize("rank", [Ranking("return", "mean_return", True), Ranking("length", "mean_length", False)])
 def test_the_sweeps_window_is_the_summarys_on_the_device(rank):
     rng = np.random.default_rng(0)

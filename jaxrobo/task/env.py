@@ -143,14 +143,21 @@ class Ranking:
 
     def best_table(self, per_table: dict[str, Any]) -> int:
         """The best evaluated table: ``per_table`` maps :data:`TARGET_METRICS` keys to ``[tables, episodes]``
-        greedy records (``mean_return`` at least). Ranked by :attr:`table_metric` (by the mean return where that
-        was not recorded), a tie broken by the higher mean return (a success rate often ties at 1.0)."""
+        greedy records (``mean_return`` at least), chosen by :meth:`best_of`."""
         ret = np.asarray(per_table["mean_return"], np.float64).mean(axis=1)
-        if self.table_metric not in per_table:
-            return int(np.argmax(ret))
-        score = np.asarray(per_table[self.table_metric], np.float64).mean(axis=1)
-        score = score if self.higher else -score
-        return int(np.lexsort((-ret, -score))[0])  # lexsort's last key is the primary one; ascending, so negated
+        score = (np.asarray(per_table[self.table_metric], np.float64).mean(axis=1)
+                 if self.table_metric in per_table else None)
+        return int(self.best_of(score, ret))
+
+    def best_of(self, score: Any, ret: Any, xp: Any = np) -> Any:
+        """Index of the best table from its mean :attr:`table_metric` ``score`` (None: not recorded, so ranked by
+        the mean return alone, higher is better), a tie broken by the higher mean return ``ret`` (a success rate
+        often ties at 1.0), then the first; a NaN ranks last. One rule for the host's choice (:meth:`best_table`)
+        and the traced one among a run's late snapshots (``Trainer.final_table``): ``xp`` is numpy or jax.numpy."""
+        last = lambda v: xp.where(v == v, v, -xp.inf)  # noqa: E731  (NaN is the only value unequal to itself)
+        ret = last(ret)
+        score = ret if score is None else last(score if self.higher else -score)
+        return xp.argmax(xp.where(score == score.max(), ret, -xp.inf))
 
 
 def ranking(target: LearningTarget | None) -> Ranking:

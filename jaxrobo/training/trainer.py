@@ -403,10 +403,8 @@ class Trainer:
                                                         env_params))(candidates)
         rank = ranking(getattr(self.env, "learning_target", None))
         figure = {"success_rate": "arrived", "mean_return": "return", "mean_length": "length"}[rank.table_metric]
-        ret = out["return"].mean(axis=1)
-        score = out[figure].astype(jnp.float32).mean(axis=1) if figure in out else ret
-        score = score if rank.higher else -score
-        best = jnp.argmax(jnp.where(score == score.max(), ret, -jnp.inf))  # the first (latest) of the best
+        score = out[figure].astype(jnp.float32).mean(axis=1) if figure in out else None
+        best = rank.best_of(score, out["return"].mean(axis=1), jnp)  # the first (latest) of the best
         return runner.replace(agent=runner.agent.replace(q=candidates[best])), best.astype(jnp.int32)
 
     def _run_steps(self, runner: Runner, agent_params: AgentParams, env_params: Any = None) -> Runner:
