@@ -85,8 +85,7 @@ class Params(BaseParams):
     # Domain randomisation (read only with the option randomise=true; docs/randomisation.md).
     rand_link_mass: tuple = range_param((1.0, 1.0), low=0.25, high=4.0, doc="factor on both links' masses")
     rand_damping: tuple = range_param((1.0, 1.0), low=0.0, high=4.0, doc="factor on the joints' damping")
-    rand_obs_noise: tuple = range_param((0.0, 0.0), low=0.0, high=10.0,
-                                        doc="std of Gaussian noise on every observation component, fresh each step")
+    rand_obs_noise: tuple = randomise.obs_noise_range()
 
 
 @pytree_dataclass

@@ -66,8 +66,7 @@ class Params(BaseParams):
     rand_pole_mass: tuple = range_param((1.0, 1.0), low=0.25, high=4.0, doc="factor on the pole's mass")
     rand_pole_length: tuple = range_param((1.0, 1.0), low=0.5, high=2.0,
                                           doc="factor on the pole's length (centre of mass and inertia, as a rod)")
-    rand_obs_noise: tuple = range_param((0.0, 0.0), low=0.0, high=10.0,
-                                        doc="std of Gaussian noise on every observation component, fresh each step")
+    rand_obs_noise: tuple = randomise.obs_noise_range()
 
 
 @pytree_dataclass

@@ -37,7 +37,8 @@ import numpy as np
 from envs.quadcopter.robot import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
                              sphere_hits, twist_command, wrap_angle)
 from envs.quadcopter.goto_kernel import kernel_step, make_task_step, supports
-from jaxrobo.api import BaseParams, EnvState, LearningTarget, param, pytree_dataclass, range_param, rng, spaces
+from jaxrobo.api import (BaseParams, EnvState, LearningTarget, param, pytree_dataclass, randomise, range_param, rng,
+                         spaces)
 
 OBS_NAMES = ("goal_dist", "goal_bearing", "goal_dz", "sonar_forward", "sonar_left", "sonar_right", "sonar_down")
 
@@ -88,8 +89,7 @@ class Params(BaseParams):
                                          doc="factor on every rotor's thrust and reaction torque")
     rand_wind: tuple = range_param((0.0, 0.0), low=0.0, high=5.0, unit="N",
                                    doc="constant horizontal force on the drone, random direction")
-    rand_obs_noise: tuple = range_param((0.0, 0.0), low=0.0, high=10.0,
-                                        doc="std of Gaussian noise on every observation component, fresh each step")
+    rand_obs_noise: tuple = randomise.obs_noise_range()
 
 
 @pytree_dataclass

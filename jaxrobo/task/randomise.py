@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrobo.core.struct import rules
+from jaxrobo.core.struct import range_param, rules
 
 #: Prefix of a randomisation range's field name in a task's Params.
 PREFIX = "rand_"
@@ -44,6 +44,13 @@ HEADING = "_heading"
 #: Folded into the reset key for the draws, and into the env's key for the observation noise (public: the
 #: cart-pole's chunk kernel, which resets in-kernel, draws from the same keys).
 DRAW_TAG, NOISE_TAG = 0x5244, 0x4E53
+
+
+def obs_noise_range() -> Any:
+    """The ``rand_obs_noise`` field of a task's Params (:data:`OBS_NOISE`, handled by the task layer, so one
+    declaration for every task): the standard deviation of the observation noise, off by default."""
+    return range_param((0.0, 0.0), low=0.0, high=10.0,
+                       doc="std of Gaussian noise on every observation component, fresh each step")
 
 
 def range_fields(params_cls: Any) -> tuple[str, ...]:
