@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import importlib
 import json
 import os
 import subprocess
@@ -10,6 +11,14 @@ import sys
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _script(name: str, folder: str = "benchmarks"):
+    """A benchmark script imported as a module; its folder stays on ``sys.path`` for the imports it makes later."""
+    path = os.path.join(ROOT, folder)
+    if path not in sys.path:
+        sys.path.insert(0, path)
+    return importlib.import_module(name)
 
 
 def test_throughput_smoke(tmp_path):
@@ -69,8 +78,7 @@ def test_time_to_learn_smoke_covers_the_cartpole_and_the_goto_task(tmp_path):
 
 def test_throughput_plan_matches_brax_physics_step_and_ratios_use_the_same_size():
     """The like-for-like rows: cart-pole on MJX at Brax inverted_pendulum's physics step, beside its rows."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-    import throughput
+    throughput = _script("throughput")
 
     dt = throughput.brax_physics_dt()
     assert dt == 0.02, dt  # Brax's inverted_pendulum.xml; the cart-pole's default is 0.01
@@ -94,8 +102,7 @@ def test_throughput_plan_matches_brax_physics_step_and_ratios_use_the_same_size(
 def test_time_carry_fills_short_samples_with_back_to_back_calls():
     import time
 
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-    import _common
+    _common = _script("_common")
 
     calls = []
 
@@ -115,8 +122,7 @@ def test_time_carry_fills_short_samples_with_back_to_back_calls():
 def test_append_merges_parts_replacing_rows_measured_again(tmp_path):
     """``--append``: a long matrix runs in parts; a row measured again replaces the old one, ratios are
     recomputed over the merged rows, and another device's results are refused."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-    import throughput
+    throughput = _script("throughput")
 
     def row(suite, mode, n, sps, **kw):
         return {"suite": suite, "env": "CartPoleStayUp-v0" if suite == "jaxrobo" else "inverted_pendulum/mjx",
@@ -155,8 +161,7 @@ def test_env_groups_smoke_gives_the_same_tables_for_every_group_size(tmp_path):
 
 def test_fused_plan_tokens_name_the_kernel_knobs():
     """benchmarks/studies/fused.py's plan tokens: each names one of the Pallas kernel's knobs, and they apply to pallas only."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks", "studies"))
-    import fused
+    fused = _script("fused", os.path.join("benchmarks", "studies"))
 
     from jaxrobo.speed import fused_pallas
     from jaxrobo.speed.plan import ExecutionPlan
@@ -181,11 +186,7 @@ def test_randomisation_cost_refuses_an_unknown_variant_before_anything_runs():
 def test_randomisation_cost_configures_every_case_and_variant():
     """Every env id and variant the benchmark times resolves to a valid run (a preset's later default, such as the
     Goto presets' snapshots, must not stop its GPU rows after minutes of compiling the others)."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-    try:
-        import randomisation_cost
-    finally:
-        sys.path.pop(0)
+    randomisation_cost = _script("randomisation_cost")
     from jaxrobo.training.run import resolve
 
     for env_id in randomisation_cost.CASES:
@@ -196,11 +197,7 @@ def test_randomisation_cost_configures_every_case_and_variant():
 
 
 def test_kernel_occupancy_reads_ncu_details_and_refuses_without_ncu():
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-    try:
-        import kernel_occupancy
-    finally:
-        sys.path.pop(0)
+    kernel_occupancy = _script("kernel_occupancy")
     recorded = os.path.join(ROOT, "benchmarks", "results", "h100", "round_2026-11-26d", "ncu_kernel-nominal.txt")
     with open(recorded) as f:
         row = kernel_occupancy.parse(f.read())
