@@ -2,8 +2,8 @@
 
 The Pallas kernels take each env's drawn physics as per-env inputs, so a randomised run keeps the kernel the plan
 gives a nominal one (the rigid Goto tasks, the analytic cart-pole with Q-learning, on one GPU from 1,024 envs).
-This measures, per env id and batch size, each configuration trained ``--repeats`` times (2) in the same process
-(the fastest timing kept)::
+This measures, per env id and batch size, each configuration trained ``--repeats`` times (2) in the same process,
+in rounds of every configuration once (the fastest timing kept)::
 
     kernel-nominal       randomise off, the default plan (the kernel on a GPU)
     kernel-randomised    randomise on with ranges that change the physics (and observation noise), default plan
@@ -100,24 +100,35 @@ def main() -> int:
     rows = []
     for env_id in args.envs.split(","):
         for n in (int(v) for v in args.n_envs.split(",")):
+            specs, plans = {}, {}
+            for variant in variants:
+                specs[variant] = resolve(env_id, "default", {**overrides_for(env_id, variant), "n_envs": n,
+                                                             "nepisodes": args.nepisodes, "eval_episodes": 0})
+                plans[variant] = Trainer(specs[variant].env, specs[variant].config).plan
+                if variant.startswith("kernel") and plans[variant].fused != "pallas":
+                    print(f"note: {variant} runs without the kernel here ({plans[variant]!r}): the plan gives it on "
+                          "one GPU from 1,024 envs", flush=True)
+            # Repeats in rounds, each round every variant once in the given order: a drift of the card's clock
+            # over the minutes of a call (power, heat) falls on every variant alike instead of on the later ones.
+            runs = {variant: [] for variant in variants}
+            for _ in range(args.repeats):
+                for variant in variants:
+                    spec = specs[variant]
+                    result = train(spec.env, spec.config, spec.agent_params)
+                    runs[variant].append((result.steps_per_second, result.compile_seconds, result.run_seconds,
+                                          result.env_steps))
             rates = {}
             for variant in variants:
-                spec = resolve(env_id, "default", {**overrides_for(env_id, variant), "n_envs": n,
-                                                   "nepisodes": args.nepisodes, "eval_episodes": 0})
-                plan = Trainer(spec.env, spec.config).plan
-                if variant.startswith("kernel") and plan.fused != "pallas":
-                    print(f"note: {variant} runs without the kernel here ({plan!r}): the plan gives it on one GPU "
-                          "from 1,024 envs", flush=True)
-                runs = [train(spec.env, spec.config, spec.agent_params) for _ in range(args.repeats)]
-                best = max(r.steps_per_second for r in runs)
-                length = runs[0].env_steps / (n * args.nepisodes)  # every env runs its nepisodes episodes
+                best = max(r[0] for r in runs[variant])
+                length = runs[variant][0][3] / (n * args.nepisodes)  # every env runs its nepisodes episodes
                 rates[variant] = best
                 rows.append({"env": env_id, "n_envs": n, "variant": variant, "steps_per_s": best,
-                             "mean_episode_length": length, "compile_s": [r.compile_seconds for r in runs],
-                             "run_s": [r.run_seconds for r in runs], "plan": repr(plan)})
+                             "steps_per_s_each": [r[0] for r in runs[variant]], "mean_episode_length": length,
+                             "compile_s": [r[1] for r in runs[variant]], "run_s": [r[2] for r in runs[variant]],
+                             "plan": repr(plans[variant])})
                 print(f"{env_id:20s} n={n:<8d} {variant:20s} {best / 1e6:9.3f} M steps/s   mean episode "
-                      f"{length:7.1f} steps   {plan!r}", flush=True)
-                write(rows)  # after every variant: a stopped call keeps what it measured
+                      f"{length:7.1f} steps   {plans[variant]!r}", flush=True)
+            write(rows)
             nominal = rates.get("kernel-nominal")
             for variant in ("kernel-randomised", "kernel-physics-only", "kernel-pinned"):
                 if nominal and variant in rates:

@@ -193,9 +193,10 @@ RANDOMISED = dict(randomise=True, rand_cart_mass=[0.5, 2.0], rand_pole_mass=[0.5
 @pytest.mark.parametrize("domain", [{}, RANDOMISED], ids=["nominal", "randomised"])
 def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeypatch):
     """Where at most a quarter of a program's envs are done, groups of four lanes share their reset's hashes
-    (:data:`jaxrobo.speed.fused_pallas.GROUP_RESETS`), the randomised draws' too; beyond that each lane hashes its
-    own. 32 envs in programs of 16 over 80 steps, in which a program has one, two or three and more than four envs
-    done in one step (counted on the plain path, step by step): the carry equals the lane-by-lane kernel's and the
+    (:data:`jaxrobo.speed.fused_pallas.GROUP_RESETS`); randomised, where at most an eighth are, groups of eight,
+    the draws' hashes too; beyond that each lane hashes its own. 32 envs in programs of 16 over 80 steps, in which
+    a program has one, two or three and more than four envs done in one step (counted on the plain path, step by
+    step: both group sizes and the lanes' path run): the carry equals the lane-by-lane kernel's and the
     kernel's that hashes every reset in every env every step (randomised: its draws and its first observation's
     noise too), bit for bit."""
     from jaxrobo.speed import fused_pallas

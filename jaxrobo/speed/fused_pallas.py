@@ -39,9 +39,10 @@ folds out of the env key (JAX's normal draw: a uniform per component, then ``sqr
 :func:`_erf_inv`, JAX's values with fewer registers; the episode's noise key, the env key folded with the noise
 tag, is carried): fifteen more hashes per reset (nine for the draws,
 six for the first observation's noise) and five per step; a program whose fresh episodes, or whose envs, all drew
-a noise level of 0 skips the noise's (one scalar branch each). Under :data:`GROUP_RESETS` the groups of four lanes
-hash the draws too (the draws' base key beside the env and pose keys, then range i's key and uniform in slot i:
-five hash rounds for the program instead of fourteen); the first observation's noise is hashed lane by lane. Off,
+a noise level of 0 skips the noise's (one scalar branch each). Under :data:`GROUP_RESETS` the groups are of eight
+lanes and hash the draws too (the draws' base key beside the env and pose keys; then the pose's uniforms in slots
+0-3 beside range i's key in slot 4 + i; then each range's uniform: four hash rounds for the program instead of
+sixteen); the first observation's noise is hashed lane by lane. Off,
 the kernel has none of these columns: the program it was.
 
 Supported (:func:`unsupported_run` says why not; the plan's default picks the kernel on one GPU from 1,024 envs
@@ -90,8 +91,8 @@ APPROX_SINCOS = False
 #: gains less than the two transposes cost, at every size measured (docs/benchmarks.md, "Pallas").
 TILED_TABLES = False
 #: True: a program whose done envs number at most a quarter of its lanes hashes their resets in groups of four
-#: lanes (three hash rounds for the program instead of seven, under domain randomisation five instead of fourteen:
-#: the draws' too; the same values). False: each lane its own env's.
+#: lanes (three hash rounds for the program instead of seven; the same values); under domain randomisation, at most
+#: an eighth, in groups of eight (four rounds instead of sixteen: the draws' too). False: each lane its own env's.
 GROUP_RESETS = True
 #: True: on a GPU, in a step where every pole angle of a program stays within
 #: :data:`jaxrobo.physics.libdevice_sincos.LIMIT` in every substep (one scalar branch per program and step), the physics'
@@ -203,6 +204,11 @@ def _unit(words):
                                         jnp.float32) - 1.0
 
 
+def _any(mask):
+    """Whether any lane of the program is set: an integer maximum, one warp-wide reduction on a GPU."""
+    return jnp.max(mask.astype(jnp.int32)) > 0
+
+
 # XLA's float32 ErfInv (JAX's own lowering of it in Pallas, pallas.utils._erf_inv_32_lowering_helper): one polynomial
 # in w - 2.5 where w = -log1p(-x^2) < 5, another in sqrt(w) - 3 elsewhere.
 _ERFINV_BELOW_5 = (2.81022636e-08, 3.43273939e-07, -3.5233877e-06, -4.39150654e-06, 0.00021858087, -0.00125372503,
@@ -263,6 +269,10 @@ def _make_kernel(static):
     # Domain randomisation (``domain``: the drawn quantities, in the order of the task's ranges; empty: off, and
     # the kernel is the program it was before randomisation existed).
     noise_on = randomise.OBS_NOISE in domain
+    # Lanes per group that hash a done env's reset (GROUP_RESETS): four, under domain randomisation eight (slots 0-3
+    # the pose, 4 + i range i).
+    assert len(domain) <= 4, domain
+    group_lanes = 8 if domain else 4
     physics_names = tuple(n for n in _DOMAIN if n != randomise.OBS_NOISE)
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
@@ -323,14 +333,18 @@ def _make_kernel(static):
                 seen = seen + m.astype(jnp.int32)
             return jnp.where(coin < epsilon, random_action, choice)
 
-        def draw(base, fold, low, high):
-            # One range's value: its key folded out of the draws' base key (the hash of counter (0, fold), fold
-            # = 2 i for range i), one uniform from that key (counter (0, 0), the two words xor-ed), scaled to
-            # [low, high). ``fold``: uint32, per lane where the groups of four draw range i in lane i.
-            zero = jnp.zeros_like(base[0])
-            key_i = _threefry(base[0], base[1], zero, zero + fold)
+        def drawn_from(key_i, low, high):
+            # One range's value from its key: one uniform (counter (0, 0), the two words xor-ed) scaled to
+            # [low, high).
+            zero = jnp.zeros_like(key_i[0])
             u = _unit(functools.reduce(jnp.bitwise_xor, _threefry(key_i[0], key_i[1], zero, zero)))
             return low + u * (high - low)
+
+        def draw(base, fold, low, high):
+            # One range's value: its key folded out of the draws' base key (the hash of counter (0, fold), fold
+            # = 2 i for range i), then drawn_from that key.
+            zero = jnp.zeros_like(base[0])
+            return drawn_from(_threefry(base[0], base[1], zero, zero + fold), low, high)
 
         def draws(k_reset):
             # randomise.draw(k_reset, params): one uniform per range from the reset key folded with the draw tag
@@ -417,7 +431,7 @@ def _make_kernel(static):
                 std = cr[randomise.OBS_NOISE]
                 # A program whose envs all draw no noise skips its hashes (one scalar branch): obs + 0 * z is obs
                 # (z is finite), up to the sign of a zero.
-                obs = jax.lax.cond(jnp.max(std) > 0, lambda o: noisy(o, (cr["nk0"], cr["nk1"]), env_steps_now, std),
+                obs = jax.lax.cond(_any(std > 0), lambda o: noisy(o, (cr["nk0"], cr["nk1"]), env_steps_now, std),
                                    lambda o: o, obs)
             s2 = discretise(obs)
             done = term | trunc | (env_steps_now >= nsteps)
@@ -468,9 +482,12 @@ def _make_kernel(static):
             def hashed_by_group(n_done):
                 # The same seven hashes of each done env, shared by a group of four lanes: three hash rounds
                 # for the program instead of seven (the 2nd and 3rd stages hash one counter per lane), the
-                # words moving between lanes by block-wide integer sums of one nonzero term (exact).
+                # words moving between lanes by block-wide integer sums of one nonzero term (exact). Under
+                # domain randomisation a group is eight lanes (group_lanes), so that the pose's four uniforms
+                # and the ranges' four keys share one round: four rounds instead of sixteen, where groups of
+                # four would take five.
                 lane = jax.lax.iota(jnp.int32, block)
-                slot, group = lane % 4, lane // 4
+                slot, group = lane % group_lanes, lane // group_lanes
                 i32 = lambda v: jax.lax.bitcast_convert_type(v, jnp.int32)  # noqa: E731
                 u32 = lambda v: jax.lax.bitcast_convert_type(v, jnp.uint32)  # noqa: E731
                 take = lambda at, v: jnp.sum(jnp.where(at, v, 0))  # noqa: E731  (the value of the lane at `at`)
@@ -493,27 +510,35 @@ def _make_kernel(static):
 
                 def to_group(m, c):  # slot j's key to every lane of group m: the pose key, the draws' base key
                     mine = group == m
-                    return tuple(jnp.where(mine, take(lane == 4 * m + j, b[w]), cw)
+                    return tuple(jnp.where(mine, take(lane == group_lanes * m + j, b[w]), cw)
                                  for (j, w), cw in zip(shared, c))
 
                 shared = [(1, 0), (1, 1)] + ([(2, 0), (2, 1)] if domain else [])
                 got = jax.lax.fori_loop(0, n_done, to_group, (zi,) * len(shared))
-                noise = noise_of(*_threefry(u32(got[0]), u32(got[1]), zero, u32(slot)))
-                value = jnp.where(slot == 0, f("init_pos") + noise,
-                                  jnp.where(slot == 2, f("init_pole_angle") + noise, noise))
-                # Back to the done lane: slot j's value (x, xd, th, thd) and slot 0's env key.
-                sources = [(j, i32(value)) for j in range(4)] + [(0, b[0]), (0, b[1])]
-                if domain:  # slot i draws range i, as draws() does
+                if domain:
+                    # Slots 0-3 hash the pose's uniform `slot` from the pose key; slot 4 + i range i's key from
+                    # the draws' base key (fold 2 i, as draws() does), then its uniform, scaled to its bounds.
+                    pose = slot < 4
+                    h = _threefry(jnp.where(pose, u32(got[0]), u32(got[2])), jnp.where(pose, u32(got[1]), u32(got[3])),
+                                  zero, u32(jnp.where(pose, slot, 2 * (slot - 4))))
                     low = high = jnp.zeros(slot.shape, jnp.float32)
                     for i in range(len(domain)):
-                        low = jnp.where(slot == i, f(f"rand_low{i}"), low)
-                        high = jnp.where(slot == i, f(f"rand_high{i}"), high)
-                    drawn = draw((u32(got[2]), u32(got[3])), u32(2 * slot), low, high)
-                    sources += [(i, i32(drawn)) for i in range(len(domain))]
+                        low = jnp.where(slot == 4 + i, f(f"rand_low{i}"), low)
+                        high = jnp.where(slot == 4 + i, f(f"rand_high{i}"), high)
+                    drawn = drawn_from(h, low, high)
+                else:
+                    h = _threefry(u32(got[0]), u32(got[1]), zero, u32(slot))
+                noise = noise_of(*h)
+                value = jnp.where(slot == 0, f("init_pos") + noise,
+                                  jnp.where(slot == 2, f("init_pole_angle") + noise, noise))
+                # Back to the done lane: slot j's value (x, xd, th, thd), slot 0's env key and slot 4 + i's range.
+                sources = [(j, i32(value)) for j in range(4)] + [(0, b[0]), (0, b[1])]
+                sources += [(4 + i, i32(drawn)) for i in range(len(domain))] if domain else []
 
                 def to_owner(m, c):
-                    dest = lane == take(lane == 4 * m, owner)
-                    return tuple(jnp.where(dest, take(lane == 4 * m + j, v), cj) for (j, v), cj in zip(sources, c))
+                    dest = lane == take(lane == group_lanes * m, owner)
+                    return tuple(jnp.where(dest, take(lane == group_lanes * m + j, v), cj)
+                                 for (j, v), cj in zip(sources, c))
 
                 v = jax.lax.fori_loop(0, n_done, to_owner, (zi,) * len(sources))
                 as_f = lambda w: jax.lax.bitcast_convert_type(w, jnp.float32)  # noqa: E731
@@ -537,7 +562,7 @@ def _make_kernel(static):
 
                     # A program whose fresh episodes all drew no noise skips the six hashes (a scalar branch), as
                     # the step skips its five: obs + 0 * z is obs up to the sign of a zero.
-                    fresh = jax.lax.cond(jnp.max(jnp.where(done, std, 0.0)) > 0, with_noise, without_noise,
+                    fresh = jax.lax.cond(_any(done & (std > 0)), with_noise, without_noise,
                                          obs_fresh)
                     obs_fresh, episode_key = fresh[:4], fresh[4:]
                 s_fresh = discretise(obs_fresh)
@@ -553,9 +578,9 @@ def _make_kernel(static):
                     return (zf, zf, zf, zf, zu, zu, jnp.zeros_like(s2), *([zf] * n_actions), *extra)
 
                 n_done = jnp.sum(done.astype(jnp.int32))
-                if group_resets and block >= 4:  # groups of four lanes for up to block / 4 done envs, else lane by lane
+                if group_resets and block >= group_lanes:  # a group per done env while there are enough, else by lane
                     some_done = lambda n: fresh_episode(jax.lax.cond(  # noqa: E731
-                        n <= block // 4, hashed_by_group, hashed_by_lane, n))
+                        n <= block // group_lanes, hashed_by_group, hashed_by_lane, n))
                 else:
                     some_done = lambda n: fresh_episode(hashed_by_lane(n))  # noqa: E731
                 reset = jax.lax.cond(n_done > 0, some_done, none_done, n_done)
