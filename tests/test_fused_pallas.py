@@ -19,6 +19,7 @@ from jaxrobo.core.config import ConfigError
 from jaxrobo.speed.plan import ExecutionPlan
 from jaxrobo.training.run import resolve
 from jaxrobo.training.train import Trainer, train
+from test_randomise_kernels import CART_RANGES
 
 TINY = dict(n_envs=12, nepisodes=4, nsteps=30, chunk_steps=25, eval_episodes=2, eval_envs=2,
             bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
@@ -184,10 +185,9 @@ def test_the_reset_branch_changes_nothing(case, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
-#: Domain randomisation's ranges (cart mass, pole mass, pole length, observation noise), as
+#: Domain randomisation's ranges (cart mass, pole mass, pole length, observation noise): those with which
 #: tests/test_randomise_kernels.py holds the randomised kernel to the plain path.
-RANDOMISED = dict(randomise=True, rand_cart_mass=[0.5, 2.0], rand_pole_mass=[0.5, 2.0], rand_pole_length=[0.5, 2.0],
-                  rand_obs_noise=[0.0, 0.05])
+RANDOMISED = dict(randomise=True, **CART_RANGES)
 
 
 @pytest.mark.parametrize("domain", [{}, RANDOMISED], ids=["nominal", "randomised"])
