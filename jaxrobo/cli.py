@@ -606,18 +606,20 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
                                     f"({done_min} of {cfg.nepisodes} episodes in every env)")
             return 128 + stop.signum
 
+        t_write = time.perf_counter()
+        summary = result.summary()  # once: summary.json and the lines below (a sort of every env's records)
+
         def write(staged: str) -> None:
             t = time.perf_counter()
-            save_run(staged, result, spec.to_dict(), trainer.disc)
+            save_run(staged, result, spec.to_dict(), trainer.disc, summary=summary)
             keep_live_scalars(live, staged)
-            write_summary(staged, {**result.summary(), "write_seconds": round(time.perf_counter() - t, 3)})
+            write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t, 3)})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
 
-        t_write = time.perf_counter()
         rundir.publish_results(out, live, write)
         write_seconds = time.perf_counter() - t_write
-    s = result.summary()
+    s = summary
     restored = f" ({s['restored_env_steps']:,} restored from the checkpoint)" if "restored_env_steps" in s else ""
     print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps'] - s.get('restored_env_steps', 0):,} env steps "
           f"in {s['run_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s){restored}; {s['useful_share']:.1%} "

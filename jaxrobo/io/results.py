@@ -50,11 +50,13 @@ def write_config(out_dir: str, config: dict[str, Any]) -> None:
 
 
 def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray,
-                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None) -> None:
+                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None,
+                   stats: list | None = None) -> None:
     """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats.
 
     ``episodes_done`` (recorded episodes per env: an interrupted run, or a run-wide budget): only those get CSV
-    rows, ``records.npz`` keeps the count, and each episode index's stats cover the envs that recorded it."""
+    rows, ``records.npz`` keeps the count, and each episode index's stats cover the envs that recorded it.
+    ``stats``: :func:`episode_stats` of these records where the caller has them already (None: computed here)."""
     os.makedirs(out_dir, exist_ok=True)
     returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
     terminated = np.atleast_2d(terminated)
@@ -72,7 +74,7 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(STAT_COLUMNS)
-        for row in zip(*episode_stats(returns, lengths, epsilon, done)):
+        for row in zip(*(episode_stats(returns, lengths, epsilon, done) if stats is None else stats)):
             w.writerow([int(row[0])] + [f"{v:.6g}" for v in row[1:]])
 
 
@@ -125,9 +127,10 @@ def write_eval(out_dir: str, returns: np.ndarray, lengths: np.ndarray) -> None:
 
 
 def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
-                      episodes_done: np.ndarray | None = None) -> None:
+                      episodes_done: np.ndarray | None = None, stats: list | None = None) -> None:
     """Per-episode scalars (the mean over envs of each episode index: ``episode_stats.csv``'s ``return_mean``
-    and ``length_mean``) for TensorBoard, at the end of a run; the live scalars of each chunk are the CLI's."""
+    and ``length_mean``) for TensorBoard, at the end of a run; the live scalars of each chunk are the CLI's.
+    ``stats``: :func:`episode_stats` of these records where the caller has them already (None: computed here)."""
     try:
         from tensorboardX import SummaryWriter
     except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
@@ -136,7 +139,7 @@ def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, ep
     try:
         returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
         done = np.full(returns.shape[0], returns.shape[1]) if episodes_done is None else np.asarray(episodes_done)
-        cols = episode_stats(returns, lengths, epsilon, np.minimum(done, returns.shape[1]))
+        cols = episode_stats(returns, lengths, epsilon, np.minimum(done, returns.shape[1])) if stats is None else stats
         mean_r, mean_l, epsilon = cols[1], cols[6], cols[11]
         for i in range(mean_r.shape[0]):
             writer.add_scalar("episode/reward_mean", float(mean_r[i]), i)
@@ -146,8 +149,10 @@ def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, ep
         writer.close()
 
 
-def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None) -> str:
+def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None,
+             summary: dict[str, Any] | None = None) -> str:
     """Write everything a :class:`jaxrobo.training.summary.TrainResult` holds into ``out_dir``; returns ``out_dir``.
+    ``summary``: ``result.summary()`` where the caller has it already (None: computed here).
 
     An interrupted result (``complete`` False) writes its config and the episodes finished so far only. The
     caller writes ``status.json`` (and, for an interrupted run, the checkpoint) and publishes the directory
@@ -158,14 +163,18 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
                        episodes_done=result.episodes_done)
         return out_dir
     partial = result.recorded() is not None if hasattr(result, "recorded") else False
-    write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
-                   episodes_done=result.episodes_done if partial else None)
+    done = result.episodes_done if partial else None
+    returns, lengths = np.atleast_2d(result.returns), np.atleast_2d(result.lengths)
+    # One pass over the records for episode_stats.csv and TensorBoard's per-episode scalars.
+    stats = episode_stats(returns, lengths, result.epsilon, np.full(returns.shape[0], returns.shape[1])
+                          if done is None else np.minimum(np.asarray(done), returns.shape[1]))
+    write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon, episodes_done=done,
+                   stats=stats)
     write_tables(out_dir, result.q, disc)
-    write_summary(out_dir, result.summary())
+    write_summary(out_dir, result.summary() if summary is None else summary)
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)
-    write_tensorboard(out_dir, result.returns, result.lengths, result.epsilon,
-                      episodes_done=result.episodes_done if partial else None)
+    write_tensorboard(out_dir, result.returns, result.lengths, result.epsilon, episodes_done=done, stats=stats)
     return out_dir
 
 
