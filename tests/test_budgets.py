@@ -119,10 +119,10 @@ def test_the_cli_reports_useful_share_and_wall_split(tmp_path, capsys, monkeypat
 
 
 def test_a_run_directory_computes_its_episode_stats_once_for_the_csv_and_tensorboard(tmp_path):
-    """``save_run`` passes one :func:`jaxrobo.io.results.episode_stats` to ``episode_stats.csv`` and to
-    TensorBoard's per-episode scalars, which each computed it before:
-    the files equal those written without it, for every env recording every episode and under a run-wide budget
-    (envs with different counts), and the scalars are the CSV's means."""
+    """``write_episodes`` returns the :func:`jaxrobo.io.results.episode_stats` it wrote to ``episode_stats.csv``,
+    and ``save_run`` hands them to TensorBoard's per-episode scalars instead of computing them again; for every env
+    recording every episode and under a run-wide budget (envs with different counts), the returned columns are
+    ``episode_stats``' and the scalars are the CSV's means and epsilon."""
     from jaxrobo.io.results import episode_stats, read_columns, read_scalars, write_episodes, write_tensorboard
 
     rng = np.random.default_rng(7)
@@ -130,15 +130,14 @@ def test_a_run_directory_computes_its_episode_stats_once_for_the_csv_and_tensorb
     lengths = rng.integers(1, 1000, (67, 30)).astype(np.int32)
     terminated, epsilon = lengths < 900, np.linspace(1, 0.1, 30, dtype=np.float32)
     for name, done in (("full", None), ("budget", rng.integers(0, 31, 67))):
-        counts = np.full(67, 30) if done is None else done
-        stats = episode_stats(returns, lengths, epsilon, counts)
-        given, own = tmp_path / f"{name}_given", tmp_path / f"{name}_own"
-        for out, s in ((given, stats), (own, None)):
-            write_episodes(str(out), returns, lengths, terminated, epsilon, episodes_done=done, stats=s)
-            write_tensorboard(str(out), returns, lengths, epsilon, episodes_done=done, stats=s)
-        assert (given / "episode_stats.csv").read_bytes() == (own / "episode_stats.csv").read_bytes()
-        csv = read_columns(str(given / "episode_stats.csv"), ("return_mean", "length_mean"))
-        for where in (given, own):
-            scalars = read_scalars(str(where / "tensorboard"))
-            np.testing.assert_allclose([v for _, v in scalars["episode/reward_mean"]], csv["return_mean"], rtol=1e-5)
-            np.testing.assert_allclose([v for _, v in scalars["episode/length_mean"]], csv["length_mean"], rtol=1e-5)
+        out = tmp_path / name
+        stats = write_episodes(str(out), returns, lengths, terminated, epsilon, episodes_done=done)
+        expected = episode_stats(returns, lengths, epsilon, np.full(67, 30) if done is None else done)
+        assert len(stats) == len(expected)
+        for got, want in zip(stats, expected):
+            np.testing.assert_array_equal(got, want)
+        write_tensorboard(str(out), stats)
+        csv = read_columns(str(out / "episode_stats.csv"), ("return_mean", "length_mean", "epsilon"))
+        scalars = read_scalars(str(out / "tensorboard"))
+        for tag, column in (("reward_mean", "return_mean"), ("length_mean", "length_mean"), ("epsilon", "epsilon")):
+            np.testing.assert_allclose([v for _, v in scalars[f"episode/{tag}"]], csv[column], rtol=1e-5)

@@ -50,13 +50,12 @@ def write_config(out_dir: str, config: dict[str, Any]) -> None:
 
 
 def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray,
-                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None,
-                   stats: list | None = None) -> None:
+                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None) -> list:
     """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats.
 
     ``episodes_done`` (recorded episodes per env: an interrupted run, or a run-wide budget): only those get CSV
     rows, ``records.npz`` keeps the count, and each episode index's stats cover the envs that recorded it.
-    ``stats``: :func:`episode_stats` of these records where the caller has them already (None: computed here)."""
+    Returns those stats (:func:`episode_stats`' columns), for TensorBoard's per-episode scalars."""
     os.makedirs(out_dir, exist_ok=True)
     returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
     terminated = np.atleast_2d(terminated)
@@ -74,8 +73,10 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(STAT_COLUMNS)
-        for row in zip(*(episode_stats(returns, lengths, epsilon, done) if stats is None else stats)):
+        stats = episode_stats(returns, lengths, epsilon, done)
+        for row in zip(*stats):
             w.writerow([int(row[0])] + [f"{v:.6g}" for v in row[1:]])
+    return stats
 
 
 def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray, done: np.ndarray) -> list:
@@ -126,21 +127,17 @@ def write_eval(out_dir: str, returns: np.ndarray, lengths: np.ndarray) -> None:
                 w.writerow((t, i, f"{returns[t, i]:.6g}", int(lengths[t, i])))
 
 
-def write_tensorboard(out_dir: str, returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
-                      episodes_done: np.ndarray | None = None, stats: list | None = None) -> None:
-    """Per-episode scalars (the mean over envs of each episode index: ``episode_stats.csv``'s ``return_mean``
-    and ``length_mean``) for TensorBoard, at the end of a run; the live scalars of each chunk are the CLI's.
-    ``stats``: :func:`episode_stats` of these records where the caller has them already (None: computed here)."""
+def write_tensorboard(out_dir: str, stats: list) -> None:
+    """Per-episode scalars for TensorBoard, at the end of a run: ``episode_stats.csv``'s ``return_mean``,
+    ``length_mean`` and ``epsilon`` (``stats``: :func:`episode_stats`' columns, as :func:`write_episodes` returns
+    them); the live scalars of each chunk are the CLI's."""
     try:
         from tensorboardX import SummaryWriter
     except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
         return
     writer = SummaryWriter(os.path.join(out_dir, "tensorboard"))
     try:
-        returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
-        done = np.full(returns.shape[0], returns.shape[1]) if episodes_done is None else np.asarray(episodes_done)
-        cols = episode_stats(returns, lengths, epsilon, np.minimum(done, returns.shape[1])) if stats is None else stats
-        mean_r, mean_l, epsilon = cols[1], cols[6], cols[11]
+        mean_r, mean_l, epsilon = stats[1], stats[6], stats[11]
         for i in range(mean_r.shape[0]):
             writer.add_scalar("episode/reward_mean", float(mean_r[i]), i)
             writer.add_scalar("episode/length_mean", float(mean_l[i]), i)
@@ -163,18 +160,13 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
                        episodes_done=result.episodes_done)
         return out_dir
     partial = result.recorded() is not None if hasattr(result, "recorded") else False
-    done = result.episodes_done if partial else None
-    returns, lengths = np.atleast_2d(result.returns), np.atleast_2d(result.lengths)
-    # One pass over the records for episode_stats.csv and TensorBoard's per-episode scalars.
-    stats = episode_stats(returns, lengths, result.epsilon, np.full(returns.shape[0], returns.shape[1])
-                          if done is None else np.minimum(np.asarray(done), returns.shape[1]))
-    write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon, episodes_done=done,
-                   stats=stats)
+    stats = write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
+                           episodes_done=result.episodes_done if partial else None)
     write_tables(out_dir, result.q, disc)
     write_summary(out_dir, result.summary() if summary is None else summary)
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)
-    write_tensorboard(out_dir, result.returns, result.lengths, result.epsilon, episodes_done=done, stats=stats)
+    write_tensorboard(out_dir, stats)  # the CSV's statistics, not computed again
     return out_dir
 
 
