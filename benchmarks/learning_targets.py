@@ -16,6 +16,7 @@ The headline per task and budget is the **median run** and the share of runs mee
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -60,7 +61,7 @@ def train_and_judge(env_id: str, runs: int, seed_base: int, overrides: dict) -> 
     trainer, runner = population.trainer, population.runner
     env_steps = np.asarray(jax.device_get(runner.env_steps), np.int64).reshape(runs, -1).sum(axis=1)
     t1 = time.perf_counter()
-    scores = np.asarray(judge(trainer, runner.agent, seeds, env.default_params, target))
+    scores = np.asarray(judge(trainer, runner, seeds, env.default_params, target))
     higher = ranking(target).higher
     met = target.reached(scores)
     chunks = population.loop.chunks_done
@@ -76,16 +77,17 @@ def train_and_judge(env_id: str, runs: int, seed_base: int, overrides: dict) -> 
             "execution_plan": repr(trainer.plan)}
 
 
-def judge(trainer: Trainer, agent, seeds: list[int], env_params, target) -> list[float]:
+def judge(trainer: Trainer, runner, seeds: list[int], env_params, target) -> list[float]:
     """Each run's learning-target figure, judged as :func:`jaxrobo.training.driver.evaluate_tables` judges a run of
     ``jaxrobo train --seed S`` (the driver's keys, tables, best table and figure:
     :func:`~jaxrobo.training.driver.evaluation_keys`, :func:`~jaxrobo.training.driver.choose_table`), for all runs
-    in one vmapped program: the figure of the shared table or of the best evaluated one, or that best table's
+    in one vmapped program: the figure of the shared table or of the best evaluated one
+    (:func:`~jaxrobo.training.driver.pick_tables` of each run's carry, ``runner``), or that best table's
     figure on fresh episodes where the driver flies it again for the run's figure."""
     config = trainer.config
     shared = config.shared_table
     n_eval = driver.evaluated_tables(config)
-    tables = agent if shared else jax.tree.map(lambda x: x[:, :n_eval], agent)
+    _, tables = jax.jit(jax.vmap(functools.partial(driver.pick_tables, trainer)))(runner)
     run_keys = [driver.evaluation_keys(jax.random.key(s), n_eval) for s in seeds]  # [(per table, fresh)] per run
     keys, fresh = jnp.stack([k for k, _ in run_keys]), jnp.stack([f for _, f in run_keys])
     one_run = jax.vmap(trainer.evaluate_episodes, in_axes=(0, None if shared else 0, None, None))

@@ -193,9 +193,9 @@ class LiveScalars:
     def __init__(self, run_dir: str) -> None:
         self.writer = None
         try:
-            from tensorboardX import SummaryWriter
+            from jaxrobo.io.events import ScalarWriter
 
-            self.writer = SummaryWriter(os.path.join(run_dir, "tensorboard"), flush_secs=1)
+            self.writer = ScalarWriter(os.path.join(run_dir, "tensorboard"))
         except (ImportError, OSError) as err:
             print(f"jaxrobo: no live TensorBoard scalars ({err})", file=sys.stderr)
 
@@ -406,6 +406,9 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
                                 f"in {out}/{deep.POLICY_NPZ}")
         return 1
     s = result.summary()
+    if s.get("target_met_in_training"):
+        print(f"learning target met at the evaluation after {s['target_met_at_env_steps']:,} env steps: stopped "
+              "before total_steps")
     print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s of training ({s['env_steps_per_second']:,.0f} "
           f"steps/s, compile included; evaluations {s['eval_seconds']:.1f} s more)")
     line = f"final evaluation: mean return {s['final_eval_mean_return']:.2f}, mean length {s['final_eval_mean_length']:.1f}"
@@ -547,6 +550,18 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
           + (f" (resuming after chunk {start_chunk} of {n_chunks})" if resume else ""))
     if spec.preset == "seed":
         print(seed_preset_note(spec))
+    if spec.device_defaults:
+        import jax
+
+        print(f"sized to this {jax.devices()[0].device_kind}: "
+              + ", ".join(f"{k}={v}" for k, v in spec.device_defaults.items())
+              + f" (the {spec.preset} preset's on_gpu settings: an accelerator steps thousands of envs in about the "
+                "time of a few; --n-envs or --set choose otherwise)")
+    every = trainer.target_every()
+    if every:
+        print(f"stops once the learning target holds ({spec.env.learning_target.description}) on fresh greedy "
+              f"episodes, checked every {every} chunks ({every * cfg.chunk_steps:,} steps per env); the budget is "
+              "the cap (--set stop_at_target=false runs it whole)")
     print(f"running as {trainer.plan!r}")
     if getattr(spec.env, "randomised", False):
         # The plan's kernels take each env's drawn physics as per-env inputs, so randomisation keeps them.
@@ -584,6 +599,9 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
                 bar.close()
             print(line, file=sys.stderr, flush=True)
 
+        from jaxrobo.core.clock import process_seconds
+
+        startup = process_seconds()  # imports, device discovery, config: the wall before the first compile
         with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
             result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
                                          start_chunk=start_chunk, checkpoint=save,
@@ -613,7 +631,8 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
             t = time.perf_counter()
             save_run(staged, result, spec.to_dict(), trainer.disc, summary=summary)
             keep_live_scalars(live, staged)
-            write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t, 3)})
+            write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t, 3),
+                                   **({"startup_seconds": round(startup, 3)} if startup is not None else {})})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
 
@@ -624,7 +643,16 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps'] - s.get('restored_env_steps', 0):,} env steps "
           f"in {s['run_seconds']:.1f} s ({s['env_steps_per_second']:,.0f} steps/s){restored}; {s['useful_share']:.1%} "
           f"of the {s['env_slots']:,} env slots stepped were useful")
-    print(f"wall: compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
+    if s.get("target_met_in_training"):
+        print(f"learning target met after {s['target_met_at_env_steps']:,} env steps ({s['run_seconds']:.1f} s of "
+              f"training, {s['target_checks']} check(s)): stopped before the budget's cap")
+    elif s.get("target_checks"):
+        print(f"learning target not met in {s['target_checks']} check(s): the whole budget ran")
+    elif "target_checks" in s:
+        print(f"the budget ended before the first learning-target check (every {s['target_every_chunks']} chunks)")
+    total = process_seconds()
+    print((f"wall {total:.1f} s: start-up {startup:.1f} s, " if total is not None and startup is not None else "wall: ")
+          + f"compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
           f"{s['eval_seconds']:.1f} s, writing {write_seconds:.1f} s")
     print(_training_figures(s))
     if "eval_mean_length" in s:

@@ -4,6 +4,7 @@ independent of the chunk length, with the useful share of env slots reported."""
 from __future__ import annotations
 
 import json
+import re
 
 import jax
 import numpy as np
@@ -42,8 +43,25 @@ def test_the_step_budget_does_not_depend_on_the_chunk_length():
     _, b = _run(total_steps=8 * 90, chunk_steps=7)
     for name in ("q", "returns", "lengths", "terminated", "env_steps", "eval_returns"):
         np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), err_msg=name)
-    assert a.useful_share < 1.0  # 90 steps in chunks of 25: the last chunk is part-useful
-    assert a.useful_share == pytest.approx(90 / 100)
+    # 90 steps per env asked in chunks of at most 25: four chunks of 23 (92 slots), not three of 25 and a fourth
+    # mostly idle (100 slots); chunks of at most 7: thirteen of 7 (91 slots)
+    assert a.config.chunk_steps == 23 and a.slot_steps == 8 * 92 and a.useful_share == pytest.approx(90 / 92)
+    assert b.config.chunk_steps == 7 and b.slot_steps == 8 * 91
+
+
+def test_the_step_budget_is_stepped_with_fewer_idle_slots_than_chunks():
+    """Whatever chunk_steps asks, resolve cuts each env's budget into as many chunks as it gives, each as short as
+    that count needs: fewer idle slots per env than chunks; resolving the result again gives it back (--resume)."""
+    for n_envs, total, chunk in ((64, 200_000, 1000), (7, 1000, 13), (3, 5, 100), (5, 1_000_003, 999)):
+        c = resolve("CartPoleStayUp-v0", overrides={"n_envs": n_envs, "total_steps": total,
+                                                     "chunk_steps": chunk}).config
+        per_env = -(-total // n_envs)
+        n_chunks = -(-per_env // chunk)
+        assert c.chunk_steps <= chunk and -(-per_env // c.chunk_steps) == n_chunks
+        assert 0 <= n_chunks * c.chunk_steps - per_env < n_chunks
+        again = resolve("CartPoleStayUp-v0", overrides={"n_envs": n_envs, "total_steps": total,
+                                                         "chunk_steps": c.chunk_steps}).config
+        assert again.chunk_steps == c.chunk_steps
 
 
 def test_the_run_episode_budget_counts_episodes_of_the_whole_run():
@@ -82,10 +100,11 @@ def test_the_cli_reports_useful_share_and_wall_split(tmp_path, capsys, monkeypat
                "--no-progress", "--out", str(out)])
     assert rc == 0
     text = capsys.readouterr().out
-    assert "100.0% of the 200 env slots stepped were useful" in text and "wall: compile" in text
+    assert "100.0% of the 200 env slots stepped were useful" in text
+    assert re.search(r"wall \d+\.\d s: start-up \d+\.\d s, compile", text)
     s = json.loads((out / "summary.json").read_text())
     assert s["useful_share"] == 1.0 and s["env_slots"] == 200
-    for key in ("compile_seconds", "run_seconds", "eval_seconds", "write_seconds"):
+    for key in ("startup_seconds", "compile_seconds", "run_seconds", "eval_seconds", "write_seconds"):
         assert s[key] >= 0
     # live TensorBoard scalars were written during the run (flushed each chunk), one point per chunk
     events = list((out / "tensorboard").glob("events.out.tfevents.*"))

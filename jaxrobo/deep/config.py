@@ -49,6 +49,9 @@ class DeepConfig:
     num_evals: int = param(10, low=1, high=1000, doc="evaluation points over the run (the first before training)")
     eval_episodes: int = param(128, low=1, high=100_000, doc="fresh episodes of each evaluation")
     seed: int = param(0, low=0, doc="random seed; the same seed gives the same run")
+    stop_at_target: bool = param(True, doc="stop at the first evaluation point whose fresh episodes meet the task's "
+                                           "learning target (total_steps is then a cap); no effect for a task that "
+                                           "declares no target")
 
 
 def _agent_default(name: str, default: Any) -> Any:

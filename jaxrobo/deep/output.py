@@ -96,7 +96,9 @@ class LiveRun:
         thread has not taken yet, ``close()`` does: each point's events go to a file of their own (named by the
         point, so two in one second do not collide), closed at once, so a reader finds every point so far."""
         try:
-            from tensorboardX import SummaryWriter
+            from jaxrobo.io.events import tensorboardx
+
+            SummaryWriter = tensorboardx().SummaryWriter
         except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
             return None
         purge, self._purge = self._purge, None
@@ -188,11 +190,12 @@ def _scalars(writer: Any, evaluations: list[dict[str, Any]], training_metrics: l
 
 def _write_tensorboard(out_dir: str, result: DeepResult) -> None:
     """All of a run's scalars at once (a run written without a :class:`LiveRun`)."""
+    from jaxrobo.io.events import ScalarWriter
+
     try:
-        from tensorboardX import SummaryWriter
+        writer = ScalarWriter(os.path.join(out_dir, TENSORBOARD))
     except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
         return
-    writer = SummaryWriter(os.path.join(out_dir, TENSORBOARD))
     try:
         _scalars(writer, result.evaluations, result.training_metrics)
     finally:

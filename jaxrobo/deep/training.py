@@ -135,6 +135,9 @@ class DeepResult:
     train_seconds: float = 0.0
     #: Env steps done before this session (a resumed run), else 0.
     resumed_after_env_steps: int = 0
+    #: Env steps at the evaluation point that met the learning target and ended the run (``stop_at_target``),
+    #: else None.
+    target_met_at: int | None = None
 
     @property
     def env_steps(self) -> int:
@@ -167,6 +170,10 @@ class DeepResult:
         target = getattr(self.spec.env, "learning_target", None)
         if target is not None:
             out["learning_target"] = target.description
+            out["target_met_in_training"] = self.target_met_at is not None
+            if self.target_met_at is not None:
+                out["target_met_at_env_steps"] = int(self.target_met_at)
+                out["target_met_at_train_seconds"] = round(float(self.evaluations[-1]["seconds"]), 3)
         return out
 
 
@@ -197,6 +204,21 @@ class TrainingStopped(Exception):
     """:func:`train` stopped at one of the trainer's evaluation points because ``should_stop()`` said so."""
 
 
+class _TargetMet(Exception):
+    """Raised out of Brax's trainer at the evaluation point that met the learning target (``stop_at_target``):
+    :func:`train` ends there, complete."""
+
+
+def target_met(evaluation: dict[str, Any], target: Any) -> bool:
+    """Whether one evaluation point's fresh episodes meet the task's learning ``target`` (None: never)."""
+    if target is None:
+        return False
+    figure = {"success_rate": "success", "mean_return": "return", "mean_length": "length"}[target.metric]
+    if figure not in evaluation:
+        return False
+    return bool(target.reached(float(np.mean(evaluation[figure]))))
+
+
 def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
           should_stop: Callable[[], bool] | None = None, resume: Any = None,
           checkpoint_path: str = "checkpoint.npz") -> DeepResult:
@@ -212,7 +234,9 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
     Brax's trainer runs as one call with no way to pause it: ``should_stop()`` (e.g. a
     :class:`jaxrobo.training.driver.StopOnSignal`) is asked each time the trainer hands control back; after a
     point's evaluation and ``on_point`` (so the epoch just trained is kept), or at once before any training,
-    :class:`TrainingStopped` is raised out of the trainer."""
+    :class:`TrainingStopped` is raised out of the trainer. With ``stop_at_target`` the run ends, complete, at the
+    first point (after its ``on_point``) whose evaluation meets the task's learning target: the result's
+    ``target_met_at`` says which (env steps)."""
     import jax
 
     from jaxrobo.deep.checkpoint import restore_states
@@ -232,6 +256,7 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
     key = jax.random.fold_in(jax.random.key(c.seed), 7)
     net = network_config(spec, int(benv.observation_size), int(benv.action_size))
     pending: dict[str, Any] = {}
+    final: dict[str, Any] = {}
 
     def stop_here() -> None:
         if should_stop is not None and should_stop():
@@ -240,11 +265,16 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
     def train_seconds(now: float) -> float:
         return seconds0 + now - timer["start"] - timer["eval"]
 
+    target = getattr(spec.env, "learning_target", None) if c.stop_at_target else None
+
     def complete(params: Any) -> None:
         pending.clear()
         if on_point is not None:
             on_point(Point(spec, net, plan, hook.epochs_done, evaluations, metrics_log, hook.states, params,
                            evaluations[-1]["seconds"], steps0, seconds0))
+        if evaluations[-1]["env_steps"] > 0 and target_met(evaluations[-1], target):
+            final["params"] = params
+            raise _TargetMet()
         stop_here()
 
     def on_params(step: int, make_policy: Callable, params: Any) -> None:
@@ -284,24 +314,30 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
                   max_devices_per_host=1, network_factory=_factory(spec), progress_fn=on_progress,
                   wrap_env_fn=brax_env.wrap_for_training)
     restore = (lambda fresh: restore_states(checkpoint_path, resume, fresh)) if done0 else None
-    if c.agent == "ppo":
-        from brax.training.agents.ppo import train as ppo
+    try:
+        if c.agent == "ppo":
+            from brax.training.agents.ppo import train as ppo
 
-        with hook_epochs(ppo, lambda i: epoch_key(c.seed, i), done0, restore) as hook:
-            _, params, _ = ppo.train(**common, entropy_cost=c.entropy_cost, unroll_length=c.unroll_length,
-                                     num_minibatches=c.num_minibatches,
-                                     num_updates_per_batch=c.num_updates_per_batch,
-                                     clipping_epsilon=c.clipping_epsilon, gae_lambda=c.gae_lambda,
-                                     max_grad_norm=c.max_grad_norm, policy_params_fn=on_params, run_evals=False)
-    else:
-        from brax.training.agents.sac import train as sac
+            with hook_epochs(ppo, lambda i: epoch_key(c.seed, i), done0, restore) as hook:
+                _, params, _ = ppo.train(**common, entropy_cost=c.entropy_cost, unroll_length=c.unroll_length,
+                                         num_minibatches=c.num_minibatches,
+                                         num_updates_per_batch=c.num_updates_per_batch,
+                                         clipping_epsilon=c.clipping_epsilon, gae_lambda=c.gae_lambda,
+                                         max_grad_norm=c.max_grad_norm, policy_params_fn=on_params,
+                                         run_evals=False)
+        else:
+            from brax.training.agents.sac import train as sac
 
-        with hook_epochs(sac, lambda i: epoch_key(c.seed, i), done0, restore) as hook:
-            params = _train_sac(common, c, lambda step, p: on_params(step, _networks(net)[1], p))
-    hook.check()
+            with hook_epochs(sac, lambda i: epoch_key(c.seed, i), done0, restore) as hook:
+                params = _train_sac(common, c, lambda step, p: on_params(step, _networks(net)[1], p))
+        hook.check()
+        met_at = None
+    except _TargetMet:
+        params, met_at = final["params"], int(evaluations[-1]["env_steps"])
     seconds = time.perf_counter() - timer["start"]
     return DeepResult(spec, jax.device_get(params), net, evaluations, metrics_log, seconds, timer["eval"],
-                      train_seconds=evaluations[-1]["seconds"], resumed_after_env_steps=steps0)
+                      train_seconds=evaluations[-1]["seconds"], resumed_after_env_steps=steps0,
+                      target_met_at=met_at)
 
 
 def _train_sac(common: dict[str, Any], c: SACConfig, on_params: Callable[[int, Any], None]) -> Any:

@@ -68,8 +68,11 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
             for i in range(int(done[e])):
                 w.writerow((e, i, f"{returns[e, i]:.6g}", int(lengths[e, i]), int(terminated[e, i]), f"{epsilon[i]:.6g}"))
     extra = {} if episodes_done is None else {"episodes_done": done}
-    write_npz_deflated(os.path.join(out_dir, "records.npz"), returns=returns, lengths=lengths,
-                       terminated=terminated, epsilon=epsilon, **extra)
+    # Only the episode slots some env recorded: a run that stopped at its learning target recorded a few of its
+    # nepisodes slots, and the empty rest is most of the bytes to write.
+    kept = int(done.max()) if n_envs else 0
+    write_npz_deflated(os.path.join(out_dir, "records.npz"), returns=returns[:, :kept], lengths=lengths[:, :kept],
+                       terminated=terminated[:, :kept], epsilon=np.asarray(epsilon)[:kept], **extra)
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(STAT_COLUMNS)
@@ -98,9 +101,26 @@ def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
     mask = np.arange(n_ep)[None, :] < done[:, None]
     r = np.where(mask, returns[:, :n_ep].astype(np.float64), np.nan)
     ln = np.where(mask, lengths[:, :n_ep].astype(np.float64), np.nan)
-    pct = lambda x, q: np.nanpercentile(x, q, axis=0)  # noqa: E731
-    return [np.arange(n_ep), np.nanmean(r, 0), np.nanstd(r, 0), pct(r, 10), pct(r, 50), pct(r, 90),
-            np.nanmean(ln, 0), np.nanstd(ln, 0), pct(ln, 10), pct(ln, 50), pct(ln, 90), np.asarray(epsilon)[:n_ep]]
+    count = mask.sum(axis=0)
+    r_pct, ln_pct = _nan_percentiles(r, count, (10, 50, 90)), _nan_percentiles(ln, count, (10, 50, 90))
+    return [np.arange(n_ep), np.nanmean(r, 0), np.nanstd(r, 0), *r_pct,
+            np.nanmean(ln, 0), np.nanstd(ln, 0), *ln_pct, np.asarray(epsilon)[:n_ep]]
+
+
+def _nan_percentiles(x: np.ndarray, count: np.ndarray, qs: tuple[int, ...]) -> list[np.ndarray]:
+    """``np.nanpercentile(x, q, axis=0)`` for each ``q`` (linear interpolation), from one sort: NaNs sort last,
+    and ``count`` (non-NaN entries per column, each >= 1) says where each column's values end. numpy's
+    nanpercentile goes column by column, seconds for 65,536 envs."""
+    ordered = np.sort(x, axis=0)
+    cols = np.arange(x.shape[1])
+    out = []
+    for q in qs:
+        pos = (count - 1) * (q / 100.0)
+        lo = np.floor(pos).astype(np.int64)
+        hi = np.minimum(lo + 1, count - 1)
+        frac = pos - lo
+        out.append(ordered[lo, cols] + (ordered[hi, cols] - ordered[lo, cols]) * frac)
+    return out
 
 
 def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None) -> None:
@@ -131,11 +151,12 @@ def write_tensorboard(out_dir: str, stats: list) -> None:
     """Per-episode scalars for TensorBoard, at the end of a run: ``episode_stats.csv``'s ``return_mean``,
     ``length_mean`` and ``epsilon`` (``stats``: :func:`episode_stats`' columns, as :func:`write_episodes` returns
     them); the live scalars of each chunk are the CLI's."""
+    from jaxrobo.io.events import ScalarWriter
+
     try:
-        from tensorboardX import SummaryWriter
+        writer = ScalarWriter(os.path.join(out_dir, "tensorboard"), filename_suffix=".episodes")
     except ImportError:  # pragma: no cover - a dependency, but keep runs working without it
         return
-    writer = SummaryWriter(os.path.join(out_dir, "tensorboard"))
     try:
         mean_r, mean_l, epsilon = stats[1], stats[6], stats[11]
         for i in range(mean_r.shape[0]):
@@ -239,6 +260,9 @@ def read_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:
     (TFRecord framing; tensorboardX's protos)."""
     import struct
 
+    from jaxrobo.io.events import tensorboardx
+
+    tensorboardx()  # the package without PyTorch, before its protos
     from tensorboardX.proto import event_pb2
 
     out: dict[str, list[tuple[int, float]]] = {}

@@ -22,6 +22,7 @@ its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evalua
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import signal
 import threading
@@ -29,6 +30,7 @@ import time
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.tabular import learner as tabular
@@ -209,6 +211,9 @@ class ChunkRun:
     done: float | None  # fewest episodes done by any env (None without a ``read``)
     stopped: bool  # ``should_stop`` ended the loop early
     seconds: float  # wall time of the loop, the last chunk waited for
+    #: The chunk count at which ``check`` said the run is done (the learning target met), else None.
+    checked_done_at: int | None = None
+    check_seconds: float = 0.0  # wall time of the ``check`` calls, inside ``seconds``
 
 
 def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_chunk: int = 0,
@@ -216,7 +221,8 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
                progress: ProgressFn | None = None, should_stop: Callable[[], bool] | None = None,
                checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
                checkpoint_seconds: float | None = None, max_seconds: float | None = None,
-               unit: str = "episodes", slots_per_chunk: float = 0.0, save_at_end: bool = True) -> ChunkRun:
+               unit: str = "episodes", slots_per_chunk: float = 0.0, save_at_end: bool = True,
+               check: Callable[[Any, int], bool] | None = None, check_every: int = 0) -> ChunkRun:
     """Run ``carry = chunk(carry)`` until ``n_chunks`` chunks are done (counting the ``start_chunk`` the carry
     has already run) or every env has done ``total`` episodes.
 
@@ -231,7 +237,10 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     the loop ends with (stopped, finished or out of time) unless that one was just saved: what the caller does
     after the loop (evaluating, writing results and plots) may fail, and a resume then starts from the finished
     carry instead of running chunks again. ``save_at_end=False`` leaves that last call to a stopped loop (a
-    sweep's group saves its metrics, not its carry, once it has run: :mod:`jaxrobo.training.sweep.running`)."""
+    sweep's group saves its metrics, not its carry, once it has run: :mod:`jaxrobo.training.sweep.running`).
+    ``check(carry, chunks_done) -> bool`` is asked after every ``check_every``-th chunk (counted from the run's
+    start, so a resumed loop asks where the uninterrupted one did; not after the last chunk): True ends the loop
+    there, finished (``checked_done_at``), as the learning-target stop does."""
     done = last = None
     report = _caller_of(progress)
     before: list[float] = [0.0, 0.0, 0.0]
@@ -247,6 +256,7 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     t0 = last_saved = time.perf_counter()
     chunks_done, stopped = start_chunk, False
     saved_at = None  # the chunk count of the last checkpoint written by this loop
+    checked_at, check_seconds = None, 0.0
     while not finished(chunks_done):
         if should_stop is not None and should_stop():
             stopped = True
@@ -263,18 +273,26 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
                                 last, values[2] if len(values) > 2 else float("nan"),
                                 chunks_done * slots_per_chunk, time.perf_counter() - t0, int(before[0]),
                                 before[2] if len(values) > 2 else 0.0))
+        if check is not None and check_every > 0 and chunks_done % check_every == 0 and not finished(chunks_done):
+            t_check = time.perf_counter()
+            met = check(carry, chunks_done)
+            check_seconds += time.perf_counter() - t_check
+            if met:
+                checked_at = chunks_done
         due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
             checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
         if checkpoint is not None and due:
             checkpoint(carry, chunks_done)
             saved_at, last_saved = chunks_done, time.perf_counter()
+        if checked_at is not None:
+            break
     jax.block_until_ready(carry)
     seconds = time.perf_counter() - t0
     # A resumed carry that ran no chunk is its checkpoint already, unless a stop asks for one explicitly.
     unsaved = saved_at != chunks_done and (chunks_done > start_chunk or stopped)
     if checkpoint is not None and unsaved and (save_at_end or stopped):
         checkpoint(carry, chunks_done)
-    return ChunkRun(carry, chunks_done, done, stopped, seconds)
+    return ChunkRun(carry, chunks_done, done, stopped, seconds, checked_at, check_seconds)
 
 
 # ---- a whole training run ----------------------------------------------------------------------------------------
@@ -303,6 +321,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     restored = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64).sum())
     chunk = compiled_chunk(trainer, runner, agent_params, env_params)
     stats = compiled_progress(runner, trainer)
+    flights = Flights(trainer, env_params)
+    check_every, checks = trainer.target_every(), []
+    check = target_check(trainer, flights, key, checks) if check_every else None
+    if (check_every or config.eval_episodes) and trainer.plan.devices == 1:
+        prepare_evaluation(trainer, flights, runner, key)  # compiled while the first chunks train
     jax.block_until_ready(runner)
     compile_seconds = time.perf_counter() - t0
 
@@ -311,13 +334,15 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                       start_chunk=start_chunk, read=stats, total=total, progress=progress,
                       should_stop=should_stop, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
                       checkpoint_seconds=checkpoint_seconds, unit=unit,
-                      slots_per_chunk=float(config.chunk_steps) * config.n_envs)
+                      slots_per_chunk=float(config.chunk_steps) * config.n_envs, check=check,
+                      check_every=check_every)
     runner = loop.carry
     eval_returns = eval_lengths = selected = eval_success = None
     t_eval = time.perf_counter()
     final_choice = None
-    if not loop.stopped and runner.snapshots is not None:
-        # A stopped run keeps its carry as it is: the resumed run chooses once it has finished.
+    if not loop.stopped and runner.snapshots is not None and loop.checked_done_at is None:
+        # A stopped run keeps its carry as it is: the resumed run chooses once it has finished. A run that met its
+        # target keeps the table that met it (the snapshots lie at shares of a budget it did not run).
         runner, choice = jax.jit(trainer.final_table)(runner, key, env_params)
         final_choice = int(choice)
     if config.eval_episodes > 0 and not loop.stopped:
@@ -326,7 +351,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                      f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
                      "(compile, then fly)")
         eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
-                                                                             eval_progress)
+                                                                             eval_progress, flights)
     eval_seconds = time.perf_counter() - t_eval
 
     host = host_get(runner.replace(key=None, env_state=None))
@@ -342,7 +367,92 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
         episodes_finished=int(np.asarray(host.episode, np.int64).sum()), budget=trainer.budget,
         learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored,
-        final_table_choice=final_choice)
+        final_table_choice=final_choice,
+        target_checks=checks if check_every else None, target_every=check_every,
+        target_met_chunk=loop.checked_done_at, target_check_seconds=loop.check_seconds)
+
+
+def prepare_evaluation(trainer: Trainer, flights: Flights, runner: Runner, key: jax.Array) -> threading.Thread:
+    """Compile the greedy flights of :func:`evaluate_tables` (and so of the learning-target checks) in a thread,
+    from the carry's shapes, while the caller goes on training: the device trains while the host compiles, and
+    the evaluation at the end flies at once. A failure here is left to the flight itself, which compiles again
+    and raises where the caller sees it."""
+    config = trainer.config
+    n_eval = evaluated_tables(config)
+    agents = jax.eval_shape(lambda r: r.agent if config.shared_table
+                            else jax.tree.map(lambda x: x[:n_eval], r.agent), runner)
+    keys, fresh = jax.eval_shape(lambda k: evaluation_keys(k, n_eval), key)
+    episodes = max(config.eval_episodes, 1)
+
+    def work() -> None:
+        try:
+            flights.prepare(keys, agents, episodes, over_tables=True, shared=config.shared_table)
+            if n_eval > 1:
+                one = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), agents)
+                flights.prepare(fresh, one, episodes, over_tables=False)
+        except Exception:  # noqa: BLE001 - see the docstring
+            pass
+
+    thread = threading.Thread(target=work, name="jaxrobo-prepare-evaluation", daemon=True)
+    thread.start()
+    return thread
+
+
+def pick_tables(trainer: Trainer, runner: Runner) -> tuple[jax.Array | None, Any]:
+    """The tables a greedy evaluation (and a learning-target check) flies: ``(index, tables)``. A shared table:
+    ``(None, the table)``. Per-env tables: the :func:`evaluated_tables` envs whose latest recorded episode was best
+    by the task's ranking (:func:`jaxrobo.task.env.ranking`), in env order (``index``), and their tables stacked;
+    with ``n_envs <= eval_envs``, every env's, in order. Traceable."""
+    config = trainer.config
+    if config.shared_table:
+        return None, runner.agent
+    rank = ranking(getattr(trainer.env, "learning_target", None))
+    last_slot = jnp.clip(runner.episode - 1, 0, runner.returns.shape[1] - 1)[:, None]
+    recent = jnp.take_along_axis(runner.returns if rank.episode_figure == "return" else runner.lengths,
+                                 last_slot, axis=1)[:, 0].astype(jnp.float32)
+    index = jnp.sort(jnp.argsort(-recent if rank.higher else recent, stable=True)[:evaluated_tables(config)])
+    return index, jax.tree.map(lambda x: x[index], runner.agent)
+
+
+def target_check(trainer: Trainer, flights: Flights, key: jax.Array, log: list) -> Callable[[Runner, int], bool]:
+    """The learning-target stop's ``check(carry, chunks_done)`` for :func:`run_chunks`: whether the carry's policy
+    has learned, judged as the final evaluation judges it (:func:`evaluate_tables`, the same flights and programs,
+    so the check compiles nothing the evaluation would not).
+
+    The shared table, or the ``eval_envs`` per-env tables whose latest episode was best (by the task's ranking),
+    fly ``eval_episodes`` greedy episodes; the best of them (:func:`choose_table`) must reach the target, then reach
+    it again on as many fresh episodes, so that the maximum of noisy estimates does not flatter it. The keys fold
+    the chunk count into ``fold_in(key, 4)`` of the run's key (the evaluation's are 1 and 2, the final table
+    choice's 3): never those of training or of the final evaluation. Each check appends ``{"chunks", "score",
+    "confirmed"}`` to ``log`` (``confirmed`` NaN when the first flight missed)."""
+    config, target = trainer.config, trainer.env.learning_target
+    n_eval = evaluated_tables(config)
+    base = jax.random.fold_in(key, 4)
+    pick_c = jax.jit(functools.partial(pick_tables, trainer))
+
+    def figure(out: dict[str, Any]) -> np.ndarray:
+        return table_figures(out, target)[target.metric].astype(np.float64).mean(axis=-1)
+
+    def check(carry: Runner, chunks_done: int) -> bool:
+        k_tables, k_confirm = jax.random.split(jax.random.fold_in(base, chunks_done))
+        _, tables = pick_c(carry)
+        out = flights.fly(jax.random.split(k_tables, n_eval), tables, config.eval_episodes, over_tables=True,
+                          shared=config.shared_table)
+        best, _ = choose_table(table_figures(out, target), target)
+        score = float(figure(out)[best])
+        confirmed = float("nan")
+        if bool(target.reached(score)):
+            if config.shared_table:  # the one table again, on other keys: the same program
+                again = flights.fly(jax.random.split(k_confirm, n_eval), tables, config.eval_episodes,
+                                    over_tables=True, shared=True)
+            else:
+                table = jax.tree.map(lambda x: x[best], tables)
+                again = flights.fly(k_confirm, table, config.eval_episodes, over_tables=False)
+            confirmed = float(figure(again).reshape(-1)[0])
+        log.append({"chunks": chunks_done, "score": score, "confirmed": confirmed})
+        return bool(target.reached(confirmed))
+
+    return check
 
 
 @dataclasses.dataclass(frozen=True)
@@ -374,43 +484,82 @@ class EvalProgress:
 EVAL_SEGMENTS = 10
 
 
+class Flights:
+    """Greedy flights of a trainer's tables (:meth:`~jaxrobo.training.trainer.Trainer.evaluate_episodes`'s outcomes,
+    host arrays), flown in :data:`EVAL_SEGMENTS` segments of the horizon (:func:`jaxrobo.task.rollout.rollout_advance`:
+    the same keys and steps, so the same numbers), each program compiled once per shape and kept: the learning-target
+    checks during training and the final evaluation fly the same programs, so the evaluation compiles nothing
+    new. :meth:`prepare` compiles them ahead (a thread may do it while the device trains)."""
+
+    def __init__(self, trainer: Trainer, env_params: Any) -> None:
+        from jaxrobo.task import rollout
+
+        self.trainer, self.env_params = trainer, env_params
+        env, horizon = trainer.env, trainer.eval_horizon()
+        self.horizon, self.steps = horizon, -(-horizon // EVAL_SEGMENTS)
+        self._compiled: dict[Any, tuple[Callable, Callable, float]] = {}
+        self._lock = threading.Lock()
+
+        def start(k, n):
+            return rollout.rollout_start(env, k, n, env_params)
+
+        def advance(carry, agent, t0):
+            return rollout.rollout_advance(env, trainer.eval_policy(agent), carry, t0, self.steps, horizon,
+                                           env_params)
+        self._start, self._advance = start, advance
+
+    def _programs(self, keys: Any, agents: Any, n_episodes: int, over_tables: bool, shared: bool):
+        shapes = jax.tree.map(lambda x: (x.shape, str(x.dtype)), (keys, agents))
+        name = (over_tables, shared, n_episodes, str(shapes))
+        with self._lock:  # one compile per shape, also when a thread prepares it
+            if name not in self._compiled:
+                t = time.perf_counter()
+                start = lambda k: self._start(k, n_episodes)  # noqa: E731
+                advance = self._advance
+                if over_tables:
+                    start = jax.vmap(start)
+                    advance = jax.vmap(advance, in_axes=(0, None if shared else 0, None))
+                start, advance = jax.jit(self.trainer.plan.traced(start)), jax.jit(self.trainer.plan.traced(advance))
+                if self.trainer.plan.devices == 1:  # compiled ahead (a thread may do it); over several devices
+                    # the inputs' shardings vary between flights: jit compiles for each as they come
+                    carry = jax.eval_shape(start, keys)
+                    start = start.lower(keys).compile()
+                    advance = advance.lower(carry, agents, np.int32(0)).compile()
+                self._compiled[name] = (start, advance, time.perf_counter() - t)
+            return self._compiled[name]
+
+    def prepare(self, keys: Any, agents: Any, n_episodes: int, *, over_tables: bool, shared: bool = False) -> None:
+        """Compile the flight of these shapes (abstract values do: ``jax.ShapeDtypeStruct``) without flying."""
+        self._programs(keys, agents, n_episodes, over_tables, shared)
+
+    def fly(self, keys: jax.Array, agents: Any, n_episodes: int, *, over_tables: bool, shared: bool = False,
+            progress: Callable[[EvalProgress], None] | None = None, what: str = "tables") -> dict[str, np.ndarray]:
+        """``n_episodes`` greedy episodes per key. ``over_tables``: ``keys`` and ``agents`` have a leading table
+        axis (``shared``: one agent for every key, as a shared table is evaluated). The flight ends at the first
+        segment boundary after its last episode ended; ``progress`` hears an :class:`EvalProgress` after each."""
+        from jaxrobo.task import rollout
+
+        start, advance, compile_seconds = self._programs(keys, agents, n_episodes, over_tables, shared)
+        carry = start(keys)
+        running = count = int(np.prod(carry["alive"].shape))
+        t0 = time.perf_counter()
+        step = 0
+        while step < self.horizon and running:
+            carry = advance(carry, agents, np.int32(step))
+            step = min(step + self.steps, self.horizon)
+            running = int(np.asarray(carry["alive"]).sum())  # the host waits for the segment here
+            if progress is not None:
+                progress(EvalProgress(what, step, self.horizon, running, count, time.perf_counter() - t0,
+                                      compile_seconds))
+        return jax.device_get(rollout.outcomes(rollout.rollout_end(carry)))
+
+
 def fly(trainer: Trainer, keys: jax.Array, agents: Any, n_episodes: int, env_params: Any, *, over_tables: bool,
         shared: bool = False, progress: Callable[[EvalProgress], None] | None = None,
         what: str = "tables") -> dict[str, np.ndarray]:
-    """Greedy episodes (:meth:`~jaxrobo.training.trainer.Trainer.evaluate_episodes`'s outcomes, host arrays)
-    flown in :data:`EVAL_SEGMENTS` segments of the horizon (:func:`jaxrobo.task.rollout.rollout_advance`: the same
-    keys and steps, so the same numbers) with ``progress`` after each. ``over_tables``: ``keys`` and ``agents``
-    have a leading table axis (``shared``: one agent for every key, as a shared table is evaluated)."""
-    from jaxrobo.task import rollout
-
-    env = trainer.env
-    horizon = trainer.eval_horizon()
-    steps = -(-horizon // EVAL_SEGMENTS)
-
-    def start(k):
-        return rollout.rollout_start(env, k, n_episodes, env_params)
-
-    def advance(carry, agent, t0):
-        return rollout.rollout_advance(env, trainer.eval_policy(agent), carry, t0, steps, horizon, env_params)
-
-    if over_tables:
-        start, advance = jax.vmap(start), jax.vmap(advance, in_axes=(0, None if shared else 0, None))
-    t_compile = time.perf_counter()
-    carry = jax.jit(start)(keys)
-    # Compiled before the first segment (``t0``: a traced start step, one program for all), so the ETA is
-    # measured on flying alone.
-    advance = jax.jit(advance).lower(carry, agents, np.int32(0)).compile()
-    running = count = int(np.prod(carry["alive"].shape))
-    t0 = time.perf_counter()
-    compile_seconds = t0 - t_compile
-    step = 0
-    while step < horizon and running:
-        carry = advance(carry, agents, np.int32(step))
-        step = min(step + steps, horizon)
-        running = int(np.asarray(carry["alive"]).sum())  # the host waits for the segment here
-        if progress is not None:
-            progress(EvalProgress(what, step, horizon, running, count, time.perf_counter() - t0, compile_seconds))
-    return jax.device_get(rollout.outcomes(rollout.rollout_end(carry)))
+    """One :meth:`Flights.fly` of ``trainer``'s tables (its programs compiled for this flight alone)."""
+    return Flights(trainer, env_params).fly(keys, agents, n_episodes, over_tables=over_tables, shared=shared,
+                                            progress=progress, what=what)
 
 
 def evaluated_tables(config: Any) -> int:
@@ -453,11 +602,12 @@ def choose_table(per_table: dict[str, Any], target: Any) -> tuple[int, float | N
 
 
 def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params: Any,
-                    progress: Callable[[EvalProgress], None] | None = None
+                    progress: Callable[[EvalProgress], None] | None = None, flights: Flights | None = None
                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, np.ndarray | None]:
-    """Greedy evaluation of the first ``eval_envs`` trained tables (the shared one: once), ``eval_episodes``
-    each: ``(returns, lengths, selected, success)``, the first two ``[tables, eval_episodes]``. With several tables
-    the best one is evaluated again on fresh episodes (``selected``: its index, returns and lengths), so its
+    """Greedy evaluation of ``eval_envs`` trained tables (:func:`pick_tables`: those whose latest episode was best;
+    the shared one: once), ``eval_episodes`` each: ``(returns, lengths, selected, success)``, the first two
+    ``[tables, eval_episodes]``. With several tables
+    the best one is evaluated again on fresh episodes (``selected``: its env's index, returns and lengths), so its
     figure is not the maximum of noisy estimates; "best" follows the task's learning target
     (:func:`jaxrobo.task.env.ranking`: by success rate, return or length, in its direction). ``key`` is the run's
     key.
@@ -466,13 +616,16 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
 
     ``success``: for a task whose learning target is a ``success_rate`` and whose task variables carry an
     ``arrived`` flag (QuadcopterGoto, ArmReach), whether each of those episodes arrived, ``[tables,
-    eval_episodes]``, read from the same flight as the returns; None for any other task."""
+    eval_episodes]``, read from the same flight as the returns; None for any other task.
+
+    ``flights``: the run's :class:`Flights` (its compiled programs reused), else one of its own."""
     config = trainer.config
+    flights = Flights(trainer, env_params) if flights is None else flights
     n_eval = evaluated_tables(config)
-    tables = runner.agent if config.shared_table else jax.tree.map(lambda x: x[:n_eval], runner.agent)
+    index, tables = jax.jit(functools.partial(pick_tables, trainer))(runner)
     keys, fresh = evaluation_keys(key, n_eval)
-    out = fly(trainer, keys, tables, config.eval_episodes, env_params, over_tables=True,
-              shared=config.shared_table, progress=progress)
+    out = flights.fly(keys, tables, config.eval_episodes, over_tables=True, shared=config.shared_table,
+                      progress=progress)
     target = getattr(trainer.env, "learning_target", None)
     per_table = table_figures(out, target)
     eval_returns, eval_lengths = per_table["mean_return"], per_table["mean_length"]
@@ -481,9 +634,10 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
     if n_eval > 1:
         best, _ = choose_table(per_table, target)  # the summary's best table: the task's target decides
         table = jax.tree.map(lambda x: x[best], tables)
-        sel = fly(trainer, fresh, table, config.eval_episodes, env_params, over_tables=False,
-                  progress=progress, what="best table")
-        selected = {"table": best, "returns": np.asarray(sel["return"]), "lengths": np.asarray(sel["length"])}
+        sel = flights.fly(fresh, table, config.eval_episodes, over_tables=False, progress=progress,
+                          what="best table")
+        selected = {"table": int(np.asarray(index)[best]), "returns": np.asarray(sel["return"]),
+                    "lengths": np.asarray(sel["length"])}
     return eval_returns, eval_lengths, selected, success
 
 

@@ -66,6 +66,13 @@ class TrainResult:
     #: ``nepisodes`` it records).
     episodes_finished: int | None = None
     budget: str = "episodes"  # jaxrobo.training.trainer.Trainer.budget
+    #: The learning-target checks this process ran (``{"chunks", "score", "confirmed"}`` each, in order), None
+    #: when the run does not check (:meth:`jaxrobo.training.trainer.Trainer.target_every`); ``target_every`` their
+    #: spacing in chunks; ``target_met_chunk`` the chunk count at which the target held and the run stopped.
+    target_checks: list | None = None
+    target_every: int = 0
+    target_met_chunk: int | None = None
+    target_check_seconds: float = 0.0
 
     @property
     def steps_per_second(self) -> float:
@@ -138,6 +145,17 @@ class TrainResult:
             out["env_steps_this_process"] = int(self.env_steps - self.restored_env_steps)
         if self.final_table_choice is not None:
             out["final_table_choice"] = int(self.final_table_choice)
+        if self.target_checks is not None:
+            out["target_every_chunks"] = int(self.target_every)
+            out["target_checks"] = len(self.target_checks)
+            out["target_check_seconds"] = round(self.target_check_seconds, 3)
+            out["target_met_in_training"] = self.target_met_chunk is not None
+            if self.target_met_chunk is not None:
+                out["target_met_at_chunk"] = int(self.target_met_chunk)
+                out["target_met_at_env_steps"] = int(self.env_steps)
+                out["target_met_at_run_seconds"] = round(self.run_seconds, 3)
+            if self.target_checks:
+                out["target_last_check_score"] = float(self.target_checks[-1]["score"])
         target = self.learning_target
         if target is not None:
             out["learning_target"] = target.description

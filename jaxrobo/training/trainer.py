@@ -54,6 +54,9 @@ from jaxrobo.core.struct import param, pytree_dataclass
 SNAPSHOT_SPACING = 0.05
 #: Most snapshots: the earliest then lies at half the budget.
 MAX_SNAPSHOTS = 10
+#: Learning-target checks are spaced so that a check's worst case (every episode flying the whole horizon) costs
+#: at most 1/TARGET_CHECK_SPACING of the training between two checks (:meth:`Trainer.target_every`).
+TARGET_CHECK_SPACING = 2
 
 
 @pytree_dataclass
@@ -102,6 +105,15 @@ class TrainConfig:
                                "task's learning target, becomes the run's table; 0: the final table")
     snapshot_episodes: int = param(100, low=1, static=True,
                                    doc="greedy episodes each candidate table flies for the final choice (snapshots)")
+    stop_at_target: bool = param(True, static=True,
+                                 doc="stop once the task's learning target holds on fresh greedy episodes (eval_envs "
+                                     "tables x eval_episodes, checked every target_every chunks and confirmed on as "
+                                     "many fresh episodes again); "
+                                     "the budget is then a cap; no effect for a task that declares no target")
+    target_every: int = param(0, low=0, static=True,
+                              doc="chunks between learning-target checks (0: automatic, so that a check costs at "
+                                  "most about half the training between two checks, and far less before the policy "
+                                  "has learned)")
 
 
 @pytree_dataclass
@@ -448,6 +460,37 @@ class Trainer:
         # One block per loop iteration (not written out: each written-out block is another copy of the whole
         # chunk to compile).
         return map_groups(one_block, runner, block, unrolled=1)
+
+    # ---- the learning-target stop -------------------------------------------------------------------------
+    def target_every(self) -> int:
+        """Chunks between learning-target checks (:func:`jaxrobo.training.driver.target_check`), counted from the
+        run's start; 0: the run does not check (``stop_at_target`` off, no declared target, no evaluation episodes,
+        a target the evaluation cannot measure, or a first check that would come after the run's last chunk).
+
+        Automatic (``target_every=0``): the check's worst case (every episode flying the whole horizon) costs
+        about half the training between checks, counted both in env slots and in sequential steps (a GPU's cost);
+        an untrained table's short episodes end the check's flight early (it stops at the first segment boundary
+        after its last episode: :class:`jaxrobo.training.driver.Flights`), so the typical check costs far less.
+        A function of the config alone: the same run checks at the same chunks, whatever the device, and a
+        resumed run checks where the uninterrupted one did."""
+        c = self.config
+        target = getattr(self.env, "learning_target", None)
+        if not c.stop_at_target or target is None or not c.eval_episodes or not self._target_measurable(target):
+            return 0
+        every = c.target_every
+        if not every:
+            horizon = self.eval_horizon()
+            tables = 1 if c.shared_table else min(c.eval_envs, c.n_envs)
+            flights = (tables + 1) * c.eval_episodes * horizon
+            ratio = max(horizon / c.chunk_steps, flights / (c.n_envs * c.chunk_steps))
+            every = max(1, int(-(-TARGET_CHECK_SPACING * ratio // 1)))
+        return every if every < self.max_chunks() else 0
+
+    def _target_measurable(self, target: Any) -> bool:
+        if target.metric != "success_rate":
+            return True
+        probe = jax.eval_shape(self.env.reset, jax.random.key(0), self.env.default_params)
+        return hasattr(getattr(probe, "task", None), "arrived")
 
     def max_chunks(self) -> int:
         """Chunks that finish the run: exactly so under the step budget; an upper bound under the episode

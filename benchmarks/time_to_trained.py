@@ -1,0 +1,124 @@
+"""Time to a trained robot: each shipped task's default ``jaxrobo train --env ID``, as a user runs it.
+
+Every row is one fresh process of the command (``python -m jaxrobo.cli train --env ID [--agent ppo] --seed S
+--no-progress``), timed from start to exit, with an empty compile cache (``cold``: a new ``JAXROBO_CACHE_DIR``)
+and again with that cache filled (``warm``). The wall is split with the run's own ``summary.json``: compile,
+run (training, the learning-target checks included), evaluation, writing, start-up (interpreter, imports, device
+discovery, config: the process's age when training starts) and the rest (the exit), and the row keeps the env steps it took and its learning figure (the
+figure the task's learning target is judged by, on the final evaluation's fresh episodes).
+
+    python benchmarks/time_to_trained.py                       # every task, seed 0, cold then warm
+    python benchmarks/time_to_trained.py --seeds 16 --warm-only --envs QuadcopterGoto-v2
+    python benchmarks/time_to_trained.py --set n_envs=1024     # the same with an override (exploring defaults)
+
+Writes ``time_to_trained.json`` under ``--out`` (default ``benchmarks/results/local/<device>/``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any
+
+#: The shipped tasks and the learner their default command uses (``--agent`` for a Box-action task).
+TASKS = (("CartPoleStayUp-v0", None), ("QuadcopterGoto-v2", None), ("ArmReach-v0", None),
+         ("CartPoleContinuous-v0", "ppo"), ("QuadcopterGotoTwist-v0", "ppo"))
+
+#: Published anchors: what users compare with, with the hardware their authors name. Only figures we could
+#: trace to their source carry a number; the others say what their authors claim.
+ANCHORS = (
+    {"what": "L2F (RLtools, 'Learning to Fly in Seconds'): a quadrotor control policy trained", "seconds": 18.0,
+     "hardware": "a consumer laptop (the paper's figure)"},
+    {"what": "PureJaxRL: PPO on gymnax CartPole-v1", "seconds": None,
+     "hardware": "one GPU; its README claims over 1000x the speed of PyTorch baselines, no time-to-trained figure"},
+)
+
+
+def learning_figure(summary: dict[str, Any]) -> tuple[str, float | None]:
+    """The figure a run's learning target is judged by, from its ``summary.json``: ``(name, value)``."""
+    for key in ("selected_table_fresh_mean_length", "eval_best_table_success_rate", "final_eval_success_rate",
+                "final_eval_mean_length", "eval_best_table_mean_length"):
+        if key in summary:
+            return key, float(summary[key])
+    return "none", None
+
+
+def run_once(env_id: str, agent: str | None, seed: int, cache: str, sets: list[str], work: str) -> dict[str, Any]:
+    out = os.path.join(work, f"{env_id}_{seed}_{time.monotonic_ns()}")
+    cmd = [sys.executable, "-m", "jaxrobo.cli", "train", "--env", env_id, "--seed", str(seed), "--no-progress",
+           "--out", out]
+    if agent:
+        cmd += ["--agent", agent]
+    for s in sets:
+        cmd += ["--set", s]
+    env = {**os.environ, "JAXROBO_CACHE_DIR": cache}
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    row: dict[str, Any] = {"env_id": env_id, "agent": agent or "preset", "seed": seed, "set": sets,
+                           "wall_seconds": round(wall, 3), "exit_code": proc.returncode}
+    path = os.path.join(out, "summary.json")
+    if proc.returncode != 0 or not os.path.isfile(path):
+        row["error"] = (proc.stderr or proc.stdout)[-2000:]
+        return row
+    with open(path) as f:
+        s = json.load(f)
+    parts = {"startup": s.get("startup_seconds"), "compile": s.get("compile_seconds"), "run": s.get("run_seconds", s.get("train_seconds")),
+             "evaluation": s.get("eval_seconds"), "writing": s.get("write_seconds")}
+    if agent:  # a ppo/sac run's train_seconds counts its compile; its evaluations are apart
+        parts["compile"] = None
+    known = sum(v for v in parts.values() if v is not None)
+    name, value = learning_figure(s)
+    row.update({f"{k}_seconds": v for k, v in parts.items()})
+    row["rest_seconds"] = round(wall - known, 3)  # start-up where the run did not measure it, and the exit
+    row.update({"env_steps": s.get("env_steps"), "learning_figure": name, "learning_value": value,
+                "learning_target": s.get("learning_target"), "target_met_in_training": s.get("target_met_in_training"),
+                "n_envs": s.get("n_envs", s.get("num_envs")), "stdout_tail": proc.stdout[-600:]})
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--envs", nargs="*", default=None, help="task ids (default: every shipped task)")
+    p.add_argument("--seeds", type=int, default=1, help="seeds 0..N-1 of the warm rows (the cold row: seed 0)")
+    p.add_argument("--warm-only", action="store_true", help="no cold row (the cache is filled by an untimed run)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="passed to every command")
+    p.add_argument("--out", default=None, help="folder of time_to_trained.json")
+    args = p.parse_args(argv)
+    if args.seeds < 1:
+        p.error(f"--seeds {args.seeds}: expected an integer >= 1")
+    import jax
+
+    device = jax.devices()[0].device_kind
+    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "local",
+                                   jax.default_backend())
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, "time_to_trained.json")
+    rows: list[dict[str, Any]] = []
+    tasks = [t for t in TASKS if args.envs is None or t[0] in args.envs]
+    with tempfile.TemporaryDirectory(prefix="jaxrobo-ttt-") as work:
+        for env_id, agent in tasks:
+            cache = tempfile.mkdtemp(prefix="cache-", dir=work)
+            first = run_once(env_id, agent, 0, cache, args.set, work)
+            if not args.warm_only:
+                rows.append({**first, "cache": "cold"})
+                print(json.dumps({k: v for k, v in rows[-1].items() if k != "stdout_tail"}), flush=True)
+            for seed in range(args.seeds):
+                rows.append({**run_once(env_id, agent, seed, cache, args.set, work), "cache": "warm"})
+                print(json.dumps({k: v for k, v in rows[-1].items() if k != "stdout_tail"}), flush=True)
+                with open(path, "w") as f:
+                    json.dump({"device": device, "backend": jax.default_backend(), "rows": rows,
+                               "anchors": ANCHORS}, f, indent=1)
+    with open(path, "w") as f:
+        json.dump({"device": device, "backend": jax.default_backend(), "rows": rows, "anchors": ANCHORS}, f,
+                  indent=1)
+    print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
