@@ -61,7 +61,8 @@ WHAT = {
     "summary.json": "A sweep's own summary (`bash benchmarks/multiprocess_demo.sh`)",
 }
 #: Row fields that identify a machine state or a checksum rather than a figure a reader compares.
-NOISE = {"execution_plan", "plan", "digests", "q_checksum", "checksum", "device_bytes_in_use", "device_peak_bytes_in_use",
+NOISE = {"execution_plan", "plan", "digests", "q_checksum", "checksum", "device_bytes_in_use",
+         "device_peak_bytes_in_use",
          "device_bytes_limit", "part", "cache_dir", "python_start_s", "first_chunk_at", "argv", "command",
          "q_fingerprint_after_one_chunk", "last_returns", "sps_per_epoch", "seeds", "env_state_bytes", "n_states",
          "qtable_bytes", "platform", "reason", "x_sim", "sim_seconds_per_s", "control_dt", "opts"}
@@ -79,7 +80,7 @@ def fmt(key: str, value: Any) -> str:
     if isinstance(value, float):
         if not math.isfinite(value):
             return str(value)
-        if "per_s" in key or key.endswith("_per_second") or key in ("steps_per_second_overall", "steps_per_second_steady"):
+        if "per_s" in key or key.endswith("_per_second") or key.startswith("steps_per_second"):
             return throughput._fmt_rate(value)
         if abs(value) >= 1000:
             return f"{value:,.0f}"
@@ -113,7 +114,8 @@ def rows_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> 
 
 
 def flat_figures(data: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
-    """``(key, value)`` of a result's top-level figures; small dicts are flattened one level (``fresh_success.median``)."""
+    """``(key, value)`` of a result's top-level figures; small dicts are flattened one level
+    (``fresh_success.median``)."""
     out = []
     for k, v in data.items():
         if k in NOISE or k in ("rows", "parts", "meta", "config", "settings", "overrides", "note", "what"):

@@ -1,6 +1,7 @@
 """The public surface for robot, task and learner authors (:mod:`jaxrobo.api`) is stable: its names are listed
 here and each resolves; module paths the package does not hold (the flat ``jaxrobo.env``, ``jaxrobo.sim``, ...)
-are not aliased into existence. A change to this list is a change to what users' modules may rely on: make it on purpose."""
+are not aliased into existence. A change to this list is a change to what users' modules may rely on: make it on
+purpose."""
 from __future__ import annotations
 
 import sys

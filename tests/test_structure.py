@@ -437,7 +437,8 @@ def test_the_checker_finds_aliases_and_knobs():
                             "jaxrobo.ok": "import sys\nif 'm' in sys.modules: pass\n"}) == [
         "jaxrobo.g:1", "jaxrobo.x:2", "jaxrobo.z:2"]
     src = ("import jax\nFLAG = False\nLIMIT = 0.78\nSIZE = 32\nCOUNT = 0\nUNUSED = True\n_SEEN = set()\n"
-           "def f(x):\n    global COUNT\n    COUNT += 1\n    _SEEN.add(x)\n    return (x * LIMIT if FLAG else x + SIZE) + COUNT\n")
+           "def f(x):\n    global COUNT\n    COUNT += 1\n    _SEEN.add(x)\n"
+           "    return (x * LIMIT if FLAG else x + SIZE) + COUNT\n")
     writer = ("import jaxrobo.k as k\ndef t(monkeypatch):\n    monkeypatch.setattr(k, 'LIMIT', 1.0)\n"
               "    monkeypatch.setattr(k, '_SEEN', set())\n")
     assert module_knobs({"jaxrobo.k": src}, {"t.py": writer}) == {
