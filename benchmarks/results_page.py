@@ -159,28 +159,30 @@ def throughput_rows(data: dict[str, Any]) -> list[str]:
     return out
 
 
+def recorded(data: Any, key: str) -> Any:
+    """A field a result records about its run, from its ``meta`` or its top level (None for a bare list)."""
+    if not isinstance(data, dict):
+        return None
+    meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
+    return meta.get(key) or data.get(key)
+
+
 def device_of(data: Any) -> str | None:
     """The device a result names (``meta.device`` or ``device``), with its JAX version where recorded."""
-    if isinstance(data, list):
-        return None
-    meta = data.get("meta") or {}
-    dev = meta.get("device") or data.get("device")
-    jax_version = meta.get("jax") or data.get("jax")
-    if dev == "cpu" and meta.get("cpu_count"):
-        dev = f"cpu ({meta['cpu_count']} cores)"
+    dev, jax_version, cores = recorded(data, "device"), recorded(data, "jax"), recorded(data, "cpu_count")
+    if dev == "cpu" and cores:
+        dev = f"cpu ({cores} cores)"
     if dev and jax_version and "jax" not in str(dev):
         return f"{dev}, jax {jax_version}"
     return dev
 
 
 def command_of(data: Any) -> str | None:
-    if isinstance(data, list):
-        return None
-    meta = data.get("meta") or {}
-    argv = meta.get("argv") or data.get("argv")
+    """The command that measured a result: its ``argv`` joined, or its recorded ``command``."""
+    argv = recorded(data, "argv")
     if isinstance(argv, list) and argv:
         return " ".join(str(a) for a in argv)
-    return data.get("command") or meta.get("command")
+    return recorded(data, "command")
 
 
 def section(path: str, data: Any) -> list[str]:
