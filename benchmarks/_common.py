@@ -138,9 +138,10 @@ def device_memory() -> dict[str, int]:
     return {k: int(stats[k]) for k in ("bytes_in_use", "peak_bytes_in_use", "bytes_limit") if k in stats}
 
 
-# ---- the seed-style loop (seed 001's QLearn and training loop, re-implemented from SPEC §4) -------------------
+# ---- the seed-style loop (seed 001's QLearn and training loop, by the rules of ``seed_compat``) --------------------
 class DictQLearn:
-    """Tabular Q-learning over a dict keyed by (state string, action), with the seed's rules (SPEC §4).
+    """Tabular Q-learning over a dict keyed by (state string, action), with the seed's rules (``seed_compat`` in
+    jaxrobo/tabular/learner.py).
 
     First update of an entry stores the reward itself; later ones move by alpha towards r + gamma max Q(s').
     Exploration: with probability epsilon, uniform noise of the table's magnitude is added to the action values

@@ -829,7 +829,7 @@ def main(argv: list[str] | None = None) -> int:
     if earlier is not None:
         rows, meta["parts"] = merge_rows(earlier, rows, meta)
         print(f"\nmerged with {len(meta['parts']) - 1} earlier part(s) in {out_dir}/throughput.json: ratios across "
-              "parts compare rows measured in different processes")
+              "parts compare rows that different processes measured")
     _ratios(rows)
     print()
     print(table(rows))

@@ -13,9 +13,6 @@ whose simulator comes from :func:`make_simulator`, with a hand-written backend o
 """
 from __future__ import annotations
 
-import importlib as _importlib
-import sys as _sys
-
 from jaxrobo.core.version import __version__
 
 from jaxrobo.pictures.render import select_gl_backend as _select_gl
@@ -28,17 +25,6 @@ from jaxrobo.task.registry import make, register, registered, spec
 from jaxrobo.task.robot import Robot
 from jaxrobo.physics.sim import ClosedFormSim, make_simulator
 from jaxrobo.interop import gym_adapter as _gym_adapter  # noqa: E402,F401  (registers "jaxrobo/<id>" with Gymnasium)
-
-#: Module names of the earlier flat layout that user modules import, and their homes now: ``import jaxrobo.env``
-#: and ``from jaxrobo import spaces`` keep working (``tests/test_public_api.py``). New code imports
-#: :mod:`jaxrobo.api`.
-LEGACY_MODULES = {"env": "jaxrobo.task.env", "robot": "jaxrobo.task.robot", "registry": "jaxrobo.task.registry",
-                  "rollout": "jaxrobo.task.rollout", "sim": "jaxrobo.physics.sim", "struct": "jaxrobo.core.struct",
-                  "spaces": "jaxrobo.core.spaces", "rng": "jaxrobo.core.rng", "config": "jaxrobo.core.config"}
-for _old, _new in LEGACY_MODULES.items():
-    _sys.modules.setdefault(f"{__name__}.{_old}", _importlib.import_module(_new))
-    globals().setdefault(_old, _sys.modules[_new])
-del _old, _new
 
 __all__ = ["ClosedFormSim", "ConfigError", "EnvState", "Robot", "TaskEnv", "make", "make_simulator", "register",
            "registered", "spec", "__version__"]

@@ -15,10 +15,6 @@ A learner::
 A task's port to native MuJoCo (the sim-to-sim check, ``envs/*/native.py``)::
 
     from jaxrobo.api import NativeSim
-
-Modules written against the earlier flat layout (``jaxrobo.env``, ``jaxrobo.sim``, ``jaxrobo.robot``,
-``jaxrobo.struct``, ``jaxrobo.spaces``, ``jaxrobo.rng``, ``jaxrobo.registry``, ``jaxrobo.rollout``) keep
-working: ``import jaxrobo`` maps those names onto their homes (:data:`jaxrobo.LEGACY_MODULES`).
 """
 from __future__ import annotations
 

@@ -1,11 +1,11 @@
-"""Run every command of the README's "Use it" section and the quickstart notebook, as a newcomer would, and write
+"""Run every command of the README's "Quickstart" section and the quickstart notebook, as a newcomer would, and write
 a transcript with each command's wall time, exit code and last lines of output.
 
     python scripts/readme_transcript.py --out docs/transcripts/cpu-2cores.md          # in a fresh clone
     python scripts/readme_transcript.py --device gpu --out docs/transcripts/h100.md
 
-The commands are read from the README itself (the ``bash`` and ``python`` blocks between "## Use it" and
-"## Layout"), so the transcript cannot drift from what the README says; they run one after the other in the
+The commands are read from the README itself (the ``bash`` and ``python`` blocks of "## Quickstart", up to the
+next ``## `` heading), so the transcript cannot drift from what the README says; they run one after the other in the
 checkout this script belongs to, in order (later commands read the runs earlier ones wrote). A line that cannot
 run unattended (``...`` placeholders, a Ctrl-C) is listed as skipped, with why. ``--device gpu`` sets
 ``JAX_PLATFORMS=cuda`` for every command. The README's outputs land in ``runs/`` (git-ignored); this script
@@ -32,11 +32,13 @@ GPU_RUNS = ("GPU-sized",)
 
 
 def readme_commands(path: str) -> list[tuple[str, str]]:
-    """``(kind, text)`` for each command of the README's "Use it" part: ``bash`` lines and whole ``python``
+    """``(kind, text)`` for each command of the README's "Quickstart" section: ``bash`` lines and whole ``python``
     blocks, in order."""
     with open(path, encoding="utf-8") as f:
         text = f.read()
-    start, end = text.index("## Use it"), text.index("## Layout")
+    start = text.index("\n## Quickstart")
+    end = text.find("\n## ", start + 1)
+    end = len(text) if end < 0 else end
     out = []
     for lang, body in re.findall(r"```(bash|python)\n(.*?)```", text[start:end], flags=re.S):
         if lang == "python":

@@ -76,7 +76,7 @@ def test_double_q_updates_both_tables_over_time():
 
 # ---- seed compatibility ---------------------------------------------------------------------------------
 class DictQLearn:
-    """An independent re-statement of SPEC §4's QLearn/Sarsa update rules, on a dict."""
+    """An independent re-statement of the seed's QLearn/Sarsa update rules (``seed_compat``), on a dict."""
 
     def __init__(self, alpha, gamma, on_policy):
         self.q, self.alpha, self.gamma, self.on_policy = {}, alpha, gamma, on_policy

@@ -274,3 +274,26 @@ def test_throughput_row(tmp_path):
     rows = [r for r in json.loads((tmp_path / "out" / "throughput.json").read_text())["rows"] if r["env"] == ID]
     assert {r["mode"] for r in rows} == {"env", "qlearn"}
     assert all(r["status"] == "ok" and r["steps_per_s"] > 0 for r in rows), rows
+
+
+def test_the_step_is_one_source_over_numpy_and_jax():
+    """The action map, observation and success test are the same functions over numpy (the native port's float64)
+    and jax.numpy (the env's float32): on random poses, goals and set-points they agree to float32 round-off."""
+    from envs.arm.reach import ACTION_DELTAS, observation, reached, set_points
+
+    rs = np.random.default_rng(0)
+    for _ in range(50):
+        q = rs.uniform([-np.pi, 0.0], [np.pi, ELBOW_MAX])
+        goal = rs.uniform(-0.9, 0.9, 2)
+        command = rs.uniform([-np.pi, -0.2], [np.pi, ELBOW_MAX + 0.2])
+        delta = np.asarray(ACTION_DELTAS[rs.integers(len(ACTION_DELTAS))])
+        obs_np = observation(q, goal, np)
+        obs_jx = np.asarray(observation(jnp.asarray(q, jnp.float32), jnp.asarray(goal, jnp.float32)))
+        assert obs_np.dtype == np.float32 and obs_jx.dtype == np.float32
+        np.testing.assert_allclose(obs_np, obs_jx, atol=2e-6)
+        sp_np = set_points(command, delta, 0.1, np)
+        sp_jx = np.asarray(set_points(jnp.asarray(command, jnp.float32), jnp.asarray(delta, jnp.float32), 0.1))
+        np.testing.assert_allclose(sp_np, sp_jx, atol=1e-6)
+        assert 0.0 <= sp_np[1] <= ELBOW_MAX
+        assert bool(reached(obs_np, 0.5, np)) == bool(reached(jnp.asarray(obs_jx), 0.5)) or abs(
+            np.linalg.norm(obs_np[1:]) - 0.5) < 1e-5

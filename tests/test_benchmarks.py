@@ -198,7 +198,7 @@ def test_randomisation_cost_configures_every_case_and_variant():
 
 def test_kernel_occupancy_reads_ncu_details_and_refuses_without_ncu():
     kernel_occupancy = _script("kernel_occupancy")
-    recorded = os.path.join(ROOT, "benchmarks", "results", "h100", "round_2026-11-26d", "ncu_kernel-nominal.txt")
+    recorded = os.path.join(ROOT, "tests", "data", "ncu_kernel-nominal.txt")  # Nsight Compute's output on an H100
     with open(recorded) as f:
         row = kernel_occupancy.parse(f.read())
     assert row == {"registers": 96.0, "blocks_per_sm_by_registers": 20.0, "theoretical_occupancy_percent": 31.25,

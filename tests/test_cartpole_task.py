@@ -1,4 +1,4 @@
-"""CartPoleStayUp follows SPEC §2: actions, termination, reward, reset pose, time limit, NaN guard, jit/vmap."""
+"""CartPoleStayUp follows the seed's task (docs/cartpole.md): actions, termination, reward, reset pose, time limit, NaN guard, jit/vmap."""
 from __future__ import annotations
 
 import jax

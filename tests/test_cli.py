@@ -92,8 +92,9 @@ def test_list_names_envs_and_agents(capsys):
 
 
 def test_train_help_and_readme_say_what_a_new_user_needs(capsys):
-    """`jaxrobo train --help`: the carry is also saved at the end of training; the README's "Use it" links the
-    deep-RL guide with a PPO example; the envs package lists its continuous-action task modules."""
+    """`jaxrobo train --help`: the carry is also saved at the end of training; the README links every docs page
+    it names (they exist) and the usage guide shows a PPO run and `show` on it; the envs package lists its
+    continuous-action task modules."""
     import re
 
     import envs
@@ -109,10 +110,14 @@ def test_train_help_and_readme_say_what_a_new_user_needs(capsys):
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     with open(os.path.join(root, "README.md")) as f:
         readme = f.read()
-    use_it = readme[readme.index("## Use it"):readme.index("\n## ", readme.index("## Use it") + 1)]
-    assert "(docs/deep_rl.md)" in use_it and os.path.isfile(os.path.join(root, "docs", "deep_rl.md"))
-    assert "jaxrobo train --env QuadcopterGotoTwist-v0 --agent ppo --out runs/goto_ppo" in use_it
-    assert re.search(r"^jaxrobo show runs/ppo_smoke\b", use_it, re.M)  # show on a deep run the README trains
+    links = re.findall(r"\]\((docs/[^)#]+)\)", readme)
+    assert "docs/deep_rl.md" in links and "docs/usage.md" in links
+    for link in links:
+        assert os.path.isfile(os.path.join(root, link)), link
+    with open(os.path.join(root, "docs", "usage.md")) as f:
+        usage = f.read()
+    assert "jaxrobo train --env QuadcopterGotoTwist-v0 --agent ppo --out runs/goto_ppo" in usage
+    assert re.search(r"^jaxrobo show runs/ppo_smoke\b", usage, re.M)  # show on a deep run the guide trains
 
     for env_id in registry.registered():
         reg = registry.registration(env_id)

@@ -232,8 +232,8 @@ def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeyp
 def test_the_kernels_erfinv_is_jaxs_bit_for_bit():
     """The kernel's noise evaluates ``erfinv`` with each branch's constants in the instructions
     (:func:`jaxrobo.speed.fused_pallas._erf_inv`), for registers; its values are ``jax.lax.erf_inv``'s bit for bit,
-    here under ``jit`` across the uniform draws' whole range and at its ends (on the GPU inside a Pallas kernel:
-    benchmarks/results/h100/round_2026-11-26e). If JAX changes its ``erf_inv``, this fails first."""
+    here under ``jit`` across the uniform draws' whole range and at its ends (on a GPU the same holds inside a Pallas
+    kernel). If JAX changes its ``erf_inv``, this fails first."""
     import jax.numpy as jnp
 
     from jaxrobo.speed import fused_pallas

@@ -18,6 +18,18 @@ The layers:
 * ``jaxrobo/`` reaches ``envs`` and the learners only through the registry's entry points
   (:data:`ENTRY_POINTS`: ``jaxrobo.task.registry`` imports them by name with importlib).
 
+No shims and no hidden switches, in ``jaxrobo/``, ``envs/`` and ``agents/``:
+
+* no module writes into ``sys.modules`` or its own ``globals()`` (no aliases that make a module path importable
+  under a second name; ``tests/test_public_api.py`` checks the old flat names do not import);
+* no module-global knob read at trace time: a module of ``jaxrobo/`` that imports JAX may not read, inside a
+  function, an upper-case module global bound to a scalar constant (a number, string or bool: a setting, not
+  a registry or a once-only warning set) that is a switch (bound to ``True``/``False``), rebound with ``global``,
+  or overwritten from outside (``setattr(module, "NAME", ...)``, ``monkeypatch.setattr`` or ``module.NAME = ...``
+  anywhere in the repository). A choice that changes what is traced belongs on
+  :class:`jaxrobo.speed.plan.ExecutionPlan`, passed explicitly, where a cached program cannot miss it.
+  :data:`KNOBS_ALLOWED_FOR_NOW` names the ones still waiting, each with what removes it.
+
 Run ``python tests/test_structure.py`` to print the graph (the edges between subpackages and packages, and
 circles).
 """
@@ -25,6 +37,7 @@ from __future__ import annotations
 
 import ast
 import os
+import re
 import sys
 from typing import NamedTuple
 
@@ -55,6 +68,17 @@ ENTRY_POINTS = frozenset({"jaxrobo.task.registry"})
 #: Edges that break the rules and are waiting to be removed, each with what removes it. Empty: nothing is excused,
 #: and a new forbidden edge fails the test.
 ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {}
+
+#: Module-global knobs still read at trace time, ``(module, name)``, each with what removes it. A knob that is
+#: gone must come off (``test_knobs_allowed_for_now_still_exist``); a new one fails the test.
+_CARTPOLE_KERNEL = "issue 41: the cart-pole chunk kernel moves beside its task, its knobs become ExecutionPlan fields"
+KNOBS_ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {
+    ("jaxrobo.speed.fused_pallas", name): _CARTPOLE_KERNEL
+    for name in ("SKIP_RESETS", "APPROX_SINCOS", "TILED_TABLES", "GROUP_RESETS", "FAST_SINCOS")
+} | {("jaxrobo.physics.libdevice_sincos", "LIMIT"): _CARTPOLE_KERNEL}
+
+#: Folders whose Python may overwrite a jaxrobo module's globals (where an outside write is looked for).
+WRITERS = ("jaxrobo", "envs", "agents", "tests", "benchmarks", "scripts", "examples")
 
 
 class Edge(NamedTuple):
@@ -206,6 +230,132 @@ def _cycle_edges(component: list[str], edges: list[Edge]) -> list[Edge]:
     return sorted({e for e in edges if e.src in members and e.dst in members}, key=lambda e: (e.src, e.dst, e.line))
 
 
+# ---- shims and knobs -----------------------------------------------------------------------------------------
+_KNOB_NAME = re.compile(r"^_?[A-Z][A-Z0-9_]*$")
+
+
+def _aliases(tree: ast.AST) -> dict[str, str]:
+    """``{local name: dotted module or object}`` from a file's imports (``import a.b as c``, ``from a import b``)."""
+    out = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                out[a.asname or a.name.split(".")[0]] = a.name if a.asname else a.name.split(".")[0]
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            for a in node.names:
+                out[a.asname or a.name] = f"{node.module}.{a.name}"
+    return out
+
+
+def module_aliasing(sources: dict[str, str]) -> list[str]:
+    """``module:line`` of each write into ``sys.modules`` or into a module's own ``globals()``."""
+    found = []
+    for module, text in sorted(sources.items()):
+        tree = ast.parse(text)
+        names = _aliases(tree)
+
+        def is_sys_modules(node) -> bool:
+            return (isinstance(node, ast.Attribute) and node.attr == "modules" and isinstance(node.value, ast.Name)
+                    and names.get(node.value.id) == "sys")
+
+        def is_globals(node) -> bool:
+            return isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "globals"
+
+        for node in ast.walk(tree):
+            target = None
+            if isinstance(node, (ast.Assign, ast.AugAssign, ast.Delete)):
+                for t in getattr(node, "targets", None) or [node.target]:
+                    if isinstance(t, ast.Subscript) and (is_sys_modules(t.value) or is_globals(t.value)):
+                        target = t
+            elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                  and node.func.attr in ("setdefault", "update", "__setitem__", "pop", "__delitem__")
+                  and (is_sys_modules(node.func.value) or is_globals(node.func.value))):
+                target = node
+            if target is not None:
+                found.append(f"{module}:{node.lineno}")
+    return found
+
+
+def _scalar(node: ast.AST) -> bool:
+    """Whether ``node`` is a constant scalar expression (``32``, ``-1.5``, ``256 << 20``, ``True``, ``"a"``)."""
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, (bool, int, float, str))
+    if isinstance(node, ast.UnaryOp):
+        return _scalar(node.operand)
+    if isinstance(node, ast.BinOp):
+        return _scalar(node.left) and _scalar(node.right)
+    return False
+
+
+def module_knobs(sources: dict[str, str], writers: dict[str, str]) -> dict[tuple[str, str], str]:
+    """``{(module, NAME): why}`` for each knob (see the module docstring) of the modules in ``sources``; ``writers``
+    is every file that may overwrite one from outside, ``{path: source}``."""
+    written: set[tuple[str, str]] = set()
+    for text in writers.values():
+        tree = ast.parse(text)
+        names = _aliases(tree)
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Call) and len(node.args) >= 2 and isinstance(node.args[0], ast.Name)
+                    and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str)
+                    and ((isinstance(node.func, ast.Name) and node.func.id == "setattr")
+                         or (isinstance(node.func, ast.Attribute) and node.func.attr == "setattr"))):
+                written.add((names.get(node.args[0].id, node.args[0].id), node.args[1].value))
+            if isinstance(node, ast.Assign):
+                for t in node.targets:
+                    if isinstance(t, ast.Attribute) and isinstance(t.value, ast.Name):
+                        written.add((names.get(t.value.id, t.value.id), t.attr))
+    found = {}
+    for module, text in sorted(sources.items()):
+        tree = ast.parse(text)
+        if not any(v == "jax" or v.startswith("jax.") for v in _aliases(tree).values()):
+            continue  # nothing of this module is traced
+        bound: dict[str, ast.AST] = {}
+        for node in tree.body:
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(
+                node, ast.AnnAssign) and node.value is not None else []
+            for t in targets:
+                if isinstance(t, ast.Name) and _KNOB_NAME.match(t.id) and _scalar(node.value):
+                    bound[t.id] = node.value
+        rebound = {n for node in ast.walk(tree) if isinstance(node, ast.Global) for n in node.names}
+        read_in_function = set()
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                read_in_function |= {n.id for n in ast.walk(fn) if isinstance(n, ast.Name)
+                                     and isinstance(n.ctx, ast.Load)}
+        for name, value in bound.items():
+            if name not in read_in_function:
+                continue
+            if isinstance(value, ast.Constant) and isinstance(value.value, bool):
+                found[(module, name)] = "a module-level switch"
+            elif name in rebound:
+                found[(module, name)] = "rebound with `global`"
+            elif (module, name) in written:
+                found[(module, name)] = "overwritten from outside its module"
+    return found
+
+
+def _sources(packages=("jaxrobo",)) -> dict[str, str]:
+    out = {}
+    for module, path in modules().items():
+        if module.split(".")[0] in packages:
+            with open(path, encoding="utf-8") as f:
+                out[module] = f.read()
+    return out
+
+
+def _writer_sources() -> dict[str, str]:
+    out = {}
+    for folder in WRITERS:
+        for dirpath, dirnames, filenames in os.walk(os.path.join(ROOT, folder)):
+            dirnames[:] = [d for d in dirnames if d not in ("__pycache__", "results")]
+            for name in filenames:
+                if name.endswith(".py"):
+                    path = os.path.join(dirpath, name)
+                    with open(path, encoding="utf-8") as f:
+                        out[path] = f.read()
+    return out
+
+
 # ---- tests ---------------------------------------------------------------------------------------------------
 def test_every_package_is_parsed():
     known = modules()
@@ -257,6 +407,44 @@ def test_the_checker_finds_circles_and_forbidden_edges():
     assert forbidden(e("jaxrobo.core.config", "jaxrobo.cli"))               # up to the top
     assert not forbidden(e("jaxrobo.cli", "jaxrobo.core.config"))
     assert not forbidden(e("jaxrobo.training.driver", "jaxrobo.training.trainer"))
+
+
+def test_no_sys_modules_aliasing():
+    """No module path is made importable under a second name, and no module plants names in its own globals."""
+    found = module_aliasing(_sources(PACKAGES))
+    assert not found, "writes into sys.modules or globals() (aliases, shims): " + ", ".join(found)
+
+
+def test_no_module_global_knobs_read_at_trace_time():
+    found = module_knobs(_sources(), _writer_sources())
+    new = {k: why for k, why in found.items() if k not in KNOBS_ALLOWED_FOR_NOW}
+    assert not new, "module-global knobs read at trace time (make them ExecutionPlan fields):\n" + "\n".join(
+        f"  {m}.{n}: {why}" for (m, n), why in sorted(new.items()))
+
+
+def test_knobs_allowed_for_now_still_exist():
+    """A knob that is gone comes off the list, so the list cannot excuse a new one of the same name later."""
+    stale = sorted(set(KNOBS_ALLOWED_FOR_NOW) - set(module_knobs(_sources(), _writer_sources())))
+    assert not stale, "KNOBS_ALLOWED_FOR_NOW lists knobs that no longer exist (remove them): " + ", ".join(
+        f"{m}.{n}" for m, n in stale)
+
+
+def test_the_checker_finds_aliases_and_knobs():
+    """The checks themselves, on made-up modules: each kind of alias and knob is found, constants are not."""
+    assert module_aliasing({"jaxrobo.x": "import sys as _s\n_s.modules.setdefault('jaxrobo.y', _s)\n",
+                            "jaxrobo.z": "import sys\nsys.modules['a'] = sys\n",
+                            "jaxrobo.g": "globals().setdefault('env', 1)\n",
+                            "jaxrobo.ok": "import sys\nif 'm' in sys.modules: pass\n"}) == [
+        "jaxrobo.g:1", "jaxrobo.x:2", "jaxrobo.z:2"]
+    src = ("import jax\nFLAG = False\nLIMIT = 0.78\nSIZE = 32\nCOUNT = 0\nUNUSED = True\n_SEEN = set()\n"
+           "def f(x):\n    global COUNT\n    COUNT += 1\n    _SEEN.add(x)\n"
+           "    return (x * LIMIT if FLAG else x + SIZE) + COUNT\n")
+    writer = ("import jaxrobo.k as k\ndef t(monkeypatch):\n    monkeypatch.setattr(k, 'LIMIT', 1.0)\n"
+              "    monkeypatch.setattr(k, '_SEEN', set())\n")
+    assert module_knobs({"jaxrobo.k": src}, {"t.py": writer}) == {
+        ("jaxrobo.k", "FLAG"): "a module-level switch", ("jaxrobo.k", "LIMIT"): "overwritten from outside its module",
+        ("jaxrobo.k", "COUNT"): "rebound with `global`"}
+    assert module_knobs({"jaxrobo.k": src.replace("import jax", "import numpy")}, {"t.py": writer}) == {}
 
 
 def report() -> str:

@@ -33,11 +33,13 @@ ELBOW_MAX = 2.8
 BACKENDS = backend_choices()
 
 
-def fingertip(q: jax.Array) -> jax.Array:
-    """Forward kinematics: the fingertip ``(x, y)`` (m) for joint angles ``q = [shoulder, elbow]`` (rad)."""
+def fingertip(q: Any, xp: Any = jnp) -> Any:
+    """Forward kinematics: the fingertip ``(x, y)`` (m) for joint angles ``q = [shoulder, elbow]`` (rad), over the
+    array module ``xp``: ``jax.numpy`` in the env (under ``jit``/``vmap``), ``numpy`` in the native port
+    (``envs/arm/native.py``), so both run this one source."""
     a = q[..., 0] + q[..., 1]
-    return jnp.stack([UPPER * jnp.cos(q[..., 0]) + FORE * jnp.cos(a), UPPER * jnp.sin(q[..., 0]) + FORE * jnp.sin(a)],
-                     axis=-1)
+    return xp.stack([UPPER * xp.cos(q[..., 0]) + FORE * xp.cos(a), UPPER * xp.sin(q[..., 0]) + FORE * xp.sin(a)],
+                    axis=-1)
 
 
 class ArmRobot(Robot):

@@ -42,7 +42,7 @@ from jaxrobo.task.env import Env, EnvState, layers, simulator_of
 
 #: Envs stepped at once on a GPU when the env runs on MJX: beyond this size a step's intermediates no longer fit
 #: the GPU's L2 cache and larger batches ran slower as one batch than as groups of this size (a reading, not
-#: profiled; the measurements are in docs/benchmarks.md).
+#: profiled; the measurements are in docs/results.md, ``env_groups.json``).
 _GPU_ENV_GROUP = 262_144
 
 

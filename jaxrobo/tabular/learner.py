@@ -7,7 +7,7 @@ environment or one table shared by a whole batch of environments. ``update`` is 
 caller already holds: the trainer carries each environment's current rows from one step to the next, so the
 table is read once a step (the next state's rows) instead of three times.
 
-``seed_compat=True`` reproduces the seed's learners exactly (SPEC §4): the first update of an entry sets it
+``seed_compat=True`` reproduces the seed's learners exactly: the first update of an entry sets it
 to the reward itself, a terminal transition still bootstraps, and Q-learning explores by adding noise to the
 action values. The default is the textbook form: entries start at 0 and move by ``alpha`` towards the target,
 terminal transitions do not bootstrap, exploration is uniform epsilon-greedy.

@@ -1,0 +1,325 @@
+"""Write docs/results.md, the one page of measured figures, from the benchmark JSON under benchmarks/results/.
+
+    python benchmarks/results_page.py                  # rewrite docs/results.md
+    python benchmarks/results_page.py --check          # exit 1 if docs/results.md is not what the JSON gives
+
+Every JSON file under ``benchmarks/results/<device>/`` (the git-ignored ``local/`` excepted) becomes one section of
+its device: the device and the command that measured it as the JSON records them, then its rows as a table (the
+throughput rows with their rates and like-for-like ratios, as ``benchmarks/throughput.py`` computes them), or its
+top-level figures. Figures are never typed into this page by hand: to change one, run the benchmark again with
+``--out benchmarks/results/<device>`` and rerun this script. Nothing here imports JAX.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import sys
+from typing import Any
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+RESULTS = os.path.join(HERE, "results")
+PAGE = os.path.join(ROOT, "docs", "results.md")
+if HERE not in sys.path:
+    sys.path.insert(0, HERE)
+
+import throughput  # noqa: E402  (its ratios and rate format, so this page and its tables agree)
+
+#: What each benchmark file is, by its name (the scripts' default names); a file not listed is named by its path.
+WHAT = {
+    "throughput.json": "Throughput (`benchmarks/throughput.py`, the main job): env steps per second with the "
+                       "learner in the loop, beside the peers",
+    "throughput_mjx_sizes.json": "Throughput of the MJX cart-pole over batch sizes (`benchmarks/throughput.py`)",
+    "arm_throughput.json": "Throughput of ArmReach-v0 (`benchmarks/throughput.py --envs ArmReach-v0`)",
+    "p9_cartpole_analytic.json": "The user's commands end to end, analytic cart-pole (`benchmarks/throughput.py "
+                                 "--commands`)",
+    "p9_mjx_goto.json": "The user's commands end to end, MJX cart-pole and QuadcopterGoto-v2 "
+                        "(`benchmarks/throughput.py --commands`)",
+    "time_to_learn.json": "Time to learn (`benchmarks/time_to_learn.py`): training seconds until the greedy policy "
+                          "meets the task's target",
+    "time_to_learn_analytic.json": "Time to learn on the analytic backend (`benchmarks/time_to_learn.py`)",
+    "sweep.json": "Many independent runs in one sweep call (`benchmarks/sweep.py`)",
+    "sweep_analytic.json": "Many independent runs in one sweep call, analytic backend (`benchmarks/sweep.py`)",
+    "startup.json": "Start-up to the first training chunk, fresh and cached (`benchmarks/startup.py`)",
+    "startup_analytic.json": "Start-up on the analytic backend (`benchmarks/startup.py`)",
+    "arm_learning.json": "ArmReach-v0 learning over independent runs (`benchmarks/arm_learning.py`)",
+    "goto_learning.json": "QuadcopterGoto-v1 learning over independent runs (`benchmarks/goto_learning.py`)",
+    "adapter_latency.json": "Gymnasium adapter latency, one env and vectorised (`benchmarks/adapter_latency.py`)",
+    "ppo_goto.json": "PPO on QuadcopterGotoTwist-v0 (`benchmarks/ppo_goto.py`)",
+    "ppo_goto_nocache.json": "PPO on QuadcopterGotoTwist-v0 with an empty compile cache (`benchmarks/ppo_goto.py`)",
+    "ppo_throughput.json": "PPO training throughput beside Brax's own env (`benchmarks/studies/ppo_throughput.py`)",
+    "env_groups.json": "MJX batches stepped in groups (`benchmarks/studies/env_groups.py`)",
+    "libdevice_sincos.json": "The kernel's sin/cos against libdevice's, bit for bit "
+                             "(`benchmarks/studies/libdevice_sincos.py`)",
+    "scale_train.json": "`jaxrobo train` over several GPUs of one host (`benchmarks/scale_out.py`)",
+    "scale_train_dist.json": "`jaxrobo train`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
+    "scale_sweep.json": "`jaxrobo sweep` over several GPUs of one host (`benchmarks/scale_out.py`)",
+    "scale_sweep_dist.json": "`jaxrobo sweep`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
+    "summary.json": "A sweep's own summary (`bash benchmarks/multiprocess_demo.sh`)",
+}
+#: Row fields that identify a machine state or a checksum rather than a figure a reader compares.
+NOISE = {"execution_plan", "plan", "digests", "q_checksum", "checksum", "device_bytes_in_use",
+         "device_peak_bytes_in_use",
+         "device_bytes_limit", "part", "cache_dir", "python_start_s", "first_chunk_at", "argv", "command",
+         "q_fingerprint_after_one_chunk", "last_returns", "sps_per_epoch", "seeds", "env_state_bytes", "n_states",
+         "qtable_bytes", "platform", "reason", "x_sim", "sim_seconds_per_s", "control_dt", "opts"}
+MAX_COLUMNS = 11
+
+
+def fmt(key: str, value: Any) -> str:
+    """One cell: rates in k/M/G, shares as given, other floats to 3 significant digits, ints with commas."""
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return str(value)
+        if "per_s" in key or key.endswith("_per_second") or key.startswith("steps_per_second"):
+            return throughput._fmt_rate(value)
+        if abs(value) >= 1000:
+            return f"{value:,.0f}"
+        return f"{value:.3g}"
+    if isinstance(value, (list, tuple)):
+        nums = [v for v in value if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        if nums and len(nums) == len(value) and len(value) > 4:
+            return f"{len(nums)} values, median {statistics.median(nums):.3g}, min {min(nums):.3g}"
+        return ", ".join(fmt(key, v) for v in value)
+    text = str(value).replace("|", "\\|").replace("\n", " ")
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _scalar(v: Any) -> bool:
+    return v is None or isinstance(v, (bool, int, float, str))
+
+
+def rows_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> list[str]:
+    """A markdown table of ``rows``: the given columns, else the scalar fields most rows have, in first-seen order."""
+    if columns is None:
+        seen: dict[str, int] = {}
+        for r in rows:
+            for k, v in r.items():
+                if k not in NOISE and (_scalar(v) or isinstance(v, list) and len(v) > 4):
+                    seen[k] = seen.get(k, 0) + 1
+        columns = [k for k, c in seen.items() if c * 2 >= len(rows)][:MAX_COLUMNS]
+    out = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for r in rows:
+        out.append("| " + " | ".join(fmt(k, r.get(k)) for k in columns) + " |")
+    return out
+
+
+def flat_figures(data: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """``(key, value)`` of a result's top-level figures; small dicts are flattened one level
+    (``fresh_success.median``)."""
+    out = []
+    for k, v in data.items():
+        if k in NOISE or k in ("rows", "parts", "meta", "config", "settings", "overrides", "note", "what"):
+            continue
+        if k == "runs" and not isinstance(v, int):
+            continue
+        if isinstance(v, dict) and all(_scalar(x) for x in v.values()) and prefix == "":
+            out += [(f"{k}.{kk}", vv) for kk, vv in v.items()]
+        elif _scalar(v) or isinstance(v, list) and all(_scalar(x) for x in v):
+            out.append((prefix + k, v))
+    return out
+
+
+def throughput_rows(data: dict[str, Any]) -> list[str]:
+    """The throughput rows with the ratios ``benchmarks/throughput.py`` computes (per env step against the fastest
+    peer of the family at the same n_envs; against Brax; against the seed-style loop)."""
+    rows = [dict(r) for r in data["rows"]]
+    throughput._ratios(rows)
+    out = ["| suite | env | backend | mode | n_envs | env steps/s | physics steps/s | compile s | x peer | x brax "
+           "| x seed loop |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        status = r.get("status")
+        if status not in ("ok", "published"):
+            continue
+        rate = r.get("steps_per_s")
+        if r["suite"] == "jaxrobo-cli":
+            rate_cell = f"{throughput._fmt_rate(rate)} useful ({(r.get('useful_share') or 0):.0%} of slots, " \
+                        f"{r.get('wall_s', 0):.0f} s wall)"
+        else:
+            rate_cell = throughput._fmt_rate(rate) if status == "ok" else "published: " + fmt("reason", r.get("reason"))
+        out.append("| " + " | ".join([
+            r["suite"], r["env"], str(r.get("backend", "")), str(r.get("mode", "")), fmt("n_envs", r.get("n_envs")),
+            rate_cell, throughput._fmt_rate(r.get("physics_steps_per_s")),
+            fmt("compile_s", r.get("compile_s")), throughput._fmt_x(r.get("x_env")), throughput._fmt_x(r.get("x_brax")),
+            throughput._fmt_x(r.get("x_seed_loop"))]) + " |")
+    out.append("")
+    out.append("x peer: env steps/s over the fastest measured peer of the same family (cart-pole, quadcopter) at "
+               "the same n_envs; x brax: over Brax `inverted_pendulum` on MJX at the same n_envs; x seed loop: over "
+               "the dict-based tabular loop of the original tutorial. Published rows are a peer's own figure on its "
+               "own machine, never in a ratio.")
+    return out
+
+
+def recorded(data: Any, key: str) -> Any:
+    """A field a result records about its run, from its ``meta`` or its top level (None for a bare list)."""
+    if not isinstance(data, dict):
+        return None
+    meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
+    return meta.get(key) or data.get(key)
+
+
+def device_of(data: Any) -> str | None:
+    """The device a result names (``meta.device`` or ``device``), with its JAX version where recorded."""
+    dev, jax_version, cores = recorded(data, "device"), recorded(data, "jax"), recorded(data, "cpu_count")
+    if dev == "cpu" and cores:
+        dev = f"cpu ({cores} cores)"
+    if dev and jax_version and "jax" not in str(dev):
+        return f"{dev}, jax {jax_version}"
+    return dev
+
+
+def command_of(data: Any) -> str | None:
+    """The command that measured a result: its ``argv`` joined, or its recorded ``command``."""
+    argv = recorded(data, "argv")
+    if isinstance(argv, list) and argv:
+        return " ".join(str(a) for a in argv)
+    return recorded(data, "command")
+
+
+def section(path: str, data: Any) -> list[str]:
+    """The markdown of one result file."""
+    rel = os.path.relpath(path, ROOT)
+    name = os.path.basename(path)
+    title = WHAT.get(name)
+    if title is None and name.startswith("goto_learning_"):
+        title = f"{name[len('goto_learning_'):].split('_')[0].removesuffix('.json')} learning over independent runs " \
+                "(`benchmarks/goto_learning.py`)"
+    if title is None and name.startswith("arm_learning_"):
+        title = "ArmReach-v0 learning over independent runs (`benchmarks/arm_learning.py`)"
+    if title is None and name.startswith("learning_targets"):
+        title = "Budgets that meet each task's learning target (`benchmarks/learning_targets.py`)"
+    if title is None and "/goto_randomised/" in rel:
+        title = "QuadcopterGoto-v2 trained under a randomisation schedule (`benchmarks/goto_learning.py --set ...`)"
+    out = [f"### {title or name}", "", f"- file: `{rel}`"]
+    dev, cmd = device_of(data), command_of(data)
+    if dev:
+        out.append(f"- device: {dev}")
+    if cmd:
+        out.append(f"- command: `{cmd}`")
+    if isinstance(data, dict) and (data.get("note") or data.get("what")):
+        out.append(f"- note: {str(data.get('note') or data.get('what'))}")
+    out.append("")
+    if isinstance(data, dict) and isinstance(data.get("meta"), dict) and data["meta"].get("parts"):
+        out.append("Merged from " + str(len(data["meta"]["parts"])) + " runs: " + "; ".join(
+            "`" + " ".join(map(str, p.get("argv", []))) + "`" for p in data["meta"]["parts"]))
+        out.append("")
+    if isinstance(data, dict) and isinstance(data.get("rows"), list) and data["rows"] and "suite" in data["rows"][0]:
+        return out + throughput_rows(data) + [""]
+    if isinstance(data, list) and data and isinstance(data[0], dict):
+        return out + rows_table(data) + [""]
+    figures = flat_figures(data) if isinstance(data, dict) else []
+    if figures:
+        out += ["| figure | value |", "|---|---|"] + [f"| {k} | {fmt(k, v)} |" for k, v in figures] + [""]
+    for key in ("rows", "runs", "parts"):
+        block = data.get(key) if isinstance(data, dict) else None
+        if isinstance(block, list) and block and all(isinstance(b, dict) for b in block):
+            if all(isinstance(b.get("rows"), list) for b in block):  # runs/parts of a study: each its own table
+                for b in block:
+                    out += [f"`{fmt('command', b.get('command') or ' '.join(map(str, b.get('argv') or [])))}`", ""]
+                    out += rows_table(b["rows"]) + [""]
+            else:
+                out += rows_table(block) + [""]
+        elif isinstance(block, dict) and all(isinstance(b, dict) for b in block.values()):
+            out += rows_table([{"run": k, **v} for k, v in block.items()]) + [""]
+    if isinstance(data, dict) and isinstance(data.get("ablations_1m"), list):
+        out += rows_table(data["ablations_1m"]) + [""]
+    return out
+
+
+def is_learning(data: Any) -> bool:
+    """A learning-over-runs result (``goto_learning.py``, ``arm_learning.py``): one success rate per run."""
+    return isinstance(data, dict) and ("fresh_success" in data or "success_per_run" in data)
+
+
+def learning_table(datas: list[tuple[str, Any]]) -> list[str]:
+    """One row per learning result of a device: the share of fresh greedy episodes that reach the goal, over runs
+    that differ only in their seed."""
+    out = ["### Learning over independent runs (`benchmarks/goto_learning.py`, `benchmarks/arm_learning.py`)", "",
+           "Each run trains from its own seed with the task's preset, then flies fresh greedy episodes; success = "
+           "the share that reach the goal (the learning target is 0.8).", "",
+           "| file | env | runs | n_envs | episodes per env | train s | median | mean | worst | runs ≥ 0.8 |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for path, d in datas:
+        if "fresh_success" in d and isinstance(d["fresh_success"], dict):
+            f = d["fresh_success"]
+            med, mean, low, share = f.get("median"), f.get("mean"), f.get("min"), f.get("share_of_runs_at_target")
+        else:
+            per = d.get("success_per_run") or d.get("selection_success_per_run") or []
+            med = d.get("median_success", statistics.median(per) if per else None)
+            mean = statistics.fmean(per) if per else None
+            low = d.get("min_success", min(per) if per else None)
+            share = sum(x >= 0.8 for x in per) / len(per) if per else None
+        out.append("| " + " | ".join([
+            f"`{os.path.relpath(path, RESULTS)}`", str(d.get("env", "QuadcopterGoto-v1")), fmt("runs", d.get("runs")),
+            fmt("n_envs", d.get("n_envs")), fmt("nepisodes", d.get("nepisodes")),
+            fmt("train_seconds", d.get("train_seconds")), fmt("median", med), fmt("mean", mean), fmt("min", low),
+            "-" if share is None else f"{share:.0%}"]) + " |")
+    return out + [""]
+
+
+def result_files() -> dict[str, list[str]]:
+    """``{device folder: [JSON paths]}``, the main job's file first, then by path."""
+    found: dict[str, list[str]] = {}
+    for device in sorted(os.listdir(RESULTS)):
+        folder = os.path.join(RESULTS, device)
+        if device == "local" or not os.path.isdir(folder):
+            continue
+        paths = [os.path.join(d, f) for d, _, files in os.walk(folder) for f in files if f.endswith(".json")]
+        found[device] = sorted(paths, key=lambda p: (os.path.basename(p) != "throughput.json", p))
+    return found
+
+
+def page() -> str:
+    lines = ["# Results", "",
+             "Every figure jaxrobo reports, per device, generated by `python benchmarks/results_page.py` from the "
+             "benchmark JSON under `benchmarks/results/<device>/` (do not edit by hand). How to run each benchmark and "
+             "what it measures: [benchmarks.md](benchmarks.md).", ""]
+    files = result_files()
+    lines += ["Devices: " + ", ".join(f"[{d}](#{d})" for d in files), ""]
+    for device, paths in files.items():
+        datas = []
+        for p in paths:
+            with open(p, encoding="utf-8") as f:
+                datas.append((p, json.load(f)))
+        named = next((device_of(d) for _, d in datas if device_of(d)), device)
+        lines += [f"## {device}", "", f"Device: {named}.", ""]
+        figures = sorted(f for f in os.listdir(os.path.join(RESULTS, device)) if f.endswith(".png"))
+        for fig in figures:
+            lines += [f"![{fig}](../benchmarks/results/{device}/{fig})", ""]
+        learning = [(p, d) for p, d in datas if is_learning(d)]
+        for p, data in datas:
+            if not is_learning(data):
+                lines += section(p, data)
+        if learning:
+            lines += learning_table(learning)
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=PAGE, help="the page to write (default docs/results.md)")
+    ap.add_argument("--check", action="store_true", help="write nothing; exit 1 if the page differs")
+    args = ap.parse_args(argv)
+    text = page()
+    if args.check:
+        with open(args.out, encoding="utf-8") as f:
+            same = f.read() == text
+        print(f"{args.out}: {'up to date' if same else 'stale: run python benchmarks/results_page.py'}")
+        return 0 if same else 1
+    with open(args.out, "w", encoding="utf-8") as f:
+        f.write(text)
+    print(f"wrote {args.out} ({len(text.splitlines())} lines)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
