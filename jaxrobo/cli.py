@@ -256,13 +256,13 @@ def _deep_spec(args: argparse.Namespace, agent: str):
                                           ("--nepisodes", args.nepisodes), ("--total-steps", total_steps),
                                           ("--seed", args.seed), ("--set", args.set), ("--out", args.out)),
                             args.overwrite)
-        rundir.check_out(args.resume, resume=True, flag="--resume")
+        resume = rundir.check_out(args.resume, resume=True, flag="--resume")  # or an --overwrite run pending
         from jaxrobo.io.results import load_config
 
-        spec = deep.spec_from_config(load_config(args.resume), os.path.join(args.resume, "config.yaml"))
-        saved = checkpoint.load(os.path.join(args.resume, rundir.CHECKPOINT), checkpoint.fingerprint(spec),
+        spec = deep.spec_from_config(load_config(resume), os.path.join(resume, "config.yaml"))
+        saved = checkpoint.load(os.path.join(resume, rundir.CHECKPOINT), checkpoint.fingerprint(spec),
                                 deep.epoch_plan(spec.config), spec.config.eval_episodes)
-        return spec, args.resume, saved
+        return spec, resume, saved
     if args.nepisodes is not None:
         raise ConfigError(f"--nepisodes: --agent {agent} trains for a number of env steps, not episodes; use "
                           "--total-steps N")
@@ -447,24 +447,17 @@ def _deep_stopped(live: str, out: str, resume_cmd: str, what: str, code: int, **
 def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
     """An error after a checkpoint was saved (evaluating or writing the results of a finished run) leaves a run
     that ``resume_cmd`` (``jaxrobo train --resume OUT``) continues, and says so. The state of a run that replaces
-    an old one (``--overwrite``) lives in a hidden staging sibling (:func:`jaxrobo.io.rundir.live_dir`): it is moved
-    into place as OUT first, as an interrupted run is, so that ``--resume OUT`` finds the new run, not the old one.
-    The error is raised again."""
+    an old one (``--overwrite``) stays in its hidden staging sibling (:func:`jaxrobo.io.rundir.live_dir`), the old
+    run whole until a complete run replaces it; ``--resume OUT`` finds the new run there
+    (:func:`jaxrobo.io.rundir.pending`). The error is raised again."""
     from jaxrobo.io import rundir
 
     try:
         yield
     except Exception:
         if rundir.is_resumable(live):
-            if os.path.abspath(live) != os.path.abspath(out):
-                try:
-                    rundir.publish(live, out, overwrite=True)
-                except OSError as err:
-                    print(f"jaxrobo train: the run failed after saving its checkpoint in {live}, which could not be "
-                          f"moved to {out} ({err}); move it there (the old run's place), then: {resume_cmd}",
-                          file=sys.stderr)
-                    raise
-            print(f"jaxrobo train: the run failed after saving its checkpoint; {out} holds it; to go on: "
+            where = out if os.path.abspath(live) == os.path.abspath(out) else f"{live} (beside the old run)"
+            print(f"jaxrobo train: the run failed after saving its checkpoint; {where} holds it; to go on: "
                   f"{resume_cmd}", file=sys.stderr)
         raise
 
@@ -821,6 +814,14 @@ LIGHT_COMMANDS = ("list", "plot")
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)  # --help and usage errors exit here, before the cache is touched
+    from jaxrobo.core import environ
+    from jaxrobo.core.config import ConfigError
+
+    try:  # every environment variable jaxrobo reads, before anything uses one
+        environ.check(light=args.command in LIGHT_COMMANDS)
+    except ConfigError as err:
+        print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
+        return 2
     if args.command not in LIGHT_COMMANDS:
         from jaxrobo.physics.sim import quiet_imports
 

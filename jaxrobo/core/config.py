@@ -57,6 +57,23 @@ def _mapping_without_duplicates(loader: StrictLoader, node: yaml.MappingNode, de
 
 StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
 
+#: YAML types that SafeLoader builds and a config never holds (a config is JSON's values: null, booleans, numbers,
+#: strings, lists, mappings): a date in a hand-edited config.yaml would reach a field as a ``datetime``.
+_NOT_CONFIG_TYPES = {"timestamp": "a date or time", "set": "a set", "binary": "binary data",
+                     "omap": "an ordered mapping", "pairs": "a list of pairs"}
+
+
+def _refuse(what: str):
+    def construct(loader: StrictLoader, node: yaml.Node) -> Any:
+        value = node.value if isinstance(node, yaml.ScalarNode) else f"!!{node.tag.rpartition(':')[2]}"
+        raise ConfigError(f"line {node.start_mark.line + 1}: {value!s:.40} is {what}, not a value a config holds "
+                          "(null, booleans, numbers, strings, lists, mappings); quote it to give a string")
+    return construct
+
+
+for _tag, _what in _NOT_CONFIG_TYPES.items():
+    StrictLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse(_what))
+
 #: Limits on what a YAML file may hold (configs are small: a run's config.yaml is ~2 KB, ~150 nodes). A file read
 #: back is hostile: a 24 MB list takes minutes to parse, an alias bomb grows exponentially, deep nesting
 #: overflows the stack. Bytes are checked before parsing, nesting and nodes while composing.
@@ -107,6 +124,9 @@ def load_yaml(path: str, where: str | None = None) -> dict[str, Any]:
     where = path if where is None else where
     if not os.path.exists(path):
         raise ConfigError(f"config file not found: {path}")
+    from jaxrobo.io.rundir import check_regular
+
+    check_regular(path, where)  # a FIFO would hang the read, a device never end it
     try:
         with open(path, "rb") as f:
             raw = f.read(YAML_MAX_BYTES + 1)  # never more than the cap, whatever the file's size

@@ -186,8 +186,36 @@ def _frame_rate(env: Any) -> int:
     return max(1, int(round(1.0 / dt))) if dt > 0 else 30
 
 
+class _Picklable:
+    """Stdlib ``pickle`` (what ``multiprocessing`` and SB3's subprocess vector envs use): the compiled functions
+    (closures) and the renderer are not pickled but rebuilt on unpickling; an env made from an id is rebuilt from
+    the id and its overrides (``_made``), one passed as ``env=`` is pickled as it is. The current state, params and
+    random generator go with it, so the copy goes on where the original was."""
+
+    _made: tuple[str, dict[str, Any]] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        import jax
+
+        state = dict(self.__dict__)
+        state["_fns"] = state["_renderer"] = None
+        if self._made is not None:
+            state["jax_env"] = None
+        for name in ("state", "states", "params"):
+            if state.get(name) is not None:
+                state[name] = jax.device_get(state[name])
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        if self.jax_env is None:
+            env_id, values = self._made
+            self.jax_env = _make_env(env_id, None, values, {})
+        self._fns = self._compile()
+
+
 # ---- the single environment ----------------------------------------------------------------------------------
-class JaxroboEnv(gymnasium.Env):
+class JaxroboEnv(_Picklable, gymnasium.Env):
     """A jaxrobo env with Gymnasium's classic single-env API.
 
     ``JaxroboEnv("CartPoleStayUp-v0", control_type="position")`` or ``gymnasium.make("jaxrobo/CartPoleStayUp-v0",
@@ -204,16 +232,20 @@ class JaxroboEnv(gymnasium.Env):
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, "
                              + ", ".join(repr(m) for m in self.metadata["render_modes"]))
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self._made = None if env is not None else (env_id, {**(overrides or {}), **kwargs})
         self.params = self.jax_env.default_params
         self.action_space, self.observation_space = gym_spaces(self.jax_env, self.params)
         self._n = _action_limit(self.action_space)
         self._obs_size = int(np.prod(self.observation_space.shape))
-        self._fns = compiled_for(self.jax_env)
+        self._fns = self._compile()
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
         self._render_args = (int(width), int(height), camera)
         self._renderer: Any = None
         self.state: Any = None  # the current jaxrobo EnvState (on device)
+
+    def _compile(self) -> Any:
+        return compiled_for(self.jax_env)
 
     # -- core API ----------------------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -297,7 +329,7 @@ def _check_reset_mask(mask: Any, num_envs: int) -> np.ndarray:
     return arr
 
 
-class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
+class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
     """``num_envs`` copies of a jaxrobo env stepped as one vmapped jitted call, with Gymnasium's autoreset modes.
 
     ``autoreset_mode`` (``metadata["autoreset_mode"]``; the enum or its string value, as ``SyncVectorEnv`` takes):
@@ -334,6 +366,7 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array'")
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self._made = None if env is not None else (env_id, {**(overrides or {}), **kwargs})
         self.params = self.jax_env.default_params
         self.num_envs = int(num_envs)
         self.single_action_space, self.single_observation_space = gym_spaces(self.jax_env, self.params)
@@ -346,7 +379,7 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         #: How the batch is stepped (:class:`jaxrobo.speed.plan.ExecutionPlan`; default: the plan for this env on the
         #: default device, which steps large MJX batches on a GPU in groups, as the trainer does).
         self.plan = ExecutionPlan.for_run(self.jax_env) if plan is None else plan
-        self._fns = compiled_for(self.jax_env, self.plan)
+        self._fns = self._compile()
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env),
                          "autoreset_mode": self.autoreset_mode}
@@ -355,6 +388,9 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         self.states: Any = None
         self._needs_reset: Any = None
         self._done = np.zeros(self.num_envs, bool)  # envs whose episode ended on the last step (host copy)
+
+    def _compile(self) -> Any:
+        return compiled_for(self.jax_env, self.plan)
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
