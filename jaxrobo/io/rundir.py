@@ -191,11 +191,11 @@ def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag:
             raise ConfigError(f"{where}: no such run directory")
         if not is_resumable(path):
             path = pending(path) or path
+        check_owned_entries(path, flag)
         if is_complete(path):
             raise ConfigError(f"{where}: the run is complete, nothing to resume")
         if not is_resumable(path):
             raise ConfigError(f"{where}: no {CHECKPOINT} in it ({_describe(path)}); nothing to resume")
-        check_owned_entries(path, flag)
     elif os.path.isdir(path) and os.listdir(path):
         what = _describe(path)
         if not overwrite:
