@@ -661,8 +661,10 @@ def _plot(args: argparse.Namespace) -> int:
         for d in args.runs:
             if not os.path.isdir(d):
                 raise ConfigError(f"run directory {d!r} does not exist (or is not a directory)")
-        if args.window < 1:
-            raise ConfigError(f"--window {args.window}: must be an integer >= 1 (episodes averaged)")
+        from jaxrobo.core.struct import INT32_MAX
+
+        if not 1 <= args.window <= INT32_MAX:
+            raise ConfigError(f"--window {args.window}: must be an integer in 1..{INT32_MAX} (episodes averaged)")
         if args.labels is not None and len(args.labels) != len(args.runs):
             raise ConfigError(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs; give one per run")
         out = args.out or os.path.join(args.runs[0], "scalars.png" if args.scalars else "rewards.png")

@@ -181,6 +181,10 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--episodes {args.episodes}: expected 1..1000000")
         if not 1 <= args.tables <= MAX_TABLES:
             raise ConfigError(f"--tables {args.tables}: expected 1..{MAX_TABLES}")
+        from jaxrobo.core.struct import INT32_MAX
+
+        if not 0 <= args.seed <= INT32_MAX:
+            raise ConfigError(f"--seed {args.seed}: expected an integer in 0..{INT32_MAX}")
         spec, policy, q = _load(args.run_dir, args.tables)
         shifts = parse_shifts(args.shift, spec.env.default_params)
         randomised_env(spec.env)  # refuse a task without randomisation before anything compiles

@@ -14,6 +14,7 @@ import os
 import re
 from typing import Any, Iterable, Mapping
 
+import numpy as np
 import yaml
 
 from jaxrobo.core.struct import Rule, rules
@@ -244,6 +245,35 @@ def build(cls: type, values: Mapping[str, Any], where: str = "") -> Any:
 def parse_value(text: str, key: str = "value") -> Any:
     """A command-line value as YAML reads it: ``0.3`` or ``1e-3`` → float, ``true`` → bool, ``[1, 2]`` → list."""
     return parse_yaml(text, f"--set {key}")
+
+
+def check_relations(obj: Any, where: str) -> None:
+    """The relations between fields of a built Options/Params dataclass that no single field's rule can see: each
+    :func:`~jaxrobo.core.struct.ordered_pairs` ``(min, max)`` in order, and each ``within=(lo, hi)`` field
+    between those two fields' values; a ConfigError naming the fields and values. Per-row values (a sweep's
+    arrays) are checked row by row; traced values (inside a jitted function) are left alone."""
+    from jaxrobo.core.struct import ordered_pairs, rules
+
+    def values(name: str):
+        try:
+            return np.asarray(getattr(obj, name), np.float64)
+        except Exception:  # noqa: BLE001 - a tracer: not a concrete value to check
+            return None
+
+    def show(a) -> str:
+        return f"{float(a.flat[0]):g}" if a.size == 1 else f"{a.tolist()}"
+
+    for lo, hi in ordered_pairs(obj):
+        a, b = values(lo), values(hi)
+        if a is not None and b is not None and np.any(a > b):
+            raise ConfigError(f"{where}: {lo}={show(a)} is above {hi}={show(b)}; {lo} must be <= {hi}")
+    for name, rule in rules(obj).items():
+        if rule.within is None:
+            continue
+        v, (lo, hi) = values(name), rule.within
+        a, b = values(lo), values(hi)
+        if v is not None and a is not None and b is not None and np.any((v < a) | (v > b)):
+            raise ConfigError(f"{where}: {name}={show(v)} is outside [{lo}, {hi}] = [{show(a)}, {show(b)}]")
 
 
 def parse_overrides(pairs: Iterable[str]) -> dict[str, Any]:

@@ -164,8 +164,12 @@ def _reset_params(env: Any, base: Any, options: Mapping[str, Any] | None) -> Any
     bad = sorted(k for k in options if k in static)
     if bad:
         raise ValueError(f"reset options {bad} are static options of {env.name}; pass them to gymnasium.make instead")
+    from jaxrobo.core.config import check_relations
+
     (checked,) = split_and_validate(dict(options), type(base), where=f"{env.name} reset options")
-    return base.replace(**checked)
+    params = base.replace(**checked)
+    check_relations(params, f"{env.name} reset options")
+    return params
 
 
 def _seed_keys(seeds: Sequence[int]) -> Any:
