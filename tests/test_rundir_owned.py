@@ -260,3 +260,32 @@ def test_export_into_the_run_itself_is_refused(done, tmp_path, capsys):
     _refused(["export", run, "--out", run, "--overwrite"], capsys, run, "run directory")
     assert _snapshot(run) == before
     assert main(["export", run, "--out", str(tmp_path / "policy")]) == 0
+
+
+# ---- a stop during the evaluation keeps the finished training ------------------------------------------------------
+def test_a_stop_during_the_evaluation_keeps_the_training_and_resume_only_evaluates(tmp_path, monkeypatch, capsys,
+                                                                                  done):
+    from jaxrobo.training import driver
+
+    from test_resume import _assert_same_run, _counting_chunks
+
+    real = driver.evaluate_tables
+
+    def signalled(trainer, runner, key, env_params, progress=None):
+        def first_segment(p):
+            signal.raise_signal(signal.SIGINT)
+            progress(p)
+        return real(trainer, runner, key, env_params, first_segment)
+
+    out = str(tmp_path / "run")
+    with monkeypatch.context() as patch:
+        patch.setattr(driver, "evaluate_tables", signalled)
+        assert main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", out]) == 130
+    err = capsys.readouterr().err
+    assert "stopped during the evaluation: the finished training is kept" in err and "Traceback" not in err
+    status = rundir.read_status(out)
+    assert status["status"] == rundir.INTERRUPTED and status["episodes_done_min"] == status["nepisodes"]
+    chunks_run = _counting_chunks(monkeypatch)
+    assert main(["train", "--resume", out, "--no-progress"]) == 0
+    assert chunks_run == [] and rundir.is_complete(out)
+    _assert_same_run(out, done)

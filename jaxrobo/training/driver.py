@@ -320,13 +320,31 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         # A stopped run keeps its carry as it is: the resumed run chooses once it has finished.
         runner, choice = jax.jit(trainer.final_table)(runner, key, env_params)
         final_choice = int(choice)
-    if config.eval_episodes > 0 and not loop.stopped:
+    stopped = loop.stopped
+    if config.eval_episodes > 0 and not stopped:
         if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
             announce(f"evaluating {evaluated_tables(config)} table(s) × {config.eval_episodes} greedy episodes ≤ "
                      f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
                      "(compile, then fly)")
-        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
-                                                                             eval_progress)
+
+        def segment(p: EvalProgress) -> None:  # a stop asked for during the evaluation ends it after a segment
+            if eval_progress is not None:
+                eval_progress(p)
+            if should_stop is not None and should_stop():
+                raise _EvaluationStopped
+
+        try:
+            eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
+                                                                                 segment)
+        except _EvaluationStopped:
+            # The training is finished (and checkpointed, where the caller saves one): the run stops as an
+            # interrupted one after its last chunk; resuming it evaluates and writes the results, training nothing.
+            stopped = True
+            eval_returns = eval_lengths = selected = eval_success = None
+            if announce is not None:
+                announce("stopped during the evaluation: the finished training is kept"
+                         + (" (its checkpoint is saved); resuming evaluates and writes the results"
+                            if checkpoint is not None else ""))
     eval_seconds = time.perf_counter() - t_eval
 
     host = host_get(runner.replace(key=None, env_state=None))
@@ -337,7 +355,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_returns=eval_returns,
-        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
+        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not stopped,
         chunks_done=loop.chunks_done, start_chunk=start_chunk, eval_seconds=eval_seconds,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
         episodes_finished=int(np.asarray(host.episode, np.int64).sum()), budget=trainer.budget,
@@ -411,6 +429,10 @@ def fly(trainer: Trainer, keys: jax.Array, agents: Any, n_episodes: int, env_par
         if progress is not None:
             progress(EvalProgress(what, step, horizon, running, count, time.perf_counter() - t0, compile_seconds))
     return jax.device_get(rollout.outcomes(rollout.rollout_end(carry)))
+
+
+class _EvaluationStopped(Exception):
+    """A stop asked for between two segments of the greedy evaluation (:func:`run_training`)."""
 
 
 def evaluated_tables(config: Any) -> int:
