@@ -664,7 +664,7 @@ def _plot(args: argparse.Namespace) -> int:
         from jaxrobo.core.struct import INT32_MAX
 
         if not 1 <= args.window <= INT32_MAX:
-            raise ConfigError(f"--window {args.window}: must be an integer in 1..{INT32_MAX} (episodes averaged)")
+            raise ConfigError(f"--window {args.window}: must be an integer >= 1 and <= {INT32_MAX} (episodes averaged)")
         if args.labels is not None and len(args.labels) != len(args.runs):
             raise ConfigError(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs; give one per run")
         out = args.out or os.path.join(args.runs[0], "scalars.png" if args.scalars else "rewards.png")

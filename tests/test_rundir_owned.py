@@ -7,7 +7,7 @@ what is wrong, nothing lost, nothing written outside the run. CPU-sized: the tin
 from __future__ import annotations
 
 import filecmp
-import json
+import re
 import os
 import shutil
 import signal
@@ -289,3 +289,78 @@ def test_a_stop_during_the_evaluation_keeps_the_training_and_resume_only_evaluat
     assert main(["train", "--resume", out, "--no-progress"]) == 0
     assert chunks_run == [] and rundir.is_complete(out)
     _assert_same_run(out, done)
+
+
+# ---- environment variables, flags and keyword ranges: exit 2 / a ConfigError naming them ---------------------------
+@pytest.mark.parametrize("var, value, fragment", [
+    ("JAXROBO_PAUSE_BEFORE_PUBLISH", "soon", "JAXROBO_PAUSE_BEFORE_PUBLISH='soon'"),
+    ("JAXROBO_PAUSE_BEFORE_PUBLISH", "nan", "expected a number of seconds"),
+    ("JAXROBO_DISTRIBUTED", "yes", "JAXROBO_DISTRIBUTED='yes'"),
+    ("JAXROBO_INIT_TIMEOUT", str(10**22), "JAXROBO_INIT_TIMEOUT="),
+    ("JAXROBO_NUM_PROCESSES", "0", "JAXROBO_NUM_PROCESSES=0"),
+    ("JAXROBO_PROCESS_ID", "-1", "JAXROBO_PROCESS_ID=-1"),
+    ("JAXROBO_COORDINATOR", "nohost:x", "JAXROBO_COORDINATOR='nohost:x'"),
+])
+def test_a_bad_jaxrobo_variable_is_refused_before_any_command(monkeypatch, capsys, tmp_path, var, value, fragment):
+    monkeypatch.setenv(var, value)
+    _refused(["export", str(tmp_path / "nothing"), "--out", str(tmp_path / "policy")], capsys, fragment)
+    _refused(["list"], capsys, fragment)
+
+
+def test_a_coordinator_port_in_use_is_refused_for_process_0(monkeypatch, capsys, tmp_path):
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        monkeypatch.setenv("JAXROBO_COORDINATOR", f"localhost:{port}")
+        monkeypatch.setenv("JAXROBO_NUM_PROCESSES", "2")
+        monkeypatch.setenv("JAXROBO_PROCESS_ID", "0")
+        _refused(["list"], capsys, f"port {port} is already in use")
+
+
+@pytest.mark.parametrize("var, value", [("JAX_ENABLE_X64", "maybe"), ("MUJOCO_GL", "bogus"), ("JAX_PLATFORMS", "tpu")])
+def test_a_bad_third_party_variable_is_one_line_exit_2(var, value, tmp_path):
+    """Read by JAX or MuJoCo at import (or at the first array): checked before, in a fresh process."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, var: value}
+    proc = subprocess.run([sys.executable, "-m", "jaxrobo.cli", "export", str(tmp_path / "nothing"), "--out",
+                           str(tmp_path / "policy")], env=env, capture_output=True, text=True, timeout=300,
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    lines = [ln for ln in proc.stderr.strip().splitlines() if "warp" not in ln]  # MJX's optional-backend notes
+    assert proc.returncode == 2 and len(lines) == 1 and f"{var}={value!r}" in lines[0], proc.stderr
+
+
+def test_huge_integers_in_plot_and_eval_flags_are_refused(done, capsys, tmp_path):
+    _refused(["plot", done, "--window", str(10**30), "--out", str(tmp_path / "a.png")], capsys, "--window")
+    _refused(["eval", done, "--shift", "pole_mass=0.5,1", "--seed", str(10**20), "--out", str(tmp_path / "ev")],
+             capsys, "--seed")
+
+
+@pytest.mark.parametrize("env_id, kwargs, fragment", [
+    ("QuadcopterGoto-v1", {"goal_min_dist": 6.0, "goal_max_dist": 2.0}, "goal_min_dist=6 is above goal_max_dist=2"),
+    ("ArmReach-v0", {"elbow_min": 2.5, "elbow_max": 0.3}, "elbow_min=2.5 is above elbow_max=0.3"),
+    ("CartPoleStayUp-v0", {"init_pos": 5.0}, "init_pos=5 is outside [min_base_pose_x, max_base_pose_x]"),
+])
+def test_make_and_gym_make_refuse_reversed_ranges_like_set(env_id, kwargs, fragment, capsys, tmp_path):
+    import gymnasium as gym
+
+    import jaxrobo
+    from jaxrobo.core.config import ConfigError
+
+    with pytest.raises(ConfigError, match=re.escape(fragment)):
+        jaxrobo.make(env_id, **kwargs)
+    with pytest.raises(ConfigError, match=re.escape(fragment)):
+        gym.make(f"jaxrobo/{env_id}", **kwargs)
+    sets = [a for k, v in kwargs.items() for a in ("--set", f"{k}={v}")]
+    _refused(["train", "--env", env_id, *sets, "--out", str(tmp_path / "run")], capsys, fragment)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_sweep_point_with_a_start_off_the_track_is_refused_before_it_starts(capsys, tmp_path):
+    _refused(["sweep", "--env", "CartPoleStayUp-v0", "--grid", "init_pos=0,3", "--out", str(tmp_path / "sw")],
+             capsys, "init_pos=3 is outside")
+    assert not (tmp_path / "sw").exists()

@@ -79,9 +79,9 @@ def env_int(name: str, low: int, high: int = _INT_MAX, default: int | None = Non
     try:
         value = int(text.strip())
     except ValueError:
-        raise ConfigError(f"{name}={text!r}: expected an integer in {low}..{high}") from None
+        raise ConfigError(f"{name}={text!r}: expected an integer >= {low} and <= {high}") from None
     if not low <= value <= high:
-        raise ConfigError(f"{name}={value}: expected an integer in {low}..{high}")
+        raise ConfigError(f"{name}={value}: expected an integer >= {low} and <= {high}")
     return value
 
 
