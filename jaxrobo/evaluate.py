@@ -162,12 +162,17 @@ def write(rows: list[dict[str, Any]], out_dir: str, title: str) -> tuple[str, st
     from jaxrobo.pictures.plots import robustness_figure
 
     os.makedirs(out_dir, exist_ok=True)
+    from jaxrobo.io import rundir
+
     path = os.path.join(out_dir, "robustness.csv")
-    with open(path, "w", newline="") as f:
+
+    def table(f) -> None:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
         w.writeheader()
         for r in rows:
             w.writerow(r)
+
+    rundir.atomic_write(path, table, mode="w")  # a stop while writing keeps the earlier table whole
     png = os.path.join(out_dir, "robustness.png")
     robustness_figure(rows, png, title)
     return path, png

@@ -97,14 +97,17 @@ def test_runs_and_sweeps_write_only_owned_names(done, stopped, tmp_path):
     from jaxrobo.training import sweep
 
     out = str(tmp_path / "sweep")
-    assert sweep.main(["--env", "CartPoleStayUp-v0", "--agent", "qlearn", "--grid", "alpha=0.1,0.5", "--grid",
-                       "gamma=0.9,0.99", "--seeds", "1", "--n-envs", "2", "--nepisodes", "2", "--nsteps", "20",
-                       "--set", "chunk_steps=10", "--set", "backend=analytic", "--set", "bins=null",
-                       "--eval-episodes", "1", "--out", out]) == 0
+    args = ["--env", "CartPoleStayUp-v0", "--agent", "qlearn", "--grid", "alpha=0.1,0.5", "--grid",
+            "gamma=0.9,0.99", "--seeds", "1", "--n-envs", "2", "--nepisodes", "2", "--nsteps", "20", "--set",
+            "chunk_steps=10", "--set", "backend=analytic", "--set", "bins=null", "--eval-episodes", "1", "--out", out]
+    assert sweep.main(args) == 0
     assert any(n.endswith(".png") for n in os.listdir(out))
     for run in (done, stopped, out):
         names = os.listdir(run)
         assert names and rundir.user_entries(run) == [], (run, names)
+    _add_user_files(out)  # and a sweep replaced by --overwrite keeps them
+    assert sweep.main([*args, "--overwrite"]) == 0
+    assert rundir.is_complete(out) and _user_files_kept(out) and _hidden(tmp_path) == []
     assert rundir.owned(".checkpoint.npz.x1y2.tmp") and not rundir.owned(".notes.txt.swp")
     assert not rundir.owned("notes.txt") and not rundir.owned("src")
 
