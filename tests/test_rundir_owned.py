@@ -367,3 +367,13 @@ def test_a_sweep_point_with_a_start_off_the_track_is_refused_before_it_starts(ca
     _refused(["sweep", "--env", "CartPoleStayUp-v0", "--grid", "init_pos=0,3", "--out", str(tmp_path / "sw")],
              capsys, "init_pos=3 is outside")
     assert not (tmp_path / "sw").exists()
+
+
+@pytest.mark.parametrize("seed", [-1, "3", 1.5, True, [0, -2], [0, "x"]])
+def test_a_vector_reset_refuses_negative_or_string_seeds(seed):
+    from jaxrobo.interop.gym_adapter import JaxroboVectorEnv
+
+    env = JaxroboVectorEnv("CartPoleStayUp-v0", num_envs=2)
+    with pytest.raises(ValueError, match="expected None or an integer >= 0"):
+        env.reset(seed=seed)
+    env.reset(seed=[1, None])  # what is allowed still is

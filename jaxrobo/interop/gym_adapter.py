@@ -172,6 +172,15 @@ def _reset_params(env: Any, base: Any, options: Mapping[str, Any] | None) -> Any
     return params
 
 
+def _check_seed(seed: Any) -> None:
+    """A reset seed is None or an integer >= 0 (Gymnasium's rule); a ValueError naming it otherwise (a string or
+    a negative number would otherwise be converted or wrapped silently)."""
+    if seed is None:
+        return
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed={seed!r}: expected None or an integer >= 0")
+
+
 def _seed_keys(seeds: Sequence[int]) -> Any:
     """The key of each seed, in one call: ``jax.random.key(s)`` for ``s < 2**32`` (threefry key data is
     ``[s >> 32, s & 0xffffffff]``); larger seeds keep both halves, which ``jax.random.key`` without x64 would not."""
@@ -403,6 +412,8 @@ class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
         ``options={"reset_mask": mask}`` (``bool[num_envs]``, as Gymnasium's vector envs take it) resets only the
         envs where ``mask`` is True, from their seed if one is given, else from the key their state carries; the
         others keep their state and observation."""
+        for s in (seed if isinstance(seed, (list, tuple)) else [seed]):
+            _check_seed(s)
         if options and "reset_mask" in options:
             rest = {k: v for k, v in options.items() if k != "reset_mask"}
             return self._reset_where(_check_reset_mask(options["reset_mask"], self.num_envs), seed, rest)
