@@ -810,6 +810,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def refuse_empty_flags(args: argparse.Namespace) -> None:
+    """A string flag given as ``""`` (``--env ""``, ``--out ""``, ``--preset ""``) is refused, naming it: left
+    alone it would read as "not given" and pick the default silently."""
+    from jaxrobo.core.config import ConfigError
+
+    for name, value in vars(args).items():
+        if isinstance(value, str) and not value.strip() and name not in ("command",):
+            raise ConfigError(f"--{name.replace('_', '-')} {value!r}: empty; give a value or leave the flag out")
+
+
 #: Commands that never step a simulator: they skip importing MJX (seconds) up front.
 LIGHT_COMMANDS = ("list", "plot")
 
@@ -819,8 +829,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from jaxrobo.core import environ
     from jaxrobo.core.config import ConfigError
 
-    try:  # every environment variable jaxrobo reads, before anything uses one
+    try:  # every environment variable jaxrobo reads, and no flag given empty, before anything uses one
         environ.check(light=args.command in LIGHT_COMMANDS)
+        refuse_empty_flags(args)
     except ConfigError as err:
         print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
         return 2

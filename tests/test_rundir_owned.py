@@ -377,3 +377,12 @@ def test_a_vector_reset_refuses_negative_or_string_seeds(seed):
     with pytest.raises(ValueError, match="expected None or an integer >= 0"):
         env.reset(seed=seed)
     env.reset(seed=[1, None])  # what is allowed still is
+
+
+@pytest.mark.parametrize("argv, flag", [(["train", "--env", ""], "--env"), (["train", "--out", ""], "--out"),
+                                        (["train", "--preset", " "], "--preset"),
+                                        (["sweep", "--env", "", "--grid", "alpha=0.1,0.2"], "--env")])
+def test_an_empty_flag_is_refused_not_read_as_the_default(argv, flag, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _refused(argv, capsys, f"{flag} ", "empty")
+    assert os.listdir(tmp_path) == []  # no training_results/ default run
