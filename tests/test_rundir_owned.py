@@ -386,3 +386,8 @@ def test_an_empty_flag_is_refused_not_read_as_the_default(argv, flag, capsys, tm
     monkeypatch.chdir(tmp_path)
     _refused(argv, capsys, f"{flag} ", "empty")
     assert os.listdir(tmp_path) == []  # no training_results/ default run
+
+
+def test_a_key_set_with_and_without_its_section_is_refused(capsys, tmp_path):
+    _refused(["train", "--set", "alpha=0.3", "--set", "agent.alpha=0.4", "--out", str(tmp_path / "run")], capsys,
+             "name the same key")

@@ -288,8 +288,19 @@ def parse_overrides(pairs: Iterable[str]) -> dict[str, Any]:
             raise ConfigError(f"--set {pair!r}: expected KEY=VALUE (the key is empty)")
         if key in out:
             raise ConfigError(f"--set {key}: given twice ({out[key]!r} and {text!r}); give each key once")
+        # ``alpha`` and ``agent.alpha`` name one value: one of the two would win silently.
+        bare = _bare(key)
+        for other in out:
+            if _bare(other) == bare and bare in (key, other):
+                raise ConfigError(f"--set {key}={text.strip()} and --set {other}={out[other]!r} name the same key; "
+                                  "give it once")
         out[key] = parse_value(text, key)
     return out
+
+
+def _bare(key: str) -> str:
+    """A ``--set`` key without its ``env.`` / ``agent.`` section."""
+    return key.split(".", 1)[1] if key.startswith(("env.", "agent.")) else key
 
 
 def merge_flags(overrides: dict[str, Any], flags: Iterable[tuple[str, str, Any]]) -> dict[str, Any]:
