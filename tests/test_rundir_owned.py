@@ -391,3 +391,31 @@ def test_an_empty_flag_is_refused_not_read_as_the_default(argv, flag, capsys, tm
 def test_a_key_set_with_and_without_its_section_is_refused(capsys, tmp_path):
     _refused(["train", "--set", "alpha=0.3", "--set", "agent.alpha=0.4", "--out", str(tmp_path / "run")], capsys,
              "name the same key")
+
+
+def test_a_stopped_sweep_overwrite_keeps_the_old_sweep_and_resumes_from_its_name(tmp_path, monkeypatch, capsys):
+    """As for a run: the old sweep (and the user's files in it) stays whole; ``--resume OUT`` finds the new
+    sweep's state beside it and replaces the old one once complete."""
+    from jaxrobo.training.sweep import state as sweep_state
+
+    from test_sweep_resume import ARGS, _main
+
+    out = str(tmp_path / "sweep")
+    assert _main([*ARGS, "--out", out]) == 0
+    _add_user_files(out)
+    before = _snapshot(out)
+    save = sweep_state.save_checkpoint
+
+    def save_then_signal(state_dir, fingerprint, plan, finished):
+        save(state_dir, fingerprint, plan, finished)
+        if len(finished) == 1:
+            signal.raise_signal(signal.SIGINT)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(sweep_state, "save_checkpoint", save_then_signal)
+        assert _main([*ARGS, "--out", out, "--overwrite"]) == 130
+    assert _snapshot(out) == before and len(_hidden(tmp_path)) == 1
+    capsys.readouterr()
+    assert _main(["--resume", out]) == 0
+    assert rundir.is_complete(out) and _user_files_kept(out) and _hidden(tmp_path) == []
+    assert rundir.read_status(out)["status"] == rundir.COMPLETE
