@@ -419,3 +419,10 @@ def test_a_stopped_sweep_overwrite_keeps_the_old_sweep_and_resumes_from_its_name
     assert _main(["--resume", out]) == 0
     assert rundir.is_complete(out) and _user_files_kept(out) and _hidden(tmp_path) == []
     assert rundir.read_status(out)["status"] == rundir.COMPLETE
+
+
+def test_a_lock_file_hard_linked_to_another_file_is_not_written(tmp_path, capsys):
+    target = _outside(tmp_path)
+    os.link(target, tmp_path / ".run.lock")
+    _refused(["train", *CLI_TINY, "--out", str(tmp_path / "run")], capsys, str(tmp_path / ".run.lock"), "hard link")
+    assert target.read_bytes() == b"precious"

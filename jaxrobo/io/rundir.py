@@ -317,9 +317,11 @@ def locked(path: str, flag: str = "--out") -> Iterator[None]:
                 raise ConfigError(f"{flag} {path}: the lock file {lock} is a symlink (to {os.readlink(lock)}); "
                                   "jaxrobo does not write through it: remove it") from None
             raise
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:  # a hard link would carry the pid to another file
             os.close(fd)
-            raise ConfigError(f"{flag} {path}: the lock file {lock} is not a regular file; remove it")
+            raise ConfigError(f"{flag} {path}: the lock file {lock} is not a regular file of its own (a FIFO, "
+                              "device or hard link); remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
