@@ -835,18 +835,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
         return 2
-    if args.command not in LIGHT_COMMANDS:
-        from jaxrobo.physics.sim import quiet_imports
-
-        with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
-            import mujoco.mjx  # noqa: F401
-    from jaxrobo.speed.cache import enable_or_warn
-
-    enable_or_warn(f"jaxrobo {args.command}")
-    from jaxrobo.core.config import ConfigError
-
     try:
+        if args.command not in LIGHT_COMMANDS:
+            from jaxrobo.physics.sim import quiet_imports
+
+            with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
+                import mujoco.mjx  # noqa: F401
+        from jaxrobo.speed.cache import enable_or_warn
+
+        enable_or_warn(f"jaxrobo {args.command}")
         return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # Ctrl-C where a command has no handler of its own (importing, plot, export, ...)
+        print(f"jaxrobo {args.command}: interrupted", file=sys.stderr)
+        return 130
     except ConfigError as err:  # a subcommand that does not catch it itself (show), e.g. JAX 64-bit mode is on
         print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
         return 2

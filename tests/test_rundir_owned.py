@@ -426,3 +426,14 @@ def test_a_lock_file_hard_linked_to_another_file_is_not_written(tmp_path, capsys
     os.link(target, tmp_path / ".run.lock")
     _refused(["train", *CLI_TINY, "--out", str(tmp_path / "run")], capsys, str(tmp_path / ".run.lock"), "hard link")
     assert target.read_bytes() == b"precious"
+
+
+def test_ctrl_c_in_a_command_without_its_own_handler_is_one_line_exit_130(monkeypatch, capsys, tmp_path):
+    from jaxrobo import export
+
+    def interrupted(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export, "export_run", interrupted)
+    assert main(["export", str(tmp_path), "--out", str(tmp_path / "policy")]) == 130
+    assert capsys.readouterr().err.strip() == "jaxrobo export: interrupted"
