@@ -15,6 +15,10 @@ from __future__ import annotations
 
 from jaxrobo.core.version import __version__
 
+from jaxrobo.core.environ import check_before_import as _check_environ
+
+_check_environ()  # before JAX and MuJoCo read JAX_ENABLE_X64 / MUJOCO_GL at import and fail with a traceback
+
 from jaxrobo.pictures.render import select_gl_backend as _select_gl
 
 _select_gl()  # before anything imports mujoco: MUJOCO_GL may only name a backend whose library loads

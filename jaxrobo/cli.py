@@ -256,13 +256,13 @@ def _deep_spec(args: argparse.Namespace, agent: str):
                                           ("--nepisodes", args.nepisodes), ("--total-steps", total_steps),
                                           ("--seed", args.seed), ("--set", args.set), ("--out", args.out)),
                             args.overwrite)
-        rundir.check_out(args.resume, resume=True, flag="--resume")
+        resume = rundir.check_out(args.resume, resume=True, flag="--resume")  # or an --overwrite run pending
         from jaxrobo.io.results import load_config
 
-        spec = deep.spec_from_config(load_config(args.resume), os.path.join(args.resume, "config.yaml"))
-        saved = checkpoint.load(os.path.join(args.resume, rundir.CHECKPOINT), checkpoint.fingerprint(spec),
+        spec = deep.spec_from_config(load_config(resume), os.path.join(resume, "config.yaml"))
+        saved = checkpoint.load(os.path.join(resume, rundir.CHECKPOINT), checkpoint.fingerprint(spec),
                                 deep.epoch_plan(spec.config), spec.config.eval_episodes)
-        return spec, args.resume, saved
+        return spec, resume, saved
     if args.nepisodes is not None:
         raise ConfigError(f"--nepisodes: --agent {agent} trains for a number of env steps, not episodes; use "
                           "--total-steps N")
@@ -450,24 +450,17 @@ def _deep_stopped(live: str, out: str, resume_cmd: str, what: str, code: int, **
 def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
     """An error after a checkpoint was saved (evaluating or writing the results of a finished run) leaves a run
     that ``resume_cmd`` (``jaxrobo train --resume OUT``) continues, and says so. The state of a run that replaces
-    an old one (``--overwrite``) lives in a hidden staging sibling (:func:`jaxrobo.io.rundir.live_dir`): it is moved
-    into place as OUT first, as an interrupted run is, so that ``--resume OUT`` finds the new run, not the old one.
-    The error is raised again."""
+    an old one (``--overwrite``) stays in its hidden staging sibling (:func:`jaxrobo.io.rundir.live_dir`), the old
+    run whole until a complete run replaces it; ``--resume OUT`` finds the new run there
+    (:func:`jaxrobo.io.rundir.pending`). The error is raised again."""
     from jaxrobo.io import rundir
 
     try:
         yield
     except Exception:
         if rundir.is_resumable(live):
-            if os.path.abspath(live) != os.path.abspath(out):
-                try:
-                    rundir.publish(live, out, overwrite=True)
-                except OSError as err:
-                    print(f"jaxrobo train: the run failed after saving its checkpoint in {live}, which could not be "
-                          f"moved to {out} ({err}); move it there (the old run's place), then: {resume_cmd}",
-                          file=sys.stderr)
-                    raise
-            print(f"jaxrobo train: the run failed after saving its checkpoint; {out} holds it; to go on: "
+            where = out if os.path.abspath(live) == os.path.abspath(out) else f"{live} (beside the old run)"
+            print(f"jaxrobo train: the run failed after saving its checkpoint; {where} holds it; to go on: "
                   f"{resume_cmd}", file=sys.stderr)
         raise
 
@@ -696,8 +689,10 @@ def _plot(args: argparse.Namespace) -> int:
         for d in args.runs:
             if not os.path.isdir(d):
                 raise ConfigError(f"run directory {d!r} does not exist (or is not a directory)")
-        if args.window < 1:
-            raise ConfigError(f"--window {args.window}: must be an integer >= 1 (episodes averaged)")
+        from jaxrobo.core.struct import INT32_MAX
+
+        if not 1 <= args.window <= INT32_MAX:
+            raise ConfigError(f"--window {args.window}: must be an integer >= 1 and <= {INT32_MAX} (episodes averaged)")
         if args.labels is not None and len(args.labels) != len(args.runs):
             raise ConfigError(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs; give one per run")
         out = args.out or os.path.join(args.runs[0], "scalars.png" if args.scalars else "rewards.png")
@@ -843,24 +838,44 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def refuse_empty_flags(args: argparse.Namespace) -> None:
+    """A string flag given as ``""`` (``--env ""``, ``--out ""``, ``--preset ""``) is refused, naming it: left
+    alone it would read as "not given" and pick the default silently."""
+    from jaxrobo.core.config import ConfigError
+
+    for name, value in vars(args).items():
+        if isinstance(value, str) and not value.strip() and name not in ("command",):
+            raise ConfigError(f"--{name.replace('_', '-')} {value!r}: empty; give a value or leave the flag out")
+
+
 #: Commands that never step a simulator: they skip importing MJX (seconds) up front.
 LIGHT_COMMANDS = ("list", "plot")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)  # --help and usage errors exit here, before the cache is touched
-    if args.command not in LIGHT_COMMANDS:
-        from jaxrobo.physics.sim import quiet_imports
-
-        with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
-            import mujoco.mjx  # noqa: F401
-    from jaxrobo.speed.cache import enable_or_warn
-
-    enable_or_warn(f"jaxrobo {args.command}")
+    from jaxrobo.core import environ
     from jaxrobo.core.config import ConfigError
 
+    try:  # every environment variable jaxrobo reads, and no flag given empty, before anything uses one
+        environ.check(light=args.command in LIGHT_COMMANDS)
+        refuse_empty_flags(args)
+    except ConfigError as err:
+        print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
+        return 2
     try:
+        if args.command not in LIGHT_COMMANDS:
+            from jaxrobo.physics.sim import quiet_imports
+
+            with quiet_imports():  # import once, silently: MJX (also through Brax) prints warp import noise
+                import mujoco.mjx  # noqa: F401
+        from jaxrobo.speed.cache import enable_or_warn
+
+        enable_or_warn(f"jaxrobo {args.command}")
         return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # Ctrl-C where a command has no handler of its own (importing, plot, export, ...)
+        print(f"jaxrobo {args.command}: interrupted", file=sys.stderr)
+        return 130
     except ConfigError as err:  # a subcommand that does not catch it itself (show), e.g. JAX 64-bit mode is on
         print(f"jaxrobo {args.command}: {err}", file=sys.stderr)
         return 2

@@ -162,12 +162,17 @@ def write(rows: list[dict[str, Any]], out_dir: str, title: str) -> tuple[str, st
     from jaxrobo.pictures.plots import robustness_figure
 
     os.makedirs(out_dir, exist_ok=True)
+    from jaxrobo.io import rundir
+
     path = os.path.join(out_dir, "robustness.csv")
-    with open(path, "w", newline="") as f:
+
+    def table(f) -> None:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
         w.writeheader()
         for r in rows:
             w.writerow(r)
+
+    rundir.atomic_write(path, table, mode="w")  # a stop while writing keeps the earlier table whole
     png = os.path.join(out_dir, "robustness.png")
     robustness_figure(rows, png, title)
     return path, png
@@ -181,6 +186,10 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--episodes {args.episodes}: expected 1..1000000")
         if not 1 <= args.tables <= MAX_TABLES:
             raise ConfigError(f"--tables {args.tables}: expected 1..{MAX_TABLES}")
+        from jaxrobo.core.struct import INT32_MAX
+
+        if not 0 <= args.seed <= INT32_MAX:
+            raise ConfigError(f"--seed {args.seed}: expected an integer in 0..{INT32_MAX}")
         spec, policy, q = _load(args.run_dir, args.tables)
         shifts = parse_shifts(args.shift, spec.env.default_params)
         randomised_env(spec.env)  # refuse a task without randomisation before anything compiles

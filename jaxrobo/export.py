@@ -26,7 +26,6 @@ import argparse
 import inspect
 import json
 import os
-import shutil
 import sys
 from typing import Any
 
@@ -285,6 +284,10 @@ def write_onnx(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -
 
 
 # ---- the command ----------------------------------------------------------------------------------------
+class _NoOnnx(Exception):
+    """write_onnx wrote nothing: the temporary file is dropped, not moved into place."""
+
+
 def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool = False,
                onnx: bool = True) -> dict[str, Any]:
     """Export the policy of ``run_dir`` into ``out`` (see the module's docstring); returns ``policy.json``'s
@@ -293,8 +296,14 @@ def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool
     from jaxrobo.core.version import __version__
     from jaxrobo.interop import numpy_policy
 
+    from jaxrobo.io import rundir
+
     if os.path.exists(out) and not os.path.isdir(out):
         raise ConfigError(f"--out {out}: exists and is not a directory")
+    if rundir.looks_like_run(out) or (os.path.isdir(out) and os.path.isdir(run_dir)
+                                      and os.path.samefile(out, run_dir)):
+        raise ConfigError(f"--out {out}: is a jaxrobo run directory; its policy files are the run's own: export "
+                          "into a directory of its own")
     if os.path.isdir(out) and os.listdir(out) and not overwrite:
         raise ConfigError(f"--out {out}: not empty; pass --overwrite to replace what it holds")
     cfg = _check_run_dir(run_dir)
@@ -313,13 +322,25 @@ def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool
     meta["env_params"] = dict(cfg.get("env_params") or {})
     meta["source"] = {"run": os.path.abspath(run_dir), "jaxrobo_version": __version__}
     os.makedirs(out, exist_ok=True)
-    for name in (numpy_policy.POLICY_JSON, numpy_policy.POLICY_NPZ, RUNNER_NAME, "policy.onnx"):
-        if os.path.exists(os.path.join(out, name)):
-            os.remove(os.path.join(out, name))
-    np.savez_compressed(os.path.join(out, numpy_policy.POLICY_NPZ), **arrays)
-    shutil.copyfile(numpy_policy.__file__, os.path.join(out, RUNNER_NAME))
+    # Each file replaced atomically (a kill leaves the previous export's file or the new one, never none or a torn
+    # one); policy.json last, so that it never describes arrays that are not there yet.
+    rundir.atomic_write(os.path.join(out, numpy_policy.POLICY_NPZ), lambda f: np.savez_compressed(f, **arrays))
+    with open(numpy_policy.__file__, "rb") as src:
+        runner = src.read()
+    rundir.atomic_write(os.path.join(out, RUNNER_NAME), lambda f: f.write(runner))
+    onnx_path = os.path.join(out, "policy.onnx")
+    wrote_onnx = False
     if meta["kind"] == "mlp":
-        meta["onnx"] = onnx and write_onnx(os.path.join(out, "policy.onnx"), meta, arrays)
-    with open(os.path.join(out, numpy_policy.POLICY_JSON), "w") as f:
-        json.dump(meta, f, indent=2)
+        if onnx:
+            try:
+                with rundir.atomic_path(onnx_path, suffix=".onnx") as tmp:
+                    wrote_onnx = write_onnx(tmp, meta, arrays)
+                    if not wrote_onnx:  # no onnx package: nothing to put in place
+                        raise _NoOnnx
+            except _NoOnnx:
+                pass
+        meta["onnx"] = wrote_onnx
+    if not wrote_onnx and os.path.lexists(onnx_path):  # a previous export's network, not this one
+        os.remove(onnx_path)
+    rundir.atomic_write_json(os.path.join(out, numpy_policy.POLICY_JSON), meta)
     return meta

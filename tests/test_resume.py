@@ -151,7 +151,8 @@ def test_out_an_existing_file_or_a_nonempty_dir_is_refused_before_compiling(tmp_
 
     run = tmp_path / "run"
     run.mkdir()
-    (run / "summary.json").write_text("{}")
+    (run / "summary.json").write_text("{}")  # a run from before status.json existed
+    (run / "config.yaml").write_text("{}")
     (run / "eval.csv").write_text("stale")
     assert main(["train", *CLI_TINY, "--out", str(run)]) == 2
     err = capsys.readouterr().err
@@ -161,7 +162,7 @@ def test_out_an_existing_file_or_a_nonempty_dir_is_refused_before_compiling(tmp_
     (other / "notes.txt").write_text("mine")
     assert main(["train", *CLI_TINY, "--out", str(other), "--overwrite"]) == 2  # not a run: never replaced
     assert "run directories only" in capsys.readouterr().err
-    assert sorted(os.listdir(run)) == ["eval.csv", "summary.json"]
+    assert sorted(os.listdir(run)) == ["config.yaml", "eval.csv", "summary.json"]
     assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # nothing staged
 
     assert main(["train", "--resume", str(run), "--no-progress"]) == 2
@@ -189,6 +190,7 @@ def test_overwrite_replaces_the_whole_old_run(tmp_path):
     out = tmp_path / "run"
     out.mkdir()
     (out / "summary.json").write_text("{}")
+    (out / "config.yaml").write_text("{}")
     (out / "eval.csv").write_text("a stale evaluation of 400 rows")
     (out / "tensorboard").mkdir()
     assert main(["train", *cli_tiny(eval_episodes="0"), "--out", str(out), "--overwrite"]) == 0
@@ -270,8 +272,9 @@ def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunnin
     """The finished carry is checkpointed after the last chunk, before the evaluation and the writes (even with
     ``--checkpoint-every 0``): a write that fails then (a full disk under the TensorBoard log) leaves a run that
     ``--resume OUT`` finishes without running any chunk again, to the run that never failed, and the failure
-    says so. With ``--overwrite`` the new run's state lives in a hidden sibling while it runs; the failure moves
-    that state into place, so that ``--resume OUT`` continues the new run, not the old one it replaces."""
+    says so. With ``--overwrite`` the new run's state lives in a hidden sibling while it runs and stays there, the
+    old run whole (an old run is replaced by a complete one only); ``--resume OUT`` continues the new run from
+    there, not the old one it replaces."""
     from jaxrobo.io import results
 
     out = tmp_path / "run"
@@ -290,16 +293,24 @@ def test_a_late_write_failure_leaves_the_finished_run_resumable_without_rerunnin
     err = capsys.readouterr().err
     assert f"to go on: jaxrobo train --resume {out}" in err and "No space left on device" in err
     assert "Traceback" not in err
-    assert sorted(n for n in os.listdir(tmp_path) if n.startswith(".")) == []  # no state left in a sibling
-    status = rundir.read_status(str(out))
-    assert rundir.is_resumable(str(out)) and status["status"] == rundir.RUNNING and status["chunks_done"] > 0
-    assert not os.path.exists(out / "summary.json")  # nothing half-written (nor the replaced run) published
+    hidden = sorted(n for n in os.listdir(tmp_path) if n.startswith("."))
+    if overwrite:  # the new run's state beside the old run, which is whole
+        assert len(hidden) == 1 and hidden[0].endswith(".partial")
+        assert rundir.read_status(str(out)) == {"status": "complete"} and (out / "summary.json").read_text() == "{}"
+        state = tmp_path / hidden[0]
+    else:
+        assert hidden == []
+        state = out
+    status = rundir.read_status(str(state))
+    assert rundir.is_resumable(str(state)) and status["status"] == rundir.RUNNING and status["chunks_done"] > 0
+    assert not os.path.exists(state / "summary.json")  # nothing half-written published
 
     chunks_run = _counting_chunks(monkeypatch)
     assert main(["train", "--resume", str(out), "--no-progress"]) == 0
     assert chunks_run == []
     final = rundir.read_status(str(out))
     assert final["status"] == rundir.COMPLETE and final["resumed_after_chunk"] == status["chunks_done"]
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # the sibling is gone once published
     full, full_chunks = never_failed
     assert full_chunks == status["chunks_done"]  # the same run from the start: every chunk
     _assert_same_run(str(out), full)

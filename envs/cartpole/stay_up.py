@@ -56,7 +56,8 @@ class Params(BaseParams):
     min_base_pose_x: float = param(-2.5, low=-100.0, high=0.0, unit="m")
     max_base_pose_x: float = param(2.5, low=0.0, high=100.0, unit="m")
     max_base_velocity: float = param(50.0, low=0.0, low_open=True, unit="m/s", doc="clip of a velocity command")
-    init_pos: float = param(0.0, low=-100.0, high=100.0, unit="m", doc="cart position at reset")
+    init_pos: float = param(0.0, low=-100.0, high=100.0, unit="m", doc="cart position at reset",
+                            within=("min_base_pose_x", "max_base_pose_x"))
     init_pole_angle: float = param(0.0, low=-3.2, high=3.2, unit="rad", doc="pole angle at reset")
     init_noise: float = param(0.05, low=0.0, high=1.0, doc="uniform noise on each state variable at reset")
     cart_v_bound: float = param(2.0, low=0.0, low_open=True, unit="m/s", doc="discretiser range of cart_v")

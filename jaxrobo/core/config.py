@@ -14,6 +14,7 @@ import os
 import re
 from typing import Any, Iterable, Mapping
 
+import numpy as np
 import yaml
 
 from jaxrobo.core.struct import Rule, rules
@@ -56,6 +57,23 @@ def _mapping_without_duplicates(loader: StrictLoader, node: yaml.MappingNode, de
 
 
 StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
+
+#: YAML types that SafeLoader builds and a config never holds (a config is JSON's values: null, booleans, numbers,
+#: strings, lists, mappings): a date in a hand-edited config.yaml would reach a field as a ``datetime``.
+_NOT_CONFIG_TYPES = {"timestamp": "a date or time", "set": "a set", "binary": "binary data",
+                     "omap": "an ordered mapping", "pairs": "a list of pairs"}
+
+
+def _refuse(what: str):
+    def construct(loader: StrictLoader, node: yaml.Node) -> Any:
+        value = node.value if isinstance(node, yaml.ScalarNode) else f"!!{node.tag.rpartition(':')[2]}"
+        raise ConfigError(f"line {node.start_mark.line + 1}: {value!s:.40} is {what}, not a value a config holds "
+                          "(null, booleans, numbers, strings, lists, mappings); quote it to give a string")
+    return construct
+
+
+for _tag, _what in _NOT_CONFIG_TYPES.items():
+    StrictLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse(_what))
 
 #: Limits on what a YAML file may hold (configs are small: a run's config.yaml is ~2 KB, ~150 nodes). A file read
 #: back is hostile: a 24 MB list takes minutes to parse, an alias bomb grows exponentially, deep nesting
@@ -107,6 +125,9 @@ def load_yaml(path: str, where: str | None = None) -> dict[str, Any]:
     where = path if where is None else where
     if not os.path.exists(path):
         raise ConfigError(f"config file not found: {path}")
+    from jaxrobo.io.rundir import check_regular
+
+    check_regular(path, where)  # a FIFO would hang the read, a device never end it
     try:
         with open(path, "rb") as f:
             raw = f.read(YAML_MAX_BYTES + 1)  # never more than the cap, whatever the file's size
@@ -226,6 +247,35 @@ def parse_value(text: str, key: str = "value") -> Any:
     return parse_yaml(text, f"--set {key}")
 
 
+def check_relations(obj: Any, where: str) -> None:
+    """The relations between fields of a built Options/Params dataclass that no single field's rule can see: each
+    :func:`~jaxrobo.core.struct.ordered_pairs` ``(min, max)`` in order, and each ``within=(lo, hi)`` field
+    between those two fields' values; a ConfigError naming the fields and values. Per-row values (a sweep's
+    arrays) are checked row by row; traced values (inside a jitted function) are left alone."""
+    from jaxrobo.core.struct import ordered_pairs, rules
+
+    def values(name: str):
+        try:
+            return np.asarray(getattr(obj, name), np.float64)
+        except Exception:  # noqa: BLE001 - a tracer: not a concrete value to check
+            return None
+
+    def show(a) -> str:
+        return f"{float(a.flat[0]):g}" if a.size == 1 else f"{a.tolist()}"
+
+    for lo, hi in ordered_pairs(obj):
+        a, b = values(lo), values(hi)
+        if a is not None and b is not None and np.any(a > b):
+            raise ConfigError(f"{where}: {lo}={show(a)} is above {hi}={show(b)}; {lo} must be <= {hi}")
+    for name, rule in rules(obj).items():
+        if rule.within is None:
+            continue
+        v, (lo, hi) = values(name), rule.within
+        a, b = values(lo), values(hi)
+        if v is not None and a is not None and b is not None and np.any((v < a) | (v > b)):
+            raise ConfigError(f"{where}: {name}={show(v)} is outside [{lo}, {hi}] = [{show(a)}, {show(b)}]")
+
+
 def parse_overrides(pairs: Iterable[str]) -> dict[str, Any]:
     """``["alpha=0.3", "env.pos_step=0.02"]`` → ``{"alpha": 0.3, "env.pos_step": 0.02}``."""
     out = {}
@@ -238,8 +288,19 @@ def parse_overrides(pairs: Iterable[str]) -> dict[str, Any]:
             raise ConfigError(f"--set {pair!r}: expected KEY=VALUE (the key is empty)")
         if key in out:
             raise ConfigError(f"--set {key}: given twice ({out[key]!r} and {text!r}); give each key once")
+        # ``alpha`` and ``agent.alpha`` name one value: one of the two would win silently.
+        bare = _bare(key)
+        for other in out:
+            if _bare(other) == bare and bare in (key, other):
+                raise ConfigError(f"--set {key}={text.strip()} and --set {other}={out[other]!r} name the same key; "
+                                  "give it once")
         out[key] = parse_value(text, key)
     return out
+
+
+def _bare(key: str) -> str:
+    """A ``--set`` key without its ``env.`` / ``agent.`` section."""
+    return key.split(".", 1)[1] if key.startswith(("env.", "agent.")) else key
 
 
 def merge_flags(overrides: dict[str, Any], flags: Iterable[tuple[str, str, Any]]) -> dict[str, Any]:

@@ -44,6 +44,7 @@ class Rule:
     low_open: bool = False  # True: the value must be strictly greater than ``low``
     optional: bool = False  # None is allowed (the field's default is None: "not given")
     pair: bool = False  # a ``[low, high]`` range: two numbers, each within ``low``..``high``, the first <= the second
+    within: tuple[str, str] | None = None  # two fields of the same dataclass whose values bound this one's
 
     def describe(self) -> str:
         if self.pair:
@@ -69,13 +70,16 @@ def param(
     unit: str = "",
     kind: type | None = None,
     default_factory: Callable[[], Any] | None = None,
+    within: tuple[str, str] | None = None,
 ) -> Any:
-    """Declare a user-settable field. ``static`` fields select code paths or shapes; the rest are traced leaves."""
+    """Declare a user-settable field. ``static`` fields select code paths or shapes; the rest are traced leaves.
+    ``within=(lo, hi)``: the value must also lie between the values of the fields ``lo`` and ``hi`` (a start
+    position inside the track), checked with the whole dataclass (:func:`jaxrobo.core.config.check_relations`)."""
     kind = kind or type(default)
     if kind is int and high is None:
         high = INT32_MAX
     rule = Rule(kind, low, high, tuple(choices) if choices is not None else None, doc, unit, low_open,
-                optional=default is None and default_factory is None)
+                optional=default is None and default_factory is None, within=within)
     meta = {"static": static, _RULES: rule}
     if default_factory is not None:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
@@ -98,3 +102,18 @@ def static_field(default: Any = dataclasses.MISSING, **kw: Any) -> Any:
 def rules(cls_or_obj: Any) -> dict[str, Rule]:
     """The validation rule of every user-settable field of a dataclass."""
     return {f.name: f.metadata[_RULES] for f in dataclasses.fields(cls_or_obj) if _RULES in f.metadata}
+
+
+def ordered_pairs(cls_or_obj: Any) -> list[tuple[str, str]]:
+    """The numeric fields that bound a range by name: two names that differ only in a ``min`` token for a ``max``
+    one (``min_pole_angle``/``max_pole_angle``, ``goal_min_dist``/``goal_max_dist``, ``elbow_min``/``elbow_max``);
+    the first must not exceed the second. Derived from the names, so a new task's pairs need no declaration."""
+    numeric = [n for n, r in rules(cls_or_obj).items() if r.kind in (int, float) and not r.pair]
+    pairs = []
+    for name in numeric:
+        tokens = name.split("_")
+        for i, token in enumerate(tokens):
+            other = "_".join(tokens[:i] + ["max"] + tokens[i + 1:])
+            if token == "min" and other in numeric:
+                pairs.append((name, other))
+    return pairs

@@ -2,7 +2,7 @@
 trainers (``brax.training.agents.ppo.train``, ``sac.train``) run unchanged on jaxrobo tasks.
 
 >>> from brax.training.agents.ppo import train as ppo
->>> from jaxrobo import brax_env
+>>> from jaxrobo.interop import brax_env
 >>> env = brax_env.make("CartPoleContinuous-v0")
 >>> make_policy, params, metrics = ppo.train(env, num_timesteps=..., episode_length=1000,
 ...                                          wrap_env_fn=brax_env.wrap_for_training)
@@ -188,7 +188,7 @@ class BraxEnv(brax_base.Env):
 
     def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
         es = self.env.step(state.pipeline_state, self.scale_action(action), self.params)
-        return self._state(es, state.info)
+        return self._state(es, state.info, state.metrics)
 
     @property
     def observation_size(self) -> int:
@@ -229,10 +229,12 @@ class BraxEnv(brax_base.Env):
             return jax.eval_shape(lambda s: hook(s, self.params), es)
         return {k: jnp.asarray(v, jnp.float32) for k, v in hook(es, self.params).items()}
 
-    def _state(self, es: EnvState, info: dict) -> brax_base.State:
+    def _state(self, es: EnvState, info: dict, metrics: dict) -> brax_base.State:
         truncation = es.truncated.astype(jnp.float32)
         info = {**info, "truncation": truncation, "time_out": truncation}
-        return State(es, es.obs, es.reward, es.done.astype(jnp.float32), self.metrics(es), info)
+        # The incoming metrics carried forward, jaxrobo's own updated: keys a wrapper added (Brax's EvalWrapper
+        # adds 'reward') stay, or a trainer's scan over steps would change its carry's structure.
+        return State(es, es.obs, es.reward, es.done.astype(jnp.float32), {**metrics, **self.metrics(es)}, info)
 
     def __repr__(self) -> str:
         return f"<BraxEnv {self.env.name} backend={self.backend}>"
@@ -315,7 +317,7 @@ class TrainingWrapper(brax_base.Wrapper):
         info = {**state.info, "truncation": truncation, "time_out": truncation,
                 "steps": stepped.steps.astype(jnp.float32),
                 "episode_done": donef, "episode_metrics": episode}
-        return State(nxt, nxt.obs, reward, donef, sums, info)
+        return State(nxt, nxt.obs, reward, donef, {**state.metrics, **sums}, info)  # a wrapper's keys kept
 
 
 def wrap_for_training(env: BraxEnv, episode_length: int = 1000, action_repeat: int = 1,

@@ -164,8 +164,21 @@ def _reset_params(env: Any, base: Any, options: Mapping[str, Any] | None) -> Any
     bad = sorted(k for k in options if k in static)
     if bad:
         raise ValueError(f"reset options {bad} are static options of {env.name}; pass them to gymnasium.make instead")
+    from jaxrobo.core.config import check_relations
+
     (checked,) = split_and_validate(dict(options), type(base), where=f"{env.name} reset options")
-    return base.replace(**checked)
+    params = base.replace(**checked)
+    check_relations(params, f"{env.name} reset options")
+    return params
+
+
+def _check_seed(seed: Any) -> None:
+    """A reset seed is None or an integer >= 0 (Gymnasium's rule); a ValueError naming it otherwise (a string or
+    a negative number would otherwise be converted or wrapped silently)."""
+    if seed is None:
+        return
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed={seed!r}: expected None or an integer >= 0")
 
 
 def _seed_keys(seeds: Sequence[int]) -> Any:
@@ -186,8 +199,36 @@ def _frame_rate(env: Any) -> int:
     return max(1, int(round(1.0 / dt))) if dt > 0 else 30
 
 
+class _Picklable:
+    """Stdlib ``pickle`` (what ``multiprocessing`` and SB3's subprocess vector envs use): the compiled functions
+    (closures) and the renderer are not pickled but rebuilt on unpickling; an env made from an id is rebuilt from
+    the id and its overrides (``_made``), one passed as ``env=`` is pickled as it is. The current state, params and
+    random generator go with it, so the copy goes on where the original was."""
+
+    _made: tuple[str, dict[str, Any]] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        import jax
+
+        state = dict(self.__dict__)
+        state["_fns"] = state["_renderer"] = None
+        if self._made is not None:
+            state["jax_env"] = None
+        for name in ("state", "states", "params"):
+            if state.get(name) is not None:
+                state[name] = jax.device_get(state[name])
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        if self.jax_env is None:
+            env_id, values = self._made
+            self.jax_env = _make_env(env_id, None, values, {})
+        self._fns = self._compile()
+
+
 # ---- the single environment ----------------------------------------------------------------------------------
-class JaxroboEnv(gymnasium.Env):
+class JaxroboEnv(_Picklable, gymnasium.Env):
     """A jaxrobo env with Gymnasium's classic single-env API.
 
     ``JaxroboEnv("CartPoleStayUp-v0", control_type="position")`` or ``gymnasium.make("jaxrobo/CartPoleStayUp-v0",
@@ -204,16 +245,20 @@ class JaxroboEnv(gymnasium.Env):
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, "
                              + ", ".join(repr(m) for m in self.metadata["render_modes"]))
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self._made = None if env is not None else (env_id, {**(overrides or {}), **kwargs})
         self.params = self.jax_env.default_params
         self.action_space, self.observation_space = gym_spaces(self.jax_env, self.params)
         self._n = _action_limit(self.action_space)
         self._obs_size = int(np.prod(self.observation_space.shape))
-        self._fns = compiled_for(self.jax_env)
+        self._fns = self._compile()
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
         self._render_args = (int(width), int(height), camera)
         self._renderer: Any = None
         self.state: Any = None  # the current jaxrobo EnvState (on device)
+
+    def _compile(self) -> Any:
+        return compiled_for(self.jax_env)
 
     # -- core API ----------------------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -297,7 +342,7 @@ def _check_reset_mask(mask: Any, num_envs: int) -> np.ndarray:
     return arr
 
 
-class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
+class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
     """``num_envs`` copies of a jaxrobo env stepped as one vmapped jitted call, with Gymnasium's autoreset modes.
 
     ``autoreset_mode`` (``metadata["autoreset_mode"]``; the enum or its string value, as ``SyncVectorEnv`` takes):
@@ -334,6 +379,7 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array'")
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
+        self._made = None if env is not None else (env_id, {**(overrides or {}), **kwargs})
         self.params = self.jax_env.default_params
         self.num_envs = int(num_envs)
         self.single_action_space, self.single_observation_space = gym_spaces(self.jax_env, self.params)
@@ -346,7 +392,7 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         #: How the batch is stepped (:class:`jaxrobo.speed.plan.ExecutionPlan`; default: the plan for this env on the
         #: default device, which steps large MJX batches on a GPU in groups, as the trainer does).
         self.plan = ExecutionPlan.for_run(self.jax_env) if plan is None else plan
-        self._fns = compiled_for(self.jax_env, self.plan)
+        self._fns = self._compile()
         self.render_mode = render_mode
         self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env),
                          "autoreset_mode": self.autoreset_mode}
@@ -356,6 +402,9 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         self._needs_reset: Any = None
         self._done = np.zeros(self.num_envs, bool)  # envs whose episode ended on the last step (host copy)
 
+    def _compile(self) -> Any:
+        return compiled_for(self.jax_env, self.plan)
+
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset every env; ``seed=s`` seeds env ``i`` with ``s + i`` (as ``SyncVectorEnv`` does), a list seeds each.
@@ -363,6 +412,8 @@ class JaxroboVectorEnv(gymnasium.vector.VectorEnv):
         ``options={"reset_mask": mask}`` (``bool[num_envs]``, as Gymnasium's vector envs take it) resets only the
         envs where ``mask`` is True, from their seed if one is given, else from the key their state carries; the
         others keep their state and observation."""
+        for s in (seed if isinstance(seed, (list, tuple)) else [seed]):
+            _check_seed(s)
         if options and "reset_mask" in options:
             rest = {k: v for k, v in options.items() if k != "reset_mask"}
             return self._reset_where(_check_reset_mask(options["reset_mask"], self.num_envs), seed, rest)

@@ -215,6 +215,9 @@ def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndar
 
     ValueError naming the file, and the column or line, when a ``required`` column is missing, a row is short
     (a truncated file) or a value is not a number."""
+    from jaxrobo.io.rundir import check_regular
+
+    check_regular(path)  # a FIFO would hang the read, a device never end it
     try:
         with open(path, newline="") as f:
             reader = csv.DictReader(f)
@@ -331,6 +334,8 @@ def selected_table(run_dir: str, n_tables: int) -> int:
     ``export`` and ``sim2sim`` act with by default; 0 where the run has no summary or it names no table of the
     ``n_tables`` (an older, interrupted or hostile run directory)."""
     try:
+        if not os.path.isfile(os.path.join(run_dir, "summary.json")):  # nor a FIFO or a device
+            return 0
         with open(os.path.join(run_dir, "summary.json"), encoding="utf-8") as f:
             chosen = json.loads(f.read(MAX_SUMMARY_BYTES)).get("selected_table", 0)
     except (OSError, ValueError, AttributeError):

@@ -24,10 +24,12 @@ import contextlib
 import ctypes
 import errno
 import fcntl
+import fnmatch
 import json
 import os
 import re
 import shutil
+import stat
 import sys
 import tempfile
 from typing import IO, Any, Callable, Iterator
@@ -42,14 +44,31 @@ CHECKPOINT = "checkpoint.npz"
 #: What the directory holds: ``running``, ``interrupted`` or ``complete``, and how to resume.
 STATUS = "status.json"
 RUNNING, INTERRUPTED, COMPLETE = "running", "interrupted", "complete"
-#: Files by which a directory is recognised as a jaxrobo run (or sweep): only such a directory is ever replaced.
-RUN_MARKERS = (STATUS, "config.yaml", "summary.json", "sweep.csv", CHECKPOINT)
+#: Every entry that ``jaxrobo train`` (tabular and ppo/sac) and ``jaxrobo sweep`` write in a run directory, as
+#: ``fnmatch`` patterns: only these are ever replaced or removed (with the hidden temporaries ``.NAME.*`` of
+#: :func:`atomic_path` beside them); every other file or folder belongs to the user and is kept through a resume,
+#: an ``--overwrite`` and a sweep. tests/test_rundir_owned.py checks that real runs write nothing else.
+OWNED = (
+    # tabular runs (jaxrobo.io.results)
+    "config.yaml", STATUS, CHECKPOINT, "summary.json", "episodes.csv", "episode_stats.csv", "records.npz",
+    "qtables.npz", "eval.csv", "tensorboard",
+    # ppo/sac runs (jaxrobo.deep.output, jaxrobo.deep.policy)
+    "policy.npz", "policy.json", "best", "evaluations.csv", "training_metrics.csv", "rewards.png",
+    # sweeps (jaxrobo.training.sweep.state, .output)
+    "sweep.csv", "sweep_state.json", "group_*.npz", "sweep_*.png", "heatmap_*.png",
+)
+#: Files by which a directory is recognised as a jaxrobo run (or sweep), besides a ``status.json`` of a known
+#: status: only such a directory is ever replaced. One of them alone (a project's own ``config.yaml``) is not.
+LEGACY_MARKERS = (("summary.json", "config.yaml"), ("summary.json", "sweep.csv"))
 
 
 # ---- status --------------------------------------------------------------------------------------------------
 def read_status(path: str) -> dict[str, Any] | None:
-    """The directory's ``status.json`` as a dict, or None when it has none (or an unreadable one)."""
+    """The directory's ``status.json`` as a dict, or None when it has none (or an unreadable one, or one that is
+    not a regular file)."""
     try:
+        if not stat.S_ISREG(os.stat(os.path.join(path, STATUS)).st_mode):
+            return None
         with open(os.path.join(path, STATUS)) as f:
             status = json.load(f)
     except (OSError, ValueError):
@@ -63,14 +82,14 @@ def write_status(path: str, status: str, **fields: Any) -> None:
 
 
 def is_complete(path: str) -> bool:
-    """A finished run: its status says ``complete`` (a directory from before statuses existed: it has a
-    ``summary.json`` and no checkpoint)."""
+    """A finished run: its status says ``complete`` (a directory from before statuses existed: it has the files of
+    one of :data:`LEGACY_MARKERS` and no checkpoint)."""
     if not os.path.isdir(path):
         return False
     status = read_status(path)
     if status is not None:
         return status.get("status") == COMPLETE
-    return os.path.isfile(os.path.join(path, "summary.json")) and not os.path.exists(os.path.join(path, CHECKPOINT))
+    return _looks_like_run(path) and not os.path.exists(os.path.join(path, CHECKPOINT))
 
 
 def is_resumable(path: str) -> bool:
@@ -80,7 +99,65 @@ def is_resumable(path: str) -> bool:
 
 
 def _looks_like_run(path: str) -> bool:
-    return any(os.path.exists(os.path.join(path, name)) for name in RUN_MARKERS)
+    """A jaxrobo run or sweep: a ``status.json`` of a known status, or (from before statuses existed) both files of
+    one of :data:`LEGACY_MARKERS`."""
+    if (read_status(path) or {}).get("status") in (RUNNING, INTERRUPTED, COMPLETE):
+        return True
+    return any(all(os.path.isfile(os.path.join(path, n)) for n in names) for names in LEGACY_MARKERS)
+
+
+def looks_like_run(path: str) -> bool:
+    """Whether the directory ``path`` holds a jaxrobo run or sweep (:func:`_looks_like_run`); False if missing."""
+    return os.path.isdir(path) and _looks_like_run(path)
+
+
+def owned(name: str) -> bool:
+    """Whether the entry ``name`` of a run directory is jaxrobo's (:data:`OWNED`, or a hidden temporary of one)."""
+    if any(fnmatch.fnmatchcase(name, pattern) for pattern in OWNED):
+        return True
+    return name.startswith(".") and any(fnmatch.fnmatchcase(name, f".{pattern}.*") for pattern in OWNED)
+
+
+def user_entries(path: str) -> list[str]:
+    """The entries of the directory ``path`` that are not jaxrobo's (:func:`owned`): the user's, kept."""
+    try:
+        return sorted(n for n in os.listdir(path) if not owned(n))
+    except OSError:
+        return []
+
+
+def check_owned_entries(path: str, flag: str = "--resume") -> None:
+    """Refuse (:class:`ConfigError` naming the path) a run directory that jaxrobo is to read and write in place
+    (``--resume``) when one of its own entries is not a plain file or folder: a symlink (a write would go through
+    it, possibly outside the directory) or a special file (a FIFO or a device, which a read would hang on or
+    never finish)."""
+    try:
+        names = os.listdir(path)
+    except OSError:
+        return
+    for name in sorted(names):
+        if not owned(name) or name.startswith("."):
+            continue
+        full = os.path.join(path, name)
+        st = os.lstat(full)
+        if stat.S_ISLNK(st.st_mode):
+            raise ConfigError(f"{flag} {path}: {full} is a symlink (to {os.readlink(full)}); jaxrobo writes its own "
+                              "files only as plain files in the run directory: replace the link with the file")
+        if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+            raise ConfigError(f"{flag} {path}: {full} is not a regular file (a FIFO, socket or device); remove it")
+
+
+def check_regular(path: str, where: str | None = None) -> None:
+    """Refuse (:class:`ConfigError` naming ``where`` or the path) to read ``path`` when it exists and is not a
+    regular file (after symlinks): a FIFO would hang the read, a device (``/dev/zero``) never end it. A missing
+    file is left to the reader (its own FileNotFoundError)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return
+    if not stat.S_ISREG(st.st_mode):
+        what = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, socket or device)"
+        raise ConfigError(f"{where or path}: is {what}; expected a regular file")
 
 
 def _describe(path: str) -> str:
@@ -112,6 +189,9 @@ def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag:
     if resume:
         if not os.path.isdir(path):
             raise ConfigError(f"{where}: no such run directory")
+        if not is_resumable(path):
+            path = pending(path) or path
+        check_owned_entries(path, flag)
         if is_complete(path):
             raise ConfigError(f"{where}: the run is complete, nothing to resume")
         if not is_resumable(path):
@@ -229,7 +309,19 @@ def locked(path: str, flag: str = "--out") -> Iterator[None]:
     lock = lock_path(path)
     os.makedirs(os.path.dirname(lock), exist_ok=True)
     while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+        # Never through a symlink (the pid would be written into its target), never a FIFO or device.
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o666 & ~_umask())
+        except OSError as err:
+            if err.errno == errno.ELOOP:
+                raise ConfigError(f"{flag} {path}: the lock file {lock} is a symlink (to {os.readlink(lock)}); "
+                                  "jaxrobo does not write through it: remove it") from None
+            raise
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:  # a hard link would carry the pid to another file
+            os.close(fd)
+            raise ConfigError(f"{flag} {path}: the lock file {lock} is not a regular file of its own (a FIFO, "
+                              "device or hard link); remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -285,9 +377,35 @@ def remove_stale_partials(path: str) -> list[str]:
         full = os.path.join(parent, entry)
         if (m and m.group("name") == name and full != os.path.abspath(path) and os.path.isdir(full)
                 and not os.path.islink(full) and not is_resumable(full)):
-            shutil.rmtree(full, ignore_errors=True)
-            removed.append(full)
+            # An old run killed between its swap and the move of the user's entries still holds them: back they go.
+            if os.path.isdir(name_path):
+                _carry_user_entries(full, name_path)
+            if remove_run(full):
+                removed.append(full)
     return removed
+
+
+def _partials(path: str) -> list[str]:
+    """The hidden staging siblings ``.NAME.*.partial`` of the run at ``path`` (real directories)."""
+    parent, name = os.path.split(run_name(path))
+    try:
+        entries = os.listdir(parent)
+    except OSError:
+        return []
+    found = []
+    for entry in entries:
+        m = _PARTIAL.match(entry)
+        full = os.path.join(parent, entry)
+        if m and m.group("name") == name and os.path.isdir(full) and not os.path.islink(full):
+            found.append(full)
+    return found
+
+
+def pending(path: str) -> str | None:
+    """The newest interrupted run that is to replace the run at ``path`` (an ``--overwrite`` run stopped before it
+    finished keeps its state in a hidden sibling, the old run whole), or None: ``--resume PATH`` goes on with it."""
+    waiting = [p for p in _partials(path) if is_resumable(p)]
+    return max(waiting, key=lambda p: os.stat(os.path.join(p, CHECKPOINT)).st_mtime_ns) if waiting else None
 
 
 # ---- staging and publishing ----------------------------------------------------------------------------------
@@ -371,18 +489,73 @@ def publish(staging_dir: str, path: str, *, overwrite: bool = False) -> None:
         raise FileExistsError(f"{path} is a file; not replacing it")
     if _exchange(staging_dir, path):
         _fsync_dir(parent)
-        shutil.rmtree(staging_dir, ignore_errors=True)  # now the old run
+        _retire(staging_dir, path)  # now the old run
         return
     old = tempfile.mkdtemp(prefix=f".{os.path.basename(path)}.", suffix=".old", dir=parent)
     os.rename(path, os.path.join(old, "run"))
     os.rename(staging_dir, path)
     _fsync_dir(parent)
-    shutil.rmtree(old, ignore_errors=True)
+    _retire(os.path.join(old, "run"), path)
+    with contextlib.suppress(OSError):
+        os.rmdir(old)
+
+
+def _retire(old: str, new: str) -> None:
+    """The old run ``old`` that ``new`` replaced: the user's entries move into ``new``, jaxrobo's are removed."""
+    left = _carry_user_entries(old, new)
+    if not remove_run(old):
+        print(f"jaxrobo: kept {old}: {', '.join(left)} of the replaced run could not move into {new} (the new run "
+              "holds those names)", file=sys.stderr)
+
+
+def _carry_user_entries(old: str, new: str) -> list[str]:
+    """Move the user's entries (not :func:`owned`) of the directory ``old`` into ``new``, where the name is free;
+    returns the names left in ``old``."""
+    left, moved = [], False
+    for name in user_entries(old):
+        target = os.path.join(new, name)
+        if os.path.lexists(target):
+            left.append(name)
+            continue
+        try:
+            os.rename(os.path.join(old, name), target)
+            moved = True
+        except OSError:
+            left.append(name)
+    if moved:
+        _fsync_dir(new)
+    return left
+
+
+def remove_run(path: str) -> bool:
+    """Remove jaxrobo's own entries (:func:`owned`) of the directory ``path``, then the directory if that empties
+    it; the user's entries are never removed (nor the directory that holds them). Returns whether it is gone."""
+    try:
+        names = os.listdir(path)
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+    for name in names:
+        if not owned(name):
+            continue
+        full = os.path.join(path, name)
+        if os.path.isdir(full) and not os.path.islink(full):
+            shutil.rmtree(full, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                os.unlink(full)
+    try:
+        os.rmdir(path)
+    except OSError:
+        return False
+    return True
 
 
 def discard(staging_dir: str) -> None:
-    """Remove a staging directory that will not be published."""
-    shutil.rmtree(staging_dir, ignore_errors=True)
+    """Remove a staging (or state) directory that will not be published: jaxrobo's entries, and the directory
+    once empty (:func:`remove_run`)."""
+    remove_run(staging_dir)
 
 
 # ---- a run's life: where its state lives, interrupted, published ----------------------------------------------
@@ -401,11 +574,14 @@ def interrupted(live: str | None, *, out: str, resume: str, prog: str, what: str
                 **fields: Any) -> None:
     """Mark the run whose state is in ``live`` interrupted and say how to go on: ``status.json`` becomes
     ``{"status": "interrupted", "out": ..., "resume": resume, **fields}`` (None ``live``: not written, another
-    process owns it), ``publish_live`` moves a ``live`` staging directory into place as ``out`` (replacing an old
-    run), and one line goes to stderr: ``"<prog>: <what>; to go on: <resume>"``."""
+    process owns it), and one line goes to stderr: ``"<prog>: <what>; to go on: <resume>"``. A ``live`` staging
+    directory (an ``--overwrite`` run) stays where it is, beside the old run, which stays whole: an old run is
+    replaced only by a complete one; ``--resume OUT`` finds it there (:func:`pending`). ``publish_live`` moves it
+    into place only where ``out`` holds no run (an empty or missing directory)."""
     if live is not None:
-        write_status(live, INTERRUPTED, out=os.path.abspath(out), resume=resume, **fields)
-        if publish_live and os.path.abspath(live) != os.path.abspath(out):
+        write_status(live, INTERRUPTED, out=os.path.abspath(run_name(out)), resume=resume, **fields)
+        if (publish_live and os.path.abspath(live) != os.path.abspath(out)
+                and not (os.path.isdir(out) and os.listdir(out))):
             publish(live, out, overwrite=True)
     print(f"{prog}: {what}; to go on: {resume}", file=sys.stderr)
 
@@ -413,8 +589,11 @@ def interrupted(live: str | None, *, out: str, resume: str, prog: str, what: str
 def publish_results(out: str, live: str, write: Callable[[str], None]) -> None:
     """The finished run: ``write(staged)`` fills a fresh staging directory (its ``status.json`` saying
     ``complete`` included), which then replaces ``out`` in one step (``out`` holds this run's own state, or an
-    old run that ``--overwrite`` allowed to replace); a failure discards it and leaves ``out`` as it was. A
-    ``live`` state directory other than ``out`` is removed afterwards."""
+    old run that ``--overwrite`` allowed to replace; a resumed hidden sibling ``.NAME.*.partial`` publishes to
+    ``NAME``), the user's files in it kept (:func:`publish`); a failure discards it and leaves ``out`` as it was.
+    A ``live`` state directory other than ``out``, and the state of earlier interrupted ``--overwrite`` runs of
+    ``out`` (superseded by this complete one), are removed afterwards."""
+    out = run_name(out)
     staged = staging(out)
     try:
         write(staged)
@@ -425,6 +604,9 @@ def publish_results(out: str, live: str, write: Callable[[str], None]) -> None:
         raise
     if os.path.abspath(live) != os.path.abspath(out):
         discard(live)
+    for superseded in _partials(out):
+        if is_resumable(superseded):
+            discard(superseded)
 
 
 #: Seconds :func:`publish_results` waits between filling its staging directory and moving it into place, when
@@ -433,11 +615,13 @@ PAUSE_ENV = "JAXROBO_PAUSE_BEFORE_PUBLISH"
 
 
 def _pause_before_publish() -> None:
-    value = os.environ.get(PAUSE_ENV)
+    from jaxrobo.core.environ import PAUSE_MAX, env_seconds
+
+    value = env_seconds(PAUSE_ENV, PAUSE_MAX)  # checked by the CLI before the run (jaxrobo.core.environ)
     if value:
         import time
 
-        time.sleep(float(value))
+        time.sleep(value)
 
 
 # ---- atomic single files -------------------------------------------------------------------------------------

@@ -195,5 +195,5 @@ def robustness_figure(rows: Sequence[dict], out_png: str, title: str) -> None:
     axes[0][0].legend(fontsize=8)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=110)
+    rundir.atomic_savefig(fig, out_png, dpi=110)  # a stop while writing keeps the earlier figure whole
     plt.close(fig)

@@ -39,11 +39,13 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
             return jax.process_count() > 1
     except (ImportError, AttributeError):
         pass
+    from jaxrobo.core.environ import env_int
+
     coordinator = coordinator or os.environ.get("JAXROBO_COORDINATOR")
     if num_processes is None and os.environ.get("JAXROBO_NUM_PROCESSES"):
-        num_processes = _env_int("JAXROBO_NUM_PROCESSES", 1)
+        num_processes = env_int("JAXROBO_NUM_PROCESSES", 1)
     if process_id is None and os.environ.get("JAXROBO_PROCESS_ID"):
-        process_id = _env_int("JAXROBO_PROCESS_ID", 0)
+        process_id = env_int("JAXROBO_PROCESS_ID", 0)
     if num_processes is not None and process_id is not None and not 0 <= process_id < num_processes:
         raise ValueError(f"JAXROBO_PROCESS_ID={process_id}: must be in 0..{num_processes - 1} "
                          f"(JAXROBO_NUM_PROCESSES={num_processes})")
@@ -58,29 +60,13 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
         check_coordinator(coordinator)
         # Bounded: a coordinator that never answers is an error after this long, not a silent wait.
         jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
-                                   process_id=process_id, initialization_timeout=_env_int(
+                                   process_id=process_id, initialization_timeout=env_int(
                                        "JAXROBO_INIT_TIMEOUT", 1, default=INIT_TIMEOUT_SECONDS))
     return jax.process_count() > 1
 
 
 #: Seconds ``jax.distributed.initialize`` waits for every process to join (``$JAXROBO_INIT_TIMEOUT``).
 INIT_TIMEOUT_SECONDS = 120
-
-
-def _env_int(name: str, low: int, default: int | None = None) -> int:
-    """An integer environment variable ``>= low``; ValueError naming it otherwise."""
-    text = os.environ.get(name)
-    if text is None or not text.strip():
-        if default is None:
-            raise ValueError(f"{name} is not set")
-        return default
-    try:
-        value = int(text.strip())
-    except ValueError:
-        raise ValueError(f"{name}={text!r}: expected an integer >= {low}") from None
-    if value < low:
-        raise ValueError(f"{name}={value}: expected an integer >= {low}")
-    return value
 
 
 def check_coordinator(address: str) -> None:

@@ -28,7 +28,7 @@ import os
 import sys
 from typing import Any, Callable
 
-from jaxrobo.core.config import ConfigError, coerce, load_yaml, split_and_validate, unknown_key
+from jaxrobo.core.config import ConfigError, check_relations, coerce, load_yaml, split_and_validate, unknown_key
 from jaxrobo.task.env import Env, EnvSpec
 from jaxrobo.core.precision import check_precision
 from jaxrobo.core.struct import rules
@@ -269,6 +269,8 @@ def make(id: str, **overrides: Any) -> Env:
         raise
     except (TypeError, ValueError) as err:  # e.g. a running_step that is not a multiple of the timestep
         raise ConfigError(f"{id}: {err}") from err
+    check_relations(env.options, where)  # min <= max pairs, a start inside its bounds: what no single field sees
+    check_relations(env.default_params, where)
     env.spec = dataclasses.replace(reg.spec, max_episode_steps=int(env.default_params.max_episode_steps))
     return env
 

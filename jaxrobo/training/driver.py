@@ -257,7 +257,14 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     chunks_done, stopped = start_chunk, False
     saved_at = None  # the chunk count of the last checkpoint written by this loop
     checked_at, check_seconds = None, 0.0
-    while not finished(chunks_done):
+    if check is not None and check_every > 0 and start_chunk > 0 and start_chunk % check_every == 0 \
+            and not finished(start_chunk):
+        # A carry saved at a check point (a run stopped during its evaluation, after the target was met): the same
+        # check, on the same carry and keys, says again what it said there.
+        t_check = time.perf_counter()
+        checked_at = start_chunk if check(carry, start_chunk) else None
+        check_seconds += time.perf_counter() - t_check
+    while checked_at is None and not finished(chunks_done):
         if should_stop is not None and should_stop():
             stopped = True
             break
@@ -345,13 +352,31 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         # target keeps the table that met it (the snapshots lie at shares of a budget it did not run).
         runner, choice = jax.jit(trainer.final_table)(runner, key, env_params)
         final_choice = int(choice)
-    if config.eval_episodes > 0 and not loop.stopped:
+    stopped = loop.stopped
+    if config.eval_episodes > 0 and not stopped:
         if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
             announce(f"evaluating {evaluated_tables(config)} table(s) × {config.eval_episodes} greedy episodes ≤ "
                      f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
                      "(compile, then fly)")
-        eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
-                                                                             eval_progress, flights)
+
+        def segment(p: EvalProgress) -> None:  # a stop asked for during the evaluation ends it after a segment
+            if eval_progress is not None:
+                eval_progress(p)
+            if should_stop is not None and should_stop():
+                raise _EvaluationStopped
+
+        try:
+            eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
+                                                                                 segment, flights)
+        except _EvaluationStopped:
+            # The training is finished (and checkpointed, where the caller saves one): the run stops as an
+            # interrupted one after its last chunk; resuming it evaluates and writes the results, training nothing.
+            stopped = True
+            eval_returns = eval_lengths = selected = eval_success = None
+            if announce is not None:
+                announce("stopped during the evaluation: the finished training is kept"
+                         + (" (its checkpoint is saved); resuming evaluates and writes the results"
+                            if checkpoint is not None else ""))
     eval_seconds = time.perf_counter() - t_eval
 
     host = host_get(runner.replace(key=None, env_state=None))
@@ -362,7 +387,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         epsilon=tabular.epsilon_schedule(agent_params, config.nepisodes), nan_episodes=np.asarray(host.nan_episodes),
         env_steps=int(np.asarray(host.env_steps, np.int64).sum()), q=q if not config.shared_table else q[None],
         compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_returns=eval_returns,
-        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not loop.stopped,
+        eval_lengths=eval_lengths, eval_success=eval_success, selected=selected, complete=not stopped,
         chunks_done=loop.chunks_done, start_chunk=start_chunk, eval_seconds=eval_seconds,
         episodes_done=np.minimum(np.asarray(host.episode), config.nepisodes),
         episodes_finished=int(np.asarray(host.episode, np.int64).sum()), budget=trainer.budget,
@@ -560,6 +585,10 @@ def fly(trainer: Trainer, keys: jax.Array, agents: Any, n_episodes: int, env_par
     """One :meth:`Flights.fly` of ``trainer``'s tables (its programs compiled for this flight alone)."""
     return Flights(trainer, env_params).fly(keys, agents, n_episodes, over_tables=over_tables, shared=shared,
                                             progress=progress, what=what)
+
+
+class _EvaluationStopped(Exception):
+    """A stop asked for between two segments of the greedy evaluation (:func:`run_training`)."""
 
 
 def evaluated_tables(config: Any) -> int:

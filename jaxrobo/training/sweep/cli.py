@@ -221,7 +221,8 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         sharding.initialize_distributed()  # a no-op unless JAXROBO_COORDINATOR & co. are set (docs/scaling.md)
         main_process = jax.process_index() == 0
         out, flags, argv = sweep_flags(args, check_out=main_process)
-        live = None if args.resume is None else rundir.resolve_out(args.resume, "--resume")  # where the state is
+        # Where the state is: DIR, or the hidden sibling of an --overwrite sweep stopped beside the old one.
+        live = None if args.resume is None else rundir.check_out(args.resume, resume=True, flag="--resume")
         f = argparse.Namespace(**flags)
         if f.seeds < 1:
             raise ConfigError(f"--seeds {f.seeds}: must be >= 1")

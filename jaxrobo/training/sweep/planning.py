@@ -21,7 +21,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from jaxrobo.training import budget
-from jaxrobo.core.config import ConfigError, coerce, parse_value
+from jaxrobo.core.config import ConfigError, check_relations, coerce, parse_value
 from jaxrobo.task import randomise
 from jaxrobo.training.run import KeyRoute, resolve, route
 from jaxrobo.training.trainer import Trainer
@@ -172,6 +172,9 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
             point = checked[i]
             ap = base_ap.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "agent"})
             ep = base_ep.replace(**{kinds[k].name: v for k, v in point.items() if kinds[k].where == "env"})
+            swept_here = ", ".join(f"{k}={v!r}" for k, v in point.items())
+            check_relations(ep, f"sweep point {swept_here}")  # a min above its max, refused before anything runs
+            check_relations(ap, f"sweep point {swept_here}")
             given = randomise.changed(ep)
             if given and not getattr(env, "randomised", False):
                 raise ConfigError(f"sweep {given[0]}={list(getattr(ep, given[0]))}: a randomisation range in a group "

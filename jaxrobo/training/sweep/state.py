@@ -49,6 +49,9 @@ def code_version() -> dict[str, str]:
 def read_state(state_dir: str) -> dict[str, Any]:
     """The saved ``sweep_state.json`` of ``state_dir``: settings, versions, fingerprint and extra."""
     path = os.path.join(state_dir, STATE_FILE)
+    from jaxrobo.io.rundir import check_regular
+
+    check_regular(path)  # a FIFO would hang the read, a device never end it
     try:
         with open(path) as f:
             state = json.load(f)

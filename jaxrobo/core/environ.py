@@ -1,0 +1,173 @@
+"""Every environment variable jaxrobo reads or depends on, checked in one place, at the boundary, with a message
+that names it: ``jaxrobo``'s own (:data:`JAXROBO_VARIABLES`) and the third-party ones whose bad values would
+otherwise surface as a traceback or a native crash deep inside a run (``MUJOCO_GL``, ``JAX_ENABLE_X64``,
+``JAX_PLATFORMS``).
+
+Two moments: :func:`check_before_import`, from ``jaxrobo/__init__.py``, before JAX and MuJoCo are imported (both
+read their variables at import and fail there); :func:`check`, from the CLI's ``main`` before a command runs,
+for what needs JAX (``JAX_PLATFORMS``) or concerns jaxrobo's own variables. This module imports no JAX at
+module level.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+
+#: jaxrobo's own variables: what each may hold (docs/scaling.md for the multi-host ones).
+JAXROBO_VARIABLES = {
+    "JAXROBO_CACHE_DIR": "the compilation cache directory, or off (jaxrobo.speed.cache)",
+    "JAXROBO_COORDINATOR": "host:port of process 0 of a multi-host run",
+    "JAXROBO_NUM_PROCESSES": "processes of a multi-host run, an integer >= 1",
+    "JAXROBO_PROCESS_ID": "this process's index, 0 .. JAXROBO_NUM_PROCESSES - 1",
+    "JAXROBO_DISTRIBUTED": "'auto' (JAX's own cluster detection) or unset",
+    "JAXROBO_INIT_TIMEOUT": "seconds to wait for every process to join, an integer >= 1",
+    "JAXROBO_PAUSE_BEFORE_PUBLISH": "seconds to wait before publishing a run (fault tests), a number >= 0",
+}
+#: Bounds of the integer and number variables (seconds or counts a C++ int must hold).
+_INT_MAX = 2**31 - 1
+PAUSE_MAX = 3600.0
+
+#: ``JAX_ENABLE_X64``'s accepted spellings (JAX's own ``bool_env``); anything else fails ``import jax``.
+_TRUTH = ("y", "yes", "t", "true", "on", "1", "n", "no", "f", "false", "off", "0", "")
+#: ``MUJOCO_GL``'s values ``import mujoco`` accepts on Linux (anything else fails the import).
+_MUJOCO_GL = ("disable", "disabled", "off", "false", "0", "enable", "enabled", "on", "true", "1", "glfw", "",
+              "glx", "egl", "osmesa")
+
+
+def problems_before_import() -> list[str]:
+    """What ``import jax`` / ``import mujoco`` would fail on, one line each (empty when nothing)."""
+    out = []
+    x64 = os.environ.get("JAX_ENABLE_X64")
+    if x64 is not None and x64.strip().lower() not in _TRUTH:
+        out.append(f"JAX_ENABLE_X64={x64!r}: not a truth value; unset it (jaxrobo runs in 32-bit: 0, false, off)")
+    gl = os.environ.get("MUJOCO_GL")
+    if gl is not None and sys.platform.startswith("linux") and gl.strip().lower() not in _MUJOCO_GL:
+        out.append(f"MUJOCO_GL={gl!r}: not a rendering backend; use egl, osmesa, glfw, glx or disable (or unset it)")
+    return out
+
+
+def _running_cli() -> bool:
+    """Whether this process is the ``jaxrobo`` command (its console script or ``python -m jaxrobo.cli``)."""
+    argv = getattr(sys, "orig_argv", sys.argv)
+    if os.path.basename(sys.argv[0] if sys.argv else "") == "jaxrobo":
+        return True
+    return any(a == "-m" and b in ("jaxrobo.cli", "jaxrobo") for a, b in zip(argv, argv[1:]))
+
+
+def check_before_import() -> None:
+    """Refuse the variables JAX and MuJoCo read at import (:func:`problems_before_import`): the ``jaxrobo``
+    command prints one line and exits 2 (its ``main`` is not reached: the import comes first); a library import
+    raises ``ValueError`` naming the variable, not the dependency's traceback."""
+    problems = problems_before_import()
+    if not problems:
+        return
+    if _running_cli():
+        print(f"jaxrobo: {problems[0]}", file=sys.stderr)
+        raise SystemExit(2)
+    raise ValueError(problems[0])
+
+
+def env_int(name: str, low: int, high: int = _INT_MAX, default: int | None = None) -> int | None:
+    """The integer environment variable ``name`` in ``low..high`` (``default`` when unset or empty); a
+    :class:`~jaxrobo.core.config.ConfigError` naming it otherwise."""
+    from jaxrobo.core.config import ConfigError
+
+    text = os.environ.get(name)
+    if text is None or not text.strip():
+        return default
+    try:
+        value = int(text.strip())
+    except ValueError:
+        raise ConfigError(f"{name}={text!r}: expected an integer >= {low} and <= {high}") from None
+    if not low <= value <= high:
+        raise ConfigError(f"{name}={value}: expected an integer >= {low} and <= {high}")
+    return value
+
+
+def env_seconds(name: str, high: float) -> float | None:
+    """A number of seconds in ``[0, high]`` from the variable ``name`` (None when unset or empty)."""
+    from jaxrobo.core.config import ConfigError
+
+    text = os.environ.get(name)
+    if text is None or not text.strip():
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 <= value <= high:  # NaN fails too
+        raise ConfigError(f"{name}={text!r}: expected a number of seconds in 0..{high:g}")
+    return value
+
+
+def check_jaxrobo_variables() -> None:
+    """jaxrobo's own variables (:data:`JAXROBO_VARIABLES`), each parsed as its reader will; ConfigError naming
+    the first bad one."""
+    from jaxrobo.core.config import ConfigError
+
+    mode = os.environ.get("JAXROBO_DISTRIBUTED")
+    if mode is not None and mode.strip().lower() not in ("", "auto"):
+        raise ConfigError(f"JAXROBO_DISTRIBUTED={mode!r}: expected 'auto' (JAX's own cluster detection) or unset")
+    n = env_int("JAXROBO_NUM_PROCESSES", 1)
+    pid = env_int("JAXROBO_PROCESS_ID", 0)
+    if n is not None and pid is not None and pid >= n:
+        raise ConfigError(f"JAXROBO_PROCESS_ID={pid}: must be in 0..{n - 1} (JAXROBO_NUM_PROCESSES={n})")
+    env_int("JAXROBO_INIT_TIMEOUT", 1)
+    env_seconds("JAXROBO_PAUSE_BEFORE_PUBLISH", PAUSE_MAX)
+    coordinator = os.environ.get("JAXROBO_COORDINATOR")
+    if coordinator:
+        from jaxrobo.speed.sharding import check_coordinator
+
+        try:
+            check_coordinator(coordinator)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+        if pid == 0:
+            _check_port_free(coordinator)
+
+
+def _check_port_free(coordinator: str) -> None:
+    """Process 0 serves the coordinator at its port: one already taken would crash JAX's service natively."""
+    import errno
+    import socket
+
+    from jaxrobo.core.config import ConfigError
+
+    port = int(coordinator.rpartition(":")[2])
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("", port))
+        except OSError as err:
+            if err.errno == errno.EADDRINUSE:
+                raise ConfigError(f"JAXROBO_COORDINATOR={coordinator!r}: port {port} is already in use on this "
+                                  "host (process 0 serves the coordinator there); choose a free port") from None
+
+
+def check_platforms() -> None:
+    """``JAX_PLATFORMS`` naming a platform this machine lacks (``tpu`` without libtpu): a ConfigError naming it,
+    instead of JAX's RuntimeError at the first array."""
+    value = os.environ.get("JAX_PLATFORMS")
+    if not value or not value.strip():
+        return
+    import jax
+
+    from jaxrobo.core.config import ConfigError
+
+    try:
+        jax.devices()
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        first = first.split(" (set JAX_PLATFORMS")[0]  # JAX's own hint; the message below gives the way out
+        raise ConfigError(f"JAX_PLATFORMS={value!r}: a platform it names is not available here ({first}); "
+                          "unset it or name one this machine has (cpu, cuda, ...)") from None
+
+
+def check(light: bool = False) -> None:
+    """Everything above that :func:`check_before_import` did not cover: jaxrobo's own variables, and (unless
+    ``light``: a command that never touches a device) ``JAX_PLATFORMS``. ConfigError naming the variable."""
+    check_jaxrobo_variables()
+    # A multi-host run joins jax.distributed before any backend starts: the platforms are JAX's to check there.
+    distributed = os.environ.get("JAXROBO_COORDINATOR") or os.environ.get("JAXROBO_DISTRIBUTED", "").strip()
+    if not light and not distributed:
+        check_platforms()
