@@ -30,11 +30,13 @@ ROS_IDS = ("QuadcopterGoto-v1", "QuadcopterGoto-v2", "QuadcopterGotoTwist-v0", "
 class RosTaskEnv(gymnasium.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, env_id: str, topics: str | None = None, timeout: float = 5.0, **overrides: Any):
+    def __init__(self, env_id: str, topics: str | None = None, timeout: float = 10.0, params: dict | None = None):
+        """``params``: the task's options and parameters that differ from its defaults (as ``jaxrobo.make``
+        takes them; a dict, since Gymnasium's ``make`` keeps ``max_episode_steps`` for itself)."""
         self.rospy = rospy = import_rospy()
         from jaxrobo.ros import msgs
 
-        self.task_env = make_env({"env_id": env_id, "env_params": overrides})
+        self.task_env = make_env({"env_id": env_id, "env_params": dict(params or {})})
         self.b = make_bridge(self.task_env, topics)
         self.timeout = timeout
         n = self.task_env.observation_space().shape[0]
@@ -54,6 +56,11 @@ class RosTaskEnv(gymnasium.Env):
         self.srv = {name: rospy.ServiceProxy(f"/gazebo/{name}", msgs.Empty, persistent=True)
                     for name in ("pause_physics", "unpause_physics", "reset_simulation")}
         self.horizon = int(self.task_env.default_params.max_episode_steps)
+        end = time.monotonic() + timeout
+        while self.pub.get_num_connections() == 0:  # a command sent before that would be lost
+            if time.monotonic() > end:
+                raise TimeoutError(f"nothing subscribes to {top[self.b.command_topic]} after {timeout:g} s")
+            time.sleep(0.01)
         self.t, self.steps = -np.inf, 0
 
     def _on_msg(self, msg, name: str) -> None:
