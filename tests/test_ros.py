@@ -29,8 +29,8 @@ from jaxrobo.ros import unavailable_reason
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REASON = unavailable_reason() or (None if shutil.which("roscore") else "roscore is not on PATH: apt-get install "
                                   "ros-core (docs/ros.md)")
-pytestmark = [pytest.mark.skipif(REASON is not None, reason=f"ROS 1 missing: {REASON}"),
-              pytest.mark.filterwarnings("ignore:notifyAll:DeprecationWarning")]  # inside rospy
+needs_ros = pytest.mark.skipif(REASON is not None, reason=f"ROS 1 missing: {REASON}")
+pytestmark = pytest.mark.filterwarnings("ignore:notifyAll:DeprecationWarning")  # inside rospy
 #: Wall-clock bound on any one node or script (the whole module runs in about a minute and a half on 2 cores).
 BOUND = 240
 
@@ -122,15 +122,12 @@ def cartpole_export(tmp_path_factory):
 def in_process(export: str, n: int, seed: int, first: int = 0) -> list[dict]:
     """Episodes ``first .. first + n - 1`` of key ``seed`` in-process: the native port and the numpy runner."""
     from jaxrobo.interop.numpy_policy import Policy
-    from jaxrobo.ros.bridge import make_env
+    from jaxrobo.ros.bridge import make_bridge, make_env
     from jaxrobo.ros.sim_node import episode_starts
 
     policy = Policy.load(export)
     env = make_env(policy.meta)
-    from jaxrobo.ros.bridge import FAMILIES  # noqa: F401 - the port the sim uses
-    port = (__import__("envs.quadcopter.native", fromlist=["NativeGoto"]).NativeGoto(env)
-            if "quadcopter" in type(env).__module__
-            else __import__("envs.cartpole.native", fromlist=["NativeCartPole"]).NativeCartPole(env))
+    port = make_bridge(env).port  # the port the sim node steps
     qpos, qvel, tasks = episode_starts(env, first + n, seed)
     return [port.episode(policy, qpos[i], qvel[i], tasks[i]) for i in range(first, first + n)]
 
@@ -157,6 +154,7 @@ class Listener:
         return len(self.got) >= n
 
 
+@needs_ros
 def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     n, seed = 50, 7
     results, stats = ros.tmp / "goto_results.json", ros.tmp / "goto_stats.json"
@@ -173,12 +171,15 @@ def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     rate_native = np.mean([e["success"] for e in native])
     assert len(eps) == n
     assert abs(rate_ros - rate_native) <= 0.02, (rate_ros, rate_native)
+    # lockstep: the same flights, step for step
+    assert [e["steps"] for e in eps] == [e["length"] for e in native]
     # every state the sim published was answered by one command
     s = json.loads(stats.read_text())
     assert s["commands"] == sum(e["steps"] for e in eps), (s, sum(e["steps"] for e in eps))
     assert "Traceback" not in log(policy) + log(sim)
 
 
+@needs_ros
 def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
     n, seed = 4, 3
     results = ros.tmp / "cp_results.json"
@@ -195,6 +196,7 @@ def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
     assert "Traceback" not in log(policy) + log(sim)
 
 
+@needs_ros
 def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
     import gymnasium as gym
 
@@ -220,6 +222,7 @@ def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
     assert lengths == [e["length"] for e in in_process(cartpole_export, 2, seed, first=1)]
 
 
+@needs_ros
 def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
     from jaxrobo.ros import rospy as get
 
@@ -289,6 +292,7 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
         assert says in text and "Traceback" not in text, text
 
 
+@needs_ros
 def test_seed_style_qlearning_against_the_sim_improves(ros):
     sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "0", name="ql_sim")
     out = ros.tmp / "ql.json"
@@ -301,3 +305,14 @@ def test_seed_style_qlearning_against_the_sim_improves(ros):
     lengths = json.loads(out.read_text())
     assert len(lengths) == 150
     assert np.mean(lengths[-50:]) > np.mean(lengths[:25]) + 10, (lengths[:25], lengths[-50:])
+
+
+def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
+    import jaxrobo.ros
+    from jaxrobo.cli import main
+
+    monkeypatch.setattr(jaxrobo.ros, "unavailable_reason", lambda: jaxrobo.ros.INSTALL)
+    for args in (["ros", "policy", "somewhere"], ["ros", "sim", "CartPoleStayUp-v0"], ["ros", "up", "somewhere"]):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "apt-get install ros-core python3-rospy" in err, err

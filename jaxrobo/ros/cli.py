@@ -14,8 +14,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo/ros/topics/<family>.yaml)")
     p.add_argument("--stats", default=None, help="write the latency and loop-rate figures here (JSON) at exit")
     s = sub.add_parser("sim", help="the task's robot in native MuJoCo behind the seed's topics and /gazebo services")
-    s.add_argument("env_id", metavar="ID", help="a task id with a native port (QuadcopterGoto-v2, CartPoleStayUp-v0, ...) "
-                   "or an export directory (its task as the run configured it)")
+    s.add_argument("env_id", metavar="ID", help="a task id with a native port (QuadcopterGoto-v2, CartPoleStayUp-v0, "
+                   "...) or an export directory (its task as the run configured it)")
     s.add_argument("--episodes", type=int, default=0,
                    help="run this many episodes back to back, then exit (0: episodes change on /gazebo/reset_*)")
     s.add_argument("--seed", type=int, default=12345, help="key of the episodes' resets")

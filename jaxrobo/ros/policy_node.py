@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import signal
+from collections import deque
 import sys
 import threading
 import time
@@ -26,6 +27,9 @@ import numpy as np
 from jaxrobo.core.config import ConfigError
 from jaxrobo.ros import rospy as import_rospy
 from jaxrobo.ros.bridge import Fault, make_bridge, make_env, stamp
+
+#: Commands whose latency and timing the node keeps for ``--stats`` (the most recent ones).
+HISTORY = 100_000
 
 
 class PolicyNode:
@@ -47,10 +51,11 @@ class PolicyNode:
         self.lock = threading.Lock()
         self.next_due, self.last_t, self.episode = -np.inf, -np.inf, None
         self.last_act = time.monotonic()
+        self.commands = 0
         self.fault: str | None = None
         self.last_out, self.acted_t = None, None  # the last command sent, and the stamp it answered
-        self.latency: list[float] = []  # s, message in -> command out
-        self.acted: list[tuple[float, float]] = []  # (wall s, stamp s) of each command
+        self.latency: deque = deque(maxlen=HISTORY)  # s, message in -> command out
+        self.acted: deque = deque(maxlen=HISTORY)  # (wall s, stamp s) of each command
 
     def start(self) -> None:
         rospy = self.rospy
@@ -91,8 +96,11 @@ class PolicyNode:
                 t = stamp(self.latest[self.b.primary])
             elif name == self.b.primary:
                 t = stamp(msg)
+                if self.last_t == -np.inf:
+                    self.last_act = time.monotonic()  # the watchdog counts from the first reading
                 if t < self.last_t:  # time rewound: a reset of the simulation
                     self._new_episode()
+                    self.latest[name] = msg  # the first reading of the new episode
                 elif t == self.acted_t and self.last_out is not None and self.fault is None:
                     self.pub.publish(self.last_out)  # the same state again: its command was lost, send it again
                     return
@@ -108,17 +116,20 @@ class PolicyNode:
             except Fault as err:
                 # a reading not there yet may be on its way (one moment's readings travel over several
                 # connections): the watchdog stops the robot if it does not come; a bad value stops it now
-                self._hold(str(err), quiet_if_waiting=err.waiting)
+                if not err.waiting:
+                    self._hold(str(err))
                 return
             out = self.b.command_msg(self.policy(obs))
             self.pub.publish(out)
             self.last_out, self.acted_t = out, t
             self.latency.append(time.perf_counter() - t_in)
+            self.commands += 1
             now = time.monotonic()
             self.acted.append((now, t))
             self.last_act, self.next_due = now, t + self.b.period
             if self.fault is not None:
-                self.rospy.loginfo(f"jaxrobo ros policy: acting again ({self.fault} has cleared)")
+                self.rospy.loginfo("jaxrobo ros policy: acting" + ("" if self.fault == "waiting" else
+                                                                   f" again ({self.fault} has cleared)"))
                 self.fault = None
 
     def _new_episode(self) -> None:
@@ -129,10 +140,8 @@ class PolicyNode:
             if k not in ("goal", "obstacles", "episode"):
                 del self.latest[k]
 
-    def _hold(self, why: str, quiet_if_waiting: bool = False) -> None:
+    def _hold(self, why: str) -> None:
         """Stop the robot (zero command) and say why, once per new cause."""
-        if quiet_if_waiting and time.monotonic() - self.last_act < self.b.stale_after:
-            return  # readings of one moment arrive over several connections: wait for the rest a little
         self.pub.publish(self.b.zero_msg())
         self.last_act = time.monotonic()
         if why != self.fault:
@@ -145,6 +154,13 @@ class PolicyNode:
             idle = time.monotonic() - self.last_act
             if idle < self.b.stale_after:
                 return
+            if self.b.primary not in self.latest and self.last_t == -np.inf:
+                # nothing heard yet: nothing was commanded, so nothing to stop (and a lockstep sim would take a
+                # command sent now for the answer to its first state)
+                if self.fault is None:
+                    self.rospy.logwarn(f"jaxrobo ros policy: waiting for {self.b.topics[self.b.primary]}")
+                    self.fault = "waiting"
+                return
             try:
                 self.b.observation(self.latest, self.goal)
                 why = f"no new {self.b.topics[self.b.primary]} for {idle:.1f} s"
@@ -156,7 +172,7 @@ class PolicyNode:
         lat = np.asarray(self.latency) * 1e3
         wall = np.diff([a[0] for a in self.acted]) if len(self.acted) > 1 else np.zeros(0)
         q = lambda a, p: float(np.percentile(a, p)) if a.size else None  # noqa: E731
-        return {"commands": len(self.latency), "latency_ms": {"median": q(lat, 50), "p99": q(lat, 99),
+        return {"commands": self.commands, "latency_ms": {"median": q(lat, 50), "p99": q(lat, 99),
                                                               "max": q(lat, 100)},
                 "loop_period_s": {"median": q(wall, 50), "p99": q(wall, 99)},
                 "loop_rate_hz": (1.0 / q(wall, 50)) if wall.size and q(wall, 50) > 0 else None}

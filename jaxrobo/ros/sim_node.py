@@ -94,6 +94,7 @@ class SimNode:
     def _unpause(self, _req):
         with self.lock:
             self.paused = False
+            self.tick = time.monotonic()  # time resumes now: a whole period before the next step
             self.lock.notify_all()
         return self.Empty_response()
 
@@ -125,6 +126,7 @@ class SimNode:
         self.pubs["episode"].publish(self.Int32(data=self.index))
         time.sleep(EPISODE_MARGIN)
         self.publish_state()
+        self.tick = time.monotonic()  # the first period of the episode is a whole one
 
     def publish_state(self) -> None:
         self.published = time.monotonic()
@@ -152,7 +154,6 @@ class SimNode:
     def run(self, stop: threading.Event) -> list[dict]:
         with self.lock:
             self.new_episode()
-        tick = time.monotonic()
         while not stop.is_set() and not self.rospy.is_shutdown():
             with self.lock:
                 ready = not self.paused and (not self.lockstep or self.commands > self.used)
@@ -162,12 +163,11 @@ class SimNode:
                         self.publish_state()  # a subscriber that connected after it missed this state
                     continue
                 if self.speed > 0 and not self.lockstep:
-                    tick += self.b.period / self.speed
-                    delay = tick - time.monotonic()
-                    if delay > 0:
-                        self.lock.wait(delay)  # commands may still arrive; the period goes on with the last
-                    else:
-                        tick = time.monotonic()
+                    self.tick += self.b.period / self.speed
+                    if self.tick < time.monotonic():
+                        self.tick = time.monotonic()  # behind: no catching up in a burst
+                    while time.monotonic() < self.tick:  # commands arrive meanwhile; the period ends with the last
+                        self.lock.wait(self.tick - time.monotonic())
                 self.step()
                 if self.episodes and len(self.results) >= self.episodes:
                     break
