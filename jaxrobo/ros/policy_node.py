@@ -28,6 +28,8 @@ from jaxrobo.core.config import ConfigError
 from jaxrobo.ros import rospy as import_rospy
 from jaxrobo.ros.bridge import Fault, make_bridge, make_env, stamp
 
+#: Exit status after the master was restarted under the node (a supervisor's cue to start it again).
+EXIT_MASTER_LOST = 3
 #: Commands whose latency and timing the node keeps for ``--stats`` (the most recent ones).
 HISTORY = 100_000
 
@@ -52,6 +54,7 @@ class PolicyNode:
         self.next_due, self.last_t, self.episode = -np.inf, -np.inf, None
         self.last_act = time.monotonic()
         self.commands = 0
+        self.master_lost: str | None = None
         self.fault: str | None = None
         self.last_out, self.acted_t = None, None  # the last command sent, and the stamp it answered
         self.latency: deque = deque(maxlen=HISTORY)  # s, message in -> command out
@@ -71,6 +74,30 @@ class PolicyNode:
             self.goal = self._goal_param()
         if "takeoff" in top:
             rospy.Publisher(top["takeoff"], types["takeoff"], queue_size=1, latch=True).publish(types["takeoff"]())
+        threading.Thread(target=self._watch_master, daemon=True).start()
+
+    def _watch_master(self) -> None:
+        """Every second, the master's pid: one that no longer answers is reported (the connections already made
+        keep working); one that answers with another pid was restarted, and rospy does not register this node with
+        it again, so the node stops the robot and ends (``master_lost``) for a supervisor to start it again."""
+        import rosgraph
+
+        master, pid, silent = rosgraph.Master(self.rospy.get_name()), None, False
+        while not self.rospy.is_shutdown():
+            try:
+                now = master.getPid()
+            except Exception as err:  # noqa: BLE001 - any failure to reach it is "does not answer"
+                if not silent:
+                    self.rospy.logwarn(f"jaxrobo ros policy: the ROS master at {master.master_uri} does not answer "
+                                       f"({type(err).__name__}); connections already made keep working")
+                silent = True
+            else:
+                if pid is not None and now != pid:
+                    self.master_lost = (f"the ROS master at {master.master_uri} was restarted (pid {pid} -> {now}) "
+                                        "and does not know this node: start it again")
+                    return
+                pid, silent = now, False
+            time.sleep(1.0)
 
     def _goal_param(self):
         name = self.b.cfg["goal_param"]
@@ -202,10 +229,12 @@ def run(args) -> int:
     meta = node.policy.meta
     print(f"jaxrobo ros policy: {meta['env_id']} ({meta['kind']}) every {node.b.period:g} s of stamp time on "
           f"{node.b.topics[node.b.command_topic]}", flush=True)
-    while not stop.is_set() and not node.rospy.is_shutdown():
+    while not stop.is_set() and not node.rospy.is_shutdown() and node.master_lost is None:
         node.watch()
         stop.wait(0.02)
     node.stop()
+    if node.master_lost is not None:
+        print(f"jaxrobo ros policy: stopped the robot (zero command): {node.master_lost}", file=sys.stderr)
     s = node.stats()
     if args.stats:
         with open(args.stats, "w") as f:
@@ -213,4 +242,4 @@ def run(args) -> int:
     print(f"jaxrobo ros policy: {s['commands']} commands, latency median {s['latency_ms']['median']} ms",
           flush=True)
     node.rospy.signal_shutdown("done")
-    return 0
+    return 0 if node.master_lost is None else EXIT_MASTER_LOST
