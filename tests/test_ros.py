@@ -55,9 +55,9 @@ class Ros:
         os.environ.update({k: self.env[k] for k in self.saved})
         self.master = start_master(port, self.env)
 
-    def node(self, *args, name: str) -> subprocess.Popen:
+    def node(self, *args, name: str, env: dict | None = None) -> subprocess.Popen:
         out = open(self.tmp / f"{name}.log", "w")
-        p = subprocess.Popen([sys.executable, "-m", "jaxrobo.cli", "ros", *args], env=self.env, stdout=out,
+        p = subprocess.Popen([sys.executable, "-m", "jaxrobo.cli", "ros", *args], env=env or self.env, stdout=out,
                              stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT)
         p.log = self.tmp / f"{name}.log"
         self.procs.append(p)
@@ -290,6 +290,31 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
         assert p.wait(timeout=BOUND) == 2
         text = log(p)
         assert says in text and "Traceback" not in text, text
+
+
+@needs_ros
+def test_policy_node_stops_when_the_master_restarts(ros, cartpole_export):
+    from jaxrobo.ros.launch import start_master
+
+    port = free_port()
+    env = dict(ros.env, ROS_MASTER_URI=f"http://127.0.0.1:{port}")  # a master of its own, to restart
+    master = start_master(port, env)
+    sim = ros.node("sim", cartpole_export, "--speed", "1", name="restart_sim", env=env)
+    policy = ros.node("policy", cartpole_export, name="restart_policy", env=env)
+    try:
+        end = time.monotonic() + BOUND
+        while "1 x real time" not in log(sim) and time.monotonic() < end:
+            time.sleep(0.2)
+        time.sleep(2.0)
+        assert policy.poll() is None, log(policy)
+        stop(master)
+        master = start_master(port, env)
+        assert policy.wait(timeout=60) == 3, log(policy)
+    finally:
+        stop(sim, policy, master)
+    text = log(policy)
+    assert "stopped the robot (zero command): the ROS master at" in text and "was restarted" in text, text
+    assert "Traceback" not in text, text
 
 
 @needs_ros

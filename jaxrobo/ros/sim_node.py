@@ -145,8 +145,7 @@ class SimNode:
                                  "reward": reward})
             self.reward.publish(self.Info(episode_number=self.index, episode_reward=reward))
             if len(self.results) >= self.episodes:
-                self.publish_state()
-                return
+                return  # as after every episode, its end state is not published (the policy has no step left)
             self.new_episode()
         else:
             self.publish_state()
