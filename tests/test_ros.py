@@ -341,3 +341,30 @@ def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
         assert main(args) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "apt-get install ros-core python3-rospy" in err, err
+
+
+@pytest.mark.parametrize("edit,says", [
+    (lambda c: c["topics"].__setitem__("odom", "drone/odom"), "topics.odom must be a global topic name"),
+    (lambda c: c["topics"].pop("sonar_down"), "topics.sonar_down must be a global topic name"),
+    (lambda c: c.__setitem__("stale_after", -1), "stale_after=-1: must be null or a number of seconds in (0, 60]"),
+    (lambda c: c.__setitem__("max_age", "soon"), "max_age='soon'"),
+    (lambda c: c.__setitem__("family", "cartpole"), "family='cartpole', but the policy's task is a quadcopter"),
+    (lambda c: c.__setitem__("goal_param", 3), "goal_param must be null or a parameter name"),
+])
+def test_topic_files_are_checked_field_by_field(tmp_path, edit, says):
+    import yaml
+
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.ros.bridge import HERE, load_topics
+
+    cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
+    assert load_topics("quadcopter")["topics"]["cmd_vel"] == "/cmd_vel"
+    edit(cfg)
+    path = tmp_path / "topics.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ConfigError) as err:
+        load_topics("quadcopter", str(path))
+    assert says in str(err.value) and str(path) in str(err.value)
+    path.write_text("[not, a, mapping")
+    with pytest.raises(ConfigError, match="cannot be read as YAML"):
+        load_topics("quadcopter", str(path))

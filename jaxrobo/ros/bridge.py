@@ -35,24 +35,35 @@ class Fault(Exception):
         self.waiting = waiting
 
 
-def make_env(meta: dict) -> Any:
-    """The task an export was trained on, with the run's options and parameters (``policy.json``)."""
+def ros_ids() -> list[str]:
+    """The registered task ids with a ROS bridge: those whose class lives in a module of :data:`FAMILIES`."""
+    from jaxrobo.task import registry
+
+    def module(env_id):
+        ep = registry.registration(env_id).entry_point
+        return ep.partition(":")[0] if isinstance(ep, str) else ep.__module__
+
+    return [i for i in registry.registered() if module(i) in FAMILIES]
+
+
+def make_env(meta: dict, where: str = "policy.json") -> Any:
+    """The task an export was trained on, with the run's options and parameters (``policy.json``'s ``env_id``,
+    ``env_options``, ``env_params``)."""
     import jaxrobo
 
     env_id = meta.get("env_id")
-    extra = {**dict(meta.get("env_options") or {}), **dict(meta.get("env_params") or {})}
     try:
+        extra = {**dict(meta.get("env_options") or {}), **dict(meta.get("env_params") or {})}
         return jaxrobo.make(env_id, **extra)
     except (ConfigError, KeyError, TypeError, ValueError) as err:
-        raise ConfigError(f"policy.json: env_id={env_id!r} with {extra}: {err}") from None
+        raise ConfigError(f"{where}: env_id={env_id!r}: {err}") from None
 
 
 def family(env: Any) -> str:
     fam = FAMILIES.get(type(env).__module__)
     if fam is None:
-        have = sorted({f"{k} ({v})" for k, v in FAMILIES.items()})
-        raise ConfigError(f"{getattr(env, 'spec', None) and env.spec.id or type(env).__name__}: no ROS bridge for "
-                          f"this task (have: {', '.join(have)})")
+        name = env.spec.id if getattr(env, "spec", None) is not None else type(env).__name__
+        raise ConfigError(f"{name}: no ROS bridge for this task (have: {', '.join(ros_ids())})")
     return fam
 
 

@@ -20,11 +20,8 @@ import gymnasium
 import numpy as np
 
 from jaxrobo.ros import rospy as import_rospy
-from jaxrobo.ros.bridge import Fault, make_bridge, make_env, stamp
+from jaxrobo.ros.bridge import Fault, make_bridge, make_env, ros_ids, stamp
 
-#: Task ids offered over ROS, as ``jaxrobo-ros/<id>`` (those with a native port, :data:`bridge.FAMILIES`).
-ROS_IDS = ("QuadcopterGoto-v1", "QuadcopterGoto-v2", "QuadcopterGotoTwist-v0", "CartPoleStayUp-v0",
-           "CartPoleStayUpLeftRight-v0", "CartPoleContinuous-v0")
 
 
 class RosTaskEnv(gymnasium.Env):
@@ -36,7 +33,7 @@ class RosTaskEnv(gymnasium.Env):
         self.rospy = rospy = import_rospy()
         from jaxrobo.ros import msgs
 
-        self.task_env = make_env({"env_id": env_id, "env_params": dict(params or {})})
+        self.task_env = make_env({"env_id": env_id, "env_params": dict(params or {})}, where="params")
         self.b = make_bridge(self.task_env, topics)
         self.timeout = timeout
         n = self.task_env.observation_space().shape[0]
@@ -120,7 +117,7 @@ class RosTaskEnv(gymnasium.Env):
 
 
 def register() -> None:
-    for env_id in ROS_IDS:
+    for env_id in ros_ids():
         gid = f"jaxrobo-ros/{env_id}"
         if gid not in gymnasium.registry:
             gymnasium.register(id=gid, entry_point=f"{__name__}:RosTaskEnv", kwargs={"env_id": env_id})

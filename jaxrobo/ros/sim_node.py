@@ -184,10 +184,10 @@ def run(args) -> int:
                 meta = json.load(f)
         except (OSError, ValueError) as err:
             raise ConfigError(f"{args.env_id}: not an export ({err})") from None
-        env = make_env(meta if isinstance(meta, dict) else {})
+        env = make_env(meta if isinstance(meta, dict) else {}, where=os.path.join(args.env_id, POLICY_JSON))
         args.env_id = env.spec.id
     else:
-        env = make_env({"env_id": args.env_id})
+        env = make_env({"env_id": args.env_id}, where="ID")
     node = SimNode(env, args.episodes, args.seed, args.lockstep, args.speed, args.topics)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
