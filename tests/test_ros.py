@@ -293,6 +293,68 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
 
 
 @needs_ros
+def test_drone_node_builds_the_training_observation_from_messages(ros, goto_export, tmp_path):
+    """Readings sent by hand, the goal as a parameter: each command is the runner's action on the observation the
+    native port builds from the same readings (the obstacles map is empty: nothing publishes it)."""
+    import yaml
+    from geometry_msgs.msg import Twist
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Range
+
+    from jaxrobo.interop.numpy_policy import Policy
+    from jaxrobo.ros import rospy as get
+    from jaxrobo.ros.bridge import HERE, SONARS, make_bridge, make_env
+
+    rospy = get()
+    cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
+    cfg["goal_param"] = "/jaxrobo_test/goal"
+    topics = tmp_path / "topics.yaml"
+    topics.write_text(yaml.safe_dump(cfg))
+    goal = np.array([2.0, -1.0, 1.2])
+    rospy.set_param("/jaxrobo_test/goal", goal.tolist())
+    runner = Policy.load(goto_export)
+    port = make_bridge(make_env(runner.meta)).port
+    empty = {"kind": np.zeros(0, np.int32), "center": np.zeros((0, 3)), "size": np.zeros((0, 3)),
+             "active": np.zeros(0, bool)}
+    commands = Listener("/cmd_vel", Twist)
+    pubs = {k: rospy.Publisher(cfg["topics"][k], Odometry if k == "odom" else Range, queue_size=10)
+            for k in ("odom", *SONARS)}
+    policy = ros.node("policy", goto_export, "--topics", str(topics), name="goal_param_policy")
+    try:
+        end = time.monotonic() + BOUND
+        while (any(p.get_num_connections() == 0 for p in pubs.values())
+               or commands.sub.get_num_connections() == 0) and time.monotonic() < end:
+            time.sleep(0.05)
+        rng = np.random.default_rng(0)
+        for k in range(6):
+            t = rospy.Time.from_sec(10.0 + 0.3 * k)
+            pos, yaw, vz = rng.uniform([-2, -2, 0.5], [2, 2, 1.5]), rng.uniform(-np.pi, np.pi), rng.uniform(-0.5, 0.5)
+            sonars = rng.uniform(0.2, 4.0, 4)
+            for name, value in zip(SONARS, sonars):
+                m = Range(range=float(value))
+                m.header.stamp = t
+                pubs[name].publish(m)
+            o = Odometry()
+            o.header.stamp = t
+            o.pose.pose.position.x, o.pose.pose.position.y, o.pose.pose.position.z = pos
+            o.pose.pose.orientation.w, o.pose.pose.orientation.z = np.cos(yaw / 2), np.sin(yaw / 2)
+            o.twist.twist.linear.z = vz
+            pubs["odom"].publish(o)
+            assert commands.wait(k + 1, timeout=10), log(policy)
+            quat = [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+            obs = port.observation(pos, quat, vz, np.asarray(sonars, np.float32).astype(np.float64), goal, empty)
+            want = port.command(runner(obs))[1]
+            c = commands.got[k]
+            assert np.allclose([c.linear.x, c.linear.y, c.linear.z, c.angular.z], want), (k, c, want)
+    finally:
+        stop(policy)
+        commands.sub.unregister()
+        for p in pubs.values():
+            p.unregister()
+    assert "Traceback" not in log(policy)
+
+
+@needs_ros
 def test_policy_node_stops_when_the_master_restarts(ros, cartpole_export):
     from jaxrobo.ros.launch import start_master
 

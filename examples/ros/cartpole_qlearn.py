@@ -56,15 +56,15 @@ class CartPoleStayUpEnv:
         self.gazebo = GazeboConnection()
         self.cmd = rospy.Publisher("/cartpole_v0/foot_joint_velocity_controller/command", Float64, queue_size=1)
         self.cv, self.joints = threading.Condition(), None
-        rospy.Subscriber("/cartpole_v0/joint_states", JointState, self._on_joints, queue_size=1)
+        self.sub = rospy.Subscriber("/cartpole_v0/joint_states", JointState, self._on_joints, queue_size=1)
         self._check_publishers_connection()
 
     def _check_publishers_connection(self, timeout=30.0):
         """The seed's check: a command sent before the simulation's subscriber is connected is lost."""
         end = time.monotonic() + timeout
-        while self.cmd.get_num_connections() == 0:
+        while self.cmd.get_num_connections() == 0 or self.sub.get_num_connections() == 0:
             if time.monotonic() > end:
-                raise TimeoutError("nothing subscribes to the cart's velocity command")
+                raise TimeoutError("the simulation's command subscriber or joint-state publisher is not connected")
             time.sleep(0.01)
 
     def _on_joints(self, msg):

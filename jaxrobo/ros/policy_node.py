@@ -54,6 +54,7 @@ class PolicyNode:
         self.next_due, self.last_t, self.episode = -np.inf, -np.inf, None
         self.last_act = time.monotonic()
         self.commands = 0
+        self.goal = None  # the goal parameter's value, where the topic file names one (else the goal topic)
         self.master_lost: str | None = None
         self.fault: str | None = None
         self.last_out, self.acted_t = None, None  # the last command sent, and the stamp it answered
@@ -66,12 +67,11 @@ class PolicyNode:
         types, top = self.b.msg_types(), self.b.topics
         self.pub = rospy.Publisher(top[self.b.command_topic], types[self.b.command_topic], queue_size=1,
                                    tcp_nodelay=True)
+        if self.b.family == "quadcopter" and self.b.cfg.get("goal_param"):
+            self.goal = self._goal_param()  # before any reading can arrive
         for name in self.b.sensors:
             rospy.Subscriber(top[name], types[name], self._on_msg, callback_args=name, queue_size=1,
                              tcp_nodelay=True)
-        self.goal = None
-        if self.b.family == "quadcopter" and self.b.cfg.get("goal_param"):
-            self.goal = self._goal_param()
         if "takeoff" in top:
             rospy.Publisher(top["takeoff"], types["takeoff"], queue_size=1, latch=True).publish(types["takeoff"]())
         threading.Thread(target=self._watch_master, daemon=True).start()

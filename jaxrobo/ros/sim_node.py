@@ -30,7 +30,8 @@ from jaxrobo.ros.bridge import make_bridge, make_env
 #: Wall-clock seconds between a new episode's goal (latched topics) and its first state: what lets a subscriber
 #: receive the goal before the state of the episode it belongs to (topics travel over separate connections).
 EPISODE_MARGIN = 0.05
-#: Lockstep: wall-clock seconds without a command before the sim publishes its state again.
+#: Wall-clock seconds without a step (paused, or waiting for a lockstep command) before the sim publishes its
+#: state again (same stamp).
 REPUBLISH = 0.5
 
 
@@ -158,8 +159,8 @@ class SimNode:
                 ready = not self.paused and (not self.lockstep or self.commands > self.used)
                 if not ready:
                     self.lock.wait(0.05)
-                    if self.lockstep and not self.paused and time.monotonic() - self.published > REPUBLISH:
-                        self.publish_state()  # a subscriber that connected after it missed this state
+                    if time.monotonic() - self.published > REPUBLISH:
+                        self.publish_state()  # the same state again, for a subscriber that connected after it
                     continue
                 if self.speed > 0 and not self.lockstep:
                     self.tick += self.b.period / self.speed
