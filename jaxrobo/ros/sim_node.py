@@ -62,8 +62,11 @@ class SimNode:
         self.episodes, self.lockstep, self.speed = episodes, lockstep, speed
         self.qpos, self.qvel, self.tasks = episode_starts(env, episodes or pool, seed)
         self.lock = threading.Condition()
-        self.paused, self.commands, self.used = False, 0, 0
+        self.paused, self.commands, self.used = False, 0, 0  # used: commands counted when the state went out
         self.t, self.steps, self.index, self.results = 0.0, 0, -1, []
+        self.tick = self.published = time.monotonic()  # wall clock: the period's end, the last publication
+        self.command = self.b.zero_command()
+        self.msgs = msgs
         rospy.init_node("jaxrobo_sim", disable_signals=True)
         types = self.b.msg_types()
         top = self.b.topics
@@ -78,7 +81,6 @@ class SimNode:
         for name, fn in (("pause_physics", self._pause), ("unpause_physics", self._unpause),
                          ("reset_simulation", self._reset), ("reset_world", self._reset)):
             rospy.Service(f"/gazebo/{name}", msgs.Empty, fn)
-        self.command = self.b.zero_command()
 
     # ---- callbacks (rospy's threads) ------------------------------------------------------------------------
     def _on_command(self, msg) -> None:
@@ -90,25 +92,19 @@ class SimNode:
     def _pause(self, _req):
         with self.lock:
             self.paused = True
-        return self.Empty_response()
+        return self.msgs.EmptyResponse()
 
     def _unpause(self, _req):
         with self.lock:
             self.paused = False
             self.tick = time.monotonic()  # time resumes now: a whole period before the next step
             self.lock.notify_all()
-        return self.Empty_response()
+        return self.msgs.EmptyResponse()
 
     def _reset(self, _req):
         with self.lock:
             self.new_episode()
-        return self.Empty_response()
-
-    @staticmethod
-    def Empty_response():
-        from jaxrobo.ros.msgs import EmptyResponse
-
-        return EmptyResponse()
+        return self.msgs.EmptyResponse()
 
     # ---- the simulation ---------------------------------------------------------------------------------------
     def stamp(self):
