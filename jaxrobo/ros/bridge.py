@@ -109,7 +109,10 @@ def stamp(msg) -> float:
 class Bridge:
     """Shared by both families: the port, the control period, the topics and the freshness rule."""
 
-    primary: str
+    family: str
+    primary: str  # the reading that marks a moment (stamped; the policy acts on it)
+    sensors: tuple  # the topics the policy node subscribes to
+    command_topic: str
 
     def __init__(self, env: Any, cfg: dict, port: Any):
         self.env, self.cfg, self.port = env, cfg, port
@@ -132,6 +135,8 @@ class Bridge:
 
 class DroneBridge(Bridge):
     family, primary = "quadcopter", "odom"
+    sensors = ("odom", *SONARS, "goal", "obstacles", "episode")  # what the policy node subscribes to
+    command_topic = "cmd_vel"
 
     def __init__(self, env: Any, cfg: dict):
         from envs.quadcopter.native import NativeGoto
@@ -141,7 +146,7 @@ class DroneBridge(Bridge):
         self.needs = self.stamped + (() if cfg.get("goal_param") else ("goal",))
 
     def msg_types(self):
-        from geometry_msgs.msg import Point, PointStamped, Pose, Twist  # noqa: F401
+        from geometry_msgs.msg import PointStamped, Pose, Twist
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import Imu, Range
         from std_msgs.msg import Empty, Float64MultiArray, Int32
@@ -149,9 +154,6 @@ class DroneBridge(Bridge):
         return {"cmd_vel": Twist, "takeoff": Empty, "land": Empty, "odom": Odometry, "gt_pose": Pose,
                 "gt_vel": Twist, "imu": Imu, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Int32,
                 **{s: Range for s in SONARS}}
-
-    sensors = ("odom", *SONARS, "goal", "obstacles", "episode")
-    command_topic = "cmd_vel"
 
     # ---- the policy's side --------------------------------------------------------------------------------
     def readings(self, latest: dict, goal=None) -> dict:
