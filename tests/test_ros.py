@@ -380,6 +380,22 @@ def test_policy_node_stops_when_the_master_restarts(ros, cartpole_export):
 
 
 @needs_ros
+def test_up_starts_master_sim_and_policy_and_stops_them(ros, cartpole_export):
+    port = free_port()
+    env = dict(ros.env, ROS_MASTER_URI=f"http://127.0.0.1:{port}")
+    up = subprocess.run([sys.executable, "-m", "jaxrobo.cli", "ros", "up", cartpole_export, "--episodes", "2",
+                         "--lockstep", "--port", str(port)], env=env, capture_output=True, text=True, timeout=BOUND,
+                        cwd=ROOT)
+    out = up.stdout + up.stderr
+    assert up.returncode == 0, out
+    assert "jaxrobo ros sim: 2 episodes" in out and "jaxrobo ros policy: CartPoleStayUp-v0" in out, out
+    assert "Traceback" not in out, out
+    from jaxrobo.ros.launch import master_up
+
+    assert not master_up(env["ROS_MASTER_URI"])  # the master it started is gone
+
+
+@needs_ros
 def test_seed_style_qlearning_against_the_sim_improves(ros):
     sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "0", name="ql_sim")
     out = ros.tmp / "ql.json"
