@@ -23,7 +23,8 @@ from typing import Any, Iterator, Sequence
 PLUGINS = {"show": ("jaxrobo.show", "what a policy does, for any task: frames, returns, traces (flights for a quadcopter)"),
            "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation"),
            "export": ("jaxrobo.export", "a trained policy as policy.npz + policy.json and a numpy-only runner"),
-           "eval": ("jaxrobo.evaluate", "a trained policy on shifted physics (robustness table and plot)")}
+           "eval": ("jaxrobo.evaluate", "a trained policy on shifted physics (robustness table and plot)"),
+           "ros": ("jaxrobo.ros.cli", "ROS 1: an exported policy as a node, a MuJoCo stand-in for Gazebo")}
 
 
 #: Default checkpoint cadence of ``jaxrobo train``: at the first chunk boundary this long after the last save.

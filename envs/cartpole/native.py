@@ -40,11 +40,35 @@ class NativeCartPole(NativeSim):
         r = env.robot
         self.idx = (r.cart_q, r.cart_v, r.pole_q, r.pole_v)
 
-    def observe(self) -> np.ndarray:
+    def joints(self) -> np.ndarray:
+        """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` (float64): the joint sensors."""
         q, v = self.data.qpos, self.data.qvel
         c_q, c_v, p_q, p_v = self.idx
-        obs = np.array([q[c_q], v[c_v], q[p_q], v[p_v]]).astype(np.float32)
+        return np.array([q[c_q], v[c_v], q[p_q], v[p_v]])
+
+    def observation(self, joints) -> np.ndarray:
+        """The task's observation from the joint readings (what the ROS policy node builds from JointState)."""
+        obs = np.asarray(joints, np.float64).astype(np.float32)
         return np.round(obs, 1) if self.round_obs else obs
+
+    def observe(self) -> np.ndarray:
+        return self.observation(self.joints())
+
+    def command(self, action: Any, command: float) -> tuple[Any, float]:
+        """``(action as recorded, new cart command)``: a discrete action adds its step to the last ``command``
+        (clipped under velocity control); a continuous one is ``max_command * clip(a, -1, 1)``."""
+        if self.continuous:
+            a = np.reshape(np.asarray(action, np.float64), -1)[:1]
+            return a, self.max_command * min(max(float(a[0]), -1.0), 1.0)
+        a = int(action)
+        command = command + self.steps[a]
+        return a, (min(max(command, -self.vmax), self.vmax) if self.velocity else command)
+
+    def terminated(self, obs: np.ndarray) -> bool:
+        """The cart or the pole out of its limits (on the observation, as the task tests it)."""
+        x, angle = obs[0], obs[2]
+        return bool(x <= self.x_lim[0] or x >= self.x_lim[1] or angle <= self.angle_lim[0]
+                    or angle >= self.angle_lim[1])
 
     def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
                 horizon: int | None = None) -> dict[str, Any]:
@@ -57,21 +81,12 @@ class NativeCartPole(NativeSim):
         obs = self.observe()
         seen, actions, terminated = [obs], [], False
         for _ in range(horizon):
-            if self.continuous:
-                a = np.reshape(np.asarray(policy(obs), np.float64), -1)[:1]
-                command = self.max_command * min(max(float(a[0]), -1.0), 1.0)
-            else:
-                a = int(policy(obs))
-                command = command + self.steps[a]
-                if self.velocity:
-                    command = min(max(command, -self.vmax), self.vmax)
+            a, command = self.command(policy(obs), command)
             self.advance(command)  # the model keeps one actuator: the control type's
             obs = self.observe()
             actions.append(a)
             seen.append(obs)
-            x, angle = obs[0], obs[2]
-            terminated = bool(x <= self.x_lim[0] or x >= self.x_lim[1] or angle <= self.angle_lim[0]
-                              or angle >= self.angle_lim[1])
+            terminated = self.terminated(obs)
             if terminated:
                 break
         length = len(actions)

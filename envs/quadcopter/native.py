@@ -149,25 +149,47 @@ class NativeGoto(NativeSim):
         return np.clip(self.unmix @ np.concatenate([[thrust], torque]), self.ctrl_low, self.ctrl_high)
 
     # ---- task -------------------------------------------------------------------------------------------
-    def observe(self, goal: np.ndarray, obstacles: dict) -> np.ndarray:
-        pos, rpy = self.data.qpos[:3].copy(), euler_from_quat(self.data.qpos[3:7])
-        delta = goal - pos
-        bearing = wrap_angle(math.atan2(delta[1], delta[0]) - rpy[2])
-        c, s = math.cos(rpy[2]), math.sin(rpy[2])
+    def sonars(self, obstacles: dict) -> list[float]:
+        """The four level sonars (forward, left, right, down; m): rays against the ground and the obstacles."""
+        pos, yaw = self.data.qpos[:3], euler_from_quat(self.data.qpos[3:7])[2]
+        c, s = math.cos(yaw), math.sin(yaw)
         level = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # heading only: gimballed sonars
         rng = self.p["sonar_range"]
-        sonars = [min(ray_ground(pos, d), ray_obstacles(pos, d, obstacles), rng)
-                  for d in SONAR_RAYS.astype(np.float64) @ level.T]
+        return [min(ray_ground(pos, d), ray_obstacles(pos, d, obstacles), rng)
+                for d in SONAR_RAYS.astype(np.float64) @ level.T]
+
+    def observation(self, pos: np.ndarray, quat: np.ndarray, vz: float, sonars, goal: np.ndarray,
+                    obstacles: dict) -> np.ndarray:
+        """The task's observation from the drone's readings: position (m), orientation quaternion ``(w, x, y, z)``,
+        vertical velocity (m/s), the four sonars (m), and the goal and obstacles (what the ROS policy node builds
+        from its topics, :mod:`jaxrobo.ros.bridge`)."""
+        pos = np.array(pos, np.float64)
+        delta = goal - pos
+        bearing = wrap_angle(math.atan2(delta[1], delta[0]) - euler_from_quat(quat)[2])
         obs = [float(np.linalg.norm(delta)), bearing, delta[2], *sonars]
         if self.v2:
-            obs[2] -= self.dz_lead * float(self.data.qvel[2])  # goal_dz where the climb stops (goto_v2._get_obs)
+            obs[2] -= self.dz_lead * float(vz)  # goal_dz where the climb stops (goto_v2._get_obs)
             flat = np.array([delta[0], delta[1], 0.0])
             dist = float(np.linalg.norm(flat))
             direction = flat / max(dist, 1e-6)
             grown = dict(obstacles, size=obstacles["size"] + np.array([self.grow, self.grow, 0.0]))
             ray = ray_obstacles(pos, direction, grown)
+            rng = self.p["sonar_range"]
             obs.append(min(ray, rng) if ray < dist else rng)
         return np.asarray(obs).astype(np.float32)
+
+    def observe(self, goal: np.ndarray, obstacles: dict) -> np.ndarray:
+        q = self.data.qpos
+        return self.observation(q[:3], q[3:7], self.data.qvel[2], self.sonars(obstacles), goal, obstacles)
+
+    def command(self, action: Any) -> tuple[Any, np.ndarray]:
+        """``(action as recorded, Twist [vx, vy, vz, yaw_rate])`` of a policy's action (heading frame, m/s, rad/s):
+        a discrete action's seed Twist at ``speed_value``, or GotoTwist's ``speed_value * clip(a, -1, 1)``."""
+        if self.continuous:
+            a = np.clip(np.reshape(np.asarray(action, np.float64), -1)[:4], -1.0, 1.0)
+            return a, self.p["speed_value"] * a
+        a = int(action)
+        return a, _ACTION_SCALE[a].astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED[a]
 
     def outcome(self, goal: np.ndarray, obstacles: dict) -> tuple[bool, bool]:
         p = self.p
@@ -193,12 +215,7 @@ class NativeGoto(NativeSim):
         seen, actions, pos = [obs], [], [self.data.qpos[:3].copy()]
         arrived = failed = False
         for _ in range(horizon):
-            if self.continuous:
-                a = np.clip(np.reshape(np.asarray(policy(obs), np.float64), -1)[:4], -1.0, 1.0)
-                command = self.p["speed_value"] * a
-            else:
-                a = int(policy(obs))
-                command = _ACTION_SCALE[a].astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED[a]
+            a, command = self.command(policy(obs))
             self.advance(lambda: self.controller(command))  # the cascade runs on the state before every mj_step
             obs = self.observe(goal, obstacles)
             actions.append(a)

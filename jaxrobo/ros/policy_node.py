@@ -1,0 +1,245 @@
+"""``jaxrobo ros policy EXPORT_DIR``: an exported policy (``jaxrobo export``, run by its numpy runner) as a rospy
+node on the task's topics (``topics/<family>.yaml``).
+
+It acts once per control period of sim or sensor time: when the primary reading (odometry, joint states) of a new
+period has arrived together with every other reading it needs within ``max_age`` of it, it builds the task's
+observation with the task's native port (:mod:`jaxrobo.ros.bridge`: the training's numbers, units and frames),
+runs the policy and publishes the command, from the callback of the message that completed the set (no queue
+between message in and command out). A missing, stale or non-finite reading, or none at all for ``stale_after``
+wall-clock seconds (a sim or sensor that died), stops the robot: a zero command and one warning saying why, repeated
+while the cause lasts; the node keeps running and acts again once fresh readings arrive. A reading stamped before
+the last one (Gazebo's ``reset_simulation`` rewinds time) or a new ``/jaxrobo/episode`` starts a new episode (the
+cart-pole's accumulated command returns to its start value). JAX is imported once at start-up (the task's
+constants); the loop calls numpy only.
+"""
+from __future__ import annotations
+
+import json
+import signal
+from collections import deque
+import sys
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from jaxrobo.core.config import ConfigError
+from jaxrobo.ros import rospy as import_rospy
+from jaxrobo.ros.bridge import Fault, make_bridge, make_env, stamp
+
+#: Exit status after the master was restarted under the node (a supervisor's cue to start it again).
+EXIT_MASTER_LOST = 3
+#: Commands whose latency and timing the node keeps for ``--stats`` (the most recent ones).
+HISTORY = 100_000
+
+
+class PolicyNode:
+    def __init__(self, export_dir: str, topics: str | None = None):
+        from jaxrobo.interop.numpy_policy import Policy
+
+        try:
+            self.policy = Policy.load(export_dir)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+        self.env = make_env(self.policy.meta)
+        self.b = make_bridge(self.env, topics)
+        n = self.env.observation_space().shape[0]
+        if n != self.policy.obs_size:
+            raise ConfigError(f"{export_dir}: the policy takes {self.policy.obs_size} observations, "
+                              f"{self.policy.meta['env_id']} gives {n}")
+        self.rospy = import_rospy()
+        self.latest: dict[str, Any] = {}
+        self.lock = threading.Lock()
+        self.next_due, self.last_t, self.episode = -np.inf, -np.inf, None
+        self.last_act = time.monotonic()
+        self.commands = 0
+        self.goal = None  # the goal parameter's value, where the topic file names one (else the goal topic)
+        self.master_lost: str | None = None
+        self.fault: str | None = None
+        self.last_out, self.acted_t = None, None  # the last command sent, and the stamp it answered
+        self.latency: deque = deque(maxlen=HISTORY)  # s, message in -> command out
+        self.acted: deque = deque(maxlen=HISTORY)  # (wall s, stamp s) of each command
+
+    def start(self) -> None:
+        rospy = self.rospy
+        rospy.init_node("jaxrobo_policy", disable_signals=True)
+        types, top = self.b.msg_types(), self.b.topics
+        self.pub = rospy.Publisher(top[self.b.command_topic], types[self.b.command_topic], queue_size=1,
+                                   tcp_nodelay=True)
+        if self.b.family == "quadcopter" and self.b.cfg.get("goal_param"):
+            self.goal = self._goal_param()  # before any reading can arrive
+        for name in self.b.sensors:
+            rospy.Subscriber(top[name], types[name], self._on_msg, callback_args=name, queue_size=1,
+                             tcp_nodelay=True)
+        if "takeoff" in top:
+            rospy.Publisher(top["takeoff"], types["takeoff"], queue_size=1, latch=True).publish(types["takeoff"]())
+        threading.Thread(target=self._watch_master, daemon=True).start()
+
+    def _watch_master(self) -> None:
+        """Every second, the master's pid: one that no longer answers is reported (the connections already made
+        keep working); one that answers with another pid was restarted, and rospy does not register this node with
+        it again, so the node stops the robot and ends (``master_lost``) for a supervisor to start it again."""
+        import rosgraph
+
+        master, pid, silent = rosgraph.Master(self.rospy.get_name()), None, False
+        while not self.rospy.is_shutdown():
+            try:
+                now = master.getPid()
+            except Exception as err:  # noqa: BLE001 - any failure to reach it is "does not answer"
+                if not silent:
+                    self.rospy.logwarn(f"jaxrobo ros policy: the ROS master at {master.master_uri} does not answer "
+                                       f"({type(err).__name__}); connections already made keep working")
+                silent = True
+            else:
+                if pid is not None and now != pid:
+                    self.master_lost = (f"the ROS master at {master.master_uri} was restarted (pid {pid} -> {now}) "
+                                        "and does not know this node: start it again")
+                    return
+                pid, silent = now, False
+            time.sleep(1.0)
+
+    def _goal_param(self):
+        name = self.b.cfg["goal_param"]
+        g = self.rospy.get_param(name, None)
+        try:
+            g = np.asarray(g, np.float64).reshape(3)
+            assert np.all(np.isfinite(g))
+        except (TypeError, ValueError, AssertionError):
+            raise ConfigError(f"parameter {name}: expected [x, y, z] (m), got {g!r}") from None
+        return g
+
+    # ---- acting (rospy's callback threads) -------------------------------------------------------------------
+    def _on_msg(self, msg, name: str) -> None:
+        t_in = time.perf_counter()
+        with self.lock:
+            self.latest[name] = msg
+            if name == "episode":
+                if self.episode is not None and msg.data != self.episode:
+                    self._new_episode()
+                self.episode = msg.data
+                return
+            if name != self.b.primary and self.b.primary in self.latest:
+                t = stamp(self.latest[self.b.primary])
+            elif name == self.b.primary:
+                t = stamp(msg)
+                if self.last_t == -np.inf:
+                    self.last_act = time.monotonic()  # the watchdog counts from the first reading
+                if t < self.last_t:  # time rewound: a reset of the simulation
+                    self._new_episode()
+                    self.latest[name] = msg  # the first reading of the new episode
+                elif t == self.acted_t and self.last_out is not None and self.fault is None:
+                    self.pub.publish(self.last_out)  # the same state again: its command was lost, send it again
+                    return
+                self.last_t = t
+            else:
+                return
+            if t < self.next_due - 1e-6 or name in ("goal", "obstacles"):
+                return
+            try:
+                obs = self.b.observation(self.latest, self.goal)
+                if not np.all(np.isfinite(obs)):
+                    raise Fault(f"observation {obs.tolist()} is not finite")
+            except Fault as err:
+                # a reading not there yet may be on its way (one moment's readings travel over several
+                # connections): the watchdog stops the robot if it does not come; a bad value stops it now
+                if not err.waiting:
+                    self._hold(str(err))
+                return
+            out = self.b.command_msg(self.policy(obs))
+            self.pub.publish(out)
+            self.last_out, self.acted_t = out, t
+            self.latency.append(time.perf_counter() - t_in)
+            self.commands += 1
+            now = time.monotonic()
+            self.acted.append((now, t))
+            self.last_act, self.next_due = now, t + self.b.period
+            if self.fault is not None:
+                self.rospy.loginfo("jaxrobo ros policy: acting" + ("" if self.fault == "waiting" else
+                                                                   f" again ({self.fault} has cleared)"))
+                self.fault = None
+
+    def _new_episode(self) -> None:
+        self.b.reset_memory()
+        self.last_out = None
+        self.next_due = -np.inf
+        for k in list(self.latest):  # readings of the last episode say nothing of this one
+            if k not in ("goal", "obstacles", "episode"):
+                del self.latest[k]
+
+    def _hold(self, why: str) -> None:
+        """Stop the robot (zero command) and say why, once per new cause."""
+        self.pub.publish(self.b.zero_msg())
+        self.last_act = time.monotonic()
+        if why != self.fault:
+            self.rospy.logwarn(f"jaxrobo ros policy: stopping the robot (zero command): {why}")
+            self.fault = why
+
+    def watch(self) -> None:
+        """Called every few ms from the main thread: no command for ``stale_after`` s stops the robot."""
+        with self.lock:
+            idle = time.monotonic() - self.last_act
+            if idle < self.b.stale_after:
+                return
+            if self.b.primary not in self.latest and self.last_t == -np.inf:
+                # nothing heard yet: nothing was commanded, so nothing to stop (and a lockstep sim would take a
+                # command sent now for the answer to its first state)
+                if self.fault is None:
+                    self.rospy.logwarn(f"jaxrobo ros policy: waiting for {self.b.topics[self.b.primary]}")
+                    self.fault = "waiting"
+                return
+            try:
+                self.b.observation(self.latest, self.goal)
+                why = f"no new {self.b.topics[self.b.primary]} for {idle:.1f} s"
+            except Fault as err:
+                why = f"{err} (nothing acted on for {idle:.1f} s)"
+            self._hold(why)
+
+    def stats(self) -> dict:
+        lat = np.asarray(self.latency) * 1e3
+        wall = np.diff([a[0] for a in self.acted]) if len(self.acted) > 1 else np.zeros(0)
+        q = lambda a, p: float(np.percentile(a, p)) if a.size else None  # noqa: E731
+        return {"commands": self.commands, "latency_ms": {"median": q(lat, 50), "p99": q(lat, 99),
+                                                              "max": q(lat, 100)},
+                "loop_period_s": {"median": q(wall, 50), "p99": q(wall, 99)},
+                "loop_rate_hz": (1.0 / q(wall, 50)) if wall.size and q(wall, 50) > 0 else None}
+
+    def stop(self) -> None:
+        self.pub.publish(self.b.zero_msg())
+        top, types = self.b.topics, self.b.msg_types()
+        if "land" in top:
+            self.rospy.Publisher(top["land"], types["land"], queue_size=1, latch=True).publish(types["land"]())
+        time.sleep(0.1)  # let the last messages leave
+
+
+def run(args) -> int:
+    try:
+        node = PolicyNode(args.export_dir, args.topics)
+    except ConfigError as err:
+        print(f"jaxrobo ros policy: {err}; nothing was started", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        node.start()
+    except ConfigError as err:
+        print(f"jaxrobo ros policy: {err}", file=sys.stderr)
+        return 2
+    meta = node.policy.meta
+    print(f"jaxrobo ros policy: {meta['env_id']} ({meta['kind']}) every {node.b.period:g} s of stamp time on "
+          f"{node.b.topics[node.b.command_topic]}", flush=True)
+    while not stop.is_set() and not node.rospy.is_shutdown() and node.master_lost is None:
+        node.watch()
+        stop.wait(0.02)
+    node.stop()
+    if node.master_lost is not None:
+        print(f"jaxrobo ros policy: stopped the robot (zero command): {node.master_lost}", file=sys.stderr)
+    s = node.stats()
+    if args.stats:
+        with open(args.stats, "w") as f:
+            json.dump(s, f)
+    print(f"jaxrobo ros policy: {s['commands']} commands, latency median {s['latency_ms']['median']} ms",
+          flush=True)
+    node.rospy.signal_shutdown("done")
+    return 0 if node.master_lost is None else EXIT_MASTER_LOST

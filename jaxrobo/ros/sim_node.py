@@ -1,0 +1,203 @@
+"""``jaxrobo ros sim ID``: the Gazebo stand-in. The task's robot in native MuJoCo (its own compiled model, on-board
+controllers and control period: the port in ``envs/*/native.py``) behind the seed's topics and services.
+
+Each control period (while not paused) it holds the last command for ``n_substeps`` ``mj_step`` calls, then
+publishes ``/clock`` and the state topics stamped with sim time. ``--lockstep`` waits for one command per published
+state before the next period (deterministic: a policy answering each state sees exactly the native loop's
+episodes; Gazebo has no such mode), otherwise it runs at ``--speed`` x real time holding the last command.
+
+Episodes start from the task's own resets (``jaxrobo.task.rollout.rollout_start`` with key ``--seed``: episode ``i``
+is the ``i``-th reset of ``jaxrobo eval``/``scripts/sim2sim.py`` with that key). With ``--episodes N`` the sim runs
+``N`` episodes back to back (a new one when the task ends one or at the horizon), publishes each one's reward on
+``/openai/reward``, writes ``--results`` and exits; without it episodes change only on ``/gazebo/reset_simulation``
+or ``/gazebo/reset_world`` (as a seed training script drives Gazebo). ``/gazebo/pause_physics`` and
+``/gazebo/unpause_physics`` stop and resume time.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from jaxrobo.ros import rospy as import_rospy
+from jaxrobo.core.config import ConfigError
+from jaxrobo.ros.bridge import make_bridge, make_env
+
+#: Wall-clock seconds between a new episode's goal (latched topics) and its first state: what lets a subscriber
+#: receive the goal before the state of the episode it belongs to (topics travel over separate connections).
+EPISODE_MARGIN = 0.05
+#: Wall-clock seconds without a step (paused, or waiting for a lockstep command) before the sim publishes its
+#: state again (same stamp).
+REPUBLISH = 0.5
+
+
+def episode_starts(env: Any, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, list]:
+    """The first ``n`` resets of key ``seed`` as :func:`jaxrobo.task.rollout.rollout` draws them: qpos, qvel and
+    each episode's task variables (host arrays)."""
+    import jax
+
+    from jaxrobo.task.rollout import rollout_start
+
+    first = jax.jit(lambda k: rollout_start(env, k, n)["first"])(jax.random.key(seed))
+    qpos = np.asarray(jax.vmap(env.robot.sim.qpos)(first.pipeline_state), np.float64)
+    qvel = np.asarray(jax.vmap(env.robot.sim.qvel)(first.pipeline_state), np.float64)
+    task = jax.tree.map(np.asarray, first.task)
+    return qpos, qvel, [jax.tree.map(lambda x: x[i], task) for i in range(n)]
+
+
+class SimNode:
+    def __init__(self, env: Any, episodes: int, seed: int, lockstep: bool, speed: float, topics: str | None = None,
+                 pool: int = 1000):
+        self.rospy = rospy = import_rospy()
+        from rosgraph_msgs.msg import Clock
+        from std_msgs.msg import Int32
+
+        from jaxrobo.ros import msgs
+
+        self.b = make_bridge(env, topics)
+        self.episodes, self.lockstep, self.speed = episodes, lockstep, speed
+        self.qpos, self.qvel, self.tasks = episode_starts(env, episodes or pool, seed)
+        self.lock = threading.Condition()
+        self.paused, self.commands, self.used = False, 0, 0  # used: commands counted when the state went out
+        self.t, self.steps, self.index, self.results = 0.0, 0, -1, []
+        self.tick = self.published = time.monotonic()  # wall clock: the period's end, the last publication
+        self.command = self.b.zero_command()
+        self.msgs = msgs
+        rospy.init_node("jaxrobo_sim", disable_signals=True)
+        types = self.b.msg_types()
+        top = self.b.topics
+        latched = {"goal", "obstacles", "episode"}
+        self.pubs = {k: rospy.Publisher(top[k], types[k], queue_size=10, latch=k in latched)
+                     for k in types if k not in (self.b.command_topic, "takeoff", "land")}
+        self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
+        self.reward = rospy.Publisher("/openai/reward", msgs.RLExperimentInfo, queue_size=10)
+        self.Int32, self.Clock, self.Info = Int32, Clock, msgs.RLExperimentInfo
+        rospy.Subscriber(top[self.b.command_topic], types[self.b.command_topic], self._on_command, queue_size=10,
+                         tcp_nodelay=True)
+        for name, fn in (("pause_physics", self._pause), ("unpause_physics", self._unpause),
+                         ("reset_simulation", self._reset), ("reset_world", self._reset)):
+            rospy.Service(f"/gazebo/{name}", msgs.Empty, fn)
+
+    # ---- callbacks (rospy's threads) ------------------------------------------------------------------------
+    def _on_command(self, msg) -> None:
+        with self.lock:
+            self.command = self.b.command_of(msg)
+            self.commands += 1
+            self.lock.notify_all()
+
+    def _pause(self, _req):
+        with self.lock:
+            self.paused = True
+        return self.msgs.EmptyResponse()
+
+    def _unpause(self, _req):
+        with self.lock:
+            self.paused = False
+            self.tick = time.monotonic()  # time resumes now: a whole period before the next step
+            self.lock.notify_all()
+        return self.msgs.EmptyResponse()
+
+    def _reset(self, _req):
+        with self.lock:
+            self.new_episode()
+        return self.msgs.EmptyResponse()
+
+    # ---- the simulation ---------------------------------------------------------------------------------------
+    def stamp(self):
+        return self.rospy.Time.from_sec(self.t)
+
+    def new_episode(self) -> None:
+        """The next reset: its state, goal and episode number published (the goal first), time one period on."""
+        self.index += 1
+        i = self.index % len(self.tasks)
+        self.task = self.b.task_of(self.tasks[i])
+        self.b.port.reset(self.qpos[i], self.qvel[i])
+        self.command = self.task.get("command", self.b.zero_command())
+        self.steps, self.t = 0, self.t + self.b.period
+        for k, m in self.b.episode_msgs(self.task, self.stamp()).items():
+            self.pubs[k].publish(m)
+        self.pubs["episode"].publish(self.Int32(data=self.index))
+        time.sleep(EPISODE_MARGIN)
+        self.publish_state()
+        self.tick = time.monotonic()  # the first period of the episode is a whole one
+
+    def publish_state(self) -> None:
+        self.published = time.monotonic()
+        self.clock.publish(self.Clock(clock=self.stamp()))
+        for k, m in self.b.state_msgs(self.task, self.stamp()).items():
+            self.pubs[k].publish(m)
+        self.used = self.commands
+
+    def step(self) -> None:
+        self.b.advance(self.command)
+        self.steps += 1
+        self.t += self.b.period
+        done, success, reward = self.b.judge(self.task, self.steps)
+        if done and self.episodes:
+            self.results.append({"episode": self.index, "steps": self.steps, "success": bool(success),
+                                 "reward": reward})
+            self.reward.publish(self.Info(episode_number=self.index, episode_reward=reward))
+            if len(self.results) >= self.episodes:
+                return  # as after every episode, its end state is not published (the policy has no step left)
+            self.new_episode()
+        else:
+            self.publish_state()
+
+    def run(self, stop: threading.Event) -> list[dict]:
+        with self.lock:
+            self.new_episode()
+        while not stop.is_set() and not self.rospy.is_shutdown():
+            with self.lock:
+                ready = not self.paused and (not self.lockstep or self.commands > self.used)
+                if not ready:
+                    self.lock.wait(0.05)
+                    if time.monotonic() - self.published > REPUBLISH:
+                        self.publish_state()  # the same state again, for a subscriber that connected after it
+                    continue
+                if self.speed > 0 and not self.lockstep:
+                    self.tick += self.b.period / self.speed
+                    if self.tick < time.monotonic():
+                        self.tick = time.monotonic()  # behind: no catching up in a burst
+                    while time.monotonic() < self.tick:  # commands arrive meanwhile; the period ends with the last
+                        self.lock.wait(self.tick - time.monotonic())
+                self.step()
+                if self.episodes and len(self.results) >= self.episodes:
+                    break
+        return self.results
+
+
+def run(args) -> int:
+    import signal
+
+    if os.path.isdir(args.env_id):  # an export: its task with the run's options and parameters
+        from jaxrobo.interop.numpy_policy import POLICY_JSON
+
+        try:
+            with open(os.path.join(args.env_id, POLICY_JSON)) as f:
+                meta = json.load(f)
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"{args.env_id}: not an export ({err})") from None
+        env = make_env(meta if isinstance(meta, dict) else {}, where=os.path.join(args.env_id, POLICY_JSON))
+        args.env_id = env.spec.id
+    else:
+        env = make_env({"env_id": args.env_id}, where="ID")
+    node = SimNode(env, args.episodes, args.seed, args.lockstep, args.speed, args.topics)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"jaxrobo ros sim: {args.env_id} in native MuJoCo, control period {node.b.period:g} s, "
+          f"{'lockstep' if args.lockstep else f'{args.speed:g} x real time'}", flush=True)
+    results = node.run(stop)
+    if args.results:
+        with open(args.results, "w") as f:
+            json.dump({"env_id": args.env_id, "seed": args.seed, "episodes": results}, f)
+    if results:
+        rate = np.mean([r["success"] for r in results])
+        print(f"jaxrobo ros sim: {len(results)} episodes, success {rate:.3f}, mean steps "
+              f"{np.mean([r['steps'] for r in results]):.1f}", flush=True)
+    node.rospy.signal_shutdown("done")
+    return 0

@@ -1,0 +1,448 @@
+"""``jaxrobo ros`` end to end on localhost (docs/ros.md): a master on a free port, the sim node, the policy node.
+
+* a trained QuadcopterGoto-v2 table reaches its goals through ROS at the rate it reaches them in-process
+  (the native port with the same numpy runner, on the same resets): within 2 percentage points;
+* a cart-pole table keeps the pole up through ROS (the policy node, and the Gymnasium env over ROS) exactly as long
+  as in-process from the same initial states;
+* faults: the sim killed mid-episode, a sensor that stops, a NaN in a message, an export of another task, topics of
+  another task: the policy node stops the robot (zero command) and says why; no traceback;
+* the seed-style example (examples/ros/cartpole_qlearn.py) learns against the sim node.
+
+Skipped, with the reason, where rospy or roscore is missing (``apt-get install ros-core python3-rospy ...``)."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from jaxrobo.ros import unavailable_reason
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REASON = unavailable_reason() or (None if shutil.which("roscore") else "roscore is not on PATH: apt-get install "
+                                  "ros-core (docs/ros.md)")
+needs_ros = pytest.mark.skipif(REASON is not None, reason=f"ROS 1 missing: {REASON}")
+pytestmark = pytest.mark.filterwarnings("ignore:notifyAll:DeprecationWarning")  # inside rospy
+#: Wall-clock bound on any one node or script (the whole module runs in about a minute and a half on 2 cores).
+BOUND = 240
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Ros:
+    """A master on localhost, the nodes started from it (each in its own process group) and an in-process rospy."""
+
+    def __init__(self, tmp):
+        from jaxrobo.ros.launch import ros_env, start_master
+
+        self.tmp, self.procs, port = tmp, [], free_port()
+        self.env = ros_env(port)
+        self.env.update(ROS_HOSTNAME="127.0.0.1", ROS_LOG_DIR=str(tmp / "log"), ROS_HOME=str(tmp),
+                        JAX_PLATFORMS="cpu", PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]))
+        self.saved = {k: os.environ.get(k) for k in ("ROS_MASTER_URI", "ROS_HOSTNAME", "ROS_LOG_DIR", "ROS_HOME")}
+        os.environ.update({k: self.env[k] for k in self.saved})
+        self.master = start_master(port, self.env)
+
+    def node(self, *args, name: str, env: dict | None = None) -> subprocess.Popen:
+        out = open(self.tmp / f"{name}.log", "w")
+        p = subprocess.Popen([sys.executable, "-m", "jaxrobo.cli", "ros", *args], env=env or self.env, stdout=out,
+                             stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT)
+        p.log = self.tmp / f"{name}.log"
+        self.procs.append(p)
+        return p
+
+    def script(self, *args) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, *args], env=self.env, capture_output=True, text=True, timeout=BOUND,
+                              cwd=ROOT)
+
+    def close(self):
+        from jaxrobo.ros.launch import stop
+
+        stop(self.procs + [self.master])
+        for k, v in self.saved.items():
+            os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, v)
+
+
+@pytest.fixture(scope="module")
+def ros(tmp_path_factory):
+    r = Ros(tmp_path_factory.mktemp("ros"))
+    try:
+        from jaxrobo.ros import rospy
+
+        rospy().init_node("jaxrobo_test", anonymous=True, disable_signals=True)
+        yield r
+    finally:
+        r.close()
+
+
+def stop(*procs):
+    from jaxrobo.ros.launch import stop as stop_all
+
+    stop_all(procs)
+
+
+def log(p) -> str:
+    return p.log.read_text()
+
+
+def train_export(tmp, env_id, *flags) -> str:
+    from jaxrobo.cli import main
+
+    run, out = str(tmp / "run"), str(tmp / "export")
+    assert main(["train", "--env", env_id, "--seed", "0", "--no-progress", "--out", run, *flags]) == 0
+    assert main(["export", run, "--out", out]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def goto_export(tmp_path_factory):
+    return train_export(tmp_path_factory.mktemp("goto"), "QuadcopterGoto-v2", "--nepisodes", "120",
+                        "--set", "snapshots=0")
+
+
+@pytest.fixture(scope="module")
+def cartpole_export(tmp_path_factory):
+    return train_export(tmp_path_factory.mktemp("cartpole"), "CartPoleStayUp-v0", "--n-envs", "16",
+                        "--nepisodes", "60", "--set", "env.max_episode_steps=150", "--set", "nsteps=150",
+                        "--set", "eval_envs=4")
+
+
+def in_process(export: str, n: int, seed: int, first: int = 0) -> list[dict]:
+    """Episodes ``first .. first + n - 1`` of key ``seed`` in-process: the native port and the numpy runner."""
+    from jaxrobo.interop.numpy_policy import Policy
+    from jaxrobo.ros.bridge import make_bridge, make_env
+    from jaxrobo.ros.sim_node import episode_starts
+
+    policy = Policy.load(export)
+    env = make_env(policy.meta)
+    port = make_bridge(env).port  # the port the sim node steps
+    qpos, qvel, tasks = episode_starts(env, first + n, seed)
+    return [port.episode(policy, qpos[i], qvel[i], tasks[i]) for i in range(first, first + n)]
+
+
+class Listener:
+    """The commands a node publishes, as they arrive."""
+
+    def __init__(self, topic, cls):
+        from jaxrobo.ros import rospy
+
+        self.got, self.cv = [], threading.Condition()
+        self.sub = rospy().Subscriber(topic, cls, self._on, queue_size=100)
+
+    def _on(self, msg):
+        with self.cv:
+            self.got.append(msg)
+            self.cv.notify_all()
+
+    def wait(self, n, timeout=30.0):
+        end = time.monotonic() + timeout
+        with self.cv:
+            while len(self.got) < n and time.monotonic() < end:
+                self.cv.wait(0.05)
+        return len(self.got) >= n
+
+
+@needs_ros
+def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
+    n, seed = 50, 7
+    results, stats = ros.tmp / "goto_results.json", ros.tmp / "goto_stats.json"
+    sim = ros.node("sim", goto_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
+                   str(results), name="goto_sim")
+    policy = ros.node("policy", goto_export, "--stats", str(stats), name="goto_policy")
+    try:
+        assert sim.wait(timeout=BOUND) == 0, log(sim)
+    finally:
+        stop(sim, policy)
+    eps = json.loads(results.read_text())["episodes"]
+    native = in_process(goto_export, n, seed)
+    rate_ros = np.mean([e["success"] for e in eps])
+    rate_native = np.mean([e["success"] for e in native])
+    assert len(eps) == n
+    assert abs(rate_ros - rate_native) <= 0.02, (rate_ros, rate_native)
+    # lockstep: the same flights, step for step
+    assert [e["steps"] for e in eps] == [e["length"] for e in native]
+    # every state the sim published was answered by one command
+    s = json.loads(stats.read_text())
+    assert s["commands"] == sum(e["steps"] for e in eps), (s, sum(e["steps"] for e in eps))
+    assert "Traceback" not in log(policy) + log(sim)
+
+
+@needs_ros
+def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
+    n, seed = 4, 3
+    results = ros.tmp / "cp_results.json"
+    sim = ros.node("sim", cartpole_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
+                   str(results), name="cp_sim")
+    policy = ros.node("policy", cartpole_export, name="cp_policy")
+    try:
+        assert sim.wait(timeout=BOUND) == 0, log(sim)
+    finally:
+        stop(sim, policy)
+    eps = json.loads(results.read_text())["episodes"]
+    native = in_process(cartpole_export, n, seed)
+    assert [e["steps"] for e in eps] == [e["length"] for e in native]
+    assert "Traceback" not in log(policy) + log(sim)
+
+
+@needs_ros
+def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
+    import gymnasium as gym
+
+    from jaxrobo.interop.numpy_policy import Policy
+
+    seed = 5
+    sim = ros.node("sim", cartpole_export, "--lockstep", "--seed", str(seed), name="gym_sim")
+    try:
+        env = gym.make("jaxrobo-ros/CartPoleStayUp-v0", params={"max_episode_steps": 150}, timeout=60.0)
+        policy = Policy.load(cartpole_export)
+        lengths = []
+        for _ in range(2):  # the sim starts at episode 0; each reset_simulation draws the next one
+            obs, _ = env.reset()
+            for t in range(1000):
+                obs, reward, terminated, truncated, _ = env.step(policy(obs))
+                assert reward == 1.0
+                if terminated or truncated:
+                    break
+            lengths.append(t + 1)
+        env.close()
+    finally:
+        stop(sim)
+    assert lengths == [e["length"] for e in in_process(cartpole_export, 2, seed, first=1)]
+
+
+@needs_ros
+def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
+    from jaxrobo.ros import rospy as get
+
+    rospy = get()
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64
+
+    commands = Listener("/cartpole_v0/foot_joint_velocity_controller/command", Float64)
+    sim = ros.node("sim", cartpole_export, "--speed", "1", name="fault_sim")
+    policy = ros.node("policy", cartpole_export, name="fault_policy")
+    try:
+        # the sim killed mid-episode: the policy node stops the cart and says why
+        assert commands.wait(25, timeout=90), log(policy)
+        os.killpg(sim.pid, signal.SIGKILL)
+        sim.wait()
+        time.sleep(2.5)
+        assert commands.got[-1].data == 0.0
+        assert "stopping the robot (zero command): no new /cartpole_v0/joint_states" in log(policy)
+        # the node acts again on fresh readings (here from this test), then a NaN stops it at once
+        pub = rospy.Publisher("/cartpole_v0/joint_states", JointState, queue_size=10)
+        end = time.monotonic() + 10
+        while pub.get_num_connections() == 0 and time.monotonic() < end:
+            time.sleep(0.01)
+
+        def joints(t, pole=0.01):
+            m = JointState(name=["foot_joint", "pole_joint"], position=[0.0, pole], velocity=[0.0, 0.0])
+            m.header.stamp = rospy.Time.from_sec(t)
+            return m
+
+        before = len(commands.got)
+        for k in range(5):
+            pub.publish(joints(1000.0 + 0.04 * k))
+            time.sleep(0.05)
+        assert commands.wait(before + 5, timeout=5)
+        assert "acting again" in log(policy)
+        before = len(commands.got)
+        pub.publish(joints(1000.2, pole=float("nan")))
+        assert commands.wait(before + 1, timeout=5)
+        assert commands.got[-1].data == 0.0
+        time.sleep(0.3)
+        assert "/cartpole_v0/joint_states: non-finite value in the message" in log(policy)
+        # a sensor that stops: (nothing more is published) the watchdog keeps the cart stopped
+        before = len(commands.got)
+        assert commands.wait(before + 1, timeout=5)
+        assert all(m.data == 0.0 for m in commands.got[before:])
+        assert policy.poll() is None  # still running
+        policy.send_signal(signal.SIGINT)
+        assert policy.wait(timeout=30) == 0
+    finally:
+        stop(sim, policy)
+        commands.sub.unregister()
+    assert "Traceback" not in log(policy)
+
+    # an export of another task, topics of another task: one line, exit 2, nothing started
+    other = tmp_path / "other"
+    shutil.copytree(cartpole_export, other)
+    meta = json.loads((other / "policy.json").read_text())
+    (other / "policy.json").write_text(json.dumps(dict(meta, env_id="ArmReach-v0", env_options={},
+                                                       env_params={})))
+    drone_topics = os.path.join(ROOT, "jaxrobo", "ros", "topics", "quadcopter.yaml")
+    for args, says in (((str(other),), "ArmReach-v0: no ROS bridge for this task"),
+                       ((cartpole_export, "--topics", drone_topics), "family='quadcopter', but the policy's task is "
+                                                                     "a cartpole")):
+        p = ros.node("policy", *args, name="refused")
+        assert p.wait(timeout=BOUND) == 2
+        text = log(p)
+        assert says in text and "Traceback" not in text, text
+
+
+@needs_ros
+def test_drone_node_builds_the_training_observation_from_messages(ros, goto_export, tmp_path):
+    """Readings sent by hand, the goal as a parameter: each command is the runner's action on the observation the
+    native port builds from the same readings (the obstacles map is empty: nothing publishes it)."""
+    import yaml
+    from geometry_msgs.msg import Twist
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Range
+
+    from jaxrobo.interop.numpy_policy import Policy
+    from jaxrobo.ros import rospy as get
+    from jaxrobo.ros.bridge import HERE, SONARS, make_bridge, make_env
+
+    rospy = get()
+    cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
+    cfg["goal_param"] = "/jaxrobo_test/goal"
+    topics = tmp_path / "topics.yaml"
+    topics.write_text(yaml.safe_dump(cfg))
+    goal = np.array([2.0, -1.0, 1.2])
+    rospy.set_param("/jaxrobo_test/goal", goal.tolist())
+    runner = Policy.load(goto_export)
+    port = make_bridge(make_env(runner.meta)).port
+    empty = {"kind": np.zeros(0, np.int32), "center": np.zeros((0, 3)), "size": np.zeros((0, 3)),
+             "active": np.zeros(0, bool)}
+    commands = Listener("/cmd_vel", Twist)
+    pubs = {k: rospy.Publisher(cfg["topics"][k], Odometry if k == "odom" else Range, queue_size=10)
+            for k in ("odom", *SONARS)}
+    policy = ros.node("policy", goto_export, "--topics", str(topics), name="goal_param_policy")
+    try:
+        end = time.monotonic() + BOUND
+        while (any(p.get_num_connections() == 0 for p in pubs.values())
+               or commands.sub.get_num_connections() == 0) and time.monotonic() < end:
+            time.sleep(0.05)
+        rng = np.random.default_rng(0)
+        for k in range(6):
+            t = rospy.Time.from_sec(10.0 + 0.3 * k)
+            pos, yaw, vz = rng.uniform([-2, -2, 0.5], [2, 2, 1.5]), rng.uniform(-np.pi, np.pi), rng.uniform(-0.5, 0.5)
+            sonars = rng.uniform(0.2, 4.0, 4)
+            for name, value in zip(SONARS, sonars):
+                m = Range(range=float(value))
+                m.header.stamp = t
+                pubs[name].publish(m)
+            o = Odometry()
+            o.header.stamp = t
+            o.pose.pose.position.x, o.pose.pose.position.y, o.pose.pose.position.z = pos
+            o.pose.pose.orientation.w, o.pose.pose.orientation.z = np.cos(yaw / 2), np.sin(yaw / 2)
+            o.twist.twist.linear.z = vz
+            pubs["odom"].publish(o)
+            assert commands.wait(k + 1, timeout=10), log(policy)
+            quat = [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+            obs = port.observation(pos, quat, vz, np.asarray(sonars, np.float32).astype(np.float64), goal, empty)
+            want = port.command(runner(obs))[1]
+            c = commands.got[k]
+            assert np.allclose([c.linear.x, c.linear.y, c.linear.z, c.angular.z], want), (k, c, want)
+    finally:
+        stop(policy)
+        commands.sub.unregister()
+        for p in pubs.values():
+            p.unregister()
+    assert "Traceback" not in log(policy)
+
+
+@needs_ros
+def test_policy_node_stops_when_the_master_restarts(ros, cartpole_export):
+    from jaxrobo.ros.launch import start_master
+
+    port = free_port()
+    env = dict(ros.env, ROS_MASTER_URI=f"http://127.0.0.1:{port}")  # a master of its own, to restart
+    master = start_master(port, env)
+    sim = ros.node("sim", cartpole_export, "--speed", "1", name="restart_sim", env=env)
+    policy = ros.node("policy", cartpole_export, name="restart_policy", env=env)
+    try:
+        end = time.monotonic() + BOUND
+        while "1 x real time" not in log(sim) and time.monotonic() < end:
+            time.sleep(0.2)
+        time.sleep(2.0)
+        assert policy.poll() is None, log(policy)
+        stop(master)
+        master = start_master(port, env)
+        assert policy.wait(timeout=60) == 3, log(policy)
+    finally:
+        stop(sim, policy, master)
+    text = log(policy)
+    assert "stopped the robot (zero command): the ROS master at" in text and "was restarted" in text, text
+    assert "Traceback" not in text, text
+
+
+@needs_ros
+def test_up_starts_master_sim_and_policy_and_stops_them(ros, cartpole_export):
+    port = free_port()
+    env = dict(ros.env, ROS_MASTER_URI=f"http://127.0.0.1:{port}")
+    up = subprocess.run([sys.executable, "-m", "jaxrobo.cli", "ros", "up", cartpole_export, "--episodes", "2",
+                         "--lockstep", "--port", str(port)], env=env, capture_output=True, text=True, timeout=BOUND,
+                        cwd=ROOT)
+    out = up.stdout + up.stderr
+    assert up.returncode == 0, out
+    assert "jaxrobo ros sim: 2 episodes" in out and "jaxrobo ros policy: CartPoleStayUp-v0" in out, out
+    assert "Traceback" not in out, out
+    from jaxrobo.ros.launch import master_up
+
+    assert not master_up(env["ROS_MASTER_URI"])  # the master it started is gone
+
+
+@needs_ros
+def test_seed_style_qlearning_against_the_sim_improves(ros):
+    sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "0", name="ql_sim")
+    out = ros.tmp / "ql.json"
+    try:
+        r = ros.script(os.path.join(ROOT, "examples", "ros", "cartpole_qlearn.py"), "--episodes", "100", "--out",
+                       str(out))
+        assert r.returncode == 0, r.stdout + r.stderr
+    finally:
+        stop(sim)
+    lengths = json.loads(out.read_text())
+    assert len(lengths) == 100
+    assert np.mean(lengths[-25:]) > np.mean(lengths[:25]) + 10, (lengths[:25], lengths[-25:])
+
+
+def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
+    import jaxrobo.ros
+    from jaxrobo.cli import main
+
+    monkeypatch.setattr(jaxrobo.ros, "unavailable_reason", lambda: jaxrobo.ros.INSTALL)
+    for args in (["ros", "policy", "somewhere"], ["ros", "sim", "CartPoleStayUp-v0"], ["ros", "up", "somewhere"]):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "apt-get install ros-core python3-rospy" in err, err
+
+
+@pytest.mark.parametrize("edit,says", [
+    (lambda c: c["topics"].__setitem__("odom", "drone/odom"), "topics.odom must be a global topic name"),
+    (lambda c: c["topics"].pop("sonar_down"), "topics.sonar_down must be a global topic name"),
+    (lambda c: c.__setitem__("stale_after", -1), "stale_after=-1: must be null or a number of seconds in (0, 60]"),
+    (lambda c: c.__setitem__("max_age", "soon"), "max_age='soon'"),
+    (lambda c: c.__setitem__("family", "cartpole"), "family='cartpole', but the policy's task is a quadcopter"),
+    (lambda c: c.__setitem__("goal_param", 3), "goal_param must be null or a parameter name"),
+])
+def test_topic_files_are_checked_field_by_field(tmp_path, edit, says):
+    import yaml
+
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.ros.bridge import HERE, load_topics
+
+    cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
+    assert load_topics("quadcopter")["topics"]["cmd_vel"] == "/cmd_vel"
+    edit(cfg)
+    path = tmp_path / "topics.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ConfigError) as err:
+        load_topics("quadcopter", str(path))
+    assert says in str(err.value) and str(path) in str(err.value)
+    path.write_text("[not, a, mapping")
+    with pytest.raises(ConfigError, match="cannot be read as YAML"):
+        load_topics("quadcopter", str(path))
