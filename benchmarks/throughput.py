@@ -50,6 +50,7 @@ from typing import Any, Callable
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common  # noqa: E402
 import figures  # noqa: E402
+import time_to_trained  # noqa: E402
 from figures import family  # noqa: E402  (the families ratios and figures group rows by)
 
 QUICK_N = (64, 1024, 16384)
@@ -98,6 +99,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--steps-per-env", type=int, default=None,
                    help="the step budget of the --commands rows: --total-steps n_envs x this (default on a GPU "
                         "10,000, about the useful work of the episode-budget rows; on a CPU 1,000)")
+    p.add_argument("--time-to-trained", default=None, metavar="IDS",
+                   help="the time-to-trained table first: each comma-listed task's default `jaxrobo train --env ID` "
+                        "in fresh processes, cold and warm compile cache (benchmarks/time_to_trained.py; default: the "
+                        "tabular tasks on a CPU, every shipped task on a GPU; none: skip)")
     p.add_argument("--out", default=None,
                    help="output folder (default benchmarks/results/local/<device-name>, git-ignored; the committed "
                         "tables are updated on purpose, e.g. --out benchmarks/results/h100)")
@@ -766,13 +771,31 @@ def _brax_sizes(args, n_list, gpu: bool):
     return n_list if args.full else n_list[-2:] if gpu else n_list[-1:]
 
 
+def time_to_trained_plan(args: argparse.Namespace, gpu: bool) -> list[tuple[str, str | None]]:
+    """``(env_id, agent)`` of the time-to-trained rows: ``--time-to-trained`` (``none``: no rows), else the
+    tabular tasks on a CPU (their PPO runs take minutes on 2 cores) and every shipped task on a GPU."""
+    given = args.time_to_trained
+    if given == "none":
+        return []
+    tasks = time_to_trained.TASKS if gpu else tuple(t for t in time_to_trained.TASKS if t[1] is None)
+    if given:
+        known = {t[0]: t for t in time_to_trained.TASKS}
+        for name in given.split(","):
+            if name not in known:
+                raise SystemExit(f"--time-to-trained {name!r}: allowed ids are {', '.join(known)} or none")
+        tasks = tuple(known[name] for name in given.split(","))
+    return list(tasks)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.replot:
         return replot(args.replot, args.out)
     if "crazyflow" in args.peers:  # crazyflow uses scipy's array-API mode, which scipy reads once, at its import
         os.environ.setdefault("SCIPY_ARRAY_API", "1")
-    if command_plan(args, args.device == "gpu" or args.device is None and _gpu_visible()):
+    gpu_seen = args.device == "gpu" or args.device is None and _gpu_visible()
+    trained_tasks = time_to_trained_plan(args, gpu_seen)
+    if command_plan(args, gpu_seen) or trained_tasks:
         # The commands run in child processes beside this one: this one must not hold 75 % of the GPU's memory
         # from its first row on (XLA's default preallocation), or theirs fail to allocate.
         os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
@@ -794,6 +817,14 @@ def main(argv: list[str] | None = None) -> int:
 
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
+    trained: list[dict[str, Any]] = []
+    if trained_tasks:
+        # The headline: what a user waits for, start to exit, beside the kernel rows below.
+        print("time to a trained robot: each task's default `jaxrobo train --env ID`, fresh processes", flush=True)
+        trained = time_to_trained.collect(trained_tasks, report=lambda r: print("  " + json.dumps(
+            {k: r.get(k) for k in ("env_id", "cache", "wall_seconds", "learning_figure", "learning_value")}),
+            flush=True))
+        print(time_to_trained.table(trained), flush=True)
     earlier = load_earlier(out_dir, jax.devices()[0].device_kind) if args.append else None
 
     partial = os.path.join(out_dir, "throughput.partial.json")
@@ -833,7 +864,8 @@ def main(argv: list[str] | None = None) -> int:
     _ratios(rows)
     print()
     print(table(rows))
-    _common.write_json({"meta": meta, "rows": rows}, os.path.join(out_dir, "throughput.json"), default=str)
+    _common.write_json({"meta": meta, "rows": rows, "time_to_trained": trained},
+                       os.path.join(out_dir, "throughput.json"), default=str)
     write_table(rows, meta, os.path.join(out_dir, "throughput.txt"))
     if os.path.exists(partial):
         os.remove(partial)

@@ -81,6 +81,42 @@ def run_once(env_id: str, agent: str | None, seed: int, cache: str, sets: list[s
     return row
 
 
+def collect(tasks: list[tuple[str, str | None]], seeds: int = 1, cold: bool = True, sets: list[str] | None = None,
+            report: Any = None) -> list[dict[str, Any]]:
+    """The rows of ``tasks`` (``(env_id, agent)``): per task a cold row (seed 0, an empty cache) unless not
+    ``cold`` (the cache then filled by an untimed run), then ``seeds`` warm rows; ``report(row)`` after each."""
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="jaxrobo-ttt-") as work:
+        for env_id, agent in tasks:
+            cache = tempfile.mkdtemp(prefix="cache-", dir=work)
+            first = run_once(env_id, agent, 0, cache, sets or [], work)
+            if cold:
+                rows.append({**first, "cache": "cold"})
+                if report is not None:
+                    report(rows[-1])
+            for seed in range(seeds):
+                rows.append({**run_once(env_id, agent, seed, cache, sets or [], work), "cache": "warm"})
+                if report is not None:
+                    report(rows[-1])
+    return rows
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """A plain-text table of the rows: the wall and its split, env steps and the learning figure."""
+    head = ("task", "learner", "cache", "wall s", "start-up", "compile", "run", "eval", "write", "env steps", "learned")
+    lines = [" | ".join(head)]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"{r['env_id']} | {r['agent']} | {r['cache']} | failed (exit {r['exit_code']})")
+            continue
+        cell = lambda k: "-" if r.get(k) is None else f"{r[k]:.1f}"  # noqa: E731
+        lines.append(" | ".join((r["env_id"], r["agent"], r["cache"], f"{r['wall_seconds']:.1f}", cell("startup_seconds"),
+                                 cell("compile_seconds"), cell("run_seconds"), cell("evaluation_seconds"),
+                                 cell("writing_seconds"), f"{r['env_steps']:,}",
+                                 f"{r['learning_figure']} {r['learning_value']:.3g}")))
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--envs", nargs="*", default=None, help="task ids (default: every shipped task)")
@@ -98,24 +134,18 @@ def main(argv: list[str] | None = None) -> int:
                                    jax.default_backend())
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, "time_to_trained.json")
-    rows: list[dict[str, Any]] = []
     tasks = [t for t in TASKS if args.envs is None or t[0] in args.envs]
-    with tempfile.TemporaryDirectory(prefix="jaxrobo-ttt-") as work:
-        for env_id, agent in tasks:
-            cache = tempfile.mkdtemp(prefix="cache-", dir=work)
-            first = run_once(env_id, agent, 0, cache, args.set, work)
-            if not args.warm_only:
-                rows.append({**first, "cache": "cold"})
-                print(json.dumps({k: v for k, v in rows[-1].items() if k != "stdout_tail"}), flush=True)
-            for seed in range(args.seeds):
-                rows.append({**run_once(env_id, agent, seed, cache, args.set, work), "cache": "warm"})
-                print(json.dumps({k: v for k, v in rows[-1].items() if k != "stdout_tail"}), flush=True)
-                with open(path, "w") as f:
-                    json.dump({"device": device, "backend": jax.default_backend(), "rows": rows,
-                               "anchors": ANCHORS}, f, indent=1)
-    with open(path, "w") as f:
-        json.dump({"device": device, "backend": jax.default_backend(), "rows": rows, "anchors": ANCHORS}, f,
-                  indent=1)
+    done: list[dict[str, Any]] = []
+
+    def report(row: dict[str, Any]) -> None:
+        done.append(row)
+        print(json.dumps({k: v for k, v in row.items() if k != "stdout_tail"}), flush=True)
+        with open(path, "w") as f:  # every row so far on disk: a run stopped by a time limit keeps them
+            json.dump({"device": device, "backend": jax.default_backend(), "rows": done, "anchors": ANCHORS}, f,
+                      indent=1)
+
+    rows = collect(tasks, args.seeds, not args.warm_only, args.set, report)
+    print(table(rows))
     print(path)
     return 0
 

@@ -40,7 +40,7 @@ from jaxrobo.tabular import learner as tabular  # noqa: E402
 from jaxrobo.io import results  # noqa: E402
 from jaxrobo.core.config import ConfigError, parse_overrides  # noqa: E402
 from jaxrobo.training.run import resolve  # noqa: E402
-from jaxrobo.training.train import make_discretiser_for  # noqa: E402
+from jaxrobo.tabular.discretise import make_discretiser_for  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -135,20 +135,6 @@ def _train_spec(args: argparse.Namespace):
     return spec_from_config(saved, where=f"--resume {resume}", trusted_env=args.env), resume
 
 
-def _progress_bar(trainer, initial):
-    """A tqdm bar over the run's budget (episodes per env, steps per env, or the run's episodes), starting where a
-    resumed carry ``initial`` is."""
-    import jax
-    from tqdm.auto import tqdm
-
-    total, unit = trainer.budget_total
-    done0 = 0 if initial is None else int(jax.device_get(trainer.progress(initial))[0])
-    desc = {"episodes": "training (episodes per env)", "steps": "training (steps per env)",
-            "run_episodes": "training (episodes of the run)"}[trainer.budget]
-    return tqdm(total=total, initial=min(done0, total), unit="ep" if unit == "episodes" else "step", desc=desc,
-                dynamic_ncols=True)
-
-
 def budget_line(cfg, trainer) -> str:
     """How the run is budgeted, in words, for the first line a training prints."""
     if trainer.budget == "steps":
@@ -172,7 +158,7 @@ def refuse_resume_flags(resume: str, flags: Sequence[tuple[str, Any]], overwrite
 
 
 def keep_live_scalars(live: str, staged: str) -> None:
-    """Copy the event files :class:`LiveScalars` wrote into ``live`` while the run trained into the ``staged``
+    """Copy the event files :class:`jaxrobo.training.callbacks.LiveScalars` wrote into ``live`` while the run trained into the ``staged``
     run that replaces it, beside the per-episode scalars written at the end: the finished run keeps the curve a
     user watched. A name the final writer also took (the same second) gets a ``.live`` suffix."""
     src, dst = os.path.join(live, "tensorboard"), os.path.join(staged, "tensorboard")
@@ -183,37 +169,6 @@ def keep_live_scalars(live: str, staged: str) -> None:
         if name.startswith("events.") and os.path.isfile(os.path.join(src, name)):
             target = os.path.join(dst, name if not os.path.exists(os.path.join(dst, name)) else name + ".live")
             shutil.copy2(os.path.join(src, name), target)
-
-
-class LiveScalars:
-    """TensorBoard scalars written as a run goes (tensorboardX, flushed after every chunk), against env steps:
-    ``progress/useful_share``, ``progress/done`` (in the budget's unit), ``train/last_return`` (the mean over
-    envs of each env's latest recorded episode, the same number as the progress bar's ``last_return``) and
-    ``progress/steps_per_second``. Nothing is written if tensorboardX is missing or the folder cannot be made."""
-
-    def __init__(self, run_dir: str) -> None:
-        self.writer = None
-        try:
-            from jaxrobo.io.events import ScalarWriter
-
-            self.writer = ScalarWriter(os.path.join(run_dir, "tensorboard"))
-        except (ImportError, OSError) as err:
-            print(f"jaxrobo: no live TensorBoard scalars ({err})", file=sys.stderr)
-
-    def __call__(self, p) -> None:
-        if self.writer is None:
-            return
-        step = int(p.useful_steps) if p.useful_steps == p.useful_steps else p.chunks_done
-        self.writer.add_scalar("progress/done", p.done, step)
-        self.writer.add_scalar("progress/useful_share", p.useful_share, step)
-        self.writer.add_scalar("train/last_return", p.last_return, step)
-        if p.seconds > 0:
-            self.writer.add_scalar("progress/steps_per_second", p.steps_per_second, step)  # this process's
-        self.writer.flush()
-
-    def close(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
 
 
 def _deep_agent(args: argparse.Namespace) -> str | None:
@@ -500,7 +455,8 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
 
     from jaxrobo.training import checkpoint, driver
     from jaxrobo.io import rundir
-    from jaxrobo.training import train as training
+    from jaxrobo.training.train import train
+    from jaxrobo.training.trainer import Trainer
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.results import save_run, write_config, write_episodes, write_summary
 
@@ -513,7 +469,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         hold.enter_context(rundir.claimed(out, overwrite=args.overwrite, resume=resume is not None,
                                           flag="--out" if resume is None else "--resume"))
         cfg = spec.config
-        trainer = training.Trainer(spec.env, cfg)
+        trainer = Trainer(spec.env, cfg)
         template = checkpoint.carry_template(trainer, spec.agent_params)
         fingerprint = checkpoint.carry_fingerprint(template, spec.to_dict())
         initial, start_chunk = None, 0
@@ -565,14 +521,11 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
 
-    bar = None if args.no_progress else _progress_bar(trainer, initial)
-    live_scalars = LiveScalars(live)
+    from jaxrobo.training import callbacks
 
-    def progress(p) -> None:
-        live_scalars(p)
-        if bar is not None:
-            bar.update(p.done - bar.n)
-            bar.set_postfix(last_return=f"{p.last_return:.1f}", useful=f"{p.useful_share:.0%}")
+    hooks = [callbacks.LiveScalars(live), callbacks.EvaluationLines(segments=not args.no_progress)]
+    if not args.no_progress:
+        hooks.insert(0, callbacks.ProgressBar())
 
     def save(runner, chunks_done: int) -> None:
         checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
@@ -587,24 +540,13 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
 
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
     with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
-        every = CHECKPOINT_SECONDS if every_chunks is None else None
-        def announce(line: str) -> None:  # the bar is done; the evaluation is the next long phase
-            if bar is not None:
-                bar.close()
-            print(line, file=sys.stderr, flush=True)
-
         from jaxrobo.core.clock import process_seconds
 
         startup = process_seconds()  # imports, device discovery, config: the wall before the first compile
-        with trainer.plan.tracing():  # what train() does, with the trainer built above (its carry was checked)
-            result = driver.run_training(trainer, spec.agent_params, None, progress, initial=initial,
-                                         start_chunk=start_chunk, checkpoint=save,
-                                         checkpoint_every=every_chunks or 0, checkpoint_seconds=every,
-                                         should_stop=stop, announce=announce,
-                                         eval_progress=None if args.no_progress else eval_line)
-        if bar is not None:
-            bar.close()
-        live_scalars.close()
+        result = train(spec.env, cfg, spec.agent_params, None, hooks, initial=initial, start_chunk=start_chunk,
+                       checkpoint=save, checkpoint_every=every_chunks or 0,
+                       checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None, should_stop=stop,
+                       plan=trainer.plan)  # the plan of the trainer whose carry was checked above
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.
@@ -663,14 +605,6 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
     print(f"results in {out}")
     return 0
-
-
-def eval_line(p) -> None:
-    """One stderr line per segment of the greedy evaluation (:class:`jaxrobo.training.driver.EvalProgress`): the
-    steps done, the episodes still running and an ETA, an upper bound (the flight ends with its last episode)."""
-    eta = "done" if p.running == 0 else f"ETA ≤ {p.eta:.0f} s"
-    print(f"  evaluation ({p.what}): step {p.step:,}/{p.horizon:,}, {p.running:,} of {p.episodes:,} episodes "
-          f"running, {p.seconds:.0f} s (compiled in {p.compile_seconds:.0f} s), {eta}", file=sys.stderr, flush=True)
 
 
 def _training_figures(s: dict) -> str:

@@ -858,6 +858,7 @@ def nothing_runs(monkeypatch):
     from jaxrobo import show as flights
     from jaxrobo.io import results
     from jaxrobo.training import train
+    from jaxrobo.training import trainer as trainer_module
     from jaxrobo.training.sweep import running as sweep_running
 
     def forbidden(what: str):
@@ -870,7 +871,7 @@ def nothing_runs(monkeypatch):
     monkeypatch.setattr(deep, "train", forbidden("deep.train (Brax's trainer)"))
 
     monkeypatch.setattr(train, "train", forbidden("train()"))
-    monkeypatch.setattr(train.Trainer, "init", forbidden("Trainer.init"))
+    monkeypatch.setattr(trainer_module.Trainer, "init", forbidden("Trainer.init"))
     monkeypatch.setattr(sweep_running, "GroupRunner", forbidden("the sweep's compiled group"))
     monkeypatch.setattr(flights, "fly", forbidden("flights.fly"))
     monkeypatch.setattr(flights, "episodes", forbidden("show.episodes"))

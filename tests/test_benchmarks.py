@@ -28,7 +28,7 @@ def test_throughput_smoke(tmp_path):
            "--repeats", "1", "--envs", "CartPoleStayUp-v0,NoSuchEnv-v0", "--backends", "mjx,analytic",
            "--learners", "qlearn", "--peers", "gymnasium,seed-loop,gymnax,l2f", "--out", str(tmp_path / "out"),
            "--commands", "train-steps", "--command-envs", "CartPoleStayUp-v0:analytic", "--command-n-envs", "4",
-           "--steps-per-env", "30"]
+           "--steps-per-env", "30", "--time-to-trained", "none"]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads((tmp_path / "out" / "throughput.json").read_text())
@@ -207,3 +207,17 @@ def test_kernel_occupancy_reads_ncu_details_and_refuses_without_ncu():
         proc = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "kernel_occupancy.py")],
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2 and "no ncu found" in proc.stderr
+
+
+def test_time_to_trained_times_the_users_command_and_splits_its_wall(tmp_path):
+    """benchmarks/time_to_trained.py: one warm row of a tiny arm run, its wall split by the run's own summary."""
+    ttt = _script("time_to_trained")
+    rows = ttt.collect([("ArmReach-v0", None)], seeds=1, cold=False,
+                       sets=["nepisodes=3", "eval_episodes=4", "n_envs=4", "nsteps=20"])
+    (row,) = rows
+    assert row["exit_code"] == 0 and row["cache"] == "warm" and 0 < row["env_steps"] <= 4 * 3 * 20
+    parts = [row[k] for k in ("startup_seconds", "compile_seconds", "run_seconds", "evaluation_seconds",
+                              "writing_seconds")]
+    assert all(v is not None and v >= 0 for v in parts) and sum(parts) <= row["wall_seconds"]
+    assert row["learning_figure"] == "eval_best_table_success_rate" and 0 <= row["learning_value"] <= 1
+    assert "ArmReach-v0 | preset | warm" in ttt.table(rows)

@@ -12,7 +12,8 @@ import pytest
 
 from jaxrobo.core.config import ConfigError
 from jaxrobo.training.run import resolve
-from jaxrobo.training.train import Trainer, train
+from jaxrobo.training.trainer import Trainer
+from jaxrobo.training.train import train
 
 SMALL = dict(n_envs=8, nepisodes=5, nsteps=40, chunk_steps=25, eval_episodes=2, eval_envs=2, backend="analytic")
 

@@ -64,7 +64,8 @@ d = enable_compilation_cache()
 import jax, jax.numpy as jnp, numpy as np
 import jaxrobo
 from envs.cartpole.dynamics import CartPoleSim
-from jaxrobo.training.train import TrainConfig, train
+from jaxrobo.training.trainer import TrainConfig
+from jaxrobo.training.train import train
 
 env = jaxrobo.make("CartPoleStayUp-v0", backend="analytic")
 config = TrainConfig(n_envs=4, nepisodes=3, nsteps=40, chunk_steps=40, seed=5, eval_episodes=0)

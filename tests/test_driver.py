@@ -129,7 +129,8 @@ def test_the_greedy_evaluation_flies_once_and_counts_arrivals_as_a_second_flight
 
     from jaxrobo.task import rollout
     from jaxrobo.training.run import resolve
-    from jaxrobo.training.train import make_discretiser_for, train
+    from jaxrobo.tabular.discretise import make_discretiser_for
+    from jaxrobo.training.train import train
 
     spec = resolve(env_id, overrides={"n_envs": 2, "nepisodes": 2, "eval_envs": 1, **overrides})
     env, config = spec.env, spec.config

@@ -11,9 +11,10 @@ from jax.extend.core import jaxprs_in_params
 from jaxrobo.training import driver
 from jaxrobo.speed.plan import ExecutionPlan
 from jaxrobo.training.run import resolve
-from jaxrobo.training.train import Trainer, train
+from jaxrobo.training.trainer import Trainer
 
 # The test_plan sizes (bins small, so the tables and compiles stay small).
+from jaxrobo.training.train import train
 TINY = dict(n_envs=12, nepisodes=4, nsteps=30, chunk_steps=25, eval_episodes=2, eval_envs=2,
             bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
 FIELDS = ("q", "returns", "lengths", "terminated", "nan_episodes", "env_steps", "eval_returns", "eval_lengths")

@@ -18,7 +18,8 @@ import pytest
 from jaxrobo.core.config import ConfigError
 from jaxrobo.speed.plan import ExecutionPlan
 from jaxrobo.training.run import resolve
-from jaxrobo.training.train import Trainer, train
+from jaxrobo.training.trainer import Trainer
+from jaxrobo.training.train import train
 from test_randomise_kernels import CART_RANGES
 
 TINY = dict(n_envs=12, nepisodes=4, nsteps=30, chunk_steps=25, eval_episodes=2, eval_envs=2,

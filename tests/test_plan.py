@@ -17,7 +17,8 @@ from jaxrobo.physics import mjx_lean
 from jaxrobo.core.config import ConfigError
 from jaxrobo.speed.plan import ExecutionPlan, default_env_group, map_groups
 from jaxrobo.training.run import resolve
-from jaxrobo.training.train import Trainer, train
+from jaxrobo.training.trainer import Trainer
+from jaxrobo.training.train import train
 
 HERE = os.path.abspath(__file__)
 ROOT = os.path.dirname(os.path.dirname(HERE))

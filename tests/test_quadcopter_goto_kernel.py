@@ -23,7 +23,7 @@ from envs.quadcopter.kernel import constants_of
 from jaxrobo.physics import fused
 from jaxrobo.speed.plan import ExecutionPlan, task_kernel
 from jaxrobo.training.run import resolve
-from jaxrobo.training.train import Trainer
+from jaxrobo.training.trainer import Trainer
 
 TINY = dict(n_envs=4, nepisodes=3, nsteps=20, chunk_steps=15, eval_episodes=2, eval_envs=2, backend="rigid")
 #: The configurations the step is checked in: v1 as preset (one cylinder, written out), v2 with a mix of kinds

@@ -24,7 +24,7 @@ from jaxrobo.physics import fused
 from jaxrobo.speed.plan import ExecutionPlan
 from jaxrobo.training.run import resolve
 from jaxrobo.physics.sim import JointState
-from jaxrobo.training.train import Trainer
+from jaxrobo.training.trainer import Trainer
 
 TINY = dict(n_envs=6, nepisodes=3, nsteps=20, chunk_steps=15, eval_episodes=2, eval_envs=2, backend="rigid")
 

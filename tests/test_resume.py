@@ -14,17 +14,19 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrobo.training import checkpoint
+from jaxrobo.training import checkpoint as ckpt
 from jaxrobo.io import rundir
 from jaxrobo.training import train as training
 from jaxrobo.cli import main
 from jaxrobo.core.config import ConfigError
 from jaxrobo.io.results import save_run
 from jaxrobo.training.run import resolve
+from jaxrobo.training.trainer import Trainer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: How the run was executed (timings, what a resume restored), not what it computed.
-TIMING = {"compile_seconds", "run_seconds", "eval_seconds", "write_seconds", "env_steps_per_second",
+TIMING = {"compile_seconds", "run_seconds", "eval_seconds", "write_seconds", "env_steps_per_second", "startup_seconds",
+          "target_check_seconds", "target_met_at_run_seconds",
           "restored_env_steps", "env_steps_this_process", "resumed_after_chunk"}
 CARTPOLE = dict(n_envs=4, nepisodes=6, nsteps=40, chunk_steps=15, eval_episodes=2, eval_envs=2,
                 bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
@@ -33,7 +35,7 @@ CASES = {"CartPoleStayUp-v0": CARTPOLE, "QuadcopterGoto-v1": QUADCOPTER}
 
 
 def _save(result, spec, out):
-    save_run(str(out), result, spec.to_dict(), training.Trainer(spec.env, spec.config).disc)
+    save_run(str(out), result, spec.to_dict(), Trainer(spec.env, spec.config).disc)
     return str(out)
 
 
@@ -65,9 +67,9 @@ def test_interrupted_and_resumed_equals_uninterrupted(uninterrupted, stop_at, tm
     """Stopped after ``stop_at`` chunks (``should_stop`` asked before each chunk), saved, loaded and resumed: the
     tables, records, episodes.csv and summary equal those of the run that never stopped."""
     spec, full, full_dir = uninterrupted
-    trainer = training.Trainer(spec.env, spec.config)
-    template = training.carry_template(trainer, spec.agent_params)
-    fingerprint = training.carry_fingerprint(template, spec.to_dict())
+    trainer = Trainer(spec.env, spec.config)
+    template = ckpt.carry_template(trainer, spec.agent_params)
+    fingerprint = ckpt.carry_fingerprint(template, spec.to_dict())
     path = str(tmp_path / rundir.CHECKPOINT)
     asked, saved = [], []
 
@@ -76,7 +78,7 @@ def test_interrupted_and_resumed_equals_uninterrupted(uninterrupted, stop_at, tm
         return len(asked) > stop_at
 
     def checkpoint(runner, chunks_done):
-        training.save_checkpoint(path, runner, chunks_done, fingerprint)
+        ckpt.save_checkpoint(path, runner, chunks_done, fingerprint)
         saved.append(chunks_done)
 
     part = training.train(spec.env, spec.config, spec.agent_params, should_stop=should_stop, checkpoint=checkpoint)
@@ -87,7 +89,7 @@ def test_interrupted_and_resumed_equals_uninterrupted(uninterrupted, stop_at, tm
 
     with np.load(path, allow_pickle=False) as data:  # plain arrays: no pickle needed to read it
         assert int(data["chunks_done"]) == stop_at
-    runner, chunks_done = training.load_checkpoint(path, template, fingerprint)
+    runner, chunks_done = ckpt.load_checkpoint(path, template, fingerprint)
     assert chunks_done == stop_at
     resumed = training.train(spec.env, spec.config, spec.agent_params, initial=runner, start_chunk=chunks_done)
     assert resumed.complete and resumed.chunks_done == full.chunks_done
@@ -98,20 +100,20 @@ def test_interrupted_and_resumed_equals_uninterrupted(uninterrupted, stop_at, tm
 
 def test_a_checkpoint_of_another_config_or_code_is_refused(uninterrupted, tmp_path):
     spec, _, _ = uninterrupted
-    trainer = training.Trainer(spec.env, spec.config)
-    template = training.carry_template(trainer, spec.agent_params)
-    fingerprint = training.carry_fingerprint(template, spec.to_dict())
+    trainer = Trainer(spec.env, spec.config)
+    template = ckpt.carry_template(trainer, spec.agent_params)
+    fingerprint = ckpt.carry_fingerprint(template, spec.to_dict())
     path = str(tmp_path / rundir.CHECKPOINT)
-    training.save_checkpoint(path, jax.jit(trainer.init)(jax.random.key(0), spec.agent_params,
+    ckpt.save_checkpoint(path, jax.jit(trainer.init)(jax.random.key(0), spec.agent_params,
                                                          spec.env.default_params), 0, fingerprint)
     changed = json.loads(json.dumps(spec.to_dict()))
     changed["agent_params"]["alpha"] = 0.123
-    with pytest.raises(training.CheckpointError, match=r"agent_params.alpha: .* in the checkpoint vs 0.123 now"):
-        training.load_checkpoint(path, template, training.carry_fingerprint(template, changed))
-    with pytest.raises(training.CheckpointError, match="source code"):
-        training.load_checkpoint(path, template, {**fingerprint, "sources": "0" * 64})
-    with pytest.raises(training.CheckpointError, match="JAX version"):
-        training.load_checkpoint(path, template, {**fingerprint, "jax": "0.0.1"})
+    with pytest.raises(ckpt.CheckpointError, match=r"agent_params.alpha: .* in the checkpoint vs 0.123 now"):
+        ckpt.load_checkpoint(path, template, ckpt.carry_fingerprint(template, changed))
+    with pytest.raises(ckpt.CheckpointError, match="source code"):
+        ckpt.load_checkpoint(path, template, {**fingerprint, "sources": "0" * 64})
+    with pytest.raises(ckpt.CheckpointError, match="JAX version"):
+        ckpt.load_checkpoint(path, template, {**fingerprint, "jax": "0.0.1"})
 
 
 # ---- the command line ------------------------------------------------------------------------------------------
@@ -137,7 +139,7 @@ def no_training(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("compiled or trained before refusing")
 
-    monkeypatch.setattr(checkpoint, "carry_template", boom)
+    monkeypatch.setattr(ckpt, "carry_template", boom)
     monkeypatch.setattr(training, "train", boom)
 
 
@@ -320,16 +322,16 @@ def test_changed_config_message(tmp_path, capsys):
     """The refusal of an edited config.yaml names what differs."""
     out = str(tmp_path / "run")
     spec = resolve("CartPoleStayUp-v0", overrides=CARTPOLE)
-    trainer = training.Trainer(spec.env, spec.config)
-    template = training.carry_template(trainer, spec.agent_params)
+    trainer = Trainer(spec.env, spec.config)
+    template = ckpt.carry_template(trainer, spec.agent_params)
     os.makedirs(out)
     from jaxrobo.io.results import write_config
 
     write_config(out, spec.to_dict())
     rundir.write_status(out, rundir.INTERRUPTED)
     runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
-    training.save_checkpoint(os.path.join(out, rundir.CHECKPOINT), runner, 0,
-                             training.carry_fingerprint(template, spec.to_dict()))
+    ckpt.save_checkpoint(os.path.join(out, rundir.CHECKPOINT), runner, 0,
+                             ckpt.carry_fingerprint(template, spec.to_dict()))
     text = open(os.path.join(out, "config.yaml")).read()
     open(os.path.join(out, "config.yaml"), "w").write(text.replace("alpha: 0.3", "alpha: 0.25"))
     assert main(["train", "--resume", out, "--no-progress"]) == 2
@@ -344,9 +346,9 @@ def test_a_run_with_snapshots_resumes_to_the_same_final_table(tmp_path):
                                                        eval_episodes=2, snapshot_episodes=4))
     assert spec.config.snapshots > 0
     full = training.train(spec.env, spec.config, spec.agent_params)
-    trainer = training.Trainer(spec.env, spec.config)
-    template = training.carry_template(trainer, spec.agent_params)
-    fingerprint = training.carry_fingerprint(template, spec.to_dict())
+    trainer = Trainer(spec.env, spec.config)
+    template = ckpt.carry_template(trainer, spec.agent_params)
+    fingerprint = ckpt.carry_fingerprint(template, spec.to_dict())
     path = str(tmp_path / rundir.CHECKPOINT)
     asked = []
 
@@ -355,9 +357,9 @@ def test_a_run_with_snapshots_resumes_to_the_same_final_table(tmp_path):
         return len(asked) > 4
 
     part = training.train(spec.env, spec.config, spec.agent_params, should_stop=should_stop,
-                          checkpoint=lambda r, n: training.save_checkpoint(path, r, n, fingerprint))
+                          checkpoint=lambda r, n: ckpt.save_checkpoint(path, r, n, fingerprint))
     assert not part.complete and part.final_table_choice is None  # a stopped run has not chosen
-    runner, chunks_done = training.load_checkpoint(path, template, fingerprint)
+    runner, chunks_done = ckpt.load_checkpoint(path, template, fingerprint)
     resumed = training.train(spec.env, spec.config, spec.agent_params, initial=runner, start_chunk=chunks_done)
     for field in ("q", "returns", "lengths", "eval_returns", "eval_lengths", "eval_success"):
         np.testing.assert_array_equal(getattr(resumed, field), getattr(full, field), err_msg=field)

@@ -43,7 +43,7 @@ def test_trainer_evaluate_is_the_greedy_rollout_with_its_key_layout(cartpole):
     """``Trainer.evaluate`` = the documented key layout with ``tabular.greedy`` at every step (the reference
     below is the trainer's evaluation as it was written before the rollout module, so its figures stay the same)."""
     from jaxrobo.training.run import resolve
-    from jaxrobo.training.train import Trainer
+    from jaxrobo.training.trainer import Trainer
 
     spec = resolve("CartPoleStayUp-v0", overrides={"backend": "analytic", "n_envs": 1, "bins": [3, 3, 4, 4],
                                                    "state_low": [-2.4, -1.0, -0.3, -2.0],

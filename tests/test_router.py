@@ -15,7 +15,8 @@ from jaxrobo.training import sweep
 from jaxrobo.core.config import ConfigError, load_yaml, split_and_validate
 from jaxrobo.task.env import LearningTarget
 from jaxrobo.training.run import agent_presets, resolve, route
-from jaxrobo.training.train import TrainConfig, TrainResult
+from jaxrobo.training.trainer import TrainConfig
+from jaxrobo.training.summary import TrainResult
 
 CP = "CartPoleStayUp-v0"
 IDS = ("CartPoleStayUp-v0", "CartPoleStayUpLeftRight-v0", "QuadcopterGoto-v1", "QuadcopterLiveShow-v0")

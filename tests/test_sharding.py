@@ -22,7 +22,7 @@ import jax, numpy as np
 from jaxrobo.speed import sharding
 from jaxrobo.training.run import resolve
 from jaxrobo.training.sweep import run_sweep
-from jaxrobo.training.train import Trainer
+from jaxrobo.training.trainer import Trainer
 
 def leaves(tree):
     return [np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)

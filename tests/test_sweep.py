@@ -13,7 +13,7 @@ import pytest
 from jaxrobo.training import sweep
 from jaxrobo.core.config import ConfigError
 from jaxrobo.training.run import resolve
-from jaxrobo.training.train import Trainer
+from jaxrobo.training.trainer import Trainer
 
 ENV = "CartPoleStayUp-v0"
 FAST = {"xla_backend_optimization_level": 0}  # compile fast; sweep and single runs use the same options

@@ -7,9 +7,10 @@ import pytest
 from jaxrobo.core.config import ConfigError
 from jaxrobo.training import run as run_mod
 from jaxrobo.training.run import resolve
-from jaxrobo.training.train import Trainer, train
+from jaxrobo.training.trainer import Trainer
 
 #: The closed-form cart-pole learns within a few thousand steps per env at 64 envs; small flights keep it quick.
+from jaxrobo.training.train import train
 FAST = {"env.backend": "analytic", "n_envs": 64, "chunk_steps": 250, "eval_episodes": 20, "eval_envs": 2}
 
 

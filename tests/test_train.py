@@ -111,7 +111,7 @@ def test_gathered_resets_equal_resetting_every_env(agent):
     at times by the short early episodes, so the fallback runs too)."""
     import jax
 
-    from jaxrobo.training.train import Trainer
+    from jaxrobo.training.trainer import Trainer
 
     spec = resolve("CartPoleStayUp-v0", overrides={**TINY, "n_envs": 12, "backend": "analytic"}, agent=agent)
     ap, ep = spec.agent_params, spec.env.default_params
@@ -137,7 +137,7 @@ def test_carried_table_rows_change_nothing(agent, extra):
     bit for bit the one of reading the table every time, on both reset paths."""
     import jax
 
-    from jaxrobo.training.train import Trainer
+    from jaxrobo.training.trainer import Trainer
 
     spec = resolve("CartPoleStayUp-v0", overrides={**TINY, "n_envs": 12, "backend": "analytic", **extra},
                    agent=agent)

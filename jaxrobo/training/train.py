@@ -1,62 +1,67 @@
-"""Vectorised tabular training: the seed's episodes × steps loop, for ``n_envs`` environments at once.
+"""The one training entry: :func:`train`, which the command line, notebooks and the Python API all call.
 
-:func:`train` is the public entry: it builds a :class:`~jaxrobo.training.trainer.Trainer` for an env and a
-:class:`~jaxrobo.training.trainer.TrainConfig`, runs it with the host driver (:func:`jaxrobo.training.driver.run_training`: compile
-one chunk, run chunk after chunk, evaluate at the end) under the run's execution plan, and returns a
-:class:`~jaxrobo.training.summary.TrainResult`. A run starts from a fresh carry or a saved one
-(:func:`~jaxrobo.training.checkpoint.save_checkpoint` / :func:`~jaxrobo.training.checkpoint.load_checkpoint`, what
-``jaxrobo train --resume`` uses), hands the carry to a checkpoint callback now and then, and stops at a chunk
-boundary when asked.
+It builds a :class:`~jaxrobo.training.trainer.Trainer` for an env and a :class:`~jaxrobo.training.trainer.TrainConfig`
+and runs it with the host driver (:func:`jaxrobo.training.driver.run_training`: compile, run chunk after chunk
+until the budget or the task's learning target, evaluate) under the run's execution plan, telling its callbacks
+(:mod:`jaxrobo.training.callbacks`, Stable-Baselines3's shape) as it goes, and returns a
+:class:`~jaxrobo.training.summary.TrainResult`.
 
-Where the pieces live: the config, the carry and the jitted step in :mod:`jaxrobo.training.trainer`; the host loop in
-:mod:`jaxrobo.training.driver`; the result and its summary in :mod:`jaxrobo.training.summary`; checkpoints in
-:mod:`jaxrobo.training.checkpoint`. Their public names are re-exported here, so ``from jaxrobo.training.train import Trainer,
-TrainConfig, TrainResult, train`` keeps working.
-
-Public surface: :func:`train` and the re-exports below.
+Where the pieces live: the config, the carry and the jitted step in :mod:`jaxrobo.training.trainer`; the host loop
+in :mod:`jaxrobo.training.driver`; the result and its summary in :mod:`jaxrobo.training.summary`; checkpoints in
+:mod:`jaxrobo.training.checkpoint`.
 """
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
-from jaxrobo.tabular.learner import AgentParams
-from jaxrobo.training.checkpoint import (CHECKPOINT_FORMAT, CheckpointError, carry_fingerprint, carry_template,
-                                fingerprint_mismatch, load_checkpoint, read_fingerprint, save_checkpoint)
-from jaxrobo.training.driver import CheckpointFn, ProgressFn, compiled_chunk, run_training
-from jaxrobo.task.env import Env
 from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.tabular.learner import AgentParams
+from jaxrobo.task.env import Env
+from jaxrobo.training.callbacks import Callback, as_callbacks
+from jaxrobo.training.driver import CheckpointFn, run_training
 from jaxrobo.training.summary import TrainResult
-from jaxrobo.training.trainer import Runner, TrainConfig, Trainer, make_discretiser_for, progress_stats
+from jaxrobo.training.trainer import Runner, TrainConfig, Trainer
 
-__all__ = ["train", "TrainConfig", "Runner", "Trainer", "TrainResult", "make_discretiser_for", "progress_stats",
-           "compiled_chunk", "ProgressFn", "CheckpointFn", "CHECKPOINT_FORMAT", "CheckpointError", "carry_template",
-           "carry_fingerprint", "fingerprint_mismatch", "save_checkpoint", "read_fingerprint", "load_checkpoint"]
+__all__ = ["train"]
 
 
 def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None, env_params: Any = None,
-          progress: ProgressFn | None = None, *, initial: Runner | None = None, start_chunk: int = 0,
-          checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
+          callbacks: Callback | Callable[..., Any] | Iterable[Any] | None = None, *, initial: Runner | None = None,
+          start_chunk: int = 0, checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
           checkpoint_seconds: float | None = None, should_stop: Callable[[], bool] | None = None,
           plan: ExecutionPlan | None = None) -> TrainResult:
-    """Run a whole training; ``progress(episodes_done_min, nepisodes, mean_last_return)`` after each chunk.
+    """Run a whole training: until the budget ends or the task's learning target holds (``stop_at_target``),
+    then a greedy evaluation.
+
+    ``callbacks``: :class:`~jaxrobo.training.callbacks.Callback` objects (or a plain function of each chunk's
+    :class:`~jaxrobo.training.driver.Progress`, or of ``(done, total, last_return)``), told of the start, every
+    chunk, the evaluation and the end; an ``on_chunk`` that returns False stops the run at that chunk boundary.
 
     The host loop runs chunk after chunk from ``initial`` (a carry after ``start_chunk`` chunks, e.g. from
-    :func:`load_checkpoint`; default: a fresh ``Trainer.init``), so a resumed run is the uninterrupted one bit for
-    bit: training is deterministic and does not depend on where the chunks are cut. ``initial`` is donated to
-    the first chunk (its buffers are reused).
+    :func:`~jaxrobo.training.checkpoint.load_checkpoint`; default: a fresh ``Trainer.init``), so a resumed run is
+    the uninterrupted one bit for bit: training is deterministic and does not depend on where the chunks are cut.
+    ``initial`` is donated to the first chunk (its buffers are reused).
 
     ``checkpoint(runner, chunks_done)`` is called with the carry every ``checkpoint_every`` chunks and/or at the
     first chunk boundary ``checkpoint_seconds`` after the last one (neither: none on the way), once more after the
-    last chunk (before the evaluation, so a late failure never loses the finished carry), and when
-    ``should_stop()`` says to stop: that is asked before each chunk, so a stop request finishes the
-    current chunk, saves it through ``checkpoint`` and returns a result with ``complete=False`` (episodes so
-    far, no evaluation). The library installs no signal handlers; the CLI's ``should_stop`` is a
-    :class:`jaxrobo.training.driver.StopOnSignal`. Evaluation runs only after the last chunk.
+    last chunk (before the evaluation, so a late failure never loses the finished carry), and when the run is asked
+    to stop (``should_stop()`` before each chunk, or a callback): the current chunk finishes, is saved, and the
+    result has ``complete=False`` (episodes so far, no evaluation). The library installs no signal handlers; the
+    CLI's ``should_stop`` is a :class:`jaxrobo.training.driver.StopOnSignal`.
 
     ``plan``: how the run is executed (default: :meth:`jaxrobo.speed.plan.ExecutionPlan.for_run` of this env and
     config); everything the run traces, training chunks and evaluation, is traced under it."""
+    hooks = as_callbacks(callbacks)
     trainer = Trainer(env, config, plan=plan)
+    hooks.on_training_start(trainer, initial)
+
+    def stop() -> bool:
+        return hooks.stop_requested or (should_stop is not None and should_stop())
+
     with trainer.plan.tracing():
-        return run_training(trainer, agent_params, env_params, progress, initial=initial, start_chunk=start_chunk,
-                            checkpoint=checkpoint, checkpoint_every=checkpoint_every,
-                            checkpoint_seconds=checkpoint_seconds, should_stop=should_stop)
+        result = run_training(trainer, agent_params, env_params, hooks.on_chunk, initial=initial,
+                              start_chunk=start_chunk, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                              checkpoint_seconds=checkpoint_seconds, should_stop=stop,
+                              announce=hooks.on_evaluation_start, eval_progress=hooks.on_evaluation)
+    hooks.on_training_end(result)
+    return result
