@@ -170,13 +170,31 @@ def gather(tree: Any) -> Any:
     return jax.device_get(tree)
 
 
+def specs_like(tree: Any, batch: int) -> Any:
+    """A :class:`PartitionSpec` per leaf, as :func:`shardings_like` places it: ``P("batch")`` where axis 0 has
+    length ``batch``, ``P()`` otherwise."""
+    def pick(x):
+        shape = getattr(x, "shape", ())
+        return P(AXIS) if len(shape) >= 1 and shape[0] == batch else P()
+
+    return jax.tree.map(pick, tree)
+
+
 def jit_batched(fn: Callable, mesh: Mesh | None, batch: int, example_args: tuple, donate: tuple[int, ...] = (),
                 compiler_options: dict[str, Any] | None = None) -> Callable:
-    """``jax.jit(fn)`` with every argument and result split along its batch axis over ``mesh`` (if any)."""
+    """``jax.jit(fn)`` with every argument and result split along its batch axis over ``mesh`` (if any).
+
+    ``fn`` must treat its rows independently (a ``vmap``). Over a mesh it runs under ``shard_map``: every device
+    executes ``fn`` compiled for its own ``batch / devices`` rows, the very program one device runs on that many
+    rows, so the rows' values do not depend on how many devices share them. Left to XLA's partitioner instead,
+    the partitioned program fused and rounded differently (the sweep's returns moved in their last bits between
+    one and four devices). One program is compiled for the whole mesh."""
     if mesh is None:
         return jax.jit(fn, donate_argnums=donate, compiler_options=compiler_options)
     out = jax.eval_shape(fn, *example_args)
-    return jax.jit(fn, in_shardings=shardings_like(example_args, mesh, batch),
+    local = jax.shard_map(fn, mesh=mesh, in_specs=specs_like(example_args, batch), out_specs=specs_like(out, batch),
+                          check_vma=False)
+    return jax.jit(local, in_shardings=shardings_like(example_args, mesh, batch),
                    out_shardings=shardings_like(out, mesh, batch), donate_argnums=donate,
                    compiler_options=compiler_options)
 
