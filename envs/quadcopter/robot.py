@@ -178,9 +178,9 @@ def ray_obstacles(origin: jax.Array, direction: jax.Array, obstacles: Obstacles)
 def sonar(pos: jax.Array, quat: jax.Array, obstacles: Obstacles, max_range: float | jax.Array,
           rays: np.ndarray = SONAR_RAYS) -> jax.Array:
     """Range (m) along each body-frame ray to the ground or an obstacle, clipped to ``max_range``."""
-    # The rays rotated with the products written out (dynamics' order), not as a matrix product: XLA picks a
-    # GEMM's algorithm, and so its rounding, by the batch it sees, and an env's ranges then moved in their last
-    # bits with the number of envs (or devices) stepped together.
+    # The rays rotated with the products written out (dynamics' order), not as a batched matrix product, whose
+    # algorithm (and so its rounding) XLA chooses by the batch's shape (on a GPU by autotuning): an env's ranges
+    # must not depend on how many envs, or devices, step together.
     rot = dynamics.rotation(quat[0], quat[1], quat[2], quat[3])
     dirs = jnp.stack([jnp.stack([dynamics._dot(ray, row) for row in rot]) for ray in np.asarray(rays, np.float32)])
 
