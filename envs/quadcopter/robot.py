@@ -178,7 +178,11 @@ def ray_obstacles(origin: jax.Array, direction: jax.Array, obstacles: Obstacles)
 def sonar(pos: jax.Array, quat: jax.Array, obstacles: Obstacles, max_range: float | jax.Array,
           rays: np.ndarray = SONAR_RAYS) -> jax.Array:
     """Range (m) along each body-frame ray to the ground or an obstacle, clipped to ``max_range``."""
-    dirs = jnp.asarray(rays) @ quat_to_mat(quat).T
+    # The rays rotated with the products written out (dynamics' order), not as a batched matrix product, whose
+    # algorithm (and so its rounding) XLA chooses by the batch's shape (on a GPU by autotuning): an env's ranges
+    # must not depend on how many envs, or devices, step together.
+    rot = dynamics.rotation(quat[0], quat[1], quat[2], quat[3])
+    dirs = jnp.stack([jnp.stack([dynamics._dot(ray, row) for row in rot]) for ray in np.asarray(rays, np.float32)])
 
     def one(d):
         return jnp.minimum(ray_ground(pos, d), ray_obstacles(pos, d, obstacles))

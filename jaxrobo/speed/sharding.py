@@ -156,13 +156,50 @@ def gather(tree: Any) -> Any:
     return jax.device_get(tree)
 
 
+def specs_like(tree: Any, batch: int) -> Any:
+    """A :class:`PartitionSpec` per leaf, as :func:`shardings_like` places it: ``P("batch")`` where axis 0 has
+    length ``batch``, ``P()`` otherwise."""
+    def pick(x):
+        shape = getattr(x, "shape", ())
+        return P(AXIS) if len(shape) >= 1 and shape[0] == batch else P()
+
+    return jax.tree.map(pick, tree)
+
+
+#: XLA passes left out of a program compiled for several devices (:func:`spmd_options`). XLA's partitioner
+#: ends with a clean-up that eliminates common subexpressions before the simplification every program goes
+#: through; a program for one device meets that elimination only later, after the simplifier has rewritten
+#: the duplicates one by one. The two orders fused and rounded differently: a sweep's returns moved in their last
+#: bits between one device and several (forced CPU devices; the loop of a Goto step alone shows it). Without
+#: the early elimination the program of several devices rounds as the program of one does.
+SPMD_DISABLED_PASSES = ("cse",)
+
+
+def spmd_options(options: dict[str, Any] | None, mesh: Mesh | None) -> dict[str, Any] | None:
+    """``options`` (XLA compiler options, or None) for a program split over ``mesh``: with more than one device,
+    :data:`SPMD_DISABLED_PASSES` added to ``xla_disable_hlo_passes`` (with those already there); else as given."""
+    if mesh is None or mesh.devices.size == 1:
+        return options
+    out = dict(options or {})
+    given = [p for p in str(out.get("xla_disable_hlo_passes", "")).split(",") if p]
+    out["xla_disable_hlo_passes"] = ",".join(dict.fromkeys(given + list(SPMD_DISABLED_PASSES)))
+    return out
+
+
 def jit_batched(fn: Callable, mesh: Mesh | None, batch: int, example_args: tuple, donate: tuple[int, ...] = (),
                 compiler_options: dict[str, Any] | None = None) -> Callable:
-    """``jax.jit(fn)`` with every argument and result split along its batch axis over ``mesh`` (if any)."""
+    """``jax.jit(fn)`` with every argument and result split along its batch axis over ``mesh`` (if any).
+
+    ``fn`` must treat its rows independently (a ``vmap``). Over a mesh it runs under ``shard_map``: every device
+    executes ``fn`` traced for its own ``batch / devices`` rows, with no communication, and the program is
+    compiled once for the whole mesh, under :func:`spmd_options`, so that its rows round as one device's do."""
     if mesh is None:
         return jax.jit(fn, donate_argnums=donate, compiler_options=compiler_options)
+    compiler_options = spmd_options(compiler_options, mesh)
     out = jax.eval_shape(fn, *example_args)
-    return jax.jit(fn, in_shardings=shardings_like(example_args, mesh, batch),
+    local = jax.shard_map(fn, mesh=mesh, in_specs=specs_like(example_args, batch), out_specs=specs_like(out, batch),
+                          check_vma=False)
+    return jax.jit(local, in_shardings=shardings_like(example_args, mesh, batch),
                    out_shardings=shardings_like(out, mesh, batch), donate_argnums=donate,
                    compiler_options=compiler_options)
 

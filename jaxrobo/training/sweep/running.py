@@ -118,6 +118,28 @@ def _stack(trees: list[Any]) -> Any:
     return jax.tree.map(lambda *xs: _as_array(list(xs)), *trees)
 
 
+def _sum_last(x: jax.Array, n_axes: int) -> jax.Array:
+    """``x`` summed over its last ``n_axes`` axes in one fixed order: the terms flattened (row-major), padded with
+    zeros to a power of two and added pairwise, half onto half, element by element. XLA orders the terms of its
+    own reductions by the program it compiles them into (one device's, several devices'), and a row's means
+    moved in their last bit with the device count; element-wise adds keep the same order in every program."""
+    lead = x.shape[:x.ndim - n_axes]
+    m = int(np.prod(x.shape[x.ndim - n_axes:], dtype=np.int64))
+    flat = x.reshape(lead + (m,))
+    size = 1 << max(m - 1, 0).bit_length()
+    if size != m:
+        flat = jnp.concatenate([flat, jnp.zeros(lead + (size - m,), flat.dtype)], axis=-1)
+    while flat.shape[-1] > 1:
+        h = flat.shape[-1] // 2
+        flat = flat[..., :h] + flat[..., h:]
+    return flat[..., 0]
+
+
+def _mean_last(x: jax.Array, n_axes: int) -> jax.Array:
+    """The mean over the last ``n_axes`` axes, summed by :func:`_sum_last`."""
+    return _sum_last(x, n_axes) / np.float32(np.prod(x.shape[x.ndim - n_axes:], dtype=np.int64))
+
+
 def _best_window(figure: jax.Array, count: jax.Array, rank: Ranking, window: int = 100) -> jax.Array:
     """Per row, each env's best ``window``-episode moving mean of ``figure`` (``[rows, n_envs, episodes]``) over
     its first ``count`` (``[rows, n_envs]``) recorded episodes, best in ``rank``'s direction, averaged over the
@@ -135,7 +157,7 @@ def _best_window(figure: jax.Array, count: jax.Array, rank: Ranking, window: int
     best = (jnp.max(jnp.where(valid, means, -jnp.inf), axis=-1) if rank.higher
             else jnp.min(jnp.where(valid, means, jnp.inf), axis=-1))
     has = count[..., 0] > 0
-    return jnp.sum(jnp.where(has, best, 0.0), axis=-1) / jnp.maximum(jnp.sum(has, axis=-1), 1)
+    return _sum_last(jnp.where(has, best, 0.0), 1) / jnp.maximum(jnp.sum(has, axis=-1), 1)
 
 
 def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True,
@@ -154,10 +176,10 @@ def _row_metrics(runner: Runner, n_last: int, every_slot_recorded: bool = True,
     k = min(n_last, nep)
     best = jnp.sort(lengths, axis=-1)[..., -min(100, nep):]
     return {
-        "final_return": returns[..., -k:].mean(axis=(-1, -2)),
-        "final_length": lengths[..., -k:].mean(axis=(-1, -2)),
-        "mean_length": lengths.mean(axis=(-1, -2)),
-        "best_100_mean_length": best.mean(axis=(-1, -2)),
+        "final_return": _mean_last(returns[..., -k:], 2),
+        "final_length": _mean_last(lengths[..., -k:], 2),
+        "mean_length": _mean_last(lengths, 2),
+        "best_100_mean_length": _mean_last(best, 2),
         "highest_reward": returns.max(axis=(-1, -2)),
         "episodes_done": runner.episode.min(axis=-1),
         "env_steps": runner.env_steps.sum(axis=-1),
@@ -176,7 +198,7 @@ def _row_metrics_recorded(runner: Runner, n_last: int) -> dict[str, jax.Array]:
     index = jnp.arange(nep)
     rec = index < count
     last = rec & (index >= count - n_last)
-    pooled = lambda x, m: jnp.sum(jnp.where(m, x, 0.0), axis=(-1, -2)) / jnp.maximum(jnp.sum(m, axis=(-1, -2)), 1)  # noqa: E731
+    pooled = lambda x, m: _sum_last(jnp.where(m, x, 0.0), 2) / jnp.maximum(jnp.sum(m, axis=(-1, -2)), 1)  # noqa: E731
     top = jnp.sort(jnp.where(rec, lengths, -1.0), axis=-1)[..., -min(100, nep):]
     return {
         "final_return": pooled(returns, last),
@@ -227,11 +249,11 @@ class GroupRunner:
             keys = jax.vmap(lambda kd: jax.random.fold_in(jax.random.wrap_key_data(kd), 1))(key_data)
             ev = jax.vmap(self.trainer.evaluate_episodes, in_axes=(0, 0, None, 0))
             episodes = ev(keys, table, self.eval_episodes, env_params)
-            out["eval_mean_return"] = episodes["return"].mean(axis=-1)
-            out["eval_mean_length"] = episodes["length"].astype(jnp.float32).mean(axis=-1)
+            out["eval_mean_return"] = _mean_last(episodes["return"], 1)
+            out["eval_mean_length"] = _mean_last(episodes["length"].astype(jnp.float32), 1)
             target = getattr(self.trainer.env, "learning_target", None)
             if target is not None and target.metric == "success_rate" and "arrived" in episodes:
-                out["eval_success_rate"] = episodes["arrived"].astype(jnp.float32).mean(axis=-1)
+                out["eval_success_rate"] = _mean_last(episodes["arrived"].astype(jnp.float32), 1)
         return out
 
     def run(self, key_data: np.ndarray, agent_params: Any, env_params: Any,
