@@ -239,12 +239,13 @@ def check_discretiser(env: Env, config: TrainConfig, where: str = "") -> int:
 
 
 def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] | None = None,
-            agent: str | None = None, check_memory: bool = True) -> RunSpec:
+            agent: str | None = None, check_memory: bool = True, device_defaults: bool = True) -> RunSpec:
     """Build env, learner parameters and loop config for a run; raises :class:`ConfigError` on any bad value.
 
     Everything is checked here, before anything compiles: each value against its declared rule, combinations
     (:func:`check_combinations`), the discretiser against the task's observation, and (``check_memory``) the
     batch's estimated memory against what the device has (:func:`jaxrobo.training.budget.check_memory`).
+    ``device_defaults``: apply the preset's ``on_gpu`` settings on an accelerator (:func:`device_overlay`).
     """
     env_id = _lookup(env_id).spec.id  # a deprecated alias resolves (and warns) once; the run records the real id
     presets = agent_presets(env_id)
@@ -253,8 +254,11 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     if overrides is not None and not isinstance(overrides, Mapping):
         raise ConfigError(f"overrides: expected a mapping of key: value, got {type(overrides).__name__}")
     chosen = dict(presets.get(preset, {}) or {})
-    device_defaults = device_overlay(chosen, where=f"{env_id} preset {preset}")
-    chosen.update(device_defaults)
+    overlay = device_overlay(chosen, where=f"{env_id} preset {preset}")
+    if device_defaults:
+        chosen.update(overlay)
+    else:
+        overlay = {}
     env_values = dict(chosen.pop("env", {}) or {})
     agent_values = chosen
     given: dict[str, Any] = {}
@@ -292,7 +296,7 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
         horizon = env.spec.max_episode_steps if env.spec else 1000
         check_eval_memory(env, n_eval, config.eval_episodes, horizon, where=where)
     return RunSpec(env_id, preset, env, AgentParams(**agent_kw), config, env_values,
-                   {k: v for k, v in device_defaults.items() if k not in given})
+                   {k: v for k, v in overlay.items() if k not in given})
 
 
 def spec_from_config(run_config: Any, where: str = "config.yaml", trusted_env: str | None = None,

@@ -157,6 +157,11 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
     """
     overrides = dict(overrides or {})
     overrides.setdefault("record_episodes", True)
+    # A sweep compares its rows under one budget: each runs it whole (a row that stopped at its learning target
+    # would still hold its slots in the group's batch), and stop_at_target is jaxrobo train's.
+    if overrides.setdefault("stop_at_target", False) not in (False, "false"):
+        raise ConfigError(f"stop_at_target={overrides['stop_at_target']!r}: a sweep runs every row's whole budget "
+                          "to compare them; the learning-target stop is jaxrobo train's (drop it)")
     if not seeds:
         raise ConfigError("--seeds: need at least one seed")
     seeds = [int(s) for s in seeds]
@@ -164,7 +169,8 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
     options = None if compiler_options is None else dict(compiler_options)
     planned = []
     for g, (static, members) in enumerate(groups.items()):
-        spec = resolve(env_id, preset, {**overrides, **dict(static)}, agent=agent)
+        # The presets' on_gpu sizes are one run's: a sweep's rows share the device, its n_envs is per row.
+        spec = resolve(env_id, preset, {**overrides, **dict(static)}, agent=agent, device_defaults=False)
         env, base_ap, base_ep = spec.env, spec.agent_params, spec.env.default_params
         bounds = [np.asarray(b) for b in env.state_bounds(base_ep)]
         agent_list, env_list, meta = [], [], []
