@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pytest
 
-from jaxrobo.ros import unavailable_reason
+from jaxrobo.ros.system import unavailable_reason
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REASON = unavailable_reason() or (None if shutil.which("roscore") else "roscore is not on PATH: apt-get install "
@@ -79,7 +79,7 @@ class Ros:
 def ros(tmp_path_factory):
     r = Ros(tmp_path_factory.mktemp("ros"))
     try:
-        from jaxrobo.ros import rospy
+        from jaxrobo.ros.system import rospy
 
         rospy().init_node("jaxrobo_test", anonymous=True, disable_signals=True)
         yield r
@@ -136,7 +136,7 @@ class Listener:
     """The commands a node publishes, as they arrive."""
 
     def __init__(self, topic, cls):
-        from jaxrobo.ros import rospy
+        from jaxrobo.ros.system import rospy
 
         self.got, self.cv = [], threading.Condition()
         self.sub = rospy().Subscriber(topic, cls, self._on, queue_size=100)
@@ -224,7 +224,7 @@ def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
 
 @needs_ros
 def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
-    from jaxrobo.ros import rospy as get
+    from jaxrobo.ros.system import rospy as get
 
     rospy = get()
     from sensor_msgs.msg import JointState
@@ -302,7 +302,7 @@ def test_drone_node_builds_the_training_observation_from_messages(ros, goto_expo
     from sensor_msgs.msg import Range
 
     from jaxrobo.interop.numpy_policy import Policy
-    from jaxrobo.ros import rospy as get
+    from jaxrobo.ros.system import rospy as get
     from jaxrobo.ros.bridge import HERE, SONARS, make_bridge, make_env
 
     rospy = get()
@@ -411,10 +411,10 @@ def test_seed_style_qlearning_against_the_sim_improves(ros):
 
 
 def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
-    import jaxrobo.ros
     from jaxrobo.cli import main
+    from jaxrobo.ros import system
 
-    monkeypatch.setattr(jaxrobo.ros, "unavailable_reason", lambda: jaxrobo.ros.INSTALL)
+    monkeypatch.setattr(system, "unavailable_reason", lambda: system.INSTALL)
     for args in (["ros", "policy", "somewhere"], ["ros", "sim", "CartPoleStayUp-v0"], ["ros", "up", "somewhere"]):
         assert main(args) == 2
         err = capsys.readouterr().err

@@ -274,11 +274,11 @@ def test_a_stop_during_the_evaluation_keeps_the_training_and_resume_only_evaluat
 
     real = driver.evaluate_tables
 
-    def signalled(trainer, runner, key, env_params, progress=None):
+    def signalled(trainer, runner, key, env_params, progress=None, flights=None):
         def first_segment(p):
             signal.raise_signal(signal.SIGINT)
             progress(p)
-        return real(trainer, runner, key, env_params, first_segment)
+        return real(trainer, runner, key, env_params, first_segment, flights)
 
     out = str(tmp_path / "run")
     with monkeypatch.context() as patch:

@@ -19,7 +19,8 @@ import threading
 import time
 
 import jaxrobo
-from jaxrobo.ros import msgs, rospy as import_rospy
+from jaxrobo.ros import msgs
+from jaxrobo.ros.system import rospy as import_rospy
 
 rospy = import_rospy()
 from sensor_msgs.msg import JointState  # noqa: E402

@@ -12,6 +12,7 @@ import difflib
 import math
 import os
 import re
+import stat
 from typing import Any, Iterable, Mapping
 
 import numpy as np
@@ -119,14 +120,25 @@ def parse_yaml(text: str, where: str) -> Any:
         raise ConfigError(f"{where}: not valid YAML (safe subset only): {msg}") from None
 
 
+def check_regular(path: str, where: str | None = None) -> None:
+    """Refuse (:class:`ConfigError` naming ``where`` or the path) to read ``path`` when it exists and is not a
+    regular file (after symlinks): a FIFO would hang the read, a device (``/dev/zero``) never end it. A missing
+    file is left to the reader (its own FileNotFoundError)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return
+    if not stat.S_ISREG(st.st_mode):
+        what = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, socket or device)"
+        raise ConfigError(f"{where or path}: is {what}; expected a regular file")
+
+
 def load_yaml(path: str, where: str | None = None) -> dict[str, Any]:
     """Read a YAML mapping safely (no arbitrary objects, no duplicate keys, no aliases, bounded size and
     nesting: :func:`parse_yaml`); ConfigError starting with ``where`` (default: the path) on anything else."""
     where = path if where is None else where
     if not os.path.exists(path):
         raise ConfigError(f"config file not found: {path}")
-    from jaxrobo.io.rundir import check_regular
-
     check_regular(path, where)  # a FIFO would hang the read, a device never end it
     try:
         with open(path, "rb") as f:

@@ -117,14 +117,28 @@ def check_jaxrobo_variables() -> None:
     env_seconds("JAXROBO_PAUSE_BEFORE_PUBLISH", PAUSE_MAX)
     coordinator = os.environ.get("JAXROBO_COORDINATOR")
     if coordinator:
-        from jaxrobo.speed.sharding import check_coordinator
-
         try:
             check_coordinator(coordinator)
         except ValueError as err:
             raise ConfigError(str(err)) from None
         if pid == 0:
             _check_port_free(coordinator)
+
+
+def check_coordinator(address: str) -> None:
+    """``host:port`` whose host resolves (``socket.getaddrinfo``) and whose port is a number in 1..65535:
+    otherwise a ValueError naming ``JAXROBO_COORDINATOR`` now, instead of a silent wait for a coordinator that
+    cannot be reached."""
+    import socket
+
+    host, sep, port = address.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"JAXROBO_COORDINATOR={address!r}: expected host:port (port 1..65535)")
+    try:
+        socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError, OSError) as err:
+        raise ValueError(f"JAXROBO_COORDINATOR={address!r}: the host {host!r} does not resolve ({err})") from None
 
 
 def _check_port_free(coordinator: str) -> None:

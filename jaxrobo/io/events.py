@@ -11,26 +11,39 @@ tensorboardX's own readers read the files alike.
 from __future__ import annotations
 
 import contextlib
+import importlib.abc
 import os
 import socket
 import sys
 import time
 from types import ModuleType
-from typing import Iterator
+from typing import Any, Iterator
+
+class _Hidden(importlib.abc.MetaPathFinder):
+    """A finder that says ``module`` (and its submodules) cannot be imported: put first on ``sys.meta_path``."""
+
+    def __init__(self, module: str) -> None:
+        self.module = module
+
+    def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> None:
+        if fullname == self.module or fullname.startswith(self.module + "."):
+            raise ImportError(f"{self.module} is hidden while tensorboardX is imported", name=fullname)
+        return None
+
 
 @contextlib.contextmanager
 def _without(module: str) -> Iterator[None]:
-    """``import module`` raises ImportError inside the block (``sys.modules[module] = None``), unless it was
-    imported before; the entry is removed afterwards, so a later import of it works as usual."""
+    """``import module`` raises ImportError inside the block, unless it was imported before; afterwards it
+    imports as usual."""
     if module in sys.modules:
         yield
         return
-    sys.modules[module] = None  # type: ignore[assignment]
+    finder = _Hidden(module)
+    sys.meta_path.insert(0, finder)
     try:
         yield
     finally:
-        if sys.modules.get(module, 0) is None:
-            del sys.modules[module]
+        sys.meta_path.remove(finder)
 
 
 def tensorboardx() -> ModuleType:

@@ -66,7 +66,7 @@ def read_npz(path: str, what: str = "the file", *, expect: Mapping[str, tuple[tu
     not in ``expect`` are read too, under ``max_bytes``). ``finite``: refuse float arrays holding NaN or inf (all,
     or per name). Raises :class:`NpzError` naming ``what``, the file and the array."""
     where = f"{path}: {what}"
-    from jaxrobo.io.rundir import check_regular
+    from jaxrobo.core.config import check_regular
 
     check_regular(path, where)  # a FIFO would hang the read, a device never end it
     try:

@@ -215,7 +215,7 @@ def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndar
 
     ValueError naming the file, and the column or line, when a ``required`` column is missing, a row is short
     (a truncated file) or a value is not a number."""
-    from jaxrobo.io.rundir import check_regular
+    from jaxrobo.core.config import check_regular
 
     check_regular(path)  # a FIFO would hang the read, a device never end it
     try:

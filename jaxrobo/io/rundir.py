@@ -147,19 +147,6 @@ def check_owned_entries(path: str, flag: str = "--resume") -> None:
             raise ConfigError(f"{flag} {path}: {full} is not a regular file (a FIFO, socket or device); remove it")
 
 
-def check_regular(path: str, where: str | None = None) -> None:
-    """Refuse (:class:`ConfigError` naming ``where`` or the path) to read ``path`` when it exists and is not a
-    regular file (after symlinks): a FIFO would hang the read, a device (``/dev/zero``) never end it. A missing
-    file is left to the reader (its own FileNotFoundError)."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return
-    if not stat.S_ISREG(st.st_mode):
-        what = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, socket or device)"
-        raise ConfigError(f"{where or path}: is {what}; expected a regular file")
-
-
 def _describe(path: str) -> str:
     if is_complete(path):
         return "a complete run"

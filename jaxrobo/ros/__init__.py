@@ -8,47 +8,9 @@ jaxrobo's interpreter (a virtual environment) but the system directory holds it,
 """
 from __future__ import annotations
 
-import importlib
-import os
-import sys
+from jaxrobo.ros.system import INSTALL, RosUnavailable, rospy, unavailable_reason
 
-#: Where Debian's python3-rospy installs rospy (the system Python's packages).
-SYSTEM_PACKAGES = "/usr/lib/python3/dist-packages"
-#: How to get ROS 1 where it is missing: one line for error messages.
-INSTALL = ("ROS 1 (rospy) is not importable; on Debian/Ubuntu: apt-get install ros-core python3-rospy "
-           "python3-std-msgs python3-geometry-msgs python3-nav-msgs python3-sensor-msgs python3-rosgraph-msgs "
-           "python3-genpy (docs/ros.md)")
-
-
-class RosUnavailable(RuntimeError):
-    """rospy (or a message package) cannot be imported; the message says how to install it."""
-
-
-def rospy():
-    """The ``rospy`` module, importing the system's copy where the running interpreter has none."""
-    try:
-        return importlib.import_module("rospy")
-    except ImportError:
-        pass
-    if os.path.isdir(os.path.join(SYSTEM_PACKAGES, "rospy")) and SYSTEM_PACKAGES not in sys.path:
-        sys.path.append(SYSTEM_PACKAGES)
-        try:
-            return importlib.import_module("rospy")
-        except ImportError as err:
-            raise RosUnavailable(f"{INSTALL} ({SYSTEM_PACKAGES}/rospy fails to import: {err})") from None
-    raise RosUnavailable(INSTALL)
-
-
-def unavailable_reason() -> str | None:
-    """None where rospy and the message packages import; else why not (the install line)."""
-    try:
-        rospy()
-        for name in ("std_msgs.msg", "geometry_msgs.msg", "sensor_msgs.msg", "nav_msgs.msg", "rosgraph_msgs.msg",
-                     "genpy"):
-            importlib.import_module(name)
-    except (RosUnavailable, ImportError) as err:
-        return str(err) if isinstance(err, RosUnavailable) else f"{INSTALL} ({err})"
-    return None
+__all__ = ["INSTALL", "RosUnavailable", "rospy", "unavailable_reason"]
 
 
 def _register_gymnasium() -> None:

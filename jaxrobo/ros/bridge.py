@@ -139,9 +139,9 @@ class DroneBridge(Bridge):
     command_topic = "cmd_vel"
 
     def __init__(self, env: Any, cfg: dict):
-        from envs.quadcopter.native import NativeGoto
+        from jaxrobo.task.registry import load_entry_point
 
-        super().__init__(env, cfg, NativeGoto(env))
+        super().__init__(env, cfg, load_entry_point("envs.quadcopter.native:NativeGoto")(env))
         self.stamped = ("odom", *SONARS)  # one moment's readings; the goal keeps its episode's stamp
         self.needs = self.stamped + (() if cfg.get("goal_param") else ("goal",))
 
@@ -276,9 +276,9 @@ class CartPoleBridge(Bridge):
     command_topic = "command"
 
     def __init__(self, env: Any, cfg: dict):
-        from envs.cartpole.native import NativeCartPole
+        from jaxrobo.task.registry import load_entry_point
 
-        super().__init__(env, cfg, NativeCartPole(env))
+        super().__init__(env, cfg, load_entry_point("envs.cartpole.native:NativeCartPole")(env))
         self.needs = self.stamped = ("joint_states",)
         self.start = self._start_command(env)
         self.command = self.start

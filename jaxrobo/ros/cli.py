@@ -33,7 +33,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jaxrobo.ros import unavailable_reason
+    from jaxrobo.ros.system import unavailable_reason
 
     why = unavailable_reason()
     if why is not None:

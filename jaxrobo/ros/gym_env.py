@@ -19,7 +19,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-from jaxrobo.ros import rospy as import_rospy
+from jaxrobo.ros.system import rospy as import_rospy
 from jaxrobo.ros.bridge import Fault, make_bridge, make_env, ros_ids, stamp
 
 

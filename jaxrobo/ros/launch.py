@@ -11,7 +11,7 @@ import time
 
 
 def master_up(uri: str) -> bool:
-    from jaxrobo.ros import rospy
+    from jaxrobo.ros.system import rospy
 
     rospy()
     import rosgraph

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo.core.config import ConfigError
-from jaxrobo.ros import rospy as import_rospy
+from jaxrobo.ros.system import rospy as import_rospy
 from jaxrobo.ros.bridge import Fault, make_bridge, make_env, stamp
 
 #: Exit status after the master was restarted under the node (a supervisor's cue to start it again).

@@ -39,7 +39,7 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
             return jax.process_count() > 1
     except (ImportError, AttributeError):
         pass
-    from jaxrobo.core.environ import env_int
+    from jaxrobo.core.environ import check_coordinator, env_int
 
     coordinator = coordinator or os.environ.get("JAXROBO_COORDINATOR")
     if num_processes is None and os.environ.get("JAXROBO_NUM_PROCESSES"):
@@ -67,22 +67,6 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
 
 #: Seconds ``jax.distributed.initialize`` waits for every process to join (``$JAXROBO_INIT_TIMEOUT``).
 INIT_TIMEOUT_SECONDS = 120
-
-
-def check_coordinator(address: str) -> None:
-    """``host:port`` whose host resolves (``socket.getaddrinfo``) and whose port is a number in 1..65535:
-    otherwise a ValueError naming ``JAXROBO_COORDINATOR`` now, instead of a silent wait for a coordinator that
-    cannot be reached."""
-    import socket
-
-    host, sep, port = address.rpartition(":")
-    host = host.strip("[]")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ValueError(f"JAXROBO_COORDINATOR={address!r}: expected host:port (port 1..65535)")
-    try:
-        socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError, OSError) as err:
-        raise ValueError(f"JAXROBO_COORDINATOR={address!r}: the host {host!r} does not resolve ({err})") from None
 
 
 def make_mesh(devices: list | None = None) -> Mesh:

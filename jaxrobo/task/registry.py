@@ -49,10 +49,14 @@ class Registration:
     module: str | None = None
 
     def env_class(self) -> type:
-        if isinstance(self.entry_point, str):
-            module, _, name = self.entry_point.partition(":")
-            return getattr(importlib.import_module(module), name)
-        return self.entry_point
+        return load_entry_point(self.entry_point) if isinstance(self.entry_point, str) else self.entry_point
+
+
+def load_entry_point(entry_point: str) -> Any:
+    """What a ``"module:Name"`` entry point names, its module imported on first use: how jaxrobo reaches a task's
+    code in ``envs`` (its env class; its native-MuJoCo port, for the ROS nodes)."""
+    module, _, name = entry_point.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 _REGISTRY: dict[str, Registration] = {}

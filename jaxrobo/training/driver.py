@@ -592,7 +592,8 @@ class _EvaluationStopped(Exception):
 
 
 def evaluated_tables(config: Any) -> int:
-    """How many of a run's trained tables its greedy evaluation flies: the shared one, or the first ``eval_envs``."""
+    """How many of a run's trained tables its greedy evaluation flies: the shared one, or ``eval_envs`` of them
+    (:func:`pick_tables` says which)."""
     return 1 if config.shared_table else min(config.eval_envs, config.n_envs)
 
 

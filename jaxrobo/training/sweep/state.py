@@ -49,7 +49,7 @@ def code_version() -> dict[str, str]:
 def read_state(state_dir: str) -> dict[str, Any]:
     """The saved ``sweep_state.json`` of ``state_dir``: settings, versions, fingerprint and extra."""
     path = os.path.join(state_dir, STATE_FILE)
-    from jaxrobo.io.rundir import check_regular
+    from jaxrobo.core.config import check_regular
 
     check_regular(path)  # a FIFO would hang the read, a device never end it
     try:
