@@ -96,8 +96,6 @@ def _train_guarded(args: argparse.Namespace, private: str | None) -> int:
 def _train_spec(args: argparse.Namespace):
     """The run ``jaxrobo train`` is asked for and its directory: a new one from the flags (``--out`` checked),
     or the interrupted run of ``--resume DIR`` with its own ``config.yaml``. Raises ConfigError naming the flag."""
-    import yaml
-
     from jaxrobo.io import rundir
     from jaxrobo.core.config import ConfigError
     from jaxrobo.task.registry import find

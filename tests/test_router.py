@@ -70,8 +70,12 @@ def test_no_yaml_key_repeats_its_default(env_id):
     for name, preset in agent_presets(env_id).items():
         preset = dict(preset or {})
         env = preset.pop("env", None) or {}
+        on_gpu = preset.pop("on_gpu", None) or {}  # the sizes an accelerator takes instead of the preset's own
         agent_kw, train_kw = split_and_validate(preset, AgentParams, TrainConfig)
         assert not [k for k, v in {**agent_kw, **train_kw}.items() if v == learner_defaults[k]], name
+        gpu_agent, gpu_train = split_and_validate(on_gpu, AgentParams, TrainConfig)
+        assert not [k for k, v in {**gpu_agent, **gpu_train}.items()
+                    if v == {**learner_defaults, **agent_kw, **train_kw}[k]], f"{name}: on_gpu"
         o, p = split_and_validate(env, cls.Options, cls.Params)
         assert not [k for k, v in {**o, **p}.items() if v == env_defaults[k]], name
 

@@ -115,8 +115,6 @@ def env_mesh(trainer: Trainer) -> Any:
 
 def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, env_params: Any) -> Callable:
     """``trainer.init`` compiled under the plan, its carry split over the plan's devices (:func:`env_mesh`)."""
-    from jaxrobo.speed import sharding
-
     mesh = env_mesh(trainer)
     if mesh is None:
         jitted = jax.jit(trainer.init)
