@@ -99,3 +99,39 @@ def test_a_malformed_on_gpu_is_refused():
         run_mod.device_overlay({"on_gpu": [1, 2]}, where="x")
     with pytest.raises(ConfigError, match="on_gpu must be a mapping"):
         run_mod.device_overlay({"on_gpu": {"env": {"a": 1}}}, where="x")
+
+
+_DEVICES_SCRIPT = """
+import hashlib, json, sys
+import numpy as np
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import train
+spec = resolve("CartPoleStayUp-v0", overrides=json.loads(sys.argv[1]))
+r = train(spec.env, spec.config, spec.agent_params)
+h = hashlib.sha256()
+for a in (r.q, r.returns, r.lengths, r.eval_returns, r.eval_lengths):
+    h.update(np.ascontiguousarray(np.asarray(a)).tobytes())
+print(json.dumps({"met": r.target_met_chunk, "checks": [c["score"] for c in r.target_checks], "hash": h.hexdigest(),
+                  "plan": r.plan}))
+"""
+
+
+def test_the_stop_is_the_same_on_one_and_several_devices(tmp_path):
+    """The checks fly the carry split over the devices as on one: the same scores, the same stop, the same bytes."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    overrides = json.dumps({**FAST, "target_every": 2})
+    out = []
+    for n in (1, 4):
+        env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": f"--xla_force_host_platform_device_count={n}"}
+        proc = subprocess.run([sys.executable, "-c", _DEVICES_SCRIPT, overrides], env=env, capture_output=True,
+                              text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    one, four = out
+    assert "devices=4" in four["plan"] and "devices" not in one["plan"]
+    assert one["met"] is not None and (one["met"], one["checks"], one["hash"]) == (four["met"], four["checks"],
+                                                                                     four["hash"])
