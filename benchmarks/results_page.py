@@ -272,9 +272,9 @@ def time_to_trained_table(data: dict[str, Any]) -> list[str]:
         if runs:
             values = sorted(float(r["figure"]) for r in runs)
             spread = f"{values[0]:.4g} / {values[len(values) // 2]:.4g} ({len(values)} seeds)"
-        out.append(f"| {env_id} ({warm['agent'].replace('preset', 'qlearn')}) | "
-                   f"{'-' if cold is None else format(cold['wall_seconds'], '.1f') + ' s'} | {warm['wall_seconds']:.1f} s | "
-                   f"{split} | {warm['env_steps']:,} | {learned} | {spread} |")
+        empty = "-" if cold is None else f"{cold['wall_seconds']:.1f} s"
+        out.append(f"| {env_id} ({warm['agent'].replace('preset', 'qlearn')}) | {empty} | "
+                   f"{warm['wall_seconds']:.1f} s | {split} | {warm['env_steps']:,} | {learned} | {spread} |")
     return out
 
 

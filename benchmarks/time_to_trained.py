@@ -1,11 +1,11 @@
 """Time to a trained robot: each shipped task's default ``jaxrobo train --env ID``, as a user runs it.
 
 Every row is one fresh process of the command (``python -m jaxrobo.cli train --env ID [--agent ppo] --seed S
---no-progress``), timed from start to exit, with an empty compile cache (``cold``: a new ``JAXROBO_CACHE_DIR``)
-and again with that cache filled (``warm``). The wall is split with the run's own ``summary.json``: compile,
-run (training, the learning-target checks included), evaluation, writing, start-up (interpreter, imports, device
-discovery, config: the process's age when training starts) and the rest (the exit), and the row keeps the env steps it took and its learning figure (the
-figure the task's learning target is judged by, on the final evaluation's fresh episodes).
+--no-progress``), timed from start to exit, with an empty compile cache (``cold``: a new ``JAXROBO_CACHE_DIR``) and again
+with that cache filled (``warm``). The wall is split with the run's own ``summary.json``: compile, run (training,
+the learning-target checks included), evaluation, writing, start-up (interpreter, imports, device discovery, config:
+the process's age when training starts) and the rest (the exit), and the row keeps the env steps it took and its
+learning figure (the figure the task's learning target is judged by, on the final evaluation's fresh episodes).
 
     python benchmarks/time_to_trained.py                       # every task, seed 0, cold then warm
     python benchmarks/time_to_trained.py --seeds 16 --warm-only --envs QuadcopterGoto-v2
@@ -67,7 +67,8 @@ def run_once(env_id: str, agent: str | None, seed: int, cache: str, sets: list[s
         return row
     with open(path) as f:
         s = json.load(f)
-    parts = {"startup": s.get("startup_seconds"), "compile": s.get("compile_seconds"), "run": s.get("run_seconds", s.get("train_seconds")),
+    parts = {"startup": s.get("startup_seconds"), "compile": s.get("compile_seconds"),
+             "run": s.get("run_seconds", s.get("train_seconds")),
              "evaluation": s.get("eval_seconds"), "writing": s.get("write_seconds")}
     if agent:  # a ppo/sac run's train_seconds counts its compile; its evaluations are apart
         parts["compile"] = None
@@ -110,8 +111,9 @@ def table(rows: list[dict[str, Any]]) -> str:
             lines.append(f"{r['env_id']} | {r['agent']} | {r['cache']} | failed (exit {r['exit_code']})")
             continue
         cell = lambda k: "-" if r.get(k) is None else f"{r[k]:.1f}"  # noqa: E731
-        lines.append(" | ".join((r["env_id"], r["agent"], r["cache"], f"{r['wall_seconds']:.1f}", cell("startup_seconds"),
-                                 cell("compile_seconds"), cell("run_seconds"), cell("evaluation_seconds"),
+        lines.append(" | ".join((r["env_id"], r["agent"], r["cache"], f"{r['wall_seconds']:.1f}",
+                                 cell("startup_seconds"), cell("compile_seconds"), cell("run_seconds"),
+                                 cell("evaluation_seconds"),
                                  cell("writing_seconds"), f"{r['env_steps']:,}",
                                  f"{r['learning_figure']} {r['learning_value']:.3g}")))
     return "\n".join(lines)

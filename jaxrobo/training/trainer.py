@@ -68,7 +68,8 @@ class TrainConfig:
     nepisodes: int = param(1000, low=1, static=True, doc="episodes per environment")
     nsteps: int = param(1000, low=1, static=True, doc="step cap per episode in the training loop")
     seed: int = param(0, low=0, static=True, doc="random seed; the same seed gives the same results")
-    seed_compat: bool = param(False, static=True, doc="reproduce the seed's learners exactly (SPEC §4)")
+    seed_compat: bool = param(False, static=True,
+                              doc="reproduce the seed's learners exactly (docs/cartpole.md, Presets)")
     shared_table: bool = param(False, static=True, doc="one table learning from all environments")
     discretiser: str = param("bins", choices=MODES, static=True, doc="how observations become states")
     number_splits: int = param(10, low=1, high=10_000, static=True, doc="bins per observation dimension")
