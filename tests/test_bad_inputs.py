@@ -311,7 +311,7 @@ TRAIN = [
     T("n-actions-unsupported", "n_actions=3: allowed values are 2, 4", "--set", "n_actions=3"),
     T("fused-unknown", "fused='fast': allowed values are 'auto', 'off', 'xla', 'pallas'", "--set", "fused=fast"),
     T("fused-pallas-unsupported", "ExecutionPlan fused='pallas': backend='mjx'; only backend='analytic'",
-      "--set", "fused=pallas"),
+      "--set", "fused=pallas", "--set", "env.backend=mjx"),
     T("running-step-off-grid", "running_step=0.0333 s is not a whole multiple of the physics timestep",
       "--set", "running_step=0.0333"),
     # combinations

@@ -71,6 +71,15 @@ def test_gpu_gathers_the_resets_where_the_physics_is_a_kernel():
     assert ExecutionPlan.for_run(mjx.env, mjx.config, "gpu").reset_capacity == 262_144
 
 
+def test_the_cart_pole_chunk_kernel_is_a_gpu_default_from_16384_envs():
+    """The whole-chunk Pallas kernel compiles ~18 s longer on first use: the default command's 4,096 envs take
+    XLA's fused path on a GPU, a run of 16,384 envs or more the kernel (a CPU takes neither)."""
+    small, big = _spec("analytic", n_envs=4096), _spec("analytic", n_envs=16_384)
+    assert ExecutionPlan.for_run(small.env, small.config, "gpu").fused != "pallas"
+    assert ExecutionPlan.for_run(big.env, big.config, "gpu").fused == "pallas"
+    assert ExecutionPlan.for_run(big.env, big.config, "cpu").fused == "off"
+
+
 def test_a_shared_table_on_a_gpu_sums_its_updates_in_order():
     """A shared table's updates meet in a float scatter-add, which a GPU sums as atomics in no fixed order (the same
     seed gave other tables run after run on an H100): on a GPU such a plan sums them in order; per-env tables and a

@@ -134,7 +134,7 @@ def test_randomised_runs_keep_their_kernels():
     assert plan.physics_kernel(goto) and plan.task_kernel(goto)
     cart = jaxrobo.make("CartPoleStayUp-v0", backend="analytic", randomise=True)
     assert fused_pallas.unsupported_run(cart, TrainConfig()) is None
-    assert plan.default_fused(cart, "gpu", config=TrainConfig(n_envs=4096)) == "pallas"
+    assert plan.default_fused(cart, "gpu", config=TrainConfig(n_envs=16384)) == "pallas"
     mjx = jaxrobo.make("CartPoleStayUp-v0", backend="mjx", randomise=True)
     assert "backend='mjx'" in fused_pallas.unsupported_run(mjx, TrainConfig())
 

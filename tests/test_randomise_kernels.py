@@ -232,5 +232,5 @@ def test_the_plan_keeps_the_kernels_for_randomised_runs():
     assert plan.fused == "pallas" and plan.task_kernel
     cart = jaxrobo.make("CartPoleStayUp-v0", backend="analytic", randomise=True, **CART_RANGES)
     assert fused_pallas.unsupported_run(cart, TrainConfig()) is None
-    assert default_fused(cart, "gpu", config=TrainConfig(n_envs=4096)) == "pallas"
+    assert default_fused(cart, "gpu", config=TrainConfig(n_envs=16384)) == "pallas"
     assert not jaxrobo.make(GOTO).step_kernel.layout.randomised  # off: the nominal kernel, no domain inputs

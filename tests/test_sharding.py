@@ -30,7 +30,7 @@ def leaves(tree):
 
 out = {"devices": jax.device_count()}
 mesh = sharding.make_mesh()
-ov = {"n_envs": 4, "nepisodes": 3, "nsteps": 30, "chunk_steps": 40}
+ov = {"n_envs": 4, "nepisodes": 3, "nsteps": 30, "chunk_steps": 40, "backend": "mjx"}  # MJX: the general engine
 spec = resolve("CartPoleStayUp-v0", "default", ov, agent="qlearn")
 trainer = Trainer(spec.env, spec.config)
 init, chunk = jax.jit(trainer.init), jax.jit(trainer.run_chunk)

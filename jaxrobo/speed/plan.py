@@ -80,6 +80,13 @@ def default_env_group(env: Env, backend: str | None = None) -> int | None:
 _FUSED_MIN_ENVS = 1024
 
 
+#: Fewest envs for which :func:`default_fused` picks the cart-pole's whole-chunk Pallas kernel: it compiles ~18 s
+#: longer on first use, which a run of a few thousand envs does not earn back (H200, the default cart-pole command
+#: at 4,096 envs, whole command from start to exit: kernel 28.3 s with an empty cache and 5.1 s warm, training 0.8 s;
+#: the XLA fused path 8.7 s cold, training 3.0 s).
+_CHUNK_KERNEL_MIN_ENVS = 16_384
+
+
 #: Fewest envs a GPU run under ``fused="pallas"`` has for :meth:`ExecutionPlan.for_run` to gather its done envs
 #: for the reset: the smallest batch where that was measured faster (docs/benchmarks.md, "Pallas: quadcopter").
 _GATHER_MIN_ENVS = 262_144
@@ -132,7 +139,7 @@ def check_pallas(trainer: Any) -> None:
 def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None, *, config: Any = None,
                   agent: str | None = None, discretiser: Any = None) -> str:
     """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, where JAX
-    sees one device: ``"pallas"`` for a run whose whole chunk is one kernel (the analytic cart-pole with Q-learning,
+    sees one device: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a run whose whole chunk is one kernel (the analytic cart-pole with Q-learning,
     :mod:`jaxrobo.speed.fused_pallas`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
     compiles ~10-25 s longer, which a short run compiling cold does not earn back; the persistent compile cache
     serves the later runs of a configuration, docs/benchmarks.md, "Pallas"), decided from ``config`` (a
@@ -156,7 +163,7 @@ def default_fused(env: Env, backend: str | None = None, n_envs: int | None = Non
     # One device only: a run sharded over several (a sweep's automatic mesh) would hand the kernel, a custom call
     # XLA cannot partition, a sharded batch; not measured on several GPUs, so they keep the plain choices.
     one = jax.device_count() == 1
-    if config is not None and one and not physics_kernel(env):
+    if config is not None and one and not physics_kernel(env) and n_envs >= _CHUNK_KERNEL_MIN_ENVS:
         from jaxrobo.speed import fused_pallas
 
         if fused_pallas.unsupported_run(env, config, agent, discretiser) is None:
