@@ -69,7 +69,9 @@ def run_once(env_id: str, agent: str | None, seed: int, cache: str, sets: list[s
         s = json.load(f)
     parts = {"startup": s.get("startup_seconds"), "compile": s.get("compile_seconds"),
              "run": s.get("run_seconds", s.get("train_seconds")),
-             "evaluation": s.get("eval_seconds"), "writing": s.get("write_seconds")}
+             "evaluation": s.get("eval_seconds"),
+             "writing": None if s.get("write_seconds") is None  # the results and the closing checkpoint
+             else s["write_seconds"] + s.get("checkpoint_seconds", 0.0)}
     if agent:  # a ppo/sac run's train_seconds counts its compile; its evaluations are apart
         parts["compile"] = None
     known = sum(v for v in parts.values() if v is not None)

@@ -420,3 +420,19 @@ def test_checked_actions_raise_on_the_host_and_flag_under_jit():
     # a whole rollout keeps one carry structure
     final, _ = jax.lax.scan(lambda s, a: (step(s, a), None), state, jnp.asarray([0, 7, 1]))
     assert bool(final.info["invalid_action"]) is False  # the flag is per step: the last action was valid
+
+
+# ---- a reader that goes away -------------------------------------------------------------------------------------
+def test_a_closed_stdout_pipe_does_not_lose_the_run(tmp_path):
+    """``jaxrobo train ... | head -1``: the reader leaves after one line; the command carries on and the run is
+    written whole (a closed pipe used to end it with 'Broken pipe' and nothing kept)."""
+    out = str(tmp_path / "run")
+    p = subprocess.Popen([sys.executable, "-m", "jaxrobo.cli", "train", *TINY, "--out", out], env=ENV,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert p.stdout.readline()  # the header line, then the reader is gone
+    p.stdout.close()
+    err = p.stderr.read()
+    assert p.wait(timeout=300) == 0, err
+    assert "Broken pipe" not in err
+    with open(os.path.join(out, "summary.json")) as f:
+        assert json.load(f)["env_steps"] > 0

@@ -26,7 +26,7 @@ from jaxrobo.training.trainer import Trainer
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: How the run was executed (timings, what a resume restored), not what it computed.
 TIMING = {"compile_seconds", "run_seconds", "eval_seconds", "write_seconds", "env_steps_per_second", "startup_seconds",
-          "target_check_seconds", "target_met_at_run_seconds",
+          "target_check_seconds", "target_met_at_run_seconds", "checkpoint_seconds",
           "restored_env_steps", "env_steps_this_process", "resumed_after_chunk"}
 CARTPOLE = dict(n_envs=4, nepisodes=6, nsteps=40, chunk_steps=15, eval_episodes=2, eval_envs=2,
                 bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])
@@ -89,6 +89,10 @@ def test_interrupted_and_resumed_equals_uninterrupted(uninterrupted, stop_at, tm
 
     with np.load(path, allow_pickle=False) as data:  # plain arrays: no pickle needed to read it
         assert int(data["chunks_done"]) == stop_at
+        # The episode records are kept up to their last written column (the loader pads the zeros back).
+        widths = {data[k].shape[1] for k in data if k.startswith("records_")}
+        assert len([k for k in data if k.startswith("records_")]) == 3
+        assert max(widths) == part.episodes_done.max() < spec.config.nepisodes
     runner, chunks_done = ckpt.load_checkpoint(path, template, fingerprint)
     assert chunks_done == stop_at
     resumed = training.train(spec.env, spec.config, spec.agent_params, initial=runner, start_chunk=chunks_done)

@@ -47,7 +47,7 @@ def problems_before_import() -> list[str]:
     return out
 
 
-def _running_cli() -> bool:
+def running_cli() -> bool:
     """Whether this process is the ``jaxrobo`` command (its console script or ``python -m jaxrobo.cli``)."""
     argv = getattr(sys, "orig_argv", sys.argv)
     if os.path.basename(sys.argv[0] if sys.argv else "") == "jaxrobo":
@@ -62,7 +62,7 @@ def check_before_import() -> None:
     problems = problems_before_import()
     if not problems:
         return
-    if _running_cli():
+    if running_cli():
         print(f"jaxrobo: {problems[0]}", file=sys.stderr)
         raise SystemExit(2)
     raise ValueError(problems[0])

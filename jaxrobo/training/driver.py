@@ -21,13 +21,14 @@ its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evalua
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import os
 import signal
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -212,6 +213,7 @@ class ChunkRun:
     #: The chunk count at which ``check`` said the run is done (the learning target met), else None.
     checked_done_at: int | None = None
     check_seconds: float = 0.0  # wall time of the ``check`` calls, inside ``seconds``
+    save_seconds: float = 0.0  # wall time of the checkpoint saved after the loop (outside ``seconds``)
 
 
 def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_chunk: int = 0,
@@ -295,9 +297,11 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     seconds = time.perf_counter() - t0
     # A resumed carry that ran no chunk is its checkpoint already, unless a stop asks for one explicitly.
     unsaved = saved_at != chunks_done and (chunks_done > start_chunk or stopped)
+    t_save = time.perf_counter()
     if checkpoint is not None and unsaved and (save_at_end or stopped):
         checkpoint(carry, chunks_done)
-    return ChunkRun(carry, chunks_done, done, stopped, seconds, checked_at, check_seconds)
+    return ChunkRun(carry, chunks_done, done, stopped, seconds, checked_at, check_seconds,
+                    time.perf_counter() - t_save)
 
 
 # ---- a whole training run ----------------------------------------------------------------------------------------
@@ -329,53 +333,55 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     flights = Flights(trainer, env_params)
     check_every, checks = trainer.target_every(), []
     check = target_check(trainer, flights, key, checks) if check_every else None
+    preparing = None
     if (check_every or config.eval_episodes) and trainer.plan.devices == 1:
-        prepare_evaluation(trainer, flights, runner, key)  # compiled while the first chunks train
-    jax.block_until_ready(runner)
-    compile_seconds = time.perf_counter() - t0
+        preparing = prepare_evaluation(trainer, flights, runner, key)  # compiled while the first chunks train
+    with _joined(preparing):
+        jax.block_until_ready(runner)
+        compile_seconds = time.perf_counter() - t0
 
-    total, unit = trainer.budget_total
-    loop = run_chunks(lambda r: chunk(r, agent_params, env_params), runner, trainer.max_chunks(),
-                      start_chunk=start_chunk, read=stats, total=total, progress=progress,
-                      should_stop=should_stop, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
-                      checkpoint_seconds=checkpoint_seconds, unit=unit,
-                      slots_per_chunk=float(config.chunk_steps) * config.n_envs, check=check,
-                      check_every=check_every)
-    runner = loop.carry
-    eval_returns = eval_lengths = selected = eval_success = None
-    t_eval = time.perf_counter()
-    final_choice = None
-    if not loop.stopped and runner.snapshots is not None and loop.checked_done_at is None:
-        # A stopped run keeps its carry as it is: the resumed run chooses once it has finished. A run that met its
-        # target keeps the table that met it (the snapshots lie at shares of a budget it did not run).
-        runner, choice = jax.jit(trainer.final_table)(runner, key, env_params)
-        final_choice = int(choice)
-    stopped = loop.stopped
-    if config.eval_episodes > 0 and not stopped:
-        if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
-            announce(f"evaluating {evaluated_tables(config)} table(s) × {config.eval_episodes} greedy episodes ≤ "
-                     f"{trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
-                     "(compile, then fly)")
+        total, unit = trainer.budget_total
+        loop = run_chunks(lambda r: chunk(r, agent_params, env_params), runner, trainer.max_chunks(),
+                          start_chunk=start_chunk, read=stats, total=total, progress=progress,
+                          should_stop=should_stop, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                          checkpoint_seconds=checkpoint_seconds, unit=unit,
+                          slots_per_chunk=float(config.chunk_steps) * config.n_envs, check=check,
+                          check_every=check_every)
+        runner = loop.carry
+        eval_returns = eval_lengths = selected = eval_success = None
+        t_eval = time.perf_counter()
+        final_choice = None
+        if not loop.stopped and runner.snapshots is not None and loop.checked_done_at is None:
+            # A stopped run keeps its carry as it is: the resumed run chooses once it has finished. A run that met its
+            # target keeps the table that met it (the snapshots lie at shares of a budget it did not run).
+            runner, choice = jax.jit(trainer.final_table)(runner, key, env_params)
+            final_choice = int(choice)
+        stopped = loop.stopped
+        if config.eval_episodes > 0 and not stopped:
+            if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
+                announce(f"evaluating {evaluated_tables(config)} table(s) × {config.eval_episodes} greedy "
+                         f"episodes ≤ {trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
+                         "(compile, then fly)")
 
-        def segment(p: EvalProgress) -> None:  # a stop asked for during the evaluation ends it after a segment
-            if eval_progress is not None:
-                eval_progress(p)
-            if should_stop is not None and should_stop():
-                raise _EvaluationStopped
+            def segment(p: EvalProgress) -> None:  # a stop asked for during the evaluation ends it after a segment
+                if eval_progress is not None:
+                    eval_progress(p)
+                if should_stop is not None and should_stop():
+                    raise _EvaluationStopped
 
-        try:
-            eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
-                                                                                 segment, flights)
-        except _EvaluationStopped:
-            # The training is finished (and checkpointed, where the caller saves one): the run stops as an
-            # interrupted one after its last chunk; resuming it evaluates and writes the results, training nothing.
-            stopped = True
-            eval_returns = eval_lengths = selected = eval_success = None
-            if announce is not None:
-                announce("stopped during the evaluation: the finished training is kept"
-                         + (" (its checkpoint is saved); resuming evaluates and writes the results"
-                            if checkpoint is not None else ""))
-    eval_seconds = time.perf_counter() - t_eval
+            try:
+                eval_returns, eval_lengths, selected, eval_success = evaluate_tables(trainer, runner, key, env_params,
+                                                                                     segment, flights)
+            except _EvaluationStopped:
+                # The training is finished (and checkpointed, where the caller saves one): the run stops as an
+                # interrupted one after its last chunk; resuming it evaluates and writes the results, training nothing.
+                stopped = True
+                eval_returns = eval_lengths = selected = eval_success = None
+                if announce is not None:
+                    announce("stopped during the evaluation: the finished training is kept"
+                             + (" (its checkpoint is saved); resuming evaluates and writes the results"
+                                if checkpoint is not None else ""))
+        eval_seconds = time.perf_counter() - t_eval
 
     host = host_get(runner.replace(key=None, env_state=None))
     q = np.asarray(host.agent.q)
@@ -392,7 +398,20 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         learning_target=getattr(env, "learning_target", None), plan=repr(trainer.plan), restored_env_steps=restored,
         final_table_choice=final_choice,
         target_checks=checks if check_every else None, target_every=check_every,
-        target_met_chunk=loop.checked_done_at, target_check_seconds=loop.check_seconds)
+        target_met_chunk=loop.checked_done_at, target_check_seconds=loop.check_seconds,
+        checkpoint_seconds=loop.save_seconds)
+
+
+@contextlib.contextmanager
+def _joined(thread: threading.Thread | None) -> Iterator[None]:
+    """Wait for ``thread`` on the way out, however the block ends: a run that stops (or fails) while the
+    evaluation still compiles would otherwise end its process with a thread inside XLA's compiler, which the C++
+    runtime aborts when the thread comes back."""
+    try:
+        yield
+    finally:
+        if thread is not None:
+            thread.join()
 
 
 def prepare_evaluation(trainer: Trainer, flights: Flights, runner: Runner, key: jax.Array) -> threading.Thread:
