@@ -60,6 +60,8 @@ WHAT = {
     "scale_train_dist.json": "`jaxrobo train`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
     "scale_sweep.json": "`jaxrobo sweep` over several GPUs of one host (`benchmarks/scale_out.py`)",
     "scale_sweep_dist.json": "`jaxrobo sweep`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
+    "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes after the fixed-order row sums (issue 42): "
+                             "the two-GPU rows agree with each other, not with one GPU's",
     "summary.json": "A sweep's own summary (`bash benchmarks/multiprocess_demo.sh`)",
 }
 #: Row fields that identify a machine state or a checksum rather than a figure a reader compares.
@@ -98,6 +100,11 @@ def fmt(key: str, value: Any) -> str:
 
 def _scalar(v: Any) -> bool:
     return v is None or isinstance(v, (bool, int, float, str))
+
+
+#: The columns of a ``benchmarks/scale_out.py`` file's table.
+SCALE_COLUMNS = ["gpus", "processes", "status", "wall_s", "compile_s", "run_s", "steps_per_s_run", "efficiency_run",
+                 "efficiency_wall", "checksum", "same_as_baseline"]
 
 
 def rows_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> list[str]:
@@ -216,6 +223,9 @@ def section(path: str, data: Any) -> list[str]:
         out.append("")
     if isinstance(data, dict) and isinstance(data.get("rows"), list) and data["rows"] and "suite" in data["rows"][0]:
         return out + throughput_rows(data) + [""]
+    if isinstance(data, dict) and isinstance(data.get("rows"), list) and data["rows"] \
+            and "same_as_baseline" in data["rows"][0]:  # scale_out.py: the speed-up and whether the bytes agree
+        return out + rows_table(data["rows"], SCALE_COLUMNS) + [""]
     if name == "time_to_trained.json" and isinstance(data, dict):
         return out + time_to_trained_table(data) + [""] + rows_table(data.get("rows", [])) + [""]
     if isinstance(data, list) and data and isinstance(data[0], dict):
@@ -251,19 +261,21 @@ def time_to_trained_table(data: dict[str, Any]) -> list[str]:
     worst and median figure."""
     rows = [r for r in data.get("rows", []) if "error" not in r]
     seeds = (data.get("seeds") or {}).get("runs") or {}
-    out = ["| task (learner) | wall, empty cache | wall, warm cache | warm: compile / run / eval / write / rest | "
-           "env steps | learned (target) | seeds: worst / median |", "|---|---|---|---|---|---|---|"]
+    out = ["| task (learner) | wall, empty cache | wall, warm cache | warm: start-up / compile / run / eval / write / "
+           "exit | env steps | learned (target) | seeds: worst / median |", "|---|---|---|---|---|---|---|"]
     for env_id in dict.fromkeys(r["env_id"] for r in rows):
         cold = next((r for r in rows if r["env_id"] == env_id and r["cache"] == "cold"), None)
         warm = next((r for r in rows if r["env_id"] == env_id and r["cache"] == "warm"), None)
         if warm is None:
             continue
+        # A run that does not measure its start-up (ppo) has it in the rest: shown as one "start-up + exit" figure.
         rest = warm.get("rest_seconds", warm.get("startup_and_rest_seconds"))
-        if warm.get("startup_seconds") is not None:
-            rest = (rest or 0.0) + warm["startup_seconds"]
-        split = " / ".join("-" if v is None else f"{v:.1f}" for v in (
-            warm.get("compile_seconds"), warm.get("run_seconds"), warm.get("evaluation_seconds"),
-            warm.get("writing_seconds"), rest))
+        startup = warm.get("startup_seconds")
+        parts = [warm.get("compile_seconds"), warm.get("run_seconds"), warm.get("evaluation_seconds"),
+                 warm.get("writing_seconds")]
+        split = " / ".join("-" if v is None else f"{v:.1f}" for v in parts)
+        split = (f"{startup:.1f} / {split} / {rest:.1f}" if startup is not None
+                 else f"({rest:.1f} with the exit) / {split} / -" if rest is not None else f"- / {split} / -")
         figure = warm["learning_value"]
         target = str(warm.get("learning_target") or "").split(" (")[0]
         learned = f"{figure:.4g} ({target})" if target else f"{figure:.4g}"

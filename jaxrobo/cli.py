@@ -369,6 +369,9 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
     # evaluation point, after that point is kept); a second signal exits at once with the last point kept.
     from jaxrobo.training import driver
 
+    from jaxrobo.core.clock import process_seconds
+
+    startup = process_seconds()  # imports, device discovery, config: the wall before the trainer starts
     try:
         with driver.StopOnSignal(notice, second="exit") as stop:
             result = deep.train(spec, on_point, should_stop=stop, resume=saved,
@@ -391,7 +394,7 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
         raise
 
     def write(staged: str) -> None:
-        deep.write_run(staged, result, live)
+        deep.write_run(staged, result, live, {} if startup is None else {"startup_seconds": round(startup, 3)})
         rundir.write_status(staged, rundir.COMPLETE, env_steps=result.env_steps,
                             **({"resumed_after_env_steps": result.resumed_after_env_steps}
                                if result.resumed_after_env_steps else {}))

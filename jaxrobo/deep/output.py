@@ -129,12 +129,14 @@ class LiveRun:
 
 
 
-def write_run(out_dir: str, result: DeepResult, live: str | None = None) -> str:
+def write_run(out_dir: str, result: DeepResult, live: str | None = None,
+              summary_extra: dict[str, Any] | None = None) -> str:
     """Everything a deep run produced, into ``out_dir`` (a staging directory: :mod:`jaxrobo.io.rundir` publishes
     it whole): ``config.yaml``, ``policy.npz`` + ``policy.json`` (the trained policy) and ``best/`` (the best
     evaluation's), ``evaluations.csv``, ``episode_stats.csv``, ``training_metrics.csv``, ``summary.json``,
     ``tensorboard/`` (the events :class:`LiveRun` wrote in ``live`` as the run went; written here from the result
-    where there are none) and ``rewards.png``."""
+    where there are none) and ``rewards.png``. ``summary_extra``: more keys for ``summary.json`` (the command's
+    start-up seconds)."""
     import csv
     import shutil
 
@@ -162,7 +164,7 @@ def write_run(out_dir: str, result: DeepResult, live: str | None = None) -> str:
             w.writerow(["env_steps", *keys])
             for m in result.training_metrics:
                 w.writerow([m["env_steps"], *(f"{m[k]:.6g}" if k in m else "" for k in keys)])
-    write_summary(out_dir, result.summary())
+    write_summary(out_dir, {**result.summary(), **(summary_extra or {})})
     events = None if live is None else os.path.join(live, TENSORBOARD)
     if events is not None and os.path.isdir(events):
         shutil.copytree(events, os.path.join(out_dir, TENSORBOARD))
