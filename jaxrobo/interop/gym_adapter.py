@@ -212,6 +212,8 @@ class _Picklable:
 
         state = dict(self.__dict__)
         state["_fns"] = state["_renderer"] = None
+        if "_window" in state:
+            state["_window"] = None  # a window belongs to the process that opened it
         if self._made is not None:
             state["jax_env"] = None
         for name in ("state", "states", "params"):
@@ -236,7 +238,7 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
     ``overrides={...}`` passes them as a dict (for names Gymnasium keeps for itself, like ``max_episode_steps``).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 25}
 
     def __init__(self, env_id: str | None = None, render_mode: str | None = None, *, env: Any = None,
                  overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
@@ -244,6 +246,11 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, "
                              + ", ".join(repr(m) for m in self.metadata["render_modes"]))
+        from jaxrobo.pictures import window
+
+        no_window = window.unavailable_reason()
+        if render_mode == "human" and no_window is not None:  # refused now, with the reason, not at render()
+            raise gymnasium.error.DependencyNotInstalled(f"render_mode='human': {no_window}")
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
         self._made = None if env is not None else (env_id, {**(overrides or {}), **kwargs})
         self.params = self.jax_env.default_params
@@ -252,9 +259,13 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         self._obs_size = int(np.prod(self.observation_space.shape))
         self._fns = self._compile()
         self.render_mode = render_mode
-        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env)}
+        # The modes this env can render here: "human" only where a window can open (Gymnasium's check_env makes
+        # the env once per declared mode; a headless machine then checks rgb_array alone).
+        self.metadata = {**type(self).metadata, "render_fps": _frame_rate(self.jax_env),
+                         "render_modes": ["rgb_array"] if no_window else ["human", "rgb_array"]}
         self._render_args = (int(width), int(height), camera)
         self._renderer: Any = None
+        self._window: Any = None  # render_mode="human": jaxrobo.pictures.window.Window
         self.state: Any = None  # the current jaxrobo EnvState (on device)
 
     def _compile(self) -> Any:
@@ -275,6 +286,8 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
             key = _seed_keys([int(self.np_random.integers(2**32))])[0]
         self.state, packed = self._fns.reset(key, self.params)
         obs, *_ = self._unpack(np.asarray(packed))
+        if self.render_mode == "human":  # Gymnasium's convention: a human-mode env draws itself
+            self.render()
         return obs, {}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -283,6 +296,8 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         a = check_action(action, self._n)
         self.state, packed = self._fns.step(self.state, a, self.params)
         obs, reward, terminated, truncated, nan, steps = self._unpack(np.asarray(packed))
+        if self.render_mode == "human":
+            self.render()
         return obs, reward, terminated, truncated, {"steps": steps, "physics_nan": nan}
 
     def _unpack(self, row: np.ndarray) -> tuple[np.ndarray, float, bool, bool, bool, int]:
@@ -293,7 +308,9 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
 
     # -- rendering ---------------------------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:
-        """An ``H x W x 3`` uint8 frame of the current state in ``rgb_array`` mode (None without a render mode)."""
+        """An ``H x W x 3`` uint8 frame of the current state in ``rgb_array`` mode; in ``human`` mode the frame is
+        shown in a window at ``metadata["render_fps"]`` (reset and step draw it themselves) and None returned;
+        None without a render mode."""
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to make")
             return None
@@ -303,9 +320,20 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
             from jaxrobo.pictures.render import Renderer
 
             self._renderer = Renderer(self.jax_env, *self._render_args)
-        return self._renderer.render(self.state, self.params)
+        frame = self._renderer.render(self.state, self.params)
+        if self.render_mode != "human":
+            return frame
+        if self._window is None:
+            from jaxrobo.pictures.window import Window
+
+            self._window = Window(f"jaxrobo {self.jax_env.name}", self.metadata["render_fps"])
+        self._window.show(frame)
+        return None
 
     def close(self) -> None:
+        if self._window is not None:
+            self._window.close()
+            self._window = None
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
@@ -377,7 +405,8 @@ class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
             raise ValueError(f"num_envs={num_envs!r}: expected an integer >= 1")
         self.autoreset_mode = autoreset_mode_of(autoreset_mode)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array'")
+            raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array' (a vector env "
+                             "draws no window; render_mode='human' is the single env's)")
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
         self._made = None if env is not None else (env_id, {**(overrides or {}), **kwargs})
         self.params = self.jax_env.default_params

@@ -30,10 +30,12 @@ Without a camera choice the first camera of the model is used, else a free camer
 """
 from __future__ import annotations
 
+import atexit
 import ctypes
 import os
 import platform
 import sys
+import weakref
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
@@ -162,6 +164,20 @@ def _gl_context_class() -> type | None:
 _GL_REASON: list[str | None] = []
 
 
+#: Renderers not closed yet: closed at exit, while the GL library is still loaded (a GLFW context freed by MuJoCo's
+#: ``__del__`` during the interpreter's teardown prints a traceback, as on a desktop with a window open).
+_OPEN: "weakref.WeakSet[Any]" = weakref.WeakSet()
+
+
+@atexit.register
+def _close_open_renderers() -> None:
+    for renderer in list(_OPEN):
+        try:
+            renderer.close()
+        except Exception:  # noqa: BLE001 - the process is ending; nothing to report it to
+            pass
+
+
 def gl_unavailable_reason() -> str | None:
     """None when offscreen rendering works in this process, else why not, on one line (checked once)."""
     if not _GL_REASON and _disabled_reason() is not None:
@@ -223,6 +239,7 @@ class Renderer:
         self.camera = self._camera(camera)
         context_cls = _gl_context_class()
         self._renderer = _make_renderer(self.model, self.height, self.width, context_cls)
+        _OPEN.add(self)
 
     def _camera(self, camera: str | int | None) -> Any:
         import mujoco
