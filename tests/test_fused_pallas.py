@@ -59,32 +59,33 @@ def test_the_choice_is_validated_and_refused_where_it_does_not_apply():
 
 
 def test_the_gpu_default_picks_the_kernel_where_it_applies(monkeypatch):
-    """On one GPU from 1,024 envs the default plan runs the chunk as the kernel for every run it takes (by the rules
-    that refuse an explicit choice), and keeps the plain path for the others; the quadcopter's default is its own."""
+    """On one GPU from 16,384 envs the default plan runs the chunk as the kernel for every run it takes (by the
+    rules that refuse an explicit choice), and keeps the plain path for the others; the quadcopter's default is its
+    own (from 1,024 envs)."""
     from jaxrobo.speed import fused_pallas
 
     def fused(spec, backend="gpu", **run):
         return ExecutionPlan.for_run(spec.env, spec.config, backend, **run).fused
 
-    big = _cartpole(n_envs=1024)
+    big = _cartpole(n_envs=16384)
     plan = ExecutionPlan.for_run(big.env, big.config, "gpu")
-    assert (plan.fused, plan.fused_block, plan.reset_capacity) == ("pallas", None, 1024)
+    assert (plan.fused, plan.fused_block, plan.reset_capacity) == ("pallas", None, 16384)
     assert "fused=pallas, fused_block=all" in repr(plan)  # printed, and part of the plan that keys the cache
-    assert fused(_cartpole(n_envs=1024, discretiser="round", bins=None, resolution=0.5)) == "pallas"
-    assert fused(big, "cpu") == "off" and fused(_cartpole(n_envs=1023)) == "off"
+    assert fused(_cartpole(n_envs=16384, discretiser="round", bins=None, resolution=0.5)) == "pallas"
+    assert fused(big, "cpu") == "off" and fused(_cartpole(n_envs=16383)) == "off"
     assert fused(big, agent="sarsa") == "off"  # a Trainer's own learner, where it differs from the config's
     edges = dict(discretiser="edges", bins=None, state_low=None, state_high=None, edges=[[0.0], [0.0], [0.0], [0.0]])
     for overrides, why in ((dict(agent="sarsa"), "agent='sarsa'"), (dict(shared_table=True), "shared_table=True"),
                            (dict(seed_compat=True), "seed_compat=True"), (dict(backend="mjx"), "backend='mjx'"),
                            (dict(control_type="position"), "control_type='position'"), (edges, "discretiser='edges'")):
-        other = _cartpole(n_envs=1024, **overrides)
+        other = _cartpole(n_envs=16384, **overrides)
         assert why in fused_pallas.unsupported_run(other.env, other.config)
         assert fused(other) == "off", overrides
         Trainer(other.env, other.config, plan=ExecutionPlan.for_run(other.env, other.config, "gpu"))  # accepted
     goto = resolve("QuadcopterGoto-v2", overrides=dict(n_envs=1024, backend="rigid"))
     assert (fused(goto), ExecutionPlan.for_run(goto.env, goto.config, "gpu").task_kernel) == ("pallas", True)
     # The config's `fused` (`--set fused=...`, a preset, a sweep) names the choice; "auto" leaves it to the plan.
-    assert [fused(_cartpole(n_envs=1024, fused=f)) for f in ("off", "xla", "auto")] == ["off", "xla", "pallas"]
+    assert [fused(_cartpole(n_envs=16384, fused=f)) for f in ("off", "xla", "auto")] == ["off", "xla", "pallas"]
     assert fused(_cartpole(n_envs=12, fused="pallas"), "cpu") == "pallas"
     assert fused(resolve("QuadcopterGoto-v2", overrides=dict(n_envs=1024, backend="rigid", fused="off"))) == "off"
     with pytest.raises(ConfigError, match="ExecutionPlan fused='pallas': backend='mjx'"):
