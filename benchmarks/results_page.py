@@ -60,9 +60,10 @@ WHAT = {
     "scale_train_dist.json": "`jaxrobo train`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
     "scale_sweep.json": "`jaxrobo sweep` over several GPUs of one host (`benchmarks/scale_out.py`)",
     "scale_sweep_dist.json": "`jaxrobo sweep`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
-    "default_learning_16_seeds.json": "Each tabular task's default command on 16 seeds (learning figure on fresh episodes)",
-    "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes after the fixed-order row sums (issue 42): "
-                             "the two-GPU rows agree with each other, not with one GPU's",
+    "default_learning_16_seeds.json": "Each tabular task's default command on 16 seeds (learning figure on fresh "
+                                      "episodes)",
+    "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes after the fixed-order row sums "
+                             "(issue 42): the two-GPU rows agree with each other, not with one GPU's",
     "summary.json": "A sweep's own summary (`bash benchmarks/multiprocess_demo.sh`)",
 }
 #: Row fields that identify a machine state or a checksum rather than a figure a reader compares.

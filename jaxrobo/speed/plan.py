@@ -139,7 +139,8 @@ def check_pallas(trainer: Any) -> None:
 def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None, *, config: Any = None,
                   agent: str | None = None, discretiser: Any = None) -> str:
     """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, where JAX
-    sees one device: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a run whose whole chunk is one kernel (the analytic cart-pole with Q-learning,
+    sees one device: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a run whose whole chunk is
+    one kernel (the analytic cart-pole with Q-learning,
     :mod:`jaxrobo.speed.fused_pallas`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
     compiles ~10-25 s longer, which a short run compiling cold does not earn back; the persistent compile cache
     serves the later runs of a configuration, docs/benchmarks.md, "Pallas"), decided from ``config`` (a

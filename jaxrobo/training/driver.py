@@ -359,9 +359,9 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         stopped = loop.stopped
         if config.eval_episodes > 0 and not stopped:
             if announce is not None:  # the evaluation compiles and flies for a while after the bar's 100 %
+                horizon = trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps
                 announce(f"evaluating {evaluated_tables(config)} table(s) × {config.eval_episodes} greedy "
-                         f"episodes ≤ {trainer.env.spec.max_episode_steps if trainer.env.spec else config.nsteps} steps "
-                         "(compile, then fly)")
+                         f"episodes ≤ {horizon} steps (compile, then fly)")
 
             def segment(p: EvalProgress) -> None:  # a stop asked for during the evaluation ends it after a segment
                 if eval_progress is not None:
