@@ -334,7 +334,22 @@ def _nan_tables(path):
     np.savez(path, **arrays)
 
 
+def _records(change):
+    """Rewrite the checkpoint with its first episode-record member changed by ``change(name, array)`` (a new
+    ``{name: array}``; empty drops it)."""
+    def corrupt(path):
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        name = sorted(k for k in arrays if k.startswith("records_"))[0]
+        arrays.update(change(name, arrays.pop(name)))
+        np.savez(path, **arrays)
+    return corrupt
+
+
 @pytest.mark.parametrize("corrupt, fragment", [
+    (_records(lambda n, x: {n: np.zeros((x.shape[0], 10_000), x.dtype)}), "with at most"),
+    (_records(lambda n, x: {n: x.astype(np.float64)}), "float64"),
+    (_records(lambda n, x: {}), "are missing"),
     (lambda p: open(p, "r+b").truncate(os.path.getsize(p) // 2), "cannot be read as plain arrays"),
     (lambda p: open(p, "r+b").truncate(10), "cannot be read as plain arrays"),
     (lambda p: _flip(p, os.path.getsize(p) // 3), "the checkpoint"),

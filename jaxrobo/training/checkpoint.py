@@ -168,6 +168,7 @@ def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) ->
             shape, dtype = data_spec.shape, data_spec.dtype
         if jax.tree_util.keystr(keypath) in RECORD_LEAVES and len(shape) == 2:
             records[i] = spec  # records_<i>: checked and padded below
+            finite[f"records_{i}"] = False  # as the full leaf was: an episode of NaN physics may hold a NaN return
             continue
         expect[f"leaf_{i}"] = (tuple(shape), dtype)
         finite[f"leaf_{i}"] = jax.tree_util.keystr(keypath).startswith(FINITE_LEAVES)
