@@ -23,6 +23,7 @@ ends the episode, and flags it, if the physics produced a non-finite number, so 
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from typing import Any, ClassVar
 
 import jax
@@ -361,6 +362,26 @@ class TaskEnv(Env):
 
 
 # ---- the layers of a wrapped env ---------------------------------------------------------------------------
+#: :func:`reset_shapes` per env object (weakly: an env that is dropped takes its entry with it).
+_RESET_SHAPES: "weakref.WeakKeyDictionary[Env, Any]" = weakref.WeakKeyDictionary()
+
+
+def reset_shapes(env: Env) -> Any:
+    """The shapes and dtypes of ``env.reset``'s state under the default parameters (``jax.eval_shape``: nothing
+    compiles or runs), traced once per env object: the memory check and the learning-target check both ask, and a
+    trace of a task's reset takes tenths of a second."""
+    try:
+        return _RESET_SHAPES[env]
+    except (KeyError, TypeError):  # TypeError: an env that cannot be referenced weakly is traced every time
+        pass
+    state = jax.eval_shape(env.reset, jax.random.key(0), env.default_params)
+    try:
+        _RESET_SHAPES[env] = state
+    except TypeError:
+        pass
+    return state
+
+
 def layers(env: Env) -> list[Env]:
     """The env and every env it wraps (wrappers hold theirs in ``.env``), outermost first."""
     out = [env]

@@ -76,7 +76,9 @@ def env_state_bytes(env: Any) -> int:
     """One env's state in bytes, from the shapes of ``env.reset`` (traced abstractly: nothing compiles or runs)."""
     import jax
 
-    state = jax.eval_shape(env.reset, jax.random.key(0), env.default_params)
+    from jaxrobo.task.env import reset_shapes
+
+    state = reset_shapes(env)
     total = 0
     for leaf in jax.tree.leaves(state):
         dtype = getattr(leaf, "dtype", None)

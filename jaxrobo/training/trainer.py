@@ -44,7 +44,7 @@ from jaxrobo.tabular.learner import AgentParams, AgentState, Learner
 from jaxrobo.task import autoreset, registry, rollout
 from jaxrobo.core import rng
 from jaxrobo.tabular.discretise import MODES, Discretiser, make_discretiser_for
-from jaxrobo.task.env import Env, EnvState, ranking
+from jaxrobo.task.env import Env, EnvState, ranking, reset_shapes
 from jaxrobo.speed.plan import FUSED_CHOICES, ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
 from jaxrobo.core.struct import param, pytree_dataclass
 
@@ -156,7 +156,6 @@ class Trainer:
         self.learner = learner or registry.learner(config.agent)
         self.disc = discretiser or make_discretiser_for(env, config)
         self.n_actions = env.num_actions
-        self._arrival_flag: bool | None = None  # _target_measurable, memoised
         # The default plan of this run: its learner and discretiser decide whether the whole chunk runs as one kernel.
         self.plan = ExecutionPlan.for_run(env, config, agent=self.learner.name, discretiser=self.disc) \
             if plan is None else plan
@@ -491,10 +490,7 @@ class Trainer:
     def _target_measurable(self, target: Any) -> bool:
         if target.metric != "success_rate":
             return True
-        if self._arrival_flag is None:  # a trace of the env's reset (tenths of a second): once per trainer
-            probe = jax.eval_shape(self.env.reset, jax.random.key(0), self.env.default_params)
-            self._arrival_flag = hasattr(getattr(probe, "task", None), "arrived")
-        return self._arrival_flag
+        return hasattr(getattr(reset_shapes(self.env), "task", None), "arrived")
 
     def max_chunks(self) -> int:
         """Chunks that finish the run: exactly so under the step budget; an upper bound under the episode
