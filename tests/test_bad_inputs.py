@@ -620,8 +620,6 @@ SHOW = [
 ]
 
 def _mkstemp_erofs(tmp: str, monkeypatch: Any) -> None:
-    import tempfile
-
     from jaxrobo.speed import cache
 
     def erofs(*_a, **_kw):

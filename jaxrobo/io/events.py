@@ -19,6 +19,7 @@ import time
 from types import ModuleType
 from typing import Any, Iterator
 
+
 class _Hidden(importlib.abc.MetaPathFinder):
     """A finder that says ``module`` (and its submodules) cannot be imported: put first on ``sys.meta_path``."""
 
