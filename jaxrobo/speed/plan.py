@@ -83,7 +83,7 @@ _FUSED_MIN_ENVS = 1024
 #: Fewest envs for which :func:`default_fused` picks the cart-pole's whole-chunk Pallas kernel: it compiles ~18 s
 #: longer on first use, which a run of a few thousand envs does not earn back (H200, the default cart-pole command
 #: at 4,096 envs, whole command from start to exit: kernel 28.3 s with an empty cache and 5.1 s warm, training 0.8 s;
-#: the XLA fused path 8.7 s cold, training 3.0 s).
+#: without it 11.7-12.0 s and 5.6-6.7 s, training 0.9-1.2 s warm; benchmarks/results/h200/time_to_trained.json).
 _CHUNK_KERNEL_MIN_ENVS = 16_384
 
 
