@@ -93,6 +93,28 @@ def test_padding_and_shardings():
     assert padded["a"].tolist() == [0, 1, 2, 2]
 
 
+def test_spmd_options_leave_out_cse_for_several_cpus_only():
+    """The passes a program for several devices leaves out are the ones its platform needs: CSE on CPUs, none on
+    GPUs (where leaving CSE out is what made two GPUs round differently from one); one device, or no mesh, keeps
+    the options as given."""
+    import types
+
+    import numpy as np
+
+    from jaxrobo.speed import sharding
+
+    def mesh(platform: str, n: int):
+        return types.SimpleNamespace(devices=np.array([types.SimpleNamespace(platform=platform)] * n))
+
+    given = {"xla_disable_hlo_passes": "foo", "other": 1}
+    assert sharding.spmd_options(given, None) is given
+    assert sharding.spmd_options(given, mesh("cpu", 1)) is given
+    assert sharding.spmd_options(given, mesh("cpu", 4)) == {"xla_disable_hlo_passes": "foo,cse", "other": 1}
+    assert sharding.spmd_options(None, mesh("cpu", 2)) == {"xla_disable_hlo_passes": "cse"}
+    assert sharding.spmd_options(given, mesh("gpu", 2)) is given
+    assert sharding.spmd_options(None, mesh("gpu", 4)) is None
+
+
 def _free_port() -> int:
     import socket
 

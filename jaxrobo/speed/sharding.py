@@ -150,23 +150,30 @@ def specs_like(tree: Any, batch: int) -> Any:
     return jax.tree.map(pick, tree)
 
 
-#: XLA passes left out of a program compiled for several devices (:func:`spmd_options`). XLA's partitioner
-#: ends with a clean-up that eliminates common subexpressions before the simplification every program goes
-#: through; a program for one device meets that elimination only later, after the simplifier has rewritten
-#: the duplicates one by one. The two orders fused and rounded differently: a sweep's returns moved in their last
-#: bits between one device and several (forced CPU devices; the loop of a Goto step alone shows it). Without
-#: the early elimination the program of several devices rounds as the program of one does.
-SPMD_DISABLED_PASSES = ("cse",)
+#: XLA passes left out of a program compiled for several devices (:func:`spmd_options`), by the devices'
+#: platform. On a CPU, XLA's partitioner ends with a clean-up that eliminates common subexpressions before the
+#: simplification every program goes through; a program for one device meets that elimination only later, after
+#: the simplifier has rewritten the duplicates one by one. The two orders fused and rounded differently: a
+#: sweep's returns moved in their last bits between one device and several (forced CPU devices; the loop of a Goto
+#: step alone shows it), and without the early elimination they round as one device's do. A GPU is the other way
+#: round: its pipeline runs CSE where the one-device program does too, and leaving the passes out is what made two
+#: H200s round differently from one (a Goto-v2 sweep, 1,024 rows: 1,641 of 1.3 M recorded returns moved in their
+#: last bits; with the passes kept, every return is the one-device return, and the program compiles ~7 s sooner).
+SPMD_DISABLED_PASSES: dict[str, tuple[str, ...]] = {"cpu": ("cse",)}
 
 
 def spmd_options(options: dict[str, Any] | None, mesh: Mesh | None) -> dict[str, Any] | None:
     """``options`` (XLA compiler options, or None) for a program split over ``mesh``: with more than one device,
-    :data:`SPMD_DISABLED_PASSES` added to ``xla_disable_hlo_passes`` (with those already there); else as given."""
+    the passes :data:`SPMD_DISABLED_PASSES` names for their platform added to ``xla_disable_hlo_passes`` (with
+    those already there); else as given."""
     if mesh is None or mesh.devices.size == 1:
+        return options
+    passes = SPMD_DISABLED_PASSES.get(mesh.devices.flat[0].platform, ())
+    if not passes:
         return options
     out = dict(options or {})
     given = [p for p in str(out.get("xla_disable_hlo_passes", "")).split(",") if p]
-    out["xla_disable_hlo_passes"] = ",".join(dict.fromkeys(given + list(SPMD_DISABLED_PASSES)))
+    out["xla_disable_hlo_passes"] = ",".join(dict.fromkeys(given + list(passes)))
     return out
 
 
