@@ -443,8 +443,7 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
 
     def on_progress(step: int, metrics: Mapping[str, Any]) -> None:
         if step == 0:
-            if c.agent == "ppo" or not plan.initial_point:
-                stop_here()  # (a SAC with an initial point evaluates it next, in on_params, and asks there)
+            stop_here()  # nothing trained yet: nothing to keep
             return
         partial.append({k: float(np.asarray(v)) for k, v in metrics.items() if np.size(v) == 1})
         if hook.epochs_done % plan.chunks == 0:
