@@ -105,6 +105,8 @@ def _train(args: argparse.Namespace) -> int:
 
     try:
         sharding.initialize_distributed()
+    except sharding.JoinError as err:
+        sharding.exit_after_join_error("jaxrobo train", err)
     except (ConfigError, ValueError, RuntimeError) as err:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
