@@ -293,8 +293,9 @@ class TrainerWatch:
 
 
 #: A host iteration that ends between evaluation points keeps the trainer's state (``on_chunk``) when a stop is
-#: asked, else at most every :data:`KEEP_SECONDS` and no oftener than the time that keeping took times
-#: :data:`KEEP_COST_RATIO` (so keeping costs at most about 1/KEEP_COST_RATIO of the training time).
+#: asked, the first of a session (after the trainer's compile), else at most every :data:`KEEP_SECONDS` and no
+#: oftener than the time that keeping took times :data:`KEEP_COST_RATIO` (so keeping costs at most about
+#: 1/KEEP_COST_RATIO of the training time).
 KEEP_SECONDS = 10.0
 KEEP_COST_RATIO = 20.0
 
@@ -356,7 +357,7 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
     seconds0 = resume.train_seconds if going_on else 0.0
     steps0 = plan.env_steps(done0, part0) if going_on else 0
     timer = {"eval": 0.0, "start": time.perf_counter(), "evaluate": None}
-    kept = {"at": time.perf_counter(), "cost": 0.0}
+    kept = {"at": time.perf_counter(), "cost": 0.0, "chunks": 0}
     key = jax.random.fold_in(jax.random.key(c.seed), 7)
     net = network_config(spec, int(benv.observation_size), int(benv.action_size))
     pending: dict[str, Any] = {}
@@ -396,11 +397,12 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
         epochs_done, chunks_done = divmod(hook.epochs_done, plan.chunks)
         stopping = should_stop is not None and should_stop()
         now = time.perf_counter()
-        if on_chunk is not None and (stopping or now - kept["at"] >= max(KEEP_SECONDS, KEEP_COST_RATIO * kept["cost"])):
+        due = kept["chunks"] == 0 or now - kept["at"] >= max(KEEP_SECONDS, KEEP_COST_RATIO * kept["cost"])
+        if on_chunk is not None and (stopping or due):  # the session's first: after the compile, and timed
             with watch.lock:
                 on_chunk(point(None, epochs_done, chunks_done))
             kept["at"] = time.perf_counter()
-            kept["cost"] = kept["at"] - now
+            kept["cost"], kept["chunks"] = kept["at"] - now, kept["chunks"] + 1
         if stopping:
             raise TrainingStopped(f"stopped after {plan.env_steps(epochs_done, chunks_done):,} env steps, between "
                                   f"evaluation points {len(evaluations)} and {len(evaluations) + 1} of "

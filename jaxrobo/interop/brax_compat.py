@@ -254,8 +254,8 @@ def hook_epochs(trainer_module: Any, epoch_keys: Callable[[int, int], Any], firs
                 ) -> Iterator[EpochHook]:
     """For the block, the trainer module's epochs run through the yielded :class:`EpochHook` (see the module
     docstring): ``epoch_keys(i, n_devices)`` (raw ``uint32[n_devices, 2]`` keys, as Brax's own) are the keys of the
-    run's ``i``-th epoch, counting from ``first_epoch``; ``restore(fresh_states) -> states``, if given, replaces the state tuple at the
-    first epoch. ``version`` (default: the installed Brax) exists so the guard can be tested."""
+    run's ``i``-th epoch, counting from ``first_epoch``; ``restore(fresh_states) -> states``, if given, replaces
+    the state tuple at the first epoch. ``version`` (default: the installed Brax) exists so the guard can be tested."""
     version = installed_version() if version is None else version
     if getattr(trainer_module, "jax", None) is not jax:
         raise BraxCompatError(f"brax {version}: {getattr(trainer_module, '__name__', trainer_module)} does not use "
