@@ -116,3 +116,22 @@ def test_sigint_to_a_ppo_run_stops_it_between_points_and_resume_goes_on(tmp_path
     with open(os.path.join(out, "summary.json")) as f:
         summary = json.load(f)
     assert summary["resumed_after_env_steps"] == steps and summary["env_steps"] == total
+
+
+def test_a_stop_during_the_final_evaluation_keeps_the_finished_run(tmp_path, monkeypatch, capsys):
+    """The signal comes while the last point is evaluated: the training is complete, so the run is written whole
+    (exit 0) and one line says why it did not stop."""
+    out = str(tmp_path / "run")
+    original = deep.LiveRun.point
+
+    def point(self, p):
+        if p.epochs_done == p.plan.epochs:
+            os.kill(os.getpid(), signal.SIGTERM)  # as if during the final evaluation, before its files are kept
+        original(self, p)
+
+    monkeypatch.setattr(deep.LiveRun, "point", point)
+    assert main([*_args("ppo"), "--out", out]) == 0
+    assert _status(out)["status"] == "complete" and os.path.isfile(os.path.join(out, "summary.json"))
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "final evaluation" in ln]
+    assert err == ["jaxrobo train: SIGTERM during the final evaluation: the training was complete, so the run is "
+                   "finished and written whole"]
