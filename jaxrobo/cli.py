@@ -105,6 +105,8 @@ def _train(args: argparse.Namespace) -> int:
 
     try:
         sharding.initialize_distributed()
+    except sharding.JoinError as err:
+        sharding.exit_after_join_error("jaxrobo train", err)
     except (ConfigError, ValueError, RuntimeError) as err:
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2
@@ -342,10 +344,10 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
         write_config(live, spec.to_dict())
     rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), resume=resume_cmd)
     c, plan = spec.config, deep.epoch_plan(spec.config)
-    going_on = saved is not None and saved.epochs_done > 0
+    going_on = saved is not None and (saved.epochs_done > 0 or saved.chunks_done > 0)
     print(f"{spec.env_id} · {agent} ({spec.preset}) · {c.num_envs} envs × {plan.total_steps:,} env steps "
           f"({plan.epochs} epochs), episodes ≤ {spec.episode_length} steps → {out}"
-          + (f" (resuming after epoch {saved.epochs_done}, {saved.evaluations[-1]['env_steps']:,} env steps)"
+          + (f" (resuming after {plan.env_steps(saved.epochs_done, saved.chunks_done):,} env steps)"
              if going_on else ""))
     if live != out:
         print(f"checkpoints in {live} until the run is done", file=sys.stderr)
@@ -359,23 +361,41 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
     def stopped(what: str, code: int, **fields) -> int:
         return _deep_stopped(live, out, resume_cmd, what, code, **fields)
 
+    from jaxrobo.training import driver
+
     def notice(signum: int) -> None:
         import signal
 
-        print(f"\n{signal.Signals(signum).name}: stopping at the trainer's next evaluation point, its work kept "
-              "(again to quit at once, keeping the last point's)", file=sys.stderr)
+        print(f"\n{signal.Signals(signum).name}: stopping at the end of the trainer's current step, its state kept "
+              f"(within {driver.StopOnSignal.PATIENCE_SECONDS:.0f} s, else from the last state kept; again to quit "
+              "at once)", file=sys.stderr)
 
-    # SIGINT/SIGTERM: Brax's trainer cannot be paused, so it is stopped where it hands control back (its next
-    # evaluation point, after that point is kept); a second signal exits at once with the last point kept.
-    from jaxrobo.training import driver
+    # SIGINT/SIGTERM: Brax's trainer cannot be paused, so it is stopped where it hands control back (the end of a
+    # host iteration, a few of its training steps: the state is kept there). A host iteration that does not end
+    # within StopOnSignal.PATIENCE_SECONDS (a long compiled step on a CPU) is abandoned: the process ends from the
+    # watchdog thread, keeping the state kept last. A second signal quits at once the same way.
+    watch = deep.TrainerWatch()
+
+    def abandon(signum: int) -> bool:
+        import signal
+
+        with watch.lock:  # no file is being written while it is held
+            if not watch.in_trainer:
+                return False  # jaxrobo's own code runs: it sees the stop by itself, after keeping its state
+            name = signal.Signals(signum).name
+            code = stopped(f"{name}: stopped inside the trainer's step (it did not end within "
+                           f"{driver.StopOnSignal.PATIENCE_SECONDS:.0f} s)", 128 + signum, signal=name)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
 
     from jaxrobo.core.clock import process_seconds
 
     startup = process_seconds()  # imports, device discovery, config: the wall before the trainer starts
     try:
-        with driver.StopOnSignal(notice, second="exit") as stop:
+        with driver.StopOnSignal(notice, second="exit", abandon=abandon) as stop:
             result = deep.train(spec, on_point, should_stop=stop, resume=saved,
-                                checkpoint_path=keeper.checkpoint_path)
+                                checkpoint_path=keeper.checkpoint_path, on_chunk=keeper.chunk, watch=watch)
     except deep.TrainingStopped as err:
         return stopped(f"{stop.name}: {err}", 128 + stop.signum, signal=stop.name)
     except SystemExit as err:  # the second signal (StopOnSignal's second="exit")
@@ -389,9 +409,11 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
     except Exception as err:
         if rundir.is_resumable(live):  # the work of the last evaluation point is kept: say how to go on
             rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
-                               what=f"the run failed ({type(err).__name__}: {err}); the last evaluation point's "
-                                    "checkpoint, latest and best policy are kept")
+                               what=f"the run failed ({type(err).__name__}: {err}); {_kept(live)}")
         raise
+    if result.stopped_at_end:
+        print(f"jaxrobo train: {stop.name} during the final evaluation: the training was complete, so the run is "
+              "finished and written whole", file=sys.stderr)
 
     def write(staged: str) -> None:
         deep.write_run(staged, result, live, {} if startup is None else {"startup_seconds": round(startup, 3)})
@@ -420,6 +442,16 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
     return 0
 
 
+def _kept(live: str) -> str:
+    """What a stopped ppo/sac run kept in ``live``, in words: the trainer's state at the env steps its status
+    names (where the last checkpoint was taken) and the last evaluation point's policies."""
+    from jaxrobo.io import rundir
+
+    steps = (rundir.read_status(live) or {}).get("env_steps")
+    at = f" at {steps:,} env steps" if isinstance(steps, int) and not isinstance(steps, bool) else ""
+    return f"the trainer's state{at} (checkpoint.npz) and the last evaluation point's latest and best policy are kept"
+
+
 def _deep_stopped(live: str, out: str, resume_cmd: str, what: str, code: int, **fields) -> int:
     """A ppo/sac run stopped before it finished. Once it reached an evaluation point its checkpoint, latest and
     best policy are in ``live``: the run is marked interrupted (a staging ``live`` is moved into place as ``out``,
@@ -432,8 +464,7 @@ def _deep_stopped(live: str, out: str, resume_cmd: str, what: str, code: int, **
 
     if rundir.is_resumable(live):
         rundir.interrupted(live, out=out, resume=resume_cmd, prog="jaxrobo train", publish_live=True,
-                           what=f"{what}; the last evaluation point's checkpoint, latest and best policy are kept",
-                           **fields)
+                           what=f"{what}; {_kept(live)}", **fields)
         return code
     again = f"jaxrobo train ... --out {shlex.quote(out)} --overwrite"
     if os.path.abspath(live) == os.path.abspath(out):

@@ -122,8 +122,10 @@ def test_epoch_hook_wraps_only_training_epoch_and_is_undone(monkeypatch):
     def reset(x):
         return x
 
-    with brax_compat.hook_epochs(module, lambda i: jax.random.fold_in(jax.random.PRNGKey(0), i), first_epoch=3,
-                                 restore=lambda fresh: (fresh[0] + 100,)) as hook:
+    def keys(i, n):
+        return jax.random.split(jax.random.fold_in(jax.random.PRNGKey(0), i), n)
+
+    with brax_compat.hook_epochs(module, keys, first_epoch=3, restore=lambda fresh: (fresh[0] + 100,)) as hook:
         epoch = module.jax.pmap(training_epoch)
         other = module.jax.pmap(reset)
         assert module.jax.numpy is jnp  # everything else is JAX's own
@@ -143,13 +145,31 @@ def test_epoch_hook_guard_trips():
     import types
 
     with pytest.raises(brax_compat.BraxCompatError, match="does not use the jax module"):
-        with brax_compat.hook_epochs(types.SimpleNamespace(__name__="t"), lambda i: None):
+        with brax_compat.hook_epochs(types.SimpleNamespace(__name__="t"), lambda i, n: None):
             pass
+
     import jax
 
     with pytest.warns(RuntimeWarning, match=r"brax 0\.99\.0 is outside"):
-        with brax_compat.hook_epochs(types.SimpleNamespace(__name__="t", jax=jax), lambda i: None,
+        with brax_compat.hook_epochs(types.SimpleNamespace(__name__="t", jax=jax), lambda i, n: None,
                                      version="0.99.0") as hook:
             pass
     with pytest.raises(brax_compat.BraxCompatError, match="ran no jax.pmap-ed training_epoch"):
         hook.check()
+
+
+@pytest.mark.parametrize("agent, parts, index", [("ppo", 3, 2), ("sac", 2, 1)])
+def test_advance_epoch_keys_is_the_carry_of_the_epochs_scan(agent, parts, index):
+    """The key an epoch's ``lax.scan`` carries after k training steps (PPO's ``training_step`` splits its key in
+    three and carries the third, SAC's epoch splits in two and carries the second), per device; 0 steps: the keys
+    themselves."""
+    import jax
+
+    keys = jax.random.split(jax.random.PRNGKey(3), 2)
+    expected = []
+    for key in keys:
+        for _ in range(5):
+            key = jax.random.split(key, parts)[index]
+        expected.append(np.asarray(key))
+    assert np.array_equal(np.asarray(brax_compat.advance_epoch_keys(agent, keys, 5)), np.stack(expected))
+    assert brax_compat.advance_epoch_keys(agent, keys, 0) is keys

@@ -71,7 +71,7 @@ def test_sigterm_during_training_marks_the_run_interrupted(tmp_path, monkeypatch
     assert sorted(os.listdir(out)) == ["config.yaml", "status.json"]  # nothing trained, nothing half-written
     assert _hidden(tmp_path) == [] and signal.getsignal(signal.SIGTERM) is before
     err = capsys.readouterr().err
-    assert "SIGTERM: stopping at the trainer's next evaluation point" in err and "nothing trained to keep" in err
+    assert "SIGTERM: stopping at the end of the trainer's current step" in err and "nothing trained to keep" in err
 
 
 @pytest.mark.parametrize("how", ["KeyboardInterrupt", "second SIGTERM"])

@@ -13,6 +13,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 CHILD = r"""
@@ -160,3 +162,43 @@ def test_two_processes_with_jax_distributed_give_the_single_process_sweep(tmp_pa
     multi_csv = (tmp_path / f"multi{attempt}" / "sweep.csv").read_text()
     assert multi_csv == (tmp_path / "single" / "sweep.csv").read_text()
     assert len(multi_csv.splitlines()) == 1 + 2 * 2
+
+
+def _one_line_exit_2(env: dict, timeout: float = 300) -> str:
+    """``jaxrobo train`` of a tiny cart-pole run under ``env``: exit 2 with one line on stderr (MJX's notes on its
+    optional backends aside), no traceback, no native crash; the line."""
+    proc = subprocess.run([sys.executable, "-m", "jaxrobo.cli", "train", "--env", "CartPoleStayUp-v0", "--nepisodes",
+                           "2", "--no-progress"], cwd=ROOT, text=True, capture_output=True, timeout=timeout,
+                          env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=ROOT, **env))
+    lines = [ln for ln in proc.stderr.strip().splitlines() if "warp" not in ln]
+    assert proc.returncode == 2 and len(lines) == 1, (proc.returncode, proc.stderr[-3000:])
+    return lines[0]
+
+
+@pytest.mark.parametrize("process_id", ["0", "1"])
+def test_a_process_that_never_joins_is_one_line_exit_2(process_id):
+    """Process 0 whose peer never comes, and process 1 with no coordinator to register with: JAX's join times
+    out (``JAXROBO_INIT_TIMEOUT``), which without jaxrobo's callback aborts natively (exit 134)."""
+    port = _free_port()
+    line = _one_line_exit_2({"JAXROBO_COORDINATOR": f"127.0.0.1:{port}", "JAXROBO_NUM_PROCESSES": "2",
+                             "JAXROBO_PROCESS_ID": process_id, "JAXROBO_INIT_TIMEOUT": "1"})
+    assert f"JAXROBO_COORDINATOR='127.0.0.1:{port}'" in line and "did not all join within" in line
+    assert "JAXROBO_INIT_TIMEOUT=1 s" in line
+
+
+@pytest.mark.parametrize("family", ["ipv4", "ipv6-only"])
+def test_a_coordinator_port_in_use_is_one_line_exit_2(family):
+    """A port another program listens on, over IPv4 or over IPv6 alone (JAX's service binds both)."""
+    import socket
+
+    if family == "ipv6-only" and not socket.has_ipv6:
+        pytest.skip("no IPv6 on this host")
+    with socket.socket(socket.AF_INET if family == "ipv4" else socket.AF_INET6, socket.SOCK_STREAM) as taken:
+        if family != "ipv4":
+            taken.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+        taken.bind(("" if family == "ipv4" else "::", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        line = _one_line_exit_2({"JAXROBO_COORDINATOR": f"127.0.0.1:{port}", "JAXROBO_NUM_PROCESSES": "2",
+                                 "JAXROBO_PROCESS_ID": "0", "JAXROBO_INIT_TIMEOUT": "1"})
+    assert f"port {port} is already in use" in line and "JAXROBO_COORDINATOR" in line

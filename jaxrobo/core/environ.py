@@ -149,13 +149,20 @@ def _check_port_free(coordinator: str) -> None:
     from jaxrobo.core.config import ConfigError
 
     port = int(coordinator.rpartition(":")[2])
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+    for family, anywhere in ((socket.AF_INET, ""), (socket.AF_INET6, "::")):
         try:
-            s.bind(("", port))
-        except OSError as err:
-            if err.errno == errno.EADDRINUSE:
-                raise ConfigError(f"JAXROBO_COORDINATOR={coordinator!r}: port {port} is already in use on this "
-                                  "host (process 0 serves the coordinator there); choose a free port") from None
+            s = socket.socket(family, socket.SOCK_STREAM)
+        except OSError:  # no IPv6 on this host
+            continue
+        with s:
+            # As a server binds: a port whose last connection is in TIME_WAIT (a run that just ended) is free.
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((anywhere, port))
+            except OSError as err:
+                if err.errno == errno.EADDRINUSE:
+                    raise ConfigError(f"JAXROBO_COORDINATOR={coordinator!r}: port {port} is already in use on this "
+                                      "host (process 0 serves the coordinator there); choose a free port") from None
 
 
 def check_platforms() -> None:

@@ -19,16 +19,17 @@ termination). jaxrobo adds what a run needs around them, one concern per module:
   written whole at the end (:func:`write_run`: ``config.yaml``, ``evaluations.csv``, ``episode_stats.csv`` with an
   ``env_steps`` column, ``summary.json``, TensorBoard scalars, ``rewards.png``, the policy) through
   :mod:`jaxrobo.io.rundir`;
-* :mod:`jaxrobo.deep.checkpoint`: the trainer's whole state at the last evaluation point (optimiser, normaliser,
-  parameters, env state, SAC's replay buffer) and the run's record, what ``jaxrobo train --resume`` continues;
+* :mod:`jaxrobo.deep.checkpoint`: the trainer's whole state at the last evaluation point, or at the end of a host
+  iteration between points (optimiser, normaliser, parameters, env state, SAC's replay buffer) and the run's
+  record, what ``jaxrobo train --resume`` continues;
 * :mod:`jaxrobo.deep.policy`: the policy saved without pickle (:func:`save_policy`: the parameter pytree
   flattened to ``policy.npz`` by key path, the network's configuration in ``policy.json``) and loaded back
   (:func:`load_policy`) for ``jaxrobo show`` and rendering.
 
 Public surface (all importable from ``jaxrobo.deep``): :data:`AGENTS`, :class:`DeepConfig`, :class:`PPOConfig`,
 :class:`SACConfig`, :class:`DeepRunSpec`, :func:`is_deep`, :func:`config_class`, :func:`presets`,
-:func:`resolve`, :func:`check_combinations`, :func:`train`, :class:`TrainingStopped`, :class:`DeepResult`,
-:func:`evaluate`, :func:`save_policy`, :func:`load_policy`, :class:`LoadedPolicy`, :func:`write_run`,
+:func:`resolve`, :func:`check_combinations`, :func:`train`, :class:`TrainingStopped`, :class:`TrainerWatch`,
+:class:`DeepResult`, :func:`evaluate`, :func:`save_policy`, :func:`load_policy`, :class:`LoadedPolicy`, :func:`write_run`,
 :func:`spec_from_config`.
 """
 from __future__ import annotations
@@ -39,12 +40,12 @@ from jaxrobo.deep.config import (AGENT_CONFIG_DIR, AGENTS, MAX_LAYER, DeepConfig
 from jaxrobo.deep.output import EVAL_COLUMNS, STAT_COLUMNS, LiveRun, eval_means, is_deep_run, write_run
 from jaxrobo.deep.policy import (POLICIES, POLICY_JSON, POLICY_NPZ, LoadedPolicy, env_policy, load_policy,
                                  network_config, policy_dir, save_policy)
-from jaxrobo.deep.training import (DeepResult, EpochPlan, Point, TrainingStopped, best_index, epoch_plan, evaluate,
-                                   train)
+from jaxrobo.deep.training import (DeepResult, EpochPlan, Point, TrainerWatch, TrainingStopped, best_index, epoch_plan,
+                                   evaluate, train)
 
 __all__ = ["AGENTS", "AGENT_CONFIG_DIR", "DeepConfig", "DeepResult", "DeepRunSpec", "EVAL_COLUMNS", "EpochPlan",
            "LiveRun", "LoadedPolicy", "MAX_LAYER", "POLICIES", "POLICY_JSON", "POLICY_NPZ", "PPOConfig", "Point",
-           "SACConfig", "STAT_COLUMNS", "TrainingStopped", "best_index", "check_action_space", "check_combinations",
-           "config_class", "env_policy", "epoch_plan", "eval_means", "evaluate", "is_deep", "is_deep_run",
-           "load_policy", "network_config", "policy_dir", "preset_paths", "presets", "resolve", "save_policy",
-           "spec_from_config", "train", "write_run"]
+           "SACConfig", "STAT_COLUMNS", "TrainerWatch", "TrainingStopped", "best_index", "check_action_space",
+           "check_combinations", "config_class", "env_policy", "epoch_plan", "eval_means", "evaluate", "is_deep",
+           "is_deep_run", "load_policy", "network_config", "policy_dir", "preset_paths", "presets", "resolve",
+           "save_policy", "spec_from_config", "train", "write_run"]

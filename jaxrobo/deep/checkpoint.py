@@ -1,10 +1,12 @@
-"""A deep run's checkpoint: the trainer's whole state at its last evaluation point, and the run's record so far, in
-the run directory's ``checkpoint.npz`` (:data:`jaxrobo.io.rundir.CHECKPOINT`), rewritten atomically at each point.
+"""A deep run's checkpoint: the trainer's whole state at its last evaluation point, or at the end of a host iteration
+between points (:class:`jaxrobo.deep.training.EpochPlan`), and the run's record so far, in the run directory's
+``checkpoint.npz`` (:data:`jaxrobo.io.rundir.CHECKPOINT`), rewritten atomically each time.
 
 What is saved (:func:`save`): the state tuple Brax's epoch left (:class:`jaxrobo.interop.brax_compat.EpochHook`:
 PPO's ``TrainingState`` (optimiser state, policy and value parameters, observation normaliser, env step count) and
 the training envs' state; SAC's the same plus its replay buffer) as plain arrays by leaf (``state_<i>``; a PRNG key
-as its key data), the number of epochs done, the evaluations so far (``eval_*``), Brax's training metrics, and a
+as its key data), the number of epochs done and of host iterations done of the next (with their training metrics),
+the evaluations so far (``eval_*``), Brax's training metrics, and a
 fingerprint (:func:`fingerprint`: the resolved config, the JAX and Brax versions, the sources' hash). Brax's own
 ``checkpoint.save`` (orbax) keeps the parameters only, which cannot continue a run; the saved policy files
 (``policy.npz``, ``best/policy.npz``) are the run's parameters in :mod:`jaxrobo.deep.policy`'s format.
@@ -25,7 +27,7 @@ import numpy as np
 from jaxrobo.training.checkpoint import CheckpointError, fingerprint_mismatch, read_npz, write_npz
 
 #: Bumped when the layout changes.
-FORMAT = 1
+FORMAT = 2
 #: The evaluation arrays kept per point (``success`` only for a task with one).
 EVAL_FIELDS = ("return", "length", "terminated", "success")
 
@@ -45,9 +47,10 @@ def fingerprint(spec: Any) -> dict[str, Any]:
 
 @dataclasses.dataclass
 class Saved:
-    """A loaded checkpoint: ``epochs_done`` of the trainer, its ``states`` (host leaves in flatten order, None
-    when no epoch ran), the ``evaluations`` and ``training_metrics`` so far (as :class:`DeepResult` holds them)
-    and ``train_seconds`` (training wall time before the stop, evaluations excluded)."""
+    """A loaded checkpoint: ``epochs_done`` of the trainer and ``chunks_done`` host iterations of the next (with
+    their Brax metrics, ``partial_metrics``), its ``states`` (host leaves in flatten order, None when nothing
+    trained), the ``evaluations`` and ``training_metrics`` so far (as :class:`DeepResult` holds them) and
+    ``train_seconds`` (training wall time before the stop, evaluations excluded)."""
 
     epochs_done: int
     states: list[np.ndarray] | None
@@ -56,6 +59,8 @@ class Saved:
     evaluations: list[dict[str, Any]]
     training_metrics: list[dict[str, float]]
     train_seconds: float
+    chunks_done: int = 0
+    partial_metrics: list[dict[str, float]] = dataclasses.field(default_factory=list)
 
 
 def _is_key(x: Any) -> bool:
@@ -74,9 +79,10 @@ def _flat(states: Any) -> tuple[list[Any], list[str], Any]:
 
 
 def save(path: str, fp: dict[str, Any], epochs_done: int, states: Any, evaluations: list[dict[str, Any]],
-         training_metrics: list[dict[str, float]], train_seconds: float) -> None:
-    """Write the checkpoint (see the module docstring) atomically; ``states`` are the device arrays the last epoch
-    left (None before the first)."""
+         training_metrics: list[dict[str, float]], train_seconds: float, chunks_done: int = 0,
+         partial_metrics: list[dict[str, float]] = ()) -> None:
+    """Write the checkpoint (see the module docstring) atomically; ``states`` are the device arrays the last host
+    iteration left (None before the first)."""
     import jax
 
     arrays: dict[str, Any] = {}
@@ -95,7 +101,8 @@ def save(path: str, fp: dict[str, Any], epochs_done: int, states: Any, evaluatio
                 arrays[f"eval_{field}"] = np.stack([np.asarray(e[field]) for e in evaluations])
     meta = {"fingerprint": fp, "epochs_done": int(epochs_done), "has_states": states is not None,
             "state_names": names, "key_impls": impls, "training_metrics": training_metrics,
-            "train_seconds": float(train_seconds)}
+            "train_seconds": float(train_seconds), "chunks_done": int(chunks_done),
+            "partial_metrics": list(partial_metrics)}
     write_npz(path, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
 
 
@@ -118,6 +125,8 @@ def load(path: str, fp: dict[str, Any], plan: Any, eval_episodes: int) -> Saved:
         epochs_done, has_states = int(meta["epochs_done"]), bool(meta["has_states"])
         names, impls = list(meta["state_names"]), list(meta["key_impls"])
         metrics = [{str(k): float(v) for k, v in m.items()} for m in meta["training_metrics"]]
+        chunks_done = int(meta["chunks_done"])
+        partial = [{str(k): float(v) for k, v in m.items()} for m in meta["partial_metrics"]]
         train_seconds = float(meta["train_seconds"])
         saved_fp = meta["fingerprint"]
     except (KeyError, ValueError, TypeError, AttributeError) as err:
@@ -127,9 +136,11 @@ def load(path: str, fp: dict[str, Any], plan: Any, eval_episodes: int) -> Saved:
         why = f"it was written with brax {saved_fp.get('brax')} (this is {fp.get('brax')})"
     if why is not None:
         raise bad(f"refusing to resume: {why}")
-    if not 0 <= epochs_done <= plan.epochs or has_states != (epochs_done > 0) or len(names) != len(impls):
-        raise bad(f"epochs_done={epochs_done} does not fit a run of {plan.epochs} epochs (or its state list is "
-                  "inconsistent)")
+    if (not 0 <= epochs_done <= plan.epochs or not 0 <= chunks_done < plan.chunks
+            or (epochs_done == plan.epochs and chunks_done) or len(partial) != chunks_done
+            or has_states != (epochs_done > 0 or chunks_done > 0) or len(names) != len(impls)):
+        raise bad(f"epochs_done={epochs_done}, chunks_done={chunks_done} do not fit a run of {plan.epochs} epochs "
+                  f"of {plan.chunks} host iterations (or its state list is inconsistent)")
     states = None
     if has_states:
         states = []
@@ -161,7 +172,7 @@ def load(path: str, fp: dict[str, Any], plan: Any, eval_episodes: int) -> Saved:
         row = {field: x[i] for field, x in fields.items()}
         row["env_steps"], row["seconds"] = int(steps[i]), float(seconds[i])
         evaluations.append(row)
-    return Saved(epochs_done, states, impls, names, evaluations, metrics, train_seconds)
+    return Saved(epochs_done, states, impls, names, evaluations, metrics, train_seconds, chunks_done, partial)
 
 
 def restore_states(path: str, saved: Saved, fresh: tuple) -> tuple:

@@ -87,7 +87,7 @@ class LiveRun:
         self.checkpoint_path = os.path.join(live, rundir.CHECKPOINT)
         # A resumed run (``saved``: its checkpoint) drops the events a stopped session wrote after that checkpoint's
         # last point (all of them where it stopped before its first epoch: that run starts again).
-        going_on = saved is not None and saved.epochs_done > 0
+        going_on = saved is not None and (saved.epochs_done > 0 or saved.chunks_done > 0)
         self._purge = None if saved is None else int(saved.evaluations[-1]["env_steps"]) + 1 if going_on else 0
         self._metrics_written = len(saved.training_metrics) if going_on else 0
 
@@ -105,7 +105,6 @@ class LiveRun:
         return SummaryWriter(os.path.join(self.live, TENSORBOARD), purge_step=purge, filename_suffix=f".{point:05d}")
 
     def point(self, p: Point) -> None:
-        from jaxrobo.deep import checkpoint
         from jaxrobo.io import rundir
 
         e, i = p.row, len(p.evaluations) - 1
@@ -114,8 +113,7 @@ class LiveRun:
         if best_index(p.evaluations, getattr(p.spec.env, "learning_target", None)) == i:
             os.makedirs(os.path.join(self.live, POLICIES["best"]), exist_ok=True)
             save_policy(os.path.join(self.live, POLICIES["best"]), p.params, net)
-        checkpoint.save(self.checkpoint_path, self.fingerprint, p.epochs_done, p.states, p.evaluations,
-                        p.training_metrics, p.train_seconds)
+        self._checkpoint(p)
         _write_stats(self.live, p.evaluations)
         writer = self._tensorboard(i)
         if writer is not None:
@@ -126,6 +124,23 @@ class LiveRun:
             self._metrics_written = len(p.training_metrics)
         rundir.write_status(self.live, rundir.RUNNING, out=self.out, env_steps=int(e["env_steps"]), total_steps=p.plan.total_steps,
                             epochs_done=p.epochs_done, epochs=p.plan.epochs, resume=self.resume_cmd)
+
+    def _checkpoint(self, p: Point) -> None:
+        from jaxrobo.deep import checkpoint
+
+        checkpoint.save(self.checkpoint_path, self.fingerprint, p.epochs_done, p.states, p.evaluations,
+                        p.training_metrics, p.train_seconds, p.chunks_done, p.partial_metrics)
+
+    def chunk(self, p: Point) -> None:
+        """Keep the trainer's state at the end of a host iteration between evaluation points (the ``on_chunk`` of
+        :func:`jaxrobo.deep.training.train`): the checkpoint, then ``status.json``; the policies and the record
+        stay those of the last point."""
+        from jaxrobo.io import rundir
+
+        self._checkpoint(p)
+        rundir.write_status(self.live, rundir.RUNNING, out=self.out, env_steps=p.env_steps,
+                            total_steps=p.plan.total_steps, epochs_done=p.epochs_done, epochs=p.plan.epochs,
+                            resume=self.resume_cmd)
 
 
 

@@ -15,10 +15,12 @@
    state, SAC's replay buffer) and their random keys inside one call; their ``restore_params`` /
    ``restore_checkpoint_path`` put back the parameters only. For the length of a ``with`` block this gives the
    trainer module (``brax.training.agents.ppo.train`` or ``...sac.train``) a ``jax`` whose ``pmap`` wraps the
-   function named ``training_epoch`` (every other name passes through unchanged): each epoch's random key is
-   jaxrobo's own (``epoch_key(i)`` of the epoch's index over the whole run), the state the epoch leaves is kept
-   (:attr:`EpochHook.states`), and a resumed run's saved state replaces the fresh one at its first epoch. The swap
-   is of that module's global only and is undone on the way out, also when training raises.
+   function named ``training_epoch`` (every other name passes through unchanged): each epoch's random keys are
+   jaxrobo's own (``epoch_keys(i, n_devices)`` of the epoch's index over the whole run), the state the epoch leaves
+   is kept (:attr:`EpochHook.states`), and a resumed run's saved state replaces the fresh one at its first epoch.
+   The swap is of that module's global only and is undone on the way out, also when training raises.
+   :func:`advance_epoch_keys` gives the key a Brax epoch carries after some of its training steps, so one epoch
+   can run as several shorter ones with the same random numbers.
 
 All three follow Brax's internals, so they are guarded: :data:`WRITTEN_FOR` is the range of ``brax`` versions they were
 written and tested for. Outside it (or where ``acting.Evaluator`` does not have the shape the swap needs),
@@ -35,7 +37,8 @@ written and tested for. Outside it (or where ``acting.Evaluator`` does not have 
 To widen the range, run ``tests/test_brax_compat.py``, ``tests/test_brax_env.py``, ``tests/test_deep.py`` and
 ``tests/test_deep_resume.py`` (resume bit for bit) on the new version. Public surface: :data:`WRITTEN_FOR`,
 :func:`installed_version`, :func:`unavailable`, :func:`install_jax_compat`, :func:`keep_evaluator_params`,
-:class:`EvaluatorHook`, :func:`hook_epochs`, :class:`EpochHook`, :class:`BraxCompatError`.
+:class:`EvaluatorHook`, :func:`hook_epochs`, :class:`EpochHook`, :func:`advance_epoch_keys`,
+:class:`BraxCompatError`.
 """
 from __future__ import annotations
 
@@ -201,7 +204,7 @@ class EpochHook:
     epoch starts (Brax donates them to it)."""
 
     version: str | None
-    epoch_key: Callable[[int], Any]
+    epoch_keys: Callable[[int, int], Any]
     epochs_done: int = 0
     states: Any = None
     calls: int = 0
@@ -212,7 +215,7 @@ class EpochHook:
             *states, key = args
             if self._restore is not None:
                 states, self._restore = list(self._restore(tuple(states))), None
-            ours = jax.random.split(self.epoch_key(self.epochs_done), key.shape[0])
+            ours = self.epoch_keys(self.epochs_done, key.shape[0])
             if ours.shape != key.shape or ours.dtype != key.dtype:
                 raise BraxCompatError(f"brax {self.version}: training_epoch's key is {key.dtype}{list(key.shape)}, "
                                       f"jaxrobo's epoch key {ours.dtype}{list(ours.shape)} (written for brax "
@@ -246,13 +249,13 @@ class _JaxWithEpochHook:
 
 
 @contextlib.contextmanager
-def hook_epochs(trainer_module: Any, epoch_key: Callable[[int], Any], first_epoch: int = 0,
+def hook_epochs(trainer_module: Any, epoch_keys: Callable[[int, int], Any], first_epoch: int = 0,
                 restore: Callable[[tuple], tuple] | None = None, version: str | None = None
                 ) -> Iterator[EpochHook]:
     """For the block, the trainer module's epochs run through the yielded :class:`EpochHook` (see the module
-    docstring): ``epoch_key(i)`` (a raw ``uint32[2]`` key, as Brax's own) is the key of the run's ``i``-th epoch,
-    counting from ``first_epoch``; ``restore(fresh_states) -> states``, if given, replaces the state tuple at the
-    first epoch. ``version`` (default: the installed Brax) exists so the guard can be tested."""
+    docstring): ``epoch_keys(i, n_devices)`` (raw ``uint32[n_devices, 2]`` keys, as Brax's own) are the keys of the
+    run's ``i``-th epoch, counting from ``first_epoch``; ``restore(fresh_states) -> states``, if given, replaces
+    the state tuple at the first epoch. ``version`` (default: the installed Brax) exists so the guard can be tested."""
     version = installed_version() if version is None else version
     if getattr(trainer_module, "jax", None) is not jax:
         raise BraxCompatError(f"brax {version}: {getattr(trainer_module, '__name__', trainer_module)} does not use "
@@ -262,9 +265,34 @@ def hook_epochs(trainer_module: Any, epoch_key: Callable[[int], Any], first_epoc
     if reason is not None:
         _warn_once(f"jaxrobo.interop.brax_compat: {reason}; hooking {trainer_module.__name__}'s training_epoch "
                    "anyway, untested with this Brax")
-    hook = EpochHook(version, epoch_key, epochs_done=first_epoch, _restore=restore)
+    hook = EpochHook(version, epoch_keys, epochs_done=first_epoch, _restore=restore)
     trainer_module.jax = _JaxWithEpochHook(hook)
     try:
         yield hook
     finally:
         trainer_module.jax = jax
+
+
+#: How each trainer's ``training_epoch`` moves its key on at every training step (the carry of its ``lax.scan``):
+#: PPO's ``training_step`` splits the key in three and carries the third; SAC's epoch splits it in two and
+#: carries the second.
+_CARRIED = {"ppo": (3, 2), "sac": (2, 1)}
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _advance(keys: Any, parts: int, index: int, steps: int) -> Any:
+    def one(key: Any) -> Any:
+        return jax.lax.fori_loop(0, steps, lambda _, k: jax.random.split(k, parts)[index], key)
+
+    return jax.vmap(one)(keys)
+
+
+def advance_epoch_keys(agent: str, keys: Any, steps: int) -> Any:
+    """The keys (one per device, raw ``uint32[2]``) that ``agent``'s (``ppo`` or ``sac``) ``training_epoch``
+    carries after ``steps`` of its training steps when it starts from ``keys``: an epoch of ``n`` steps equals an
+    epoch of ``steps`` followed by one of ``n - steps`` that starts from these keys, bit for bit
+    (``tests/test_brax_compat.py`` checks it on the installed Brax)."""
+    if steps == 0:
+        return keys
+    parts, index = _CARRIED[agent]
+    return _advance(keys, parts, index, int(steps))

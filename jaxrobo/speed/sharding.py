@@ -39,7 +39,7 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
             return jax.process_count() > 1
     except (ImportError, AttributeError):
         pass
-    from jaxrobo.core.environ import check_coordinator, env_int
+    from jaxrobo.core.environ import _check_port_free, check_coordinator, env_int
 
     coordinator = coordinator or os.environ.get("JAXROBO_COORDINATOR")
     if num_processes is None and os.environ.get("JAXROBO_NUM_PROCESSES"):
@@ -58,11 +58,88 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
             raise ValueError("multi-host: set all of JAXROBO_COORDINATOR (host:port), JAXROBO_NUM_PROCESSES and "
                              f"JAXROBO_PROCESS_ID (got {coordinator!r}, {num_processes!r}, {process_id!r})")
         check_coordinator(coordinator)
+        if process_id == 0:  # JAX's service cannot start on a taken port: say so before it tries
+            _check_port_free(coordinator)
         # Bounded: a coordinator that never answers is an error after this long, not a silent wait.
-        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
-                                   process_id=process_id, initialization_timeout=env_int(
-                                       "JAXROBO_INIT_TIMEOUT", 1, default=INIT_TIMEOUT_SECONDS))
+        timeout = env_int("JAXROBO_INIT_TIMEOUT", 1, default=INIT_TIMEOUT_SECONDS)
+        try:
+            with _recoverable_join():
+                jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                                           process_id=process_id, initialization_timeout=timeout)
+        except Exception as err:  # noqa: BLE001 - JAX raises RuntimeError or its own runtime error types here
+            who = ("this process (0) serves the coordinator; the other processes did not connect" if process_id == 0
+                   else f"process {process_id} could not register with the coordinator")
+            # (JAX's message is at times only the name of a C++ exception, which says nothing to a user.)
+            detail = "" if str(err).startswith("std::") else f" ({type(err).__name__}: {err})"
+            raise JoinError(f"JAXROBO_COORDINATOR={coordinator!r}: the {num_processes} processes "
+                            f"(JAXROBO_NUM_PROCESSES) did not all join within JAXROBO_INIT_TIMEOUT={timeout} s: "
+                            f"{who}{detail}") from None
     return jax.process_count() > 1
+
+
+class JoinError(RuntimeError):
+    """``jax.distributed.initialize`` failed (a process never joined, or no coordinator answered) within
+    ``$JAXROBO_INIT_TIMEOUT``. JAX's half-joined runtime stays as it is: tearing it down logs native errors and
+    tracebacks at exit, so a command says the message and ends the process with :func:`exit_after_join_error`."""
+
+
+def exit_after_join_error(prog: str, err: JoinError) -> None:
+    """Say ``err`` in one line on stderr and end the process with status 2 at once (no teardown of JAX's
+    distributed runtime, see :class:`JoinError`)."""
+    import sys
+
+    print(f"{prog}: {err}", file=sys.stderr)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(2)
+
+
+class _ClientWithCallback:
+    """JAX's native module as ``jax._src.distributed`` uses it, except that its distributed-runtime client gets a
+    ``missed_heartbeat_callback``: without one, a join that times out ends the process with a native check
+    failure (SIGABRT) from the client's error-polling thread; with one, ``connect()`` raises instead."""
+
+    def __init__(self, native: Any):
+        self._native = native
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._native, name)
+
+    def get_distributed_runtime_client(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs.setdefault("missed_heartbeat_callback", _fatal_after_join)
+        return self._native.get_distributed_runtime_client(*args, **kwargs)
+
+
+def _fatal_after_join(*status: Any) -> None:
+    """A process of a joined run died or lost contact: what JAX's own callback does (end this one), in one line."""
+    import sys
+
+    print(f"jaxrobo: the JAX distributed service reported a fatal error (a process of the run died or lost "
+          f"contact): {status}", file=sys.stderr, flush=True)
+    os._exit(1)
+
+
+class _recoverable_join:
+    """For the block, ``jax._src.distributed`` builds its client through :class:`_ClientWithCallback` (where that
+    module's layout is the one this was written for, JAX 0.10; elsewhere nothing changes)."""
+
+    def __enter__(self) -> None:
+        try:
+            from jax._src import distributed
+
+            native = distributed._jax
+        except (ImportError, AttributeError):
+            self._module = None
+            return
+        if not callable(getattr(native, "get_distributed_runtime_client", None)):
+            self._module = None
+            return
+        self._module, self._native = distributed, native
+        distributed._jax = _ClientWithCallback(native)
+
+    def __exit__(self, *_exc: Any) -> None:
+        if self._module is not None:
+            self._module._jax = self._native
 
 
 #: Seconds ``jax.distributed.initialize`` waits for every process to join (``$JAXROBO_INIT_TIMEOUT``).

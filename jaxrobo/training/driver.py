@@ -697,14 +697,21 @@ class StopOnSignal:
     next). A second signal quits without waiting for the chunk: with ``second="default"`` it acts as it would
     without this handler (KeyboardInterrupt for SIGINT, termination for SIGTERM), with ``second="exit"`` it
     raises ``SystemExit(128 + signum)``. The previous handlers come back on exit. Handlers are installed only
-    in the main thread (Python allows no others); elsewhere ``stop()`` stays False."""
+    in the main thread (Python allows no others); elsewhere ``stop()`` stays False.
+
+    ``abandon(signum) -> bool``, if given, is for a main thread that can be inside one long native call (a
+    compiled training step runs no Python signal handler until it returns): :data:`PATIENCE_SECONDS` after the
+    first signal (at once after a second), a watchdog thread calls it, again every tenth of a second until it
+    returns True; it is to end the process itself (keeping what is already kept) where the main thread cannot
+    stop soon, and return False where the main thread will see ``stop()`` by itself."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __init__(self, notice: Callable[[int], None] | None = None, second: str = "default") -> None:
+    def __init__(self, notice: Callable[[int], None] | None = None, second: str = "default",
+                 abandon: Callable[[int], bool] | None = None) -> None:
         if second not in ("default", "exit"):
             raise ValueError(f"second={second!r}: expected 'default' or 'exit'")
-        self.notice, self.second = notice, second
+        self.notice, self.second, self.abandon = notice, second, abandon
         self.signum: int | None = None
         self._old: dict[int, Any] = {}
         self._pipe: tuple[int, int] | None = None
@@ -713,6 +720,8 @@ class StopOnSignal:
     #: Seconds after a second signal that the process ends even if Python code cannot run its handler (the main
     #: thread inside a long XLA compile or a device wait runs no Python signal handler until it returns).
     GRACE_SECONDS = 2.0
+    #: Seconds after a first signal that ``abandon`` is first called.
+    PATIENCE_SECONDS = 3.0
 
     def __enter__(self) -> "StopOnSignal":
         if threading.current_thread() is threading.main_thread():
@@ -734,6 +743,15 @@ class StopOnSignal:
             return
         self._pipe = (r, w)
 
+        def abandon_after(signum: int, seconds: float) -> None:
+            time.sleep(seconds)
+            while self._pipe is not None and not self.abandon(signum):
+                time.sleep(0.1)
+
+        def start_abandon(signum: int, seconds: float) -> None:
+            threading.Thread(target=abandon_after, args=(signum, seconds), name="StopOnSignal-abandon",
+                             daemon=True).start()
+
         def watch() -> None:
             seen = 0
             while True:
@@ -746,6 +764,8 @@ class StopOnSignal:
                 for signum in data:
                     if signum in self.SIGNALS:
                         seen += 1
+                        if self.abandon is not None:
+                            start_abandon(signum, 0.0 if seen >= 2 else self.PATIENCE_SECONDS)
                         if seen >= 2:
                             time.sleep(self.GRACE_SECONDS)
                             if self._pipe is None:  # handled and left meanwhile

@@ -255,6 +255,8 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         mesh = None
         if args.shard == "on" or (args.shard == "auto" and jax.device_count() > 1):
             mesh = sharding.make_mesh()
+    except sharding.JoinError as err:  # before any other process could be asked
+        sharding.exit_after_join_error("jaxrobo sweep", err)
     except (ConfigError, ValueError) as err:
         error = str(err)
     if not _all_agree(error is None):
