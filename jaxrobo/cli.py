@@ -591,7 +591,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         result = train(spec.env, cfg, spec.agent_params, None, hooks, initial=initial, start_chunk=start_chunk,
                        checkpoint=save, checkpoint_every=every_chunks or 0,
                        checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None, should_stop=stop,
-                       plan=trainer.plan)  # the plan of the trainer whose carry was checked above
+                       trainer=trainer)  # the trainer whose carry was checked above: its trace of init is reused
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.

@@ -77,9 +77,15 @@ def _is_key(x: Any) -> bool:
 
 
 def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any = None) -> Runner:
-    """The carry's structure, shapes and dtypes (``ShapeDtypeStruct`` leaves), traced without compiling."""
+    """The carry's structure, shapes and dtypes (``ShapeDtypeStruct`` leaves), traced without compiling.
+
+    Traced as :func:`jaxrobo.training.driver.compiled_init` traces it (:attr:`Trainer.jitted_init
+    <jaxrobo.training.trainer.Trainer.jitted_init>`, under the trainer's plan), so a run given this trainer
+    (:func:`jaxrobo.training.train.train`'s ``trainer``) compiles its first carry from this trace instead of
+    tracing the env's reset again."""
     env_params = trainer.env.default_params if env_params is None else env_params
-    return jax.eval_shape(trainer.init, jax.random.key(trainer.config.seed), agent_params, env_params)
+    with trainer.plan.tracing():
+        return jax.eval_shape(trainer.jitted_init, jax.random.key(trainer.config.seed), agent_params, env_params)
 
 
 def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:
