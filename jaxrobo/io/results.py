@@ -17,7 +17,9 @@ A run directory holds:
                          says how far it got (``chunks_done``, ``episodes_done_min``) and how to go on
                          (``resume``: the command line)
 ``checkpoint.npz``       only in an unfinished run: the whole training carry, from which ``jaxrobo train
-                         --resume DIR`` goes on (format: :func:`jaxrobo.training.checkpoint.save_checkpoint`)
+                         --resume DIR`` goes on (format: :func:`jaxrobo.training.checkpoint.save_checkpoint`),
+                         its tables in ``checkpoint.tables.<id>.npz`` beside it, laid out as ``qtables.npz``
+                         (a finished run's ``qtables.npz`` is that file, linked, not written again)
 =======================  =====================================================================================
 
 A complete run is written into a hidden sibling and renamed into place (:mod:`jaxrobo.io.rundir`), so a directory
@@ -123,14 +125,30 @@ def _nan_percentiles(x: np.ndarray, count: np.ndarray, qs: tuple[int, ...]) -> l
     return out
 
 
-def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None) -> None:
-    arrays: dict[str, Any] = {"q": np.asarray(q)}
-    if disc is not None:
-        arrays.update(low=np.asarray(disc.low), width=np.asarray(disc.width), bins=np.asarray(disc.bins))
-        if disc.edges is not None:
-            for i, e in enumerate(disc.edges):
-                arrays[f"edges_{i}"] = np.asarray(e)
-    write_npz_deflated(os.path.join(out_dir, "qtables.npz"), **arrays)
+def discretiser_arrays(disc: Discretiser | None) -> dict[str, np.ndarray]:
+    """The arrays of ``qtables.npz`` beside ``q``: the discretiser's ``low``, ``width``, ``bins`` and ``edges_<i>``
+    (none without a discretiser)."""
+    if disc is None:
+        return {}
+    arrays = {"low": np.asarray(disc.low), "width": np.asarray(disc.width), "bins": np.asarray(disc.bins)}
+    for i, e in enumerate(disc.edges or ()):
+        arrays[f"edges_{i}"] = np.asarray(e)
+    return arrays
+
+
+def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None, *, link: str | None = None) -> None:
+    """``qtables.npz``: ``q`` and the discretiser's arrays (:func:`discretiser_arrays`). ``link``: a file this
+    process wrote with exactly those arrays in this layout (the closing checkpoint's tables,
+    :func:`jaxrobo.training.checkpoint.save_checkpoint`), hard-linked instead of writing the tables again; where
+    the file system refuses a link, the tables are written."""
+    path = os.path.join(out_dir, "qtables.npz")
+    if link is not None:
+        try:
+            os.link(link, path)
+            return
+        except OSError:
+            pass
+    write_npz_deflated(path, q=np.asarray(q), **discretiser_arrays(disc))
 
 
 def write_summary(out_dir: str, summary: dict[str, Any]) -> None:
@@ -168,9 +186,10 @@ def write_tensorboard(out_dir: str, stats: list) -> None:
 
 
 def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None,
-             summary: dict[str, Any] | None = None) -> str:
+             summary: dict[str, Any] | None = None, tables: str | None = None) -> str:
     """Write everything a :class:`jaxrobo.training.summary.TrainResult` holds into ``out_dir``; returns ``out_dir``.
-    ``summary``: ``result.summary()`` where the caller has it already (None: computed here).
+    ``summary``: ``result.summary()`` where the caller has it already (None: computed here). ``tables``: a file
+    holding ``result.q`` as ``qtables.npz`` would (:func:`write_tables`' ``link``).
 
     An interrupted result (``complete`` False) writes its config and the episodes finished so far only. The
     caller writes ``status.json`` (and, for an interrupted run, the checkpoint) and publishes the directory
@@ -183,7 +202,7 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
     partial = result.recorded() is not None if hasattr(result, "recorded") else False
     stats = write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
                            episodes_done=result.episodes_done if partial else None)
-    write_tables(out_dir, result.q, disc)
+    write_tables(out_dir, result.q, disc, link=tables)
     write_summary(out_dir, result.summary() if summary is None else summary)
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)
