@@ -8,7 +8,11 @@ carry's structure and the sources' hash) differs from the run's own, saying what
 file (:mod:`jaxrobo.training.sweep`): both write through :func:`write_npz` (atomic, no pickled objects) and read through
 :func:`read_npz`.
 
-Public surface: :data:`CHECKPOINT_FORMAT`, :class:`CheckpointError`, :func:`carry_template`,
+A run's checkpoint may keep the learner's tables in a file of its own beside it, laid out as the results'
+``qtables.npz`` (:func:`save_checkpoint`'s ``tables``): the finished run links that file as its results, so the
+tables are written once.
+
+Public surface: :data:`CHECKPOINT_FORMAT`, :data:`TABLES_LEAF`, :class:`CheckpointError`, :func:`carry_template`,
 :func:`carry_fingerprint`, :func:`fingerprint_mismatch`, :func:`save_checkpoint`, :func:`read_fingerprint`,
 :func:`load_checkpoint`, :func:`write_npz`, :func:`read_npz`.
 """
