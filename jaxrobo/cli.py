@@ -534,7 +534,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     from jaxrobo.training.train import train
     from jaxrobo.training.trainer import Trainer
     from jaxrobo.core.config import ConfigError
-    from jaxrobo.io.results import save_run, write_config, write_episodes, write_summary
+    from jaxrobo.io.results import discretiser_arrays, save_run, write_config, write_episodes, write_summary
 
     resume = args.resume
     agent = _deep_agent(args)
@@ -603,8 +603,13 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     if not args.no_progress:
         hooks.insert(0, callbacks.ProgressBar())
 
+    # The tables of the last checkpoint this process wrote, laid out as qtables.npz: the finished run links them.
+    saved_tables: dict[str, Any] = {}
+    disc_arrays = discretiser_arrays(trainer.disc)
+
     def save(runner, chunks_done: int) -> None:
-        checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint)
+        saved_tables.update(path=checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint,
+                                                            tables=disc_arrays), chunks=chunks_done)
         rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
                             chunks=n_chunks, resume=resume_cmd, **keep)
 
@@ -622,7 +627,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         result = train(spec.env, cfg, spec.agent_params, None, hooks, initial=initial, start_chunk=start_chunk,
                        checkpoint=save, checkpoint_every=every_chunks or 0,
                        checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None, should_stop=stop,
-                       plan=trainer.plan)  # the plan of the trainer whose carry was checked above
+                       trainer=trainer)  # the trainer whose carry was checked above: its trace of init is reused
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.
@@ -639,9 +644,13 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         t_write = time.perf_counter()
         summary = result.summary()  # once: summary.json and the lines below (a sort of every env's records)
 
+        # The closing checkpoint's tables are the result's unless the run chose its final table after it.
+        tables = saved_tables.get("path") if saved_tables.get("chunks") == result.chunks_done \
+            and result.final_table_choice is None else None
+
         def write(staged: str) -> None:
             t = time.perf_counter()
-            save_run(staged, result, spec.to_dict(), trainer.disc, summary=summary)
+            save_run(staged, result, spec.to_dict(), trainer.disc, summary=summary, tables=tables)
             keep_live_scalars(live, staged)
             write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t, 3),
                                    **({"startup_seconds": round(startup, 3)} if startup is not None else {})})

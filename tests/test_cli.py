@@ -19,6 +19,8 @@ TINY = ["--set", "nsteps=40", "--set", "chunk_steps=50", "--set", "eval_episodes
 
 #: What the module's one training printed on stderr (its progress: the bar and the evaluation's lines).
 STDERR: list[str] = []
+#: How often the module's one training built a Trainer and traced its programs (the Python bodies ran).
+TRACES: dict[str, int] = {}
 
 
 @pytest.fixture(scope="module")
@@ -26,13 +28,36 @@ def run_dir(tmp_path_factory):
     import contextlib
     import io
 
+    from jaxrobo.training.trainer import Trainer
+
+    def counted(name):
+        real = getattr(Trainer, name)
+
+        def call(self, *args, **kwargs):
+            TRACES[name] = TRACES.get(name, 0) + 1
+            return real(self, *args, **kwargs)
+        return real, call
+
     out = str(tmp_path_factory.mktemp("runs") / "q")
     err = io.StringIO()
-    with contextlib.redirect_stderr(err):
-        assert main(["train", "--env", "CartPoleStayUp-v0", "--agent", "qlearn", "--n-envs", "4", "--nepisodes",
-                     "6", "--out", out, *TINY]) == 0
+    patched = {name: counted(name) for name in ("__init__", "init", "run_chunk")}
+    try:
+        for name, (_, call) in patched.items():
+            setattr(Trainer, name, call)
+        with contextlib.redirect_stderr(err):
+            assert main(["train", "--env", "CartPoleStayUp-v0", "--agent", "qlearn", "--n-envs", "4", "--nepisodes",
+                         "6", "--out", out, *TINY]) == 0
+    finally:
+        for name, (real, _) in patched.items():
+            setattr(Trainer, name, real)
     STDERR.append(err.getvalue())
     return out
+
+
+def test_the_command_builds_one_trainer_and_traces_each_program_once(run_dir):
+    """The command's trainer (built to check the budget and trace the checkpoint's template) is the one train()
+    runs: one Trainer, and the carry's init and the training chunk each traced once."""
+    assert TRACES == {"__init__": 1, "init": 1, "run_chunk": 1}, TRACES
 
 
 def test_the_evaluation_reports_its_progress_with_an_eta(run_dir):

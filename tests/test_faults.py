@@ -220,10 +220,11 @@ def _interrupted_run(out, extra=()):
 
     real = checkpoint.save_checkpoint
 
-    def save_then_signal(path, runner, chunks_done, fingerprint):
-        real(path, runner, chunks_done, fingerprint)
+    def save_then_signal(path, runner, chunks_done, fingerprint, **kwargs):
+        saved = real(path, runner, chunks_done, fingerprint, **kwargs)
         if chunks_done == 1:
             signal.raise_signal(signal.SIGTERM)
+        return saved
 
     checkpoint.save_checkpoint = save_then_signal
     try:
@@ -250,7 +251,7 @@ def test_a_moved_run_resumes_where_it_is_and_keeps_checkpoint_every(interrupted,
     (a / "mine.txt").write_text("not a run")
     saves = []
     real = checkpoint.save_checkpoint
-    monkeypatch.setattr(checkpoint, "save_checkpoint", lambda *a, **kw: (saves.append(a[2]), real(*a, **kw)))
+    monkeypatch.setattr(checkpoint, "save_checkpoint", lambda *a, **kw: (saves.append(a[2]), real(*a, **kw))[1])
     assert main(["train", "--resume", str(b), "--no-progress"]) == 0
     assert rundir.is_complete(str(b)) and sorted(os.listdir(a)) == ["mine.txt"]
     # --checkpoint-every 1 came back from status.json: a save after every chunk (the default saves by time)
@@ -323,15 +324,26 @@ def _huge_header(path):
             z.writestr(name, forged if name == "leaf_0.npy" else blob)
 
 
-def _nan_tables(path):
-    import zipfile
+def _tables_file(path):
+    """The file of the checkpoint's tables, beside it (:func:`jaxrobo.training.checkpoint.save_checkpoint`)."""
+    with np.load(path, allow_pickle=False) as z:
+        return os.path.join(os.path.dirname(path), str(z["tables_file"]))
 
-    with zipfile.ZipFile(path) as z:
-        members = {i.filename: z.read(i) for i in z.infolist()}
-    arrays = {k[:-4]: np.load(path, allow_pickle=False)[k[:-4]] for k in members}
-    q_leaf = max((k for k in arrays if k.startswith("leaf_")), key=lambda k: arrays[k].size)  # the q-tables
-    arrays[q_leaf] = np.full_like(arrays[q_leaf], np.nan)
+
+def _rewrite(path, change):
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays.update(change(arrays))
     np.savez(path, **arrays)
+
+
+def _nan_tables(path):
+    _rewrite(_tables_file(path), lambda a: {"q": np.full_like(a["q"], np.nan)})
+
+
+def _other_tables(path):
+    """The tables file holds other tables (a valid file, under the name the checkpoint records)."""
+    _rewrite(_tables_file(path), lambda a: {"q": a["q"] + 1})
 
 
 def _records(change):
@@ -356,6 +368,11 @@ def _records(change):
     (lambda p: open(p, "wb").write(b"not a zip"), "cannot be read as plain arrays"),
     (_huge_header, "claims shape (1099511627776"),
     (_nan_tables, "non-finite values (NaN or inf)"),
+    (_other_tables, "holds other tables than the checkpoint recorded"),
+    (lambda p: os.remove(_tables_file(p)), "are missing beside it"),
+    (lambda p: _rewrite(p, lambda a: {"tables_file": np.array("../qtables.npz")}), "not a checkpoint's tables file"),
+    (lambda p: _rewrite(p, lambda a: {"tables_file": np.array(["a", "b"])}), "not a checkpoint's tables file"),
+    (lambda p: _rewrite(_tables_file(p), lambda a: {"q": a["q"][:1]}), "expected"),
 ])
 def test_a_corrupt_checkpoint_is_refused_in_one_line(interrupted, tmp_path, capsys, corrupt, fragment):
     out = tmp_path / "run"

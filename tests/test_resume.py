@@ -120,6 +120,41 @@ def test_a_checkpoint_of_another_config_or_code_is_refused(uninterrupted, tmp_pa
         ckpt.load_checkpoint(path, template, {**fingerprint, "jax": "0.0.1"})
 
 
+@pytest.mark.parametrize("shared", [False, True])
+def test_the_checkpoints_tables_are_the_results_file_and_load_back(tmp_path, shared):
+    """With ``tables=`` the carry's tables go to a file beside the checkpoint laid out as qtables.npz (what a
+    finished run links as its results); a later checkpoint replaces that file, the carry loads back whole."""
+    from jaxrobo.io.results import discretiser_arrays, write_tables
+
+    spec = resolve("CartPoleStayUp-v0", overrides={**CARTPOLE, "shared_table": shared})
+    trainer = Trainer(spec.env, spec.config)
+    template = ckpt.carry_template(trainer, spec.agent_params)
+    fingerprint = ckpt.carry_fingerprint(template, spec.to_dict())
+    runner = jax.jit(trainer.init)(jax.random.key(1), spec.agent_params, spec.env.default_params)
+    runner = runner.replace(agent=runner.agent.replace(q=runner.agent.q + jax.random.uniform(
+        jax.random.key(2), runner.agent.q.shape)))
+    path = str(tmp_path / rundir.CHECKPOINT)
+    extra = discretiser_arrays(trainer.disc)
+    first = ckpt.save_checkpoint(path, runner, 1, fingerprint, tables=extra)
+    second = ckpt.save_checkpoint(path, runner, 2, fingerprint, tables=extra)
+    assert first != second and sorted(os.listdir(tmp_path)) == sorted([rundir.CHECKPOINT, os.path.basename(second)])
+    assert all(rundir.owned(n) for n in os.listdir(tmp_path))
+    with np.load(path, allow_pickle=False) as data:  # the tables are not in the checkpoint itself
+        assert max(data[k].size for k in data.files if k.startswith("leaf_")) < runner.agent.q.size
+    q = np.asarray(runner.agent.q)
+    write_tables(str(tmp_path), q[None] if shared else q, trainer.disc)  # what save_run writes without a link
+    with np.load(second, allow_pickle=False) as a, np.load(tmp_path / "qtables.npz", allow_pickle=False) as b:
+        assert set(a.files) == set(b.files)
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    loaded, chunks_done = ckpt.load_checkpoint(path, template, fingerprint)
+    assert chunks_done == 2
+    for x, y in zip(jax.tree.leaves(loaded), jax.tree.leaves(runner)):
+        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            x, y = jax.random.key_data(x), jax.random.key_data(y)
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 # ---- the command line ------------------------------------------------------------------------------------------
 _CLI_SETS = {"nsteps": "40", "chunk_steps": "15", "eval_episodes": "2", "eval_envs": "2", "bins": "[3, 6, 8, 10]",
              "state_low": "[-2.4, -1.0, -0.3, -2.0]", "state_high": "[2.4, 1.0, 0.3, 2.0]"}
@@ -203,6 +238,7 @@ def test_overwrite_replaces_the_whole_old_run(tmp_path):
     files = set(os.listdir(out))
     assert "eval.csv" not in files and {"summary.json", "episodes.csv", "qtables.npz", "status.json"} <= files
     assert rundir.is_complete(str(out)) and rundir.CHECKPOINT not in files
+    assert not [n for n in files if n.startswith("checkpoint.")]  # nor the checkpoint's tables
     assert os.listdir(out / "tensorboard") and not [n for n in os.listdir(tmp_path) if n.startswith(".")]
 
 

@@ -184,3 +184,18 @@ def test_the_host_loop_checkpoints_every_n_chunks_and_stops_when_asked():
     finished = part.episodes_done[:, None] > np.arange(spec.config.nepisodes)
     np.testing.assert_array_equal(part.lengths[finished], full.lengths[finished])
     assert np.all(part.lengths[~finished] == 0)
+
+
+def test_a_trainer_handed_to_train_must_be_of_its_env_and_config():
+    """train(trainer=...) runs the caller's trainer (the command's: its traces are reused); one built for another
+    config or plan is refused before anything is traced."""
+    from jaxrobo.training.trainer import Trainer
+
+    spec = resolve("CartPoleStayUp-v0", overrides=dict(n_envs=4, nepisodes=2, nsteps=20))
+    other = resolve("CartPoleStayUp-v0", overrides=dict(n_envs=8, nepisodes=2, nsteps=20))
+    trainer = Trainer(spec.env, other.config)
+    with pytest.raises(ValueError, match="built for this env and config"):
+        train(spec.env, spec.config, spec.agent_params, trainer=trainer)
+    trainer = Trainer(spec.env, spec.config)
+    with pytest.raises(ValueError, match="built for this env and config"):
+        train(spec.env, spec.config, spec.agent_params, trainer=trainer, plan=trainer.plan.replace(env_group=2))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import zipfile
 import zlib
-from typing import Any, Mapping
+from typing import IO, Any, Mapping
 
 import numpy as np
 
@@ -30,8 +30,9 @@ class NpzError(ConfigError):
 STORE_ABOVE_BYTES = 32 << 20
 
 
-def write_npz_deflated(path: str, **arrays: Any) -> None:
-    """``arrays`` to ``path`` as an ``.npz`` that ``np.load`` reads like ``np.savez_compressed``'s: each array
+def write_npz_deflated(path: str | IO[bytes], **arrays: Any) -> None:
+    """``arrays`` to ``path`` (a file name, or a binary file open for writing) as an ``.npz`` that ``np.load``
+    reads like ``np.savez_compressed``'s: each array
     up to :data:`STORE_ABOVE_BYTES` deflated at level 1 (nearly as small as zlib's default level in about half the
     time), each larger one stored as it is. Writing is part of every ``jaxrobo train``'s wall: 65,536 per-env
     cart-pole tables (0.5 GB) took tens of seconds to deflate on 2 CPU cores, and under a second to store."""

@@ -17,7 +17,9 @@ A run directory holds:
                          says how far it got (``chunks_done``, ``episodes_done_min``) and how to go on
                          (``resume``: the command line)
 ``checkpoint.npz``       only in an unfinished run: the whole training carry, from which ``jaxrobo train
-                         --resume DIR`` goes on (format: :func:`jaxrobo.training.checkpoint.save_checkpoint`)
+                         --resume DIR`` goes on (format: :func:`jaxrobo.training.checkpoint.save_checkpoint`),
+                         its tables in ``checkpoint.tables.<id>.npz`` beside it, laid out as ``qtables.npz``
+                         (a finished run's ``qtables.npz`` is that file, linked, not written again)
 =======================  =====================================================================================
 
 A complete run is written into a hidden sibling and renamed into place (:mod:`jaxrobo.io.rundir`), so a directory
@@ -62,11 +64,8 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
     n_envs, n_ep = returns.shape
     done = np.full(n_envs, n_ep) if episodes_done is None else np.minimum(np.asarray(episodes_done), n_ep)
     with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(EPISODE_COLUMNS)
-        for e in range(min(n_envs, max_csv_envs)):
-            for i in range(int(done[e])):
-                w.writerow((e, i, f"{returns[e, i]:.6g}", int(lengths[e, i]), int(terminated[e, i]), f"{epsilon[i]:.6g}"))
+        f.write(",".join(EPISODE_COLUMNS) + "\r\n")  # the csv module's dialect: nothing here needs quoting
+        f.write(episode_rows(returns, lengths, terminated, epsilon, done, max_csv_envs))
     extra = {} if episodes_done is None else {"episodes_done": done}
     # Only the episode slots some env recorded: a run that stopped at its learning target recorded a few of its
     # nepisodes slots, and the empty rest is most of the bytes to write.
@@ -82,6 +81,26 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
     return stats
 
 
+def episode_rows(returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray, epsilon: np.ndarray,
+                 done: np.ndarray, max_envs: int) -> str:
+    """The rows of ``episodes.csv`` (:data:`EPISODE_COLUMNS`) as one text: env by env, the first ``done[env]``
+    episodes of the first ``max_envs`` envs, floats to 6 significant digits, each line ended as the csv module
+    ends it. One formatting call per row: writing them through ``csv.writer`` took most of a large run's
+    writing (hundreds of thousands of rows)."""
+    n = min(returns.shape[0], max_envs)
+    mask = np.arange(returns.shape[1])[None, :] < np.asarray(done[:n])[:, None]
+    env, episode = np.nonzero(mask)
+    columns = (env.tolist(), episode.tolist(), returns[:n][mask].tolist(), lengths[:n][mask].tolist(),
+               terminated[:n][mask].astype(np.int64).tolist(), np.asarray(epsilon)[episode].tolist())
+    return "".join(map("%d,%d,%.6g,%d,%d,%.6g\r\n".__mod__, zip(*columns)))
+
+
+def _percentiles(x: np.ndarray, qs: tuple[int, ...]) -> np.ndarray:
+    """``np.percentile(x, q, axis=0)`` for each ``q``, from one partition; each as the call with that one ``q``
+    returns it (its dtype: float32 for float32 ``x``)."""
+    return np.percentile(x, np.asarray(qs, np.result_type(x.dtype, np.float16)), axis=0)
+
+
 def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray, done: np.ndarray) -> list:
     """The columns of ``episode_stats.csv`` (:data:`STAT_COLUMNS`): per episode index, the mean, spread and
     percentiles over the envs that recorded that episode (``done``: recorded episodes per env). Where every env
@@ -93,10 +112,8 @@ def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
     if np.all(done == done[0]):
         n_ep = int(done[0])
         returns, lengths, epsilon = returns[:, :n_ep], lengths[:, :n_ep], np.asarray(epsilon)[:n_ep]
-        pct = lambda x, q: np.percentile(x, q, axis=0)  # noqa: E731
-        return [np.arange(n_ep), returns.mean(0), returns.std(0), pct(returns, 10), pct(returns, 50),
-                pct(returns, 90), lengths.mean(0), lengths.std(0), pct(lengths, 10), pct(lengths, 50),
-                pct(lengths, 90), epsilon]
+        return [np.arange(n_ep), returns.mean(0), returns.std(0), *_percentiles(returns, (10, 50, 90)),
+                lengths.mean(0), lengths.std(0), *_percentiles(lengths, (10, 50, 90)), epsilon]
     n_ep = int(done.max())
     mask = np.arange(n_ep)[None, :] < done[:, None]
     r = np.where(mask, returns[:, :n_ep].astype(np.float64), np.nan)
@@ -123,14 +140,30 @@ def _nan_percentiles(x: np.ndarray, count: np.ndarray, qs: tuple[int, ...]) -> l
     return out
 
 
-def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None) -> None:
-    arrays: dict[str, Any] = {"q": np.asarray(q)}
-    if disc is not None:
-        arrays.update(low=np.asarray(disc.low), width=np.asarray(disc.width), bins=np.asarray(disc.bins))
-        if disc.edges is not None:
-            for i, e in enumerate(disc.edges):
-                arrays[f"edges_{i}"] = np.asarray(e)
-    write_npz_deflated(os.path.join(out_dir, "qtables.npz"), **arrays)
+def discretiser_arrays(disc: Discretiser | None) -> dict[str, np.ndarray]:
+    """The arrays of ``qtables.npz`` beside ``q``: the discretiser's ``low``, ``width``, ``bins`` and ``edges_<i>``
+    (none without a discretiser)."""
+    if disc is None:
+        return {}
+    arrays = {"low": np.asarray(disc.low), "width": np.asarray(disc.width), "bins": np.asarray(disc.bins)}
+    for i, e in enumerate(disc.edges or ()):
+        arrays[f"edges_{i}"] = np.asarray(e)
+    return arrays
+
+
+def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None, *, link: str | None = None) -> None:
+    """``qtables.npz``: ``q`` and the discretiser's arrays (:func:`discretiser_arrays`). ``link``: a file this
+    process wrote with exactly those arrays in this layout (the closing checkpoint's tables,
+    :func:`jaxrobo.training.checkpoint.save_checkpoint`), hard-linked instead of writing the tables again; where
+    the file system refuses a link, the tables are written."""
+    path = os.path.join(out_dir, "qtables.npz")
+    if link is not None:
+        try:
+            os.link(link, path)
+            return
+        except OSError:
+            pass
+    write_npz_deflated(path, q=np.asarray(q), **discretiser_arrays(disc))
 
 
 def write_summary(out_dir: str, summary: dict[str, Any]) -> None:
@@ -168,9 +201,10 @@ def write_tensorboard(out_dir: str, stats: list) -> None:
 
 
 def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None,
-             summary: dict[str, Any] | None = None) -> str:
+             summary: dict[str, Any] | None = None, tables: str | None = None) -> str:
     """Write everything a :class:`jaxrobo.training.summary.TrainResult` holds into ``out_dir``; returns ``out_dir``.
-    ``summary``: ``result.summary()`` where the caller has it already (None: computed here).
+    ``summary``: ``result.summary()`` where the caller has it already (None: computed here). ``tables``: a file
+    holding ``result.q`` as ``qtables.npz`` would (:func:`write_tables`' ``link``).
 
     An interrupted result (``complete`` False) writes its config and the episodes finished so far only. The
     caller writes ``status.json`` (and, for an interrupted run, the checkpoint) and publishes the directory
@@ -180,10 +214,10 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
         write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
                        episodes_done=result.episodes_done)
         return out_dir
-    partial = result.recorded() is not None if hasattr(result, "recorded") else False
+    partial = not result.all_recorded() if hasattr(result, "all_recorded") else False
     stats = write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
                            episodes_done=result.episodes_done if partial else None)
-    write_tables(out_dir, result.q, disc)
+    write_tables(out_dir, result.q, disc, link=tables)
     write_summary(out_dir, result.summary() if summary is None else summary)
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)

@@ -41,6 +41,9 @@ from jaxrobo.core.config import ConfigError
 #: The training carry of an unfinished run (see :func:`jaxrobo.training.checkpoint.save_checkpoint`), or a sweep's
 #: finished groups.
 CHECKPOINT = "checkpoint.npz"
+#: The learner's tables of a run's checkpoint, in a file of their own beside it (``checkpoint.tables.<8 hex>.npz``,
+#: laid out as ``qtables.npz``: :func:`jaxrobo.training.checkpoint.save_checkpoint`), as an ``fnmatch`` pattern.
+CHECKPOINT_TABLES = "checkpoint.tables.*.npz"
 #: What the directory holds: ``running``, ``interrupted`` or ``complete``, and how to resume.
 STATUS = "status.json"
 RUNNING, INTERRUPTED, COMPLETE = "running", "interrupted", "complete"
@@ -50,8 +53,8 @@ RUNNING, INTERRUPTED, COMPLETE = "running", "interrupted", "complete"
 #: an ``--overwrite`` and a sweep. tests/test_rundir_owned.py checks that real runs write nothing else.
 OWNED = (
     # tabular runs (jaxrobo.io.results)
-    "config.yaml", STATUS, CHECKPOINT, "summary.json", "episodes.csv", "episode_stats.csv", "records.npz",
-    "qtables.npz", "eval.csv", "tensorboard",
+    "config.yaml", STATUS, CHECKPOINT, CHECKPOINT_TABLES, "summary.json", "episodes.csv", "episode_stats.csv",
+    "records.npz", "qtables.npz", "eval.csv", "tensorboard",
     # ppo/sac runs (jaxrobo.deep.output, jaxrobo.deep.policy)
     "policy.npz", "policy.json", "best", "evaluations.csv", "training_metrics.csv", "rewards.png",
     # sweeps (jaxrobo.training.sweep.state, .output)

@@ -8,13 +8,22 @@ carry's structure and the sources' hash) differs from the run's own, saying what
 file (:mod:`jaxrobo.training.sweep`): both write through :func:`write_npz` (atomic, no pickled objects) and read through
 :func:`read_npz`.
 
-Public surface: :data:`CHECKPOINT_FORMAT`, :class:`CheckpointError`, :func:`carry_template`,
+A run's checkpoint may keep the learner's tables in a file of its own beside it, laid out as the results'
+``qtables.npz`` (:func:`save_checkpoint`'s ``tables``): the finished run links that file as its results, so the
+tables are written once.
+
+Public surface: :data:`CHECKPOINT_FORMAT`, :data:`TABLES_LEAF`, :class:`CheckpointError`, :func:`carry_template`,
 :func:`carry_fingerprint`, :func:`fingerprint_mismatch`, :func:`save_checkpoint`, :func:`read_fingerprint`,
 :func:`load_checkpoint`, :func:`write_npz`, :func:`read_npz`.
 """
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import re
+import secrets
+import zipfile
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -77,9 +86,15 @@ def _is_key(x: Any) -> bool:
 
 
 def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any = None) -> Runner:
-    """The carry's structure, shapes and dtypes (``ShapeDtypeStruct`` leaves), traced without compiling."""
+    """The carry's structure, shapes and dtypes (``ShapeDtypeStruct`` leaves), traced without compiling.
+
+    Traced as :func:`jaxrobo.training.driver.compiled_init` traces it (:attr:`Trainer.jitted_init
+    <jaxrobo.training.trainer.Trainer.jitted_init>`, under the trainer's plan), so a run given this trainer
+    (:func:`jaxrobo.training.train.train`'s ``trainer``) compiles its first carry from this trace instead of
+    tracing the env's reset again."""
     env_params = trainer.env.default_params if env_params is None else env_params
-    return jax.eval_shape(trainer.init, jax.random.key(trainer.config.seed), agent_params, env_params)
+    with trainer.plan.tracing():
+        return jax.eval_shape(trainer.jitted_init, jax.random.key(trainer.config.seed), agent_params, env_params)
 
 
 def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:
@@ -94,18 +109,30 @@ def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str,
         "sources": rundir.source_hash()}))
 
 
-def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: dict[str, Any]) -> None:
+def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: dict[str, Any], *,
+                    tables: dict[str, Any] | None = None) -> str | None:
     """Write the whole training carry to ``path`` (``.npz``), atomically.
 
     Layout (``np.savez``, no pickled objects, so ``np.load(allow_pickle=False)`` reads it): ``leaf_<i>`` the
     i-th leaf of ``jax.tree.flatten(runner)`` as a plain array (a PRNG key array as its ``jax.random.key_data``),
     except the episode records (:data:`RECORD_LEAVES`), saved as ``records_<i>`` up to their last column that is
     not all zeros; ``key_impls`` a JSON list with each leaf's PRNG implementation name or null, ``chunks_done`` the
-    number of chunks the carry has run, and ``fingerprint`` the JSON of :func:`carry_fingerprint`."""
+    number of chunks the carry has run, and ``fingerprint`` the JSON of :func:`carry_fingerprint`.
+
+    ``tables`` (the discretiser's arrays of ``qtables.npz``, :func:`jaxrobo.io.results.discretiser_arrays`): the
+    learner's tables (:data:`TABLES_LEAF`, hundreds of MB at tens of thousands of envs) go to a file of their own
+    beside ``path``, laid out as the results' ``qtables.npz`` (``q`` with a leading axis of envs, one for a shared
+    table, and these arrays), so that a finished run links that file as its results instead of writing the tables
+    twice. The file has a fresh name (:data:`jaxrobo.io.rundir.CHECKPOINT_TABLES`) and lands before the
+    checkpoint, which names it (``tables_file``) with the CRC-32 of its ``q`` (``tables_crc``); the previous
+    checkpoint's file is removed only after: whenever the process stops, the checkpoint on disk names a whole
+    file. Returns that file's path (None without ``tables``)."""
     with_paths = jax.tree_util.tree_flatten_with_path(runner)[0]
     leaves = [x for _, x in with_paths]
     records = {i for i, (keypath, x) in enumerate(with_paths)
                if jax.tree_util.keystr(keypath) in RECORD_LEAVES and x.ndim == 2}
+    table = next((i for i, (keypath, _) in enumerate(with_paths) if jax.tree_util.keystr(keypath) == TABLES_LEAF),
+                 None) if tables is not None else None
     impls = [str(jax.random.key_impl(x)) if _is_key(x) else None for x in leaves]
     data = [jax.random.key_data(x) if _is_key(x) else x for x in leaves]
     if jax.process_count() > 1:  # a carry split over several processes' devices: every process gathers it
@@ -120,10 +147,43 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
         if i in records:
             written = np.flatnonzero(x.any(axis=0))
             arrays[f"records_{i}"] = x[:, :int(written[-1]) + 1 if written.size else 0]
-        else:
+        elif i != table:
             arrays[f"leaf_{i}"] = x
+    tables_path = None
+    if table is not None:
+        tables_path, crc = _write_tables(os.path.dirname(os.path.abspath(path)), np.asarray(host[table]), tables)
+        arrays.update(tables_file=np.array(os.path.basename(tables_path)), tables_crc=np.int64(crc))
     write_npz(path, **arrays, key_impls=np.array(json.dumps(impls)), chunks_done=np.int64(chunks_done),
               fingerprint=np.array(json.dumps(fingerprint, sort_keys=True)))
+    if tables_path is not None:  # the checkpoint on disk names the new file now: the older ones are not needed
+        for name in os.listdir(os.path.dirname(tables_path)):
+            if _TABLES_NAME.fullmatch(name) and name != os.path.basename(tables_path):
+                with contextlib.suppress(OSError):
+                    os.unlink(os.path.join(os.path.dirname(tables_path), name))
+    return tables_path
+
+
+#: The carry's leaf of the learner's tables (``[n_envs, n_tables, n_states, n_actions]``; a shared table's
+#: ``[n_tables, n_states, n_actions]``): what :func:`save_checkpoint` may keep in a file of its own.
+TABLES_LEAF = ".agent.q"
+#: The names that file takes (:data:`jaxrobo.io.rundir.CHECKPOINT_TABLES`); a checkpoint naming another is refused.
+_TABLES_NAME = re.compile(r"checkpoint\.tables\.[0-9a-f]{8}\.npz")
+
+
+def _write_tables(directory: str, q: np.ndarray, extra: dict[str, Any]) -> tuple[str, int]:
+    """``q`` (a shared table given a leading axis of one) and ``extra`` to a fresh ``checkpoint.tables.<id>.npz``
+    in ``directory``, atomically and flushed to disk (as ``qtables.npz`` is written:
+    :func:`jaxrobo.io.npz.write_npz_deflated`); returns its path and the CRC-32 of its ``q``."""
+    from jaxrobo.io.npz import write_npz_deflated
+
+    while True:
+        path = os.path.join(directory, f"checkpoint.tables.{secrets.token_hex(4)}.npz")
+        if not os.path.lexists(path):
+            break
+    q = q if q.ndim == 4 else q[None]
+    rundir.atomic_write(path, lambda f: write_npz_deflated(f, q=q, **extra))
+    with zipfile.ZipFile(path) as zf:
+        return path, zf.getinfo("q.npy").CRC
 
 
 def read_fingerprint(path: str) -> tuple[dict[str, Any], int]:
@@ -154,13 +214,45 @@ def fingerprint_mismatch(saved: dict[str, Any], expected: dict[str, Any]) -> str
 
 
 
+def _read_tables(path: str, data: dict[str, np.ndarray], i: int, spec: Any) -> np.ndarray:
+    """The tables leaf (``leaf_<i>``, of ``spec``'s shape and dtype) of the checkpoint at ``path`` whose arrays are
+    ``data``: its own ``leaf_<i>``, or the file it names (``tables_file``, beside it) whose ``q`` has the CRC-32 it
+    recorded (``tables_crc``), read as hostile; :class:`CheckpointError` saying why when neither fits."""
+    shape, dtype = tuple(spec.shape), np.dtype(spec.dtype)
+    x = data.get(f"leaf_{i}")
+    if x is None and "tables_file" in data:
+        name = str(data["tables_file"]) if data["tables_file"].ndim == 0 else ""
+        if not _TABLES_NAME.fullmatch(name):
+            raise CheckpointError(f"{path}: its tables_file {name[:80]!r} is not a checkpoint's tables file name")
+        where = os.path.join(os.path.dirname(os.path.abspath(path)), name)
+        if not os.path.exists(where):
+            raise CheckpointError(f"{path}: its tables ({name}) are missing beside it")
+        full = (1,) + shape if len(shape) == 3 else shape  # a shared table is kept with a leading axis of one
+        x = read_npz(where, "the checkpoint's tables", expect={"q": (full, dtype)}, finite={"q": True})["q"]
+        try:
+            with zipfile.ZipFile(where) as zf:
+                crc = zf.getinfo("q.npy").CRC
+            recorded = int(data["tables_crc"])
+        except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as err:
+            raise CheckpointError(f"{path}: its tables ({name}) cannot be matched to it ({err})") from None
+        if crc != recorded:
+            raise CheckpointError(f"{path}: {name} holds other tables than the checkpoint recorded (CRC-32 "
+                                  f"{crc:#010x}, recorded {recorded & 0xFFFFFFFF:#010x})")
+        x = x.reshape(shape)
+    if x is None:
+        raise CheckpointError(f"{path}: leaf {i} (the tables) is missing")
+    if x.shape != shape or x.dtype != dtype:
+        raise CheckpointError(f"{path}: leaf {i} (the tables) is {x.shape} {x.dtype}, expected {shape} {dtype}")
+    return x
+
+
 def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) -> tuple[Runner, int]:
     """The carry saved at ``path`` and its chunk count, on the default device, checked against ``fingerprint``
     (:func:`carry_fingerprint` of this run) and ``template``'s structure: refused with :class:`CheckpointError`
     saying why, rather than loaded, when they differ."""
     with_paths, treedef = jax.tree_util.tree_flatten_with_path(template)
     specs = [spec for _, spec in with_paths]
-    expect, finite, records = {}, {}, {}
+    expect, finite, records, table = {}, {}, {}, None
     for i, (keypath, spec) in enumerate(with_paths):
         shape, dtype = spec.shape, spec.dtype
         if _is_key(spec):  # saved as its key data
@@ -170,9 +262,14 @@ def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) ->
             records[i] = spec  # records_<i>: checked and padded below
             finite[f"records_{i}"] = False  # as the full leaf was: an episode of NaN physics may hold a NaN return
             continue
-        expect[f"leaf_{i}"] = (tuple(shape), dtype)
         finite[f"leaf_{i}"] = jax.tree_util.keystr(keypath).startswith(FINITE_LEAVES)
+        if jax.tree_util.keystr(keypath) == TABLES_LEAF:
+            table = i  # leaf_<i>, or a file of its own (tables_file): checked below
+            continue
+        expect[f"leaf_{i}"] = (tuple(shape), dtype)
     data = read_npz(path, "the checkpoint", expect=expect, finite=finite)
+    if table is not None:
+        data[f"leaf_{table}"] = _read_tables(path, data, table, specs[table])
     for i, spec in records.items():
         x = data.pop(f"records_{i}", None)
         if x is None or x.ndim != 2 or x.shape[0] != spec.shape[0] or x.shape[1] > spec.shape[1] \

@@ -118,7 +118,7 @@ def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, e
     """``trainer.init`` compiled under the plan, its carry split over the plan's devices (:func:`env_mesh`)."""
     mesh = env_mesh(trainer)
     if mesh is None:
-        jitted = jax.jit(trainer.init)
+        jitted = trainer.jitted_init  # the trace the checkpoint's template made, if it made one
     else:
         out = jax.eval_shape(trainer.init, key, agent_params, env_params)
         jitted = jax.jit(trainer.init, out_shardings=_carry_shardings(out, mesh, trainer.config.n_envs))

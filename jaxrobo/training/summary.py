@@ -90,23 +90,28 @@ class TrainResult:
         """Useful env steps (those counting towards the budget) / env slots stepped."""
         return self.env_steps / self.slot_steps if self.slot_steps else 0.0
 
-    def recorded(self) -> np.ndarray | None:
-        """``[n_envs, nepisodes]`` mask of the record slots that hold an episode, or None when all do (a complete
-        run under the episode budget)."""
+    def all_recorded(self) -> bool:
+        """Every record slot holds an episode (a complete run under the episode budget): :meth:`recorded` is
+        None."""
         done = self.episodes_done
-        n_rec = self.returns.shape[1]
-        if done is None or np.all(np.asarray(done) >= n_rec):
+        return done is None or bool(np.all(np.asarray(done) >= self.returns.shape[1]))
+
+    def recorded(self, columns: int | None = None) -> np.ndarray | None:
+        """``[n_envs, nepisodes]`` mask of the record slots that hold an episode, or None when all do (a complete
+        run under the episode budget). ``columns``: only the mask's first columns (the recorded slots are each
+        env's first ones)."""
+        if self.all_recorded():
             return None
-        return np.arange(n_rec)[None, :] < np.asarray(done)[:, None]
+        n = self.returns.shape[1] if columns is None else columns
+        return np.arange(n)[None, :] < np.asarray(self.episodes_done)[:, None]
 
     def summary(self) -> dict[str, Any]:
         """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run, and
         how many evaluated tables reach the task's declared learning target (``learning_target``)."""
-        mask = self.recorded()
-        returns, lengths = self.returns, self.lengths
-        if mask is not None:  # no env recorded past the widest one's episodes: the figures need no more columns
-            width = max(int(mask.sum(axis=1).max()), 1)
-            mask, returns, lengths = mask[:, :width], returns[:, :width], lengths[:, :width]
+        returns, lengths, mask = self.returns, self.lengths, None
+        if not self.all_recorded():  # no env recorded past the widest one's episodes: the figures need no more
+            width = max(min(int(np.max(self.episodes_done)), returns.shape[1]), 1)  # columns (nor its mask)
+            mask, returns, lengths = self.recorded(width), returns[:, :width], lengths[:, :width]
         if mask is None:
             best100 = np.sort(lengths.astype(np.float64), axis=1)[:, -100:].mean(axis=1)
             figures = {"highest_reward_mean": float(returns.max(axis=1).mean()),

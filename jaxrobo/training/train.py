@@ -29,7 +29,7 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
           callbacks: Callback | Callable[..., Any] | Iterable[Any] | None = None, *, initial: Runner | None = None,
           start_chunk: int = 0, checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
           checkpoint_seconds: float | None = None, should_stop: Callable[[], bool] | None = None,
-          plan: ExecutionPlan | None = None) -> TrainResult:
+          plan: ExecutionPlan | None = None, trainer: Trainer | None = None) -> TrainResult:
     """Run a whole training: until the budget ends or the task's learning target holds (``stop_at_target``),
     then a greedy evaluation.
 
@@ -50,9 +50,16 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
     CLI's ``should_stop`` is a :class:`jaxrobo.training.driver.StopOnSignal`.
 
     ``plan``: how the run is executed (default: :meth:`jaxrobo.speed.plan.ExecutionPlan.for_run` of this env and
-    config); everything the run traces, training chunks and evaluation, is traced under it."""
+    config); everything the run traces, training chunks and evaluation, is traced under it.
+
+    ``trainer``: the :class:`~jaxrobo.training.trainer.Trainer` of this ``env`` and ``config`` that the caller
+    built already (the command line builds one to check the budget and the memory and to trace the checkpoint's
+    template): the run uses it, so what that trainer traced (its ``init``, under its plan) is not traced again."""
     hooks = as_callbacks(callbacks)
-    trainer = Trainer(env, config, plan=plan)
+    if trainer is None:
+        trainer = Trainer(env, config, plan=plan)
+    elif trainer.env is not env or trainer.config != config or (plan is not None and plan != trainer.plan):
+        raise ValueError("train(trainer=...): the trainer must be built for this env and config (and plan)")
     hooks.on_training_start(trainer, initial)
 
     def stop() -> bool:

@@ -319,6 +319,17 @@ class Trainer:
             terminated=jnp.zeros((n, n_rec), bool), nan_episodes=jnp.zeros(n, jnp.int32),
             env_steps=jnp.zeros(n, jnp.int32), snapshots=snapshots)
 
+    @property
+    def jitted_init(self) -> Any:
+        """``jax.jit(self.init)``, the same object while the plan stays: JAX keeps a jitted function's trace per
+        function object, so the checkpoint's template (:func:`jaxrobo.training.checkpoint.carry_template`) and the
+        run's first carry (:func:`jaxrobo.training.driver.compiled_init`) trace the env's reset once. A new plan
+        (assigning one of its choices) gets a new one: the trace follows the plan."""
+        kept = self.__dict__.get("_jitted_init")
+        if kept is None or kept[0] is not self.plan:
+            kept = self.__dict__["_jitted_init"] = (self.plan, jax.jit(self.init))
+        return kept[1]
+
     def step(self, runner: Runner, agent_params: AgentParams, env_params: Any) -> Runner:
         """One training step of every environment."""
         c, learner = self.config, self.learner

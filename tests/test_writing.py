@@ -1,0 +1,102 @@
+"""The writing of a run directory: what a person reads (``episodes.csv``, ``episode_stats.csv``, TensorBoard's
+per-episode scalars) equals what the per-env records (``records.npz``) give, and ``qtables.npz`` the tables."""
+from __future__ import annotations
+
+import csv
+import io
+import os
+
+import numpy as np
+import pytest
+
+from jaxrobo.io.results import EPISODE_COLUMNS, STAT_COLUMNS, read_columns, read_scalars, save_run, write_episodes
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import train
+from jaxrobo.training.trainer import Trainer
+
+#: A step budget: the envs record different numbers of episodes (some none past the first few).
+STEPS = dict(n_envs=48, nepisodes=12, nsteps=60, chunk_steps=40, total_steps=48 * 160, eval_episodes=2, eval_envs=2,
+             stop_at_target=False)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    spec = resolve("CartPoleStayUp-v0", overrides=STEPS)
+    result = train(spec.env, spec.config, spec.agent_params)
+    out = str(tmp_path_factory.mktemp("writing") / "run")
+    save_run(out, result, spec.to_dict(), Trainer(spec.env, spec.config).disc)
+    return result, out
+
+
+def _records(out):
+    with np.load(os.path.join(out, "records.npz"), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _csv_rows(records, done, max_envs):
+    """``episodes.csv`` as the csv module writes it, row by row from the records."""
+    f = io.StringIO(newline="")
+    w = csv.writer(f)
+    w.writerow(EPISODE_COLUMNS)
+    for e in range(min(len(done), max_envs)):
+        for i in range(int(done[e])):
+            w.writerow((e, i, f"{records['returns'][e, i]:.6g}", int(records["lengths"][e, i]),
+                        int(records["terminated"][e, i]), f"{records['epsilon'][i]:.6g}"))
+    return f.getvalue()
+
+
+def _stats(records, done):
+    """Per episode index, over the envs that recorded it: mean, std, 10/50/90th percentiles of return and length."""
+    out = {name: [] for name in STAT_COLUMNS}
+    for i in range(int(done.max())):
+        envs = done > i
+        out["episode"].append(i)
+        out["epsilon"].append(records["epsilon"][i])
+        for name, key in (("return", "returns"), ("length", "lengths")):
+            x = records[key][envs, i].astype(np.float64)
+            out[f"{name}_mean"].append(x.mean())
+            out[f"{name}_std"].append(x.std())
+            for q in (10, 50, 90):
+                out[f"{name}_p{q}"].append(np.percentile(x, q))
+    return {k: np.asarray(v, np.float64) for k, v in out.items()}
+
+
+def test_the_files_a_person_reads_equal_what_the_records_give(run):
+    result, out = run
+    records = _records(out)
+    done = records["episodes_done"]
+    assert records["returns"].shape[0] == STEPS["n_envs"] and len(set(done.tolist())) > 1  # envs differ
+    np.testing.assert_array_equal(done, result.episodes_done)
+    assert open(os.path.join(out, "episodes.csv"), newline="").read() == _csv_rows(records, done, 1024)
+
+    stats, expected = read_columns(os.path.join(out, "episode_stats.csv")), _stats(records, done)
+    assert list(stats) == list(STAT_COLUMNS)
+    for name in STAT_COLUMNS:  # the CSV keeps 6 significant digits: half a unit of the 6th is 5e-6 of the value at most
+        np.testing.assert_allclose(stats[name], expected[name], rtol=5e-6, atol=1e-9, err_msg=name)
+
+    scalars = read_scalars(os.path.join(out, "tensorboard"))
+    for tag, name in (("episode/reward_mean", "return_mean"), ("episode/length_mean", "length_mean"),
+                      ("episode/epsilon", "epsilon")):
+        steps, values = zip(*scalars[tag])
+        assert list(steps) == list(range(len(expected[name])))
+        np.testing.assert_allclose(values, expected[name], rtol=1e-6, err_msg=tag)
+
+    with np.load(os.path.join(out, "qtables.npz"), allow_pickle=False) as z:
+        np.testing.assert_array_equal(z["q"], result.q)
+
+
+def test_every_env_recording_each_episode_and_fewer_csv_envs(run, tmp_path):
+    """The episode budget's case (every env recorded the same episodes) and the CSV's cap on envs."""
+    result, _ = run
+    n = int(result.episodes_done.min())
+    assert n > 0
+    returns, lengths, terminated = (np.asarray(x)[:, :n] for x in (result.returns, result.lengths,
+                                                                    result.terminated))
+    write_episodes(str(tmp_path), returns, lengths, terminated, result.epsilon, max_csv_envs=5)
+    records = _records(str(tmp_path))
+    done = np.full(returns.shape[0], n)
+    assert "episodes_done" not in records and records["returns"].shape == returns.shape
+    assert open(tmp_path / "episodes.csv", newline="").read() == _csv_rows(records, done, 5)
+    stats, expected = read_columns(str(tmp_path / "episode_stats.csv")), _stats(records, done)
+    for name in STAT_COLUMNS:
+        np.testing.assert_allclose(stats[name], expected[name], rtol=5e-6, atol=1e-9, err_msg=name)
