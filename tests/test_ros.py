@@ -398,6 +398,33 @@ def test_up_starts_master_sim_and_policy_and_stops_them(ros, cartpole_export):
 
 
 @needs_ros
+@pytest.mark.skipif(shutil.which("roslaunch") is None, reason="roslaunch is not on PATH: apt-get install "
+                    "python3-roslaunch (docs/ros.md)")
+def test_roslaunch_file_starts_sim_and_policy(ros, cartpole_export):
+    """The shipped launch file, by its path, on the fixture's master: the sim's episodes are flown by the policy's
+    commands (one per state, as in-process), then the sim ends the launch."""
+    from std_msgs.msg import Float64
+
+    from jaxrobo.ros.launch import ROSLAUNCH_DIR
+
+    commands = Listener("/cartpole_v0/foot_joint_velocity_controller/command", Float64)
+    env = dict(ros.env, ROS_PACKAGE_PATH=ROSLAUNCH_DIR, JAXROBO_PYTHON=sys.executable)
+    port = ros.env["ROS_MASTER_URI"].rsplit(":", 1)[1]
+    try:
+        r = subprocess.run(["roslaunch", "-p", port, os.path.join(ROSLAUNCH_DIR, "jaxrobo.launch"),
+                            f"export:={cartpole_export}", "episodes:=2", "lockstep:=true", "seed:=4"], env=env,
+                           capture_output=True, text=True, timeout=BOUND, cwd=ROOT)
+    finally:
+        commands.sub.unregister()
+    out = r.stdout + r.stderr
+    steps = sum(e["length"] for e in in_process(cartpole_export, 2, 4))
+    assert "jaxrobo ros sim: 2 episodes" in out and "jaxrobo ros policy: CartPoleStayUp-v0" in out, out
+    assert f"jaxrobo ros policy: {steps} commands" in out, (steps, out)
+    assert len(commands.got) >= steps, (len(commands.got), steps)
+    assert "Traceback" not in out, out
+
+
+@needs_ros
 def test_seed_style_qlearning_against_the_sim_improves(ros):
     sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "0", name="ql_sim")
     out = ros.tmp / "ql.json"

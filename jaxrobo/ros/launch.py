@@ -1,6 +1,8 @@
 """``jaxrobo ros up EXPORT_DIR``: a master on localhost (``roscore -p PORT``, unless one answers there), the sim node
 of the export's task and the policy node, as child processes; Ctrl-C (or the sim finishing its ``--episodes``)
-stops them all. What roslaunch would do, without a catkin package to name the nodes by."""
+stops them all: what ``roslaunch jaxrobo_ros jaxrobo.launch`` does (:data:`ROSLAUNCH_DIR`), without roslaunch.
+
+``python -m jaxrobo.ros.launch --package-path`` prints :data:`ROSLAUNCH_DIR`, for ``ROS_PACKAGE_PATH``."""
 from __future__ import annotations
 
 import os
@@ -8,6 +10,10 @@ import signal
 import subprocess
 import sys
 import time
+
+#: The ROS package ``jaxrobo_ros`` (a package.xml, ``jaxrobo.launch`` and the node wrapper ``jaxrobo_ros``): on
+#: ``ROS_PACKAGE_PATH``, roslaunch finds the nodes by it, with no catkin workspace.
+ROSLAUNCH_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "roslaunch")
 
 
 def master_up(uri: str) -> bool:
@@ -81,3 +87,10 @@ def up(args) -> int:
     finally:
         stop(procs + [master])
     return rc
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] != ["--package-path"]:
+        print("usage: python -m jaxrobo.ros.launch --package-path", file=sys.stderr)
+        sys.exit(2)
+    print(ROSLAUNCH_DIR)
