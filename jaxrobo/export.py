@@ -31,8 +31,7 @@ from typing import Any
 
 import numpy as np
 
-#: The runner copied into every export, and its name there.
-RUNNER_NAME = "jaxrobo_policy.py"
+from jaxrobo_ros.policy_node import RUNNER as RUNNER_NAME  # the runner copied into every export: its name there
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -321,6 +320,13 @@ def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool
     meta["env_options"] = dict(cfg.get("env_options") or {})
     meta["env_params"] = dict(cfg.get("env_params") or {})
     meta["source"] = {"run": os.path.abspath(run_dir), "jaxrobo_version": __version__}
+    # What a policy driving the robot needs of the task besides the policy (control period, observation
+    # constants, action table), for tasks with a native port: the ROS policy node works from the export alone
+    from jaxrobo.ros.bridge import robot_section
+
+    section = robot_section(meta)
+    if section is not None:
+        meta["robot"] = section
     os.makedirs(out, exist_ok=True)
     # Each file replaced atomically (a kill leaves the previous export's file or the new one, never none or a torn
     # one); policy.json last, so that it never describes arrays that are not there yet.

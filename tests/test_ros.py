@@ -20,11 +20,12 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from jaxrobo.ros.system import unavailable_reason
+from jaxrobo_ros.system import unavailable_reason
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REASON = unavailable_reason() or (None if shutil.which("roscore") else "roscore is not on PATH: apt-get install "
@@ -63,6 +64,15 @@ class Ros:
         self.procs.append(p)
         return p
 
+    def policy(self, *args, name: str) -> subprocess.Popen:
+        """The policy node as it runs on a robot: ``python -m jaxrobo_ros.policy_node`` (no JAX)."""
+        out = open(self.tmp / f"{name}.log", "w")
+        p = subprocess.Popen([sys.executable, "-m", "jaxrobo_ros.policy_node", *args], env=self.env, stdout=out,
+                             stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT)
+        p.log = self.tmp / f"{name}.log"
+        self.procs.append(p)
+        return p
+
     def script(self, *args) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, *args], env=self.env, capture_output=True, text=True, timeout=BOUND,
                               cwd=ROOT)
@@ -79,7 +89,7 @@ class Ros:
 def ros(tmp_path_factory):
     r = Ros(tmp_path_factory.mktemp("ros"))
     try:
-        from jaxrobo.ros.system import rospy
+        from jaxrobo_ros.system import rospy
 
         rospy().init_node("jaxrobo_test", anonymous=True, disable_signals=True)
         yield r
@@ -136,7 +146,7 @@ class Listener:
     """The commands a node publishes, as they arrive."""
 
     def __init__(self, topic, cls):
-        from jaxrobo.ros.system import rospy
+        from jaxrobo_ros.system import rospy
 
         self.got, self.cv = [], threading.Condition()
         self.sub = rospy().Subscriber(topic, cls, self._on, queue_size=100)
@@ -155,12 +165,29 @@ class Listener:
 
 
 @needs_ros
+def test_policy_node_imports_no_jax(goto_export, cartpole_export):
+    """The policy node from an export: its module, the export's runner and robot section, rospy; no JAX, no task
+    module, no MuJoCo, not even jaxrobo's package (whose import is JAX's)."""
+    code = ("import json, sys\n"
+            "from jaxrobo_ros.policy_node import PolicyNode\n"
+            "nodes = [PolicyNode(d) for d in sys.argv[1:]]\n"
+            "print(json.dumps({'periods': [n.b.period for n in nodes], 'loaded': sorted(m for m in sys.modules if "
+            "m.split('.')[0] in ('jax', 'jaxlib', 'mujoco', 'jaxrobo', 'envs', 'brax', 'flax'))}))")
+    r = subprocess.run([sys.executable, "-c", code, goto_export, cartpole_export], capture_output=True, text=True,
+                       timeout=BOUND, cwd=ROOT, env=dict(os.environ, PYTHONPATH=ROOT))
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["loaded"] == [], out
+    assert out["periods"] == pytest.approx([0.3, 0.04])  # the tasks' running_step, from the exports
+
+
+@needs_ros
 def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     n, seed = 50, 7
     results, stats = ros.tmp / "goto_results.json", ros.tmp / "goto_stats.json"
     sim = ros.node("sim", goto_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
                    str(results), name="goto_sim")
-    policy = ros.node("policy", goto_export, "--stats", str(stats), name="goto_policy")
+    policy = ros.policy(goto_export, "--stats", str(stats), name="goto_policy")
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
     finally:
@@ -187,7 +214,7 @@ def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
     results = ros.tmp / "cp_results.json"
     sim = ros.node("sim", cartpole_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
                    str(results), name="cp_sim")
-    policy = ros.node("policy", cartpole_export, name="cp_policy")
+    policy = ros.policy(cartpole_export, name="cp_policy")
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
     finally:
@@ -225,8 +252,8 @@ def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
 
 
 @needs_ros
-def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
-    from jaxrobo.ros.system import rospy as get
+def test_policy_node_faults_stop_the_robot(ros, cartpole_export, goto_export, tmp_path):
+    from jaxrobo_ros.system import rospy as get
 
     rospy = get()
     from sensor_msgs.msg import JointState
@@ -278,20 +305,26 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
         commands.sub.unregister()
     assert "Traceback" not in log(policy)
 
-    # an export of another task, topics of another task: one line, exit 2, nothing started
-    other = tmp_path / "other"
-    shutil.copytree(cartpole_export, other)
-    meta = json.loads((other / "policy.json").read_text())
-    (other / "policy.json").write_text(json.dumps(dict(meta, env_id="ArmReach-v0", env_options={},
-                                                       env_params={})))
-    drone_topics = os.path.join(ROOT, "jaxrobo", "ros", "topics", "quadcopter.yaml")
-    for args, says in (((str(other),), "ArmReach-v0: no ROS bridge for this task"),
-                       ((cartpole_export, "--topics", drone_topics), "family='quadcopter', but the policy's task is "
-                                                                     "a cartpole")):
+    # an export written before exports carried the robot section, the robot section of another task, topics of
+    # another task: one line, exit 2, nothing started
+    meta = json.loads((Path(cartpole_export) / "policy.json").read_text())
+    drone = json.loads((Path(goto_export) / "policy.json").read_text())["robot"]
+    drone_topics = os.path.join(ROOT, "jaxrobo_ros", "topics", "quadcopter.yaml")
+    old, other = tmp_path / "old", tmp_path / "other"
+    for where, robot in ((old, None), (other, drone)):
+        shutil.copytree(cartpole_export, where)
+        (where / "policy.json").write_text(json.dumps({**{k: v for k, v in meta.items() if k != "robot"},
+                                                       **({"robot": robot} if robot else {})}))
+    for args, says in (((str(old),), (f"{old}: policy.json has no robot section", "export it again (jaxrobo "
+                                      f"export RUN --out {old} --overwrite)")),
+                       ((str(other),), ("robot: a quadcopter with 5 actions does not take the actions of a tabular "
+                                        "policy",)),
+                       ((cartpole_export, "--topics", drone_topics), ("family='quadcopter', but the policy's task "
+                                                                      "is a cartpole",))):
         p = ros.node("policy", *args, name="refused")
         assert p.wait(timeout=BOUND) == 2
         text = log(p)
-        assert says in text and "Traceback" not in text, text
+        assert all(x in text for x in says) and "Traceback" not in text and text.count("\n") == 1, text
 
 
 @needs_ros
@@ -304,8 +337,9 @@ def test_drone_node_builds_the_training_observation_from_messages(ros, goto_expo
     from sensor_msgs.msg import Range
 
     from jaxrobo.interop.numpy_policy import Policy
-    from jaxrobo.ros.system import rospy as get
-    from jaxrobo.ros.bridge import HERE, SONARS, make_bridge, make_env
+    from jaxrobo_ros.system import rospy as get
+    from jaxrobo.ros.bridge import make_bridge, make_env
+    from jaxrobo_ros.bridge import HERE, SONARS
 
     rospy = get()
     cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
@@ -405,13 +439,14 @@ def test_roslaunch_file_starts_sim_and_policy(ros, cartpole_export):
     commands (one per state, as in-process), then the sim ends the launch."""
     from std_msgs.msg import Float64
 
-    from jaxrobo.ros.launch import ROSLAUNCH_DIR
+    import jaxrobo_ros
 
+    package = os.path.dirname(jaxrobo_ros.__file__)
     commands = Listener("/cartpole_v0/foot_joint_velocity_controller/command", Float64)
-    env = dict(ros.env, ROS_PACKAGE_PATH=ROSLAUNCH_DIR, JAXROBO_PYTHON=sys.executable)
+    env = dict(ros.env, ROS_PACKAGE_PATH=package, JAXROBO_PYTHON=sys.executable)
     port = ros.env["ROS_MASTER_URI"].rsplit(":", 1)[1]
     try:
-        r = subprocess.run(["roslaunch", "-p", port, os.path.join(ROSLAUNCH_DIR, "jaxrobo.launch"),
+        r = subprocess.run(["roslaunch", "-p", port, os.path.join(package, "jaxrobo.launch"),
                             f"export:={cartpole_export}", "episodes:=2", "lockstep:=true", "seed:=4"], env=env,
                            capture_output=True, text=True, timeout=BOUND, cwd=ROOT)
     finally:
@@ -441,11 +476,12 @@ def test_seed_style_qlearning_against_the_sim_improves(ros):
 
 def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
     from jaxrobo.cli import main
-    from jaxrobo.ros import system
+    from jaxrobo_ros import policy_node, system
 
     monkeypatch.setattr(system, "unavailable_reason", lambda: system.INSTALL)
-    for args in (["ros", "policy", "somewhere"], ["ros", "sim", "CartPoleStayUp-v0"], ["ros", "up", "somewhere"]):
-        assert main(args) == 2
+    for run, args in ((main, ["ros", "policy", "somewhere"]), (main, ["ros", "sim", "CartPoleStayUp-v0"]),
+                      (main, ["ros", "up", "somewhere"]), (policy_node.main, ["somewhere"])):
+        assert run(args) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "apt-get install ros-core python3-rospy" in err, err
 
@@ -461,17 +497,17 @@ def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
 def test_topic_files_are_checked_field_by_field(tmp_path, edit, says):
     import yaml
 
-    from jaxrobo.core.config import ConfigError
-    from jaxrobo.ros.bridge import HERE, load_topics
+    from jaxrobo_ros.bridge import HERE, load_topics
+    from jaxrobo_ros.system import SetupError
 
     cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
     assert load_topics("quadcopter")["topics"]["cmd_vel"] == "/cmd_vel"
     edit(cfg)
     path = tmp_path / "topics.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    with pytest.raises(ConfigError) as err:
+    with pytest.raises(SetupError) as err:
         load_topics("quadcopter", str(path))
     assert says in str(err.value) and str(path) in str(err.value)
     path.write_text("[not, a, mapping")
-    with pytest.raises(ConfigError, match="cannot be read as YAML"):
+    with pytest.raises(SetupError, match="cannot be read as YAML"):
         load_topics("quadcopter", str(path))

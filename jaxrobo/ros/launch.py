@@ -1,8 +1,7 @@
 """``jaxrobo ros up EXPORT_DIR``: a master on localhost (``roscore -p PORT``, unless one answers there), the sim node
 of the export's task and the policy node, as child processes; Ctrl-C (or the sim finishing its ``--episodes``)
-stops them all: what ``roslaunch jaxrobo_ros jaxrobo.launch`` does (:data:`ROSLAUNCH_DIR`), without roslaunch.
-
-``python -m jaxrobo.ros.launch --package-path`` prints :data:`ROSLAUNCH_DIR`, for ``ROS_PACKAGE_PATH``."""
+stops them all: what ``roslaunch jaxrobo_ros jaxrobo.launch`` does (the ROS package :mod:`jaxrobo_ros`), without
+roslaunch. The policy node runs as ``python -m jaxrobo_ros.policy_node`` (without JAX), as on a robot."""
 from __future__ import annotations
 
 import os
@@ -11,13 +10,8 @@ import subprocess
 import sys
 import time
 
-#: The ROS package ``jaxrobo_ros`` (a package.xml, ``jaxrobo.launch`` and the node wrapper ``jaxrobo_ros``): on
-#: ``ROS_PACKAGE_PATH``, roslaunch finds the nodes by it, with no catkin workspace.
-ROSLAUNCH_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "roslaunch")
-
-
 def master_up(uri: str) -> bool:
-    from jaxrobo.ros.system import rospy
+    from jaxrobo_ros.system import rospy
 
     rospy()
     import rosgraph
@@ -75,7 +69,8 @@ def up(args) -> int:
     sim = me + ["sim", args.export_dir, "--episodes", str(args.episodes), "--seed", str(args.seed), "--speed",
                 str(args.speed)] + (["--lockstep"] if args.lockstep else [])
     procs = [subprocess.Popen(sim, env=env, start_new_session=True),
-             subprocess.Popen(me + ["policy", args.export_dir], env=env, start_new_session=True)]
+             subprocess.Popen([sys.executable, "-m", "jaxrobo_ros.policy_node", args.export_dir], env=env,
+                              start_new_session=True)]
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
     rc = 0
     try:
@@ -88,9 +83,3 @@ def up(args) -> int:
         stop(procs + [master])
     return rc
 
-
-if __name__ == "__main__":
-    if sys.argv[1:] != ["--package-path"]:
-        print("usage: python -m jaxrobo.ros.launch --package-path", file=sys.stderr)
-        sys.exit(2)
-    print(ROSLAUNCH_DIR)

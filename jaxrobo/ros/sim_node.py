@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxrobo.ros.system import rospy as import_rospy
+from jaxrobo_ros.system import rospy as import_rospy
 from jaxrobo.core.config import ConfigError
 from jaxrobo.ros.bridge import make_bridge, make_env
 
