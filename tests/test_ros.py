@@ -142,6 +142,30 @@ def in_process(export: str, n: int, seed: int, first: int = 0) -> list[dict]:
     return [port.episode(policy, qpos[i], qvel[i], tasks[i]) for i in range(first, first + n)]
 
 
+def jax_episodes(export: str, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The JAX task's own return and length of episodes ``0 .. n - 1`` of key ``seed`` (the sim's resets), driven
+    by the export's runner on the JAX observations (all ``n`` at once)."""
+    import jax
+
+    from jaxrobo.interop.numpy_policy import Policy
+    from jaxrobo.ros.bridge import make_env
+    from jaxrobo.task.rollout import rollout_start
+
+    policy = Policy.load(export)
+    env = make_env(policy.meta)
+    state = jax.jit(lambda k: rollout_start(env, k, n)["first"])(jax.random.key(seed))
+    step = jax.jit(jax.vmap(env.step))
+    ret, length, alive = np.zeros(n), np.zeros(n, int), np.ones(n, bool)
+    for _ in range(int(env.default_params.max_episode_steps)):
+        state = step(state, policy.batch(np.asarray(state.obs)))
+        ret += np.where(alive, np.asarray(state.reward, np.float64), 0.0)
+        length += alive
+        alive &= ~np.asarray(state.done)
+        if not alive.any():
+            break
+    return ret, length
+
+
 class Listener:
     """The commands a node publishes, as they arrive."""
 
@@ -183,15 +207,20 @@ def test_policy_node_imports_no_jax(goto_export, cartpole_export):
 
 @needs_ros
 def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
+    from jaxrobo.ros.msgs import RLExperimentInfo
+
     n, seed = 50, 7
     results, stats = ros.tmp / "goto_results.json", ros.tmp / "goto_stats.json"
+    rewards = Listener("/openai/reward", RLExperimentInfo)
     sim = ros.node("sim", goto_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
                    str(results), name="goto_sim")
     policy = ros.policy(goto_export, "--stats", str(stats), name="goto_policy")
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
+        assert rewards.wait(n, timeout=10)
     finally:
         stop(sim, policy)
+        rewards.sub.unregister()
     eps = json.loads(results.read_text())["episodes"]
     native = in_process(goto_export, n, seed)
     rate_ros = np.mean([e["success"] for e in eps])
@@ -206,6 +235,17 @@ def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     s = json.loads(stats.read_text())
     assert s["commands"] == sum(e["steps"] for e in eps), (s, sum(e["steps"] for e in eps))
     assert "Traceback" not in log(policy) + log(sim)
+    # /openai/reward: each episode's shaped return as the JAX task computes it (float32 steps there), on every
+    # episode flown for as many steps as in JAX (the two engines agree to float32 round-off: where a rounding
+    # flips a bin, the flights part)
+    assert [m.episode_number for m in rewards.got] == [e["episode"] for e in eps]
+    sent = np.array([m.episode_reward for m in rewards.got])
+    assert np.allclose(sent, [e["reward"] for e in eps], rtol=1e-6, atol=1e-4)  # the message is float32
+    ret, length = jax_episodes(goto_export, n, seed)
+    same = np.array([e["steps"] for e in eps]) == length
+    assert same.mean() >= 0.9, (length, [e["steps"] for e in eps])
+    assert np.allclose(sent[same], ret[same], rtol=1e-4, atol=1e-3), np.c_[sent, ret, same]
+    assert len(set(np.round(sent, 3))) > 1  # shaped returns, not an arrival flag
 
 
 @needs_ros

@@ -49,6 +49,9 @@ class NativeGoto(NativeSim):
         self.p = {k: float(getattr(p, k)) for k in (
             "speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius", "sonar_range")}
         self.horizon = int(p.max_episode_steps)
+        names = ("progress_reward", "step_cost", "altitude_cost", "arrival_bonus", "crash_penalty")
+        self.r = {k: float(getattr(p, k)) for k in names + (("heading_reward", "climb_reward") if
+                                                             "goal_clear" in env.observation_space().names else ())}
         self.v2 = "goal_clear" in env.observation_space().names
         self.continuous = hasattr(env.action_space(), "low")  # GotoTwist: the action is the Twist
         c = {"family": "quadcopter", "period": float(self.n_substeps * self.model.opt.timestep),
@@ -137,11 +140,34 @@ class NativeGoto(NativeSim):
         arrived = bool(np.linalg.norm(goal - pos) < p["goal_tolerance"]) and not failed
         return arrived, bool(failed)
 
+    def reward(self, obs: np.ndarray, prev: dict, arrived: bool, failed: bool) -> tuple[float, dict]:
+        """The task's reward of the step that led to ``obs`` (its float32 observation; the drone where the step
+        left it), as :meth:`envs.quadcopter.goto.QuadcopterGoto._compute_reward` (and v2's shaping) computes it,
+        and the potentials it leaves for the next step. ``prev``: ``dist`` (and v2's ``bearing``, ``dz``), the
+        task variables ``prev_dist`` (``prev_bearing``, ``prev_dz``): at an episode's start, its reset's."""
+        r = self.r
+        dist = float(obs[0])
+        reward = (r["progress_reward"] * (prev["dist"] - dist) - r["step_cost"] - r["altitude_cost"] * self.data.qpos[2]
+                  + (r["arrival_bonus"] if arrived else 0.0) - (r["crash_penalty"] if failed else 0.0))
+        nxt = {"dist": dist}
+        if self.v2:
+            bearing, dz = abs(float(obs[1])), abs(float(obs[2]))
+            reward += r["heading_reward"] * (prev["bearing"] - bearing) + r["climb_reward"] * (prev["dz"] - dz)
+            nxt.update(bearing=bearing, dz=dz)
+        return float(reward), nxt
+
+    def potentials(self, task: Any) -> dict:
+        """The reward's potentials at an episode's start: its reset's task variables (``prev_*``)."""
+        out = {"dist": float(np.asarray(task.prev_dist))}
+        if self.v2:
+            out.update(bearing=float(np.asarray(task.prev_bearing)), dz=float(np.asarray(task.prev_dz)))
+        return out
+
     def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
                 horizon: int | None = None) -> dict[str, Any]:
         """One flight from ``(qpos, qvel)`` to the goal among the obstacles of ``task`` (one episode's task
         variables as host arrays: ``goal``, ``obstacles.kind/center/size/active``): ``length``, ``success``
-        (arrived), ``crashed``, ``actions``, ``obs`` and ``pos`` per step."""
+        (arrived), ``crashed``, ``return`` (the task's reward summed), ``actions``, ``obs`` and ``pos`` per step."""
         horizon = self.horizon if horizon is None else int(horizon)
         goal = np.asarray(task.goal, np.float64)
         o = task.obstacles
@@ -151,6 +177,7 @@ class NativeGoto(NativeSim):
         obs = self.observe(goal, obstacles)
         seen, actions, pos = [obs], [], [self.data.qpos[:3].copy()]
         arrived = failed = False
+        prev, ret = self.potentials(task), 0.0
         for _ in range(horizon):
             a, command = self.command(policy(obs))
             self.advance(lambda: self.controller(command))  # the cascade runs on the state before every mj_step
@@ -159,8 +186,10 @@ class NativeGoto(NativeSim):
             seen.append(obs)
             pos.append(self.data.qpos[:3].copy())
             arrived, failed = self.outcome(goal, obstacles)
+            r, prev = self.reward(obs, prev, arrived, failed)
+            ret += r
             if arrived or failed:
                 break
-        return {"length": len(actions), "success": arrived, "crashed": failed,
+        return {"length": len(actions), "success": arrived, "crashed": failed, "return": ret,
                 "actions": np.asarray(actions, np.float32 if self.continuous else np.int32), "obs": np.asarray(seen),
                 "pos": np.asarray(pos)}

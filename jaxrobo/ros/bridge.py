@@ -104,7 +104,8 @@ class DroneSim(DroneBridge):
         o = task.obstacles
         return {"goal": np.asarray(task.goal, np.float64),
                 "obstacles": {"kind": np.asarray(o.kind), "center": np.asarray(o.center, np.float64),
-                              "size": np.asarray(o.size, np.float64), "active": np.asarray(o.active)}}
+                              "size": np.asarray(o.size, np.float64), "active": np.asarray(o.active)},
+                "potentials": self.port.potentials(task), "return": 0.0}
 
     def episode_msgs(self, task: dict, t) -> dict:
         from geometry_msgs.msg import PointStamped
@@ -148,9 +149,12 @@ class DroneSim(DroneBridge):
 
     def judge(self, task: dict, steps: int) -> tuple[bool, bool, float]:
         """``(done, success, episode reward)`` after ``steps``: arrival or failure ends it, as the horizon does;
-        the reward is the outcome (1 on arrival)."""
+        the reward is the task's own (its shaped per-step reward, summed over the episode so far)."""
         arrived, failed = self.port.outcome(task["goal"], task["obstacles"])
-        return arrived or failed or steps >= self.port.horizon, arrived, float(arrived)
+        r, task["potentials"] = self.port.reward(self.port.observe(task["goal"], task["obstacles"]),
+                                                 task["potentials"], arrived, failed)
+        task["return"] += r
+        return arrived or failed or steps >= self.port.horizon, arrived, task["return"]
 
 
 class CartPoleSim(CartPoleBridge):
