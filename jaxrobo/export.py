@@ -3,7 +3,11 @@
 ``DIR`` receives ``policy.json`` (what the policy is: format, kind, env id, observation and action layout, the env's
 options and parameters as the run set them, where it came from), ``policy.npz`` (its numbers, plain arrays) and ``jaxrobo_policy.py`` (a copy of
 :mod:`jaxrobo.interop.numpy_policy`, importing only numpy): ``Policy.load(DIR)(obs) -> action`` outside JAX. A deep
-run also gets ``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``).
+run also gets ``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``). For a task
+with a native port, ``policy.json`` also holds a ``robot`` section (:func:`jaxrobo.ros.bridge.robot_section`: the
+control period, the observation's constants, the action table), from which the runner turns the robot's readings
+into observations and actions into commands (``policy.io``): what the ROS policy node (:mod:`jaxrobo_ros`) works
+from, without JAX.
 
 * A **tabular** run: the discretiser rebuilt from the run's ``config.yaml`` exactly as training built it
   (:func:`jaxrobo.training.trainer.make_discretiser_for`; checked against the one saved in ``qtables.npz``) and the

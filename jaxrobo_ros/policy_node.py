@@ -6,9 +6,8 @@ observation constants and action table). numpy, yaml and rospy only: JAX is not 
 It acts once per control period of sim or sensor time: when the primary reading (odometry, joint states) of a new
 period has arrived together with every other reading it needs within ``max_age`` of it, it builds the task's
 observation with the export's ``robot`` section (:mod:`jaxrobo_ros.bridge`: the training's numbers, units and
-frames, computed by the same code as the task's native port),
-runs the policy and publishes the command, from the callback of the message that completed the set (no queue
-between message in and command out). A missing, stale or non-finite reading, or none at all for ``stale_after``
+frames, computed by the same code as the task's native port), runs the policy and publishes the command, from the
+callback of the message that completed the set (no queue between message in and command out). A missing, stale or non-finite reading, or none at all for ``stale_after``
 wall-clock seconds (a sim or sensor that died), stops the robot: a zero command and one warning saying why, repeated
 while the cause lasts; the node keeps running and acts again once fresh readings arrive. A reading stamped before
 the last one (Gazebo's ``reset_simulation`` rewinds time) or a new ``/jaxrobo/episode`` starts a new episode (the

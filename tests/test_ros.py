@@ -551,3 +551,26 @@ def test_topic_files_are_checked_field_by_field(tmp_path, edit, says):
     path.write_text("[not, a, mapping")
     with pytest.raises(SetupError, match="cannot be read as YAML"):
         load_topics("quadcopter", str(path))
+
+
+@pytest.mark.parametrize("edit,says", [
+    (lambda r: r.__setitem__("family", "arm"), "robot: family='arm': expected one of quadcopter, cartpole"),
+    (lambda r: r.__setitem__("period", -1), "robot: period=-1: expected a number in [1e-06, 60.0]"),
+    (lambda r: r.__setitem__("steps", [0.1, None, 0.2, 0.3]), "robot: steps: expected finite numbers of shape [n]"),
+    (lambda r: r.pop("vmax"), "robot: no field 'vmax'"),
+    (lambda r: r.__setitem__("round_obs", "no"), "robot: round_obs='no': expected true or false"),
+    (lambda r: r.__setitem__("steps", [0.1, -0.1]), "robot: a cartpole with 2 actions does not take the actions"),
+])
+def test_robot_sections_are_checked_field_by_field(cartpole_export, tmp_path, edit, says):
+    """policy.json's robot section is read back as hostile: the node refuses it in one line naming the field."""
+    from jaxrobo_ros.policy_node import load_export
+    from jaxrobo_ros.system import SetupError
+
+    bad = tmp_path / "bad"
+    shutil.copytree(cartpole_export, bad)
+    meta = json.loads((bad / "policy.json").read_text())
+    edit(meta["robot"])
+    (bad / "policy.json").write_text(json.dumps(meta))
+    with pytest.raises(SetupError) as err:
+        load_export(str(bad))
+    assert says in str(err.value) and str(bad / "policy.json") in str(err.value), str(err.value)
