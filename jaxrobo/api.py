@@ -14,13 +14,14 @@ A learner::
 
 A task's port to native MuJoCo (the sim-to-sim check, ``envs/*/native.py``)::
 
-    from jaxrobo.api import NativeSim
+    from jaxrobo.api import NativeSim, numpy_policy   # the observation and command an export carries
 """
 from __future__ import annotations
 
 from jaxrobo.core import rng, spaces
 from jaxrobo.core.config import ConfigError
 from jaxrobo.core.struct import param, pytree_dataclass, range_param, static_field
+from jaxrobo.interop import numpy_policy
 from jaxrobo.interop.native import NativeSim
 from jaxrobo.physics.sim import (ClosedFormSim, JointState, MjxEdit, Simulator, backend_choices, load_model,
                                  make_simulator, through_batch)
@@ -38,7 +39,7 @@ __all__ = [
     "ConfigError", "param", "pytree_dataclass", "range_param", "static_field", "rng", "spaces",
     # simulators (the seed's Gazebo layer) and robots
     "ClosedFormSim", "JointState", "MjxEdit", "Simulator", "backend_choices", "load_model", "make_simulator", "through_batch",
-    "NativeSim", "Robot",
+    "NativeSim", "numpy_policy", "Robot",
     # tasks
     "BaseParams", "Env", "EnvState", "LearningTarget", "TaskEnv", "deprecated_alias", "make", "register",
     "randomise",

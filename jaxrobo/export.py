@@ -3,7 +3,11 @@
 ``DIR`` receives ``policy.json`` (what the policy is: format, kind, env id, observation and action layout, the env's
 options and parameters as the run set them, where it came from), ``policy.npz`` (its numbers, plain arrays) and ``jaxrobo_policy.py`` (a copy of
 :mod:`jaxrobo.interop.numpy_policy`, importing only numpy): ``Policy.load(DIR)(obs) -> action`` outside JAX. A deep
-run also gets ``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``).
+run also gets ``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``). For a task
+with a native port, ``policy.json`` also holds a ``robot`` section (:func:`jaxrobo.ros.bridge.robot_section`: the
+control period, the observation's constants, the action table), from which the runner turns the robot's readings
+into observations and actions into commands (``policy.io``): what the ROS policy node (:mod:`jaxrobo_ros`) works
+from, without JAX.
 
 * A **tabular** run: the discretiser rebuilt from the run's ``config.yaml`` exactly as training built it
   (:func:`jaxrobo.training.trainer.make_discretiser_for`; checked against the one saved in ``qtables.npz``) and the
@@ -31,8 +35,7 @@ from typing import Any
 
 import numpy as np
 
-#: The runner copied into every export, and its name there.
-RUNNER_NAME = "jaxrobo_policy.py"
+from jaxrobo_ros.policy_node import RUNNER as RUNNER_NAME  # the runner copied into every export: its name there
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -321,6 +324,13 @@ def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool
     meta["env_options"] = dict(cfg.get("env_options") or {})
     meta["env_params"] = dict(cfg.get("env_params") or {})
     meta["source"] = {"run": os.path.abspath(run_dir), "jaxrobo_version": __version__}
+    # What a policy driving the robot needs of the task besides the policy (control period, observation
+    # constants, action table), for tasks with a native port: the ROS policy node works from the export alone
+    from jaxrobo.ros.bridge import robot_section
+
+    section = robot_section(meta)
+    if section is not None:
+        meta["robot"] = section
     os.makedirs(out, exist_ok=True)
     # Each file replaced atomically (a kill leaves the previous export's file or the new one, never none or a torn
     # one); policy.json last, so that it never describes arrays that are not there yet.

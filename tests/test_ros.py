@@ -20,11 +20,12 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from jaxrobo.ros.system import unavailable_reason
+from jaxrobo_ros.system import unavailable_reason
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REASON = unavailable_reason() or (None if shutil.which("roscore") else "roscore is not on PATH: apt-get install "
@@ -63,6 +64,15 @@ class Ros:
         self.procs.append(p)
         return p
 
+    def policy(self, *args, name: str) -> subprocess.Popen:
+        """The policy node as it runs on a robot: ``python -m jaxrobo_ros.policy_node`` (no JAX)."""
+        out = open(self.tmp / f"{name}.log", "w")
+        p = subprocess.Popen([sys.executable, "-m", "jaxrobo_ros.policy_node", *args], env=self.env, stdout=out,
+                             stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT)
+        p.log = self.tmp / f"{name}.log"
+        self.procs.append(p)
+        return p
+
     def script(self, *args) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, *args], env=self.env, capture_output=True, text=True, timeout=BOUND,
                               cwd=ROOT)
@@ -79,7 +89,7 @@ class Ros:
 def ros(tmp_path_factory):
     r = Ros(tmp_path_factory.mktemp("ros"))
     try:
-        from jaxrobo.ros.system import rospy
+        from jaxrobo_ros.system import rospy
 
         rospy().init_node("jaxrobo_test", anonymous=True, disable_signals=True)
         yield r
@@ -132,11 +142,35 @@ def in_process(export: str, n: int, seed: int, first: int = 0) -> list[dict]:
     return [port.episode(policy, qpos[i], qvel[i], tasks[i]) for i in range(first, first + n)]
 
 
+def jax_episodes(export: str, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The JAX task's own return and length of episodes ``0 .. n - 1`` of key ``seed`` (the sim's resets), driven
+    by the export's runner on the JAX observations (all ``n`` at once)."""
+    import jax
+
+    from jaxrobo.interop.numpy_policy import Policy
+    from jaxrobo.ros.bridge import make_env
+    from jaxrobo.task.rollout import rollout_start
+
+    policy = Policy.load(export)
+    env = make_env(policy.meta)
+    state = jax.jit(lambda k: rollout_start(env, k, n)["first"])(jax.random.key(seed))
+    step = jax.jit(jax.vmap(env.step))
+    ret, length, alive = np.zeros(n), np.zeros(n, int), np.ones(n, bool)
+    for _ in range(int(env.default_params.max_episode_steps)):
+        state = step(state, policy.batch(np.asarray(state.obs)))
+        ret += np.where(alive, np.asarray(state.reward, np.float64), 0.0)
+        length += alive
+        alive &= ~np.asarray(state.done)
+        if not alive.any():
+            break
+    return ret, length
+
+
 class Listener:
     """The commands a node publishes, as they arrive."""
 
     def __init__(self, topic, cls):
-        from jaxrobo.ros.system import rospy
+        from jaxrobo_ros.system import rospy
 
         self.got, self.cv = [], threading.Condition()
         self.sub = rospy().Subscriber(topic, cls, self._on, queue_size=100)
@@ -155,16 +189,38 @@ class Listener:
 
 
 @needs_ros
+def test_policy_node_imports_no_jax(goto_export, cartpole_export):
+    """The policy node from an export: its module, the export's runner and robot section, rospy; no JAX, no task
+    module, no MuJoCo, not even jaxrobo's package (whose import is JAX's)."""
+    code = ("import json, sys\n"
+            "from jaxrobo_ros.policy_node import PolicyNode\n"
+            "nodes = [PolicyNode(d) for d in sys.argv[1:]]\n"
+            "print(json.dumps({'periods': [n.b.period for n in nodes], 'loaded': sorted(m for m in sys.modules if "
+            "m.split('.')[0] in ('jax', 'jaxlib', 'mujoco', 'jaxrobo', 'envs', 'brax', 'flax'))}))")
+    r = subprocess.run([sys.executable, "-c", code, goto_export, cartpole_export], capture_output=True, text=True,
+                       timeout=BOUND, cwd=ROOT, env=dict(os.environ, PYTHONPATH=ROOT))
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["loaded"] == [], out
+    assert out["periods"] == pytest.approx([0.3, 0.04])  # the tasks' running_step, from the exports
+
+
+@needs_ros
 def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
+    from jaxrobo.ros.msgs import RLExperimentInfo
+
     n, seed = 50, 7
     results, stats = ros.tmp / "goto_results.json", ros.tmp / "goto_stats.json"
+    rewards = Listener("/openai/reward", RLExperimentInfo)
     sim = ros.node("sim", goto_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
                    str(results), name="goto_sim")
-    policy = ros.node("policy", goto_export, "--stats", str(stats), name="goto_policy")
+    policy = ros.policy(goto_export, "--stats", str(stats), name="goto_policy")
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
+        assert rewards.wait(n, timeout=10)
     finally:
         stop(sim, policy)
+        rewards.sub.unregister()
     eps = json.loads(results.read_text())["episodes"]
     native = in_process(goto_export, n, seed)
     rate_ros = np.mean([e["success"] for e in eps])
@@ -179,6 +235,17 @@ def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     s = json.loads(stats.read_text())
     assert s["commands"] == sum(e["steps"] for e in eps), (s, sum(e["steps"] for e in eps))
     assert "Traceback" not in log(policy) + log(sim)
+    # /openai/reward: each episode's shaped return as the JAX task computes it (float32 steps there), on every
+    # episode flown for as many steps as in JAX (the two engines agree to float32 round-off: where a rounding
+    # flips a bin, the flights part)
+    assert [m.episode_number for m in rewards.got] == [e["episode"] for e in eps]
+    sent = np.array([m.episode_reward for m in rewards.got])
+    assert np.allclose(sent, [e["reward"] for e in eps], rtol=1e-6, atol=1e-4)  # the message is float32
+    ret, length = jax_episodes(goto_export, n, seed)
+    same = np.array([e["steps"] for e in eps]) == length
+    assert same.mean() >= 0.9, (length, [e["steps"] for e in eps])
+    assert np.allclose(sent[same], ret[same], rtol=1e-4, atol=1e-3), np.c_[sent, ret, same]
+    assert len(set(np.round(sent, 3))) > 1  # shaped returns, not an arrival flag
 
 
 @needs_ros
@@ -187,7 +254,7 @@ def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
     results = ros.tmp / "cp_results.json"
     sim = ros.node("sim", cartpole_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
                    str(results), name="cp_sim")
-    policy = ros.node("policy", cartpole_export, name="cp_policy")
+    policy = ros.policy(cartpole_export, name="cp_policy")
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
     finally:
@@ -225,8 +292,8 @@ def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
 
 
 @needs_ros
-def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
-    from jaxrobo.ros.system import rospy as get
+def test_policy_node_faults_stop_the_robot(ros, cartpole_export, goto_export, tmp_path):
+    from jaxrobo_ros.system import rospy as get
 
     rospy = get()
     from sensor_msgs.msg import JointState
@@ -278,20 +345,26 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, tmp_path):
         commands.sub.unregister()
     assert "Traceback" not in log(policy)
 
-    # an export of another task, topics of another task: one line, exit 2, nothing started
-    other = tmp_path / "other"
-    shutil.copytree(cartpole_export, other)
-    meta = json.loads((other / "policy.json").read_text())
-    (other / "policy.json").write_text(json.dumps(dict(meta, env_id="ArmReach-v0", env_options={},
-                                                       env_params={})))
-    drone_topics = os.path.join(ROOT, "jaxrobo", "ros", "topics", "quadcopter.yaml")
-    for args, says in (((str(other),), "ArmReach-v0: no ROS bridge for this task"),
-                       ((cartpole_export, "--topics", drone_topics), "family='quadcopter', but the policy's task is "
-                                                                     "a cartpole")):
+    # an export written before exports carried the robot section, the robot section of another task, topics of
+    # another task: one line, exit 2, nothing started
+    meta = json.loads((Path(cartpole_export) / "policy.json").read_text())
+    drone = json.loads((Path(goto_export) / "policy.json").read_text())["robot"]
+    drone_topics = os.path.join(ROOT, "jaxrobo_ros", "topics", "quadcopter.yaml")
+    old, other = tmp_path / "old", tmp_path / "other"
+    for where, robot in ((old, None), (other, drone)):
+        shutil.copytree(cartpole_export, where)
+        (where / "policy.json").write_text(json.dumps({**{k: v for k, v in meta.items() if k != "robot"},
+                                                       **({"robot": robot} if robot else {})}))
+    for args, says in (((str(old),), (f"{old}: policy.json has no robot section", "export it again (jaxrobo "
+                                      f"export RUN --out {old} --overwrite)")),
+                       ((str(other),), ("robot: a quadcopter with 5 actions does not take the actions of a tabular "
+                                        "policy",)),
+                       ((cartpole_export, "--topics", drone_topics), ("family='quadcopter', but the policy's task "
+                                                                      "is a cartpole",))):
         p = ros.node("policy", *args, name="refused")
         assert p.wait(timeout=BOUND) == 2
         text = log(p)
-        assert says in text and "Traceback" not in text, text
+        assert all(x in text for x in says) and "Traceback" not in text and text.count("\n") == 1, text
 
 
 @needs_ros
@@ -304,8 +377,9 @@ def test_drone_node_builds_the_training_observation_from_messages(ros, goto_expo
     from sensor_msgs.msg import Range
 
     from jaxrobo.interop.numpy_policy import Policy
-    from jaxrobo.ros.system import rospy as get
-    from jaxrobo.ros.bridge import HERE, SONARS, make_bridge, make_env
+    from jaxrobo_ros.system import rospy as get
+    from jaxrobo.ros.bridge import make_bridge, make_env
+    from jaxrobo_ros.bridge import HERE, SONARS
 
     rospy = get()
     cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
@@ -342,11 +416,18 @@ def test_drone_node_builds_the_training_observation_from_messages(ros, goto_expo
             o.pose.pose.orientation.w, o.pose.pose.orientation.z = np.cos(yaw / 2), np.sin(yaw / 2)
             o.twist.twist.linear.z = vz
             pubs["odom"].publish(o)
-            assert commands.wait(k + 1, timeout=10), log(policy)
+            # the policy's commands: each action's Twist moves; a zero one is the watchdog's hold, which a machine
+            # slow enough to leave the node a second without readings between two of these sends
+            acted = lambda: [c for c in commands.got  # noqa: E731
+                             if any((c.linear.x, c.linear.y, c.linear.z, c.angular.z))]
+            end = time.monotonic() + 10
+            while len(acted()) < k + 1 and time.monotonic() < end:
+                commands.wait(len(commands.got) + 1, timeout=0.1)
+            assert len(acted()) == k + 1, log(policy)
             quat = [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
             obs = port.observation(pos, quat, vz, np.asarray(sonars, np.float32).astype(np.float64), goal, empty)
             want = port.command(runner(obs))[1]
-            c = commands.got[k]
+            c = acted()[k]
             assert np.allclose([c.linear.x, c.linear.y, c.linear.z, c.angular.z], want), (k, c, want)
     finally:
         stop(policy)
@@ -398,6 +479,34 @@ def test_up_starts_master_sim_and_policy_and_stops_them(ros, cartpole_export):
 
 
 @needs_ros
+@pytest.mark.skipif(shutil.which("roslaunch") is None, reason="roslaunch is not on PATH: apt-get install "
+                    "python3-roslaunch (docs/ros.md)")
+def test_roslaunch_file_starts_sim_and_policy(ros, cartpole_export):
+    """The shipped launch file, by its path, on the fixture's master: the sim's episodes are flown by the policy's
+    commands (one per state, as in-process), then the sim ends the launch."""
+    from std_msgs.msg import Float64
+
+    import jaxrobo_ros
+
+    package = os.path.dirname(jaxrobo_ros.__file__)
+    commands = Listener("/cartpole_v0/foot_joint_velocity_controller/command", Float64)
+    env = dict(ros.env, ROS_PACKAGE_PATH=package, JAXROBO_PYTHON=sys.executable)
+    port = ros.env["ROS_MASTER_URI"].rsplit(":", 1)[1]
+    try:
+        r = subprocess.run(["roslaunch", "-p", port, os.path.join(package, "jaxrobo.launch"),
+                            f"export:={cartpole_export}", "episodes:=2", "lockstep:=true", "seed:=4"], env=env,
+                           capture_output=True, text=True, timeout=BOUND, cwd=ROOT)
+    finally:
+        commands.sub.unregister()
+    out = r.stdout + r.stderr
+    steps = sum(e["length"] for e in in_process(cartpole_export, 2, 4))
+    assert "jaxrobo ros sim: 2 episodes" in out and "jaxrobo ros policy: CartPoleStayUp-v0" in out, out
+    assert f"jaxrobo ros policy: {steps} commands" in out, (steps, out)
+    assert len(commands.got) >= steps, (len(commands.got), steps)
+    assert "Traceback" not in out, out
+
+
+@needs_ros
 def test_seed_style_qlearning_against_the_sim_improves(ros):
     sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "0", name="ql_sim")
     out = ros.tmp / "ql.json"
@@ -414,11 +523,12 @@ def test_seed_style_qlearning_against_the_sim_improves(ros):
 
 def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
     from jaxrobo.cli import main
-    from jaxrobo.ros import system
+    from jaxrobo_ros import policy_node, system
 
     monkeypatch.setattr(system, "unavailable_reason", lambda: system.INSTALL)
-    for args in (["ros", "policy", "somewhere"], ["ros", "sim", "CartPoleStayUp-v0"], ["ros", "up", "somewhere"]):
-        assert main(args) == 2
+    for run, args in ((main, ["ros", "policy", "somewhere"]), (main, ["ros", "sim", "CartPoleStayUp-v0"]),
+                      (main, ["ros", "up", "somewhere"]), (policy_node.main, ["somewhere"])):
+        assert run(args) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "apt-get install ros-core python3-rospy" in err, err
 
@@ -434,17 +544,40 @@ def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):
 def test_topic_files_are_checked_field_by_field(tmp_path, edit, says):
     import yaml
 
-    from jaxrobo.core.config import ConfigError
-    from jaxrobo.ros.bridge import HERE, load_topics
+    from jaxrobo_ros.bridge import HERE, load_topics
+    from jaxrobo_ros.system import SetupError
 
     cfg = yaml.safe_load(open(os.path.join(HERE, "topics", "quadcopter.yaml")))
     assert load_topics("quadcopter")["topics"]["cmd_vel"] == "/cmd_vel"
     edit(cfg)
     path = tmp_path / "topics.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    with pytest.raises(ConfigError) as err:
+    with pytest.raises(SetupError) as err:
         load_topics("quadcopter", str(path))
     assert says in str(err.value) and str(path) in str(err.value)
     path.write_text("[not, a, mapping")
-    with pytest.raises(ConfigError, match="cannot be read as YAML"):
+    with pytest.raises(SetupError, match="cannot be read as YAML"):
         load_topics("quadcopter", str(path))
+
+
+@pytest.mark.parametrize("edit,says", [
+    (lambda r: r.__setitem__("family", "arm"), "robot: family='arm': expected one of quadcopter, cartpole"),
+    (lambda r: r.__setitem__("period", -1), "robot: period=-1: expected a number in [1e-06, 60.0]"),
+    (lambda r: r.__setitem__("steps", [0.1, None, 0.2, 0.3]), "robot: steps: expected finite numbers of shape [n]"),
+    (lambda r: r.pop("vmax"), "robot: no field 'vmax'"),
+    (lambda r: r.__setitem__("round_obs", "no"), "robot: round_obs='no': expected true or false"),
+    (lambda r: r.__setitem__("steps", [0.1, -0.1]), "robot: a cartpole with 2 actions does not take the actions"),
+])
+def test_robot_sections_are_checked_field_by_field(cartpole_export, tmp_path, edit, says):
+    """policy.json's robot section is read back as hostile: the node refuses it in one line naming the field."""
+    from jaxrobo_ros.policy_node import load_export
+    from jaxrobo_ros.system import SetupError
+
+    bad = tmp_path / "bad"
+    shutil.copytree(cartpole_export, bad)
+    meta = json.loads((bad / "policy.json").read_text())
+    edit(meta["robot"])
+    (bad / "policy.json").write_text(json.dumps(meta))
+    with pytest.raises(SetupError) as err:
+        load_export(str(bad))
+    assert says in str(err.value) and str(bad / "policy.json") in str(err.value), str(err.value)

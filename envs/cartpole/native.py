@@ -7,7 +7,9 @@ the command ``max_command * clip(a, -1, 1)`` itself; the command is the actuator
 ``running_step / timestep`` ``mj_step`` calls, the observation is the joint sensors cast to float32 (rounded to 0.1 with ``round_obs``), the
 episode terminates when the cart or the pole leaves its limits and is cut at ``max_episode_steps``. Success: the
 pole stayed up for the whole horizon. Every number comes from the task object the run built (its options and
-params) and its compiled model; nothing here calls JAX.
+params) and its compiled model; nothing here calls JAX. The observation and the command are
+:class:`jaxrobo.api.numpy_policy.CartPoleIO`'s, the robot side an export carries (``policy.json``'s ``robot``,
+:meth:`NativeCartPole.robot_section`): the port and an exported policy compute them with the same code.
 """
 from __future__ import annotations
 
@@ -16,29 +18,39 @@ from typing import Any, Callable
 import numpy as np
 
 from envs.cartpole.stay_up import ACTION_STEPS
-from jaxrobo.api import NativeSim
+from jaxrobo.api import NativeSim, numpy_policy
 
 
 class NativeCartPole(NativeSim):
     """One cart-pole in native MuJoCo with the task's action mapping, observation and termination."""
 
-    def __init__(self, env: Any, params: Any = None):
+    def __init__(self, env: Any, params: Any = None, start_command: float = 0.0):
+        """``start_command``: the cart command an episode starts from (the discrete task's reset draws it; what
+        :meth:`robot_section` records for a policy driving a robot)."""
         p = env.default_params if params is None else params
         o = env.options
         super().__init__(env.robot.sim)
-        self.continuous = hasattr(env.action_space(), "low")  # a Box: the action is the command
-        if self.continuous:
-            self.max_command = float(p.max_command)
+        continuous = hasattr(env.action_space(), "low")  # a Box: the action is the command
+        c = {"family": "cartpole", "period": float(self.n_substeps * self.model.opt.timestep),
+             "continuous": continuous, "round_obs": bool(getattr(o, "round_obs", False)),
+             "start_command": float(start_command)}
+        if continuous:
+            c["max_command"] = float(p.max_command)
         else:
-            self.steps = np.asarray(ACTION_STEPS[: o.n_actions], np.float64) * float(p.pos_step)
-            self.velocity = o.control_type == "velocity"
-            self.vmax = float(p.max_base_velocity)
-        self.round_obs = bool(getattr(o, "round_obs", False))
+            c.update(steps=(np.asarray(ACTION_STEPS[: o.n_actions], np.float64) * float(p.pos_step)).tolist(),
+                     velocity=o.control_type == "velocity", vmax=float(p.max_base_velocity))
+        self.constants = c
+        self.io = numpy_policy.CartPoleIO(c)
+        self.continuous = continuous
         self.x_lim = (float(p.min_base_pose_x), float(p.max_base_pose_x))
         self.angle_lim = (float(p.min_pole_angle), float(p.max_pole_angle))
         self.horizon = int(p.max_episode_steps)
         r = env.robot
         self.idx = (r.cart_q, r.cart_v, r.pole_q, r.pole_v)
+
+    def robot_section(self) -> dict:
+        """``policy.json``'s ``robot``: what a policy driving the cart-pole needs of the task (plain JSON)."""
+        return dict(self.constants)
 
     def joints(self) -> np.ndarray:
         """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` (float64): the joint sensors."""
@@ -48,8 +60,7 @@ class NativeCartPole(NativeSim):
 
     def observation(self, joints) -> np.ndarray:
         """The task's observation from the joint readings (what the ROS policy node builds from JointState)."""
-        obs = np.asarray(joints, np.float64).astype(np.float32)
-        return np.round(obs, 1) if self.round_obs else obs
+        return self.io.observation(joints)
 
     def observe(self) -> np.ndarray:
         return self.observation(self.joints())
@@ -57,12 +68,7 @@ class NativeCartPole(NativeSim):
     def command(self, action: Any, command: float) -> tuple[Any, float]:
         """``(action as recorded, new cart command)``: a discrete action adds its step to the last ``command``
         (clipped under velocity control); a continuous one is ``max_command * clip(a, -1, 1)``."""
-        if self.continuous:
-            a = np.reshape(np.asarray(action, np.float64), -1)[:1]
-            return a, self.max_command * min(max(float(a[0]), -1.0), 1.0)
-        a = int(action)
-        command = command + self.steps[a]
-        return a, (min(max(command, -self.vmax), self.vmax) if self.velocity else command)
+        return self.io.command(action, command)
 
     def terminated(self, obs: np.ndarray) -> bool:
         """The cart or the pole out of its limits (on the observation, as the task tests it)."""

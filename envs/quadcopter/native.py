@@ -8,7 +8,9 @@ inverse mixing matrix, clipped to the motor limits) run before every ``mj_step``
 ``goal_clear`` (exact ray tests against the ground and the episode's obstacles), and the outcome (arrival, crash
 into the ground or an obstacle, leaving the workspace, altitude and inclination limits). Every constant is read
 from the task object the run built (its options, params and robot: mass, inertia, mixing, gains, all derived from
-the MJCF) and the model is the robot's own compiled ``MjModel``; nothing here calls JAX.
+the MJCF) and the model is the robot's own compiled ``MjModel``; nothing here calls JAX. The observation and the
+command are :class:`jaxrobo.api.numpy_policy.QuadcopterIO`'s, the robot side an export carries (``policy.json``'s
+``robot``, :meth:`NativeGoto.robot_section`): the port and an exported policy compute them with the same code.
 """
 from __future__ import annotations
 
@@ -18,71 +20,7 @@ from typing import Any, Callable
 import numpy as np
 
 from envs.quadcopter.robot import _ACTION_FIXED, _ACTION_SCALE, _INF, _PARALLEL, BOX, SONAR_RAYS
-from jaxrobo.api import NativeSim
-
-
-# ---- pose and geometry (numpy ports of envs.quadcopter.robot) --------------------------------------------
-def euler_from_quat(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array([math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
-                     math.asin(min(max(2 * (w * y - z * x), -1.0), 1.0)),
-                     math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))])
-
-
-def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def _safe_inv(d: np.ndarray) -> np.ndarray:
-    d = np.asarray(d, np.float64)
-    return 1.0 / np.where(np.abs(d) < _PARALLEL, np.where(d < 0, -_PARALLEL, _PARALLEL), d)
-
-
-def ray_ground(origin: np.ndarray, direction: np.ndarray) -> float:
-    t = -origin[2] * float(_safe_inv(direction[2]))
-    if direction[2] < -_PARALLEL or origin[2] <= 0:
-        return max(t, 0.0) * float(origin[2] > 0)
-    return _INF
-
-
-def ray_box(origin, direction, center, half) -> float:
-    inv = _safe_inv(direction)
-    t1, t2 = (center - half - origin) * inv, (center + half - origin) * inv
-    parallel = np.abs(direction) < _PARALLEL
-    in_slab = np.abs(origin - center) <= half
-    t_near = np.max(np.where(parallel, np.where(in_slab, -_INF, _INF), np.minimum(t1, t2)))
-    t_far = np.min(np.where(parallel, np.where(in_slab, _INF, -_INF), np.maximum(t1, t2)))
-    return max(t_near, 0.0) if (t_near <= t_far and t_far >= 0) else _INF
-
-
-def ray_cylinder(origin, direction, center, radius, half_height) -> float:
-    o = origin - center
-    a = direction[0] ** 2 + direction[1] ** 2
-    b = 2 * (o[0] * direction[0] + o[1] * direction[1])
-    c = o[0] ** 2 + o[1] ** 2 - radius**2
-    if c <= 0 and abs(o[2]) <= half_height:
-        return 0.0
-    disc = b * b - 4 * a * c
-    t_side = (-b - math.sqrt(max(disc, 0.0))) / (2 * max(a, 1e-12))
-    side_ok = a > 1e-12 and disc >= 0 and t_side >= 0 and abs(o[2] + t_side * direction[2]) <= half_height
-    t = t_side if side_ok else _INF
-    if abs(direction[2]) > _PARALLEL:
-        inv_z = float(_safe_inv(direction[2]))
-        for cap in ((half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z):
-            xy = o[:2] + cap * direction[:2]
-            if cap >= 0 and xy @ xy <= radius**2:
-                t = min(t, cap)
-    return t
-
-
-def ray_obstacles(origin, direction, obstacles: dict) -> float:
-    t = _INF
-    for kind, center, size, active in zip(obstacles["kind"], obstacles["center"], obstacles["size"],
-                                          obstacles["active"]):
-        if active:
-            t = min(t, ray_box(origin, direction, center, size) if kind == BOX
-                    else ray_cylinder(origin, direction, center, size[0], size[2]))
-    return t
+from jaxrobo.api import NativeSim, numpy_policy
 
 
 def point_obstacle_distance(p, obstacles: dict) -> float:
@@ -111,11 +49,21 @@ class NativeGoto(NativeSim):
         self.p = {k: float(getattr(p, k)) for k in (
             "speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius", "sonar_range")}
         self.horizon = int(p.max_episode_steps)
+        names = ("progress_reward", "step_cost", "altitude_cost", "arrival_bonus", "crash_penalty")
+        self.r = {k: float(getattr(p, k)) for k in names + (("heading_reward", "climb_reward") if
+                                                             "goal_clear" in env.observation_space().names else ())}
         self.v2 = "goal_clear" in env.observation_space().names
         self.continuous = hasattr(env.action_space(), "low")  # GotoTwist: the action is the Twist
+        c = {"family": "quadcopter", "period": float(self.n_substeps * self.model.opt.timestep),
+             "continuous": self.continuous, "v2": self.v2, "speed_value": self.p["speed_value"],
+             "sonar_range": self.p["sonar_range"], "box_kind": int(BOX), "parallel": float(_PARALLEL),
+             "inf": float(_INF)}
         if self.v2:
-            self.grow = float(p.drone_radius) + float(p.clear_margin)
-            self.dz_lead = float(getattr(p, "dz_lead", 0.0))
+            c.update(dz_lead=float(getattr(p, "dz_lead", 0.0)), grow=float(p.drone_radius) + float(p.clear_margin))
+        if not self.continuous:
+            c["actions"] = (_ACTION_SCALE.astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED).tolist()
+        self.constants = c
+        self.io = numpy_policy.QuadcopterIO(c)
         c = r.control  # the controller's constants (envs.quadcopter.dynamics.ControllerConstants)
         self.gains, self.g, self.mass = r.gains, float(c.g), float(c.mass)
         self.inertia = np.asarray(c.inertia, np.float64)
@@ -128,7 +76,7 @@ class NativeGoto(NativeSim):
         """Twist -> rotor thrusts (N): :meth:`envs.quadcopter.robot.Quadcopter.controller` in float64."""
         k, g = self.gains, self.g
         q, v = self.data.qpos, self.data.qvel
-        roll, pitch, yaw = euler_from_quat(q[3:7])
+        roll, pitch, yaw = numpy_policy.euler_from_quat(q[3:7])
         omega = v[3:6]
         vz_cmd = command[2]
         if self.min_altitude > 0:
@@ -149,34 +97,26 @@ class NativeGoto(NativeSim):
         return np.clip(self.unmix @ np.concatenate([[thrust], torque]), self.ctrl_low, self.ctrl_high)
 
     # ---- task -------------------------------------------------------------------------------------------
+    def ray_ground(self, origin: np.ndarray, direction: np.ndarray) -> float:
+        t = -origin[2] * float(self.io.safe_inv(direction[2]))
+        if direction[2] < -_PARALLEL or origin[2] <= 0:
+            return max(t, 0.0) * float(origin[2] > 0)
+        return _INF
+
     def sonars(self, obstacles: dict) -> list[float]:
         """The four level sonars (forward, left, right, down; m): rays against the ground and the obstacles."""
-        pos, yaw = self.data.qpos[:3], euler_from_quat(self.data.qpos[3:7])[2]
+        pos, yaw = self.data.qpos[:3], numpy_policy.euler_from_quat(self.data.qpos[3:7])[2]
         c, s = math.cos(yaw), math.sin(yaw)
         level = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # heading only: gimballed sonars
         rng = self.p["sonar_range"]
-        return [min(ray_ground(pos, d), ray_obstacles(pos, d, obstacles), rng)
+        return [min(self.ray_ground(pos, d), self.io.ray_obstacles(pos, d, obstacles), rng)
                 for d in SONAR_RAYS.astype(np.float64) @ level.T]
 
     def observation(self, pos: np.ndarray, quat: np.ndarray, vz: float, sonars, goal: np.ndarray,
                     obstacles: dict) -> np.ndarray:
         """The task's observation from the drone's readings: position (m), orientation quaternion ``(w, x, y, z)``,
-        vertical velocity (m/s), the four sonars (m), and the goal and obstacles (what the ROS policy node builds
-        from its topics, :mod:`jaxrobo.ros.bridge`)."""
-        pos = np.array(pos, np.float64)
-        delta = goal - pos
-        bearing = wrap_angle(math.atan2(delta[1], delta[0]) - euler_from_quat(quat)[2])
-        obs = [float(np.linalg.norm(delta)), bearing, delta[2], *sonars]
-        if self.v2:
-            obs[2] -= self.dz_lead * float(vz)  # goal_dz where the climb stops (goto_v2._get_obs)
-            flat = np.array([delta[0], delta[1], 0.0])
-            dist = float(np.linalg.norm(flat))
-            direction = flat / max(dist, 1e-6)
-            grown = dict(obstacles, size=obstacles["size"] + np.array([self.grow, self.grow, 0.0]))
-            ray = ray_obstacles(pos, direction, grown)
-            rng = self.p["sonar_range"]
-            obs.append(min(ray, rng) if ray < dist else rng)
-        return np.asarray(obs).astype(np.float32)
+        vertical velocity (m/s), the four sonars (m), and the goal and obstacles."""
+        return self.io.observation(pos, quat, vz, sonars, goal, obstacles)
 
     def observe(self, goal: np.ndarray, obstacles: dict) -> np.ndarray:
         q = self.data.qpos
@@ -185,26 +125,49 @@ class NativeGoto(NativeSim):
     def command(self, action: Any) -> tuple[Any, np.ndarray]:
         """``(action as recorded, Twist [vx, vy, vz, yaw_rate])`` of a policy's action (heading frame, m/s, rad/s):
         a discrete action's seed Twist at ``speed_value``, or GotoTwist's ``speed_value * clip(a, -1, 1)``."""
-        if self.continuous:
-            a = np.clip(np.reshape(np.asarray(action, np.float64), -1)[:4], -1.0, 1.0)
-            return a, self.p["speed_value"] * a
-        a = int(action)
-        return a, _ACTION_SCALE[a].astype(np.float64) * self.p["speed_value"] + _ACTION_FIXED[a]
+        return self.io.command(action)
+
+    def robot_section(self) -> dict:
+        """``policy.json``'s ``robot``: what a policy driving the drone needs of the task (plain JSON)."""
+        return dict(self.constants)
 
     def outcome(self, goal: np.ndarray, obstacles: dict) -> tuple[bool, bool]:
         p = self.p
-        pos, rpy = self.data.qpos[:3], euler_from_quat(self.data.qpos[3:7])
+        pos, rpy = self.data.qpos[:3], numpy_policy.euler_from_quat(self.data.qpos[3:7])
         failed = (pos[2] <= p["drone_radius"] or point_obstacle_distance(pos, obstacles) <= p["drone_radius"]
                   or abs(pos[0]) > p["workspace"] or abs(pos[1]) > p["workspace"] or pos[2] > p["max_altitude"]
                   or abs(rpy[0]) >= p["max_incl"] or abs(rpy[1]) >= p["max_incl"])
         arrived = bool(np.linalg.norm(goal - pos) < p["goal_tolerance"]) and not failed
         return arrived, bool(failed)
 
+    def reward(self, obs: np.ndarray, prev: dict, arrived: bool, failed: bool) -> tuple[float, dict]:
+        """The task's reward of the step that led to ``obs`` (its float32 observation; the drone where the step
+        left it), as :meth:`envs.quadcopter.goto.QuadcopterGoto._compute_reward` (and v2's shaping) computes it,
+        and the potentials it leaves for the next step. ``prev``: ``dist`` (and v2's ``bearing``, ``dz``), the
+        task variables ``prev_dist`` (``prev_bearing``, ``prev_dz``): at an episode's start, its reset's."""
+        r = self.r
+        dist = float(obs[0])
+        reward = (r["progress_reward"] * (prev["dist"] - dist) - r["step_cost"] - r["altitude_cost"] * self.data.qpos[2]
+                  + (r["arrival_bonus"] if arrived else 0.0) - (r["crash_penalty"] if failed else 0.0))
+        nxt = {"dist": dist}
+        if self.v2:
+            bearing, dz = abs(float(obs[1])), abs(float(obs[2]))
+            reward += r["heading_reward"] * (prev["bearing"] - bearing) + r["climb_reward"] * (prev["dz"] - dz)
+            nxt.update(bearing=bearing, dz=dz)
+        return float(reward), nxt
+
+    def potentials(self, task: Any) -> dict:
+        """The reward's potentials at an episode's start: its reset's task variables (``prev_*``)."""
+        out = {"dist": float(np.asarray(task.prev_dist))}
+        if self.v2:
+            out.update(bearing=float(np.asarray(task.prev_bearing)), dz=float(np.asarray(task.prev_dz)))
+        return out
+
     def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
                 horizon: int | None = None) -> dict[str, Any]:
         """One flight from ``(qpos, qvel)`` to the goal among the obstacles of ``task`` (one episode's task
         variables as host arrays: ``goal``, ``obstacles.kind/center/size/active``): ``length``, ``success``
-        (arrived), ``crashed``, ``actions``, ``obs`` and ``pos`` per step."""
+        (arrived), ``crashed``, ``return`` (the task's reward summed), ``actions``, ``obs`` and ``pos`` per step."""
         horizon = self.horizon if horizon is None else int(horizon)
         goal = np.asarray(task.goal, np.float64)
         o = task.obstacles
@@ -214,6 +177,7 @@ class NativeGoto(NativeSim):
         obs = self.observe(goal, obstacles)
         seen, actions, pos = [obs], [], [self.data.qpos[:3].copy()]
         arrived = failed = False
+        prev, ret = self.potentials(task), 0.0
         for _ in range(horizon):
             a, command = self.command(policy(obs))
             self.advance(lambda: self.controller(command))  # the cascade runs on the state before every mj_step
@@ -222,8 +186,10 @@ class NativeGoto(NativeSim):
             seen.append(obs)
             pos.append(self.data.qpos[:3].copy())
             arrived, failed = self.outcome(goal, obstacles)
+            r, prev = self.reward(obs, prev, arrived, failed)
+            ret += r
             if arrived or failed:
                 break
-        return {"length": len(actions), "success": arrived, "crashed": failed,
+        return {"length": len(actions), "success": arrived, "crashed": failed, "return": ret,
                 "actions": np.asarray(actions, np.float32 if self.continuous else np.int32), "obs": np.asarray(seen),
                 "pos": np.asarray(pos)}

@@ -20,7 +20,7 @@ import time
 
 import jaxrobo
 from jaxrobo.ros import msgs
-from jaxrobo.ros.system import rospy as import_rospy
+from jaxrobo_ros.system import rospy as import_rospy
 
 rospy = import_rospy()
 from sensor_msgs.msg import JointState  # noqa: E402

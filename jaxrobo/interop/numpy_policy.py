@@ -19,10 +19,18 @@ MuJoCo loop). It reproduces the JAX policy of the run:
 ``policy.json`` describes the file (``format``, ``kind``, the env id, the observation and action layout);
 ``policy.npz`` holds the numbers (plain arrays, loaded without pickle). A file of another format, or arrays that do
 not match the description, are refused with a ``ValueError`` naming the file.
+
+For a task with a native port (``envs/*/native.py``), ``policy.json``'s ``robot`` section holds what turns the
+robot's readings into the policy's observation and its action into the robot's command, the task's constants as
+the run configured it (:class:`QuadcopterIO`, :class:`CartPoleIO`; ``policy.io``): the control period, the action
+table, the drone's ``dz_lead``, grown obstacles and sonar range, the cart-pole's rounding and command steps. The
+native ports compute with these same classes, so a policy driving a robot (the ROS policy node) needs nothing but
+this file and the export: no JAX, no task module, no MuJoCo.
 """
 from __future__ import annotations
 
 import json
+import math
 import os
 
 import numpy as np
@@ -51,6 +59,8 @@ class Policy:
 
     def __init__(self, meta: dict, arrays: dict):
         self.meta = meta
+        #: The task's readings -> observation and action -> command (``None``: the export has no ``robot`` section)
+        self.io = task_io(meta["robot"]) if meta.get("robot") is not None else None
         self.kind = meta["kind"]
         self.obs_size = int(meta["observation_size"])
         self._a = arrays
@@ -82,6 +92,16 @@ class Policy:
         except Exception as err:  # noqa: BLE001 - any unreadable file is one error, naming it
             raise ValueError(f"{npz_path}: cannot be read as plain arrays ({type(err).__name__}: {err})") from None
         _check(meta, arrays, npz_path)
+        if meta.get("robot") is not None:
+            try:
+                io = task_io(meta["robot"])
+            except (KeyError, TypeError, ValueError) as err:
+                raise ValueError(f"{json_path}: robot: {err}") from None
+            tabular = meta["kind"] == "tabular"
+            if tabular == io.continuous or (tabular and io.n_actions != int(meta["n_actions"])):
+                raise ValueError(f"{json_path}: robot: a {io.family} with "
+                                 f"{'continuous actions' if io.continuous else f'{io.n_actions} actions'} does not "
+                                 f"take the actions of a {meta['kind']} policy")
         return cls(meta, arrays)
 
     # ---- acting -----------------------------------------------------------------------------------------
@@ -190,4 +210,179 @@ def _check(meta: dict, a: dict, where: str) -> None:
         raise ValueError(f"{where}: the description lacks {err}") from None
 
 
-__all__ = ["Policy", "FORMAT", "POLICY_NPZ", "POLICY_JSON"]
+# ---- the robot's side of the task: readings -> observation, action -> command --------------------------------
+def euler_from_quat(q) -> np.ndarray:
+    """``(roll, pitch, yaw)`` of a quaternion ``(w, x, y, z)``."""
+    w, x, y, z = q
+    return np.array([math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                     math.asin(min(max(2 * (w * y - z * x), -1.0), 1.0)),
+                     math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))])
+
+
+def wrap_angle(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _number(c: dict, key: str, low: float = -math.inf, high: float = math.inf) -> float:
+    v = c[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high:
+        raise ValueError(f"{key}={v!r}: expected a number in [{low}, {high}]")
+    return float(v)
+
+
+def _flag(c: dict, key: str) -> bool:
+    if not isinstance(c[key], bool):
+        raise ValueError(f"{key}={c[key]!r}: expected true or false")
+    return c[key]
+
+
+def _table(c: dict, key: str, width: int | None) -> np.ndarray:
+    a = np.asarray(c[key], np.float64)
+    if a.ndim != (1 if width is None else 2) or len(a) < 1 or (width is not None and a.shape[1] != width) \
+            or not np.all(np.isfinite(a)):
+        raise ValueError(f"{key}: expected finite numbers of shape [n{'' if width is None else f', {width}'}]")
+    return a
+
+
+class QuadcopterIO:
+    """QuadcopterGoto-v1/-v2 and GotoTwist-v0: the observation from the drone's readings (position, orientation,
+    vertical speed, the four sonars, the goal and the obstacles map) and the Twist of an action."""
+
+    family = "quadcopter"
+
+    def __init__(self, c: dict):
+        self.period = _number(c, "period", 1e-6, 60.0)
+        self.continuous, self.v2 = _flag(c, "continuous"), _flag(c, "v2")
+        self.speed_value = _number(c, "speed_value", 0.0)
+        self.sonar_range = _number(c, "sonar_range", 0.0)
+        self.box = int(_number(c, "box_kind"))  # the obstacles map's kind of a box (else a cylinder)
+        self.parallel, self.inf = _number(c, "parallel", 0.0), _number(c, "inf", 0.0)
+        if self.v2:
+            self.dz_lead, self.grow = _number(c, "dz_lead"), _number(c, "grow", 0.0)
+        self.actions = None if self.continuous else _table(c, "actions", 4)
+        self.n_actions = None if self.continuous else len(self.actions)
+        self.observation_size = 8 if self.v2 else 7
+
+    # ray tests against the obstacles map (box or vertical cylinder), as the robot's sonars see them
+    def safe_inv(self, d) -> np.ndarray:
+        d = np.asarray(d, np.float64)
+        p = self.parallel
+        return 1.0 / np.where(np.abs(d) < p, np.where(d < 0, -p, p), d)
+
+    def ray_box(self, origin, direction, center, half) -> float:
+        inv, inf = self.safe_inv(direction), self.inf
+        t1, t2 = (center - half - origin) * inv, (center + half - origin) * inv
+        parallel = np.abs(direction) < self.parallel
+        in_slab = np.abs(origin - center) <= half
+        t_near = np.max(np.where(parallel, np.where(in_slab, -inf, inf), np.minimum(t1, t2)))
+        t_far = np.min(np.where(parallel, np.where(in_slab, inf, -inf), np.maximum(t1, t2)))
+        return max(t_near, 0.0) if (t_near <= t_far and t_far >= 0) else inf
+
+    def ray_cylinder(self, origin, direction, center, radius, half_height) -> float:
+        o = origin - center
+        a = direction[0] ** 2 + direction[1] ** 2
+        b = 2 * (o[0] * direction[0] + o[1] * direction[1])
+        c = o[0] ** 2 + o[1] ** 2 - radius**2
+        if c <= 0 and abs(o[2]) <= half_height:
+            return 0.0
+        disc = b * b - 4 * a * c
+        t_side = (-b - math.sqrt(max(disc, 0.0))) / (2 * max(a, 1e-12))
+        side_ok = a > 1e-12 and disc >= 0 and t_side >= 0 and abs(o[2] + t_side * direction[2]) <= half_height
+        t = t_side if side_ok else self.inf
+        if abs(direction[2]) > self.parallel:
+            inv_z = float(self.safe_inv(direction[2]))
+            for cap in ((half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z):
+                xy = o[:2] + cap * direction[:2]
+                if cap >= 0 and xy @ xy <= radius**2:
+                    t = min(t, cap)
+        return t
+
+    def ray_obstacles(self, origin, direction, obstacles: dict) -> float:
+        t = self.inf
+        for kind, center, size, active in zip(obstacles["kind"], obstacles["center"], obstacles["size"],
+                                              obstacles["active"]):
+            if active:
+                t = min(t, self.ray_box(origin, direction, center, size) if kind == self.box
+                        else self.ray_cylinder(origin, direction, center, size[0], size[2]))
+        return t
+
+    def observation(self, pos, quat, vz: float, sonars, goal, obstacles: dict) -> np.ndarray:
+        """Position (m), orientation quaternion ``(w, x, y, z)``, vertical velocity (m/s), the four sonars (m),
+        the goal (m) and the obstacles (``kind``, ``center``, ``size``, ``active``) -> the task's observation."""
+        pos = np.array(pos, np.float64)
+        delta = np.asarray(goal, np.float64) - pos
+        bearing = wrap_angle(math.atan2(delta[1], delta[0]) - euler_from_quat(quat)[2])
+        obs = [float(np.linalg.norm(delta)), bearing, delta[2], *sonars]
+        if self.v2:
+            obs[2] -= self.dz_lead * float(vz)  # goal_dz where the climb stops (goto_v2._get_obs)
+            flat = np.array([delta[0], delta[1], 0.0])
+            dist = float(np.linalg.norm(flat))
+            direction = flat / max(dist, 1e-6)
+            grown = dict(obstacles, size=obstacles["size"] + np.array([self.grow, self.grow, 0.0]))
+            ray = self.ray_obstacles(pos, direction, grown)
+            obs.append(min(ray, self.sonar_range) if ray < dist else self.sonar_range)
+        return np.asarray(obs).astype(np.float32)
+
+    def command(self, action) -> tuple:
+        """``(action as recorded, Twist [vx, vy, vz, yaw_rate])`` (heading frame, m/s, rad/s): a discrete action's
+        row of the action table, or GotoTwist's ``speed_value * clip(a, -1, 1)``."""
+        if self.continuous:
+            a = np.clip(np.reshape(np.asarray(action, np.float64), -1)[:4], -1.0, 1.0)
+            return a, self.speed_value * a
+        a = int(action)
+        return a, self.actions[a].copy()
+
+
+class CartPoleIO:
+    """CartPoleStayUp and CartPoleContinuous: the observation from the joint readings, and the cart command of an
+    action (a discrete action adds its step to the last command, clipped under velocity control; a continuous one
+    is ``max_command * clip(a, -1, 1)``)."""
+
+    family = "cartpole"
+    observation_size = 4
+
+    def __init__(self, c: dict):
+        self.period = _number(c, "period", 1e-6, 60.0)
+        self.continuous, self.round_obs = _flag(c, "continuous"), _flag(c, "round_obs")
+        self.start = _number(c, "start_command")  # the command an episode starts from (the task's reset)
+        self.n_actions = None
+        if self.continuous:
+            self.max_command = _number(c, "max_command", 0.0)
+        else:
+            self.steps = _table(c, "steps", None)
+            self.n_actions = len(self.steps)
+            self.velocity = _flag(c, "velocity")
+            self.vmax = _number(c, "vmax", 0.0)
+
+    def observation(self, joints) -> np.ndarray:
+        """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` -> the task's observation."""
+        obs = np.asarray(joints, np.float64).astype(np.float32)
+        return np.round(obs, 1) if self.round_obs else obs
+
+    def command(self, action, command: float) -> tuple:
+        """``(action as recorded, new cart command)`` after the last ``command``."""
+        if self.continuous:
+            a = np.reshape(np.asarray(action, np.float64), -1)[:1]
+            return a, self.max_command * min(max(float(a[0]), -1.0), 1.0)
+        a = int(action)
+        command = command + self.steps[a]
+        return a, (min(max(command, -self.vmax), self.vmax) if self.velocity else command)
+
+
+#: The task families with a robot section, by its ``family``.
+TASK_IO = {cls.family: cls for cls in (QuadcopterIO, CartPoleIO)}
+
+
+def task_io(section: dict):
+    """The robot side of ``policy.json``'s ``robot`` section; ``ValueError`` naming the field that is wrong."""
+    if not isinstance(section, dict) or section.get("family") not in TASK_IO:
+        got = section.get("family") if isinstance(section, dict) else type(section).__name__
+        raise ValueError(f"family={got!r}: expected one of {', '.join(TASK_IO)}")
+    try:
+        return TASK_IO[section["family"]](section)
+    except KeyError as err:
+        raise ValueError(f"no field {err}") from None
+
+
+__all__ = ["Policy", "FORMAT", "POLICY_NPZ", "POLICY_JSON", "CartPoleIO", "QuadcopterIO", "TASK_IO",
+           "euler_from_quat", "task_io", "wrap_angle"]

@@ -1,5 +1,6 @@
-"""jaxrobo and ROS 1: a trained policy as a rospy node, a native-MuJoCo stand-in for Gazebo, a Gymnasium env over
-live topics (docs/ros.md).
+"""jaxrobo and ROS 1, the side that needs the task: a native-MuJoCo stand-in for Gazebo (the sim node), a Gymnasium
+env over live topics, ``jaxrobo ros up`` (docs/ros.md). The trained policy as a rospy node is the robot's side,
+:mod:`jaxrobo_ros` (no JAX).
 
 rospy is not on PyPI: it comes from the system's packages (Debian: ``apt-get install ros-core python3-rospy ...``)
 and lives under the system Python's ``dist-packages``. :func:`rospy` imports it; where it is not importable from
@@ -8,7 +9,7 @@ jaxrobo's interpreter (a virtual environment) but the system directory holds it,
 """
 from __future__ import annotations
 
-from jaxrobo.ros.system import INSTALL, RosUnavailable, rospy, unavailable_reason
+from jaxrobo_ros.system import INSTALL, RosUnavailable, rospy, unavailable_reason
 
 __all__ = ["INSTALL", "RosUnavailable", "rospy", "unavailable_reason"]
 

@@ -9,10 +9,11 @@ import sys
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="ros_command", metavar="{policy,sim,up}")
     sub.required = True
-    p = sub.add_parser("policy", help="an exported policy as a rospy node on the task's topics")
-    p.add_argument("export_dir", metavar="EXPORT_DIR", help="a directory written by `jaxrobo export`")
-    p.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo/ros/topics/<family>.yaml)")
-    p.add_argument("--stats", default=None, help="write the latency and loop-rate figures here (JSON) at exit")
+    from jaxrobo_ros import policy_node
+
+    policy_node.configure_parser(sub.add_parser(
+        "policy", help="an exported policy as a rospy node on the task's topics (no JAX: python -m "
+        "jaxrobo_ros.policy_node runs the same node without jaxrobo's command line)"))
     s = sub.add_parser("sim", help="the task's robot in native MuJoCo behind the seed's topics and /gazebo services")
     s.add_argument("env_id", metavar="ID", help="a task id with a native port (QuadcopterGoto-v2, CartPoleStayUp-v0, "
                    "...) or an export directory (its task as the run configured it)")
@@ -21,7 +22,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--seed", type=int, default=12345, help="key of the episodes' resets")
     s.add_argument("--lockstep", action="store_true", help="one control period per command (deterministic)")
     s.add_argument("--speed", type=float, default=1.0, help="x real time without --lockstep; 0: as fast as possible")
-    s.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo/ros/topics/<family>.yaml)")
+    s.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo_ros/topics/<family>.yaml)")
     s.add_argument("--results", default=None, help="write each episode's steps and success here (JSON)")
     u = sub.add_parser("up", help="master, sim and policy in one command (the sim's task: the export's)")
     u.add_argument("export_dir", metavar="EXPORT_DIR")
@@ -33,7 +34,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jaxrobo.ros.system import unavailable_reason
+    from jaxrobo_ros.system import unavailable_reason
 
     why = unavailable_reason()
     if why is not None:
@@ -43,10 +44,11 @@ def run(args: argparse.Namespace) -> int:
         print("jaxrobo ros sim: --episodes and --speed must be >= 0", file=sys.stderr)
         return 2
     from jaxrobo.core.config import ConfigError
+    from jaxrobo_ros.system import SetupError
 
     try:
         if args.ros_command == "policy":
-            from jaxrobo.ros import policy_node
+            from jaxrobo_ros import policy_node
 
             return policy_node.run(args)
         if args.ros_command == "sim":
@@ -56,6 +58,6 @@ def run(args: argparse.Namespace) -> int:
         from jaxrobo.ros import launch
 
         return launch.up(args)
-    except ConfigError as err:
+    except (ConfigError, SetupError) as err:
         print(f"jaxrobo ros {args.ros_command}: {err}", file=sys.stderr)
         return 2

@@ -19,8 +19,9 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-from jaxrobo.ros.system import rospy as import_rospy
-from jaxrobo.ros.bridge import Fault, make_bridge, make_env, ros_ids, stamp
+from jaxrobo_ros.system import rospy as import_rospy
+from jaxrobo.ros.bridge import make_bridge, make_env, ros_ids
+from jaxrobo_ros.bridge import Fault, stamp
 
 
 

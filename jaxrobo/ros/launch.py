@@ -1,6 +1,7 @@
 """``jaxrobo ros up EXPORT_DIR``: a master on localhost (``roscore -p PORT``, unless one answers there), the sim node
 of the export's task and the policy node, as child processes; Ctrl-C (or the sim finishing its ``--episodes``)
-stops them all. What roslaunch would do, without a catkin package to name the nodes by."""
+stops them all: what ``roslaunch jaxrobo_ros jaxrobo.launch`` does (the ROS package :mod:`jaxrobo_ros`), without
+roslaunch. The policy node runs as ``python -m jaxrobo_ros.policy_node`` (without JAX), as on a robot."""
 from __future__ import annotations
 
 import os
@@ -9,9 +10,8 @@ import subprocess
 import sys
 import time
 
-
 def master_up(uri: str) -> bool:
-    from jaxrobo.ros.system import rospy
+    from jaxrobo_ros.system import rospy
 
     rospy()
     import rosgraph
@@ -69,7 +69,8 @@ def up(args) -> int:
     sim = me + ["sim", args.export_dir, "--episodes", str(args.episodes), "--seed", str(args.seed), "--speed",
                 str(args.speed)] + (["--lockstep"] if args.lockstep else [])
     procs = [subprocess.Popen(sim, env=env, start_new_session=True),
-             subprocess.Popen(me + ["policy", args.export_dir], env=env, start_new_session=True)]
+             subprocess.Popen([sys.executable, "-m", "jaxrobo_ros.policy_node", args.export_dir], env=env,
+                              start_new_session=True)]
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
     rc = 0
     try:
@@ -81,3 +82,4 @@ def up(args) -> int:
     finally:
         stop(procs + [master])
     return rc
+

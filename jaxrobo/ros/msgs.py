@@ -3,7 +3,7 @@ written for them (openai_ros, a GazeboConnection) talks to the sim node unchange
 ``/gazebo/*`` services) and ``openai_ros/RLExperimentInfo`` (``/openai/reward``), generated with genpy."""
 from __future__ import annotations
 
-from jaxrobo.ros.system import rospy
+from jaxrobo_ros.system import rospy
 
 rospy()  # puts the system's genpy on the path where needed
 import genpy  # noqa: E402

@@ -8,8 +8,9 @@ episodes; Gazebo has no such mode), otherwise it runs at ``--speed`` x real time
 
 Episodes start from the task's own resets (``jaxrobo.task.rollout.rollout_start`` with key ``--seed``: episode ``i``
 is the ``i``-th reset of ``jaxrobo eval``/``scripts/sim2sim.py`` with that key). With ``--episodes N`` the sim runs
-``N`` episodes back to back (a new one when the task ends one or at the horizon), publishes each one's reward on
-``/openai/reward``, writes ``--results`` and exits; without it episodes change only on ``/gazebo/reset_simulation``
+``N`` episodes back to back (a new one when the task ends one or at the horizon), publishes each one's return on
+``/openai/reward`` (the task's own reward summed over the episode, as openai_ros does: the cart-pole's 1 per step,
+the drone's shaped reward of ``envs/quadcopter/goto*.py``), writes ``--results`` and exits; without it episodes change only on ``/gazebo/reset_simulation``
 or ``/gazebo/reset_world`` (as a seed training script drives Gazebo). ``/gazebo/pause_physics`` and
 ``/gazebo/unpause_physics`` stop and resume time.
 """
@@ -23,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxrobo.ros.system import rospy as import_rospy
+from jaxrobo_ros.system import rospy as import_rospy
 from jaxrobo.core.config import ConfigError
 from jaxrobo.ros.bridge import make_bridge, make_env
 

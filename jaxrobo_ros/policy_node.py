@@ -1,32 +1,41 @@
-"""``jaxrobo ros policy EXPORT_DIR``: an exported policy (``jaxrobo export``, run by its numpy runner) as a rospy
-node on the task's topics (``topics/<family>.yaml``).
+"""``python -m jaxrobo_ros.policy_node EXPORT_DIR`` (or ``jaxrobo ros policy EXPORT_DIR``): an exported policy as a
+rospy node on the task's topics (``topics/<family>.yaml``), from the export alone: the export's own numpy runner
+(``jaxrobo_policy.py``, loaded from the directory) and its ``robot`` section (the task's control period,
+observation constants and action table). numpy, yaml and rospy only: JAX is not imported.
 
 It acts once per control period of sim or sensor time: when the primary reading (odometry, joint states) of a new
 period has arrived together with every other reading it needs within ``max_age`` of it, it builds the task's
-observation with the task's native port (:mod:`jaxrobo.ros.bridge`: the training's numbers, units and frames),
-runs the policy and publishes the command, from the callback of the message that completed the set (no queue
-between message in and command out). A missing, stale or non-finite reading, or none at all for ``stale_after``
+observation with the export's ``robot`` section (:mod:`jaxrobo_ros.bridge`: the training's numbers, units and
+frames, computed by the same code as the task's native port), runs the policy and publishes the command, from the
+callback of the message that completed the set (no queue between message in and command out). A missing, stale or non-finite reading, or none at all for ``stale_after``
 wall-clock seconds (a sim or sensor that died), stops the robot: a zero command and one warning saying why, repeated
 while the cause lasts; the node keeps running and acts again once fresh readings arrive. A reading stamped before
 the last one (Gazebo's ``reset_simulation`` rewinds time) or a new ``/jaxrobo/episode`` starts a new episode (the
-cart-pole's accumulated command returns to its start value). JAX is imported once at start-up (the task's
-constants); the loop calls numpy only.
+cart-pole's accumulated command returns to its start value).
+
+An export without a ``robot`` section (written before exports carried one, or of a task without a native port)
+is refused with one line saying to export it again.
 """
 from __future__ import annotations
 
+import argparse
+import importlib.util
 import json
+import os
 import signal
-from collections import deque
 import sys
 import threading
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
 
-from jaxrobo.core.config import ConfigError
-from jaxrobo.ros.system import rospy as import_rospy
-from jaxrobo.ros.bridge import Fault, make_bridge, make_env, stamp
+from jaxrobo_ros.bridge import Fault, make_bridge, stamp
+from jaxrobo_ros.system import SetupError, rospy as import_rospy
+
+#: The numpy runner ``jaxrobo export`` copies into every export.
+RUNNER = "jaxrobo_policy.py"
 
 #: Exit status after the master was restarted under the node (a supervisor's cue to start it again).
 EXIT_MASTER_LOST = 3
@@ -36,18 +45,8 @@ HISTORY = 100_000
 
 class PolicyNode:
     def __init__(self, export_dir: str, topics: str | None = None):
-        from jaxrobo.interop.numpy_policy import Policy
-
-        try:
-            self.policy = Policy.load(export_dir)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
-        self.env = make_env(self.policy.meta)
-        self.b = make_bridge(self.env, topics)
-        n = self.env.observation_space().shape[0]
-        if n != self.policy.obs_size:
-            raise ConfigError(f"{export_dir}: the policy takes {self.policy.obs_size} observations, "
-                              f"{self.policy.meta['env_id']} gives {n}")
+        self.policy = load_export(export_dir)
+        self.b = make_bridge(self.policy.io, topics)
         self.rospy = import_rospy()
         self.latest: dict[str, Any] = {}
         self.lock = threading.Lock()
@@ -106,7 +105,7 @@ class PolicyNode:
             g = np.asarray(g, np.float64).reshape(3)
             assert np.all(np.isfinite(g))
         except (TypeError, ValueError, AssertionError):
-            raise ConfigError(f"parameter {name}: expected [x, y, z] (m), got {g!r}") from None
+            raise SetupError(f"parameter {name}: expected [x, y, z] (m), got {g!r}") from None
         return g
 
     # ---- acting (rospy's callback threads) -------------------------------------------------------------------
@@ -212,10 +211,57 @@ class PolicyNode:
         time.sleep(0.1)  # let the last messages leave
 
 
+def load_export(export_dir: str) -> Any:
+    """The policy of ``export_dir`` by the export's own runner, with its ``robot`` side (``policy.io``);
+    :class:`SetupError` in one line where the directory is not such an export."""
+    path = os.path.join(export_dir, RUNNER)
+    again = f"export it again (jaxrobo export RUN --out {export_dir} --overwrite)"
+    if not os.path.isfile(path):
+        raise SetupError(f"{export_dir}: no {RUNNER}: not a directory written by jaxrobo export")
+    try:
+        spec = importlib.util.spec_from_file_location(f"jaxrobo_policy_{abs(hash(os.path.abspath(path)))}", path)
+        runner = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(runner)
+        policy = runner.Policy.load(export_dir)
+    except ValueError as err:
+        raise SetupError(str(err)) from None
+    except Exception as err:  # noqa: BLE001 - a runner that does not even load: one line, naming it
+        raise SetupError(f"{path}: cannot be loaded ({type(err).__name__}: {err}); {again}") from None
+    if getattr(policy, "io", None) is None:
+        env_id = policy.meta.get("env_id")
+        raise SetupError(f"{export_dir}: policy.json has no robot section (the task's observation constants, "
+                         f"control period and action table) for {env_id}: exported before exports carried one, "
+                         f"or a task without a native port; {again}")
+    if policy.io.observation_size != policy.obs_size:
+        raise SetupError(f"{export_dir}: the policy takes {policy.obs_size} observations, its robot section "
+                         f"({policy.io.family}) gives {policy.io.observation_size}")
+    return policy
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("export_dir", metavar="EXPORT_DIR", help="a directory written by `jaxrobo export`")
+    p.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo_ros/topics/<family>.yaml)")
+    p.add_argument("--stats", default=None, help="write the latency and loop-rate figures here (JSON) at exit")
+
+
+def main(argv=None) -> int:
+    """``python -m jaxrobo_ros.policy_node``: the node without the jaxrobo command line (and without JAX)."""
+    from jaxrobo_ros.system import unavailable_reason
+
+    p = argparse.ArgumentParser(prog="python -m jaxrobo_ros.policy_node", description=__doc__.split("\n\n")[0])
+    configure_parser(p)
+    args = p.parse_args(argv)
+    why = unavailable_reason()
+    if why is not None:
+        print(f"jaxrobo ros policy: {why}", file=sys.stderr)
+        return 2
+    return run(args)
+
+
 def run(args) -> int:
     try:
         node = PolicyNode(args.export_dir, args.topics)
-    except ConfigError as err:
+    except SetupError as err:
         print(f"jaxrobo ros policy: {err}; nothing was started", file=sys.stderr)
         return 2
     stop = threading.Event()
@@ -223,7 +269,7 @@ def run(args) -> int:
         signal.signal(sig, lambda *_: stop.set())
     try:
         node.start()
-    except ConfigError as err:
+    except SetupError as err:
         print(f"jaxrobo ros policy: {err}", file=sys.stderr)
         return 2
     meta = node.policy.meta
@@ -243,3 +289,7 @@ def run(args) -> int:
           flush=True)
     node.rospy.signal_shutdown("done")
     return 0 if node.master_lost is None else EXIT_MASTER_LOST
+
+
+if __name__ == "__main__":
+    sys.exit(main())

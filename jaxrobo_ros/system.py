@@ -20,6 +20,11 @@ class RosUnavailable(RuntimeError):
     """rospy (or a message package) cannot be imported; the message says how to install it."""
 
 
+class SetupError(ValueError):
+    """An export, topic file or parameter the node cannot work with: one line saying which and why; nothing is
+    started (the commands exit with 2)."""
+
+
 def rospy():
     """The ``rospy`` module, importing the system's copy where the running interpreter has none."""
     try:

@@ -1,0 +1,228 @@
+"""What ROS carries for each task family, on the robot's side: topics (from ``topics/<family>.yaml``), the readings
+the policy needs, the observation built from them and the command message of an action (by the export's own
+``robot`` section: :class:`numpy_policy.QuadcopterIO` / :class:`numpy_policy.CartPoleIO`, the same code the native
+ports compute with). numpy, yaml and the ROS message packages only: no JAX, no task module, no MuJoCo.
+
+A reading is refused (:class:`Fault`, the node stops the robot) when it is missing, older than ``max_age`` against
+the primary reading (the odometry, the joint states) or not finite."""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+import yaml
+
+from jaxrobo_ros.system import SetupError
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+TOPIC_KEYS = {"quadcopter": ("cmd_vel", "takeoff", "land", "odom", "gt_pose", "gt_vel", "imu", "sonar_forward",
+                             "sonar_left", "sonar_right", "sonar_down", "goal", "obstacles", "episode"),
+              "cartpole": ("joint_states", "command", "episode")}
+SONARS = ("sonar_forward", "sonar_left", "sonar_right", "sonar_down")
+
+
+class Fault(Exception):
+    """Why the policy cannot act now (a missing, stale or non-finite reading): stop the robot, say this.
+    ``waiting``: the reading is missing or old, and may still come."""
+
+    def __init__(self, why: str, waiting: bool = False):
+        super().__init__(why)
+        self.waiting = waiting
+
+
+def load_topics(fam: str, path: str | None = None) -> dict:
+    """The topic file of ``fam`` (default ``topics/<fam>.yaml``), checked field by field."""
+    path = path or os.path.join(HERE, "topics", f"{fam}.yaml")
+    try:
+        with open(path) as f:
+            cfg = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as err:
+        raise SetupError(f"{path}: cannot be read as YAML ({err})") from None
+    if not isinstance(cfg, dict) or cfg.get("family") != fam:
+        got = cfg.get("family") if isinstance(cfg, dict) else type(cfg).__name__
+        raise SetupError(f"{path}: family={got!r}, but the policy's task is a {fam} (topics/{fam}.yaml)")
+    topics = cfg.get("topics")
+    for key in TOPIC_KEYS[fam]:
+        if not isinstance(topics, dict) or not isinstance(topics.get(key), str) or not topics[key].startswith("/"):
+            raise SetupError(f"{path}: topics.{key} must be a global topic name (a string starting with '/')")
+    for key in ("max_age", "stale_after"):
+        v = cfg.get(key)
+        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v <= 60):
+            raise SetupError(f"{path}: {key}={v!r}: must be null or a number of seconds in (0, 60]")
+    if fam == "cartpole":
+        j = cfg.get("joints")
+        if not isinstance(j, dict) or not all(isinstance(j.get(k), str) for k in ("cart", "pole")):
+            raise SetupError(f"{path}: joints.cart and joints.pole must be joint names")
+    elif cfg.get("goal_param") is not None and not isinstance(cfg["goal_param"], str):
+        raise SetupError(f"{path}: goal_param must be null or a parameter name")
+    return cfg
+
+
+def _finite(topic: str, values) -> np.ndarray:
+    a = np.asarray(values, np.float64)
+    if not np.all(np.isfinite(a)):
+        raise Fault(f"{topic}: non-finite value in the message ({a.tolist()})")
+    return a
+
+
+def stamp(msg) -> float:
+    return msg.header.stamp.to_sec()
+
+
+class Bridge:
+    """Shared by both families: the task's robot side (``io``), the control period, the topics and the freshness
+    rule."""
+
+    family: str
+    primary: str  # the reading that marks a moment (stamped; the policy acts on it)
+    sensors: tuple  # the topics the policy node subscribes to
+    command_topic: str
+    stamped: tuple  # one moment's readings
+
+    def __init__(self, io: Any, cfg: dict):
+        self.io, self.cfg = io, cfg
+        self.topics = cfg["topics"]
+        self.period = float(io.period)
+        self.max_age = float(cfg.get("max_age") or 0.5 * self.period)
+        self.stale_after = float(cfg.get("stale_after") or 1.0)
+
+    def fresh(self, latest: dict, names) -> float:
+        """The primary reading's stamp once every reading in ``names`` is there and within ``max_age`` of it."""
+        t = stamp(latest[self.primary]) if self.primary in latest else None
+        for name in names:
+            if name not in latest:
+                raise Fault(f"{self.topics[name]}: no message yet", waiting=True)
+            if t is not None and name in self.stamped and abs(stamp(latest[name]) - t) > self.max_age:
+                raise Fault(f"{self.topics[name]}: stamp {stamp(latest[name]):.3f} s is more than {self.max_age:g} "
+                            f"s from {self.topics[self.primary]}'s {t:.3f} s (stale)", waiting=True)
+        return t
+
+
+class DroneBridge(Bridge):
+    family, primary = "quadcopter", "odom"
+    sensors = ("odom", *SONARS, "goal", "obstacles", "episode")  # what the policy node subscribes to
+    command_topic = "cmd_vel"
+    stamped = ("odom", *SONARS)  # the goal keeps its episode's stamp
+
+    def __init__(self, io: Any, cfg: dict):
+        super().__init__(io, cfg)
+        self.needs = self.stamped + (() if cfg.get("goal_param") else ("goal",))
+
+    def msg_types(self):
+        from geometry_msgs.msg import PointStamped, Pose, Twist
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import Imu, Range
+        from std_msgs.msg import Empty, Float64MultiArray, Int32
+
+        return {"cmd_vel": Twist, "takeoff": Empty, "land": Empty, "odom": Odometry, "gt_pose": Pose,
+                "gt_vel": Twist, "imu": Imu, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Int32,
+                **{s: Range for s in SONARS}}
+
+    def readings(self, latest: dict, goal=None) -> dict:
+        t = self.fresh(latest, self.needs)
+        o = latest["odom"]
+        p, q, v = o.pose.pose.position, o.pose.pose.orientation, o.twist.twist.linear
+        top = self.topics
+        pos = _finite(top["odom"], [p.x, p.y, p.z])
+        quat = _finite(top["odom"], [q.w, q.x, q.y, q.z])
+        vz = float(_finite(top["odom"], [v.z])[0])
+        sonars = [float(_finite(top[s], [latest[s].range])[0]) for s in SONARS]
+        if goal is None:
+            g = latest["goal"].point
+            goal = _finite(top["goal"], [g.x, g.y, g.z])
+        obstacles = self.obstacles(latest.get("obstacles"))
+        return {"t": t, "pos": pos, "quat": quat, "vz": vz, "sonars": sonars, "goal": np.asarray(goal, np.float64),
+                "obstacles": obstacles}
+
+    def obstacles(self, msg) -> dict:
+        rows = np.zeros((0, 7)) if msg is None or not msg.data else np.asarray(msg.data, np.float64)
+        if rows.size % 7 or not np.all(np.isfinite(rows)):
+            raise Fault(f"{self.topics['obstacles']}: expected finite rows of 7 numbers, got {rows.size} values")
+        rows = rows.reshape(-1, 7)
+        return {"kind": rows[:, 0].astype(np.int32), "center": rows[:, 1:4], "size": rows[:, 4:7],
+                "active": np.ones(len(rows), bool)}
+
+    def observation(self, latest: dict, goal=None) -> np.ndarray:
+        r = self.readings(latest, goal)
+        return self.io.observation(r["pos"], r["quat"], r["vz"], r["sonars"], r["goal"], r["obstacles"])
+
+    def command_msg(self, action) -> Any:
+        _, c = self.io.command(action)
+        return self.twist(c)
+
+    def zero_msg(self) -> Any:
+        return self.twist(np.zeros(4))
+
+    def twist(self, c) -> Any:
+        from geometry_msgs.msg import Twist
+
+        m = Twist()
+        m.linear.x, m.linear.y, m.linear.z, m.angular.z = (float(x) for x in c)
+        return m
+
+    def reset_memory(self) -> None:
+        pass  # the drone's command is a function of the action alone
+
+
+class CartPoleBridge(Bridge):
+    family, primary = "cartpole", "joint_states"
+    sensors = ("joint_states", "episode")
+    command_topic = "command"
+    stamped = ("joint_states",)
+
+    def __init__(self, io: Any, cfg: dict):
+        super().__init__(io, cfg)
+        self.needs = self.stamped
+        self.start = float(io.start)  # the cart command an episode starts from (the task's reset)
+        self.command = self.start
+
+    def msg_types(self):
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64, Int32
+
+        return {"joint_states": JointState, "command": Float64, "episode": Int32}
+
+    def joints(self, msg) -> np.ndarray:
+        names = list(msg.name)
+        top = self.topics["joint_states"]
+        out = []
+        for key in ("cart", "pole"):
+            name = self.cfg["joints"][key]
+            if name not in names:
+                raise Fault(f"{top}: no joint {name!r} (joints: {names})")
+            i = names.index(name)
+            if i >= len(msg.position) or i >= len(msg.velocity):
+                raise Fault(f"{top}: joint {name!r} has no position or velocity")
+            out += [msg.position[i], msg.velocity[i]]
+        return _finite(top, out)
+
+    def readings(self, latest: dict, goal=None) -> dict:
+        t = self.fresh(latest, self.needs)
+        return {"t": t, "joints": self.joints(latest["joint_states"])}
+
+    def observation(self, latest: dict, goal=None) -> np.ndarray:
+        return self.io.observation(self.readings(latest)["joints"])
+
+    def command_msg(self, action) -> Any:
+        from std_msgs.msg import Float64
+
+        _, self.command = self.io.command(action, self.command)
+        return Float64(data=float(self.command))
+
+    def zero_msg(self) -> Any:
+        from std_msgs.msg import Float64
+
+        return Float64(data=0.0)
+
+    def reset_memory(self) -> None:
+        self.command = self.start
+
+
+#: The robot side of each family.
+BRIDGES = {b.family: b for b in (DroneBridge, CartPoleBridge)}
+
+
+def make_bridge(io: Any, topics_path: str | None = None) -> Bridge:
+    """The robot-side bridge of a task's ``io`` (an export's ``policy.io``) on the family's topics."""
+    return BRIDGES[io.family](io, load_topics(io.family, topics_path))
