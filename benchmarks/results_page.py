@@ -62,8 +62,9 @@ WHAT = {
     "scale_sweep_dist.json": "`jaxrobo sweep`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
     "default_learning_16_seeds.json": "Each tabular task's default command on 16 seeds (learning figure on fresh "
                                       "episodes)",
-    "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes after the fixed-order row sums "
-                             "(issue 42): the two-GPU rows agree with each other, not with one GPU's",
+    "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes: the same rows on each (a step "
+                             "of 64 envs a row launches the same kernels on half the rows, so the run scales "
+                             "sublinearly)",
     "summary.json": "A sweep's own summary (`bash benchmarks/multiprocess_demo.sh`)",
 }
 #: Row fields that identify a machine state or a checksum rather than a figure a reader compares.
