@@ -15,7 +15,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from envs.cartpole.stay_up import ACTION_STEPS
+from envs.cartpole.rules import ACTION_STEPS
 from jaxrobo.api import NativeSim
 
 
