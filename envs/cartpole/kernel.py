@@ -17,8 +17,9 @@ of the carried rows), :meth:`~_Program.record` (the finished episodes) and :meth
 episodes, the carry written back).
 
 It is :meth:`jaxrobo.training.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the
-same random numbers: the keys are JAX's threefry keys and the kernel hashes them as :mod:`jaxrobo.core.rng` does
-(Threefry-2x32, JAX's partitionable layout), so the draws are ``jax.random``'s own. What it shares with the task
+same random numbers: the keys are JAX's threefry keys and the kernel hashes them with :mod:`jaxrobo.core.rng`'s own
+hash (:func:`~jaxrobo.core.rng.threefry2x32`, :func:`~jaxrobo.core.rng.unit_float`; JAX's partitionable layout), so
+the draws are ``jax.random``'s own. What it shares with the task
 and what it cannot:
 
 * the physics is the simulator's own, :meth:`CartPoleSim.coordinate_step
@@ -30,8 +31,8 @@ and what it cannot:
   :data:`envs.cartpole.rules.ACTION_STEPS` (a kernel has no gather from a constant array);
 * the rest is written here because a Pallas kernel cannot run the XLA forms: parameters are scalars read once from a
   parameter vector (no pytree of params), a table row is ``n_actions`` scalars gathered by computed index (no
-  ``q[s]``), the action's table entry is a select chain (no dynamic index into a row), and the threefry hash works
-  on ``[block]`` uint32 vectors with the key words apart (no key arrays in a kernel). The reward (1 each step,
+  ``q[s]``), the action's table entry is a select chain (no dynamic index into a row), and a key is its two
+  uint32 words apart, split and folded by hashing them directly (no key arrays in a kernel). The reward (1 each step,
   0 where the NaN guard fires) is :meth:`jaxrobo.task.env.TaskEnv.step`'s guard on the task's constant reward.
 
 On a CPU (``interpret=True``, what the tests run) keys, actions, updates, resets and records follow the plain path
@@ -75,7 +76,7 @@ import numpy as np
 
 from envs.cartpole.dynamics import CartPoleSim
 from envs.cartpole.rules import command_after, fell
-from jaxrobo.api import AgentState, EnvState, JointState, randomise
+from jaxrobo.api import AgentState, EnvState, JointState, randomise, rng
 
 #: Envs per Pallas program when the plan's ``fused_block`` is None (a power of two; smaller where ``n_envs`` has
 #: fewer factors of two), one per GPU thread (``num_warps`` is ``block / 32``, 1 to 8).
@@ -83,8 +84,6 @@ from jaxrobo.api import AgentState, EnvState, JointState, randomise
 BLOCK = 32
 _MAX_BLOCK = 1024
 
-_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
-_PARITY = 0x1BD11BDA
 # The float parameters, in the order of the kernel's parameter vector.
 _F = ("pos_step", "max_base_velocity", "min_pole_angle", "max_pole_angle", "min_base_pose_x", "max_base_pose_x",
       "init_pos", "init_pole_angle", "init_noise", "alpha", "gamma", "epsilon_discount", "epsilon_min",
@@ -136,30 +135,11 @@ def unsupported_run(env: Any, config: Any, agent: str, discretiser: Any, fused_b
     return None
 
 
-# ---- in-kernel random numbers: jaxrobo.core.rng's hash on [block] uint32 vectors ------------------------------
-def _threefry(k1, k2, x1, x2):
-    u = lambda v: jnp.uint32(v)  # noqa: E731
-    ks = (k1, k2, k1 ^ k2 ^ u(_PARITY))
-    x1, x2 = x1 + ks[0], x2 + ks[1]
-    for block in range(5):
-        for r in _ROTATIONS[block % 2]:
-            x1 = x1 + x2
-            x2 = jax.lax.shift_left(x2, u(r)) | jax.lax.shift_right_logical(x2, u(32 - r))
-            x2 = x1 ^ x2
-        x1 = x1 + ks[(block + 1) % 3]
-        x2 = x2 + ks[(block + 2) % 3] + u(block + 1)
-    return x1, x2
-
-
+# ---- in-kernel random numbers: jaxrobo.core.rng's hash on [block] uint32 vectors, a key's two words apart --------
 def _subkey(key, index):
     """``split(key, num)[index]`` (any ``num``): the hash of counter ``(0, index)``."""
     zero = jnp.zeros_like(key[0])
-    return _threefry(key[0], key[1], zero, zero + jnp.uint32(index))
-
-
-def _unit(words):
-    return jax.lax.bitcast_convert_type(jax.lax.shift_right_logical(words, jnp.uint32(9)) | jnp.uint32(0x3F800000),
-                                        jnp.float32) - 1.0
+    return rng.threefry2x32(key[0], key[1], zero, zero + jnp.uint32(index))
 
 
 def _any(mask):
@@ -196,8 +176,8 @@ def _row_max(r):
 
 
 def _epsilon_greedy(key, r, epsilon, n_actions):
-    x1, x2 = _threefry(key[0], key[1], jnp.zeros_like(key[0]), jnp.zeros_like(key[0]))
-    coin, u = _unit(x1), _unit(x2)
+    x1, x2 = rng.threefry2x32(key[0], key[1], jnp.zeros_like(key[0]), jnp.zeros_like(key[0]))
+    coin, u = rng.unit_float(x1), rng.unit_float(x2)
     random_action = jnp.minimum(jnp.floor(u * n_actions), n_actions - 1).astype(jnp.int32)
     best = _row_max(r)
     is_max = [ri == best for ri in r]
@@ -216,7 +196,7 @@ def _drawn_from(key_i, low, high):
     # One range's value from its key: one uniform (counter (0, 0), the two words xor-ed) scaled to
     # [low, high).
     zero = jnp.zeros_like(key_i[0])
-    u = _unit(functools.reduce(jnp.bitwise_xor, _threefry(key_i[0], key_i[1], zero, zero)))
+    u = rng.unit_float(functools.reduce(jnp.bitwise_xor, rng.threefry2x32(key_i[0], key_i[1], zero, zero)))
     return low + u * (high - low)
 
 
@@ -224,7 +204,7 @@ def _draw(base, fold, low, high):
     # One range's value: its key folded out of the draws' base key (the hash of counter (0, fold), fold
     # = 2 i for range i), then drawn_from that key.
     zero = jnp.zeros_like(base[0])
-    return _drawn_from(_threefry(base[0], base[1], zero, zero + fold), low, high)
+    return _drawn_from(rng.threefry2x32(base[0], base[1], zero, zero + fold), low, high)
 
 
 def _noisy(obs, episode_key, steps, std):
@@ -232,11 +212,11 @@ def _noisy(obs, episode_key, steps, std):
     # normal draw as JAX's: a uniform in [nextafter(-1, 0), 1) per component (counter (0, j)), then
     # sqrt(2) erfinv. ``episode_key``: fold_in(env_key, tag), carried per episode.
     zero = jnp.zeros_like(episode_key[0])
-    step_key = _threefry(episode_key[0], episode_key[1], zero, steps.astype(jnp.uint32))
+    step_key = rng.threefry2x32(episode_key[0], episode_key[1], zero, steps.astype(jnp.uint32))
     out = []
     for j, o in enumerate(obs):
-        bits = functools.reduce(jnp.bitwise_xor, _threefry(step_key[0], step_key[1], zero, zero + jnp.uint32(j)))
-        u = jnp.maximum(jnp.float32(_NORMAL_LOW), _unit(bits) * jnp.float32(_NORMAL_SPAN)
+        bits = functools.reduce(jnp.bitwise_xor, rng.threefry2x32(step_key[0], step_key[1], zero, zero + jnp.uint32(j)))
+        u = jnp.maximum(jnp.float32(_NORMAL_LOW), rng.unit_float(bits) * jnp.float32(_NORMAL_SPAN)
                         + jnp.float32(_NORMAL_LOW))
         out.append(o + std * (jnp.float32(np.sqrt(2)) * _erf_inv(u)))
     return tuple(out)
@@ -379,7 +359,7 @@ class _Program:
     def noise_of(self, w1, w2):
         """The reset's uniform noise in ``±init_noise`` from one hash's two words."""
         lo = -self.f("init_noise")
-        return _unit(w1 ^ w2) * (self.f("init_noise") - lo) + lo
+        return rng.unit_float(w1 ^ w2) * (self.f("init_noise") - lo) + lo
 
     # ---- the reset's random numbers ----------------------------------------------------------------------
     def hashed_by_lane(self, key):
@@ -390,7 +370,7 @@ class _Program:
         k_reset = _subkey(key, 4)
         rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
         zero = jnp.zeros_like(pose_key[0])
-        noise = [self.noise_of(*_threefry(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))) for j in range(4)]
+        noise = [self.noise_of(*rng.threefry2x32(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))) for j in range(4)]
         return (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3], *rk,
                 *self.draws(k_reset))
 
@@ -423,7 +403,7 @@ class _Program:
         # Slot 0: the env key, 1: the pose key, and under domain randomisation 2: the draws' base key
         # (randomise.draw's fold of the reset key with the draw tag).
         counter = jnp.where(slot == 2, jnp.uint32(randomise.DRAW_TAG), u32(slot)) if domain else u32(slot)
-        b = [i32(v) for v in _threefry(u32(g0), u32(g1), zero, counter)]
+        b = [i32(v) for v in rng.threefry2x32(u32(g0), u32(g1), zero, counter)]
 
         def to_group(m, c):  # slot j's key to every lane of group m: the pose key, the draws' base key
             mine = group == m
@@ -436,7 +416,7 @@ class _Program:
             # Slots 0-3 hash the pose's uniform `slot` from the pose key; slot 4 + i range i's key from
             # the draws' base key (fold 2 i, as draws() does), then its uniform, scaled to its bounds.
             pose = slot < 4
-            h = _threefry(jnp.where(pose, u32(got[0]), u32(got[2])), jnp.where(pose, u32(got[1]), u32(got[3])),
+            h = rng.threefry2x32(jnp.where(pose, u32(got[0]), u32(got[2])), jnp.where(pose, u32(got[1]), u32(got[3])),
                           zero, u32(jnp.where(pose, slot, 2 * (slot - 4))))
             low = high = jnp.zeros(slot.shape, jnp.float32)
             for i in range(len(domain)):
@@ -444,7 +424,7 @@ class _Program:
                 high = jnp.where(slot == 4 + i, f(f"rand_high{i}"), high)
             drawn = _drawn_from(h, low, high)
         else:
-            h = _threefry(u32(got[0]), u32(got[1]), zero, u32(slot))
+            h = rng.threefry2x32(u32(got[0]), u32(got[1]), zero, u32(slot))
         noise = self.noise_of(*h)
         value = jnp.where(slot == 0, f("init_pos") + noise,
                           jnp.where(slot == 2, f("init_pole_angle") + noise, noise))
