@@ -307,3 +307,26 @@ def test_it_lowers_for_the_gpu_through_triton(monkeypatch):
     lowered = jax.jit(trainer.run_chunk).trace(runner, spec.agent_params, spec.env.default_params).lower(
         lowering_platforms=("cuda",))
     assert "__gpu$xla.gpu.triton" in lowered.as_text()
+
+
+def test_a_subclass_that_changes_a_hook_gets_no_kernel():
+    """The kernel holds the task's hooks' meaning: a subclass overriding one is refused by name (the plan's default
+    then keeps the plain path), the continuous task offers none, and a plain subclass keeps it."""
+    from envs.cartpole.continuous import CartPoleContinuous
+    from envs.cartpole.stay_up import CartPoleStayUp
+
+    spec = _cartpole()
+
+    class Harder(CartPoleStayUp):
+        def _is_done(self, obs, pipeline_state, task, params):
+            return super()._is_done(obs, pipeline_state, task, params) | (obs[1] > 1.0)
+
+    class Same(CartPoleStayUp):
+        pass
+
+    harder, same = Harder(spec.env.options), Same(spec.env.options)
+    assert "Harder overrides _is_done" in chunk_kernel_refusal(harder, spec.config)
+    assert chunk_kernel_refusal(same, spec.config) is None
+    assert "offers no whole-chunk kernel" in chunk_kernel_refusal(CartPoleContinuous(), spec.config)
+    with pytest.raises(ConfigError, match="ExecutionPlan fused='pallas': Harder overrides _is_done"):
+        Trainer(harder, spec.config, plan=_plan(spec, fused="pallas"))

@@ -92,6 +92,9 @@ _PARAMS = 32
 #: What a randomised run's kernel draws per env at every reset (domain randomisation: the cart-pole's ranges,
 #: :mod:`jaxrobo.task.randomise`), carried as per-env columns of these names beside the state.
 _DOMAIN = ("cart_mass", "pole_mass", "pole_length", randomise.OBS_NOISE)
+#: The task's hooks whose meaning the kernel holds: a subclass overriding one of them gets no kernel.
+HOOKS = ("step", "reset", "_set_init_pose", "_init_env_variables", "_set_action", "_get_obs", "_is_done",
+         "_compute_reward")
 #: ``jax.random.normal``'s float32 interval: its uniform draws lie in ``[nextafter(-1, 0), 1)``.
 _NORMAL_LOW = np.nextafter(np.float32(-1.0), np.float32(0.0))
 _NORMAL_SPAN = np.float32(1.0) - _NORMAL_LOW
@@ -105,6 +108,11 @@ def unsupported_run(env: Any, config: Any, agent: str, discretiser: Any, fused_b
     :class:`jaxrobo.tabular.discretise.Discretiser`; ``fused_block``: the plan's envs per program."""
     c = config
     o = env.options
+    # A subclass that overrides a hook whose meaning the kernel holds gets no kernel (its meaning would be lost).
+    owner = next(cls for cls in type(env).__mro__ if "chunk_kernel" in cls.__dict__)
+    changed = [h for cls in type(env).__mro__[:type(env).__mro__.index(owner)] for h in HOOKS if h in cls.__dict__]
+    if changed:
+        return f"{type(env).__name__} overrides {', '.join(changed)}, whose meaning the kernel holds"
     if not isinstance(env.robot.sim, CartPoleSim):
         return f"backend={o.backend!r}; only backend='analytic'"
     if getattr(o, "randomise", False):
