@@ -362,7 +362,8 @@ class _Program:
         (fold_in is the hash of counter (0, data), as _subkey), each from its own fold, in range order."""
         f = self.f
         base = _subkey(k_reset, randomise.DRAW_TAG)
-        return [_draw(base, jnp.uint32(2 * i), f(f"rand_low{i}"), f(f"rand_high{i}")) for i in range(len(self.st.domain))]
+        return [_draw(base, jnp.uint32(2 * i), f(f"rand_low{i}"), f(f"rand_high{i}"))
+                for i in range(len(self.st.domain))]
 
     def noise_of(self, w1, w2):
         """The reset's uniform noise in ``±init_noise`` from one hash's two words."""
@@ -371,14 +372,14 @@ class _Program:
 
     # ---- the reset's random numbers ----------------------------------------------------------------------
     def hashed_by_lane(self, key):
-        f, st = self.f, self.st
-        block, group_lanes, domain = st.block, st.group_lanes, st.domain
+        f = self.f
         # Every lane hashes its own env's seven: the reset key, the env key and the pose key from it,
         # and the pose's four uniforms.
         k_reset = _subkey(key, 4)
         rk, pose_key = _subkey(k_reset, 0), _subkey(k_reset, 1)
         zero = jnp.zeros_like(pose_key[0])
-        noise = [self.noise_of(*rng.threefry2x32(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j))) for j in range(4)]
+        noise = [self.noise_of(*rng.threefry2x32(pose_key[0], pose_key[1], zero, zero + jnp.uint32(j)))
+                 for j in range(4)]
         return (f("init_pos") + noise[0], f("init_pole_angle") + noise[2], noise[1], noise[3], *rk,
                 *self.draws(k_reset))
 
@@ -452,14 +453,15 @@ class _Program:
 
     # ---- the step's phases -------------------------------------------------------------------------------------
     def step(self, cr):
+        """One training step of the program's envs (``cr``: the carry's columns by name): the phases in order,
+        ``v`` gathering the step's values by name as each phase adds them."""
         cr = dict(cr)
-        key = (cr["k0"], cr["k1"])
-        k_next, active, a, command = self.act(cr, key)
-        state, obs, reward, term, trunc, pnan, env_steps_now = self.env_step(cr, command)
-        s2, done, r_s2, written = self.learn(cr, a, obs, reward, term, trunc, pnan, active, env_steps_now)
-        ep_return, record = self.record(cr, reward, term, done, active, env_steps_now)
-        self.reset(cr, key, k_next, a, state, obs, reward, term, trunc, pnan, env_steps_now, command, s2, done,
-                   r_s2, written, active, ep_return, record)
+        v = {"key": (cr["k0"], cr["k1"])}
+        v.update(self.act(cr, v["key"]))
+        v.update(self.env_step(cr, v["command"]))
+        v.update(self.learn(cr, v))
+        v.update(self.record(cr, v))
+        self.write_back(cr, v, self.reset(cr, v))
         return cr
 
     def act(self, cr, key):
@@ -474,7 +476,7 @@ class _Program:
         for i, v in enumerate(st.action_steps):
             delta = jnp.where(a == i, jnp.float32(v), delta)
         command = command_after(cr["command"], delta, f("pos_step"), f("max_base_velocity"))
-        return k_next, active, a, command
+        return dict(k_next=k_next, active=active, a=a, command=command)
 
     def physics(self, x, th, xd, thd, ctrl, factors, written_out=False):
         """One substep: the simulator's own equations (CartPoleSim.coordinate_step) on [block] vectors, with the
@@ -524,12 +526,16 @@ class _Program:
             # (z is finite), up to the sign of a zero.
             obs = jax.lax.cond(_any(std > 0), lambda o: _noisy(o, (cr["nk0"], cr["nk1"]), env_steps_now, std),
                                lambda o: o, obs)
-        return (x, th, xd, thd), obs, reward, term, trunc, pnan, env_steps_now
+        return dict(state=(x, th, xd, thd), obs=obs, reward=reward, term=term, trunc=trunc, pnan=pnan,
+                    steps=env_steps_now)
 
-    def learn(self, cr, a, obs, reward, term, trunc, pnan, active, env_steps_now):
+    def learn(self, cr, v):
         """The next state's row, the episode's end, and Q-learning's update of (s, a) with the rows carried across
         the step (the next state's row sees the update where it is the same row)."""
         st, f = self.st, self.f
+        a, obs, reward, term, trunc, pnan, active = (v[n] for n in ("a", "obs", "reward", "term", "trunc", "pnan",
+                                                                   "active"))
+        env_steps_now = v["steps"]
         s2 = self.discretise(obs)
         done = term | trunc | (env_steps_now >= st.nsteps)
         r_s2 = self.row(s2)
@@ -543,14 +549,15 @@ class _Program:
         written = jnp.where(active & ~pnan, new, old)
         hit_s = s2 == cr["s"]
         r_s2 = [jnp.where(hit_s & (a == k), written, r_s2[k]) for k in range(st.n_actions)]
-        return s2, done, r_s2, written
+        return dict(s2=s2, done=done, r_s2=r_s2, written=written)
 
-    def record(self, cr, reward, term, done, active, env_steps_now):
+    def record(self, cr, v):
         """A finished episode's return, length and termination: into the records (under the step budget an env
         records its first nepisodes episodes and counts the rest), or summed in the carry with records off."""
         from jax.experimental.pallas import triton as plgpu
 
         st = self.st
+        reward, term, done, active, env_steps_now = (v[n] for n in ("reward", "term", "done", "active", "steps"))
         ep_return = cr["ep_return"] + reward
         record = done & active
         if st.records:
@@ -564,18 +571,17 @@ class _Program:
             cr["ret_sum"] = cr["ret_sum"] + jnp.where(record, ep_return, 0.0)
             cr["len_sum"] = cr["len_sum"] + jnp.where(record, env_steps_now, 0)
             cr["term_any"] = cr["term_any"] | (record & term).astype(jnp.int32)
-        return ep_return, record
+        return dict(ep_return=ep_return, record=record)
 
-    def reset(self, cr, key, k_next, a, state, obs, reward, term, trunc, pnan, env_steps_now, command, s2, done,
-              r_s2, written, active, ep_return, record):
-        """The fresh episode wherever done (env.reset from the reset key), its rows from the updated table, and the
-        step's carry. Seven of the step's ten hashes serve only the reset, and in many steps no env of a program
-        is done: under ``skip_resets`` the program computes them only when one of its envs is (a scalar branch,
-        scf.if in Triton); where none is, the fresh values would be discarded by the selects below anyway."""
-        from jax.experimental.pallas import triton as plgpu
-
-        st, f = self.st, self.f
-        x, th, xd, thd = state
+    def reset(self, cr, v):
+        """The fresh episode wherever done (env.reset from the reset key) and its rows from the updated table, as
+        one tuple (:meth:`write_back` reads it). Seven of the step's ten hashes serve only the reset, and in many
+        steps no env of a program is done: under ``skip_resets`` the program computes them only when one of its
+        envs is (a scalar branch, scf.if in Triton); where none is, the fresh values would be discarded by the
+        selects of :meth:`write_back` anyway."""
+        st = self.st
+        key, a, done, s2, written, env_steps_now = (v[n] for n in ("key", "a", "done", "s2", "written", "steps"))
+        x = v["state"][0]
         n_actions, domain = st.n_actions, st.domain
 
         def fresh_episode(hashed):
@@ -619,6 +625,19 @@ class _Program:
             reset = jax.lax.cond(n_done > 0, some_done, none_done, n_done)
         else:
             reset = fresh_episode(self.hashed_by_lane(key))
+        return reset
+
+    def write_back(self, cr, v, reset):
+        """The updated table entry to memory, and the step's carry: the fresh episode's values where done, the
+        step's elsewhere."""
+        from jax.experimental.pallas import triton as plgpu
+
+        st, f = self.st, self.f
+        n_actions, domain = st.n_actions, st.domain
+        x, th, xd, thd = v["state"]
+        a, obs, reward, term, trunc, pnan, env_steps_now, command, s2, done, r_s2, written, active, ep_return, \
+            record, k_next = (v[n] for n in ("a", "obs", "reward", "term", "trunc", "pnan", "steps", "command", "s2",
+                                             "done", "r_s2", "written", "active", "ep_return", "record", "k_next"))
         fresh, rk, s_fresh, r_fresh = reset[:4], reset[4:6], reset[6], reset[7:7 + n_actions]
         plgpu.store(self.q_ref.at[self.row_at(cr["s"]) + a], written)
         w = lambda new_, cur: jnp.where(done, new_, cur)  # noqa: E731
