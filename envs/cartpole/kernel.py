@@ -10,17 +10,16 @@ The carry goes back to memory once, at the end of the chunk. A program is one wa
 ``group_resets``, ``fast_sincos``) take integer and logic instructions out of a kernel bound by their issue; each
 keeps every value (docs/benchmarks.md, "Pallas").
 
-A step is five phases, each a method of :class:`_Program` (one program's view of the kernel): :meth:`~_Program.act`
+A step is six phases, each a method of :class:`_Program` (one program's view of the kernel): :meth:`~_Program.act`
 (keys, the run's budget, epsilon-greedy, the task's action map), :meth:`~_Program.env_step` (the physics, the NaN
 guard, the task's outcome and reward, observation noise), :meth:`~_Program.learn` (discretise, Q-learning's update
-of the carried rows), :meth:`~_Program.record` (the finished episodes) and :meth:`~_Program.reset` (the fresh
-episodes, the carry written back).
+of the carried rows), :meth:`~_Program.record` (the finished episodes), :meth:`~_Program.reset` (the fresh
+episodes) and :meth:`~_Program.write_back` (the table entry and the carry).
 
 It is :meth:`jaxrobo.training.trainer.Trainer.step` written out for one case, in the same arithmetic order, with the
 same random numbers: the keys are JAX's threefry keys and the kernel hashes them with :mod:`jaxrobo.core.rng`'s own
 hash (:func:`~jaxrobo.core.rng.threefry2x32`, :func:`~jaxrobo.core.rng.unit_float`; JAX's partitionable layout), so
-the draws are ``jax.random``'s own. What it shares with the task
-and what it cannot:
+the draws are ``jax.random``'s own. What it shares with the task and what it cannot:
 
 * the physics is the simulator's own, :meth:`CartPoleSim.coordinate_step
   <envs.cartpole.dynamics.CartPoleSim.coordinate_step>` on ``[block]`` vectors of the four coordinates (the Triton
@@ -32,8 +31,9 @@ and what it cannot:
 * the rest is written here because a Pallas kernel cannot run the XLA forms: parameters are scalars read once from a
   parameter vector (no pytree of params), a table row is ``n_actions`` scalars gathered by computed index (no
   ``q[s]``), the action's table entry is a select chain (no dynamic index into a row), and a key is its two
-  uint32 words apart, split and folded by hashing them directly (no key arrays in a kernel). The reward (1 each step,
-  0 where the NaN guard fires) is :meth:`jaxrobo.task.env.TaskEnv.step`'s guard on the task's constant reward.
+  uint32 words apart, split and folded by hashing them directly (no key arrays in a kernel). The reward (1 each
+  step, 0 where the NaN guard fires) is :meth:`jaxrobo.task.env.TaskEnv.step`'s guard on the task's constant
+  reward.
 
 On a CPU (``interpret=True``, what the tests run) keys, actions, updates, resets and records follow the plain path
 bit for bit while the physics state agrees to its last bits: op by op the two forms give the same bits, but XLA
