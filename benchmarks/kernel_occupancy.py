@@ -1,6 +1,6 @@
 """Registers, occupancy and issue rate of the cart-pole chunk kernel per variant, read by Nsight Compute.
 
-The kernel (:mod:`jaxrobo.speed.fused_pallas`) is bound by latency: a program is one warp, and the warps an SM
+The kernel (:mod:`envs.cartpole.kernel`) is bound by latency: a program is one warp, and the warps an SM
 holds at once hide each other's latency. How many it holds is set by the registers a thread uses (65,536 per SM).
 For each variant of ``randomisation_cost.py`` this profiles the first launch of the kernel in a short training
 (``ncu --kernel-name regex:cartpole --launch-count 1``; the training's later launches still run, slowly, under

@@ -5,8 +5,9 @@ imports it by name (its ``BUILTIN_ENVS`` entry point) the first time an id is lo
 Each family keeps its MJCF, robot, tasks, env YAML and fast kernels side by side::
 
     cartpole/     cartpole.xml  robot.py (CartPoleRobot)  dynamics.py (closed form: the XLA path's and the
-                  Pallas chunk kernel's one source)  stay_up.py (CartPoleStayUp-v0, -LeftRight-v0)
-                  continuous.py (CartPoleContinuous-v0)  cartpole_stay_up.yaml
+                  Pallas chunk kernel's one source)  rules.py (the task's command and outcome per coordinate)
+                  stay_up.py (CartPoleStayUp-v0, -LeftRight-v0)  kernel.py (a Q-learning chunk as one Pallas
+                  kernel)  continuous.py (CartPoleContinuous-v0)  cartpole_stay_up.yaml
     quadcopter/   quadcopter.xml  robot.py (Quadcopter: Twist controller, sonar)  dynamics.py (controller and
                   rigid-body step per coordinate: the XLA path's and the kernels' one source)  rigid_body.py
                   (closed form)  kernel.py (the control step as one Pallas kernel)  live_show.py  goto.py  goto_v2.py

@@ -159,18 +159,18 @@ def test_env_groups_smoke_gives_the_same_tables_for_every_group_size(tmp_path):
     assert rows[0]["q_fingerprint_after_one_chunk"] == rows[1]["q_fingerprint_after_one_chunk"]
 
 
-def test_fused_plan_tokens_name_the_kernel_knobs():
-    """benchmarks/studies/fused.py's plan tokens: each names one of the Pallas kernel's knobs, and they apply to pallas only."""
+def test_fused_plan_tokens_name_the_kernel_choices():
+    """benchmarks/studies/fused.py's plan tokens: each turns one of the chunk kernel's plan choices off, printed in
+    the plan's tag, and they apply to pallas only."""
     fused = _script("fused", os.path.join("benchmarks", "studies"))
 
-    from jaxrobo.speed import fused_pallas
     from jaxrobo.speed.plan import ExecutionPlan
 
-    plan, knobs = fused.plan_of(ExecutionPlan(), "pallas:64:w2:always:lanes:libdevice:sincos:tiled")
+    plan = fused.plan_of(ExecutionPlan(), "pallas:64:always:lanes:libdevice")
     assert (plan.fused, plan.fused_block) == ("pallas", 64)
-    assert knobs == dict(NUM_WARPS=2, SKIP_RESETS=False, GROUP_RESETS=False, FAST_SINCOS=False, APPROX_SINCOS=True,
-                         TILED_TABLES=True)
-    assert all(hasattr(fused_pallas, name) for name in knobs)
+    assert (plan.skip_resets, plan.group_resets, plan.fast_sincos) == (False, False, False)
+    assert repr(plan).endswith("fused=pallas, fused_block=64, skip_resets=off, group_resets=off, fast_sincos=off)")
+    assert fused.plan_of(ExecutionPlan(), "pallas:lanes") == ExecutionPlan(fused="pallas", group_resets=False)
     with pytest.raises(ValueError, match="apply to pallas only"):
         fused.plan_of(ExecutionPlan(), "xla:lanes")
 

@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 
 from jaxrobo.core.config import ConfigError
-from jaxrobo.speed.plan import ExecutionPlan
+from envs.cartpole import kernel as cartpole_kernel
+from jaxrobo.physics import libdevice_sincos
+from jaxrobo.speed.plan import ExecutionPlan, chunk_kernel_refusal
 from jaxrobo.training.run import resolve
 from jaxrobo.training.trainer import Trainer
 from jaxrobo.training.train import train
@@ -62,8 +64,6 @@ def test_the_gpu_default_picks_the_kernel_where_it_applies(monkeypatch):
     """On one GPU from 16,384 envs the default plan runs the chunk as the kernel for every run it takes (by the
     rules that refuse an explicit choice), and keeps the plain path for the others; the quadcopter's default is its
     own (from 1,024 envs)."""
-    from jaxrobo.speed import fused_pallas
-
     def fused(spec, backend="gpu", **run):
         return ExecutionPlan.for_run(spec.env, spec.config, backend, **run).fused
 
@@ -79,7 +79,7 @@ def test_the_gpu_default_picks_the_kernel_where_it_applies(monkeypatch):
                            (dict(seed_compat=True), "seed_compat=True"), (dict(backend="mjx"), "backend='mjx'"),
                            (dict(control_type="position"), "control_type='position'"), (edges, "discretiser='edges'")):
         other = _cartpole(n_envs=16384, **overrides)
-        assert why in fused_pallas.unsupported_run(other.env, other.config)
+        assert why in chunk_kernel_refusal(other.env, other.config)
         assert fused(other) == "off", overrides
         Trainer(other.env, other.config, plan=ExecutionPlan.for_run(other.env, other.config, "gpu"))  # accepted
     goto = resolve("QuadcopterGoto-v2", overrides=dict(n_envs=1024, backend="rigid"))
@@ -117,10 +117,8 @@ def test_the_step_budget_follows_the_plain_path():
         np.testing.assert_array_equal(np.asarray(getattr(plain, name)), np.asarray(getattr(fused, name)),
                                       err_msg=name)
     assert plain.env_steps == 12 * 60 and plain.budget == "steps"
-    from jaxrobo.speed import fused_pallas
-
     runs = _cartpole(total_episodes=30)
-    assert "total_episodes" in fused_pallas.unsupported_run(runs.env, runs.config)
+    assert "total_episodes" in chunk_kernel_refusal(runs.env, runs.config)
 
 
 @pytest.mark.parametrize("changes", [dict(record_episodes=False, carry_rows=True), dict(chunk_steps=7)])
@@ -165,19 +163,16 @@ def test_the_kernel_is_chunking_invariant():
 
 
 @pytest.mark.parametrize("case", ["none", "all", "some"])
-def test_the_reset_branch_changes_nothing(case, monkeypatch):
+def test_the_reset_branch_changes_nothing(case):
     """A program hashes the reset's numbers only in a step where one of its envs is done: in a chunk where no env
     resets (3 steps of fresh episodes), where every env resets every step (nsteps=1) and where some do, the carry
     equals the unbranched kernel's (the reset computed in every env every step) bit for bit. 8 envs in programs
-    of 4."""
-    from jaxrobo.speed import fused_pallas
-
+    of 4 (the plan's ``skip_resets`` on and off)."""
     overrides = {"none": dict(chunk_steps=3), "all": dict(nsteps=1, chunk_steps=3), "some": dict(nsteps=200, chunk_steps=40)}
     spec = _cartpole(n_envs=8, **overrides[case])
     out = {}
     for skip in (True, False):
-        monkeypatch.setattr(fused_pallas, "SKIP_RESETS", skip)
-        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4))
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4, skip_resets=skip))
         runner = jax.jit(trainer.init)(jax.random.key(7), spec.agent_params, spec.env.default_params)
         out[skip] = jax.jit(trainer.run_chunk)(runner, spec.agent_params, spec.env.default_params)
     episodes, steps = np.asarray(out[True].episode), np.asarray(out[True].env_state.steps)
@@ -193,16 +188,14 @@ RANDOMISED = dict(randomise=True, **CART_RANGES)
 
 
 @pytest.mark.parametrize("domain", [{}, RANDOMISED], ids=["nominal", "randomised"])
-def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeypatch):
+def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain):
     """Where at most a quarter of a program's envs are done, groups of four lanes share their reset's hashes
-    (:data:`jaxrobo.speed.fused_pallas.GROUP_RESETS`); randomised, where at most an eighth are, groups of eight,
+    (the plan's ``group_resets``); randomised, where at most an eighth are, groups of eight,
     the draws' hashes too; beyond that each lane hashes its own. 32 envs in programs of 16 over 80 steps, in which
     a program has one, two or three and more than four envs done in one step (counted on the plain path, step by
     step: both group sizes and the lanes' path run): the carry equals the lane-by-lane kernel's and the
     kernel's that hashes every reset in every env every step (randomised: its draws and its first observation's
     noise too), bit for bit."""
-    from jaxrobo.speed import fused_pallas
-
     spec = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=80, **domain)
     # How many envs of each program of 16 are done in each step, on the plain path.
     one = _cartpole(n_envs=32, nepisodes=40, nsteps=25, chunk_steps=1, **domain)
@@ -217,9 +210,8 @@ def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeyp
     assert {1, 2, 3} <= counts and max(counts) > 4, counts
     out = {}
     for group, skip in ((True, True), (False, True), (False, False)):
-        monkeypatch.setattr(fused_pallas, "GROUP_RESETS", group)
-        monkeypatch.setattr(fused_pallas, "SKIP_RESETS", skip)
-        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=16))
+        plan = _plan(spec, fused="pallas", fused_block=16, group_resets=group, skip_resets=skip)
+        trainer = Trainer(spec.env, spec.config, plan=plan)
         runner = jax.jit(trainer.init)(jax.random.key(3), spec.agent_params, spec.env.default_params)
         out[group, skip] = jax.jit(trainer.run_chunk)(runner, spec.agent_params, spec.env.default_params)
     assert np.asarray(out[True, True].episode).sum() > 60
@@ -233,17 +225,15 @@ def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain, monkeyp
 
 def test_the_kernels_erfinv_is_jaxs_bit_for_bit():
     """The kernel's noise evaluates ``erfinv`` with each branch's constants in the instructions
-    (:func:`jaxrobo.speed.fused_pallas._erf_inv`), for registers; its values are ``jax.lax.erf_inv``'s bit for bit,
+    (:func:`envs.cartpole.kernel._erf_inv`), for registers; its values are ``jax.lax.erf_inv``'s bit for bit,
     here under ``jit`` across the uniform draws' whole range and at its ends (on a GPU the same holds inside a Pallas
     kernel). If JAX changes its ``erf_inv``, this fails first."""
     import jax.numpy as jnp
 
-    from jaxrobo.speed import fused_pallas
-
     low = np.nextafter(np.float32(-1), np.float32(0))
     x = np.concatenate([np.linspace(low, 1, 400_000, endpoint=False, dtype=np.float32),
                         np.float32([low, -0.5, 0.0, 1e-30, 0.5, np.nextafter(np.float32(1), np.float32(0)), 1.0])])
-    ours = np.asarray(jax.jit(fused_pallas._erf_inv)(jnp.asarray(x)))
+    ours = np.asarray(jax.jit(cartpole_kernel._erf_inv)(jnp.asarray(x)))
     jaxs = np.asarray(jax.jit(jax.lax.erf_inv)(jnp.asarray(x)))
     np.testing.assert_array_equal(ours.view(np.int32), jaxs.view(np.int32))
     assert np.isinf(ours[-1]) and np.abs(ours[:-1]).max() > 3.5  # the tails were reached
@@ -251,29 +241,24 @@ def test_the_kernels_erfinv_is_jaxs_bit_for_bit():
 
 @pytest.mark.parametrize("limit", [0.0, 0.05, 10.0])
 def test_a_step_beyond_the_written_out_sin_cos_is_redone_with_the_calls(limit, monkeypatch):
-    """Under :data:`jaxrobo.speed.fused_pallas.FAST_SINCOS` a step whose pole angles all stay within the written-out
-    sin/cos's range (:data:`jaxrobo.physics.libdevice_sincos.LIMIT`) keeps their values, and a step where any leaves it is
-    redone with ``jnp.sin``/``jnp.cos``. Interpreted, the written-out form is stood in for by one that is off by
-    0.01: with the range at 0 every step is redone (the carry is the calls' bit for bit), at 10 none is (the carry
-    differs), at 0.05 some are and some are not (it differs too, and both forms ran: the carry is neither's)."""
+    """Under the plan's ``fast_sincos`` a step whose pole angles all stay within the written-out sin/cos's range
+    (:func:`jaxrobo.physics.libdevice_sincos.written_out`'s ``limit``) keeps their values, and a step where any
+    leaves it is redone with ``jnp.sin``/``jnp.cos``. Interpreted, the written-out form is stood in for by one that
+    is off by 0.01: with the range at 0 every step is redone (the carry is the calls' bit for bit), at 10 none is
+    (the carry differs), at 0.05 some are and some are not (it differs too, and both forms ran: the carry is
+    neither's)."""
     import jax.numpy as jnp
-
-    from jaxrobo.speed import fused_pallas
-    from jaxrobo.physics import libdevice_sincos
 
     spec = _cartpole(n_envs=8, nsteps=200, chunk_steps=40)
 
-    def run(fast):
-        monkeypatch.setattr(fused_pallas, "FAST_SINCOS", fast)
-        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4))
+    def run(fast, limit=limit):
+        monkeypatch.setattr(libdevice_sincos, "written_out", lambda: libdevice_sincos.WrittenOut(
+            lambda t: (jnp.sin(t) + 0.01, jnp.cos(t)), limit))
+        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4, fast_sincos=fast))
         runner = jax.jit(trainer.init)(jax.random.key(5), spec.agent_params, spec.env.default_params)
         return jax.jit(trainer.run_chunk)(runner, spec.agent_params, spec.env.default_params)
 
-    calls = run(False)
-    monkeypatch.setattr(libdevice_sincos, "verified", lambda: True)
-    monkeypatch.setattr(libdevice_sincos, "sincos", lambda t: (jnp.sin(t) + 0.01, jnp.cos(t)))
-    monkeypatch.setattr(libdevice_sincos, "LIMIT", limit)
-    written = run(True)
+    calls, written = run(False), run(True)
     th = lambda r: np.asarray(r.env_state.pipeline_state.qpos[:, 1])  # noqa: E731
     if limit == 0.0:
         for (path, a), (_, b) in zip(_leaves(calls), _leaves(written)):
@@ -281,43 +266,21 @@ def test_a_step_beyond_the_written_out_sin_cos_is_redone_with_the_calls(limit, m
     else:
         assert not np.array_equal(th(calls), th(written))
     if limit == 0.05:
-        monkeypatch.setattr(libdevice_sincos, "LIMIT", 10.0)
-        assert not np.array_equal(th(run(True)), th(written))
+        assert not np.array_equal(th(run(True, 10.0)), th(written))
 
 
-@pytest.mark.parametrize("changes", [dict(), dict(record_episodes=False, carry_rows=True)])
-def test_the_tiled_tables_change_nothing(changes, monkeypatch):
-    """The tables tiled by program for the kernel ([program, state, env of the program, action]) and back: the
-    carry, tables and records equal the runner-layout kernel's bit for bit over two chunks of 40 steps in which envs
-    reset at different steps (8 envs in programs of 4, records on; records off with carried rows)."""
-    from jaxrobo.speed import fused_pallas
-
-    carry_rows = changes.pop("carry_rows", False)
-    spec = _cartpole(n_envs=8, nsteps=200, chunk_steps=40, **changes)
-    out = {}
-    for tiled in (False, True):
-        monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
-        trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=4, carry_rows=carry_rows))
-        runner = jax.jit(trainer.init)(jax.random.key(11), spec.agent_params, spec.env.default_params)
-        chunk = jax.jit(trainer.run_chunk)
-        for _ in range(2):
-            runner = chunk(runner, spec.agent_params, spec.env.default_params)
-        out[tiled] = runner
-    q = np.asarray(out[True].agent.q)
-    assert (q != 0).any(axis=(1, 2, 3)).all() and np.asarray(out[True].episode).max() > 0  # every env learned
-    for (path, a), (_, b) in zip(_leaves(out[False]), _leaves(out[True])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
+def test_the_written_out_sin_cos_are_offered_only_where_verified(monkeypatch):
+    """The trainer hands the kernel the written-out sin/cos only where :func:`jaxrobo.physics.libdevice_sincos.verified`
+    (a GPU whose libdevice they match); a CPU has none."""
+    assert libdevice_sincos.written_out() is None  # the tests' CPU
+    monkeypatch.setattr(libdevice_sincos, "verified", lambda: True)
+    assert libdevice_sincos.written_out() == (libdevice_sincos.sincos, libdevice_sincos.LIMIT)
 
 
-@pytest.mark.parametrize("tiled", [False, True])
-def test_a_sweep_vmaps_the_kernel(tiled, monkeypatch):
-    """Two learning rates vmapped over the chunk (as a sweep runs it): the plain path's tables, with the kernel's
-    tables in the runner's layout or tiled by program."""
+def test_a_sweep_vmaps_the_kernel():
+    """Two learning rates vmapped over the chunk (as a sweep runs it): the plain path's tables."""
     import jax.numpy as jnp
 
-    from jaxrobo.speed import fused_pallas
-
-    monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
     spec = _cartpole(n_envs=4, chunk_steps=10)
     params = jax.tree.map(lambda x: jnp.asarray([x, x * 0.5], jnp.float32), spec.agent_params)
     tables = []
@@ -332,20 +295,38 @@ def test_a_sweep_vmaps_the_kernel(tiled, monkeypatch):
     assert np.abs(tables[0]).sum() > 0
 
 
-@pytest.mark.parametrize("tiled", [False, True])
-def test_it_lowers_for_the_gpu_through_triton(tiled, monkeypatch):
+def test_it_lowers_for_the_gpu_through_triton(monkeypatch):
     """The kernel the GPU would run (not interpreted) lowers to a Triton call: the ops it uses (in-kernel loop,
     gathers and masked scatters by computed index, uint32 hashing, block-wide sums moving words between lanes,
-    inline PTX fmas) all have Triton lowerings, in either layout of the tables."""
-    from jaxrobo.speed import fused_pallas
-    from jaxrobo.physics import libdevice_sincos
-
-    monkeypatch.setattr(fused_pallas, "TILED_TABLES", tiled)
+    inline PTX fmas) all have Triton lowerings."""
     monkeypatch.setattr(libdevice_sincos, "verified", lambda: True)  # the written-out sin/cos (inline PTX) too
     spec = _cartpole(n_envs=512, record_episodes=True)
     trainer = Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas"))
     runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
-    monkeypatch.setattr(fused_pallas.jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     lowered = jax.jit(trainer.run_chunk).trace(runner, spec.agent_params, spec.env.default_params).lower(
         lowering_platforms=("cuda",))
     assert "__gpu$xla.gpu.triton" in lowered.as_text()
+
+
+def test_a_subclass_that_changes_a_hook_gets_no_kernel():
+    """The kernel holds the task's hooks' meaning: a subclass overriding one is refused by name (the plan's default
+    then keeps the plain path), the continuous task offers none, and a plain subclass keeps it."""
+    from envs.cartpole.continuous import CartPoleContinuous
+    from envs.cartpole.stay_up import CartPoleStayUp
+
+    spec = _cartpole()
+
+    class Harder(CartPoleStayUp):
+        def _is_done(self, obs, pipeline_state, task, params):
+            return super()._is_done(obs, pipeline_state, task, params) | (obs[1] > 1.0)
+
+    class Same(CartPoleStayUp):
+        pass
+
+    harder, same = Harder(spec.env.options), Same(spec.env.options)
+    assert "Harder overrides _is_done" in chunk_kernel_refusal(harder, spec.config)
+    assert chunk_kernel_refusal(same, spec.config) is None
+    assert "offers no whole-chunk kernel" in chunk_kernel_refusal(CartPoleContinuous(), spec.config)
+    with pytest.raises(ConfigError, match="ExecutionPlan fused='pallas': Harder overrides _is_done"):
+        Trainer(harder, spec.config, plan=_plan(spec, fused="pallas"))

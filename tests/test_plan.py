@@ -135,9 +135,15 @@ def test_repr_is_short_and_names_every_choice():
                           "carry_rows=on, compiler_options={xla_backend_optimization_level: 0})")
     assert json.loads(json.dumps(fast.to_dict())) == {
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
-        "fused": "off", "fused_block": None, "task_kernel": False, "ordered_sums": False, "devices": 1,
-        "compiler_options": FAST}
+        "fused": "off", "fused_block": None, "task_kernel": False, "skip_resets": True, "group_resets": True,
+        "fast_sincos": True, "ordered_sums": False, "devices": 1, "compiler_options": FAST}
     assert repr(plan.replace(devices=2)).endswith("carry_rows=on, devices=2)")  # named only when more than one
+    # The whole-chunk kernel's choices: named only when off under fused="pallas", where they are read.
+    kernel = plan.replace(fused="pallas", fused_block=16, group_resets=False, fast_sincos=False)
+    assert repr(kernel).endswith("fused=pallas, fused_block=16, group_resets=off, fast_sincos=off)")
+    assert repr(plan.replace(skip_resets=False)) == repr(plan)
+    with pytest.raises(ValueError, match=r"ExecutionPlan skip_resets=1: expected True or False"):
+        plan.replace(skip_resets=1)
 
 
 def test_plans_are_validated_frozen_and_hashable():

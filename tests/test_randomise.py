@@ -126,17 +126,17 @@ def test_observation_noise_reaches_the_agent_only():
 def test_randomised_runs_keep_their_kernels():
     """The kernels take each env's draw as per-env inputs (tests/test_randomise_kernels.py holds them to the XLA
     path); only the quadcopter off ``rigid`` and the cart-pole off ``analytic`` have none, as without randomisation."""
-    from jaxrobo.speed import fused_pallas, plan
+    from jaxrobo.speed import plan
     from jaxrobo.training.trainer import TrainConfig
 
     goto = jaxrobo.make(GOTO, randomise=True)
     assert goto.step_kernel is not None and goto.step_kernel_refusal is None
     assert plan.physics_kernel(goto) and plan.task_kernel(goto)
     cart = jaxrobo.make("CartPoleStayUp-v0", backend="analytic", randomise=True)
-    assert fused_pallas.unsupported_run(cart, TrainConfig()) is None
+    assert plan.chunk_kernel_refusal(cart, TrainConfig()) is None
     assert plan.default_fused(cart, "gpu", config=TrainConfig(n_envs=16384)) == "pallas"
     mjx = jaxrobo.make("CartPoleStayUp-v0", backend="mjx", randomise=True)
-    assert "backend='mjx'" in fused_pallas.unsupported_run(mjx, TrainConfig())
+    assert "backend='mjx'" in plan.chunk_kernel_refusal(mjx, TrainConfig())
 
 
 def test_the_ranges_are_traced_so_a_vmap_can_vary_them():

@@ -19,8 +19,7 @@ import pytest
 
 import jaxrobo
 from jaxrobo.physics import fused
-from jaxrobo.speed import fused_pallas
-from jaxrobo.speed.plan import ExecutionPlan, default_fused, physics_kernel, task_kernel
+from jaxrobo.speed.plan import ExecutionPlan, chunk_kernel_refusal, default_fused, physics_kernel, task_kernel
 from jaxrobo.training.run import resolve
 from jaxrobo.training.trainer import TrainConfig, Trainer
 
@@ -215,7 +214,7 @@ def test_the_cartpole_kernel_with_randomisation_lowers_for_the_gpu(monkeypatch):
     trainer = Trainer(spec.env, spec.config, plan=ExecutionPlan.for_run(spec.env, spec.config).replace(
         fused="pallas"))
     runner = jax.jit(trainer.init)(jax.random.key(0), spec.agent_params, spec.env.default_params)
-    monkeypatch.setattr(fused_pallas.jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     lowered = jax.jit(trainer.run_chunk).trace(runner, spec.agent_params, spec.env.default_params).lower(
         lowering_platforms=("cuda",))
     assert lowered.as_text().count("__gpu$xla.gpu.triton") == 1
@@ -231,6 +230,6 @@ def test_the_plan_keeps_the_kernels_for_randomised_runs():
     plan = ExecutionPlan.for_run(spec.env, spec.config, "gpu")
     assert plan.fused == "pallas" and plan.task_kernel
     cart = jaxrobo.make("CartPoleStayUp-v0", backend="analytic", randomise=True, **CART_RANGES)
-    assert fused_pallas.unsupported_run(cart, TrainConfig()) is None
+    assert chunk_kernel_refusal(cart, TrainConfig()) is None
     assert default_fused(cart, "gpu", config=TrainConfig(n_envs=16384)) == "pallas"
     assert not jaxrobo.make(GOTO).step_kernel.layout.randomised  # off: the nominal kernel, no domain inputs

@@ -9,9 +9,9 @@ per env, over batch sizes, in one process on one device.
 Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
 :func:`jaxrobo.training.driver.compiled_chunk`)
 under one plan: ``off`` (the plain path), ``xla`` (substeps written out), ``xla:BLOCK`` (and the chunk's steps
-run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas kernel: :mod:`jaxrobo.speed.fused_pallas`,
+run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas kernel: :mod:`envs.cartpole.kernel`,
 the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing about the GPU kernel);
-``pallas:BLOCK[:wWARPS][:always][:lanes][:libdevice][:sincos][:tiled]`` sets its envs per program and its tuning knobs (:func:`plan_of`). The
+``pallas:BLOCK[:always][:lanes][:libdevice]`` sets its envs per program and turns its plan choices off (:func:`plan_of`). The
 default chunk (4 M env steps per call, at least 10 steps) is short enough that a fast kernel's calls time the
 fixed cost per call (the host's dispatch); ``--steps 1000`` times the chunk ``jaxrobo train`` runs by default. Columns: env steps/s, physics steps/s, simulated s/s, the compiled
 program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
@@ -23,7 +23,6 @@ differ in the last bits on a GPU, where XLA rounds written-out substeps differen
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import re
 import sys
@@ -40,7 +39,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--n-envs", default="1024,16384", help="comma list of batch sizes")
     p.add_argument("--plans", default="off,xla",
                    help="comma list of off, xla, xla:BLOCK, "
-                        "pallas, pallas:BLOCK[:wWARPS][:always][:lanes][:libdevice][:sincos][:tiled]")
+                        "pallas, pallas:BLOCK[:always][:lanes][:libdevice]")
     p.add_argument("--envs", default="CartPoleStayUp-v0:analytic,QuadcopterGoto-v1",
                    help="comma list of env ids, each with :backend where it has a choice")
     p.add_argument("--steps", type=int, default=None, help="steps per timed chunk (default: by size)")
@@ -59,49 +58,22 @@ def kernels(compiled: Any) -> int:
     return len(re.findall(r"\b(?:fusion|custom-call)\(", text))
 
 
-def plan_of(base: Any, choice: str) -> tuple[Any, dict[str, Any]]:
-    """The plan a choice names, and the Pallas kernel's tuning knobs it sets (:mod:`jaxrobo.speed.fused_pallas`'s
-    module constants): ``off``, ``xla[:BLOCK]``, ``pallas[:BLOCK][:wWARPS][:always][:lanes][:libdevice][:sincos][:tiled]``
-    (BLOCK envs per program, WARPS warps per program, ``always``: the reset's random numbers in every env every
-    step, the unbranched form; ``lanes``: each lane hashes its own env's reset, not groups of four;
-    ``libdevice``: libdevice's sin/cos calls, not written out; ``sincos``: the hardware's approximate sin/cos;
-    ``tiled``: the tables tiled by program for the kernel)."""
+def plan_of(base: Any, choice: str) -> Any:
+    """The plan a choice names: ``off``, ``xla[:BLOCK]``, ``pallas[:BLOCK][:always][:lanes][:libdevice]`` (BLOCK envs
+    per program; ``always``: the reset's random numbers in every env every step, ``skip_resets`` off; ``lanes``:
+    each lane hashes its own env's reset, ``group_resets`` off; ``libdevice``: libdevice's sin/cos calls,
+    ``fast_sincos`` off)."""
     fused, *parts = choice.split(":")
-    block, knobs = None, {}
+    block, off = None, {}
+    tokens = {"always": "skip_resets", "lanes": "group_resets", "libdevice": "fast_sincos"}
     for part in parts:
-        if part == "always":
-            knobs["SKIP_RESETS"] = False
-        elif part == "sincos":
-            knobs["APPROX_SINCOS"] = True
-        elif part == "lanes":
-            knobs["GROUP_RESETS"] = False
-        elif part == "libdevice":
-            knobs["FAST_SINCOS"] = False
-        elif part == "tiled":
-            knobs["TILED_TABLES"] = True
-        elif part.startswith("w"):
-            knobs["NUM_WARPS"] = int(part[1:])
+        if part in tokens:
+            off[tokens[part]] = False
         elif part:
             block = int(part)
-    if knobs and fused != "pallas":
-        raise ValueError(f"plan {choice!r}: 'always', 'sincos', 'lanes', 'libdevice', 'tiled' and 'wN' apply to "
-                         "pallas only")
-    return base.replace(fused=fused, fused_block=block), knobs
-
-
-@contextlib.contextmanager
-def kernel_knobs(knobs: dict[str, Any]):
-    """Set the Pallas kernel's knobs while a run traces its chunk, and restore them after."""
-    from jaxrobo.speed import fused_pallas
-
-    saved = {name: getattr(fused_pallas, name) for name in knobs}
-    for name, value in knobs.items():
-        setattr(fused_pallas, name, value)
-    try:
-        yield
-    finally:
-        for name, value in saved.items():
-            setattr(fused_pallas, name, value)
+    if off and fused != "pallas":
+        raise ValueError(f"plan {choice!r}: 'always', 'lanes' and 'libdevice' apply to pallas only")
+    return base.replace(fused=fused, fused_block=block, **off)
 
 
 def measure(env_spec: str, n: int, choice: str, args) -> dict[str, Any]:
@@ -121,14 +93,13 @@ def measure(env_spec: str, n: int, choice: str, args) -> dict[str, Any]:
         overrides["backend"] = backend
     spec = resolve(env_id, "default", overrides, agent="qlearn")
     env, ap, ep = spec.env, spec.agent_params, spec.env.default_params
-    plan, knobs = plan_of(ExecutionPlan.for_run(env, spec.config), choice)
+    plan = plan_of(ExecutionPlan.for_run(env, spec.config), choice)
     trainer = Trainer(env, spec.config, plan=plan)
     runner = jax.jit(trainer.init)(jax.random.key(0), ap, ep)
     row = {"env": env_spec, "n_envs": n, "plan": choice, "execution_plan": repr(plan), "steps": steps,
            "carry_bytes_per_env": _common.tree_bytes(runner) / n}
     t0 = time.perf_counter()
-    with kernel_knobs(knobs):
-        chunk = driver.compiled_chunk(trainer, runner, ap, ep)
+    chunk = driver.compiled_chunk(trainer, runner, ap, ep)
     row["compile_s"] = time.perf_counter() - t0
     row["kernels"] = kernels(chunk)
     # The tables after one chunk from the same start: equal across plans (the timed calls below run as many
@@ -168,10 +139,9 @@ def learning(env_spec: str, choice: str, seed: int) -> dict[str, Any]:
 
     env_id, _, backend = env_spec.partition(":")
     spec = resolve(env_id, "default", {"seed": seed, **({"backend": backend} if backend else {})})
-    plan, knobs = plan_of(ExecutionPlan.for_run(spec.env, spec.config), choice)
+    plan = plan_of(ExecutionPlan.for_run(spec.env, spec.config), choice)
     t0 = time.perf_counter()
-    with kernel_knobs(knobs):
-        r = train(spec.env, spec.config, spec.agent_params, plan=plan)
+    r = train(spec.env, spec.config, spec.agent_params, plan=plan)
     returns = np.asarray(r.returns)
     return {"env": env_spec, "plan": choice, "seed": seed, "seconds": time.perf_counter() - t0,
             "eval_return": float(np.mean(r.eval_returns)), "eval_length": float(np.mean(r.eval_lengths)),

@@ -71,6 +71,8 @@ class CartPoleContinuous(CartPoleStayUp):
     #: The discrete ids this task is the continuous counterpart of (named by the Brax adapter's refusal).
     continuous_of: ClassVar[tuple[str, ...]] = ("CartPoleStayUp-v0", "CartPoleStayUpLeftRight-v0")
     learning_target = LearningTarget("over_500", "mean_length", 500.0, "mean greedy episode length >= 500 steps")
+    #: None: the discrete task's chunk kernel holds its discrete action map, not this task's.
+    chunk_kernel = None
 
     def __init__(self, options: Options | None = None, params: Params | None = None):
         # CartPoleStayUp.__init__ builds the increments of the discrete actions; only the robot is needed here.

@@ -27,7 +27,7 @@ Written once: :func:`accelerations` (the actuator forces and the 2×2 solve) and
 are the equations, on scalars or arrays of any common shape. :meth:`CartPoleSim.physics_step`, the XLA path, calls
 them on one env's coordinates and integrates the stacked ``[x, θ]`` vectors; :meth:`CartPoleSim.coordinate_step`
 calls them on the four coordinates held apart, which is what the Pallas chunk kernel
-(:mod:`jaxrobo.speed.fused_pallas`) runs on its ``[block]`` vectors, reaching it through the env's simulator and
+(:mod:`envs.cartpole.kernel`) runs on its ``[block]`` vectors, reaching it through the env's simulator and
 passing its own ``sin``/``cos`` on a GPU. Op by op the two forms give the same bits
 (``tests/test_cartpole_physics.py``).
 """

@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from envs.cartpole.stay_up import ACTION_STEPS
+from envs.cartpole.rules import ACTION_STEPS
 from jaxrobo.api import NativeSim, numpy_policy
 
 

@@ -25,11 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs.cartpole.kernel import CHUNK_KERNEL
 from envs.cartpole.robot import BACKENDS, CONTROL_TYPES, CartPoleRobot
+from envs.cartpole.rules import ACTION_STEPS, command_after, fell
 from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng, spaces
-
-#: Action ``i`` adds ``ACTION_STEPS[i] * pos_step`` to the cart command (left, right, left big, right big).
-ACTION_STEPS = (-1.0, 1.0, -10.0, 10.0)
 OBS_NAMES = ("cart_x", "cart_v", "pole_angle", "pole_angular_velocity")
 
 
@@ -82,6 +81,9 @@ class CartPoleStayUp(TaskEnv):
     Params = Params
     #: Learned: greedy episodes keep the pole up for half of the seed's 1000 steps on average.
     learning_target = LearningTarget("over_500", "mean_length", 500.0, "mean greedy episode length >= 500 steps")
+    #: A training chunk of this task with Q-learning as one Pallas kernel (:mod:`envs.cartpole.kernel`), for the runs
+    #: its ``unsupported_run`` takes.
+    chunk_kernel = CHUNK_KERNEL
 
     def __init__(self, options: Options | None = None, params: Params | None = None):
         super().__init__(options, params)
@@ -114,9 +116,9 @@ class CartPoleStayUp(TaskEnv):
         return TaskVars(command=jnp.asarray(start, jnp.float32))
 
     def _set_action(self, action: jax.Array, task: TaskVars, params: Params) -> tuple[jax.Array, TaskVars]:
-        command = task.command + self._steps[action] * params.pos_step
-        if self.options.control_type == "velocity":
-            command = jnp.clip(command, -params.max_base_velocity, params.max_base_velocity)
+        velocity = self.options.control_type == "velocity"
+        command = command_after(task.command, self._steps[action], params.pos_step,
+                                params.max_base_velocity if velocity else None)
         return command[None], TaskVars(command)
 
     def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
@@ -124,10 +126,8 @@ class CartPoleStayUp(TaskEnv):
         return jnp.round(obs, 1) if self.options.round_obs else obs
 
     def _is_done(self, obs: jax.Array, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
-        x, angle = obs[0], obs[2]
-        cart_out = (x <= params.min_base_pose_x) | (x >= params.max_base_pose_x)
-        pole_down = (angle <= params.min_pole_angle) | (angle >= params.max_pole_angle)
-        return cart_out | pole_down
+        p = params
+        return fell(obs[0], obs[2], p.min_base_pose_x, p.max_base_pose_x, p.min_pole_angle, p.max_pole_angle)
 
     def _compute_reward(self, obs, done, action, pipeline_state, task, params) -> tuple[jax.Array, TaskVars]:
         return jnp.ones((), jnp.float32), task

@@ -24,8 +24,9 @@ _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 _PARITY = np.uint32(0x1BD11BDA)
 
 
-def _threefry2x32(k1: jax.Array, k2: jax.Array, x1: jax.Array, x2: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Threefry-2x32 (Salmon et al. 2011, 20 rounds) of counters ``(x1, x2)`` under key ``(k1, k2)``."""
+def threefry2x32(k1: jax.Array, k2: jax.Array, x1: jax.Array, x2: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Threefry-2x32 (Salmon et al. 2011, 20 rounds) of counters ``(x1, x2)`` under key ``(k1, k2)``: uint32 arrays
+    of one shape, or scalars (a Pallas kernel hashes its ``[block]`` vectors of key words with it)."""
     ks = (k1, k2, k1 ^ k2 ^ _PARITY)
     x1, x2 = x1 + ks[0], x2 + ks[1]
     for block in range(5):
@@ -54,7 +55,7 @@ def _hash_counters(words: tuple[jax.Array, jax.Array], shape: tuple[int, ...]) -
     if size >= 2**32:
         raise ValueError(f"at most 2**32 - 1 random words per draw, asked for {size}")
     lo = jax.lax.iota(jnp.uint32, size).reshape(shape) if size else jnp.zeros(shape, jnp.uint32)
-    return _threefry2x32(words[0], words[1], jnp.zeros(shape, jnp.uint32), lo)
+    return threefry2x32(words[0], words[1], jnp.zeros(shape, jnp.uint32), lo)
 
 
 def split(key: jax.Array, num: int = 2) -> jax.Array:
@@ -73,7 +74,7 @@ def subkey(key: jax.Array, index: int, num: int) -> jax.Array:
     words = _words(key)
     if words is None:
         return jax.random.split(key, num)[index]
-    x1, x2 = _threefry2x32(words[0], words[1], jnp.uint32(0), jnp.uint32(index))
+    x1, x2 = threefry2x32(words[0], words[1], jnp.uint32(0), jnp.uint32(index))
     return jax.random.wrap_key_data(jnp.stack([x1, x2]), impl=jax.random.key_impl(key))
 
 
@@ -97,7 +98,7 @@ def uniform_pair(key: jax.Array) -> tuple[jax.Array, jax.Array]:
     if words is None:
         u = unit_float(jax.random.bits(key, (2,), jnp.uint32))
         return u[0], u[1]
-    x1, x2 = _threefry2x32(words[0], words[1], jnp.uint32(0), jnp.uint32(0))
+    x1, x2 = threefry2x32(words[0], words[1], jnp.uint32(0), jnp.uint32(0))
     return unit_float(x1), unit_float(x2)
 
 

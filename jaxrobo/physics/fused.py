@@ -31,7 +31,7 @@ there, and a tabular run then takes another path (within the seed-to-seed spread
 ``fused="pallas"`` (a choice :mod:`jaxrobo.speed.plan` adds) is read here too: a robot that offers a kernel for its
 control step (:attr:`jaxrobo.task.robot.Robot.advance_kernel`, the rigid quadcopter's) has a vmapped step call it once
 on the whole batch (:func:`physics_kernels`, read by :meth:`jaxrobo.physics.sim.Simulator.advance`); the rest of the step
-stays XLA's. The cart-pole's whole-chunk kernel is :mod:`jaxrobo.speed.fused_pallas`, which the trainer runs itself.
+stays XLA's. The cart-pole's whole-chunk kernel is its task's ``chunk_kernel`` (:mod:`envs.cartpole.kernel`), which the trainer runs itself.
 
 Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`physics_kernels`, :func:`task_kernels`,
 :func:`choose`. The module imports nothing of jaxrobo's: the simulators and tasks read its flags and the plan its

@@ -24,6 +24,7 @@ import functools
 import math
 import warnings
 from fractions import Fraction
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -150,3 +151,16 @@ def verified() -> bool:
         warnings.warn(f"jaxrobo.physics.libdevice_sincos: {bad} of {len(x)} arguments differ from this GPU's libdevice; the "
                       "kernels keep libdevice's sin/cos calls", RuntimeWarning, stacklevel=2)
     return bad == 0
+
+
+class WrittenOut(NamedTuple):
+    """:func:`sincos` with the range it holds libdevice's values on (``|t| <= limit``)."""
+
+    sincos: Callable
+    limit: float
+
+
+def written_out() -> WrittenOut | None:
+    """:func:`sincos` and :data:`LIMIT` where :func:`verified` on this process's GPU, else None (libdevice's calls):
+    what a kernel is handed when the plan's ``fast_sincos`` is on."""
+    return WrittenOut(sincos, LIMIT) if verified() else None

@@ -22,7 +22,7 @@ long as the carry's structure, which ``carry_rows`` changes, is the same; the ch
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
 :meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`physics_kernel`,
-:func:`task_kernel`, :func:`check_pallas`, :func:`step_batch` (``env.step``
+:func:`task_kernel`, :func:`chunk_kernel_refusal`, :func:`check_pallas`, :func:`step_batch` (``env.step``
 over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after group).
 Names with a leading underscore are private.
 """
@@ -109,11 +109,30 @@ def task_kernel(env: Env) -> bool:
     return getattr(layers(env)[-1], "step_kernel", None) is not None
 
 
+def chunk_kernel_refusal(env: Env, config: Any, agent: str | None = None, discretiser: Any = None,
+                         fused_block: int | None = None) -> str | None:
+    """Why training ``env`` with ``config`` (a :class:`jaxrobo.training.trainer.TrainConfig`) cannot run its
+    chunks as the task's one kernel (:attr:`jaxrobo.task.env.TaskEnv.chunk_kernel`: the analytic cart-pole with
+    Q-learning, :mod:`envs.cartpole.kernel`); None: it can. The task's own rules, read both by the plan's default
+    (:func:`default_fused`) and by the boundary that refuses an explicit choice (:func:`check_pallas`). ``agent``:
+    the learner's name (default: ``config.agent``); ``discretiser``: the run's
+    :class:`jaxrobo.tabular.discretise.Discretiser` (default: the config's, built only for a task with a kernel);
+    ``fused_block``: the plan's envs per program."""
+    kernel = getattr(type(env), "chunk_kernel", None)  # the class's: a wrapper forwards attributes, not its step
+    if kernel is None:
+        return f"the env is {type(env).__name__}, whose task offers no whole-chunk kernel"
+    if discretiser is None:
+        from jaxrobo.tabular.discretise import make_discretiser_for
+
+        discretiser = make_discretiser_for(env, config)
+    return kernel.unsupported_run(env, config, config.agent if agent is None else agent, discretiser, fused_block)
+
+
 def check_pallas(trainer: Any) -> None:
     """Refuse (a :class:`jaxrobo.core.config.ConfigError`, naming the field and the runs it supports) a
-    :class:`jaxrobo.training.trainer.Trainer` whose run ``fused="pallas"`` cannot take. Two runs can: a robot with a physics kernel (:func:`physics_kernel`), with
-    any learner, and the analytic cart-pole with Q-learning, whose whole chunk is one kernel
-    (:mod:`jaxrobo.speed.fused_pallas`)."""
+    :class:`jaxrobo.training.trainer.Trainer` whose run ``fused="pallas"`` cannot take. Two runs can: a robot with a
+    physics kernel (:func:`physics_kernel`), with any learner, and a task whose whole chunk is one kernel (the
+    analytic cart-pole with Q-learning, :func:`chunk_kernel_refusal`)."""
     if trainer.plan.task_kernel and not task_kernel(trainer.env):
         inner = layers(trainer.env)[-1]
         why = getattr(inner, "step_kernel_refusal", None)  # the task's reason, where it names one
@@ -127,9 +146,8 @@ def check_pallas(trainer: Any) -> None:
                              f"{type(trainer.env).__name__} control-step kernel sets its own envs per program: "
                              "leave fused_block None")
         return
-    from jaxrobo.speed import fused_pallas
-
-    why = fused_pallas.unsupported(trainer)
+    why = chunk_kernel_refusal(trainer.env, trainer.config, trainer.learner.name, trainer.disc,
+                               trainer.plan.fused_block)
     if why is not None:
         raise ConfigError(f"ExecutionPlan fused='pallas': {why}. It supports the quadcopter tasks on backend='rigid' "
                          "(the control step as one kernel, any learner) and the analytic CartPoleStayUp with "
@@ -141,11 +159,11 @@ def default_fused(env: Env, backend: str | None = None, n_envs: int | None = Non
     """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, where JAX
     sees one device: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a run whose whole chunk is
     one kernel (the analytic cart-pole with Q-learning,
-    :mod:`jaxrobo.speed.fused_pallas`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
+    :mod:`envs.cartpole.kernel`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
     compiles ~10-25 s longer, which a short run compiling cold does not earn back; the persistent compile cache
     serves the later runs of a configuration, docs/benchmarks.md, "Pallas"), decided from ``config`` (a
     :class:`jaxrobo.training.trainer.TrainConfig`; its ``n_envs`` replaces ``n_envs``) with the run's learner name ``agent`` and ``discretiser`` (defaults: the
-    config's) by :func:`jaxrobo.speed.fused_pallas.unsupported_run`, the rules that also refuse an explicit choice.
+    config's) by :func:`chunk_kernel_refusal`, the rules that also refuse an explicit choice.
     Otherwise, with a
     closed form of more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot
     offers its control step as a kernel (:func:`physics_kernel`: the rigid quadcopter, whose Goto + Q-learning ran
@@ -165,9 +183,7 @@ def default_fused(env: Env, backend: str | None = None, n_envs: int | None = Non
     # XLA cannot partition, a sharded batch; not measured on several GPUs, so they keep the plain choices.
     one = jax.device_count() == 1
     if config is not None and one and not physics_kernel(env) and n_envs >= _CHUNK_KERNEL_MIN_ENVS:
-        from jaxrobo.speed import fused_pallas
-
-        if fused_pallas.unsupported_run(env, config, agent, discretiser) is None:
+        if chunk_kernel_refusal(env, config, agent, discretiser) is None:
             return "pallas"
     sim = simulator_of(env)
     many = sim is not None and getattr(sim, "cheap_step", False) and int(getattr(sim, "n_substeps", 1) or 1) > 8
@@ -209,12 +225,22 @@ class ExecutionPlan:
     of that many envs. ``"pallas"``: a Pallas kernel, for two kinds of run (``Trainer`` refuses the others, naming
     the field: :func:`check_pallas`): the rigid quadcopter's control step (controller and physics substeps) as
     one kernel over the batch (:mod:`envs.quadcopter.kernel`, any learner; the rest of the step is XLA's), and the
-    analytic cart-pole's whole chunk with Q-learning and per-env tables (:mod:`jaxrobo.speed.fused_pallas`).
+    analytic cart-pole's whole chunk with Q-learning and per-env tables (:mod:`envs.cartpole.kernel`).
     ``fused_block``: with ``fused="xla"``, envs per block (None: the whole batch, no blocking), read only with
     per-env tables (a shared table mixes every env each step, so it runs unblocked); bit for bit on a CPU, while
     on a GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.physics.fused`). With
     ``fused="pallas"`` on the cart-pole, envs per Pallas program (a power of two up to 1024; None: one warp's
-    32, :data:`jaxrobo.speed.fused_pallas.BLOCK`); the quadcopter's kernel sets its own block, so it refuses one.
+    32, :data:`envs.cartpole.kernel.BLOCK`); the quadcopter's kernel sets its own block, so it refuses one.
+
+    ``skip_resets``, ``group_resets``, ``fast_sincos``: read only by a whole-chunk kernel (the cart-pole's), each
+    keeping every value (the tests compare them with the choice off). ``skip_resets``: a program hashes the
+    reset's random numbers and gathers the fresh rows only in a step where one of its envs is done (a scalar branch
+    per program); off, in every env every step, selected away where not done. ``group_resets`` (with
+    ``skip_resets``): a program whose done envs number at most a quarter of its lanes hashes their resets in groups
+    of four lanes (under domain randomisation at most an eighth, in groups of eight); off, each lane its own env's.
+    ``fast_sincos``: on a GPU where :func:`jaxrobo.physics.libdevice_sincos.verified`, in a step where every pole
+    angle of a program stays within the written-out ``sin``/``cos``'s range (one scalar branch per program and
+    step), those instead of libdevice's calls; off, and off a GPU, the calls.
 
     ``task_kernel``: with ``fused="pallas"``, a task that offers its whole step as a kernel (the Goto tasks'
     ``step_kernel``, :mod:`envs.quadcopter.goto_kernel`: action, control step, observation, outcome, reward and the
@@ -246,6 +272,9 @@ class ExecutionPlan:
     fused: str = "off"
     fused_block: int | None = None
     task_kernel: bool = False
+    skip_resets: bool = True
+    group_resets: bool = True
+    fast_sincos: bool = True
     ordered_sums: bool = False
     devices: int = 1
     compiler_options: tuple[tuple[str, Any], ...] | None = None
@@ -262,7 +291,8 @@ class ExecutionPlan:
         if not isinstance(self.unrolled_groups, int) or isinstance(self.unrolled_groups, bool) \
                 or self.unrolled_groups < 1:
             raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
-        for name in ("lean_mjx", "carry_rows", "task_kernel", "ordered_sums"):
+        for name in ("lean_mjx", "carry_rows", "task_kernel", "skip_resets", "group_resets", "fast_sincos",
+                     "ordered_sums"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ExecutionPlan {name}={getattr(self, name)!r}: expected True or False")
         options = self.compiler_options
@@ -370,6 +400,9 @@ class ExecutionPlan:
             parts.append(f"fused={self.fused}, fused_block={block}")
             if self.fused == "pallas" and self.task_kernel:
                 parts.append("task_kernel=on")
+            # The whole-chunk kernel's choices, named only when off (a plan as the default prints as it did).
+            parts += [f"{name}=off" for name in ("skip_resets", "group_resets", "fast_sincos")
+                      if self.fused == "pallas" and not getattr(self, name)]
         if self.ordered_sums:  # likewise
             parts.append("ordered_sums=on")
         if self.devices > 1:  # likewise

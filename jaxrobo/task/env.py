@@ -268,6 +268,13 @@ class TaskEnv(Env):
     #: task_kernel=True)`` :meth:`step` runs :meth:`_kernel_step` instead of the hooks (:func:`jaxrobo.speed.plan.
     #: task_kernel` reads this attribute), which stay the task's definition the kernel is tested against.
     step_kernel: Any = None
+    #: A training chunk of the task with a tabular learner as one kernel, where the task offers one (the analytic
+    #: cart-pole with Q-learning, :mod:`envs.cartpole.kernel`); None otherwise. An object with
+    #: ``unsupported_run(env, config, agent, discretiser, fused_block)`` (why a run cannot take it; None: it can) and
+    #: ``run_chunk(trainer, runner, agent_params, env_params, written)``, which ``ExecutionPlan(fused="pallas")`` runs
+    #: in place of the trainer's scanned steps (:func:`jaxrobo.speed.plan.chunk_kernel_refusal`). Read from the
+    #: env's class, so a wrapper (whose step the kernel would skip) offers none.
+    chunk_kernel: ClassVar[Any] = None
 
     # ---- the seed's hooks (pure; override in tasks) ---------------------------------------------------
     def _set_init_pose(self, key: jax.Array, params: Any) -> tuple[jax.Array, jax.Array]:

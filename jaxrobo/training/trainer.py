@@ -39,6 +39,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from jaxrobo.physics import libdevice_sincos
 from jaxrobo.tabular import learner as tabular
 from jaxrobo.tabular.learner import AgentParams, AgentState, Learner
 from jaxrobo.task import autoreset, registry, rollout
@@ -435,10 +436,9 @@ class Trainer:
         """``chunk_steps`` training steps (:meth:`run_chunk` without the snapshots)."""
         env_params = self.env.default_params if env_params is None else env_params
         plan = self.plan
-        if plan.fused == "pallas" and not physics_kernel(self.env):  # the whole chunk as one kernel (fused_pallas)
-            from jaxrobo.speed import fused_pallas
-
-            return fused_pallas.run_chunk(self, runner, agent_params, env_params)
+        if plan.fused == "pallas" and not physics_kernel(self.env):  # the whole chunk as the task's one kernel
+            written = libdevice_sincos.written_out() if plan.fast_sincos else None
+            return type(self.env).chunk_kernel.run_chunk(self, runner, agent_params, env_params, written)
         if plan.fused == "xla" and plan.fused_block is not None and not self.config.shared_table \
                 and plan.fused_block < self.config.n_envs:
             # The plan's fused path: the same steps, block of envs after block (see jaxrobo.physics.fused).
