@@ -18,13 +18,13 @@ import pytest
 
 from jaxrobo import deep
 from jaxrobo.cli import main
-from jaxrobo.deep import training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CPC = "CartPoleContinuous-v0"
-#: Two epochs, each cut in host iterations by a CHUNK_ENV_STEPS made small for the test: PPO 8 training steps of
+#: Two epochs, each cut in host iterations by an iteration_steps made small for the test: PPO 8 training steps of
 #: 256 env steps per epoch, in 4 iterations of 512; SAC 62 actor steps of 8 env steps, in 31 iterations of 16.
-RUNS = {"ppo": ({"total_steps": 4096}, 512), "sac": ({"total_steps": 1024, "min_replay_size": 32}, 16)}
+RUNS = {"ppo": ({"total_steps": 4096, "iteration_steps": 512}, 512),
+        "sac": ({"total_steps": 1024, "min_replay_size": 32, "iteration_steps": 16}, 16)}
 
 
 def _args(agent: str) -> list[str]:
@@ -45,7 +45,6 @@ def _arrays(path: str) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("agent", ["ppo", "sac"])
 def test_a_stop_between_points_resumes_bit_for_bit(agent, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(training, "CHUNK_ENV_STEPS", RUNS[agent][1])
     spec = deep.resolve(CPC, agent, "tiny", {**RUNS[agent][0], "num_evals": 3})
     plan = deep.epoch_plan(spec.config)
     assert plan.chunks > 2 and plan.unit_steps == RUNS[agent][1]
@@ -81,7 +80,7 @@ def test_sigint_to_a_ppo_run_stops_it_between_points_and_resume_goes_on(tmp_path
     """One epoch (num_evals=2) of 4 host iterations of 65,536 env steps: SIGINT once the first iteration's state is
     kept. The run ends before its end, exit 130, its checkpoint past 0 steps; --resume finishes from there."""
     out = str(tmp_path / "run")
-    total = 4 * training.CHUNK_ENV_STEPS
+    total = 4 * deep.PPOConfig().iteration_steps
     cmd = [sys.executable, "-m", "jaxrobo.cli", "train", "--env", CPC, "--agent", "ppo", "--preset", "tiny",
            "--set", "episode_length=20", "--set", "eval_episodes=3", "--set", "num_evals=2", "--total-steps",
            str(total), "--no-progress", "--out", out]
@@ -108,7 +107,7 @@ def test_sigint_to_a_ppo_run_stops_it_between_points_and_resume_goes_on(tmp_path
     kept = re.search(r"the trainer's state at ([\d,]+) env steps \(checkpoint\.npz\)", err)
     assert kept is not None, err
     steps = int(kept[1].replace(",", ""))
-    assert 0 < steps < total and steps % training.CHUNK_ENV_STEPS == 0, err
+    assert 0 < steps < total and steps % deep.PPOConfig().iteration_steps == 0, err
     done = subprocess.run([sys.executable, "-m", "jaxrobo.cli", "train", "--resume", out, "--no-progress"], cwd=ROOT,
                           env=env, text=True, capture_output=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]

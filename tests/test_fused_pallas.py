@@ -91,8 +91,16 @@ def test_the_gpu_default_picks_the_kernel_where_it_applies(monkeypatch):
     with pytest.raises(ConfigError, match="ExecutionPlan fused='pallas': backend='mjx'"):
         mjx = _cartpole(n_envs=12, backend="mjx", fused="pallas")
         Trainer(mjx.env, mjx.config)
-    monkeypatch.setattr(jax, "device_count", lambda *a, **k: 2)  # a sweep sharded over several devices
-    assert fused(big) == "off" and fused(goto) == "xla"
+    # Two devices: the whole-chunk kernel runs on each device's envs; a run that takes the control-step kernel
+    # (a custom call XLA cannot split) stays on one device unless `devices` is set, so the automatic plan is the
+    # one-device plan; with devices=2 set, its step is written out instead.
+    monkeypatch.setattr(jax, "device_count", lambda *a, **k: 2)
+    split = ExecutionPlan.for_run(big.env, big.config, "gpu")
+    assert (split.fused, split.devices) == ("pallas", 2)
+    alone = ExecutionPlan.for_run(goto.env, goto.config, "gpu")
+    assert (alone.fused, alone.devices, alone.task_kernel) == ("pallas", 1, True)
+    two = resolve("QuadcopterGoto-v2", overrides=dict(n_envs=1024, backend="rigid", devices=2))
+    assert (fused(two), ExecutionPlan.for_run(two.env, two.config, "gpu").devices) == ("xla", 2)
 
 
 def test_training_gives_the_plain_path_tables_and_records():

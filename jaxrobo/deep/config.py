@@ -49,6 +49,10 @@ class DeepConfig:
     num_evals: int = param(10, low=1, high=1000, doc="evaluation points over the run (the first before training)")
     eval_episodes: int = param(128, low=1, high=100_000, doc="fresh episodes of each evaluation")
     seed: int = param(0, low=0, doc="random seed; the same seed gives the same run")
+    iteration_steps: int = param(1 << 16, low=1, doc="most env steps of one host iteration of the trainer (at "
+                                                     "least one training step): where a stop keeps the trainer's "
+                                                     "state between evaluation points; the policy is the same "
+                                                     "whatever it is")
     stop_at_target: bool = param(True, doc="stop at the first evaluation point whose fresh episodes meet the task's "
                                            "learning target (total_steps is then a cap); no effect for a task that "
                                            "declares no target")

@@ -37,9 +37,6 @@ def evaluate(env: Any, benv: Any, make_policy: Callable, n_episodes: int, horizo
 # ---- training ----------------------------------------------------------------------------------------------------
 #: Folded into the seed's key to derive the trainer's per-epoch keys (:func:`epoch_key`).
 _EPOCH_STREAM = 0x65706F63
-#: The most env steps of one host iteration of the trainer (:attr:`EpochPlan.chunks`): where the run can stop and
-#: keep its state between evaluation points. A host iteration is at least one of the trainer's training steps.
-CHUNK_ENV_STEPS = 1 << 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,17 +99,18 @@ def epoch_plan(c: Any) -> EpochPlan:
     ``ceil(num_timesteps / (epochs * batch_size * unroll_length * num_minibatches * action_repeat))`` training
     steps; ``sac.train``: a prefill of ``ceil(min_replay_size / num_envs)`` actor steps, then epochs of
     ``ceil((num_timesteps - prefill) / (epochs * num_envs * action_repeat))`` actor steps), each epoch in host
-    iterations of at most :data:`CHUNK_ENV_STEPS` env steps (or one training step, if that is more)."""
+    iterations of at most the config's ``iteration_steps`` env steps (or one training step, if that is
+    more): where the run can stop and keep its state between evaluation points."""
     epochs = max(c.num_evals - 1, 1)
     if c.agent == "ppo":
         per_step = c.batch_size * c.unroll_length * c.num_minibatches * c.action_repeat
         n = -(-c.total_steps // (epochs * per_step))
-        return EpochPlan(epochs, n * per_step, step_size=per_step, chunks=_chunks(n, CHUNK_ENV_STEPS // per_step))
+        return EpochPlan(epochs, n * per_step, step_size=per_step, chunks=_chunks(n, c.iteration_steps // per_step))
     per_step = c.action_repeat * c.num_envs
     prefill = -(-c.min_replay_size // c.num_envs) * per_step
     n = -(-(c.total_steps - prefill) // (epochs * per_step))
     return EpochPlan(epochs, n * per_step, prefill, initial_point=c.num_evals > 1, step_size=per_step,
-                     chunks=_chunks(n, CHUNK_ENV_STEPS // per_step))
+                     chunks=_chunks(n, c.iteration_steps // per_step))
 
 
 def epoch_key(seed: int, epoch: int) -> Any:

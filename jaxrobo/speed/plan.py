@@ -155,9 +155,9 @@ def check_pallas(trainer: Any) -> None:
 
 
 def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None, *, config: Any = None,
-                  agent: str | None = None, discretiser: Any = None) -> str:
-    """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``. On a GPU, from 1,024 envs, where JAX
-    sees one device: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a run whose whole chunk is
+                  agent: str | None = None, discretiser: Any = None, devices: int | None = None) -> str:
+    """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``, split over ``devices`` (default:
+    every device JAX sees). On a GPU, from 1,024 envs: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a run whose whole chunk is
     one kernel (the analytic cart-pole with Q-learning,
     :mod:`envs.cartpole.kernel`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
     compiles ~10-25 s longer, which a short run compiling cold does not earn back; the persistent compile cache
@@ -167,8 +167,9 @@ def default_fused(env: Env, backend: str | None = None, n_envs: int | None = Non
     Otherwise, with a
     closed form of more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot
     offers its control step as a kernel (:func:`physics_kernel`: the rigid quadcopter, whose Goto + Q-learning ran
-    2.9-3.9x the env steps/s of ``"xla"`` on an H100 at 1 k-1 M envs and compiled faster) and JAX sees one device,
-    else ``"xla"`` (the substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"``
+    2.9-3.9x the env steps/s of ``"xla"`` on an H100 at 1 k-1 M envs and compiled faster) and the run is on one
+    device (XLA cannot split that kernel's custom call over several; the whole-chunk kernel runs on each device's
+    envs under ``shard_map``), else ``"xla"`` (the substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"``
     otherwise: on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back
     the longer compile, and with 8 substeps or fewer the program is the same. A run the kernels cannot take keeps
     these choices; blocks of envs (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path" and
@@ -179,10 +180,10 @@ def default_fused(env: Env, backend: str | None = None, n_envs: int | None = Non
     big = n_envs is not None and n_envs >= _FUSED_MIN_ENVS
     if not (big and backend == "gpu"):
         return "off"
-    # One device only: a run sharded over several (a sweep's automatic mesh) would hand the kernel, a custom call
-    # XLA cannot partition, a sharded batch; not measured on several GPUs, so they keep the plain choices.
-    one = jax.device_count() == 1
-    if config is not None and one and not physics_kernel(env) and n_envs >= _CHUNK_KERNEL_MIN_ENVS:
+    # The control-step kernel, a custom call inside the step, only where the run is on one device: XLA cannot
+    # partition it. The whole-chunk kernel runs on each device's envs under shard_map (driver.compiled_chunk).
+    one = (jax.device_count() if devices is None else devices) == 1
+    if config is not None and not physics_kernel(env) and n_envs >= _CHUNK_KERNEL_MIN_ENVS:
         if chunk_kernel_refusal(env, config, agent, discretiser) is None:
             return "pallas"
     sim = simulator_of(env)
@@ -317,8 +318,9 @@ class ExecutionPlan:
         carried. With a config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"``
         with a physics kernel from 262,144 envs, the whole batch (the plain select) otherwise. ``fused``: the
         config's ``fused`` where it names one (``off``, ``xla``, ``pallas``), else (``auto``) :func:`default_fused`,
-        which on one GPU from 1,024 envs picks ``"pallas"`` for a run the cart-pole's
-        whole-chunk kernel takes; ``agent`` (a learner's name) and ``discretiser`` (a
+        which on a GPU from 1,024 envs picks ``"pallas"`` for a run the cart-pole's whole-chunk kernel or the
+        quadcopter's control-step kernel takes; with ``devices`` automatic (0), a run that takes the control-step
+        kernel on one device stays on one (the plan does not depend on the device count); ``agent`` (a learner's name) and ``discretiser`` (a
         :class:`jaxrobo.tabular.discretise.Discretiser`) are the run's where they differ from the config's (a
         :class:`jaxrobo.training.trainer.Trainer` given its own passes them). ``compiler_options``: see the class docstring
         (XLA's defaults unless given). ``ordered_sums`` is on for a shared table on a GPU."""
@@ -328,8 +330,17 @@ class ExecutionPlan:
             return cls(env_group=default_env_group(env, backend), compiler_options=compiler_options)
         # The config's fused, "auto" (or a config without the field) meaning the default for this device and run.
         asked = getattr(config, "fused", "auto")
-        fused = default_fused(env, backend, config=config, agent=agent, discretiser=discretiser) \
-            if asked == "auto" else asked
+        devices = default_devices(config)
+        if asked == "auto":
+            fused = default_fused(env, backend, config=config, agent=agent, discretiser=discretiser, devices=devices)
+            if devices > 1 and not getattr(config, "devices", 0) and physics_kernel(env) and default_fused(
+                    env, backend, config=config, agent=agent, discretiser=discretiser, devices=1) == "pallas":
+                # One GPU with the control-step kernel, not several without it: the kernel cannot be split over
+                # devices, and without it the step is written out (Goto-v2's default on an H200: 27 s of compile
+                # against the kernel's ~11 s). So the automatic plan is the same on any device count.
+                devices, fused = 1, "pallas"
+        else:
+            fused = asked
         # Gather the done envs (an eighth of the batch: few finish on any one step) on a CPU, and on a GPU where
         # the physics runs as a kernel and the batch is large: there the plain select's reset of every env (goal,
         # obstacles, a first observation with its ray tests) cost up to a fifth of the step (Goto-v2 on an H100,
@@ -337,7 +348,6 @@ class ExecutionPlan:
         # measured there); elsewhere on an accelerator the plain select. The cart-pole's whole-chunk kernel resets
         # in place and reads neither.
         gather = cpu or (fused == "pallas" and physics_kernel(env) and config.n_envs >= _GATHER_MIN_ENVS)
-        devices = default_devices(config)
         return cls(
             # The config's env_group, 0 meaning automatic; none across devices (each steps its share at once).
             env_group=(config.env_group or default_env_group(env, backend)) if devices == 1 else None,
