@@ -65,6 +65,13 @@ WHAT = {
     "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes: the same rows on each (a step "
                              "of 64 envs a row launches the same kernels on half the rows, so the run scales "
                              "sublinearly)",
+    "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "
+                                    "plan (the whole-chunk kernel on each GPU's envs): the same tables and records "
+                                    "(the run is too short to time)",
+    "before.json": "The cart-pole chunk kernel's row before its move to `envs/cartpole/kernel.py` (same call as "
+                   "`after.json`)",
+    "after.json": "The cart-pole chunk kernel's row after its move to `envs/cartpole/kernel.py` (same call as "
+                  "`before.json`)",
     "summary.json": "A sweep's own summary (`bash benchmarks/multiprocess_demo.sh`)",
 }
 #: Row fields that identify a machine state or a checksum rather than a figure a reader compares.
