@@ -9,9 +9,11 @@ Each family keeps its MJCF, robot, tasks, env YAML and fast kernels side by side
                   stay_up.py (CartPoleStayUp-v0, -LeftRight-v0)  kernel.py (a Q-learning chunk as one Pallas
                   kernel)  continuous.py (CartPoleContinuous-v0)  cartpole_stay_up.yaml
     quadcopter/   quadcopter.xml  robot.py (Quadcopter: Twist controller, sonar)  dynamics.py (controller and
-                  rigid-body step per coordinate: the XLA path's and the kernels' one source)  rigid_body.py
-                  (closed form)  kernel.py (the control step as one Pallas kernel)  live_show.py  goto.py  goto_v2.py
-                  goto_kernel.py (the Goto step as one Pallas kernel)  goto_twist.py  quadcopter_*.yaml
+                  rigid-body step per coordinate)  geometry.py (pose and ray tests per coordinate)  goto_step.py
+                  (the Goto step per coordinate; these three are the hooks', the kernels' and native.py's one source,
+                  over an array module)  rigid_body.py (closed form)  kernel.py (the control step as one Pallas
+                  kernel)  live_show.py  goto.py  goto_v2.py  goto_kernel.py (the Goto step as one Pallas kernel)
+                  goto_twist.py  native.py (native MuJoCo, no JAX)  quadcopter_*.yaml
     arm/          arm.xml  robot.py (ArmRobot)  reach.py (ArmReach-v0)  arm_reach.yaml
 
 How to add your own robot or task (in this package or in your own module, docs/extending.md):

@@ -84,3 +84,24 @@ def test_native_base_imports_no_jax():
     names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     names |= {(n.module or "").split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     assert names <= {"__future__", "typing", "mujoco", "numpy"}, names
+
+
+def test_quadcopter_port_imports_no_jax():
+    """The quadcopter's port and the per-coordinate modules it shares with the JAX task and its kernel (geometry,
+    controller, the Goto step) import no JAX: imported in a fresh process, below bare ``envs`` and ``jaxrobo``
+    packages (their ``__init__`` modules, the registry and the public surface, are JAX's side), ``jax`` is never
+    loaded."""
+    import subprocess
+    import sys
+
+    code = ("import os, sys, types\n"
+            "for name in ('envs', 'jaxrobo'):\n"
+            "    pkg = types.ModuleType(name)\n"
+            "    pkg.__path__ = [os.path.join(sys.argv[1], name)]\n"
+            "    sys.modules[name] = pkg\n"
+            "import envs.quadcopter.native, envs.quadcopter.geometry, envs.quadcopter.dynamics\n"
+            "import envs.quadcopter.goto_step\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib')))\n")
+    out = subprocess.run([sys.executable, "-c", code, ROOT], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout

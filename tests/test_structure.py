@@ -13,7 +13,8 @@ The layers:
   commands (``jaxrobo.cli``, ``jaxrobo.check``), the package root and the public surface ``jaxrobo.api`` stand on
   top.
 * ``envs/`` (robots and tasks) and ``agents/`` (tabular learners) import from jaxrobo only its public surface,
-  :data:`PUBLIC_SURFACE` (``jaxrobo.api``; ``tests/test_public_api.py`` holds its names). ``envs`` and ``agents``
+  :data:`PUBLIC_SURFACE` (``jaxrobo.api``; ``tests/test_public_api.py`` holds its names); a native-MuJoCo port
+  (``envs/*/native.py``), which runs without JAX, its JAX-free base instead (:data:`NATIVE_SURFACE`). ``envs`` and ``agents``
   never import each other.
 * ``jaxrobo/`` reaches ``envs`` and the learners only through the registry's entry points
   (:data:`ENTRY_POINTS`: ``jaxrobo.task.registry`` imports them by name with importlib).
@@ -65,6 +66,9 @@ TOP = frozenset({"jaxrobo", "jaxrobo.api", "jaxrobo.cli", "jaxrobo.check", "jaxr
                  "jaxrobo.evaluate"})
 #: The one module ``envs/`` and ``agents/`` import from jaxrobo.
 PUBLIC_SURFACE = frozenset({"jaxrobo.api"})
+#: What a native-MuJoCo port (``envs/*/native.py``) imports from jaxrobo instead: its JAX-free base and the
+#: exported runner's robot side (the public surface imports JAX, and a port runs an export without it).
+NATIVE_SURFACE = frozenset({"jaxrobo.interop.native", "jaxrobo.interop.numpy_policy"})
 #: The jaxrobo modules that may import envs/agents (by entry-point name, with importlib, in practice).
 ENTRY_POINTS = frozenset({"jaxrobo.task.registry"})
 
@@ -217,6 +221,8 @@ def forbidden(edge: Edge) -> str | None:
         return "envs must not import agents (tasks know nothing of learners)"
     if src == "agents" and dst == "envs":
         return "agents must not import envs (learners know nothing of tasks)"
+    if src == "envs" and edge.src.endswith(".native") and edge.dst in NATIVE_SURFACE:
+        return None
     if src in ("envs", "agents") and dst == "jaxrobo" and edge.dst not in PUBLIC_SURFACE:
         return f"{src} may import only the public surface ({', '.join(sorted(PUBLIC_SURFACE))}) from jaxrobo"
     if src == "jaxrobo" and dst in ("envs", "agents") and edge.src not in ENTRY_POINTS:

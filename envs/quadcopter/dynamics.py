@@ -2,11 +2,13 @@
 
 Every path that flies the quadcopter runs these two functions: :meth:`envs.quadcopter.robot.Quadcopter.controller`
 (on every backend, MJX included) calls :func:`controller`, :meth:`envs.quadcopter.rigid_body.RigidBodySim.physics_step`
-calls :func:`physics_step`, each on one env's state split into coordinates and stacked back, and the Pallas kernels
-(:mod:`envs.quadcopter.kernel`, :mod:`envs.quadcopter.goto_kernel`) call both on ``[block]`` vectors. They are
-written per coordinate, over lists of scalars or same-shape arrays, because a Pallas kernel holds a state as one
-vector per coordinate (its Triton lowering has no slice or gather within a block); under ``vmap`` the same code
-runs on one env's scalars.
+calls :func:`physics_step`, each on one env's state split into coordinates and stacked back, the Pallas kernels
+(:mod:`envs.quadcopter.kernel`, :mod:`envs.quadcopter.goto_kernel`) call both on ``[block]`` vectors, and the
+native-MuJoCo port (:mod:`envs.quadcopter.native`) runs :func:`controller` in float64 numpy before every
+``mj_step``. They are written per coordinate, over lists of scalars or same-shape arrays, because a Pallas kernel
+holds a state as one vector per coordinate (its Triton lowering has no slice or gather within a block); under
+``vmap`` the same code runs on one env's scalars. The array module is the caller's (``xp``: ``jax.numpy`` or
+``numpy``): this module imports no JAX, so the native port runs without it.
 
 The form chosen is the one that costs a GPU fewest instructions, as the kernel is the default there: the
 controller takes the heading's cosine and sine and the cosines of roll and pitch from the quaternion algebraically
@@ -24,10 +26,13 @@ Public surface: :func:`controller`, :func:`physics_step`, :func:`rotation`, :cla
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Sequence
 
-import jax.numpy as jnp
 import numpy as np
+
+from envs.quadcopter.geometry import roll_terms, yaw_terms
+from envs.quadcopter.geometry import sin_pitch as geometry_sin_pitch
 
 
 def _f32(v: Any) -> float:
@@ -99,12 +104,12 @@ def body_constants(airframe: Any) -> BodyConstants:
                          gravity=_f32s(af.gravity))
 
 
-def _clip(x, low: float, high: float):
+def _clip(xp: Any, x, low: float, high: float):
     # jnp.clip's order (max with the low bound, then min with the high one), skipping an infinite bound.
-    if np.isfinite(low):
-        x = jnp.maximum(x, low)
-    if np.isfinite(high):
-        x = jnp.minimum(x, high)
+    if math.isfinite(low):
+        x = xp.maximum(x, low)
+    if math.isfinite(high):
+        x = xp.minimum(x, high)
     return x
 
 
@@ -126,46 +131,46 @@ def rotation(w, x, y, z) -> list[list]:
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
 
 
-def controller(c: ControllerConstants, q: Sequence[Any], v: Sequence[Any], cmd: Sequence[Any]) -> list:
+def controller(xp: Any, c: ControllerConstants, q: Sequence[Any], v: Sequence[Any], cmd: Sequence[Any]) -> list:
     """The on-board cascade: the Twist ``cmd = [vx, vy, vz, yaw_rate]`` in the heading frame → desired
     acceleration (tilt-limited) → desired roll/pitch and collective thrust → attitude PD and yaw-rate P →
     torques → the four rotor thrusts (N) through the inverse mixing matrix, clipped to the motor limits.
     ``q``: 7 position coordinates (position, wxyz quaternion), ``v``: 6 velocity coordinates (world linear
     velocity, body rates), each a scalar or an array of a common shape."""
-    w, x, y, z = q[3], q[4], q[5], q[6]
-    roll_y, roll_x = 2 * (w * x + y * z), 1 - 2 * (x * x + y * y)
-    roll = jnp.arctan2(roll_y, roll_x)
-    sin_pitch = _clip(2 * (w * y - z * x), -1.0, 1.0)
-    pitch = jnp.arcsin(sin_pitch)
+    quat = q[3], q[4], q[5], q[6]
+    roll_y, roll_x = roll_terms(*quat)
+    roll = xp.arctan2(roll_y, roll_x)
+    sin_pitch = _clip(xp, geometry_sin_pitch(*quat), -1.0, 1.0)
+    pitch = xp.arcsin(sin_pitch)
     # The heading's cosine and sine, and cos(roll), cos(pitch), from the atan2/asin arguments instead of through
     # the angles (cos(atan2(y, x)) = x / hypot(x, y), cos(asin(s)) = sqrt(1 - s^2)). The yaw angle itself is not
     # needed.
-    yaw_y, yaw_x = 2 * (w * z + x * y), 1 - 2 * (y * y + z * z)
-    yaw_h = jnp.sqrt(yaw_x * yaw_x + yaw_y * yaw_y)
+    yaw_y, yaw_x = yaw_terms(*quat)
+    yaw_h = xp.sqrt(yaw_x * yaw_x + yaw_y * yaw_y)
     level = yaw_h > 0  # atan2(0, 0) = 0: heading 0 where the heading is undefined (pitch +-90 degrees)
-    inv_h = 1.0 / jnp.where(level, yaw_h, 1.0)
-    cy, sy = jnp.where(level, yaw_x * inv_h, 1.0), jnp.where(level, yaw_y * inv_h, 0.0)
-    roll_h = jnp.sqrt(roll_x * roll_x + roll_y * roll_y)
-    cos_roll = jnp.where(roll_h > 0, roll_x / jnp.where(roll_h > 0, roll_h, 1.0), 1.0)
-    cos_pitch = jnp.sqrt(jnp.maximum(1 - sin_pitch * sin_pitch, 0.0))
+    inv_h = 1.0 / xp.where(level, yaw_h, 1.0)
+    cy, sy = xp.where(level, yaw_x * inv_h, 1.0), xp.where(level, yaw_y * inv_h, 0.0)
+    roll_h = xp.sqrt(roll_x * roll_x + roll_y * roll_y)
+    cos_roll = xp.where(roll_h > 0, roll_x / xp.where(roll_h > 0, roll_h, 1.0), 1.0)
+    cos_pitch = xp.sqrt(xp.maximum(1 - sin_pitch * sin_pitch, 0.0))
     vz_cmd = cmd[2]
     if c.min_altitude > 0:  # the altitude floor: descent commands stop above it
-        vz_cmd = jnp.maximum(vz_cmd, c.k_floor * (c.min_altitude - q[2]))
+        vz_cmd = xp.maximum(vz_cmd, c.k_floor * (c.min_altitude - q[2]))
     vx_h, vy_h = cy * v[0] + sy * v[1], -sy * v[0] + cy * v[1]
-    ax = _clip(c.k_vel_xy * (cmd[0] - vx_h), -c.a_max, c.a_max)
-    ay = _clip(c.k_vel_xy * (cmd[1] - vy_h), -c.a_max, c.a_max)
-    az = _clip(c.k_vel_z * (vz_cmd - v[2]), -c.max_acc_down, c.max_acc_up)
-    pitch_d = _clip(jnp.arctan2(ax, c.g + az), -c.max_tilt, c.max_tilt)
-    roll_d = _clip(jnp.arctan2(-ay, c.g + az), -c.max_tilt, c.max_tilt)
-    thrust = c.mass * (c.g + az) / jnp.maximum(cos_roll * cos_pitch, 0.5)
+    ax = _clip(xp, c.k_vel_xy * (cmd[0] - vx_h), -c.a_max, c.a_max)
+    ay = _clip(xp, c.k_vel_xy * (cmd[1] - vy_h), -c.a_max, c.a_max)
+    az = _clip(xp, c.k_vel_z * (vz_cmd - v[2]), -c.max_acc_down, c.max_acc_up)
+    pitch_d = _clip(xp, xp.arctan2(ax, c.g + az), -c.max_tilt, c.max_tilt)
+    roll_d = _clip(xp, xp.arctan2(-ay, c.g + az), -c.max_tilt, c.max_tilt)
+    thrust = c.mass * (c.g + az) / xp.maximum(cos_roll * cos_pitch, 0.5)
     torque = [c.inertia[0] * (c.k_att * (roll_d - roll) - c.k_rate * v[3]),
               c.inertia[1] * (c.k_att * (pitch_d - pitch) - c.k_rate * v[4]),
               c.inertia[2] * (c.k_yaw * (cmd[3] - v[5]))]
     wanted = [thrust] + torque
-    return [_clip(_dot(row, wanted), lo, hi) for row, lo, hi in zip(c.unmix, c.ctrl_low, c.ctrl_high)]
+    return [_clip(xp, _dot(row, wanted), lo, hi) for row, lo, hi in zip(c.unmix, c.ctrl_low, c.ctrl_high)]
 
 
-def physics_step(c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Sequence[Any],
+def physics_step(xp: Any, c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Sequence[Any],
                  physics: dict | None = None) -> tuple[list, list]:
     """One physics step of the free body (MuJoCo's semi-implicit Euler): Newton–Euler under the actuators'
     body-frame wrench and gravity, velocities first, then positions with the new velocities, the quaternion
@@ -178,7 +183,7 @@ def physics_step(c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Seq
     trace; the kernels pass each env's domain as per-env inputs of the same names. Returns the new ``(q, v)`` as
     lists."""
     dt = c.dt
-    ctrl = [_clip(u, lo, hi) for u, lo, hi in zip(ctrl, c.ctrl_low, c.ctrl_high)]
+    ctrl = [_clip(xp, u, lo, hi) for u, lo, hi in zip(ctrl, c.ctrl_low, c.ctrl_high)]
     wr = [_dot(row, ctrl) for row in c.wrench]
     inertia = c.inertia
     inv_mass = _f32(1.0 / np.float32(c.mass))
@@ -208,11 +213,11 @@ def physics_step(c: BodyConstants, q: Sequence[Any], v: Sequence[Any], ctrl: Seq
     pos = [q[i] + dt * vel[i] for i in range(3)]
     # Rotate by omega * dt about the body axes, then renormalise; sin(half)/|omega| written to stay finite (and
     # differentiable) at omega = 0.
-    angle = jnp.sqrt(om[0] * om[0] + om[1] * om[1] + om[2] * om[2]) * dt
+    angle = xp.sqrt(om[0] * om[0] + om[1] * om[1] + om[2] * om[2]) * dt
     half = 0.5 * angle
-    scale = jnp.where(angle > 1e-8, jnp.sin(half) / jnp.maximum(angle, 1e-8), 0.5 - half * half / 12.0) * dt
-    bw, bx, by, bz = jnp.cos(half), om[0] * scale, om[1] * scale, om[2] * scale
+    scale = xp.where(angle > 1e-8, xp.sin(half) / xp.maximum(angle, 1e-8), 0.5 - half * half / 12.0) * dt
+    bw, bx, by, bz = xp.cos(half), om[0] * scale, om[1] * scale, om[2] * scale
     out = [qw * bw - qx * bx - qy * by - qz * bz, qw * bx + qx * bw + qy * bz - qz * by,
            qw * by - qx * bz + qy * bw + qz * bx, qw * bz + qx * by - qy * bx + qz * bw]
-    inv_norm = 1.0 / jnp.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3])
+    inv_norm = 1.0 / xp.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3])
     return pos + [o * inv_norm for o in out], vel + om

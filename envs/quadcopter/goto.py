@@ -34,8 +34,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter.robot import (BOX, CYLINDER, SONAR_RAYS, Obstacles, QuadcopterOptions, QuadcopterTask, sonar,
-                             sphere_hits, twist_command, wrap_angle)
+from envs.quadcopter import goto_step
+from envs.quadcopter.goto_step import V1_PARAMS, V2_PARAMS, kinds_of
+from envs.quadcopter.robot import (BOX, CYLINDER, Obstacles, QuadcopterOptions, QuadcopterTask, fold_obstacles,
+                                   twist_command)
 from envs.quadcopter.goto_kernel import kernel_step, make_task_step, supports
 from jaxrobo.api import (BaseParams, EnvState, LearningTarget, param, pytree_dataclass, randomise, range_param, rng,
                          spaces)
@@ -113,6 +115,9 @@ class QuadcopterGoto(QuadcopterTask):
     #: Which of :mod:`envs.quadcopter.goto_kernel`'s task kernels holds this class's hooks (a subclass that
     #: overrides one of them gets none).
     step_kernel_variant: ClassVar[str | None] = "v1"
+    #: v2's observation (``goal_clear``, ``goal_dz`` with its lead) and reward (the shaping terms), as
+    #: :mod:`envs.quadcopter.goto_step` writes them.
+    v2: ClassVar[bool] = False
 
     def __init__(self, options: Any = None, params: Any = None):
         super().__init__(options, params)
@@ -187,30 +192,27 @@ class QuadcopterGoto(QuadcopterTask):
     def _set_action(self, action: jax.Array, task: TaskVars, params: Params) -> tuple[jax.Array, TaskVars]:
         return twist_command(action, params.speed_value), task
 
-    def _sonar(self, sensors: dict, task: TaskVars, params: Params) -> jax.Array:
-        """Level (gimballed) rays: rotated by the heading only, so tilting to fly does not aim them at the floor."""
-        yaw = sensors["rpy"][2]
-        level = jnp.stack([jnp.cos(yaw / 2), 0.0 * yaw, 0.0 * yaw, jnp.sin(yaw / 2)])
-        return sonar(sensors["pos"], level, task.obstacles, params.sonar_range, SONAR_RAYS)
+    def _p(self, params: Params) -> dict:
+        return {name: getattr(params, name) for name in (V2_PARAMS if self.v2 else V1_PARAMS)}
+
+    def _observe(self, pipeline_state: Any, task: TaskVars, params: Params) -> tuple:
+        """``(sensors, obs, goal distance, nearest obstacle surface)``: :func:`envs.quadcopter.goto_step.observe`
+        on the robot's readings, folding over the obstacles with :func:`envs.quadcopter.robot.fold_obstacles`."""
+        s = self.robot.read_sensors(pipeline_state)
+        pos, goal = [s["pos"][i] for i in range(3)], [task.goal[i] for i in range(3)]
+        obs, dist, point = goto_step.observe(
+            jnp, pos, s["rpy"][2], s["vel"][2], goal, self._p(params), self.v2, kinds_of(self.options.obstacle_kind),
+            lambda distances, init: fold_obstacles(task.obstacles, distances, init))
+        return s, obs, dist, point
 
     def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
-        s = self.robot.read_sensors(pipeline_state)
-        delta = task.goal - s["pos"]
-        bearing = wrap_angle(jnp.arctan2(delta[1], delta[0]) - s["rpy"][2])
-        head = jnp.stack([jnp.linalg.norm(delta), bearing, delta[2]])
-        return jnp.concatenate([head, self._sonar(s, task, params)]).astype(jnp.float32)
+        return jnp.stack(self._observe(pipeline_state, task, params)[1]).astype(jnp.float32)
 
     def _outcome(self, pipeline_state: Any, task: TaskVars, params: Params) -> tuple[jax.Array, jax.Array]:
         """``(arrived, failed)``: failed = crash, out of the workspace, or an altitude/inclination limit."""
-        s = self.robot.read_sensors(pipeline_state)
+        s, _, dist, point = self._observe(pipeline_state, task, params)
         pos, rpy = s["pos"], s["rpy"]
-        ground, obstacle = sphere_hits(pos, params.drone_radius, task.obstacles)
-        outside = (jnp.abs(pos[0]) > params.workspace) | (jnp.abs(pos[1]) > params.workspace)
-        limits = (pos[2] > params.max_altitude) | (jnp.abs(rpy[0]) >= params.max_incl) | \
-            (jnp.abs(rpy[1]) >= params.max_incl)
-        failed = ground | obstacle | outside | limits
-        arrived = (jnp.linalg.norm(task.goal - pos) < params.goal_tolerance) & ~failed
-        return arrived, failed
+        return goto_step.outcome(jnp, [pos[i] for i in range(3)], rpy[0], rpy[1], dist, point, self._p(params))
 
     def _is_done(self, obs: jax.Array, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
         arrived, failed = self._outcome(pipeline_state, task, params)
@@ -218,12 +220,11 @@ class QuadcopterGoto(QuadcopterTask):
 
     def _compute_reward(self, obs, done, action, pipeline_state, task, params) -> tuple[jax.Array, TaskVars]:
         arrived, failed = self._outcome(pipeline_state, task, params)
-        dist = obs[0]
         z = self.robot.read_sensors(pipeline_state)["pos"][2]
-        reward = (params.progress_reward * (task.prev_dist - dist) - params.step_cost - params.altitude_cost * z
-                  + jnp.where(arrived, params.arrival_bonus, 0.0) - jnp.where(failed, params.crash_penalty, 0.0))
-        task = task.replace(prev_dist=dist, arrived=task.arrived | arrived, crashed=task.crashed | failed)
-        return reward.astype(jnp.float32), task
+        names = ("prev_dist", "arrived", "crashed") + (("prev_bearing", "prev_dz") if self.v2 else ())
+        reward, changes = goto_step.reward(jnp, self._p(params), {n: getattr(task, n) for n in names},
+                                           [obs[i] for i in range(3)], obs[0], z, arrived, failed, self.v2)
+        return reward.astype(jnp.float32), task.replace(**changes)
 
 
 __all__ = ["QuadcopterGoto", "Options", "Params", "TaskVars", "EnvState"]

@@ -9,16 +9,15 @@ XLA's: some 30 batch-wide kernels a step (transposes, the sonar's 3x3 GEMM, the 
 observation, reductions over the obstacles), each moving part of every env's state through memory. Here the
 task's step is one kernel and only the learner, the discretiser and the reset remain around it.
 
-What it computes: the task's hooks (:meth:`envs.quadcopter.goto.QuadcopterGoto._set_action`, ``_get_obs``,
-``_is_done``, ``_compute_reward``; v2's :class:`envs.quadcopter.goto_v2.QuadcopterGoto2`) and
-:meth:`jaxrobo.task.env.TaskEnv.step`'s NaN guard, written once per coordinate in :func:`task_step`, which runs on
-arrays of any shape (the tests run it on a CPU against the hooks themselves, which stay the task's definition).
-The geometry is the hooks' exact ray tests with the directions the task's rays have written in: the level rays'
-vertical component is 0 and the down ray is ``(0, 0, -1)``, so their parallel-slab branches are chosen while
-tracing. The robot's control step is not written here: :func:`envs.quadcopter.kernel.control_step` runs the
-XLA step's own controller and physics (:mod:`envs.quadcopter.dynamics`). The kernel agrees with the XLA step to
-float32 round-off, not bit for bit (the two programs are fused differently, and a GPU takes
-``atan2``/``sin``/``cos`` from another library).
+What it computes: nothing of its own. :func:`task_step` composes the task's step as
+:mod:`envs.quadcopter.goto_step` writes it once per coordinate (the action map, the observation, the outcome, the
+reward: the functions the hooks of :class:`envs.quadcopter.goto.QuadcopterGoto` and the native port run too) with
+the robot's control step (:func:`envs.quadcopter.kernel.control_step`: :mod:`envs.quadcopter.dynamics`' controller
+and physics) and :meth:`jaxrobo.task.env.TaskEnv.step`'s NaN guard, on arrays of any shape (the tests run it on a
+CPU against the hooks). What only a kernel needs stays here: the obstacles read by index, unrolled or in a loop
+(the hooks vmap over them), and the guard written with ``abs(x) < inf`` (Triton has no ``isfinite``). The kernel
+agrees with the XLA step to float32 round-off, not bit for bit (the two programs are fused differently, and a GPU
+takes ``atan2``/``sin``/``cos`` from another library).
 
 Domain randomisation (``randomise=true``): the kernel is built with :attr:`Layout.randomised` and reads each
 env's drawn physics as per-env inputs (:data:`envs.quadcopter.kernel.PHYSICS`, from the env state's ``domain``
@@ -48,21 +47,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter.robot import _ACTION_FIXED, _ACTION_SCALE, _INF, _PARALLEL, BOX, SONAR_RAYS, wrap_angle
+from envs.quadcopter.geometry import euler
+from envs.quadcopter.goto_step import V1_PARAMS, V2_PARAMS, kinds_of, observe, outcome, reward, twist
 from envs.quadcopter.kernel import BLOCK, PHYSICS, Constants, constants_of, control_step
 
 #: Obstacles written out one after another in the kernel; more run in a loop (a long unrolled body compiles
 #: slowly and gains nothing once the loop's few instructions are amortised over an obstacle's ray tests).
 UNROLL_OBSTACLES = 2
 
-#: The parameters (:class:`envs.quadcopter.goto.Params`) a step reads, in the order of the kernel's vector.
-V1_PARAMS = ("speed_value", "goal_tolerance", "workspace", "max_altitude", "max_incl", "drone_radius",
-             "sonar_range", "progress_reward", "step_cost", "altitude_cost", "arrival_bonus", "crash_penalty")
-#: v2's (:class:`envs.quadcopter.goto_v2.Params`): v1's, the goal_clear margin, the two shaping weights and the
-#: lead of goal_dz.
-V2_PARAMS = V1_PARAMS + ("clear_margin", "heading_reward", "climb_reward", "dz_lead")
 #: The hooks whose meaning the kernel holds: a subclass overriding one of them gets no kernel.
-HOOKS = ("step", "_set_action", "_get_obs", "_sonar", "_goal_clear", "_outcome", "_is_done", "_compute_reward")
+HOOKS = ("step", "_set_action", "_p", "_observe", "_get_obs", "_outcome", "_is_done", "_compute_reward")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,83 +97,6 @@ def supports(env: Any) -> str | None:
 
 
 # ---- the task's step, per coordinate ---------------------------------------------------------------------
-def _safe_inv(d):
-    return 1.0 / jnp.where(jnp.abs(d) < _PARALLEL, jnp.where(d < 0, -_PARALLEL, _PARALLEL), d)
-
-
-def _slab(o, d, c, h):
-    """One axis of :func:`envs.quadcopter.robot.ray_box`: ``(t_near, t_far)``; ``d`` None: a direction component
-    known to be 0 (the ray parallel to the axis' planes), a float: a known one."""
-    in_slab = jnp.abs(o - c) <= h
-    outside_near = jnp.where(in_slab, -_INF, _INF)
-    if d is None:
-        return outside_near, jnp.where(in_slab, _INF, -_INF)
-    inv = 1.0 / d if isinstance(d, float) else _safe_inv(d)
-    t1 = (c - h - o) * inv
-    t2 = (c + h - o) * inv
-    if isinstance(d, float):
-        return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
-    parallel = jnp.abs(d) < _PARALLEL
-    return (jnp.where(parallel, outside_near, jnp.minimum(t1, t2)),
-            jnp.where(parallel, jnp.where(in_slab, _INF, -_INF), jnp.maximum(t1, t2)))
-
-
-def _ray_box(o: Sequence, d: Sequence, c: Sequence, h: Sequence):
-    """:func:`envs.quadcopter.robot.ray_box` per coordinate."""
-    near, far = zip(*(_slab(o[i], d[i], c[i], h[i]) for i in range(3)))
-    t_near = jnp.maximum(jnp.maximum(near[0], near[1]), near[2])
-    t_far = jnp.minimum(jnp.minimum(far[0], far[1]), far[2])
-    hit = (t_near <= t_far) & (t_far >= 0)
-    return jnp.where(hit, jnp.maximum(t_near, 0.0), _INF)
-
-
-def _ray_cylinder(p: Sequence, d: Sequence, center: Sequence, radius, half_height):
-    """:func:`envs.quadcopter.robot.ray_cylinder` per coordinate, for a level ray (``d = (dx, dy, None)``) or the
-    down ray (``d = (None, None, -1.0)``)."""
-    o = [p[i] - center[i] for i in range(3)]
-    r2 = radius * radius
-    c = o[0] * o[0] + o[1] * o[1] - r2
-    inside = (c <= 0) & (jnp.abs(o[2]) <= half_height)
-    if d[2] is None:  # level: the side wall only (a level ray never meets a cap)
-        a = d[0] * d[0] + d[1] * d[1]
-        b = 2 * (o[0] * d[0] + o[1] * d[1])
-        disc = b * b - 4 * a * c
-        t_side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / (2 * jnp.maximum(a, 1e-12))
-        side_ok = (a > 1e-12) & (disc >= 0) & (t_side >= 0) & (jnp.abs(o[2]) <= half_height)
-        t = jnp.where(side_ok, t_side, _INF)
-    else:  # straight down: the caps only
-        inv_z = 1.0 / d[2]
-        xy_in = o[0] * o[0] + o[1] * o[1] <= r2
-        caps = [(half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z]
-        t = jnp.minimum(jnp.where((caps[0] >= 0) & xy_in, caps[0], _INF),
-                        jnp.where((caps[1] >= 0) & xy_in, caps[1], _INF))
-    return jnp.where(inside, 0.0, t)
-
-
-def _point_distance(p: Sequence, center: Sequence, size: Sequence, kind: str):
-    """:func:`envs.quadcopter.robot.point_obstacle_distance` of one obstacle (``kind`` 'box' or 'cylinder')."""
-    q = [jnp.abs(p[i] - center[i]) for i in range(3)]
-    over_z = jnp.maximum(q[2] - size[2], 0.0)
-    if kind == "box":
-        over = [jnp.maximum(q[i] - size[i], 0.0) for i in range(2)]
-        return jnp.sqrt(over[0] * over[0] + over[1] * over[1] + over_z * over_z)
-    radial = jnp.maximum(jnp.sqrt(q[0] * q[0] + q[1] * q[1]) - size[0], 0.0)
-    return jnp.sqrt(radial * radial + over_z * over_z)
-
-
-def _twist(action, speed) -> list:
-    """:func:`envs.quadcopter.robot.twist_command` per coordinate (an action outside 0-4 reads as 0)."""
-    out = []
-    for j in range(4):
-        value = None
-        for k in range(_ACTION_SCALE.shape[0]):
-            scale, fixed = float(_ACTION_SCALE[k, j]), float(_ACTION_FIXED[k, j])
-            v_k = scale * speed + fixed if scale != 0.0 else speed * 0.0 + fixed
-            value = v_k if value is None else jnp.where(action == k, v_k, value)
-        out.append(value)
-    return out
-
-
 def _finite(x):
     return jnp.abs(x) < np.inf  # False for NaN and ±inf (Triton has no isfinite)
 
@@ -199,96 +116,30 @@ def task_step(c: Constants, layout: Layout, q: Sequence, v: Sequence, action, ol
     ``terminated``, ``nan`` (the guard fired) and the task variables. The observation noise of a randomised task
     is not added here: :func:`kernel_step` adds it around the kernel, as :meth:`jaxrobo.task.env.TaskEnv.step`
     does after the hooks."""
-    q, v = control_step(c, q, v, _twist(action, p["speed_value"]), physics)
-    # read_sensors / euler_from_quat
-    w, x, y, z = q[3], q[4], q[5], q[6]
-    roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    q, v = control_step(c, q, v, twist(jnp, action, p["speed_value"]), physics)
+    roll, pitch, yaw = euler(jnp, q[3], q[4], q[5], q[6])
     pos = q[:3]
-    goal = task["goal"]
-    delta = [goal[i] - pos[i] for i in range(3)]
-    dist = jnp.sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2])
-    bearing = wrap_angle(jnp.arctan2(delta[1], delta[0]) - yaw)
-    # _sonar: the level rays, rotated by the heading's quaternion (its matrix written out: x = y = 0).
-    hw, hz = jnp.cos(yaw / 2), jnp.sin(yaw / 2)
-    r_cos, r_sin = 1 - 2 * (hz * hz), 2 * (hw * hz)
-    rays = []
-    for rx, ry, rz in SONAR_RAYS.tolist():
-        if rz != 0.0:  # the down ray (0, 0, -1)
-            rays.append((None, None, float(np.float32(rz))))
-            continue
-        dx = [t for t in (rx * r_cos if rx else None, -(ry * r_sin) if ry else None) if t is not None]
-        dy = [t for t in (rx * r_sin if rx else None, ry * r_cos if ry else None) if t is not None]
-        rays.append((sum(dx[1:], dx[0]), sum(dy[1:], dy[0]), None))
-    # v2's goal_clear ray: level, towards the goal.
-    level = jnp.sqrt(delta[0] * delta[0] + delta[1] * delta[1])
-    unit = jnp.maximum(level, 1e-6)
-    towards = (delta[0] / unit, delta[1] / unit, None)
 
-    kinds = ("box", "cylinder") if layout.obstacle_kind == "mixed" else (layout.obstacle_kind,)
-    grow = p["drone_radius"] + p["clear_margin"] if layout.v2 else None
+    def fold(distances, nearest):  # the obstacles by index: unrolled, or a loop inside the kernel
+        def one(i, carry):
+            return tuple(jnp.minimum(m, t) for m, t in zip(carry, distances(*obstacle(i))))
 
-    def one(i, carry):
-        kind, center, size, active = obstacle(i)
-        found = {}
-        for name in kinds:
-            ts = []
-            for d in rays:
-                if name == "box":
-                    ts.append(_ray_box(pos, d, center, size))
-                else:
-                    ts.append(_ray_cylinder(pos, d, center, size[0], size[2]))
-            if layout.v2:
-                grown = [size[0] + grow, size[1] + grow, size[2]]
-                ts.append(_ray_box(pos, towards, center, grown) if name == "box"
-                          else _ray_cylinder(pos, towards, center, grown[0], grown[2]))
-            ts.append(_point_distance(pos, center, size, name))
-            found[name] = ts
-        ts = found[kinds[0]] if len(kinds) == 1 else \
-            [jnp.where(kind == BOX, b, cyl) for b, cyl in zip(found["box"], found["cylinder"])]
-        return tuple(jnp.minimum(m, jnp.where(active, t, _INF)) for m, t in zip(carry, ts))
-
-    n_out = len(rays) + int(layout.v2) + 1
-    nearest = tuple(pos[0] * 0.0 + _INF for _ in range(n_out))
-    if layout.n_obstacles > UNROLL_OBSTACLES:
-        nearest = jax.lax.fori_loop(0, layout.n_obstacles, one, nearest)
-    else:
+        if layout.n_obstacles > UNROLL_OBSTACLES:
+            return jax.lax.fori_loop(0, layout.n_obstacles, one, nearest)
         for i in range(layout.n_obstacles):
             nearest = one(i, nearest)
-    pz = pos[2]
-    sonar_range = p["sonar_range"]
-    # v2's goal_dz is read where the climb stops: v[2] is the world vertical velocity (qvel's linear part).
-    obs = [dist, bearing, delta[2] - p["dz_lead"] * v[2] if layout.v2 else delta[2]]
-    for d, t in zip(rays, nearest):
-        ground = jnp.where(pz > 0, pz, 0.0) if d[2] is not None else jnp.where(pz <= 0, 0.0, _INF)
-        obs.append(jnp.minimum(jnp.minimum(ground, t), sonar_range))
-    if layout.v2:
-        ray = nearest[len(rays)]
-        obs.append(jnp.where(ray < level, jnp.minimum(ray, sonar_range), sonar_range))
-    # _outcome
-    radius = p["drone_radius"]
-    ws = p["workspace"]
-    outside = (jnp.abs(pos[0]) > ws) | (jnp.abs(pos[1]) > ws)
-    limits = (pz > p["max_altitude"]) | (jnp.abs(roll) >= p["max_incl"]) | (jnp.abs(pitch) >= p["max_incl"])
-    failed = (pz <= radius) | (nearest[-1] <= radius) | outside | limits
-    arrived = (dist < p["goal_tolerance"]) & ~failed
-    # _compute_reward
-    reward = (p["progress_reward"] * (task["prev_dist"] - dist) - p["step_cost"] - p["altitude_cost"] * pz
-              + jnp.where(arrived, p["arrival_bonus"], 0.0) - jnp.where(failed, p["crash_penalty"], 0.0))
-    new_task = {"prev_dist": dist, "arrived": task["arrived"] | arrived, "crashed": task["crashed"] | failed}
-    if layout.v2:
-        b_abs, dz_abs = jnp.abs(bearing), jnp.abs(obs[2])
-        reward = reward + (p["heading_reward"] * (task["prev_bearing"] - b_abs)
-                           + p["climb_reward"] * (task["prev_dz"] - dz_abs))
-        new_task.update(prev_bearing=b_abs, prev_dz=dz_abs)
+        return nearest
+
+    obs, dist, point = observe(jnp, pos, yaw, v[2], task["goal"], p, layout.v2, kinds_of(layout.obstacle_kind), fold)
+    arrived, failed = outcome(jnp, pos, roll, pitch, dist, point, p)
+    rew, new_task = reward(jnp, p, task, obs, dist, pos[2], arrived, failed, layout.v2)
     # TaskEnv.step's guard: a non-finite state ends the episode with zero reward and the last finite observation.
     ok = _finite(q[0])
     for value in list(q[1:]) + list(v) + obs:
         ok = ok & _finite(value)
     obs = [jnp.where(ok, o, old) for o, old in zip(obs, old_obs(ok))]
     new_task = {name: jnp.where(ok, value, task[name]) for name, value in new_task.items()}  # the task as it was
-    return {"q": q, "v": v, "obs": obs, "reward": jnp.where(ok, reward, 0.0), "terminated": arrived | failed | ~ok,
+    return {"q": q, "v": v, "obs": obs, "reward": jnp.where(ok, rew, 0.0), "terminated": arrived | failed | ~ok,
             "nan": ~ok, "task": new_task}
 
 

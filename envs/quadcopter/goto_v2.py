@@ -42,8 +42,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter.robot import ray_obstacles
+from envs.quadcopter import goto_step
 from envs.quadcopter.goto import OBS_NAMES as V1_OBS_NAMES
+from envs.quadcopter.goto_step import kinds_of
+from envs.quadcopter.robot import fold_obstacles
 from envs.quadcopter.goto import Options, QuadcopterGoto, TaskVars
 from envs.quadcopter.goto import Params as V1Params
 from jaxrobo.api import EnvState, param, pytree_dataclass, spaces
@@ -81,6 +83,7 @@ class QuadcopterGoto2(QuadcopterGoto):
     Options = Options
     Params = Params
     step_kernel_variant = "v2"
+    v2 = True
 
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         n = len(OBS_NAMES)
@@ -93,39 +96,21 @@ class QuadcopterGoto2(QuadcopterGoto):
                 jnp.concatenate([high, jnp.reshape(p.sonar_bound, (1,)).astype(jnp.float32)]))
 
     def _goal_clear(self, pos: jax.Array, task: TaskVars, params: Params) -> jax.Array:
-        """Free length of the level flight towards the goal: the ray against the grown obstacles."""
-        delta = (task.goal - pos).at[2].set(0.0)
-        direction = delta / jnp.maximum(jnp.linalg.norm(delta), 1e-6)
-        grow = params.drone_radius + params.clear_margin
-        obs = task.obstacles
-        grown = obs.replace(size=obs.size + jnp.stack([grow, grow, 0.0 * grow]).astype(obs.size.dtype))
-        ray = ray_obstacles(pos, direction, grown)
-        # An obstacle beyond the goal does not block it: free up to the goal reads as free (sonar_range).
-        return jnp.where(ray < jnp.linalg.norm(delta), jnp.minimum(ray, params.sonar_range), params.sonar_range)
+        """Free length of the level flight from ``pos`` towards the goal: the observation's ``goal_clear``
+        (:func:`envs.quadcopter.goto_step.observe`)."""
+        goal = [task.goal[i] for i in range(3)]
+        zero = 0.0 * pos[0]
+        obs, _, _ = goto_step.observe(jnp, [pos[i] for i in range(3)], zero, zero, goal, self._p(params), True,
+                                      kinds_of(self.options.obstacle_kind),
+                                      lambda distances, init: fold_obstacles(task.obstacles, distances, init))
+        return obs[-1]
 
     def _init_env_variables(self, key: jax.Array, pipeline_state: Any, params: Params) -> TaskVars2:
         task = super()._init_env_variables(key, pipeline_state, params)
         obs = super()._get_obs(pipeline_state, task, params)
         fields = {f.name: getattr(task, f.name) for f in dataclasses.fields(task)}
-        # At reset the drone hovers at rest: v1's goal_dz is v2's.
+        # At reset the drone hovers at rest: goal_dz's lead adds nothing.
         return TaskVars2(**fields, prev_bearing=jnp.abs(obs[1]), prev_dz=jnp.abs(obs[2]))
-
-    def _compute_reward(self, obs, done, action, pipeline_state, task, params) -> tuple[jax.Array, TaskVars2]:
-        """v1's reward plus the two shaping terms; both are differences of a potential (|bearing|, |goal_dz|),
-        so over any loop they sum to zero and a loop still costs its steps."""
-        reward, task = super()._compute_reward(obs, done, action, pipeline_state, task, params)
-        bearing, dz = jnp.abs(obs[1]), jnp.abs(obs[2])
-        shaping = params.heading_reward * (task.prev_bearing - bearing) + params.climb_reward * (task.prev_dz - dz)
-        return (reward + shaping).astype(jnp.float32), task.replace(prev_bearing=bearing, prev_dz=dz)
-
-    def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
-        head = super()._get_obs(pipeline_state, task, params)
-        s = self.robot.read_sensors(pipeline_state)
-        pos = s["pos"]
-        # goal_dz where the climb stops, not where the drone is: a climb or descent goes on ~dz_lead x its speed
-        # after the command ends, which the table, seeing no velocity, could not tell from standing still.
-        head = head.at[2].add(-params.dz_lead * s["vel"][2])
-        return jnp.concatenate([head, self._goal_clear(pos, task, params)[None]]).astype(jnp.float32)
 
 
 __all__ = ["QuadcopterGoto2", "Options", "Params", "TaskVars", "TaskVars2", "EnvState", "OBS_NAMES"]

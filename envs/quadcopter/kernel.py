@@ -68,7 +68,7 @@ def control_step(c: Constants, q: Sequence[Any], v: Sequence[Any], cmd: Sequence
 
     def substep(_, carry):
         q, v = list(carry[:7]), list(carry[7:])
-        q, v = physics_step(c.body, q, v, controller(c.controller, q, v, cmd), physics)
+        q, v = physics_step(jnp, c.body, q, v, controller(jnp, c.controller, q, v, cmd), physics)
         return tuple(q) + tuple(v)
 
     out = jax.lax.fori_loop(0, c.n_substeps, substep, tuple(q) + tuple(v))

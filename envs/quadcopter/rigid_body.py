@@ -97,5 +97,5 @@ class RigidBodySim(ClosedFormSim):
         # split into its coordinates along the last axis, stepped, and stacked back.
         q = [state.qpos[..., i] for i in range(7)]
         v = [state.qvel[..., i] for i in range(6)]
-        q, v = physics_step(self.constants, q, v, [ctrl[..., j] for j in range(ctrl.shape[-1])], physics)
+        q, v = physics_step(jnp, self.constants, q, v, [ctrl[..., j] for j in range(ctrl.shape[-1])], physics)
         return JointState(jnp.stack(q, axis=-1), jnp.stack(v, axis=-1))

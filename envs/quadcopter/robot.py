@@ -15,19 +15,23 @@
   the ground, as the AR.Drone's sonar-based firmware does; with it at 0 the drone can fly into the ground.
 * **Sensors** - :meth:`Quadcopter.read_sensors`: position, roll/pitch/yaw, world and heading-frame velocity,
   body rates. :func:`sonar`: ranges along fixed body rays to the ground and to obstacles (axis-aligned boxes
-  and vertical cylinders held as task data in :class:`Obstacles`), by exact ray–shape tests.
+  and vertical cylinders held as task data in :class:`Obstacles`), by exact ray–shape tests. The geometry is
+  :mod:`envs.quadcopter.geometry`'s, written once per coordinate for the hooks, the Pallas kernel and the
+  native port; the functions here apply it to arrays of 3 coordinates.
 """
 from __future__ import annotations
 
 import os
 import dataclasses
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.quadcopter import dynamics
+from envs.quadcopter import dynamics, geometry, goto_step
+from envs.quadcopter.geometry import BOX, CYLINDER, INF, SONAR_RAYS  # noqa: F401  (the robot's public names)
+from envs.quadcopter.goto_step import ACTION_NAMES, twist
 from envs.quadcopter.rigid_body import RigidBodySim, airframe_from_model
 from jaxrobo.api import (MjxEdit, Robot, TaskEnv, backend_choices, load_model, make_simulator, param, pytree_dataclass,
                          randomise, spaces)
@@ -38,22 +42,11 @@ MJCF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "quadcopter.xml"
 CLOSED_FORM = {"rigid": RigidBodySim}
 ENGINES = ("mjx",)
 BACKENDS = backend_choices(CLOSED_FORM, ENGINES)
-BOX, CYLINDER = 0, 1
-#: Unit sonar rays in the body frame: forward, forward-left 35°, forward-right 35°, down.
-SONAR_RAYS = np.array([[1.0, 0.0, 0.0], [np.cos(0.61), np.sin(0.61), 0.0], [np.cos(0.61), -np.sin(0.61), 0.0],
-                       [0.0, 0.0, -1.0]], np.float32)
 SONAR_NAMES = ("forward", "left", "right", "down")
-_INF = 1e6
-#: The seed's five Twist actions ``[vx, vy, vz, yaw_rate]`` per unit ``speed_value``: forward, turn left, turn
-#: right, up, down. Turning keeps the seed's small forward speed of 0.05 m/s (not scaled).
-ACTION_NAMES = ("forward", "left", "right", "up", "down")
-_ACTION_SCALE = np.array([[1, 0, 0, 0], [0, 0, 0, 1], [0, 0, 0, -1], [0, 0, 1, 0], [0, 0, -1, 0]], np.float32)
-_ACTION_FIXED = np.array([[0, 0, 0, 0], [0.05, 0, 0, 0], [0.05, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]], np.float32)
-
-
 def twist_command(action: jax.Array, speed_value: jax.Array) -> jax.Array:
-    """The seed's Twist for an action index (0 forward, 1 left, 2 right, 3 up, 4 down) at ``speed_value``."""
-    return jnp.asarray(_ACTION_SCALE)[action] * speed_value + jnp.asarray(_ACTION_FIXED)[action]
+    """The seed's Twist for an action index (0 forward, 1 left, 2 right, 3 up, 4 down) at ``speed_value``
+    (:func:`envs.quadcopter.goto_step.twist`)."""
+    return jnp.stack(twist(jnp, action, speed_value))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,12 +81,8 @@ class Obstacles:
 
 # ---- pose helpers ----------------------------------------------------------------------------------------
 def euler_from_quat(q: jax.Array) -> jax.Array:
-    """``[roll, pitch, yaw]`` (rad) of a wxyz quaternion, ZYX convention (tf's ``euler_from_quaternion``)."""
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return jnp.stack([roll, pitch, yaw])
+    """``[roll, pitch, yaw]`` (rad) of a wxyz quaternion, ZYX convention (:func:`envs.quadcopter.geometry.euler`)."""
+    return jnp.stack(geometry.euler(jnp, q[0], q[1], q[2], q[3]))
 
 
 def quat_to_mat(q: jax.Array) -> jax.Array:
@@ -105,74 +94,49 @@ def quat_from_yaw(yaw: jax.Array) -> jax.Array:
     return jnp.stack([jnp.cos(yaw / 2), jnp.zeros_like(yaw), jnp.zeros_like(yaw), jnp.sin(yaw / 2)])
 
 
-def wrap_angle(a: jax.Array) -> jax.Array:
-    """Angle wrapped to [-pi, pi)."""
-    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
-
-
-# ---- exact geometry --------------------------------------------------------------------------------------
-#: A direction component below this is treated as parallel to the axis' planes by the ray tests.
-_PARALLEL = 1e-9
-
-
-def _safe_inv(d: jax.Array) -> jax.Array:
-    return 1.0 / jnp.where(jnp.abs(d) < _PARALLEL, jnp.where(d < 0, -_PARALLEL, _PARALLEL), d)
+# ---- exact geometry (envs.quadcopter.geometry, on arrays of 3 coordinates) ---------------------------------
+def _xyz(a: jax.Array) -> list:
+    return [a[..., i] for i in range(3)]
 
 
 def ray_ground(origin: jax.Array, direction: jax.Array) -> jax.Array:
-    """Distance along a unit ray to the plane z = 0 (``_INF`` if it points up or sideways; 0 if below it)."""
-    t = -origin[2] * _safe_inv(direction[2])
-    hit = (direction[2] < -_PARALLEL) | (origin[2] <= 0)
-    return jnp.where(hit, jnp.maximum(t, 0.0) * (origin[2] > 0), _INF)
+    """Distance along a unit ray to the plane z = 0 (``INF`` if it points up or sideways; 0 if below it)."""
+    return geometry.ray_ground(jnp, _xyz(origin), _xyz(direction))
 
 
 def ray_box(origin: jax.Array, direction: jax.Array, center: jax.Array, half: jax.Array) -> jax.Array:
-    """Slab test: distance to an axis-aligned box (0 when the origin is inside, ``_INF`` on a miss).
-
-    A ray parallel to a slab (direction component ~0) is inside it for all t if its origin is within the slab's
-    closed range, boundary included (a ray grazing along a face touches the box), else never."""
-    inv = _safe_inv(direction)
-    t1 = (center - half - origin) * inv
-    t2 = (center + half - origin) * inv
-    parallel = jnp.abs(direction) < _PARALLEL
-    in_slab = jnp.abs(origin - center) <= half
-    t_near = jnp.max(jnp.where(parallel, jnp.where(in_slab, -_INF, _INF), jnp.minimum(t1, t2)))
-    t_far = jnp.min(jnp.where(parallel, jnp.where(in_slab, _INF, -_INF), jnp.maximum(t1, t2)))
-    hit = (t_near <= t_far) & (t_far >= 0)
-    return jnp.where(hit, jnp.maximum(t_near, 0.0), _INF)
+    """Slab test: distance to an axis-aligned box (0 when the origin is inside, ``INF`` on a miss)."""
+    return geometry.ray_box(jnp, _xyz(origin), _xyz(direction), _xyz(center), _xyz(half))
 
 
 def ray_cylinder(origin: jax.Array, direction: jax.Array, center: jax.Array, radius: jax.Array,
                  half_height: jax.Array) -> jax.Array:
-    """Distance to a vertical solid cylinder: side wall, both caps, or 0 from inside; ``_INF`` on a miss."""
-    o = origin - center
-    a = direction[0] ** 2 + direction[1] ** 2
-    b = 2 * (o[0] * direction[0] + o[1] * direction[1])
-    c = o[0] ** 2 + o[1] ** 2 - radius**2
-    disc = b * b - 4 * a * c
-    t_side = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / (2 * jnp.maximum(a, 1e-12))
-    z_side = o[2] + t_side * direction[2]
-    side_ok = (a > 1e-12) & (disc >= 0) & (t_side >= 0) & (jnp.abs(z_side) <= half_height)
-    inv_z = _safe_inv(direction[2])
-    caps = jnp.stack([(half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z])
-    cap_xy = o[:2, None] + caps[None, :] * direction[:2, None]
-    caps_ok = (caps >= 0) & (jnp.sum(cap_xy**2, axis=0) <= radius**2) & (jnp.abs(direction[2]) > _PARALLEL)
-    inside = (c <= 0) & (jnp.abs(o[2]) <= half_height)
-    t = jnp.minimum(jnp.where(side_ok, t_side, _INF), jnp.min(jnp.where(caps_ok, caps, _INF)))
-    return jnp.where(inside, 0.0, t)
+    """Distance to a vertical solid cylinder: side wall, both caps, or 0 from inside; ``INF`` on a miss."""
+    return geometry.ray_cylinder(jnp, _xyz(origin), _xyz(direction), _xyz(center), radius, half_height)
+
+
+#: Both kinds, chosen per obstacle by its ``kind``.
+KINDS = goto_step.kinds_of("mixed")
+
+
+def fold_obstacles(obstacles: "Obstacles", distances: Callable[..., tuple], init: tuple | None = None) -> tuple:
+    """The elementwise minimum over the active obstacles of ``distances(kind, center [3], size [3], active)`` (an
+    iterable; ``INF`` where inactive): vmapped over the obstacle arrays (``init`` where there are none). The Goto
+    hooks' fold (:func:`envs.quadcopter.goto_step.observe`)."""
+    if obstacles.kind.shape[0] == 0:
+        return (jnp.asarray(INF, jnp.float32),) if init is None else init
+
+    def one(kind, center, size, active):
+        return tuple(distances(kind, _xyz(center), _xyz(size), active))
+
+    return tuple(jnp.min(t, axis=0) for t in jax.vmap(one)(obstacles.kind, obstacles.center, obstacles.size,
+                                                             obstacles.active))
 
 
 def ray_obstacles(origin: jax.Array, direction: jax.Array, obstacles: Obstacles) -> jax.Array:
-    """Distance along a unit ray to the nearest active obstacle (``_INF`` if none)."""
-    if obstacles.kind.shape[0] == 0:
-        return jnp.asarray(_INF, jnp.float32)
-
-    def one(kind, center, size, active):
-        t = jnp.where(kind == BOX, ray_box(origin, direction, center, size),
-                      ray_cylinder(origin, direction, center, size[0], size[2]))
-        return jnp.where(active, t, _INF)
-
-    return jnp.min(jax.vmap(one)(obstacles.kind, obstacles.center, obstacles.size, obstacles.active))
+    """Distance along a unit ray to the nearest active obstacle (``INF`` if none)."""
+    return fold_obstacles(obstacles, lambda *obstacle: goto_step.obstacle_distances(
+        jnp, _xyz(origin), [_xyz(direction)], KINDS, *obstacle))[0]
 
 
 def sonar(pos: jax.Array, quat: jax.Array, obstacles: Obstacles, max_range: float | jax.Array,
@@ -191,18 +155,9 @@ def sonar(pos: jax.Array, quat: jax.Array, obstacles: Obstacles, max_range: floa
 
 
 def point_obstacle_distance(p: jax.Array, obstacles: Obstacles) -> jax.Array:
-    """Euclidean distance from a point to the nearest active obstacle surface (0 inside; ``_INF`` if none)."""
-    if obstacles.kind.shape[0] == 0:
-        return jnp.asarray(_INF, jnp.float32)
-
-    def one(kind, center, size, active):
-        q = jnp.abs(p - center)
-        box = jnp.sqrt(jnp.sum(jnp.maximum(q - size, 0.0) ** 2))
-        radial = jnp.maximum(jnp.sqrt(q[0] ** 2 + q[1] ** 2) - size[0], 0.0)
-        cyl = jnp.sqrt(radial**2 + jnp.maximum(q[2] - size[2], 0.0) ** 2)
-        return jnp.where(active, jnp.where(kind == BOX, box, cyl), _INF)
-
-    return jnp.min(jax.vmap(one)(obstacles.kind, obstacles.center, obstacles.size, obstacles.active))
+    """Euclidean distance from a point to the nearest active obstacle surface (0 inside; ``INF`` if none)."""
+    return fold_obstacles(obstacles, lambda *obstacle: goto_step.obstacle_distances(
+        jnp, _xyz(p), [], KINDS, *obstacle))[0]
 
 
 def sphere_hits(pos: jax.Array, radius: float | jax.Array, obstacles: Obstacles) -> tuple[jax.Array, jax.Array]:
@@ -265,7 +220,7 @@ class Quadcopter(Robot):
         """Twist → rotor thrusts (N): the on-board velocity → attitude/thrust → mixing cascade
         (:func:`envs.quadcopter.dynamics.controller`, on the state split into its coordinates)."""
         q, v = self.sim.qpos(pipeline_state), self.sim.qvel(pipeline_state)
-        rotors = dynamics.controller(self.control, [q[..., i] for i in range(7)], [v[..., i] for i in range(6)],
+        rotors = dynamics.controller(jnp, self.control, [q[..., i] for i in range(7)], [v[..., i] for i in range(6)],
                             [command[..., j] for j in range(4)])
         return jnp.stack(rotors, axis=-1)
 
