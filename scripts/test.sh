@@ -21,6 +21,18 @@ if [ -z "$workers" ]; then
 fi
 xdist=()
 if [ "$workers" -gt 1 ]; then xdist=(-n "$workers" --dist loadfile); fi
+# Two tiers: by default the suite without the tests marked `slow` (long end-to-end runs and re-checks of what the
+# default tier already covers in smaller form); --slow runs only those, --all everything. CI runs both tiers.
+tier=(-m "not slow")
+args=()
+for arg in "$@"; do
+  case "$arg" in
+    --slow) tier=(-m slow) ;;
+    --all) tier=() ;;
+    *) args+=("$arg") ;;
+  esac
+done
+set -- ${args[@]+"${args[@]}"}
 # The caller's own arguments come after ours, so that their -n or --dist wins; with --pdb/--trace (which need one
 # process) or with xdist turned off (-p no:xdist) none are added.
 for arg in "$@"; do
@@ -28,7 +40,7 @@ for arg in "$@"; do
 done
 set +e
 # --durations: the slowest tests in every log, where the suite's time goes (kept under ~20 min on 2 cores).
-python -m pytest ${xdist[@]+"${xdist[@]}"} --durations=25 "$@"
+python -m pytest ${xdist[@]+"${xdist[@]}"} ${tier[@]+"${tier[@]}"} --durations=25 "$@"
 rc=$?
 set -e
 # pytest exits 5 when it collected no test: treat that as a failure to notice, never as a pass.

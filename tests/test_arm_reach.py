@@ -211,6 +211,7 @@ def test_params_out_of_range_are_refused_naming_the_field():
 
 
 # ---- the ordinary tools on the new id -------------------------------------------------------------------------
+@pytest.mark.slow
 def test_jaxrobo_check_quick_passes(capsys):
     assert main(["check", ID, "--quick"]) == 0
     out = capsys.readouterr().out
@@ -256,6 +257,7 @@ def test_tiny_train_writes_a_run_directory(tmp_path, capsys):
     assert any(p.name.startswith("episodes") for p in out.iterdir())
 
 
+@pytest.mark.slow
 def test_tiny_sweep(tmp_path):
     out = tmp_path / "sweep"
     assert main(["sweep", "--env", ID, "--grid", "alpha=0.1,0.3", "--n-envs", "2", "--nepisodes", "2",

@@ -21,6 +21,7 @@ def _script(name: str, folder: str = "benchmarks"):
     return importlib.import_module(name)
 
 
+@pytest.mark.slow
 def test_throughput_smoke(tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": str(tmp_path / "cache"),
            "XLA_FLAGS": "--xla_backend_optimization_level=0"}
@@ -60,6 +61,7 @@ def test_throughput_smoke(tmp_path):
     assert cli["wall_s"] > cli["compile_s"] > 0 and "--total-steps 120" in cli["command"]
 
 
+@pytest.mark.slow
 def test_time_to_learn_smoke_covers_the_cartpole_and_the_goto_task(tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": str(tmp_path / "cache"),
            "XLA_FLAGS": "--xla_backend_optimization_level=0"}
@@ -209,6 +211,7 @@ def test_kernel_occupancy_reads_ncu_details_and_refuses_without_ncu():
         assert proc.returncode == 2 and "no ncu found" in proc.stderr
 
 
+@pytest.mark.slow
 def test_time_to_trained_times_the_users_command_and_splits_its_wall(tmp_path):
     """benchmarks/time_to_trained.py: one warm row of a tiny arm run, its wall split by the run's own summary."""
     ttt = _script("time_to_trained")

@@ -157,6 +157,7 @@ def _small_ppo_networks():
                              value_hidden_layer_sizes=(8,))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env_id", ["QuadcopterGotoTwist-v0"])  # the cart-pole and SAC: tests/test_deep.py (CLI)
 def test_brax_ppo_trains_on_continuous_id(env_id):
     from brax.training.agents.ppo import train as ppo

@@ -112,6 +112,7 @@ class LateTruncation(CartPoleStayUp):
     (BoxActions, "spaces", ["Box", "Discrete"]),
     (LateTruncation, "rollout", ["truncated", "max_episode_steps"]),
 ])
+@pytest.mark.slow
 def test_a_broken_env_fails_with_a_message_naming_the_problem(cls, check, words):
     failures = _failures(cls)
     assert check in failures, f"{cls.__name__}: expected {check} to fail; failures: {failures}"
@@ -161,6 +162,7 @@ CHECKED_BY_THE_CLI = {"QuadcopterLiveShow-v0": "test_cli_check_prints_one_line_p
                       "ArmReach-v0": "tests/test_arm_reach.py::test_jaxrobo_check_quick_passes"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env_id", [i for i in jaxrobo.registered() if i not in CHECKED_BY_THE_CLI])
 def test_every_shipped_id_passes_quick(env_id, capsys):
     # MJX compiles are slow on a CPU: the cart-pole ids run on the analytic backend (same task code and model);

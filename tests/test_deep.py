@@ -34,6 +34,7 @@ def runs(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env_id", [CPC, TWIST])
 def test_a_tiny_ppo_run_writes_a_complete_run_directory(runs, env_id):
     d = runs[env_id]

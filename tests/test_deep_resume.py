@@ -74,6 +74,7 @@ def runs(request, tmp_path_factory):
     return {"agent": agent, "full": full, "stopped": stopped, "kept": kept, "seen": seen}
 
 
+@pytest.mark.slow
 def test_a_stopped_run_keeps_its_checkpoint_and_policies(runs):
     kept = runs["kept"]
     status = _status(kept)

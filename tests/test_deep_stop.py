@@ -43,6 +43,7 @@ def _arrays(path: str) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("agent", ["ppo", "sac"])
 def test_a_stop_between_points_resumes_bit_for_bit(agent, tmp_path, monkeypatch, capsys):
     spec = deep.resolve(CPC, agent, "tiny", {**RUNS[agent][0], "num_evals": 3})
@@ -76,6 +77,7 @@ def test_a_stop_between_points_resumes_bit_for_bit(agent, tmp_path, monkeypatch,
         assert json.load(f)["resumed_after_env_steps"] == at
 
 
+@pytest.mark.slow
 def test_sigint_to_a_ppo_run_stops_it_between_points_and_resume_goes_on(tmp_path):
     """One epoch (num_evals=2) of 4 host iterations of 65,536 env steps: SIGINT once the first iteration's state is
     kept. The run ends before its end, exit 130, its checkpoint past 0 steps; --resume finishes from there."""

@@ -121,6 +121,7 @@ def test_train_and_the_sweep_run_their_chunks_through_the_same_driver(monkeypatc
     ("QuadcopterGoto-v2", {"nsteps": 12, "chunk_steps": 12, "eval_episodes": 4, "goal_tolerance": 5.0,
                            "snapshots": 0}),
     ("ArmReach-v0", {"nsteps": 10, "chunk_steps": 10, "eval_episodes": 8, "goal_tolerance": 0.3})])
+@pytest.mark.slow
 def test_the_greedy_evaluation_flies_once_and_counts_arrivals_as_a_second_flight_would(env_id, overrides,
                                                                                        monkeypatch):
     """The arrivals come from the evaluation's own flight: one flight traced, and the same flags a second flight

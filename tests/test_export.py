@@ -109,6 +109,7 @@ def _with_random_table(run_dir: str, dst: str, seed: int) -> str:
     return dst
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["cartpole", "goto"])
 def test_tabular_round_trip(runs, tmp_path, task):
     meta = _round_trip(runs[task], str(tmp_path / "trained"))
@@ -242,6 +243,7 @@ def test_greedy_policy_first_ties():
         greedy_policy(q, lambda obs: 0, ties="last")
 
 
+@pytest.mark.slow
 def test_eval_flies_a_deep_run_on_shifted_physics(tmp_path, capsys):
     """``jaxrobo eval`` on a PPO run: the saved policy (no table) flown on each shift value, one row each, and a
     shift value equal to the nominal physics gives the nominal figure."""

@@ -63,6 +63,7 @@ def test_doc_has_runnable_blocks():
     assert kinds.count("python") >= 5 and kinds.count("bash") >= 4
 
 
+@pytest.mark.slow
 def test_extending_guide_runs(example_dir, tmp_path):
     # A real module: dataclasses defined in the guide look their module up in sys.modules.
     guide = types.ModuleType("extending_guide")

@@ -80,6 +80,7 @@ def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
     assert not os.path.exists(rundir.lock_path(out))
 
 
+@pytest.mark.slow
 def test_two_trainings_at_once_one_wins_the_other_is_refused(tmp_path):
     """Two real ``jaxrobo train`` processes on one --out: exactly one writes the run, the other exits 2."""
     out = str(tmp_path / "run")
@@ -240,6 +241,7 @@ def interrupted(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_a_moved_run_resumes_where_it_is_and_keeps_checkpoint_every(interrupted, tmp_path, monkeypatch, capsys):
     from jaxrobo.training import checkpoint
 
@@ -265,6 +267,7 @@ def test_a_moved_run_resumes_where_it_is_and_keeps_checkpoint_every(interrupted,
     assert steps / (secs + 5e-4) - 0.05 <= rate <= steps / max(secs - 5e-4, 1e-9) + 0.05
 
 
+@pytest.mark.slow
 def test_a_moved_sweep_resumes_where_it_is_and_touches_nothing_else(tmp_path, monkeypatch, capsys):
     from jaxrobo.training import sweep
     from jaxrobo.training.sweep import state as sweep_state

@@ -129,6 +129,7 @@ def test_the_step_budget_follows_the_plain_path():
     assert "total_episodes" in chunk_kernel_refusal(runs.env, runs.config)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("changes", [dict(record_episodes=False, carry_rows=True), dict(chunk_steps=7)])
 def test_the_carry_follows_the_plain_path_whatever_the_chunking(changes):
     """The whole carry after 75 steps (records off with carried rows) or 77 (chunks of 7): discrete parts bit for bit,
@@ -170,6 +171,7 @@ def test_the_kernel_is_chunking_invariant():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["none", "all", "some"])
 def test_the_reset_branch_changes_nothing(case):
     """A program hashes the reset's numbers only in a step where one of its envs is done: in a chunk where no env
@@ -195,6 +197,7 @@ def test_the_reset_branch_changes_nothing(case):
 RANDOMISED = dict(randomise=True, **CART_RANGES)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("domain", [{}, RANDOMISED], ids=["nominal", "randomised"])
 def test_groups_of_four_lanes_hash_the_resets_as_each_lane_would(domain):
     """Where at most a quarter of a program's envs are done, groups of four lanes share their reset's hashes

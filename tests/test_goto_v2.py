@@ -106,6 +106,7 @@ def test_benchmark_spread_is_the_median_over_runs():
         goto_learning.spread([])
 
 
+@pytest.mark.slow
 def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys):
     sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
     import goto_learning
@@ -221,6 +222,7 @@ def test_snapshots_need_a_shared_table_and_stay_in_range():
     assert resolve("QuadcopterGoto-v2", overrides={"shared_table": False, "snapshots": 0}).config.snapshots == 0
 
 
+@pytest.mark.slow
 def test_train_and_the_benchmark_population_keep_the_same_table(tmp_path):
     """`jaxrobo train --seed 9` and goto_learning's vmapped population of that seed end with the same table, and
     the summary says which candidate it is. (A population of several seeds matches it too, but only to the

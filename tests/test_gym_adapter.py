@@ -146,6 +146,7 @@ def test_spaces_are_exact(env_id, single):
     assert single.observation_space.dtype == np.float32
 
 
+@pytest.mark.slow
 def test_check_env_passes_without_warnings(env_id, single):
     env = gym.make(f"jaxrobo/{env_id}")
     with warnings.catch_warnings():
@@ -160,6 +161,7 @@ def test_check_env_passes_without_warnings(env_id, single):
     env.close()
 
 
+@pytest.mark.slow
 def test_same_seed_same_trajectory_as_functional_api(env_id, single):
     jenv = jaxrobo.make(env_id)
     reset, step = jax.jit(jenv.reset), jax.jit(jenv.step)
@@ -261,6 +263,7 @@ def _check_vector_env(venv: gym.vector.VectorEnv, n: int, steps: int = 4) -> Non
             assert len(value) == n, key
 
 
+@pytest.mark.slow
 def test_make_vec_uses_the_vector_entry_point(env_id, single):
     venv = _clean_make(lambda: gym.make_vec(f"jaxrobo/{env_id}", num_envs=N_VEC), env_id)
     assert isinstance(venv.unwrapped, JaxroboVectorEnv)

@@ -54,6 +54,7 @@ def _same_step(ours_out: tuple, ref_out: tuple) -> None:
     assert data_equivalence(a, b, exact=True), (a, b)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES, ids=lambda m: m.name)
 def test_matches_sync_vector_env(mode):
     """Same seeds, same actions, every mode: JaxroboVectorEnv == SyncVectorEnv(JaxroboEnv) step for step. In

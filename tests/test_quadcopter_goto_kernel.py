@@ -94,6 +94,7 @@ def _assert_steps_agree(ref, got) -> None:
             np.testing.assert_array_equal(b, a, err_msg=name)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(CASES))
 def test_the_kernel_step_agrees_with_the_hooks(case):
     """160 states (not a multiple of the block) with crashes into obstacles and the ground, arrivals, tilt and

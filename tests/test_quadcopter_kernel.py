@@ -177,6 +177,7 @@ def _carry(spec, n_chunks: int, **plan_changes):
     # out and both kinds
     (dict(n_obstacles=3, obstacle_kind="mixed"), dict(fused="pallas", task_kernel=True)),
 ], ids=["control-step", "task-step"])
+@pytest.mark.slow
 def test_training_follows_the_plain_path_whatever_the_chunking(overrides, kernel):
     """Goto-v2, 4 envs feeding the preset's shared table, 45 training steps (episodes of at most 20): the
     kernel's run takes the plain path's actions, episodes and resets (every discrete part of the carry equal),

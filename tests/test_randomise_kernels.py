@@ -60,6 +60,7 @@ def _goto_steps(choice: str, task: bool, ranges: tuple = tuple(GOTO_RANGES.items
     return jax.jit(run)(states, actions), program.count("pallas_call")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", [True, False], ids=["task-kernel", "control-step-kernel"])
 def test_the_goto_kernels_fly_the_randomised_xla_flights(task):
     """37 envs (not a multiple of the block), each with its own mass, motor gain, wind and noise, 3 steps: the
@@ -164,6 +165,7 @@ def _assert_carries_agree(a_runner, b_runner, rtol=1e-5, atol=1e-6) -> None:
             np.testing.assert_array_equal(b, a, err_msg=name)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("noise", [CART_RANGES["rand_obs_noise"], [0.0, 0.0]], ids=["noisy", "physics-only"])
 def test_the_cartpole_chunk_kernel_follows_the_randomised_plain_path(noise):
     """6 envs, 75 steps in chunks of 25 (every env resets several times, each reset drawing a new cart mass, pole

@@ -62,6 +62,7 @@ def uninterrupted(request, tmp_path_factory):
     return spec, result, _save(result, spec, tmp_path_factory.mktemp("full") / "run")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stop_at", [1, 3])
 def test_interrupted_and_resumed_equals_uninterrupted(uninterrupted, stop_at, tmp_path):
     """Stopped after ``stop_at`` chunks (``should_stop`` asked before each chunk), saved, loaded and resumed: the
@@ -379,6 +380,7 @@ def test_changed_config_message(tmp_path, capsys):
     assert "refusing to resume" in err and "agent_params.alpha: 0.3 in the checkpoint vs 0.25 now" in err
 
 
+@pytest.mark.slow
 def test_a_run_with_snapshots_resumes_to_the_same_final_table(tmp_path):
     """The late tables kept for the final choice (QuadcopterGoto-v2's ``snapshots``) are part of the carry: a run
     stopped between them and resumed keeps the same snapshots, chooses the same table and reports the same choice."""

@@ -205,6 +205,7 @@ def test_policy_node_imports_no_jax(goto_export, cartpole_export):
     assert out["periods"] == pytest.approx([0.3, 0.04])  # the tasks' running_step, from the exports
 
 
+@pytest.mark.slow
 @needs_ros
 def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     from jaxrobo.ros.msgs import RLExperimentInfo
@@ -248,6 +249,7 @@ def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     assert len(set(np.round(sent, 3))) > 1  # shaped returns, not an arrival flag
 
 
+@pytest.mark.slow
 @needs_ros
 def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
     n, seed = 4, 3

@@ -91,6 +91,7 @@ def _copy(src, tmp_path, name="run") -> str:
 
 
 # ---- what jaxrobo owns -----------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_runs_and_sweeps_write_only_owned_names(done, stopped, tmp_path):
     """OWNED is derived from the writers: a complete run, an interrupted one and a sweep (with its heatmaps) write
     nothing it does not name."""
@@ -393,6 +394,7 @@ def test_a_key_set_with_and_without_its_section_is_refused(capsys, tmp_path):
              "name the same key")
 
 
+@pytest.mark.slow
 def test_a_stopped_sweep_overwrite_keeps_the_old_sweep_and_resumes_from_its_name(tmp_path, monkeypatch, capsys):
     """As for a run: the old sweep (and the user's files in it) stays whole; ``--resume OUT`` finds the new
     sweep's state beside it and replaces the old one once complete."""

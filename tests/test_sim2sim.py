@@ -27,6 +27,7 @@ CASES = [("CartPoleStayUp-v0", "envs.cartpole.native", "NativeCartPole"),
          ("ArmReach-v0", "envs.arm.native", "NativeArm")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env_id,module,name", CASES, ids=[c[0] for c in CASES])
 def test_native_port_steps_as_jax(env_id, module, name):
     env = jaxrobo.make(env_id)
@@ -57,6 +58,7 @@ def test_native_port_steps_as_jax(env_id, module, name):
         assert np.max(np.abs(ep["obs"] - np.asarray(obs)) / scale) < 1e-4, (env_id, episode)
 
 
+@pytest.mark.slow
 def test_sim2sim_script(tmp_path, capsys):
     run = str(tmp_path / "run")
     assert main(["train", "--env", "ArmReach-v0", "--n-envs", "2", "--nepisodes", "4", "--set", "nsteps=30",

@@ -55,6 +55,7 @@ def _digest(path: str) -> str:
         return hashlib.sha256(f.read()).hexdigest()
 
 
+@pytest.mark.slow
 def test_sweep_and_eval_give_the_same_bytes_on_1_2_3_and_4_devices(run_dir, tmp_path):
     digests = {}
     for d in (1, 2, 3, 4):

@@ -116,6 +116,7 @@ print(json.dumps({"met": r.target_met_chunk, "checks": [c["score"] for c in r.ta
 """
 
 
+@pytest.mark.slow
 def test_the_stop_is_the_same_on_one_and_several_devices(tmp_path):
     """The checks fly the carry split over the devices as on one: the same scores, the same stop, the same bytes."""
     import json

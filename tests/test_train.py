@@ -131,6 +131,7 @@ def test_gathered_resets_equal_resetting_every_env(agent):
 
 @pytest.mark.parametrize("agent,extra", [("qlearn", {}), ("sarsa", {}), ("double_q", {}),
                                          ("qlearn", {"seed_compat": True})])
+@pytest.mark.slow
 def test_carried_table_rows_change_nothing(agent, extra):
     """The trainer carries each env's table rows at its state from one step to the next (patched where the
     update hit them) instead of reading the table again: the rows always equal the table's, and the carry is
