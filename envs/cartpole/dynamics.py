@@ -177,15 +177,16 @@ class CartPoleSim(ClosedFormSim):
         return JointState(q, v)
 
     def coordinate_step(self, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
-                        sincos: SinCos = None, physics: dict | None = None
+                        sincos: SinCos = None, physics: dict | None = None, xp: Any = jnp
                         ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
         """:meth:`physics_step` on the four coordinates ``(x, θ, ẋ, θ̇)`` held apart (scalars or same-shape
         arrays, as a Pallas kernel holds them: it has no slice), with ``ctrl`` one value per actuator,
         ``sincos`` the kernel's own ``θ -> (sin θ, cos θ)`` (default ``jnp.sin``/``jnp.cos``) and ``physics``
         each env's drawn factors (domain randomisation, :func:`randomised`; same-shape arrays). The same
-        functions, hence the same operations on each element, as :meth:`physics_step`."""
+        functions, hence the same operations on each element, as :meth:`physics_step`. ``xp``: the array module
+        (``jax.numpy``; :data:`jaxrobo.core.scalar.FLOATS` for one env on the host in Python floats)."""
         c = self.constants if physics is None else randomised(self.constants, physics)
-        acc_x, acc_th, inv_det = accelerations(c, x, th, xd, thd, ctrl, sincos)
+        acc_x, acc_th, inv_det = accelerations(c, x, th, xd, thd, ctrl, sincos, xp)
         x, xd = euler(x, xd, acc_x, inv_det, self.timestep)
         th, thd = euler(th, thd, acc_th, inv_det, self.timestep)
         return x, th, xd, thd
@@ -196,12 +197,13 @@ SinCos = Optional[Callable[[jax.Array], tuple[jax.Array, jax.Array]]]
 
 
 def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
-                  sincos: SinCos = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+                  sincos: SinCos = None, xp: Any = jnp) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The cart-pole's equations of motion, per coordinate: ``(a_x, a_θ, 1/det M)`` with ``q̈ = a / det M``.
 
     ``ctrl[j]`` is actuator j's control. Every argument may be a scalar or an array of any common shape
     (``[block]`` vectors in the Pallas kernel, one env's values under ``vmap``); ``sincos`` lets a kernel use its
-    own ``sin``/``cos``. The division by the determinant is left to the caller so that :meth:`CartPoleSim.
+    own ``sin``/``cos`` (default: ``xp``'s, the array module: ``jax.numpy``, or :data:`jaxrobo.core.scalar.
+    FLOATS` for Python floats on the host). The division by the determinant is left to the caller so that :meth:`CartPoleSim.
     physics_step` scales both accelerations as one stacked vector (as it always has: the CPU's fixed-seed
     results stay bit for bit) while a kernel scales each coordinate."""
     # Actuators (mj_fwdActuation): clamp ctrl, force = gain u + b0 + b1 length + b2 velocity, clamp force,
@@ -212,14 +214,14 @@ def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Arr
         gear = c.transmission[:, j]
         length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
         velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
-        u = _clip(ctrl[j], c.ctrl_low[j], c.ctrl_high[j])
+        u = _clip(ctrl[j], c.ctrl_low[j], c.ctrl_high[j], xp)
         force = float(c.gain[j]) * u + float(c.bias[0, j])
         force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
         force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
-        force = _clip(force, c.force_low[j], c.force_high[j])
+        force = _clip(force, c.force_low[j], c.force_high[j], xp)
         generalized = [f + float(g) * force if g else f for f, g in zip(generalized, gear)]
     # Dynamics: solve the 2×2 system M q̈ = rhs in closed form.
-    sin, cos = (jnp.sin(th), jnp.cos(th)) if sincos is None else sincos(th)
+    sin, cos = (xp.sin(th), xp.cos(th)) if sincos is None else sincos(th)
     coupling = c.pole_mass_length * cos
     rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
     rhs_th = generalized[1] + c.weight_arm * sin
@@ -234,10 +236,10 @@ def euler(q: jax.Array, v: jax.Array, acc: jax.Array, inv_det: jax.Array, dt: fl
     return q + dt * v, v
 
 
-def _clip(value: jax.Array, low: float, high: float) -> jax.Array:
+def _clip(value: jax.Array, low: float, high: float, xp: Any = jnp) -> jax.Array:
     """``clip`` that traces nothing for an infinite (absent) limit."""
     if np.isfinite(low):
-        value = jnp.maximum(value, float(low))
+        value = xp.maximum(value, float(low))
     if np.isfinite(high):
-        value = jnp.minimum(value, float(high))
+        value = xp.minimum(value, float(high))
     return value

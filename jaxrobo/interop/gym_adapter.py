@@ -6,6 +6,8 @@ and libraries that expect Gymnasium, over the same pure functions the vectorised
 * :class:`JaxroboEnv` - a :class:`gymnasium.Env`: numpy ``float32`` observations, a Python ``float`` reward,
   separate ``terminated`` / ``truncated``, reproducible ``reset(seed=...)``, exact spaces, one jitted call per
   ``step`` and one device→host transfer of its results. ``render_mode="rgb_array"`` draws MuJoCo frames.
+  ``engine="numpy"`` steps a task that offers a host step (:attr:`jaxrobo.task.env.TaskEnv.host_step`: the
+  cart-pole's) on the host with no JAX call, from the same reset states.
 * :class:`JaxroboVectorEnv` - a :class:`gymnasium.vector.VectorEnv` stepping ``num_envs`` copies as one vmapped
   jitted call, numpy batches out, with any of Gymnasium's autoreset modes (``AutoresetMode.NEXT_STEP`` by
   default, ``SAME_STEP`` with ``final_obs``/``final_info``, ``DISABLED`` with ``reset(options={"reset_mask": m})``).
@@ -191,6 +193,27 @@ def _seed_keys(seeds: Sequence[int]) -> Any:
     return jax.random.wrap_key_data(data)
 
 
+#: ``JaxroboEnv``'s engines: the task's jitted ``step``, or its host step (:attr:`TaskEnv.host_step`).
+ENGINES = ("jax", "numpy")
+
+
+def _host_step(env: Any, engine: Any) -> Any:
+    """The host stepper of ``env`` for ``engine="numpy"``, None for ``"jax"``; a ValueError naming the engine and
+    why otherwise (an unknown engine, a task without a host step, an option the host step does not model)."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine={engine!r}: allowed values are {', '.join(map(repr, ENGINES))}")
+    if engine == "jax":
+        return None
+    factory = getattr(type(env), "host_step", None)
+    if factory is None:
+        raise ValueError(f"engine='numpy': {env.name} has no host step (tasks with one: the cart-pole's "
+                         "CartPoleStayUp ids); use engine='jax'")
+    why = factory.unsupported(env)
+    if why is not None:
+        raise ValueError(f"engine='numpy': {env.name}: {why}; use engine='jax'")
+    return factory(env)
+
+
 def _frame_rate(env: Any) -> int:
     from jaxrobo.task.env import simulator_of
 
@@ -236,16 +259,23 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
     ``JaxroboEnv("CartPoleStayUp-v0", control_type="position")`` or ``gymnasium.make("jaxrobo/CartPoleStayUp-v0",
     control_type="position")``: keyword arguments are the same overrides :func:`jaxrobo.make` takes;
     ``overrides={...}`` passes them as a dict (for names Gymnasium keeps for itself, like ``max_episode_steps``).
+
+    ``engine``: ``"jax"`` (default) steps the task's jitted ``step``; ``"numpy"`` steps the task's host step
+    (:attr:`jaxrobo.task.env.TaskEnv.host_step`, float64 on the host, no JAX call; resets still draw the first
+    state through the jitted reset, so a seed gives the same episode within float32 rounding). A task without
+    one is refused here.
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 25}
 
     def __init__(self, env_id: str | None = None, render_mode: str | None = None, *, env: Any = None,
                  overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
-                 camera: str | int | None = None, **kwargs: Any):
+                 camera: str | int | None = None, engine: str = "jax", **kwargs: Any):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, "
                              + ", ".join(repr(m) for m in self.metadata["render_modes"]))
+        if engine not in ENGINES:  # before the env is built: the cheapest refusal first
+            raise ValueError(f"engine={engine!r}: allowed values are {', '.join(map(repr, ENGINES))}")
         from jaxrobo.pictures import window
 
         no_window = window.unavailable_reason()
@@ -257,6 +287,8 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         self.action_space, self.observation_space = gym_spaces(self.jax_env, self.params)
         self._n = _action_limit(self.action_space)
         self._obs_size = int(np.prod(self.observation_space.shape))
+        self.engine = engine
+        self._host = _host_step(self.jax_env, engine)  # the host stepper (engine="numpy"), else None
         self._fns = self._compile()
         self.render_mode = render_mode
         # The modes this env can render here: "human" only where a window can open (Gymnasium's check_env makes
@@ -286,6 +318,11 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
             key = _seed_keys([int(self.np_random.integers(2**32))])[0]
         self.state, packed = self._fns.reset(key, self.params)
         obs, *_ = self._unpack(np.asarray(packed))
+        if self._host is not None:
+            import jax
+
+            self.state = jax.device_get(self.state)  # kept for its key (the next reset's) and for drawing
+            self._host.start(self.state, self.params)
         if self.render_mode == "human":  # Gymnasium's convention: a human-mode env draws itself
             self.render()
         return obs, {}
@@ -294,8 +331,11 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         if self.state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         a = check_action(action, self._n)
-        self.state, packed = self._fns.step(self.state, a, self.params)
-        obs, reward, terminated, truncated, nan, steps = self._unpack(np.asarray(packed))
+        if self._host is not None:
+            obs, reward, terminated, truncated, nan, steps = self._host.step(int(a))
+        else:
+            self.state, packed = self._fns.step(self.state, a, self.params)
+            obs, reward, terminated, truncated, nan, steps = self._unpack(np.asarray(packed))
         if self.render_mode == "human":
             self.render()
         return obs, reward, terminated, truncated, {"steps": steps, "physics_nan": nan}
@@ -320,7 +360,14 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
             from jaxrobo.pictures.render import Renderer
 
             self._renderer = Renderer(self.jax_env, *self._render_args)
-        frame = self._renderer.render(self.state, self.params)
+        state = self.state
+        if self._host is not None:  # the reset's state with the host's current pose
+            import dataclasses
+
+            from jaxrobo.physics.sim import JointState
+
+            state = dataclasses.replace(state, pipeline_state=JointState(*self._host.joints()))
+        frame = self._renderer.render(state, self.params)
         if self.render_mode != "human":
             return frame
         if self._window is None:
@@ -340,7 +387,8 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         super().close()
 
     def __repr__(self) -> str:
-        return f"<JaxroboEnv {self.jax_env.name}>"
+        engine = "" if self._host is None else f" engine={self.engine}"
+        return f"<JaxroboEnv {self.jax_env.name}{engine}>"
 
 
 # ---- the vector environment ----------------------------------------------------------------------------------
