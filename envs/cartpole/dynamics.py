@@ -34,6 +34,8 @@ passing its own ``sin``/``cos`` on a GPU. Op by op the two forms give the same b
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 from typing import Any, Callable, Optional
 
 import jax
@@ -70,6 +72,17 @@ class CartPoleConstants:
     # Two products of the above the equations use, computed once on the host (float64, as the trace always did).
     mass_inertia: float = 0.0  # total_mass * pole_inertia
     weight_arm: float = 0.0  # pole_mass_length * gravity
+
+    @functools.cached_property
+    def actuators(self) -> tuple[tuple[tuple[float, float], float, tuple[float, float, float], tuple[float, float],
+                                       tuple[float, float]], ...]:
+        """Per actuator, in Python floats: ``(gear on (x, θ), gain, bias (b0, b1, b2), ctrl (low, high), force
+        (low, high))``, what :func:`accelerations` reads; converted once, since reading a numpy element costs more
+        than the arithmetic of a host step on Python floats."""
+        f = lambda a: tuple(float(v) for v in a)  # noqa: E731
+        return tuple((f(self.transmission[:, j]), float(self.gain[j]), f(self.bias[:, j]),
+                      (float(self.ctrl_low[j]), float(self.ctrl_high[j])),
+                      (float(self.force_low[j]), float(self.force_high[j]))) for j in range(self.gain.shape[0]))
 
 
 def _refuse(condition: bool, why: str) -> None:
@@ -210,16 +223,17 @@ def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Arr
     # then map to the joints by the gear. Written per actuator and coordinate over host constants, so only
     # the non-zero terms are traced and the step stays a chain of scalar multiply-adds that XLA fuses.
     generalized = [0.0, 0.0]
-    for j in range(c.gain.shape[0]):
-        gear = c.transmission[:, j]
-        length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
-        velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
-        u = _clip(ctrl[j], c.ctrl_low[j], c.ctrl_high[j], xp)
-        force = float(c.gain[j]) * u + float(c.bias[0, j])
-        force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
-        force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
-        force = _clip(force, c.force_low[j], c.force_high[j], xp)
-        generalized = [f + float(g) * force if g else f for f, g in zip(generalized, gear)]
+    # The actuator's length and velocity are computed only where its bias reads them (on the host nothing is
+    # dead code; in a trace the unused ones never reached the program).
+    for j, (gear, gain, bias, ctrl_range, force_range) in enumerate(c.actuators):
+        u = _clip(ctrl[j], *ctrl_range, xp)
+        force = gain * u + bias[0]
+        if bias[1]:
+            force = force + bias[1] * sum(g * coord for g, coord in zip(gear, (x, th)) if g)
+        if bias[2]:
+            force = force + bias[2] * sum(g * rate for g, rate in zip(gear, (xd, thd)) if g)
+        force = _clip(force, *force_range, xp)
+        generalized = [f + g * force if g else f for f, g in zip(generalized, gear)]
     # Dynamics: solve the 2×2 system M q̈ = rhs in closed form.
     sin, cos = (xp.sin(th), xp.cos(th)) if sincos is None else sincos(th)
     coupling = c.pole_mass_length * cos
@@ -238,8 +252,8 @@ def euler(q: jax.Array, v: jax.Array, acc: jax.Array, inv_det: jax.Array, dt: fl
 
 def _clip(value: jax.Array, low: float, high: float, xp: Any = jnp) -> jax.Array:
     """``clip`` that traces nothing for an infinite (absent) limit."""
-    if np.isfinite(low):
-        value = xp.maximum(value, float(low))
-    if np.isfinite(high):
-        value = xp.minimum(value, float(high))
+    if math.isfinite(low):
+        value = xp.maximum(value, low)
+    if math.isfinite(high):
+        value = xp.minimum(value, high)
     return value

@@ -39,7 +39,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from jaxrobo.core import spaces
-from jaxrobo.speed.compiled import N_EXTRA, compiled_for
+from jaxrobo.speed.compiled import CHAIN, N_EXTRA, compiled_for
 
 NAMESPACE = "jaxrobo"
 _KEY_MOD = 2**64  # Gymnasium seeds are any non-negative int; keys hold 64 bits
@@ -289,6 +289,7 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         self._obs_size = int(np.prod(self.observation_space.shape))
         self.engine = engine
         self._host = _host_step(self.jax_env, engine)  # the host stepper (engine="numpy"), else None
+        self._chain: Any = None  # engine="numpy": the reset chain (see _host_reset)
         self._fns = self._compile()
         self.render_mode = render_mode
         # The modes this env can render here: "human" only where a window can open (Gymnasium's check_env makes
@@ -309,7 +310,17 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         """Start an episode; ``seed`` gives the functional ``reset(jax.random.key(seed))``; ``options`` may set task
         parameters (``{"init_pole_angle": 0.52}``) for this and later episodes."""
         super().reset(seed=seed)
-        self.params = _reset_params(self.jax_env, self.params, options)
+        params = _reset_params(self.jax_env, self.params, options)
+        changed, self.params = params is not self.params, params
+        if self._host is not None:
+            obs = self._host_reset(seed, changed)
+        else:
+            obs = self._jax_reset(seed)
+        if self.render_mode == "human":  # Gymnasium's convention: a human-mode env draws itself
+            self.render()
+        return obs, {}
+
+    def _jax_reset(self, seed: int | None) -> np.ndarray:
         if seed is not None:
             key = _seed_keys([seed])[0]
         elif self.state is not None:
@@ -318,14 +329,30 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
             key = _seed_keys([int(self.np_random.integers(2**32))])[0]
         self.state, packed = self._fns.reset(key, self.params)
         obs, *_ = self._unpack(np.asarray(packed))
-        if self._host is not None:
-            import jax
+        return obs
 
-            self.state = jax.device_get(self.state)  # kept for its key (the next reset's) and for drawing
-            self._host.start(self.state, self.params)
-        if self.render_mode == "human":  # Gymnasium's convention: a human-mode env draws itself
-            self.render()
-        return obs, {}
+    def _host_reset(self, seed: int | None, changed: bool) -> np.ndarray:
+        """The next episode of a host-stepped env: its first state from the reset chain (``reset_chain``: one
+        jitted call per :data:`~jaxrobo.speed.compiled.CHAIN` episodes, each starting from the key the same rule
+        as :meth:`_jax_reset` gives), continued while no seed or new parameters break it."""
+        import jax
+
+        chain = self._chain  # (first states [CHAIN] with key data, key data [CHAIN + 1, 2], current episode)
+        if seed is None and chain is not None and not changed and chain[2] + 1 < CHAIN:
+            chain = (chain[0], chain[1], chain[2] + 1)
+        else:
+            if seed is not None:
+                key = _seed_keys([seed])[0]
+            elif chain is not None:
+                key = jax.random.wrap_key_data(chain[1][chain[2] + 1])
+            else:
+                key = _seed_keys([int(self.np_random.integers(2**32))])[0]
+            states, data = self._fns.reset_chain(key, self.params)
+            chain = (jax.device_get(states), np.asarray(data), 0)
+        self._chain = chain
+        self.state = jax.tree.map(lambda x: x[chain[2]], chain[0])  # host arrays, key as key data
+        self._host.start(self.state, self.params)
+        return np.array(self.state.obs, np.float32).reshape(self.observation_space.shape)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self.state is None:
