@@ -141,3 +141,25 @@ def test_refusals_name_the_engine_and_why(kwargs, words):
 def test_a_task_without_a_host_step_is_refused():
     with pytest.raises(ValueError, match="CartPoleContinuous.* has no host step"):
         JaxroboEnv("CartPoleContinuous-v0", engine="numpy")
+
+
+def test_the_written_out_control_step_is_the_closed_form_bit_for_bit():
+    """The host's control step is ``CartPoleSim.coordinate_step`` on Python floats, written out once as plain
+    arithmetic (``straight_line``): the same floats as calling it substep by substep."""
+    from jaxrobo.core.scalar import FLOATS
+
+    host = JaxroboEnv(ID, backend="analytic", engine="numpy")._host
+    rng = np.random.default_rng(4)
+    for values in rng.uniform(-3.0, 3.0, size=(200, 5)).tolist():
+        x, th, xd, thd, command = values
+        for _ in range(host.n_substeps):
+            x, th, xd, thd = host.sim.coordinate_step(x, th, xd, thd, (command,), xp=FLOATS)
+        assert host.advance(*values) == (x, th, xd, thd)
+
+
+def test_straight_line_refuses_a_branch_on_a_computed_value():
+    from jaxrobo.core.scalar import straight_line
+
+    assert straight_line(lambda xp, a, b: (xp.minimum(a * 2.0, b), -a / b), ("a", "b"))(1.5, 2.5) == (2.5, -0.6)
+    with pytest.raises(TypeError, match="branches on a value it computes"):
+        straight_line(lambda xp, a: (a if a else 1.0,), ("a",))

@@ -5,7 +5,8 @@ The task's rules are :mod:`envs.cartpole.rules`' functions (the action map, the 
 reward), the same the task's hooks and the chunk kernel call; the physics is the backend's own model on the host:
 
 * ``analytic``: :meth:`envs.cartpole.dynamics.CartPoleSim.coordinate_step`, the closed form the JAX path runs,
-  evaluated on Python floats (:data:`jaxrobo.core.scalar.FLOATS`);
+  on Python floats (:data:`jaxrobo.core.scalar.FLOATS`), its control step's substeps written out once as plain
+  arithmetic (:func:`jaxrobo.core.scalar.straight_line`: the same operations, without the calls);
 * ``mjx``: native MuJoCo (:class:`jaxrobo.interop.native.NativeSim`, the C engine MJX reimplements) on the robot's
   own compiled model.
 
@@ -24,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from envs.cartpole.rules import ACTION_STEPS, REWARD, command_after, fell, observation
-from jaxrobo.core.scalar import FLOATS
+from jaxrobo.core.scalar import FLOATS, straight_line
 
 #: The backends whose physics runs on the host.
 HOST_BACKENDS = ("analytic", "mjx")
@@ -56,8 +57,10 @@ class HostStayUp:
         self.steps_of = ACTION_STEPS[: o.n_actions]
         self.n_substeps = int(r.sim.n_substeps)
         self.idx = (r.cart_q, r.cart_v, r.pole_q, r.pole_v)
+        self.advance: Any = None
         if r.sim.backend == "analytic":
             self.sim, self.native = r.sim, None
+            self.advance = self._closed_form()
         else:
             from jaxrobo.interop.native import NativeSim
 
@@ -68,6 +71,25 @@ class HostStayUp:
         self.steps = 0
         self.max_steps = 0
         self.obs = np.zeros(4, np.float32)
+
+    def _closed_form(self) -> Any:
+        """``(x, θ, ẋ, θ̇, command) -> (x, θ, ẋ, θ̇)`` after one control step of the closed form, written out."""
+        sim, n = self.sim, self.n_substeps
+
+        def control_step(xp, x, th, xd, thd, command):
+            for _ in range(n):
+                x, th, xd, thd = sim.coordinate_step(x, th, xd, thd, (command,), xp=xp)
+            return x, th, xd, thd
+
+        return straight_line(control_step, ("x", "th", "xd", "thd", "command"))
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "advance": None}  # generated code does not pickle: written out again
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        if self.native is None:
+            self.advance = self._closed_form()
 
     def start(self, state: Any, params: Any) -> None:
         """Begin an episode from ``state`` (a task's reset :class:`~jaxrobo.task.env.EnvState`, host arrays) under
@@ -112,11 +134,7 @@ class HostStayUp:
         steps)``, as the task's ``step`` gives them."""
         command = command_after(self.command, self.steps_of[action], self.pos_step, self.max_velocity, FLOATS)
         if self.native is None:
-            x, th, xd, thd = self.coords
-            ctrl = (command,)
-            for _ in range(self.n_substeps):
-                x, th, xd, thd = self.sim.coordinate_step(x, th, xd, thd, ctrl, xp=FLOATS)
-            self.coords = (x, th, xd, thd)
+            self.coords = self.advance(*self.coords, command)
         else:
             self.native.advance(command)
         sensors = self.sensors()
