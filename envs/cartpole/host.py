@@ -46,6 +46,7 @@ class HostStayUp:
     the host), :meth:`step` steps it; both need no JAX."""
 
     unsupported = staticmethod(unsupported)
+    backends = HOST_BACKENDS
 
     def __init__(self, env: Any):
         why = unsupported(env)
@@ -134,17 +135,21 @@ class HostStayUp:
         steps)``, as the task's ``step`` gives them."""
         command = command_after(self.command, self.steps_of[action], self.pos_step, self.max_velocity, FLOATS)
         if self.native is None:
-            self.coords = self.advance(*self.coords, command)
+            x, th, xd, thd = self.coords = self.advance(*self.coords, command)
+            sensors = [x, xd, th, thd]
         else:
             self.native.advance(command)
-        sensors = self.sensors()
+            sensors = self.sensors()
         self.steps += 1
-        # A non-finite physics state ends the episode with zero reward and the last finite observation and command,
-        # as the task's step does.
-        if not all(map(math.isfinite, sensors)):
-            return self.obs.copy(), 0.0, True, False, True, self.steps
         obs = observation(np.array(sensors), self.round_obs, np)
-        cart_x, _, angle, _ = obs.tolist()
+        values = obs.tolist()
+        # A non-finite physics state ends the episode with zero reward and the last finite observation and command,
+        # as the task's step does. The observation holds every coordinate, so its float32 values are all finite
+        # exactly when the state is and fits in float32, the task's test; their sum (float64: no overflow) is
+        # finite exactly when they all are.
+        if not math.isfinite(sum(values)):
+            return self.obs.copy(), 0.0, True, False, True, self.steps
+        cart_x, _, angle, _ = values
         terminated = bool(fell(cart_x, angle, *self.limits))
         self.command, self.obs = command, obs
         return obs, REWARD, terminated, self.steps >= self.max_steps and not terminated, False, self.steps

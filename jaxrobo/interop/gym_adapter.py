@@ -337,20 +337,21 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         as :meth:`_jax_reset` gives), continued while no seed or new parameters break it."""
         import jax
 
-        chain = self._chain  # (first states [CHAIN] with key data, key data [CHAIN + 1, 2], current episode)
-        if seed is None and chain is not None and not changed and chain[2] + 1 < CHAIN:
-            chain = (chain[0], chain[1], chain[2] + 1)
+        # (leaves of the first states [CHAIN] with key data, their treedef, key data [CHAIN + 1, 2], current episode)
+        chain = self._chain
+        if seed is None and chain is not None and not changed and chain[3] + 1 < CHAIN:
+            chain = chain[:3] + (chain[3] + 1,)
         else:
             if seed is not None:
                 key = _seed_keys([seed])[0]
             elif chain is not None:
-                key = jax.random.wrap_key_data(chain[1][chain[2] + 1])
+                key = jax.random.wrap_key_data(chain[2][chain[3] + 1])
             else:
                 key = _seed_keys([int(self.np_random.integers(2**32))])[0]
             states, data = self._fns.reset_chain(key, self.params)
-            chain = (jax.device_get(states), np.asarray(data), 0)
+            chain = (*jax.tree.flatten(jax.device_get(states)), np.asarray(data), 0)
         self._chain = chain
-        self.state = jax.tree.map(lambda x: x[chain[2]], chain[0])  # host arrays, key as key data
+        self.state = chain[1].unflatten([x[chain[3]] for x in chain[0]])  # host arrays, key as key data
         self._host.start(self.state, self.params)
         return np.array(self.state.obs, np.float32).reshape(self.observation_space.shape)
 
