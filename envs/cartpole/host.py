@@ -42,8 +42,8 @@ def unsupported(env: Any) -> str | None:
 
 
 class HostStayUp:
-    """One CartPoleStayUp env on the host. :meth:`start` takes the first state of an episode (the JAX reset's, on
-    the host), :meth:`step` steps it; both need no JAX."""
+    """One CartPoleStayUp env on the host. :meth:`set_params` takes the task parameters, :meth:`start` the first
+    state of an episode (the JAX reset's, on the host), :meth:`step` steps it; none needs JAX."""
 
     unsupported = staticmethod(unsupported)
     backends = HOST_BACKENDS
@@ -92,24 +92,30 @@ class HostStayUp:
         if self.native is None:
             self.advance = self._closed_form()
 
-    def start(self, state: Any, params: Any) -> None:
-        """Begin an episode from ``state`` (a task's reset :class:`~jaxrobo.task.env.EnvState`, host arrays) under
-        ``params``. The parameters are read as the float32 values the JAX path compares with."""
+    def set_params(self, params: Any) -> None:
+        """The task parameters of the episodes that follow, read as the float32 values the JAX step compares
+        with."""
         p = params
         self.pos_step = float(np.float32(p.pos_step))
         self.max_velocity = float(np.float32(p.max_base_velocity)) if self.velocity else None
         self.limits = tuple(float(np.float32(v)) for v in (p.min_base_pose_x, p.max_base_pose_x,
                                                             p.min_pole_angle, p.max_pole_angle))
         self.max_steps = int(p.max_episode_steps)
-        qpos = np.asarray(state.pipeline_state.qpos, np.float64)
-        qvel = np.asarray(state.pipeline_state.qvel, np.float64)
+
+    def start(self, states: Any, i: int) -> np.ndarray:
+        """Begin an episode from the ``i``-th of ``states`` (first states of the task's reset,
+        :class:`~jaxrobo.task.env.EnvState` of host arrays with a leading episode axis, the physics state as
+        joint coordinates); its observation."""
+        qpos = states.pipeline_state.qpos[i].astype(np.float64)
+        qvel = states.pipeline_state.qvel[i].astype(np.float64)
         c_q, c_v, p_q, p_v = self.idx
         self.coords = (float(qpos[c_q]), float(qpos[p_q]), float(qvel[c_v]), float(qvel[p_v]))
         if self.native is not None:
             self.native.reset(qpos, qvel)
-        self.command = float(state.task.command)
-        self.steps = int(state.steps)
-        self.obs = np.asarray(state.obs, np.float32)
+        self.command = float(states.task.command[i])
+        self.steps = int(states.steps[i])
+        self.obs = states.obs[i].astype(np.float32)
+        return self.obs.copy()
 
     def sensors(self) -> list[float]:
         """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` of the current state."""
@@ -150,6 +156,6 @@ class HostStayUp:
         if not math.isfinite(sum(values)):
             return self.obs.copy(), 0.0, True, False, True, self.steps
         cart_x, _, angle, _ = values
-        terminated = bool(fell(cart_x, angle, *self.limits))
+        terminated = fell(cart_x, angle, *self.limits)  # Python bools
         self.command, self.obs = command, obs
         return obs, REWARD, terminated, self.steps >= self.max_steps and not terminated, False, self.steps

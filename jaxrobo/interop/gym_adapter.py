@@ -299,7 +299,7 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         self._render_args = (int(width), int(height), camera)
         self._renderer: Any = None
         self._window: Any = None  # render_mode="human": jaxrobo.pictures.window.Window
-        self.state: Any = None  # the current jaxrobo EnvState (on device)
+        self.state: Any = None  # the current jaxrobo EnvState (on device); engine="numpy": the host step holds it
 
     def _compile(self) -> Any:
         return compiled_for(self.jax_env)
@@ -337,26 +337,24 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         as :meth:`_jax_reset` gives), continued while no seed or new parameters break it."""
         import jax
 
-        # (leaves of the first states [CHAIN] with key data, their treedef, key data [CHAIN + 1, 2], current episode)
-        chain = self._chain
-        if seed is None and chain is not None and not changed and chain[3] + 1 < CHAIN:
-            chain = chain[:3] + (chain[3] + 1,)
+        chain = self._chain  # (first states [CHAIN] with key data, key data [CHAIN + 1, 2], current episode)
+        if seed is None and chain is not None and not changed and chain[2] + 1 < CHAIN:
+            chain = (chain[0], chain[1], chain[2] + 1)
         else:
             if seed is not None:
                 key = _seed_keys([seed])[0]
             elif chain is not None:
-                key = jax.random.wrap_key_data(chain[2][chain[3] + 1])
+                key = jax.random.wrap_key_data(chain[1][chain[2] + 1])
             else:
                 key = _seed_keys([int(self.np_random.integers(2**32))])[0]
             states, data = self._fns.reset_chain(key, self.params)
-            chain = (*jax.tree.flatten(jax.device_get(states)), np.asarray(data), 0)
+            chain = (jax.device_get(states), np.asarray(data), 0)
+            self._host.set_params(self.params)
         self._chain = chain
-        self.state = chain[1].unflatten([x[chain[3]] for x in chain[0]])  # host arrays, key as key data
-        self._host.start(self.state, self.params)
-        return np.array(self.state.obs, np.float32).reshape(self.observation_space.shape)
+        return self._host.start(chain[0], chain[2]).reshape(self.observation_space.shape)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        if self.state is None:
+        if self.state is None and self._chain is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         a = check_action(action, self._n)
         if self._host is not None:
@@ -382,19 +380,22 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to make")
             return None
-        if self.state is None:
+        if self.state is None and self._chain is None:
             raise gymnasium.error.ResetNeeded("call reset() before render()")
         if self._renderer is None:
             from jaxrobo.pictures.render import Renderer
 
             self._renderer = Renderer(self.jax_env, *self._render_args)
         state = self.state
-        if self._host is not None:  # the reset's state with the host's current pose
+        if self._host is not None:  # the episode's first state with the host's current pose
             import dataclasses
+
+            import jax
 
             from jaxrobo.physics.sim import JointState
 
-            state = dataclasses.replace(state, pipeline_state=JointState(*self._host.joints()))
+            first = jax.tree.map(lambda x: x[self._chain[2]], self._chain[0])
+            state = dataclasses.replace(first, pipeline_state=JointState(*self._host.joints()))
         frame = self._renderer.render(state, self.params)
         if self.render_mode != "human":
             return frame
