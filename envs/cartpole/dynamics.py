@@ -215,10 +215,10 @@ def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Arr
 
     ``ctrl[j]`` is actuator j's control. Every argument may be a scalar or an array of any common shape
     (``[block]`` vectors in the Pallas kernel, one env's values under ``vmap``); ``sincos`` lets a kernel use its
-    own ``sin``/``cos`` (default: ``xp``'s, the array module: ``jax.numpy``, or :data:`jaxrobo.core.scalar.
-    FLOATS` for Python floats on the host). The division by the determinant is left to the caller so that :meth:`CartPoleSim.
-    physics_step` scales both accelerations as one stacked vector (as it always has: the CPU's fixed-seed
-    results stay bit for bit) while a kernel scales each coordinate."""
+    own ``sin``/``cos`` (default: those of ``xp``, the array module: ``jax.numpy``, or
+    :data:`jaxrobo.core.scalar.FLOATS` for Python floats on the host). The division by the determinant is left to
+    the caller so that :meth:`CartPoleSim.physics_step` scales both accelerations as one stacked vector (as it
+    always has: the CPU's fixed-seed results stay bit for bit) while a kernel scales each coordinate."""
     # Actuators (mj_fwdActuation): clamp ctrl, force = gain u + b0 + b1 length + b2 velocity, clamp force,
     # then map to the joints by the gear. Written per actuator and coordinate over host constants, so only
     # the non-zero terms are traced and the step stays a chain of scalar multiply-adds that XLA fuses.

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from envs.cartpole.rules import ACTION_STEPS, REWARD, command_after, fell, observation
-from jaxrobo.core.scalar import FLOATS, straight_line
+from jaxrobo.api import NativeSim, scalar
 
 #: The backends whose physics runs on the host.
 HOST_BACKENDS = ("analytic", "mjx")
@@ -63,8 +63,6 @@ class HostStayUp:
             self.sim, self.native = r.sim, None
             self.advance = self._closed_form()
         else:
-            from jaxrobo.interop.native import NativeSim
-
             self.sim, self.native = None, NativeSim(r.sim)
         self.limits: tuple[float, ...] = ()
         self.coords = (0.0, 0.0, 0.0, 0.0)  # x, θ, ẋ, θ̇ (the closed form's state)
@@ -74,7 +72,7 @@ class HostStayUp:
         self.obs = np.zeros(4, np.float32)
 
     def _closed_form(self) -> Any:
-        """``(x, θ, ẋ, θ̇, command) -> (x, θ, ẋ, θ̇)`` after one control step of the closed form, written out."""
+        """``(x, θ, ẋ, θ̇, command) -> (x, θ, ẋ, θ̇)``: one control step of the closed form, written out."""
         sim, n = self.sim, self.n_substeps
 
         def control_step(xp, x, th, xd, thd, command):
@@ -82,7 +80,7 @@ class HostStayUp:
                 x, th, xd, thd = sim.coordinate_step(x, th, xd, thd, (command,), xp=xp)
             return x, th, xd, thd
 
-        return straight_line(control_step, ("x", "th", "xd", "thd", "command"))
+        return scalar.straight_line(control_step, ("x", "th", "xd", "thd", "command"))
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "advance": None}  # generated code does not pickle: written out again
@@ -139,7 +137,8 @@ class HostStayUp:
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, bool, int]:
         """One step with a checked action index: ``(obs float32[4], reward, terminated, truncated, physics_nan,
         steps)``, as the task's ``step`` gives them."""
-        command = command_after(self.command, self.steps_of[action], self.pos_step, self.max_velocity, FLOATS)
+        command = command_after(self.command, self.steps_of[action], self.pos_step, self.max_velocity,
+                                scalar.FLOATS)
         if self.native is None:
             x, th, xd, thd = self.coords = self.advance(*self.coords, command)
             sensors = [x, xd, th, thd]

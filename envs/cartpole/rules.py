@@ -1,8 +1,8 @@
 """The stay-up task's rules per coordinate, written once: the task's hooks (:mod:`envs.cartpole.stay_up`) call
 them on one env's values, the whole-chunk kernel (:mod:`envs.cartpole.kernel`) on ``[block]`` vectors of a Pallas
-program, the host step (:mod:`envs.cartpole.host`) on Python floats. Each takes scalars or same-shape arrays and the parameters as values (a kernel holds them as scalars read
-from its parameter vector, not as a params pytree); ``xp`` is the array module (``jax.numpy``, or
-:data:`jaxrobo.core.scalar.FLOATS` for Python floats)."""
+program, the host step (:mod:`envs.cartpole.host`) on Python floats. Each takes scalars or same-shape arrays and
+the parameters as values (a kernel holds them as scalars read from its parameter vector, not as a params pytree);
+``xp`` is the array module (``jax.numpy``, ``numpy``, or :data:`jaxrobo.core.scalar.FLOATS` for Python floats)."""
 from __future__ import annotations
 
 import jax.numpy as jnp

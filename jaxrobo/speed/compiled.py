@@ -104,8 +104,9 @@ class _Compiled:
 
         def reset_chain(key, params):
             # The first states of CHAIN successive episodes from ``key``, each episode's key the next of the last
-            # one's state key (the unseeded reset rule), with the CHAIN + 1 reset keys as key data (host arrays; the last starts the chain
-            # after these): every episode starts from exactly the state the single env's own reset would draw. The
+            # one's state key (the unseeded reset rule), with the CHAIN + 1 reset keys as key data (the last starts
+            # the chain after these): every episode starts from exactly the state the single env's own reset would
+            # draw. The
             # physics state is cut to its coordinates (a JointState), all a host step reads of it.
             from jaxrobo.physics.sim import JointState
             from jaxrobo.task.env import simulator_of
