@@ -111,11 +111,11 @@ class _Compiled:
             from jaxrobo.physics.sim import JointState
             from jaxrobo.task.env import simulator_of
 
-            def body(k, _):
-                state = env.reset(k, params)
-                return next_key(state.key), (k, state)
+            def body(k, _):  # only the key is kept: the rest of this reset is dead code in the loop
+                return next_key(env.reset(k, params).key), k
 
-            last, (keys, states) = jax.lax.scan(body, key, None, length=CHAIN)
+            last, keys = jax.lax.scan(body, key, None, length=CHAIN)
+            states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)  # the resets themselves, side by side
             sim, ps = simulator_of(env), states.pipeline_state
             data = jax.random.key_data(jnp.concatenate([keys, last[None]]))
             joints = JointState(jax.vmap(sim.qpos)(ps), jax.vmap(sim.qvel)(ps))
