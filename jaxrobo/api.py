@@ -15,10 +15,14 @@ A learner::
 A task's port to native MuJoCo (the sim-to-sim check, ``envs/*/native.py``)::
 
     from jaxrobo.api import NativeSim, numpy_policy   # the observation and command an export carries
+
+A task's step for one env on the host (``envs/cartpole/host.py``)::
+
+    from jaxrobo.api import NativeSim, scalar         # scalar.FLOATS: Python floats as the array module
 """
 from __future__ import annotations
 
-from jaxrobo.core import rng, spaces
+from jaxrobo.core import rng, scalar, spaces
 from jaxrobo.core.config import ConfigError
 from jaxrobo.core.struct import param, pytree_dataclass, range_param, static_field
 from jaxrobo.interop import numpy_policy
@@ -36,7 +40,7 @@ from jaxrobo.task.rollout import greedy_policy, random_policy, rollout, success_
 
 __all__ = [
     # foundation
-    "ConfigError", "param", "pytree_dataclass", "range_param", "static_field", "rng", "spaces",
+    "ConfigError", "param", "pytree_dataclass", "range_param", "static_field", "rng", "scalar", "spaces",
     # simulators (the seed's Gazebo layer) and robots
     "ClosedFormSim", "JointState", "MjxEdit", "Simulator", "backend_choices", "load_model", "make_simulator", "through_batch",
     "NativeSim", "numpy_policy", "Robot",

@@ -67,8 +67,9 @@ def test_playground_wrapper_inside_ppo_train():
 @pytest.mark.parametrize("make", [
     lambda: JaxroboEnv("CartPoleStayUp-v0", control_type="position"),
     lambda: gym.make("jaxrobo/CartPoleStayUp-v0"),
+    lambda: gym.make("jaxrobo/CartPoleStayUp-v0", engine="numpy", backend="analytic"),
     lambda: JaxroboVectorEnv("CartPoleStayUp-v0", num_envs=3),
-], ids=["JaxroboEnv", "gym.make", "JaxroboVectorEnv"])
+], ids=["JaxroboEnv", "gym.make", "gym.make engine=numpy", "JaxroboVectorEnv"])
 def test_a_pickled_env_goes_on_where_the_original_is(make):
     env = make()
     vector = isinstance(env, gym.vector.VectorEnv)

@@ -73,6 +73,8 @@ class CartPoleContinuous(CartPoleStayUp):
     learning_target = LearningTarget("over_500", "mean_length", 500.0, "mean greedy episode length >= 500 steps")
     #: None: the discrete task's chunk kernel holds its discrete action map, not this task's.
     chunk_kernel = None
+    #: None: the discrete task's host step holds its discrete action map.
+    host_step = None
 
     def __init__(self, options: Options | None = None, params: Params | None = None):
         # CartPoleStayUp.__init__ builds the increments of the discrete actions; only the robot is needed here.

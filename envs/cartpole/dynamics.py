@@ -34,6 +34,8 @@ passing its own ``sin``/``cos`` on a GPU. Op by op the two forms give the same b
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 from typing import Any, Callable, Optional
 
 import jax
@@ -70,6 +72,17 @@ class CartPoleConstants:
     # Two products of the above the equations use, computed once on the host (float64, as the trace always did).
     mass_inertia: float = 0.0  # total_mass * pole_inertia
     weight_arm: float = 0.0  # pole_mass_length * gravity
+
+    @functools.cached_property
+    def actuators(self) -> tuple[tuple[tuple[float, float], float, tuple[float, float, float], tuple[float, float],
+                                       tuple[float, float]], ...]:
+        """Per actuator, in Python floats: ``(gear on (x, θ), gain, bias (b0, b1, b2), ctrl (low, high), force
+        (low, high))``, what :func:`accelerations` reads; converted once, since reading a numpy element costs more
+        than the arithmetic of a host step on Python floats."""
+        f = lambda a: tuple(float(v) for v in a)  # noqa: E731
+        return tuple((f(self.transmission[:, j]), float(self.gain[j]), f(self.bias[:, j]),
+                      (float(self.ctrl_low[j]), float(self.ctrl_high[j])),
+                      (float(self.force_low[j]), float(self.force_high[j]))) for j in range(self.gain.shape[0]))
 
 
 def _refuse(condition: bool, why: str) -> None:
@@ -177,15 +190,16 @@ class CartPoleSim(ClosedFormSim):
         return JointState(q, v)
 
     def coordinate_step(self, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
-                        sincos: SinCos = None, physics: dict | None = None
+                        sincos: SinCos = None, physics: dict | None = None, xp: Any = jnp
                         ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
         """:meth:`physics_step` on the four coordinates ``(x, θ, ẋ, θ̇)`` held apart (scalars or same-shape
         arrays, as a Pallas kernel holds them: it has no slice), with ``ctrl`` one value per actuator,
         ``sincos`` the kernel's own ``θ -> (sin θ, cos θ)`` (default ``jnp.sin``/``jnp.cos``) and ``physics``
         each env's drawn factors (domain randomisation, :func:`randomised`; same-shape arrays). The same
-        functions, hence the same operations on each element, as :meth:`physics_step`."""
+        functions, hence the same operations on each element, as :meth:`physics_step`. ``xp``: the array module
+        (``jax.numpy``; :data:`jaxrobo.core.scalar.FLOATS` for one env on the host in Python floats)."""
         c = self.constants if physics is None else randomised(self.constants, physics)
-        acc_x, acc_th, inv_det = accelerations(c, x, th, xd, thd, ctrl, sincos)
+        acc_x, acc_th, inv_det = accelerations(c, x, th, xd, thd, ctrl, sincos, xp)
         x, xd = euler(x, xd, acc_x, inv_det, self.timestep)
         th, thd = euler(th, thd, acc_th, inv_det, self.timestep)
         return x, th, xd, thd
@@ -196,30 +210,32 @@ SinCos = Optional[Callable[[jax.Array], tuple[jax.Array, jax.Array]]]
 
 
 def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Array, thd: jax.Array, ctrl: Any,
-                  sincos: SinCos = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+                  sincos: SinCos = None, xp: Any = jnp) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The cart-pole's equations of motion, per coordinate: ``(a_x, a_θ, 1/det M)`` with ``q̈ = a / det M``.
 
     ``ctrl[j]`` is actuator j's control. Every argument may be a scalar or an array of any common shape
     (``[block]`` vectors in the Pallas kernel, one env's values under ``vmap``); ``sincos`` lets a kernel use its
-    own ``sin``/``cos``. The division by the determinant is left to the caller so that :meth:`CartPoleSim.
-    physics_step` scales both accelerations as one stacked vector (as it always has: the CPU's fixed-seed
-    results stay bit for bit) while a kernel scales each coordinate."""
+    own ``sin``/``cos`` (default: those of ``xp``, the array module: ``jax.numpy``, or
+    :data:`jaxrobo.core.scalar.FLOATS` for Python floats on the host). The division by the determinant is left to
+    the caller so that :meth:`CartPoleSim.physics_step` scales both accelerations as one stacked vector (as it
+    always has: the CPU's fixed-seed results stay bit for bit) while a kernel scales each coordinate."""
     # Actuators (mj_fwdActuation): clamp ctrl, force = gain u + b0 + b1 length + b2 velocity, clamp force,
     # then map to the joints by the gear. Written per actuator and coordinate over host constants, so only
     # the non-zero terms are traced and the step stays a chain of scalar multiply-adds that XLA fuses.
     generalized = [0.0, 0.0]
-    for j in range(c.gain.shape[0]):
-        gear = c.transmission[:, j]
-        length = sum(float(g) * coord for g, coord in zip(gear, (x, th)) if g)
-        velocity = sum(float(g) * rate for g, rate in zip(gear, (xd, thd)) if g)
-        u = _clip(ctrl[j], c.ctrl_low[j], c.ctrl_high[j])
-        force = float(c.gain[j]) * u + float(c.bias[0, j])
-        force = force + float(c.bias[1, j]) * length if c.bias[1, j] else force
-        force = force + float(c.bias[2, j]) * velocity if c.bias[2, j] else force
-        force = _clip(force, c.force_low[j], c.force_high[j])
-        generalized = [f + float(g) * force if g else f for f, g in zip(generalized, gear)]
+    # The actuator's length and velocity are computed only where its bias reads them (on the host nothing is
+    # dead code; in a trace the unused ones never reached the program).
+    for j, (gear, gain, bias, ctrl_range, force_range) in enumerate(c.actuators):
+        u = _clip(ctrl[j], *ctrl_range, xp)
+        force = gain * u + bias[0]
+        if bias[1]:
+            force = force + bias[1] * sum(g * coord for g, coord in zip(gear, (x, th)) if g)
+        if bias[2]:
+            force = force + bias[2] * sum(g * rate for g, rate in zip(gear, (xd, thd)) if g)
+        force = _clip(force, *force_range, xp)
+        generalized = [f + g * force if g else f for f, g in zip(generalized, gear)]
     # Dynamics: solve the 2×2 system M q̈ = rhs in closed form.
-    sin, cos = (jnp.sin(th), jnp.cos(th)) if sincos is None else sincos(th)
+    sin, cos = (xp.sin(th), xp.cos(th)) if sincos is None else sincos(th)
     coupling = c.pole_mass_length * cos
     rhs_x = generalized[0] + c.pole_mass_length * sin * thd * thd
     rhs_th = generalized[1] + c.weight_arm * sin
@@ -234,10 +250,10 @@ def euler(q: jax.Array, v: jax.Array, acc: jax.Array, inv_det: jax.Array, dt: fl
     return q + dt * v, v
 
 
-def _clip(value: jax.Array, low: float, high: float) -> jax.Array:
+def _clip(value: jax.Array, low: float, high: float, xp: Any = jnp) -> jax.Array:
     """``clip`` that traces nothing for an infinite (absent) limit."""
-    if np.isfinite(low):
-        value = jnp.maximum(value, float(low))
-    if np.isfinite(high):
-        value = jnp.minimum(value, float(high))
+    if math.isfinite(low):
+        value = xp.maximum(value, low)
+    if math.isfinite(high):
+        value = xp.minimum(value, high)
     return value

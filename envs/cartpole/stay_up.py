@@ -25,9 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs.cartpole.host import HostStayUp
 from envs.cartpole.kernel import CHUNK_KERNEL
 from envs.cartpole.robot import BACKENDS, CONTROL_TYPES, CartPoleRobot
-from envs.cartpole.rules import ACTION_STEPS, command_after, fell
+from envs.cartpole.rules import ACTION_STEPS, REWARD, command_after, fell, observation
 from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng, spaces
 OBS_NAMES = ("cart_x", "cart_v", "pole_angle", "pole_angular_velocity")
 
@@ -84,6 +85,8 @@ class CartPoleStayUp(TaskEnv):
     #: A training chunk of this task with Q-learning as one Pallas kernel (:mod:`envs.cartpole.kernel`), for the runs
     #: its ``unsupported_run`` takes.
     chunk_kernel = CHUNK_KERNEL
+    #: One env's step on the host in Python floats (:mod:`envs.cartpole.host`), for ``engine="numpy"``.
+    host_step = HostStayUp
 
     def __init__(self, options: Options | None = None, params: Params | None = None):
         super().__init__(options, params)
@@ -122,12 +125,11 @@ class CartPoleStayUp(TaskEnv):
         return command[None], TaskVars(command)
 
     def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
-        obs = self.robot.read_sensors(pipeline_state).astype(jnp.float32)
-        return jnp.round(obs, 1) if self.options.round_obs else obs
+        return observation(self.robot.read_sensors(pipeline_state), self.options.round_obs)
 
     def _is_done(self, obs: jax.Array, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
         p = params
         return fell(obs[0], obs[2], p.min_base_pose_x, p.max_base_pose_x, p.min_pole_angle, p.max_pole_angle)
 
     def _compute_reward(self, obs, done, action, pipeline_state, task, params) -> tuple[jax.Array, TaskVars]:
-        return jnp.ones((), jnp.float32), task
+        return jnp.full((), REWARD, jnp.float32), task

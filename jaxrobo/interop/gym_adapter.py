@@ -6,6 +6,8 @@ and libraries that expect Gymnasium, over the same pure functions the vectorised
 * :class:`JaxroboEnv` - a :class:`gymnasium.Env`: numpy ``float32`` observations, a Python ``float`` reward,
   separate ``terminated`` / ``truncated``, reproducible ``reset(seed=...)``, exact spaces, one jitted call per
   ``step`` and one device→host transfer of its results. ``render_mode="rgb_array"`` draws MuJoCo frames.
+  ``engine="numpy"`` steps a task that offers a host step (:attr:`jaxrobo.task.env.TaskEnv.host_step`: the
+  cart-pole's) on the host with no JAX call, from the same reset states.
 * :class:`JaxroboVectorEnv` - a :class:`gymnasium.vector.VectorEnv` stepping ``num_envs`` copies as one vmapped
   jitted call, numpy batches out, with any of Gymnasium's autoreset modes (``AutoresetMode.NEXT_STEP`` by
   default, ``SAME_STEP`` with ``final_obs``/``final_info``, ``DISABLED`` with ``reset(options={"reset_mask": m})``).
@@ -37,7 +39,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from jaxrobo.core import spaces
-from jaxrobo.speed.compiled import N_EXTRA, compiled_for
+from jaxrobo.speed.compiled import CHAIN, N_EXTRA, compiled_for
 
 NAMESPACE = "jaxrobo"
 _KEY_MOD = 2**64  # Gymnasium seeds are any non-negative int; keys hold 64 bits
@@ -191,6 +193,25 @@ def _seed_keys(seeds: Sequence[int]) -> Any:
     return jax.random.wrap_key_data(data)
 
 
+#: ``JaxroboEnv``'s engines: the task's jitted ``step``, or its host step (:attr:`TaskEnv.host_step`).
+ENGINES = ("jax", "numpy")
+
+
+def _host_step(env: Any, engine: str) -> Any:
+    """The host stepper of ``env`` for ``engine="numpy"``, None for ``"jax"``; a ValueError naming the engine and
+    why otherwise (a task without a host step, an option the host step does not model)."""
+    if engine == "jax":
+        return None
+    factory = getattr(type(env), "host_step", None)
+    if factory is None:
+        raise ValueError(f"engine='numpy': {env.name} has no host step (tasks with one: the cart-pole's "
+                         "CartPoleStayUp ids); use engine='jax'")
+    why = factory.unsupported(env)
+    if why is not None:
+        raise ValueError(f"engine='numpy': {env.name}: {why}; use engine='jax'")
+    return factory(env)
+
+
 def _frame_rate(env: Any) -> int:
     from jaxrobo.task.env import simulator_of
 
@@ -236,16 +257,23 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
     ``JaxroboEnv("CartPoleStayUp-v0", control_type="position")`` or ``gymnasium.make("jaxrobo/CartPoleStayUp-v0",
     control_type="position")``: keyword arguments are the same overrides :func:`jaxrobo.make` takes;
     ``overrides={...}`` passes them as a dict (for names Gymnasium keeps for itself, like ``max_episode_steps``).
+
+    ``engine``: ``"jax"`` (default) steps the task's jitted ``step``; ``"numpy"`` steps the task's host step
+    (:attr:`jaxrobo.task.env.TaskEnv.host_step`, float64 on the host, no JAX call; resets still draw the first
+    state through the jitted reset, so a seed gives the same episode within float32 rounding). A task without
+    one is refused here.
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 25}
 
     def __init__(self, env_id: str | None = None, render_mode: str | None = None, *, env: Any = None,
                  overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
-                 camera: str | int | None = None, **kwargs: Any):
+                 camera: str | int | None = None, engine: str = "jax", **kwargs: Any):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, "
                              + ", ".join(repr(m) for m in self.metadata["render_modes"]))
+        if engine not in ENGINES:  # before the env is built
+            raise ValueError(f"engine={engine!r}: allowed values are {', '.join(map(repr, ENGINES))}")
         from jaxrobo.pictures import window
 
         no_window = window.unavailable_reason()
@@ -257,6 +285,9 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         self.action_space, self.observation_space = gym_spaces(self.jax_env, self.params)
         self._n = _action_limit(self.action_space)
         self._obs_size = int(np.prod(self.observation_space.shape))
+        self.engine = engine
+        self._host = _host_step(self.jax_env, engine)  # the host stepper (engine="numpy"), else None
+        self._chain: Any = None  # engine="numpy": the reset chain (see _host_reset)
         self._fns = self._compile()
         self.render_mode = render_mode
         # The modes this env can render here: "human" only where a window can open (Gymnasium's check_env makes
@@ -266,7 +297,7 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         self._render_args = (int(width), int(height), camera)
         self._renderer: Any = None
         self._window: Any = None  # render_mode="human": jaxrobo.pictures.window.Window
-        self.state: Any = None  # the current jaxrobo EnvState (on device)
+        self.state: Any = None  # the current jaxrobo EnvState (on device); engine="numpy": the host step holds it
 
     def _compile(self) -> Any:
         return compiled_for(self.jax_env)
@@ -277,7 +308,17 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         """Start an episode; ``seed`` gives the functional ``reset(jax.random.key(seed))``; ``options`` may set task
         parameters (``{"init_pole_angle": 0.52}``) for this and later episodes."""
         super().reset(seed=seed)
-        self.params = _reset_params(self.jax_env, self.params, options)
+        params = _reset_params(self.jax_env, self.params, options)
+        changed, self.params = params is not self.params, params
+        if self._host is not None:
+            obs = self._host_reset(seed, changed)
+        else:
+            obs = self._jax_reset(seed)
+        if self.render_mode == "human":  # Gymnasium's convention: a human-mode env draws itself
+            self.render()
+        return obs, {}
+
+    def _jax_reset(self, seed: int | None) -> np.ndarray:
         if seed is not None:
             key = _seed_keys([seed])[0]
         elif self.state is not None:
@@ -286,16 +327,39 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
             key = _seed_keys([int(self.np_random.integers(2**32))])[0]
         self.state, packed = self._fns.reset(key, self.params)
         obs, *_ = self._unpack(np.asarray(packed))
-        if self.render_mode == "human":  # Gymnasium's convention: a human-mode env draws itself
-            self.render()
-        return obs, {}
+        return obs
+
+    def _host_reset(self, seed: int | None, changed: bool) -> np.ndarray:
+        """The next episode of a host-stepped env: its first state from the reset chain (``reset_chain``: one
+        jitted call per :data:`~jaxrobo.speed.compiled.CHAIN` episodes, each starting from the key the same rule
+        as :meth:`_jax_reset` gives), continued while no seed or new parameters break it."""
+        import jax
+
+        chain = self._chain  # (first states [CHAIN] with key data, key data [CHAIN + 1, 2], current episode)
+        if seed is None and chain is not None and not changed and chain[2] + 1 < CHAIN:
+            chain = (chain[0], chain[1], chain[2] + 1)
+        else:
+            if seed is not None:
+                key = _seed_keys([seed])[0]
+            elif chain is not None:
+                key = jax.random.wrap_key_data(chain[1][chain[2] + 1])
+            else:
+                key = _seed_keys([int(self.np_random.integers(2**32))])[0]
+            states, data = self._fns.reset_chain(key, self.params)
+            chain = (jax.device_get(states), np.asarray(data), 0)
+            self._host.set_params(self.params)
+        self._chain = chain
+        return self._host.start(chain[0], chain[2]).reshape(self.observation_space.shape)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        if self.state is None:
+        if self.state is None and self._chain is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         a = check_action(action, self._n)
-        self.state, packed = self._fns.step(self.state, a, self.params)
-        obs, reward, terminated, truncated, nan, steps = self._unpack(np.asarray(packed))
+        if self._host is not None:
+            obs, reward, terminated, truncated, nan, steps = self._host.step(int(a))
+        else:
+            self.state, packed = self._fns.step(self.state, a, self.params)
+            obs, reward, terminated, truncated, nan, steps = self._unpack(np.asarray(packed))
         if self.render_mode == "human":
             self.render()
         return obs, reward, terminated, truncated, {"steps": steps, "physics_nan": nan}
@@ -314,13 +378,23 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to make")
             return None
-        if self.state is None:
+        if self.state is None and self._chain is None:
             raise gymnasium.error.ResetNeeded("call reset() before render()")
         if self._renderer is None:
             from jaxrobo.pictures.render import Renderer
 
             self._renderer = Renderer(self.jax_env, *self._render_args)
-        frame = self._renderer.render(self.state, self.params)
+        state = self.state
+        if self._host is not None:  # the episode's first state with the host's current pose
+            import dataclasses
+
+            import jax
+
+            from jaxrobo.physics.sim import JointState
+
+            first = jax.tree.map(lambda x: x[self._chain[2]], self._chain[0])
+            state = dataclasses.replace(first, pipeline_state=JointState(*self._host.joints()))
+        frame = self._renderer.render(state, self.params)
         if self.render_mode != "human":
             return frame
         if self._window is None:
@@ -340,7 +414,8 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         super().close()
 
     def __repr__(self) -> str:
-        return f"<JaxroboEnv {self.jax_env.name}>"
+        engine = "" if self._host is None else f" engine={self.engine}"
+        return f"<JaxroboEnv {self.jax_env.name}{engine}>"
 
 
 # ---- the vector environment ----------------------------------------------------------------------------------

@@ -38,7 +38,12 @@ class NativeSim:
     def advance(self, ctrl: Controls, n: int | None = None) -> None:
         """``n`` ``mj_step`` calls (default :attr:`n_substeps`: one env step), each after writing ``ctrl`` (or,
         if it is callable, ``ctrl()``) to ``data.ctrl``."""
-        fn = ctrl if callable(ctrl) else None
-        for _ in range(self.n_substeps if n is None else int(n)):
-            self.data.ctrl[:] = ctrl if fn is None else fn()
+        n = self.n_substeps if n is None else int(n)
+        if not callable(ctrl):  # MuJoCo reads data.ctrl and leaves it as it is: written once, one call for all
+            self.data.ctrl[:] = ctrl
+            if n > 0:
+                mujoco.mj_step(self.model, self.data, n)
+            return
+        for _ in range(n):
+            self.data.ctrl[:] = ctrl()
             mujoco.mj_step(self.model, self.data)

@@ -3,7 +3,8 @@ call at a time from Python, and share these compiled functions (one compile per 
 
 Public surface: :func:`compiled_for` (``reset(key, params)``, ``step(state, action, params)`` and their batched
 ``vreset``/``vstep`` (next-step autoreset), ``vstep_same`` (same-step autoreset), ``vstep_plain`` (none) and
-``vreset_where`` (reset some envs of a batch), each returning the state and one packed float32 row per env: the
+``vreset_where`` (reset some envs of a batch), and ``reset_chain`` (the first states of :data:`CHAIN` successive
+episodes, for a single env stepped on the host), each returning the state and one packed float32 row per env: the
 observation followed by :data:`N_EXTRA` step results). The class behind it is private.
 """
 from __future__ import annotations
@@ -12,6 +13,9 @@ import dataclasses
 from typing import Any
 
 N_EXTRA = 5  # reward, terminated, truncated, physics_nan, steps follow the observation in the packed row
+#: Episodes one ``reset_chain`` call starts: a host-stepped env pays one jitted call per this many resets (a call
+#: costs about as many microseconds as a short episode of host steps; a seeded reset starts a new chain).
+CHAIN = 128
 
 
 def _pack(state: Any) -> Any:
@@ -98,12 +102,32 @@ class _Compiled:
             new = autoreset(env, mask, keys, params, states)
             return new, needs_reset & ~mask, jax.vmap(_pack)(new)
 
+        def reset_chain(key, params):
+            # The first states of CHAIN successive episodes from ``key``, each episode's key the next of the last
+            # one's state key (the unseeded reset rule), with the CHAIN + 1 reset keys as key data (the last starts
+            # the chain after these): every episode starts from exactly the state the single env's own reset would
+            # draw. The
+            # physics state is cut to its coordinates (a JointState), all a host step reads of it.
+            from jaxrobo.physics.sim import JointState
+            from jaxrobo.task.env import simulator_of
+
+            def body(k, _):  # only the key is kept: the rest of this reset is dead code in the loop
+                return next_key(env.reset(k, params).key), k
+
+            last, keys = jax.lax.scan(body, key, None, length=CHAIN)
+            states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)  # the resets themselves, side by side
+            sim, ps = simulator_of(env), states.pipeline_state
+            data = jax.random.key_data(jnp.concatenate([keys, last[None]]))
+            joints = JointState(jax.vmap(sim.qpos)(ps), jax.vmap(sim.qvel)(ps))
+            return dataclasses.replace(states, key=jax.random.key_data(states.key), pipeline_state=joints), data
+
         def jit(fn, **kw):
             return jax.jit(plan.traced(fn), compiler_options=plan.xla_options, **kw)
 
         self.reset = jit(reset)
         self.step = jit(step)
         self.next_key = jit(next_key)
+        self.reset_chain = jit(reset_chain)
         self.vnext_key = jit(jax.vmap(next_key))
         self.vreset = jit(vreset)
         self.vstep = jit(vstep, donate_argnums=(0,))
