@@ -90,9 +90,13 @@ class RosTaskEnv(gymnasium.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self._call("pause_physics")
+        # The readings the topics hold before the reset: the reset's first state is the first stamped after them
+        # (a reading of the state before the reset, still in flight, is not taken for it).
+        _, before = self._state_after(-np.inf)
+        t0 = max(self.t, stamp(before[self.b.primary]))
         self._call("reset_simulation")
         self.b.reset_memory()
-        obs, latest = self._state_after(self.t)
+        obs, latest = self._state_after(t0)
         self.t, self.steps = stamp(latest[self.b.primary]), 0
         return obs, {}
 
