@@ -247,6 +247,7 @@ def test_render_shows_the_arm_and_the_goal(arm):
     assert not np.array_equal(frame, render.render_frame(env, moved, 96, 96))
 
 
+@pytest.mark.slow
 def test_tiny_train_writes_a_run_directory(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["train", "--env", ID, "--n-envs", "2", "--nepisodes", "2", "--set", "nsteps=10",
@@ -265,6 +266,7 @@ def test_tiny_sweep(tmp_path):
     assert any(out.iterdir())
 
 
+@pytest.mark.slow
 def test_throughput_row(tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": str(tmp_path / "cache"),
            "XLA_FLAGS": "--xla_backend_optimization_level=0"}

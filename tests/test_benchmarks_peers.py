@@ -176,6 +176,7 @@ def test_figures_are_a_function_of_the_results_json(tmp_path, capsys):
     assert figures.write_figures({"meta": None, "rows": []}, str(tmp_path / "none")) == []
 
 
+@pytest.mark.slow
 def test_playground_and_crazyflow_peers_run_at_a_tiny_size(tmp_path):
     """Each new peer's rollout compiles and steps (2 envs, 2 steps) through the command line, in a process of its
     own (crazyflow needs scipy's array-API mode, set before scipy's first import); skipped rows, with the extra to

@@ -62,6 +62,7 @@ def test_a_tiny_ppo_run_writes_a_complete_run_directory(runs, env_id):
     assert deep.spec_from_config(cfg).to_dict() == json.loads(json.dumps(cfg))
 
 
+@pytest.mark.slow
 def test_a_tiny_sac_run_completes(tmp_path):
     d = str(tmp_path / "sac")
     _train(d, CPC, "sac", "--set", "min_replay_size=32")

@@ -99,6 +99,7 @@ def _config(run_dir: str) -> dict:
     return load_config(run_dir)
 
 
+@pytest.mark.slow
 def test_tensorboard_scalars_are_readable_while_the_run_trains(runs):
     seen = runs["seen"]
     scalars = seen["scalars"]

@@ -120,6 +120,7 @@ def test_tabular_round_trip(runs, tmp_path, task):
     assert 0 < meta["tied_states"] < meta["n_states"]
 
 
+@pytest.mark.slow
 def test_deep_round_trip(runs, tmp_path):
     """PPO: the numpy runner's action equals the JAX policy's (Brax's deterministic action through the env's action
     mapping) to float32 round-off: |diff| <= 1e-5 on actions in [-1, 1]. Both are float32 computations of the same

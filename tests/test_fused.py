@@ -60,6 +60,7 @@ def test_the_plan_fuses_where_it_measured_faster():
         assert ExecutionPlan.for_run(cartpole.env, cartpole.config, "gpu").fused == "off"
 
 
+@pytest.mark.slow
 def test_blocks_of_envs_give_the_plain_values_whatever_the_chunking():
     """12 envs in blocks of 5 (5, 5, then 2), chunks of 25 and of 7 steps: the plain run's values bit for bit."""
     spec = _cartpole()
@@ -74,6 +75,7 @@ def test_blocks_of_envs_give_the_plain_values_whatever_the_chunking():
     assert int(np.asarray(plain.lengths).min()) > 0  # every env recorded its episodes
 
 
+@pytest.mark.slow
 def test_on_policy_learner_and_shared_table_keep_their_values():
     """Sarsa (its carried next action crosses the block's steps) blocked (two blocks of 3: one body to compile);
     a shared table, which mixes every env each step, runs unblocked under the same plan."""
@@ -100,6 +102,7 @@ def _scans(fn, *args):
     return out
 
 
+@pytest.mark.slow
 def test_a_closed_form_writes_out_all_its_substeps_and_keeps_its_values():
     """The quadcopter's 30 rigid-body substeps per control step: a rolled loop in the plain path, written out in
     the fused one (one kernel); the chunk's tables and records are the same bit for bit."""

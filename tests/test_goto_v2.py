@@ -81,6 +81,7 @@ def test_goal_dz_is_read_where_the_climb_stops():
     assert float(v1_dz) == pytest.approx(goal_z - z(up), abs=1e-5)
 
 
+@pytest.mark.slow
 def test_tiny_train_summary_has_the_greedy_arrival_rate():
     from jaxrobo.training.run import resolve
     from jaxrobo.training.train import train
@@ -188,6 +189,7 @@ def test_snapshot_k_is_the_table_at_the_last_chunk_boundary_at_or_before_its_sha
     assert any(not np.array_equal(np.asarray(s), history[-1][1]) for s in runner.snapshots)
 
 
+@pytest.mark.slow
 def test_final_table_keeps_the_candidate_best_by_the_learning_target(snapped):
     """The choice equals the summary's ranking (success rate, then mean return, the first on a tie) of the
     candidates flown on the same episodes from fold_in(key, 3); a tie keeps the final table."""

@@ -23,6 +23,7 @@ def _sets():
     return [f"--set={k}={v}" for k, v in SETS.items()]
 
 
+@pytest.mark.slow
 def test_both_budgets_are_judged_as_jaxrobo_train_judges_a_run(learning_targets, tmp_path):
     out = tmp_path / "lt.json"
     assert learning_targets.main(["--envs", "CartPoleStayUp-v0", "--runs", "2", "--seed-base", "5",

@@ -10,6 +10,7 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+@pytest.mark.slow
 def test_quickstart_notebook_runs_learns_and_shows_its_pictures(tmp_path, monkeypatch):
     """Runs notebooks/quickstart.ipynb top to bottom in a fresh kernel (make → rollout → train → plot → show →
     render): its training demo learns, and its outputs hold the pictures themselves (PNG plots and figures, the

@@ -94,6 +94,7 @@ def test_a_shared_table_on_a_gpu_sums_its_updates_in_order():
         ExecutionPlan(ordered_sums=1)
 
 
+@pytest.mark.slow
 def test_sum_in_order_is_the_scatter_add_summed_in_one_order():
     """Whole numbers (exact in any order): equal to the scatter-add bit for bit; fractions: equal to a float64 sum
     within float32 rounding; a training run with a shared table under ordered sums learns what the scatter-add's

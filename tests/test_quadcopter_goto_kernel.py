@@ -108,6 +108,7 @@ def test_the_kernel_step_agrees_with_the_hooks(case):
     assert np.asarray(ref.task.arrived).any() and np.asarray(ref.task.crashed).any()
 
 
+@pytest.mark.slow
 def test_the_per_coordinate_step_runs_on_plain_arrays():
     """:func:`task_step` outside any kernel, on ``[n]`` arrays (as the kernel runs it on a block), gives the
     kernel's values."""
@@ -132,6 +133,7 @@ def test_the_per_coordinate_step_runs_on_plain_arrays():
     np.testing.assert_array_equal(out["terminated"], np.asarray(got.terminated))
 
 
+@pytest.mark.slow
 def test_a_sweep_around_the_batch_is_one_call_with_its_own_parameters():
     """A vmap over configurations (as a sweep runs one) with a batched parameter makes one kernel call and gives
     each configuration's own flat-batch step (to round-off); an unbatched step agrees to round-off."""

@@ -111,6 +111,7 @@ def test_a_randomised_control_step_at_nominal_values_is_the_nominal_one_op_by_op
         np.testing.assert_array_equal(np.asarray(b), np.asarray(a))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", [True, False], ids=["task-kernel", "control-step-kernel"])
 def test_zero_width_ranges_fly_the_nominal_kernel(task):
     """randomise=true with every range pinned at its nominal value (the defaults) flies the nominal kernel's

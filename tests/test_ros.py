@@ -508,6 +508,7 @@ def test_roslaunch_file_starts_sim_and_policy(ros, cartpole_export):
     assert "Traceback" not in out, out
 
 
+@pytest.mark.slow
 @needs_ros
 def test_seed_style_qlearning_against_the_sim_improves(ros):
     sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "0", name="ql_sim")

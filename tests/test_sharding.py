@@ -71,6 +71,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_sharded_equals_unsharded():
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": "off",
            "XLA_FLAGS": "--xla_force_host_platform_device_count=4 --xla_backend_optimization_level=0"}
@@ -125,6 +126,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_two_processes_with_jax_distributed_give_the_single_process_sweep(tmp_path):
     """The multi-host path for real, on one machine: two processes (2 CPU devices each) join through
     ``jax.distributed`` (``JAXROBO_COORDINATOR`` & co.), shard a ``jaxrobo sweep`` over 4 devices and write

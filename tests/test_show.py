@@ -76,6 +76,7 @@ def test_show_random_arm_says_arrivals_and_draws_without_gl(tmp_path, monkeypatc
     assert show.default_out(None, "my_task:MyPendulum-v0") == os.path.join("runs", "show", "my_task_MyPendulum-v0.png")
 
 
+@pytest.mark.slow
 def test_show_and_video_of_a_users_module_task(tmp_path, monkeypatch, capsys):
     """examples/custom_task: trained from its folder by `module:Id`, shown and (with OpenGL) rendered to a GIF."""
     work = tmp_path / "custom"
