@@ -314,3 +314,16 @@ def test_no_module_global_speed_knob_is_left():
                     with open(path) as fh:
                         found += [f"{path}: {m}" for m in pattern.findall(fh.read())]
     assert found == []
+
+
+def test_automatic_devices_keep_a_shared_table_on_one_device(monkeypatch):
+    """Several devices: per-env tables split over them; a shared table (one table every env feeds) stays on one
+    device unless `devices` is set, so its sums are added in the one-device order whatever the device count."""
+    monkeypatch.setattr(jax, "device_count", lambda *a, **k: 4)
+    per_env = resolve("CartPoleStayUp-v0", overrides=dict(n_envs=8, backend="analytic"))
+    shared = resolve("QuadcopterGoto-v2", overrides=dict(n_envs=8))
+    assert shared.config.shared_table and not per_env.config.shared_table
+    assert ExecutionPlan.for_run(per_env.env, per_env.config, "cpu").devices == 4
+    assert ExecutionPlan.for_run(shared.env, shared.config, "cpu").devices == 1
+    asked = resolve("QuadcopterGoto-v2", overrides=dict(n_envs=8, devices=4))
+    assert ExecutionPlan.for_run(asked.env, asked.config, "cpu").devices == 4

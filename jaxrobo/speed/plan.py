@@ -331,6 +331,11 @@ class ExecutionPlan:
         # The config's fused, "auto" (or a config without the field) meaning the default for this device and run.
         asked = getattr(config, "fused", "auto")
         devices = default_devices(config)
+        if devices > 1 and not getattr(config, "devices", 0) and config.shared_table:
+            # One table fed by every env: split over devices, its update becomes a reduction across them, summed
+            # in another order than on one device (Goto-v2's default tables differed between 1 and 4 forced CPU
+            # devices). With devices automatic such a run stays on one, so its result does not depend on the count.
+            devices = 1
         if asked == "auto":
             fused = default_fused(env, backend, config=config, agent=agent, discretiser=discretiser, devices=devices)
             if devices > 1 and not getattr(config, "devices", 0) and physics_kernel(env) and default_fused(
