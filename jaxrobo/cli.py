@@ -389,9 +389,9 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
             sys.stderr.flush()
             os._exit(code)
 
-    from jaxrobo.core.clock import process_seconds
+    from jaxrobo.core.clock import command_seconds
 
-    startup = process_seconds()  # imports, device discovery, config: the wall before the trainer starts
+    startup = command_seconds()  # imports, device discovery, config: the wall before the trainer starts
     try:
         with driver.StopOnSignal(notice, second="exit", abandon=abandon) as stop:
             result = deep.train(spec, on_point, should_stop=stop, resume=saved,
@@ -621,9 +621,9 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
 
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
     with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
-        from jaxrobo.core.clock import process_seconds
+        from jaxrobo.core.clock import command_seconds
 
-        startup = process_seconds()  # imports, device discovery, config: the wall before the first compile
+        startup = command_seconds()  # imports, device discovery, config: the wall before the first compile
         result = train(spec.env, cfg, spec.agent_params, None, hooks, initial=initial, start_chunk=start_chunk,
                        checkpoint=save, checkpoint_every=every_chunks or 0,
                        checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None, should_stop=stop,
@@ -671,7 +671,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         print(f"learning target not met in {s['target_checks']} check(s): the whole budget ran")
     elif "target_checks" in s:
         print(f"the budget ended before the first learning-target check (every {s['target_every_chunks']} chunks)")
-    total = process_seconds()
+    total = command_seconds()
     print((f"wall {total:.1f} s: start-up {startup:.1f} s, " if total is not None and startup is not None else "wall: ")
           + f"compile {s['compile_seconds']:.1f} s, run {s['run_seconds']:.1f} s, evaluation "
           f"{s['eval_seconds']:.1f} s, writing {write_seconds:.1f} s")
@@ -879,6 +879,9 @@ PROCESS_DEFAULTS = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from jaxrobo.core.clock import command_entered
+
+    command_entered()  # the start-up of a command run inside another program counts from here
     args = build_parser().parse_args(argv)  # --help and usage errors exit here, before the cache is touched
     from jaxrobo.core import environ
 

@@ -180,6 +180,14 @@ class Listener:
             self.got.append(msg)
             self.cv.notify_all()
 
+    def connected(self, timeout=BOUND) -> bool:
+        """Whether a publisher of the topic has connected to this subscriber (rospy connects in the background: a
+        message published before the connection is not delivered)."""
+        end = time.monotonic() + timeout
+        while self.sub.get_num_connections() < 1 and time.monotonic() < end:
+            time.sleep(0.05)
+        return self.sub.get_num_connections() >= 1
+
     def wait(self, n, timeout=30.0):
         end = time.monotonic() + timeout
         with self.cv:
@@ -215,6 +223,9 @@ def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
     rewards = Listener("/openai/reward", RLExperimentInfo)
     sim = ros.node("sim", goto_export, "--episodes", str(n), "--lockstep", "--seed", str(seed), "--results",
                    str(results), name="goto_sim")
+    # In lockstep no episode ends before the policy node answers: starting it once the sim's /openai/reward has
+    # reached this listener keeps the first episode's message (one CI run on a loaded machine lost it)
+    assert rewards.connected(), log(sim)
     policy = ros.policy(goto_export, "--stats", str(stats), name="goto_policy")
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
