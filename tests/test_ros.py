@@ -305,6 +305,43 @@ def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
 
 
 @needs_ros
+def test_gym_env_over_ros_gives_the_drones_shaped_reward(ros, goto_export):
+    """The drone through the Gymnasium env over ROS: each step's reward is the task's shaped one, so an episode's
+    rewards sum to its return in-process (the native port, the same runner, the same resets) to float32 round-off
+    (the observation and the sonar messages are float32)."""
+    import gymnasium as gym
+
+    from jaxrobo.interop.numpy_policy import Policy
+
+    n, seed = 3, 11
+    sim = ros.node("sim", goto_export, "--lockstep", "--seed", str(seed), name="gym_goto_sim")
+    try:
+        env = gym.make("jaxrobo-ros/QuadcopterGoto-v2", timeout=60.0)
+        policy = Policy.load(goto_export)
+        flights = []
+        for _ in range(n):  # the sim starts at episode 0; each reset_simulation draws the next one
+            obs, _ = env.reset()
+            rewards, info = [], {}
+            for _ in range(1000):
+                obs, reward, terminated, truncated, info = env.step(policy(obs))
+                rewards.append(reward)
+                if terminated or truncated:
+                    break
+            flights.append((rewards, info))
+        env.close()
+    finally:
+        stop(sim)
+    assert "Traceback" not in log(sim)
+    native = in_process(goto_export, n, seed, first=1)
+    assert [len(r) for r, _ in flights] == [e["length"] for e in native]
+    assert [i["arrived"] for _, i in flights] == [bool(e["success"]) for e in native]
+    assert [i["crashed"] for _, i in flights] == [bool(e["crashed"]) for e in native]
+    returns = [float(np.sum(r)) for r, _ in flights]
+    assert np.allclose(returns, [e["return"] for e in native], rtol=1e-5, atol=1e-4), (returns, native)
+    assert len({round(x, 4) for r, _ in flights for x in r}) > 3  # shaped per step, not an arrival flag
+
+
+@needs_ros
 def test_policy_node_faults_stop_the_robot(ros, cartpole_export, goto_export, tmp_path):
     from jaxrobo_ros.system import rospy as get
 

@@ -131,6 +131,16 @@ class NativeGoto(NativeSim):
             out.update(bearing=float(np.asarray(task.prev_bearing)), dz=float(np.asarray(task.prev_dz)))
         return out
 
+    def potentials_of(self, obs: np.ndarray) -> dict:
+        """The potentials a state observed as ``obs`` (float32) holds, as :meth:`reward` passes them on: the goal
+        distance (v2: ``|goal_bearing|``, ``|goal_dz|``). At an episode's first state they are its reset's task
+        variables (the drone at rest: goal_dz's lead adds nothing), to float32 round-off: how a client that sees
+        the readings only (``jaxrobo.ros``'s Gymnasium env) starts the reward."""
+        out = {"dist": float(obs[0])}
+        if self.v2:
+            out.update(bearing=abs(float(obs[1])), dz=abs(float(obs[2])))
+        return out
+
     def episode(self, policy: Callable[[np.ndarray], int], qpos: np.ndarray, qvel: np.ndarray, task: Any,
                 horizon: int | None = None) -> dict[str, Any]:
         """One flight from ``(qpos, qvel)`` to the goal among the obstacles of ``task`` (one episode's task

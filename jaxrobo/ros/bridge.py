@@ -84,10 +84,10 @@ class DroneSim(DroneBridge):
         super().__init__(port.io, cfg)
         self.env, self.port = env, port
 
-    def outcome(self, readings: dict) -> tuple[bool, bool]:
-        """``(arrived, failed)`` judged on the observed pose (the port's test on a copy of the readings)."""
+    def observed(self, readings: dict) -> None:
+        """Put the observed pose into the port: :meth:`score` judges the drone the readings show, not the port's
+        own."""
         self.port.data.qpos[:3], self.port.data.qpos[3:7] = readings["pos"], readings["quat"]
-        return self.port.outcome(readings["goal"], readings["obstacles"])
 
     # ---- the sim's side -------------------------------------------------------------------------------------
     def command_of(self, msg) -> np.ndarray:
@@ -106,6 +106,12 @@ class DroneSim(DroneBridge):
                 "obstacles": {"kind": np.asarray(o.kind), "center": np.asarray(o.center, np.float64),
                               "size": np.asarray(o.size, np.float64), "active": np.asarray(o.active)},
                 "potentials": self.port.potentials(task), "return": 0.0}
+
+    def task_seen(self, readings: dict, obs: np.ndarray) -> dict:
+        """An episode as its first readings show it, for a client of the topics (it has no task variables): the
+        goal and obstacles its topics carry, and the reward's potentials read off its first observation."""
+        return {"goal": readings["goal"], "obstacles": readings["obstacles"],
+                "potentials": self.port.potentials_of(obs), "return": 0.0}
 
     def episode_msgs(self, task: dict, t) -> dict:
         from geometry_msgs.msg import PointStamped
@@ -147,13 +153,20 @@ class DroneSim(DroneBridge):
             out[name] = r
         return out
 
+    def score(self, task: dict, obs: np.ndarray) -> tuple[bool, bool, float]:
+        """``(arrived, failed, reward)`` of the step that left the drone where the port holds it, observed as
+        ``obs``: the task's outcome and its shaped reward (:meth:`envs.quadcopter.native.NativeGoto.reward`), the
+        potentials and the episode's return in ``task`` carried on. The sim node sums these for ``/openai/reward``,
+        the Gymnasium env over ROS returns each one."""
+        arrived, failed = self.port.outcome(task["goal"], task["obstacles"])
+        r, task["potentials"] = self.port.reward(obs, task["potentials"], arrived, failed)
+        task["return"] += r
+        return arrived, failed, r
+
     def judge(self, task: dict, steps: int) -> tuple[bool, bool, float]:
         """``(done, success, episode reward)`` after ``steps``: arrival or failure ends it, as the horizon does;
         the reward is the task's own (its shaped per-step reward, summed over the episode so far)."""
-        arrived, failed = self.port.outcome(task["goal"], task["obstacles"])
-        r, task["potentials"] = self.port.reward(self.port.observe(task["goal"], task["obstacles"]),
-                                                 task["potentials"], arrived, failed)
-        task["return"] += r
+        arrived, failed, _ = self.score(task, self.port.observe(task["goal"], task["obstacles"]))
         return arrived or failed or steps >= self.port.horizon, arrived, task["return"]
 
 
@@ -174,8 +187,14 @@ class CartPoleSim(CartPoleBridge):
     def advance(self, command) -> None:
         self.port.advance(command)
 
+    def observed(self, readings: dict) -> None:
+        pass  # the cart-pole's outcome and reward read the observation alone
+
     def task_of(self, task) -> dict:
-        return {"command": float(np.asarray(getattr(task, "command", 0.0)))}
+        return {"command": float(np.asarray(getattr(task, "command", 0.0))), "return": 0.0}
+
+    def task_seen(self, readings: dict, obs: np.ndarray) -> dict:
+        return {"return": 0.0}
 
     def episode_msgs(self, task: dict, t) -> dict:
         return {}
@@ -190,11 +209,16 @@ class CartPoleSim(CartPoleBridge):
         m.position, m.velocity, m.effort = [float(j[0]), float(j[2])], [float(j[1]), float(j[3])], [0.0, 0.0]
         return {"joint_states": m}
 
+    def score(self, task: dict, obs: np.ndarray) -> tuple[bool, bool, float]:
+        """``(arrived, failed, reward)`` of the step observed as ``obs``: the cart-pole arrives nowhere, it fails
+        with the pole down or the cart out; the task's reward is 1 per step (the episode's return in ``task``)."""
+        task["return"] += 1.0
+        return False, self.port.terminated(obs), 1.0
+
     def judge(self, task: dict, steps: int) -> tuple[bool, bool, float]:
-        """``(done, success, episode reward)``: the pole down or the cart out ends it, as the horizon does; the
-        task's reward is 1 per step."""
-        terminated = self.port.terminated(self.port.observe())
-        return terminated or steps >= self.port.horizon, steps >= self.port.horizon and not terminated, float(steps)
+        """``(done, success, episode reward)``: the pole down or the cart out ends it, as the horizon does."""
+        _, failed, _ = self.score(task, self.port.observe())
+        return failed or steps >= self.port.horizon, steps >= self.port.horizon and not failed, task["return"]
 
 
 def make_bridge(env: Any, topics_path: str | None = None) -> DroneSim | CartPoleSim:

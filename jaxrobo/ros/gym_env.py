@@ -7,8 +7,11 @@ whatever answers on the topics: ``jaxrobo ros sim ID`` (without ``--episodes``),
     import gymnasium as gym, jaxrobo.ros
     env = gym.make("jaxrobo-ros/QuadcopterGoto-v2")   # a master and a sim must be up (docs/ros.md)
 
-Reward: what the readings decide without the training's shaping terms: the cart-pole's 1 per step (its task
-reward), the drone's 1 on arrival (``info["arrived"]``), else 0. Truncation at the task's ``max_episode_steps``.
+Reward: the task's own, computed from the readings by the code that sums it for the sim's ``/openai/reward``
+(:meth:`jaxrobo.ros.bridge.DroneSim.score`): the cart-pole's 1 per step, the drone's shaped reward (progress, step
+and altitude costs, arrival bonus, crash penalty, v2's heading and climb shaping) with ``info["arrived"]`` and
+``info["crashed"]``; the potentials start from the reset's first observation. Truncation at the task's
+``max_episode_steps``.
 """
 from __future__ import annotations
 
@@ -59,7 +62,7 @@ class RosTaskEnv(gymnasium.Env):
             if time.monotonic() > end:
                 raise TimeoutError(f"nothing subscribes to {top[self.b.command_topic]} after {timeout:g} s")
             time.sleep(0.01)
-        self.t, self.steps = -np.inf, 0
+        self.t, self.steps, self.episode = -np.inf, 0, None
 
     def _on_msg(self, msg, name: str) -> None:
         with self.cv:
@@ -98,6 +101,7 @@ class RosTaskEnv(gymnasium.Env):
         self.b.reset_memory()
         obs, latest = self._state_after(t0)
         self.t, self.steps = stamp(latest[self.b.primary]), 0
+        self.episode = self.b.task_seen(self.b.readings(latest), obs)
         return obs, {}
 
     def step(self, action):
@@ -107,11 +111,10 @@ class RosTaskEnv(gymnasium.Env):
         self._call("pause_physics")
         self.t = stamp(latest[self.b.primary])
         self.steps += 1
-        if self.b.family == "quadcopter":
-            arrived, failed = self.b.outcome(self.b.readings(latest))
-            terminated, reward, info = arrived or failed, float(arrived), {"arrived": arrived, "crashed": failed}
-        else:
-            terminated, reward, info = self.b.port.terminated(obs), 1.0, {}
+        self.b.observed(self.b.readings(latest))
+        arrived, failed, reward = self.b.score(self.episode, obs)
+        info = {"arrived": arrived, "crashed": failed} if self.b.family == "quadcopter" else {}
+        terminated = arrived or failed
         return obs, reward, terminated, self.steps >= self.horizon and not terminated, info
 
     def close(self) -> None:
