@@ -882,7 +882,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from jaxrobo.core.clock import command_entered
 
     command_entered()  # the start-up of a command run inside another program counts from here
+    argv, ros_args = list(sys.argv[1:] if argv is None else argv), []
+    if argv[:1] == ["ros"]:  # a ROS node's own name:=value arguments (roslaunch's remappings, __name) are rospy's
+        from jaxrobo_ros.system import split_ros_args
+
+        argv, ros_args = split_ros_args(argv)
     args = build_parser().parse_args(argv)  # --help and usage errors exit here, before the cache is touched
+    if ros_args:
+        args.ros_args = ros_args
     from jaxrobo.core import environ
 
     if environ.running_cli():  # the command's own process only: a caller's streams and settings are the caller's

@@ -44,7 +44,9 @@ HISTORY = 100_000
 
 
 class PolicyNode:
-    def __init__(self, export_dir: str, topics: str | None = None):
+    def __init__(self, export_dir: str, topics: str | None = None, ros_args=()):
+        """``ros_args``: the node's own ``name:=value`` arguments (remappings, ``__name``, ...) for rospy."""
+        self.ros_args = list(ros_args)
         self.policy = load_export(export_dir)
         self.b = make_bridge(self.policy.io, topics)
         self.rospy = import_rospy()
@@ -62,7 +64,7 @@ class PolicyNode:
 
     def start(self) -> None:
         rospy = self.rospy
-        rospy.init_node("jaxrobo_policy", disable_signals=True)
+        rospy.init_node("jaxrobo_policy", argv=[sys.argv[0], *self.ros_args], disable_signals=True)
         types, top = self.b.msg_types(), self.b.topics
         self.pub = rospy.Publisher(top[self.b.command_topic], types[self.b.command_topic], queue_size=1,
                                    tcp_nodelay=True)
@@ -242,15 +244,20 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("export_dir", metavar="EXPORT_DIR", help="a directory written by `jaxrobo export`")
     p.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo_ros/topics/<family>.yaml)")
     p.add_argument("--stats", default=None, help="write the latency and loop-rate figures here (JSON) at exit")
+    # ROS's own name:=value arguments (topic remappings, __name, as roslaunch and rosrun give them) are taken out
+    # of the command line before it is parsed (jaxrobo_ros.system.split_ros_args) and handed to rospy
+    p.set_defaults(ros_args=[])
 
 
 def main(argv=None) -> int:
     """``python -m jaxrobo_ros.policy_node``: the node without the jaxrobo command line (and without JAX)."""
-    from jaxrobo_ros.system import unavailable_reason
+    from jaxrobo_ros.system import split_ros_args, unavailable_reason
 
     p = argparse.ArgumentParser(prog="python -m jaxrobo_ros.policy_node", description=__doc__.split("\n\n")[0])
     configure_parser(p)
+    argv, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     args = p.parse_args(argv)
+    args.ros_args = ros_args
     why = unavailable_reason()
     if why is not None:
         print(f"jaxrobo ros policy: {why}", file=sys.stderr)
@@ -260,7 +267,7 @@ def main(argv=None) -> int:
 
 def run(args) -> int:
     try:
-        node = PolicyNode(args.export_dir, args.topics)
+        node = PolicyNode(args.export_dir, args.topics, args.ros_args)
     except SetupError as err:
         print(f"jaxrobo ros policy: {err}; nothing was started", file=sys.stderr)
         return 2
@@ -273,8 +280,8 @@ def run(args) -> int:
         print(f"jaxrobo ros policy: {err}", file=sys.stderr)
         return 2
     meta = node.policy.meta
-    print(f"jaxrobo ros policy: {meta['env_id']} ({meta['kind']}) every {node.b.period:g} s of stamp time on "
-          f"{node.b.topics[node.b.command_topic]}", flush=True)
+    print(f"jaxrobo ros policy: {meta['env_id']} ({meta['kind']}) as {node.rospy.get_name()} every "
+          f"{node.b.period:g} s of stamp time on {node.pub.resolved_name}", flush=True)
     while not stop.is_set() and not node.rospy.is_shutdown() and node.master_lost is None:
         node.watch()
         stop.wait(0.02)

@@ -40,6 +40,20 @@ def rospy():
     raise RosUnavailable(INSTALL)
 
 
+def split_ros_args(argv) -> tuple[list[str], list[str]]:
+    """``(argv without ROS's own arguments, those arguments)``: the ``name:=value`` arguments roslaunch and rosrun
+    give a node (remappings ``from:=to``, ``__name:=``, ``__ns:=``, ``__log:=``, private parameters ``_p:=v``), told
+    apart by ``rospy.myargv``; the nodes hand them to ``rospy.init_node``. Where rospy does not import nothing is
+    split (the command then says how to install ROS)."""
+    argv = list(argv)
+    try:
+        plain = rospy().myargv(argv)
+    except RosUnavailable:
+        return argv, []
+    keep = set(plain)
+    return plain, [a for a in argv if a not in keep]
+
+
 def unavailable_reason() -> str | None:
     """None where rospy and the message packages import; else why not (the install line)."""
     try:

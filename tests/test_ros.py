@@ -556,6 +556,49 @@ def test_roslaunch_file_starts_sim_and_policy(ros, cartpole_export):
     assert "Traceback" not in out, out
 
 
+@needs_ros
+@pytest.mark.skipif(shutil.which("roslaunch") is None, reason="roslaunch is not on PATH: apt-get install "
+                    "python3-roslaunch (docs/ros.md)")
+def test_roslaunch_remappings_and_names_reach_the_nodes(ros, cartpole_export, tmp_path):
+    """A user's launch file starting the package's nodes under its own names with the cart-pole's topics remapped
+    (as for Gazebo or a robot whose topics differ): the nodes take roslaunch's ``__name:=`` and ``from:=to``
+    arguments, and the policy flies the lockstep sim's episodes over the remapped topics alone."""
+    from std_msgs.msg import Float64
+
+    import jaxrobo_ros
+
+    package = os.path.dirname(jaxrobo_ros.__file__)
+    command, joints = "/cartpole_v0/foot_joint_velocity_controller/command", "/cartpole_v0/joint_states"
+    launch = tmp_path / "robot.launch"
+    launch.write_text(f"""<launch>
+  <remap from="{command}" to="/robot/cart_cmd"/>
+  <remap from="{joints}" to="/robot/joints"/>
+  <node name="cart_sim" pkg="jaxrobo_ros" type="jaxrobo_ros" output="screen" required="true"
+        args="sim {cartpole_export} --episodes 2 --lockstep --seed 4"/>
+  <node name="cart_policy" pkg="jaxrobo_ros" type="jaxrobo_ros" output="screen" args="policy {cartpole_export}"/>
+</launch>
+""")
+    remapped, original = Listener("/robot/cart_cmd", Float64), Listener(command, Float64)
+    env = dict(ros.env, ROS_PACKAGE_PATH=package, JAXROBO_PYTHON=sys.executable)
+    port = ros.env["ROS_MASTER_URI"].rsplit(":", 1)[1]
+    try:
+        r = subprocess.run(["roslaunch", "-p", port, str(launch)], env=env, capture_output=True, text=True,
+                           timeout=BOUND, cwd=ROOT)
+    finally:
+        remapped.sub.unregister()
+        original.sub.unregister()
+    out = r.stdout + r.stderr
+    steps = sum(e["length"] for e in in_process(cartpole_export, 2, 4))
+    assert "jaxrobo ros sim: 2 episodes" in out, out
+    assert "in native MuJoCo as /cart_sim" in out and "as /cart_policy every" in out, out
+    assert "on /robot/cart_cmd" in out, out
+    # lockstep: the sim stepped once per command it received on /robot/cart_cmd, and took its episodes' states to
+    # the policy on /robot/joints
+    assert f"jaxrobo ros policy: {steps} commands" in out, (steps, out)
+    assert remapped.got and not original.got, (len(remapped.got), len(original.got))
+    assert "Traceback" not in out, out
+
+
 @pytest.mark.slow
 @needs_ros
 def test_seed_style_qlearning_against_the_sim_improves(ros):

@@ -24,6 +24,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--speed", type=float, default=1.0, help="x real time without --lockstep; 0: as fast as possible")
     s.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo_ros/topics/<family>.yaml)")
     s.add_argument("--results", default=None, help="write each episode's steps and success here (JSON)")
+    s.set_defaults(ros_args=[])  # ROS's own name:=value arguments, as for the policy (jaxrobo.cli.main)
     u = sub.add_parser("up", help="master, sim and policy in one command (the sim's task: the export's)")
     u.add_argument("export_dir", metavar="EXPORT_DIR")
     u.add_argument("--episodes", type=int, default=0)
@@ -31,6 +32,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     u.add_argument("--lockstep", action="store_true")
     u.add_argument("--speed", type=float, default=1.0)
     u.add_argument("--port", type=int, default=11311, help="the master's port (localhost)")
+    u.set_defaults(ros_args=[])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,6 +41,10 @@ def run(args: argparse.Namespace) -> int:
     why = unavailable_reason()
     if why is not None:
         print(f"jaxrobo ros: {why}", file=sys.stderr)
+        return 2
+    if args.ros_command == "up" and args.ros_args:
+        print(f"jaxrobo ros up: {' '.join(args.ros_args)}: name:=value arguments are a node's (jaxrobo ros policy, "
+              "jaxrobo ros sim, or the nodes of jaxrobo.launch)", file=sys.stderr)
         return 2
     if args.ros_command == "sim" and (args.episodes < 0 or args.speed < 0):
         print("jaxrobo ros sim: --episodes and --speed must be >= 0", file=sys.stderr)

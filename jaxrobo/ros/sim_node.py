@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import threading
 import time
 from typing import Any
@@ -52,7 +53,8 @@ def episode_starts(env: Any, n: int, seed: int) -> tuple[np.ndarray, np.ndarray,
 
 class SimNode:
     def __init__(self, env: Any, episodes: int, seed: int, lockstep: bool, speed: float, topics: str | None = None,
-                 pool: int = 1000):
+                 pool: int = 1000, ros_args=()):
+        """``ros_args``: the node's own ``name:=value`` arguments (remappings, ``__name``, ...) for rospy."""
         self.rospy = rospy = import_rospy()
         from rosgraph_msgs.msg import Clock
         from std_msgs.msg import Int32
@@ -68,7 +70,7 @@ class SimNode:
         self.tick = self.published = time.monotonic()  # wall clock: the period's end, the last publication
         self.command = self.b.zero_command()
         self.msgs = msgs
-        rospy.init_node("jaxrobo_sim", disable_signals=True)
+        rospy.init_node("jaxrobo_sim", argv=[sys.argv[0], *ros_args], disable_signals=True)
         types = self.b.msg_types()
         top = self.b.topics
         latched = {"goal", "obstacles", "episode"}
@@ -186,11 +188,11 @@ def run(args) -> int:
         args.env_id = env.spec.id
     else:
         env = make_env({"env_id": args.env_id}, where="ID")
-    node = SimNode(env, args.episodes, args.seed, args.lockstep, args.speed, args.topics)
+    node = SimNode(env, args.episodes, args.seed, args.lockstep, args.speed, args.topics, ros_args=args.ros_args)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"jaxrobo ros sim: {args.env_id} in native MuJoCo, control period {node.b.period:g} s, "
+    print(f"jaxrobo ros sim: {args.env_id} in native MuJoCo as {node.rospy.get_name()}, control period {node.b.period:g} s, "
           f"{'lockstep' if args.lockstep else f'{args.speed:g} x real time'}", flush=True)
     results = node.run(stop)
     if args.results:
