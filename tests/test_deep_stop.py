@@ -27,10 +27,29 @@ RUNS = {"ppo": ({"total_steps": 4096, "iteration_steps": 512}, 512),
         "sac": ({"total_steps": 1024, "min_replay_size": 32, "iteration_steps": 16}, 16)}
 
 
-def _args(agent: str) -> list[str]:
+def _args(agent: str, **changes) -> list[str]:
     return ["train", "--env", CPC, "--agent", agent, "--preset", "tiny", "--set", "episode_length=20",
             "--set", "eval_episodes=3", "--set", "num_evals=3", "--no-progress",
-            *(arg for k, v in RUNS[agent][0].items() for arg in ("--set", f"{k}={v}"))]
+            *(arg for k, v in {**RUNS[agent][0], **changes}.items() for arg in ("--set", f"{k}={v}"))]
+
+
+def _same_run(a: str, b: str) -> None:
+    """The same trained policy and the same evaluations, bit for bit."""
+    x, y = _arrays(os.path.join(a, "policy.npz")), _arrays(os.path.join(b, "policy.npz"))
+    assert sorted(x) == sorted(y) and all(np.array_equal(x[k], y[k]) for k in x)
+    with open(os.path.join(a, "evaluations.csv")) as f, open(os.path.join(b, "evaluations.csv")) as g:
+        assert f.read() == g.read()
+
+
+@pytest.mark.parametrize("agent", ["ppo", "sac"])
+def test_the_default_run_splits_its_epochs_into_host_iterations(agent):
+    """Each trainer's default run on the continuous cart-pole hands control back several times an epoch, in host
+    iterations of at most its ``iteration_steps`` (SAC's grain is finer than PPO's: an env step costs it
+    ``grad_updates_per_step`` gradient steps), so a stop keeps the work of the epoch in flight."""
+    c = deep.resolve(CPC, agent).config
+    plan = deep.epoch_plan(c)
+    assert plan.chunks > 1 and plan.unit_steps <= max(c.iteration_steps, plan.step_size), plan
+    assert plan.unit_steps * plan.chunks == plan.steps_per_epoch
 
 
 def _status(path: str) -> dict:
@@ -69,12 +88,15 @@ def test_a_stop_between_points_resumes_bit_for_bit(agent, tmp_path, monkeypatch,
     assert _status(stopped)["status"] == "interrupted" and f"at {at:,} env steps" in capsys.readouterr().err
     assert main(["train", "--resume", stopped]) == 0
     assert f"resuming after {at:,} env steps" in capsys.readouterr().out
-    a, b = _arrays(os.path.join(full, "policy.npz")), _arrays(os.path.join(stopped, "policy.npz"))
-    assert sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
-    with open(os.path.join(full, "evaluations.csv")) as f, open(os.path.join(stopped, "evaluations.csv")) as g:
-        assert f.read() == g.read()
+    _same_run(full, stopped)
     with open(os.path.join(stopped, "summary.json")) as f:
         assert json.load(f)["resumed_after_env_steps"] == at
+    # and the same as the run whose epochs are not split at all (one host iteration each)
+    whole = str(tmp_path / "whole")
+    unsplit = deep.resolve(CPC, agent, "tiny", {**RUNS[agent][0], "num_evals": 3, "iteration_steps": 1 << 30})
+    assert deep.epoch_plan(unsplit.config).chunks == 1
+    assert main([*_args(agent, iteration_steps=1 << 30), "--out", whole]) == 0
+    _same_run(full, whole)
 
 
 @pytest.mark.slow

@@ -49,7 +49,7 @@ class DeepConfig:
     num_evals: int = param(10, low=1, high=1000, doc="evaluation points over the run (the first before training)")
     eval_episodes: int = param(128, low=1, high=100_000, doc="fresh episodes of each evaluation")
     seed: int = param(0, low=0, doc="random seed; the same seed gives the same run")
-    iteration_steps: int = param(1 << 16, low=1, doc="most env steps of one host iteration of the trainer (at "
+    iteration_steps: int = _per_agent(int, low=1, doc="most env steps of one host iteration of the trainer (at "
                                                      "least one training step): where a stop keeps the trainer's "
                                                      "state between evaluation points; the policy is the same "
                                                      "whatever it is")
@@ -72,6 +72,7 @@ class PPOConfig(DeepConfig):
     total_steps: int = _agent_default("total_steps", 1_000_000)
     num_envs: int = _agent_default("num_envs", 1024)
     learning_rate: float = _agent_default("learning_rate", 3e-4)
+    iteration_steps: int = _agent_default("iteration_steps", 1 << 16)
     entropy_cost: float = param(1e-2, low=0.0, high=1.0, doc="weight of the entropy bonus")
     unroll_length: int = param(10, low=1, doc="steps per rollout segment")
     num_minibatches: int = param(8, low=1, doc="minibatches per update")
@@ -92,6 +93,9 @@ class SACConfig(DeepConfig):
     total_steps: int = _agent_default("total_steps", 200_000)
     num_envs: int = _agent_default("num_envs", 64)
     learning_rate: float = _agent_default("learning_rate", 6e-4)
+    # An env step costs SAC grad_updates_per_step gradient steps on a batch (PPO: a share of one): its grain is
+    # finer, so that a host iteration of the default run takes about a second on a 2-core CPU, not an epoch
+    iteration_steps: int = _agent_default("iteration_steps", 1024)
     grad_updates_per_step: int = param(8, low=1, doc="gradient steps per env step of all envs")
     tau: float = param(0.005, low=0.0, low_open=True, high=1.0, doc="target network update rate")
     min_replay_size: int = param(1024, low=0, doc="transitions collected before learning starts")

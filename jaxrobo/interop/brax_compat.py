@@ -279,8 +279,9 @@ def hook_epochs(trainer_module: Any, epoch_keys: Callable[[int, int], Any], firs
 _CARRIED = {"ppo": (3, 2), "sac": (2, 1)}
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3))
-def _advance(keys: Any, parts: int, index: int, steps: int) -> Any:
+# ``steps`` is traced: an epoch run as many host iterations asks for a different count at each (one compile for all)
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _advance(keys: Any, parts: int, index: int, steps: Any) -> Any:
     def one(key: Any) -> Any:
         return jax.lax.fori_loop(0, steps, lambda _, k: jax.random.split(k, parts)[index], key)
 
