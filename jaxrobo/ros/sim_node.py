@@ -192,7 +192,8 @@ def run(args) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"jaxrobo ros sim: {args.env_id} in native MuJoCo as {node.rospy.get_name()}, control period {node.b.period:g} s, "
+    print(f"jaxrobo ros sim: {args.env_id} in native MuJoCo as {node.rospy.get_name()}, control period "
+          f"{node.b.period:g} s, "
           f"{'lockstep' if args.lockstep else f'{args.speed:g} x real time'}", flush=True)
     results = node.run(stop)
     if args.results:
