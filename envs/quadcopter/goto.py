@@ -35,9 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.quadcopter import goto_step
+from envs.quadcopter.geometry import BOX, CYLINDER
 from envs.quadcopter.goto_step import V1_PARAMS, V2_PARAMS, kinds_of
-from envs.quadcopter.robot import (BOX, CYLINDER, Obstacles, QuadcopterOptions, QuadcopterTask, fold_obstacles,
-                                   twist_command)
+from envs.quadcopter.robot import Obstacles, QuadcopterOptions, QuadcopterTask, fold_obstacles, twist_command
 from envs.quadcopter.goto_kernel import kernel_step, make_task_step, supports
 from jaxrobo.api import (BaseParams, EnvState, LearningTarget, param, pytree_dataclass, randomise, range_param, rng,
                          spaces)
