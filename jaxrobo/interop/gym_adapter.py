@@ -204,8 +204,8 @@ def _host_step(env: Any, engine: str) -> Any:
         return None
     factory = getattr(type(env), "host_step", None)
     if factory is None:
-        raise ValueError(f"engine='numpy': {env.name} has no host step (tasks with one: the cart-pole's "
-                         "CartPoleStayUp ids); use engine='jax'")
+        raise ValueError(f"engine='numpy': {env.name} has no host step (tasks with one: the CartPoleStayUp and "
+                         "QuadcopterGoto ids); use engine='jax'")
     why = factory.unsupported(env)
     if why is not None:
         raise ValueError(f"engine='numpy': {env.name}: {why}; use engine='jax'")
