@@ -197,6 +197,11 @@ def test_goto_host_step_is_offered_where_it_models_the_task():
     obs, _ = env.reset(seed=1)
     obs, reward, terminated, truncated, info = env.step(0)
     assert obs in env.observation_space and type(reward) is float and type(terminated) is bool
+    copy = pickle.loads(pickle.dumps(env.unwrapped))  # the written-out control step is written out again
+    for a in (3, 0, 1):
+        x, y = env.step(a), copy.step(a)
+        np.testing.assert_array_equal(x[0], y[0])
+        assert x[1:4] == y[1:4]
     env.close()
     with pytest.raises(ValueError, match="QuadcopterGotoTwist.* has no host step"):
         JaxroboEnv("QuadcopterGotoTwist-v0", engine="numpy")
@@ -204,9 +209,29 @@ def test_goto_host_step_is_offered_where_it_models_the_task():
         JaxroboEnv("QuadcopterGoto-v2", engine="numpy", randomise=True)
 
 
+def test_the_written_out_goto_control_step_is_the_closed_form_bit_for_bit():
+    """Goto's host control step (rigid) is the controller and ``dynamics.physics_step`` on Python floats, written
+    out once (``straight_line``, its ``where`` as conditional expressions): the same floats as calling them."""
+    from envs.quadcopter.dynamics import controller, physics_step
+    from envs.quadcopter.geometry import ScalarMath
+
+    host = JaxroboEnv("QuadcopterGoto-v1", engine="numpy")._host
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        quat = rng.normal(size=4)
+        q = [*rng.uniform(-2.0, 2.0, 3).tolist(), *(quat / np.linalg.norm(quat)).tolist()]
+        v, command = rng.uniform(-2.0, 2.0, 6).tolist(), rng.uniform(-1.0, 1.0, 4).tolist()
+        got = host.advance(*q, *v, *command)
+        for _ in range(host.n_substeps):
+            q, v = physics_step(ScalarMath, host.body, q, v, controller(ScalarMath, host.control, q, v, command))
+        assert list(got) == q + v
+
+
 def test_straight_line_refuses_a_branch_on_a_computed_value():
     from jaxrobo.core.scalar import straight_line
 
     assert straight_line(lambda xp, a, b: (xp.minimum(a * 2.0, b), -a / b), ("a", "b"))(1.5, 2.5) == (2.5, -0.6)
+    pick = straight_line(lambda xp, a, b: (xp.where(a > b, xp.sqrt(a), xp.arctan2(a, b)),), ("a", "b"))
+    assert pick(4.0, 1.0) == (2.0,) and pick(1.0, 1.0) == (np.arctan2(1.0, 1.0),)
     with pytest.raises(TypeError, match="branches on a value it computes"):
         straight_line(lambda xp, a: (a if a else 1.0,), ("a",))

@@ -7,7 +7,9 @@ Nothing of the task is written here. The action map, the observation, the outcom
 (:mod:`envs.quadcopter.native`) run, here on Python floats (:class:`envs.quadcopter.geometry.ScalarMath`). The
 physics is the backend's own on the host:
 
-* ``rigid``: :func:`envs.quadcopter.dynamics.physics_step`, the closed form the JAX path runs, on Python floats;
+* ``rigid``: :func:`envs.quadcopter.dynamics.physics_step`, the closed form the JAX path runs, on Python floats,
+  its control step's substeps (controller and physics) written out once as plain arithmetic
+  (:func:`jaxrobo.core.scalar.straight_line`: the same operations, without the calls);
 * ``mjx``: native MuJoCo (:class:`jaxrobo.interop.native.NativeSim`, the C engine MJX reimplements) on the
   robot's own compiled model, as the native port flies it.
 
@@ -27,7 +29,7 @@ import numpy as np
 from envs.quadcopter import goto_step
 from envs.quadcopter.dynamics import body_constants, controller, physics_step
 from envs.quadcopter.geometry import ScalarMath as F, euler
-from jaxrobo.api import NativeSim
+from jaxrobo.api import NativeSim, scalar
 
 #: The backends whose physics runs on the host.
 HOST_BACKENDS = ("rigid", "mjx")
@@ -59,8 +61,10 @@ class HostGoto:
         self.kinds = goto_step.kinds_of(env.options.obstacle_kind)
         self.control = r.control  # the controller's constants (dynamics.ControllerConstants)
         self.n_substeps = int(r.sim.n_substeps)
+        self.advance: Any = None
         if r.sim.backend == "rigid":
             self.body, self.native = body_constants(r.sim.airframe), None
+            self.advance = self._closed_form()
         else:
             self.body, self.native = None, NativeSim(r.sim)
         self.task_names = ("prev_dist", "arrived", "crashed") + (("prev_bearing", "prev_dz") if self.v2 else ())
@@ -74,6 +78,27 @@ class HostGoto:
         self.task: dict[str, Any] = {}
         self.steps = 0
         self.obs = np.zeros(8 if self.v2 else 7, np.float32)
+
+    def _closed_form(self) -> Any:
+        """``(*qpos, *qvel, *command) -> (*qpos, *qvel)``: one control step of the closed form, written out."""
+        c, body, n = self.control, self.body, self.n_substeps
+
+        def control_step(xp, *args):
+            q, v, command = list(args[:7]), list(args[7:13]), list(args[13:])
+            for _ in range(n):
+                q, v = physics_step(xp, body, q, v, controller(xp, c, q, v, command))
+            return q + v
+
+        names = [f"q{i}" for i in range(7)] + [f"v{i}" for i in range(6)] + [f"c{i}" for i in range(4)]
+        return scalar.straight_line(control_step, names)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "advance": None}  # generated code does not pickle: written out again
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        if self.native is None:
+            self.advance = self._closed_form()
 
     def set_params(self, params: Any) -> None:
         """The task parameters of the episodes that follow, read as the float32 values the JAX step computes
@@ -115,10 +140,8 @@ class HostGoto:
             self.native.advance(lambda: controller(F, c, data.qpos.tolist(), data.qvel.tolist(), command))
             self.q, self.v = data.qpos.tolist(), data.qvel.tolist()
             return
-        q, v = self.q, self.v
-        for _ in range(self.n_substeps):
-            q, v = physics_step(F, self.body, q, v, controller(F, c, q, v, command))
-        self.q, self.v = q, v
+        out = self.advance(*self.q, *self.v, *command)
+        self.q, self.v = list(out[:7]), list(out[7:])
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, bool, int]:
         """One step with a checked action index: ``(obs float32, reward, terminated, truncated, physics_nan,
