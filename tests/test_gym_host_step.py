@@ -209,6 +209,24 @@ def test_goto_host_step_is_offered_where_it_models_the_task():
         JaxroboEnv("QuadcopterGoto-v2", engine="numpy", randomise=True)
 
 
+def test_make_vec_steps_host_envs_in_sync_mode_and_says_so_otherwise():
+    """``gym.make_vec(..., engine="numpy")``: Gymnasium's sync vector env of host-stepped single envs, the same
+    episodes as those envs one by one; the vmapped vector env takes the JAX engine only and names the sync mode."""
+    venv = gym.make_vec("jaxrobo/QuadcopterGoto-v2", num_envs=2, vectorization_mode="sync", engine="numpy")
+    assert all(e.unwrapped.engine == "numpy" for e in venv.envs)
+    single = [JaxroboEnv("QuadcopterGoto-v2", engine="numpy") for _ in range(2)]
+    obs, _ = venv.reset(seed=3)
+    np.testing.assert_array_equal(obs, np.stack([e.reset(seed=3 + i)[0] for i, e in enumerate(single)]))
+    for a in ([0, 3], [1, 0], [4, 2]):
+        obs, rewards, *_ = venv.step(np.array(a))
+        steps = [e.step(x) for e, x in zip(single, a)]
+        np.testing.assert_array_equal(obs, np.stack([s[0] for s in steps]))
+        assert rewards.tolist() == [s[1] for s in steps]
+    venv.close()
+    with pytest.raises(ValueError, match="engine='numpy': a JaxroboVectorEnv .* vectorization_mode='sync'"):
+        gym.make_vec("jaxrobo/QuadcopterGoto-v2", num_envs=2, engine="numpy")
+
+
 def test_the_written_out_goto_control_step_is_the_closed_form_bit_for_bit():
     """Goto's host control step (rigid) is the controller and ``dynamics.physics_step`` on Python floats, written
     out once (``straight_line``, its ``where`` as conditional expressions): the same floats as calling them."""
