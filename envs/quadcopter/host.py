@@ -13,11 +13,8 @@ physics is the backend's own on the host:
 * ``mjx``: native MuJoCo (:class:`jaxrobo.interop.native.NativeSim`, the C engine MJX reimplements) on the
   robot's own compiled model, as the native port flies it.
 
-Precision: float64 where the JAX path computes in float32 (a Python float is the fastest number on the host); the
-observation is cast to float32 as the task's is, and the reward potentials read it as the task's hooks do. The two
-engines therefore agree to float32 round-off accumulated over a control step's substeps, not bit for bit
-(``tests/test_gym_host_step.py`` states the tolerance). Episodes start from the JAX reset's state, so seeds mean
-the same thing through both engines. Domain randomisation is not modelled here (refused).
+Precision, seeds and what is refused: :mod:`jaxrobo.task.host`; float32 round-off accumulates here over a control
+step's 30 substeps. The reward's potentials read the float32 observation, as the task's hooks do.
 """
 from __future__ import annotations
 
@@ -29,41 +26,24 @@ import numpy as np
 from envs.quadcopter import goto_step
 from envs.quadcopter.dynamics import body_constants, controller, physics_step
 from envs.quadcopter.geometry import ScalarMath as F, euler
-from jaxrobo.api import NativeSim, scalar
-
-#: The backends whose physics runs on the host.
-HOST_BACKENDS = ("rigid", "mjx")
+from jaxrobo.api import HostStep, NativeSim, scalar
 
 
-def unsupported(env: Any) -> str | None:
-    """Why ``env`` cannot step on the host (None: it can)."""
-    if env.randomised:
-        return "the host step does not model domain randomisation (randomise=true)"
-    backend = env.robot.sim.backend
-    if backend not in HOST_BACKENDS:
-        return f"backend={backend!r} has no host physics; the host step runs backend 'rigid' or 'mjx'"
-    return None
-
-
-class HostGoto:
+class HostGoto(HostStep):
     """One QuadcopterGoto (v1 or v2) env on the host. :meth:`set_params` takes the task parameters, :meth:`start`
     the first state of an episode (the JAX reset's, on the host), :meth:`step` steps it; none needs JAX."""
 
-    unsupported = staticmethod(unsupported)
-    backends = HOST_BACKENDS
+    backends = ("rigid", "mjx")
 
     def __init__(self, env: Any):
-        why = unsupported(env)
-        if why is not None:
-            raise ValueError(f"{env.name}: {why}")
+        super().__init__(env)
         r = env.robot
         self.v2 = bool(env.v2)
         self.kinds = goto_step.kinds_of(env.options.obstacle_kind)
         self.control = r.control  # the controller's constants (dynamics.ControllerConstants)
         self.n_substeps = int(r.sim.n_substeps)
-        self.advance: Any = None
         if r.sim.backend == "rigid":
-            self.body, self.native = body_constants(r.sim.airframe), None
+            self.body = body_constants(r.sim.airframe)
             self.advance = self._closed_form()
         else:
             self.body, self.native = None, NativeSim(r.sim)
@@ -91,14 +71,6 @@ class HostGoto:
 
         names = [f"q{i}" for i in range(7)] + [f"v{i}" for i in range(6)] + [f"c{i}" for i in range(4)]
         return scalar.straight_line(control_step, names)
-
-    def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "advance": None}  # generated code does not pickle: written out again
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        if self.native is None:
-            self.advance = self._closed_form()
 
     def set_params(self, params: Any) -> None:
         """The task parameters of the episodes that follow, read as the float32 values the JAX step computes
