@@ -75,7 +75,7 @@ ENTRY_POINTS = frozenset({"jaxrobo.task.registry"})
 #: The exported runner's robot side computes with the tasks' own JAX-free step functions, which ``jaxrobo export``
 #: writes into the runner's file (:func:`jaxrobo.export.runner_source`): the one jaxrobo module that imports them.
 RUNNER, RUNNER_SOURCES = "jaxrobo.interop.numpy_policy", frozenset({"envs.quadcopter.geometry",
-                                                                    "envs.quadcopter.goto_step"})
+                                                                    "envs.quadcopter.goto_step", "envs.cartpole.rules"})
 
 #: Edges that break the rules and are waiting to be removed, each with what removes it. Empty: nothing is excused,
 #: and a new forbidden edge fails the test.

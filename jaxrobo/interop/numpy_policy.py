@@ -2,7 +2,7 @@
 
 ``jaxrobo export`` writes this module into every exported policy directory (beside ``policy.npz`` and
 ``policy.json``) with the JAX-free task modules it imports written in before it
-(:func:`jaxrobo.export.runner_source`: the Goto task's geometry and observation): the file imports nothing but
+(:func:`jaxrobo.export.runner_source`: the Goto task's geometry and observation, the cart-pole's rules): the file imports nothing but
 numpy and the standard library, and runs where JAX is not installed (a robot's computer, a native MuJoCo loop). It reproduces the JAX policy of the run:
 
 * **tabular** (``kind: tabular``): the observation is cast to float32 and cut into bins exactly as
@@ -24,7 +24,8 @@ not match the description, are refused with a ``ValueError`` naming the file.
 For a task with a native port (``envs/*/native.py``), ``policy.json``'s ``robot`` section holds what turns the
 robot's readings into the policy's observation and its action into the robot's command, the task's constants as
 the run configured it (:class:`QuadcopterIO`, :class:`CartPoleIO`; ``policy.io``): the control period, the action
-table, the drone's ``dz_lead``, radius, clear margin and sonar range, the cart-pole's rounding and command steps.
+table, the drone's ``dz_lead``, radius, clear margin and sonar range, the cart-pole's rounding, action steps and
+``pos_step``.
 The native ports compute with these same classes, so a policy driving a robot (the ROS policy node) needs nothing
 but this file and the export: no JAX, no task package, no MuJoCo.
 """
@@ -36,6 +37,7 @@ import os
 
 import numpy as np
 
+from envs.cartpole.rules import command_after, observation
 from envs.quadcopter.geometry import ScalarMath, euler
 from envs.quadcopter.goto_step import kinds_of, loop_fold, observe
 
@@ -294,15 +296,16 @@ class CartPoleIO:
         if self.continuous:
             self.max_command = _number(c, "max_command", 0.0)
         else:
-            self.steps = _table(c, "steps", None)
+            self.steps = _table(c, "steps", None)  # each action's step (the task's ACTION_STEPS)
+            self.pos_step = _number(c, "pos_step", 0.0)
             self.n_actions = len(self.steps)
             self.velocity = _flag(c, "velocity")
             self.vmax = _number(c, "vmax", 0.0)
 
     def observation(self, joints) -> np.ndarray:
-        """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` -> the task's observation."""
-        obs = np.asarray(joints, np.float64).astype(np.float32)
-        return np.round(obs, 1) if self.round_obs else obs
+        """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` -> the task's observation
+        (:func:`envs.cartpole.rules.observation`)."""
+        return observation(np.asarray(joints, np.float64), self.round_obs, np)
 
     def command(self, action, command: float) -> tuple:
         """``(action as recorded, new cart command)`` after the last ``command``."""
@@ -310,8 +313,8 @@ class CartPoleIO:
             a = np.reshape(np.asarray(action, np.float64), -1)[:1]
             return a, self.max_command * min(max(float(a[0]), -1.0), 1.0)
         a = int(action)
-        command = command + self.steps[a]
-        return a, (min(max(command, -self.vmax), self.vmax) if self.velocity else command)
+        return a, command_after(command, float(self.steps[a]), self.pos_step, self.vmax if self.velocity else None,
+                                ScalarMath)
 
 
 #: The task families with a robot section, by its ``family``.
