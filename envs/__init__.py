@@ -1,6 +1,8 @@
-"""Robots and tasks shipped with jaxrobo, one folder per robot family; importing this package registers their ids
-(lazily: a task module, and MuJoCo with it, is imported only when its env is made). :mod:`jaxrobo.task.registry`
-imports it by name (its ``BUILTIN_ENVS`` entry point) the first time an id is looked up.
+"""Robots and tasks shipped with jaxrobo, one folder per robot family. Importing this package imports nothing else:
+:func:`register_builtin` registers their ids (lazily: a task module, and MuJoCo with it, is imported only when its
+env is made), called by :mod:`jaxrobo.task.registry` (through its ``BUILTIN_ENVS`` entry point) the first time an id
+is looked up; a family's JAX-free modules (the native ports, the step functions they share with the tasks) import
+without JAX.
 
 Each family keeps its MJCF, robot, tasks, env YAML and fast kernels side by side::
 
@@ -33,9 +35,8 @@ checks it): never the trainer, the CLI or a learner.
 """
 from __future__ import annotations
 
+import functools
 import os
-
-from jaxrobo.api import deprecated_alias, register
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
 #: The robot families, each a folder of its own.
@@ -58,7 +59,11 @@ def _cfg(family: str, name: str) -> str:
     return os.path.join(_HERE, family, name)
 
 
-def _register_builtin() -> None:
+@functools.cache
+def register_builtin() -> None:
+    """Register the shipped ids with :mod:`jaxrobo.task.registry` (once)."""
+    from jaxrobo.api import deprecated_alias, register
+
     # Cart-pole (seed 001). Agent YAML names are relative to agents/configs/.
     register("CartPoleStayUp-v0", "envs.cartpole.stay_up:CartPoleStayUp",
              config=_cfg("cartpole", "cartpole_stay_up.yaml"), agent_config="cartpole_stay_up.yaml",
@@ -90,5 +95,3 @@ def _register_builtin() -> None:
              config=_cfg("arm", "arm_reach.yaml"), agent_config="arm_reach.yaml",
              description="planar 2-joint arm under position control: reach a random goal, 4 actions")
 
-
-_register_builtin()

@@ -18,7 +18,7 @@ A task's port to native MuJoCo (the sim-to-sim check, ``envs/*/native.py``)::
 
 A task's step for one env on the host (``envs/cartpole/host.py``)::
 
-    from jaxrobo.api import NativeSim, scalar         # scalar.FLOATS: Python floats as the array module
+    from jaxrobo.api import HostStep, NativeSim, scalar   # scalar.FLOATS: Python floats as the array module
 """
 from __future__ import annotations
 
@@ -34,6 +34,7 @@ from jaxrobo.tabular import (AgentParams, AgentState, Learner, argmax_random_tie
                              row_argmax, row_max, row_min, row_pick)
 from jaxrobo.task import randomise
 from jaxrobo.task.env import BaseParams, Env, EnvState, LearningTarget, TaskEnv
+from jaxrobo.task.host import HostStep
 from jaxrobo.task.registry import deprecated_alias, make, register
 from jaxrobo.task.robot import Robot
 from jaxrobo.task.rollout import greedy_policy, random_policy, rollout, success_rate
@@ -45,7 +46,7 @@ __all__ = [
     "ClosedFormSim", "JointState", "MjxEdit", "Simulator", "backend_choices", "load_model", "make_simulator", "through_batch",
     "NativeSim", "numpy_policy", "Robot",
     # tasks
-    "BaseParams", "Env", "EnvState", "LearningTarget", "TaskEnv", "deprecated_alias", "make", "register",
+    "BaseParams", "Env", "EnvState", "HostStep", "LearningTarget", "TaskEnv", "deprecated_alias", "make", "register",
     "randomise",
     # policies and episodes
     "greedy_policy", "random_policy", "rollout", "success_rate",

@@ -1,8 +1,9 @@
 """``jaxrobo export RUN --out DIR``: a trained policy as a small self-describing file and a numpy-only runner.
 
 ``DIR`` receives ``policy.json`` (what the policy is: format, kind, env id, observation and action layout, the env's
-options and parameters as the run set them, where it came from), ``policy.npz`` (its numbers, plain arrays) and ``jaxrobo_policy.py`` (a copy of
-:mod:`jaxrobo.interop.numpy_policy`, importing only numpy): ``Policy.load(DIR)(obs) -> action`` outside JAX. A deep
+options and parameters as the run set them, where it came from), ``policy.npz`` (its numbers, plain arrays) and ``jaxrobo_policy.py``
+(:mod:`jaxrobo.interop.numpy_policy` with the task modules it computes with, :func:`runner_source`; importing only
+numpy): ``Policy.load(DIR)(obs) -> action`` outside JAX. A deep
 run also gets ``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``). For a task
 with a native port, ``policy.json`` also holds a ``robot`` section (:func:`jaxrobo.ros.bridge.robot_section`: the
 control period, the observation's constants, the action table), from which the runner turns the robot's readings
@@ -27,6 +28,8 @@ not match its config, an existing non-empty ``--out`` without ``--overwrite``.
 from __future__ import annotations
 
 import argparse
+import ast
+import importlib.util
 import inspect
 import os
 import sys
@@ -285,6 +288,83 @@ def write_onnx(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -
     return True
 
 
+# ---- the runner ---------------------------------------------------------------------------------------------
+#: The module an export's runner is made of, and the packages whose modules it writes into the same file.
+RUNNER_MODULE, INLINED_PACKAGES = "jaxrobo.interop.numpy_policy", ("envs", "jaxrobo")
+
+
+def _inlined(module: str | None) -> bool:
+    return module is not None and module.split(".")[0] in INLINED_PACKAGES
+
+
+def _top_names(tree: ast.Module) -> set[str]:
+    """The names a module's own top-level statements bind (its imports aside)."""
+    names = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
+                names.update(n.id for n in ast.walk(target) if isinstance(n, ast.Name))
+    return names
+
+
+def runner_source(root: str = RUNNER_MODULE) -> str:
+    """``jaxrobo_policy.py``: the source of :mod:`jaxrobo.interop.numpy_policy` with the JAX-free task modules it
+    imports (the Goto task's geometry and observation: :mod:`envs.quadcopter.geometry`,
+    :mod:`envs.quadcopter.goto_step`; the cart-pole's command and observation: :mod:`envs.cartpole.rules`) written
+    in before it, dependencies first, as one module: the runner computes
+    with the task's own functions and still needs nothing but numpy. A module so written in may be imported only
+    by ``from module import name`` of names it defines at its top level (they share one namespace), and no two
+    may define the same name: anything else is refused (``RuntimeError``), not written."""
+    order: list[str] = []
+    trees: dict[str, tuple[list[str], ast.Module]] = {}
+
+    def visit(name: str) -> None:
+        if name in trees:
+            return
+        spec = importlib.util.find_spec(name)
+        with open(spec.origin) as f:
+            text = f.read()
+        trees[name] = (text.splitlines(), ast.parse(text))
+        for node in ast.walk(trees[name][1]):
+            if isinstance(node, ast.Import) and any(_inlined(a.name) for a in node.names):
+                raise RuntimeError(f"{name}:{node.lineno}: the runner takes 'from module import name' only")
+            if isinstance(node, ast.ImportFrom) and _inlined(node.module):
+                if node not in trees[name][1].body:
+                    raise RuntimeError(f"{name}:{node.lineno}: the runner takes module-level imports only")
+                visit(node.module)
+                missing = [a.name for a in node.names if a.asname or a.name not in _top_names(trees[node.module][1])]
+                if missing:
+                    raise RuntimeError(f"{name}:{node.lineno}: {', '.join(missing)} is not a name "
+                                       f"{node.module} defines (or is renamed): it cannot share the runner's namespace")
+        order.append(name)
+
+    visit(root)
+    seen: dict[str, str] = {}
+    for name in order:
+        for top in _top_names(trees[name][1]):
+            if top in seen:
+                raise RuntimeError(f"{top} is defined by both {seen[top]} and {name}: the runner is one namespace")
+            seen[top] = name
+    head, parts = "", []
+    for name in order:
+        lines, tree = trees[name]
+        drop = set()
+        for k, node in enumerate(tree.body):
+            if k == 0 and isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):  # the docstring
+                if name == root:
+                    head = "\n".join(lines[node.lineno - 1:node.end_lineno]) + "\n"
+            elif not (isinstance(node, ast.ImportFrom) and (node.module == "__future__" or _inlined(node.module))):
+                continue
+            drop.update(range(node.lineno - 1, node.end_lineno))
+        body = "\n".join(line for i, line in enumerate(lines) if i not in drop).strip("\n")
+        why = "" if name == root else ": the task's own source, written in by jaxrobo export"
+        parts.append(f"# ---- {name}{why} ----\n{body}")
+    out = [head + "from __future__ import annotations"] + parts
+    return "\n\n\n".join(out) + "\n"
+
+
 # ---- the command ----------------------------------------------------------------------------------------
 class _NoOnnx(Exception):
     """write_onnx wrote nothing: the temporary file is dropped, not moved into place."""
@@ -334,8 +414,7 @@ def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool
     # Each file replaced atomically (a kill leaves the previous export's file or the new one, never none or a torn
     # one); policy.json last, so that it never describes arrays that are not there yet.
     rundir.atomic_write(os.path.join(out, numpy_policy.POLICY_NPZ), lambda f: np.savez_compressed(f, **arrays))
-    with open(numpy_policy.__file__, "rb") as src:
-        runner = src.read()
+    runner = runner_source().encode()
     rundir.atomic_write(os.path.join(out, RUNNER_NAME), lambda f: f.write(runner))
     onnx_path = os.path.join(out, "policy.onnx")
     wrote_onnx = False

@@ -157,10 +157,11 @@ def test_deep_round_trip(runs, tmp_path):
 
 
 def test_runner_imports_no_jax(runs, tmp_path):
-    """The exported runner runs in a Python that has no JAX at all (jax made unimportable)."""
+    """The exported runner runs in a Python that has no JAX at all, nor jaxrobo or its tasks (made unimportable)."""
     out = str(tmp_path / "policy")
     assert main(["export", runs["cartpole"], "--out", out]) == 0
-    code = ("import sys; sys.modules['jax'] = None; sys.path.insert(0, sys.argv[1]); import jaxrobo_policy as p; "
+    code = ("import sys; sys.modules.update(jax=None, envs=None, jaxrobo=None); sys.path.insert(0, sys.argv[1]); "
+            "import jaxrobo_policy as p; "
             "pol = p.Policy.load(sys.argv[1]); a = pol([0.0, 0.1, 0.02, -0.3]); "
             "assert isinstance(a, int); assert 'jax' not in {m.split('.')[0] for m in sys.modules if sys.modules[m]}; "
             "print(a)")
@@ -168,6 +169,52 @@ def test_runner_imports_no_jax(runs, tmp_path):
                          env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() in {"0", "1", "2", "3"}
+
+
+def test_runner_observes_with_the_tasks_own_step(tmp_path):
+    """The runner's Goto observation is the task's own (:func:`envs.quadcopter.goto_step.observe`, written into the
+    file): run from the file alone, without JAX, jaxrobo or envs, it gives the native port's observations bit for bit
+    on poses among the obstacles, and :func:`jaxrobo.export.runner_source` is what an export writes."""
+    import jaxrobo
+    from envs.quadcopter.native import NativeGoto
+    from jaxrobo.export import runner_source
+
+    port = NativeGoto(jaxrobo.make("QuadcopterGoto-v2"))
+    rng = np.random.default_rng(3)
+    k = 5
+    cases = []
+    for _ in range(200):
+        obstacles = {"kind": rng.integers(0, 2, k).tolist(), "center": rng.uniform(-4, 4, (k, 3)).tolist(),
+                     "size": rng.uniform(0.2, 1.5, (k, 3)).tolist(), "active": (rng.random(k) < 0.8).tolist()}
+        q = rng.normal(size=4)
+        cases.append([rng.uniform(-4, 4, 3).tolist(), (q / np.linalg.norm(q)).tolist(), float(rng.normal()),
+                      rng.uniform(0, 3, 4).tolist(), rng.uniform(-4, 4, 3).tolist(), obstacles])
+    want = [port.observation(*c[:5], {key: np.asarray(v) for key, v in c[5].items()}).tolist() for c in cases]
+    (tmp_path / "jaxrobo_policy.py").write_text(runner_source())
+    (tmp_path / "cases.json").write_text(json.dumps({"robot": port.robot_section(), "cases": cases}))
+    code = ("import json, sys; sys.modules.update(jax=None, envs=None, jaxrobo=None); sys.path.insert(0, sys.argv[1])\n"
+            "import numpy as np, jaxrobo_policy as p\n"
+            "d = json.load(open(sys.argv[1] + '/cases.json')); io = p.task_io(d['robot'])\n"
+            "obs = [io.observation(*c[:5], {k: np.asarray(v) for k, v in c[5].items()}).tolist() for c in d['cases']]\n"
+            "assert not {m.split('.')[0] for m in sys.modules if sys.modules[m]} & {'jax', 'envs', 'jaxrobo'}\n"
+            "print(json.dumps(obs))\n")
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True,
+                         env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+    assert res.returncode == 0, res.stderr
+    got = np.asarray(json.loads(res.stdout), np.float32)
+    assert got.shape == (len(cases), 8) and np.array_equal(got, np.asarray(want, np.float32))
+    assert len({tuple(o[7:]) for o in want}) > 1  # goal_clear both blocked and clear among the cases
+
+
+def test_runner_source_refuses_a_shared_name(tmp_path, monkeypatch):
+    """Modules written into the runner share one namespace: a name two of them define is refused, not shadowed."""
+    from jaxrobo.export import runner_source
+
+    (tmp_path / "clash_root.py").write_text("from envs.quadcopter.geometry import safe_inv\n\n\ndef euler():\n"
+                                            "    return safe_inv\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(RuntimeError, match="euler is defined by both envs.quadcopter.geometry and clash_root"):
+        runner_source("clash_root")
 
 
 def test_refusals(runs, tmp_path, capsys):

@@ -1,10 +1,12 @@
-"""``JaxroboEnv(..., engine="numpy")``: the cart-pole stepped on the host (``envs/cartpole/host.py``) gives the JAX
-engine's episodes (observations, rewards, terminations, truncations), passes ``check_env``, pickles, and is refused
-with a message for a task or option it does not model.
+"""``JaxroboEnv(..., engine="numpy")``: the cart-pole and the Goto tasks stepped on the host
+(``envs/cartpole/host.py``, ``envs/quadcopter/host.py``) give the JAX engine's episodes (observations, rewards,
+terminations, truncations), pass ``check_env``, pickle, and are refused with a message for a task or option they do
+not model.
 
-Tolerance: the host step computes in float64 where the JAX step computes in float32, so observations agree to
-float32 rounding (:data:`OBS_ATOL`, several times the differences seen over these episodes) and every reward and
-flag is equal; first observations of an episode are the JAX reset's, bit for bit.
+Tolerance: the host step computes in float64 where the JAX step computes in float32, so the cart-pole's
+observations agree to float32 rounding (:data:`OBS_ATOL`, several times the differences seen over these episodes)
+and every reward and flag is equal; its first observations of an episode are the JAX reset's, bit for bit. The
+Goto tasks' tolerances are :data:`GOTO_OBS_ATOL` and :data:`GOTO_REWARD_ATOL`.
 """
 from __future__ import annotations
 
@@ -157,9 +159,97 @@ def test_the_written_out_control_step_is_the_closed_form_bit_for_bit():
         assert host.advance(*values) == (x, th, xd, thd)
 
 
+# ---- the Goto tasks (envs/quadcopter/host.py) -----------------------------------------------------------------
+#: Goto's host step integrates 30 float64 substeps a step where JAX integrates float32 ones: observations agree to
+#: float32 round-off accumulated over the episode (about 6e-6 seen over these), rewards to that times the
+#: progress weight; flags and step counts are equal. The first observation of an episode is the JAX reset's, drawn
+#: by a batched reset (the reset chain), which may round goal_clear one float32 ulp apart from the single reset's.
+GOTO_OBS_ATOL, GOTO_REWARD_ATOL = 1e-4, 1e-3
+
+
+@pytest.fixture(scope="module", params=[("QuadcopterGoto-v2", {}), ("QuadcopterGoto-v1", {"obstacle_kind": "mixed",
+                                                                                          "n_obstacles": 3})],
+                ids=["v2", "v1-mixed"])
+def goto_pair(request) -> tuple[JaxroboEnv, JaxroboEnv]:
+    env_id, kw = request.param
+    return JaxroboEnv(env_id, **kw), JaxroboEnv(env_id, engine="numpy", **kw)
+
+
+def test_goto_episodes_with_random_actions_match_the_jax_engine(goto_pair):
+    jax_env, host_env = goto_pair
+    rng = np.random.default_rng(0)
+    ends = set()
+    for seed in range(6):
+        actions = [int(a) for a in rng.integers(5, size=100)]
+        a, b = _episode(jax_env, actions, seed), _episode(host_env, actions, seed)
+        assert len(a) == len(b)
+        for (oa, *ra), (ob, *rb) in zip(a, b):
+            assert ob.dtype == np.float32 and ob.shape == oa.shape
+            np.testing.assert_allclose(ob, oa, rtol=0, atol=GOTO_OBS_ATOL)
+            assert abs(ra[0] - rb[0]) <= GOTO_REWARD_ATOL and ra[1:] == rb[1:]  # reward; terminated, truncated, steps
+        ends.add((b[-1][2], b[-1][3]))
+    assert (True, False) in ends  # random flights end by the task's outcome, not only at the step limit
+
+
+def test_goto_host_step_is_offered_where_it_models_the_task():
+    env = gym.make("jaxrobo/QuadcopterGoto-v2", engine="numpy")
+    assert env.unwrapped.engine == "numpy"
+    obs, _ = env.reset(seed=1)
+    obs, reward, terminated, truncated, info = env.step(0)
+    assert obs in env.observation_space and type(reward) is float and type(terminated) is bool
+    copy = pickle.loads(pickle.dumps(env.unwrapped))  # the written-out control step is written out again
+    for a in (3, 0, 1):
+        x, y = env.step(a), copy.step(a)
+        np.testing.assert_array_equal(x[0], y[0])
+        assert x[1:4] == y[1:4]
+    env.close()
+    with pytest.raises(ValueError, match="QuadcopterGotoTwist.* has no host step"):
+        JaxroboEnv("QuadcopterGotoTwist-v0", engine="numpy")
+    with pytest.raises(ValueError, match="domain randomisation"):
+        JaxroboEnv("QuadcopterGoto-v2", engine="numpy", randomise=True)
+
+
+def test_make_vec_steps_host_envs_in_sync_mode_and_says_so_otherwise():
+    """``gym.make_vec(..., engine="numpy")``: Gymnasium's sync vector env of host-stepped single envs, the same
+    episodes as those envs one by one; the vmapped vector env takes the JAX engine only and names the sync mode."""
+    venv = gym.make_vec("jaxrobo/QuadcopterGoto-v2", num_envs=2, vectorization_mode="sync", engine="numpy")
+    assert all(e.unwrapped.engine == "numpy" for e in venv.envs)
+    single = [JaxroboEnv("QuadcopterGoto-v2", engine="numpy") for _ in range(2)]
+    obs, _ = venv.reset(seed=3)
+    np.testing.assert_array_equal(obs, np.stack([e.reset(seed=3 + i)[0] for i, e in enumerate(single)]))
+    for a in ([0, 3], [1, 0], [4, 2]):
+        obs, rewards, *_ = venv.step(np.array(a))
+        steps = [e.step(x) for e, x in zip(single, a)]
+        np.testing.assert_array_equal(obs, np.stack([s[0] for s in steps]))
+        assert rewards.tolist() == [s[1] for s in steps]
+    venv.close()
+    with pytest.raises(ValueError, match="engine='numpy': a JaxroboVectorEnv .* vectorization_mode='sync'"):
+        gym.make_vec("jaxrobo/QuadcopterGoto-v2", num_envs=2, engine="numpy")
+
+
+def test_the_written_out_goto_control_step_is_the_closed_form_bit_for_bit():
+    """Goto's host control step (rigid) is the controller and ``dynamics.physics_step`` on Python floats, written
+    out once (``straight_line``, its ``where`` as conditional expressions): the same floats as calling them."""
+    from envs.quadcopter.dynamics import controller, physics_step
+    from envs.quadcopter.geometry import ScalarMath
+
+    host = JaxroboEnv("QuadcopterGoto-v1", engine="numpy")._host
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        quat = rng.normal(size=4)
+        q = [*rng.uniform(-2.0, 2.0, 3).tolist(), *(quat / np.linalg.norm(quat)).tolist()]
+        v, command = rng.uniform(-2.0, 2.0, 6).tolist(), rng.uniform(-1.0, 1.0, 4).tolist()
+        got = host.advance(*q, *v, *command)
+        for _ in range(host.n_substeps):
+            q, v = physics_step(ScalarMath, host.body, q, v, controller(ScalarMath, host.control, q, v, command))
+        assert list(got) == q + v
+
+
 def test_straight_line_refuses_a_branch_on_a_computed_value():
     from jaxrobo.core.scalar import straight_line
 
     assert straight_line(lambda xp, a, b: (xp.minimum(a * 2.0, b), -a / b), ("a", "b"))(1.5, 2.5) == (2.5, -0.6)
+    pick = straight_line(lambda xp, a, b: (xp.where(a > b, xp.sqrt(a), xp.arctan2(a, b)),), ("a", "b"))
+    assert pick(4.0, 1.0) == (2.0,) and pick(1.0, 1.0) == (np.arctan2(1.0, 1.0),)
     with pytest.raises(TypeError, match="branches on a value it computes"):
         straight_line(lambda xp, a: (a if a else 1.0,), ("a",))

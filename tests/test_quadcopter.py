@@ -9,8 +9,9 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from envs.quadcopter.robot import (BOX, CYLINDER, ControllerGains, Obstacles, Quadcopter, point_obstacle_distance,
-                             ray_box, ray_cylinder, ray_ground, sonar, sphere_hits, twist_command)
+from envs.quadcopter.geometry import BOX, CYLINDER
+from envs.quadcopter.robot import (ControllerGains, Obstacles, Quadcopter, point_obstacle_distance, ray_box,
+                                   ray_cylinder, ray_ground, sonar, sphere_hits, twist_command)
 
 SPEED = 1.0
 MAX_INCL = 0.7

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import jaxrobo
-from envs.quadcopter.robot import BOX, CYLINDER, Obstacles
+from envs.quadcopter.geometry import BOX, CYLINDER
+from envs.quadcopter.robot import Obstacles
 from jaxrobo.task.rollout import random_policy, success_rate
 
 

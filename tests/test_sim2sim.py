@@ -88,16 +88,29 @@ def test_native_base_imports_no_jax():
     assert names <= {"__future__", "typing", "mujoco", "numpy"}, names
 
 
+def test_task_step_modules_import_no_jax():
+    """The ``envs`` package registers its ids only when the registry asks: in a fresh process, the package and the
+    per-coordinate modules the quadcopter's hooks, kernels and native port share import without loading JAX."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "import envs, envs.quadcopter.geometry, envs.quadcopter.dynamics, envs.quadcopter.goto_step\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'jaxrobo')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout
+
+
 def test_quadcopter_port_imports_no_jax():
-    """The quadcopter's port and the per-coordinate modules it shares with the JAX task and its kernel (geometry,
-    controller, the Goto step) import no JAX: imported in a fresh process, below bare ``envs`` and ``jaxrobo``
-    packages (their ``__init__`` modules, the registry and the public surface, are JAX's side), ``jax`` is never
+    """The quadcopter's port imports no JAX below a bare ``jaxrobo`` package (its ``__init__`` registers the
+    Gymnasium ids, through the registry, which is JAX's side): imported in a fresh process, ``jax`` is never
     loaded."""
     import subprocess
     import sys
 
     code = ("import os, sys, types\n"
-            "for name in ('envs', 'jaxrobo'):\n"
+            "for name in ('jaxrobo',):\n"
             "    pkg = types.ModuleType(name)\n"
             "    pkg.__path__ = [os.path.join(sys.argv[1], name)]\n"
             "    sys.modules[name] = pkg\n"

@@ -10,12 +10,7 @@ reward), the same the task's hooks and the chunk kernel call; the physics is the
 * ``mjx``: native MuJoCo (:class:`jaxrobo.interop.native.NativeSim`, the C engine MJX reimplements) on the robot's
   own compiled model.
 
-Precision: float64 (Python floats, MuJoCo's doubles) where the JAX path computes in float32. On the host a Python
-float is the fastest number there is (a numpy float32 scalar costs several times as much per operation), and
-float64 is the precision the closed form is checked in against native MuJoCo; the observation is cast to float32
-as the task's is. The two engines therefore agree to float32 rounding, not bit for bit
-(``tests/test_gym_host_step.py`` states the tolerance). Episodes start from the JAX reset's state, so seeds mean
-the same thing through both engines. Domain randomisation is not modelled here (refused).
+Precision, seeds and what is refused: :mod:`jaxrobo.task.host`.
 """
 from __future__ import annotations
 
@@ -25,40 +20,23 @@ from typing import Any
 import numpy as np
 
 from envs.cartpole.rules import ACTION_STEPS, REWARD, command_after, fell, observation
-from jaxrobo.api import NativeSim, scalar
-
-#: The backends whose physics runs on the host.
-HOST_BACKENDS = ("analytic", "mjx")
+from jaxrobo.api import HostStep, NativeSim, scalar
 
 
-def unsupported(env: Any) -> str | None:
-    """Why ``env`` cannot step on the host (None: it can)."""
-    if env.randomised:
-        return "the host step does not model domain randomisation (randomise=true)"
-    backend = env.robot.sim.backend
-    if backend not in HOST_BACKENDS:
-        return f"backend={backend!r} has no host physics; the host step runs backend 'analytic' or 'mjx'"
-    return None
-
-
-class HostStayUp:
+class HostStayUp(HostStep):
     """One CartPoleStayUp env on the host. :meth:`set_params` takes the task parameters, :meth:`start` the first
     state of an episode (the JAX reset's, on the host), :meth:`step` steps it; none needs JAX."""
 
-    unsupported = staticmethod(unsupported)
-    backends = HOST_BACKENDS
+    backends = ("analytic", "mjx")
 
     def __init__(self, env: Any):
-        why = unsupported(env)
-        if why is not None:
-            raise ValueError(f"{env.name}: {why}")
+        super().__init__(env)
         o, r = env.options, env.robot
         self.velocity = o.control_type == "velocity"
         self.round_obs = bool(o.round_obs)
         self.steps_of = ACTION_STEPS[: o.n_actions]
         self.n_substeps = int(r.sim.n_substeps)
         self.idx = (r.cart_q, r.cart_v, r.pole_q, r.pole_v)
-        self.advance: Any = None
         if r.sim.backend == "analytic":
             self.sim, self.native = r.sim, None
             self.advance = self._closed_form()
@@ -81,14 +59,6 @@ class HostStayUp:
             return x, th, xd, thd
 
         return scalar.straight_line(control_step, ("x", "th", "xd", "thd", "command"))
-
-    def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "advance": None}  # generated code does not pickle: written out again
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        if self.native is None:
-            self.advance = self._closed_form()
 
     def set_params(self, params: Any) -> None:
         """The task parameters of the episodes that follow, read as the float32 values the JAX step compares

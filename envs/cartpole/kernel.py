@@ -475,7 +475,7 @@ class _Program:
         delta = jnp.zeros_like(cr["command"])
         for i, v in enumerate(st.action_steps):
             delta = jnp.where(a == i, jnp.float32(v), delta)
-        command = command_after(cr["command"], delta, f("pos_step"), f("max_base_velocity"))
+        command = command_after(cr["command"], delta, f("pos_step"), f("max_base_velocity"), jnp)
         return dict(k_next=k_next, active=active, a=a, command=command)
 
     def physics(self, x, th, xd, thd, ctrl, factors, written_out=False):

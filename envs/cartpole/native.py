@@ -37,7 +37,7 @@ class NativeCartPole(NativeSim):
         if continuous:
             c["max_command"] = float(p.max_command)
         else:
-            c.update(steps=(np.asarray(ACTION_STEPS[: o.n_actions], np.float64) * float(p.pos_step)).tolist(),
+            c.update(steps=list(ACTION_STEPS[: o.n_actions]), pos_step=float(p.pos_step),
                      velocity=o.control_type == "velocity", vmax=float(p.max_base_velocity))
         self.constants = c
         self.io = numpy_policy.CartPoleIO(c)

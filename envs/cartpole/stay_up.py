@@ -121,11 +121,11 @@ class CartPoleStayUp(TaskEnv):
     def _set_action(self, action: jax.Array, task: TaskVars, params: Params) -> tuple[jax.Array, TaskVars]:
         velocity = self.options.control_type == "velocity"
         command = command_after(task.command, self._steps[action], params.pos_step,
-                                params.max_base_velocity if velocity else None)
+                                params.max_base_velocity if velocity else None, jnp)
         return command[None], TaskVars(command)
 
     def _get_obs(self, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
-        return observation(self.robot.read_sensors(pipeline_state), self.options.round_obs)
+        return observation(self.robot.read_sensors(pipeline_state), self.options.round_obs, jnp)
 
     def _is_done(self, obs: jax.Array, pipeline_state: Any, task: TaskVars, params: Params) -> jax.Array:
         p = params

@@ -35,9 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.quadcopter import goto_step
+from envs.quadcopter.geometry import BOX, CYLINDER
 from envs.quadcopter.goto_step import V1_PARAMS, V2_PARAMS, kinds_of
-from envs.quadcopter.robot import (BOX, CYLINDER, Obstacles, QuadcopterOptions, QuadcopterTask, fold_obstacles,
-                                   twist_command)
+from envs.quadcopter.host import HostGoto
+from envs.quadcopter.robot import Obstacles, QuadcopterOptions, QuadcopterTask, fold_obstacles, twist_command
 from envs.quadcopter.goto_kernel import kernel_step, make_task_step, supports
 from jaxrobo.api import (BaseParams, EnvState, LearningTarget, param, pytree_dataclass, randomise, range_param, rng,
                          spaces)
@@ -118,6 +119,9 @@ class QuadcopterGoto(QuadcopterTask):
     #: v2's observation (``goal_clear``, ``goal_dz`` with its lead) and reward (the shaping terms), as
     #: :mod:`envs.quadcopter.goto_step` writes them.
     v2: ClassVar[bool] = False
+    #: One env's step on the host without JAX (``gymnasium.make(..., engine="numpy")``): the same goto_step
+    #: functions on Python floats (:mod:`envs.quadcopter.host`).
+    host_step = HostGoto
 
     def __init__(self, options: Any = None, params: Any = None):
         super().__init__(options, params)

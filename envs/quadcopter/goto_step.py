@@ -41,6 +41,20 @@ V2_PARAMS = V1_PARAMS + ("clear_margin", "heading_reward", "climb_reward", "dz_l
 Fold = Callable[[Callable[..., tuple], tuple], tuple]
 
 
+def loop_fold(xp: Any, obstacles: dict) -> Fold:
+    """The obstacles' fold of one env on the host (:func:`observe`): a Python loop over ``obstacles``' ``kind``,
+    ``center``, ``size`` and ``active`` (arrays of one episode's obstacles)."""
+
+    def fold(distances, nearest):
+        for kind, center, size, active in zip(obstacles["kind"], obstacles["center"], obstacles["size"],
+                                              obstacles["active"]):
+            nearest = tuple(xp.minimum(m, t) for m, t in zip(nearest, distances(kind, center.tolist(),
+                                                                                  size.tolist(), active)))
+        return nearest
+
+    return fold
+
+
 def twist(xp: Any, action, speed) -> list:
     """The seed's Twist ``[vx, vy, vz, yaw_rate]`` of an action index (0 forward, 1 left, 2 right, 3 up, 4 down)
     at ``speed`` (an action outside 0-4 reads as 0)."""

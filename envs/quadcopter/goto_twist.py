@@ -42,6 +42,8 @@ class QuadcopterGotoTwist(QuadcopterGoto):
     action_dtype = jnp.float32
     #: The discrete ids this task is the continuous counterpart of (named by the Brax adapter's refusal).
     continuous_of: ClassVar[tuple[str, ...]] = ("QuadcopterGoto-v1",)
+    #: The host step takes an action index (the adapter's engine="numpy" steps Discrete tasks only).
+    host_step = None
 
     def action_space(self, params: Params | None = None) -> spaces.Box:
         one = np.ones(len(TWIST_NAMES), np.float32)

@@ -20,22 +20,9 @@ import numpy as np
 
 from envs.quadcopter import goto_step
 from envs.quadcopter.dynamics import controller
-from envs.quadcopter.geometry import BOX, INF, PARALLEL, ScalarMath, euler
+from envs.quadcopter.geometry import ScalarMath, euler
 from jaxrobo.interop.numpy_policy import QuadcopterIO
 from jaxrobo.interop.native import NativeSim
-
-
-def _fold(obstacles: dict) -> Callable:
-    """The obstacles' fold (:func:`envs.quadcopter.goto_step.observe`): a Python loop over the episode's."""
-
-    def fold(distances, nearest):
-        for kind, center, size, active in zip(obstacles["kind"], obstacles["center"], obstacles["size"],
-                                              obstacles["active"]):
-            nearest = tuple(np.minimum(m, t) for m, t in zip(nearest, distances(kind, list(center), list(size),
-                                                                                  active)))
-        return nearest
-
-    return fold
 
 
 class NativeGoto(NativeSim):
@@ -53,10 +40,9 @@ class NativeGoto(NativeSim):
         self.continuous = hasattr(env.action_space(), "low")  # GotoTwist: the action is the Twist
         c = {"family": "quadcopter", "period": float(self.n_substeps * self.model.opt.timestep),
              "continuous": self.continuous, "v2": self.v2, "speed_value": self.p["speed_value"],
-             "sonar_range": self.p["sonar_range"], "box_kind": int(BOX), "parallel": float(PARALLEL),
-             "inf": float(INF)}
+             "sonar_range": self.p["sonar_range"]}
         if self.v2:
-            c.update(dz_lead=self.p["dz_lead"], grow=float(p.drone_radius) + float(p.clear_margin))
+            c.update({k: self.p[k] for k in ("dz_lead", "drone_radius", "clear_margin")})
         if not self.continuous:
             c["actions"] = [[float(x) for x in goto_step.twist(np, a, self.p["speed_value"])]
                             for a in range(len(goto_step.ACTION_NAMES))]
@@ -77,7 +63,7 @@ class NativeGoto(NativeSim):
         q = self.data.qpos
         yaw = euler(np, *q[3:7])[2]
         return goto_step.observe(np, list(q[:3]), yaw, self.data.qvel[2], list(np.asarray(goal, np.float64)), self.p,
-                                 self.v2, self.kinds, _fold(obstacles))
+                                 self.v2, self.kinds, goto_step.loop_fold(np, obstacles))
 
     def sonars(self, obstacles: dict) -> list[float]:
         """The four level sonars (forward, left, right, down; m): rays against the ground and the obstacles."""

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.quadcopter import dynamics, geometry, goto_step
-from envs.quadcopter.geometry import BOX, CYLINDER, INF, SONAR_RAYS  # noqa: F401  (the robot's public names)
+from envs.quadcopter.geometry import INF, SONAR_RAYS
 from envs.quadcopter.goto_step import ACTION_NAMES, twist
 from envs.quadcopter.rigid_body import RigidBodySim, airframe_from_model
 from jaxrobo.api import (MjxEdit, Robot, TaskEnv, backend_choices, load_model, make_simulator, param, pytree_dataclass,

@@ -38,6 +38,11 @@ class _Value:
     __truediv__ = lambda a, b: _emit(a, "{} / {}", a, b)  # noqa: E731
     __rtruediv__ = lambda a, b: _emit(a, "{} / {}", b, a)  # noqa: E731
     __neg__ = lambda a: _emit(a, "-{}", a)  # noqa: E731
+    # Comparisons give a value the generated code holds (a bool), for ``where``; no ``==``: a value stays hashable.
+    __lt__ = lambda a, b: _emit(a, "{} < {}", a, b)  # noqa: E731
+    __le__ = lambda a, b: _emit(a, "{} <= {}", a, b)  # noqa: E731
+    __gt__ = lambda a, b: _emit(a, "{} > {}", a, b)  # noqa: E731
+    __ge__ = lambda a, b: _emit(a, "{} >= {}", a, b)  # noqa: E731
 
 
 def _code(v: Any) -> str:
@@ -61,19 +66,29 @@ def _call(fn: str) -> Callable[..., Any]:
     return call
 
 
-#: The ``xp`` :func:`straight_line` runs a function with: :data:`FLOATS`' functions, written out.
-_WRITING = SimpleNamespace(sin=_call("_sin"), cos=_call("_cos"), minimum=_call("_min"), maximum=_call("_max"))
+def _where(cond: Any, a: Any, b: Any) -> Any:
+    owner = next(v for v in (cond, a, b) if isinstance(v, _Value))
+    return _emit(owner, "{} if {} else {}", a, cond, b)  # both sides are computed first, as an array's where does
+
+
+#: The ``xp`` :func:`straight_line` runs a function with, its functions written out: :data:`FLOATS`' and those of
+#: ``envs.quadcopter.geometry.ScalarMath`` (Python floats for the quadcopter's equations, a module without jaxrobo).
+_WRITING = SimpleNamespace(sin=_call("_sin"), cos=_call("_cos"), minimum=_call("_min"), maximum=_call("_max"),
+                           sqrt=_call("_sqrt"), arctan2=_call("_atan2"), arcsin=_call("_asin"), abs=_call("_abs"),
+                           where=_where)
 
 
 def straight_line(fn: Callable[..., Sequence[Any]], names: Sequence[str]) -> Callable[..., tuple[float, ...]]:
     """``fn(xp, *args)`` over Python floats as one generated function of ``args`` (named ``names``), with its calls,
     loops and constant lookups run once here: the same operations in the same order as ``fn(FLOATS, *args)``,
     hence the same floats bit for bit, at the cost of the arithmetic alone. ``fn`` returns a sequence of values;
-    it may branch on constants but not on the values it computes (a TypeError says so)."""
+    it may branch on constants but not on the values it computes (a TypeError says so): a choice between computed
+    values is ``xp.where(cond, a, b)``, written out as a conditional expression."""
     lines: list[str] = []
     out = fn(_WRITING, *(_Value(n, lines) for n in names))
     body = "\n".join(f"    {line}" for line in lines)
     src = f"def generated({', '.join(names)}):\n{body}\n    return ({''.join(_code(v) + ', ' for v in out)})\n"
-    scope = {"_sin": math.sin, "_cos": math.cos, "_min": min, "_max": max}
+    scope = {"_sin": math.sin, "_cos": math.cos, "_min": min, "_max": max, "_sqrt": math.sqrt, "_atan2": math.atan2,
+             "_asin": math.asin, "_abs": abs}
     exec(compile(src, f"<straight_line {getattr(fn, '__qualname__', fn)}>", "exec"), scope)  # noqa: S102
     return scope["generated"]

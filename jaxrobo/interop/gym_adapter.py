@@ -204,8 +204,8 @@ def _host_step(env: Any, engine: str) -> Any:
         return None
     factory = getattr(type(env), "host_step", None)
     if factory is None:
-        raise ValueError(f"engine='numpy': {env.name} has no host step (tasks with one: the cart-pole's "
-                         "CartPoleStayUp ids); use engine='jax'")
+        raise ValueError(f"engine='numpy': {env.name} has no host step (tasks with one: the CartPoleStayUp and "
+                         "QuadcopterGoto ids); use engine='jax'")
     why = factory.unsupported(env)
     if why is not None:
         raise ValueError(f"engine='numpy': {env.name}: {why}; use engine='jax'")
@@ -468,6 +468,9 @@ class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
 
     ``plan``: a :class:`jaxrobo.speed.plan.ExecutionPlan` for how the batch is stepped and compiled (default: the plan
     for this env on the default device); it changes the compiled program, never the values.
+
+    ``engine``: ``"jax"`` only (the batch is one vmapped call). Host-stepped envs are Gymnasium's own vector env of
+    single envs: ``gymnasium.make_vec(id, n, vectorization_mode="sync", engine="numpy")``.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 25}
@@ -475,7 +478,13 @@ class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
     def __init__(self, env_id: str | None = None, num_envs: int = 1, render_mode: str | None = None, *,
                  env: Any = None, overrides: Mapping[str, Any] | None = None, width: int = 320, height: int = 240,
                  camera: str | int | None = None, plan: Any = None,
-                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, **kwargs: Any):
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, engine: str = "jax", **kwargs: Any):
+        if engine not in ENGINES:
+            raise ValueError(f"engine={engine!r}: allowed values are {', '.join(map(repr, ENGINES))}")
+        if engine != "jax":
+            raise ValueError(f"engine={engine!r}: a JaxroboVectorEnv steps its envs as one vmapped JAX call; for "
+                             "host-stepped envs pass vectorization_mode='sync' to gymnasium.make_vec (one "
+                             f"JaxroboEnv(engine={engine!r}) per env)")
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r}: expected an integer >= 1")
         self.autoreset_mode = autoreset_mode_of(autoreset_mode)

@@ -1,8 +1,9 @@
 """A policy exported by ``jaxrobo export``, run with numpy alone: ``Policy.load(dir)`` then ``policy(obs) -> action``.
 
-This file is copied into every exported policy directory (beside ``policy.npz`` and ``policy.json``) and imports
-nothing but numpy and the standard library: it runs where JAX is not installed (a robot's computer, a native
-MuJoCo loop). It reproduces the JAX policy of the run:
+``jaxrobo export`` writes this module into every exported policy directory (beside ``policy.npz`` and
+``policy.json``) with the JAX-free task modules it imports written in before it
+(:func:`jaxrobo.export.runner_source`: the Goto task's geometry and observation, the cart-pole's rules): the file imports nothing but
+numpy and the standard library, and runs where JAX is not installed (a robot's computer, a native MuJoCo loop). It reproduces the JAX policy of the run:
 
 * **tabular** (``kind: tabular``): the observation is cast to float32 and cut into bins exactly as
   ``jaxrobo.tabular.discretise.Discretiser`` does (uniform bins: ``floor((obs - low) / width)`` in float32, clipped
@@ -23,9 +24,10 @@ not match the description, are refused with a ``ValueError`` naming the file.
 For a task with a native port (``envs/*/native.py``), ``policy.json``'s ``robot`` section holds what turns the
 robot's readings into the policy's observation and its action into the robot's command, the task's constants as
 the run configured it (:class:`QuadcopterIO`, :class:`CartPoleIO`; ``policy.io``): the control period, the action
-table, the drone's ``dz_lead``, grown obstacles and sonar range, the cart-pole's rounding and command steps. The
-native ports compute with these same classes, so a policy driving a robot (the ROS policy node) needs nothing but
-this file and the export: no JAX, no task module, no MuJoCo.
+table, the drone's ``dz_lead``, radius, clear margin and sonar range, the cart-pole's rounding, action steps and
+``pos_step``.
+The native ports compute with these same classes, so a policy driving a robot (the ROS policy node) needs nothing
+but this file and the export: no JAX, no task package, no MuJoCo.
 """
 from __future__ import annotations
 
@@ -34,6 +36,10 @@ import math
 import os
 
 import numpy as np
+
+from envs.cartpole.rules import command_after, observation
+from envs.quadcopter.geometry import ScalarMath, euler
+from envs.quadcopter.goto_step import kinds_of, loop_fold, observe
 
 #: The version of the exported files this runner reads.
 FORMAT = 1
@@ -211,18 +217,6 @@ def _check(meta: dict, a: dict, where: str) -> None:
 
 
 # ---- the robot's side of the task: readings -> observation, action -> command --------------------------------
-def euler_from_quat(q) -> np.ndarray:
-    """``(roll, pitch, yaw)`` of a quaternion ``(w, x, y, z)``."""
-    w, x, y, z = q
-    return np.array([math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
-                     math.asin(min(max(2 * (w * y - z * x), -1.0), 1.0)),
-                     math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))])
-
-
-def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 def _number(c: dict, key: str, low: float = -math.inf, high: float = math.inf) -> float:
     v = c[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high:
@@ -246,7 +240,9 @@ def _table(c: dict, key: str, width: int | None) -> np.ndarray:
 
 class QuadcopterIO:
     """QuadcopterGoto-v1/-v2 and GotoTwist-v0: the observation from the drone's readings (position, orientation,
-    vertical speed, the four sonars, the goal and the obstacles map) and the Twist of an action."""
+    vertical speed, the four sonars, the goal and the obstacles map) and the Twist of an action. The observation
+    is the task's own (:func:`envs.quadcopter.goto_step.observe` on :mod:`envs.quadcopter.geometry`, on float64
+    scalars), with the sonars read instead of cast."""
 
     family = "quadcopter"
 
@@ -254,74 +250,25 @@ class QuadcopterIO:
         self.period = _number(c, "period", 1e-6, 60.0)
         self.continuous, self.v2 = _flag(c, "continuous"), _flag(c, "v2")
         self.speed_value = _number(c, "speed_value", 0.0)
-        self.sonar_range = _number(c, "sonar_range", 0.0)
-        self.box = int(_number(c, "box_kind"))  # the obstacles map's kind of a box (else a cylinder)
-        self.parallel, self.inf = _number(c, "parallel", 0.0), _number(c, "inf", 0.0)
+        #: The task's parameters the observation reads (:func:`envs.quadcopter.goto_step.observe`).
+        self.p = {"sonar_range": _number(c, "sonar_range", 0.0)}
         if self.v2:
-            self.dz_lead, self.grow = _number(c, "dz_lead"), _number(c, "grow", 0.0)
+            self.p.update(dz_lead=_number(c, "dz_lead"), drone_radius=_number(c, "drone_radius", 0.0),
+                          clear_margin=_number(c, "clear_margin", 0.0))
         self.actions = None if self.continuous else _table(c, "actions", 4)
         self.n_actions = None if self.continuous else len(self.actions)
         self.observation_size = 8 if self.v2 else 7
 
-    # ray tests against the obstacles map (box or vertical cylinder), as the robot's sonars see them
-    def safe_inv(self, d) -> np.ndarray:
-        d = np.asarray(d, np.float64)
-        p = self.parallel
-        return 1.0 / np.where(np.abs(d) < p, np.where(d < 0, -p, p), d)
-
-    def ray_box(self, origin, direction, center, half) -> float:
-        inv, inf = self.safe_inv(direction), self.inf
-        t1, t2 = (center - half - origin) * inv, (center + half - origin) * inv
-        parallel = np.abs(direction) < self.parallel
-        in_slab = np.abs(origin - center) <= half
-        t_near = np.max(np.where(parallel, np.where(in_slab, -inf, inf), np.minimum(t1, t2)))
-        t_far = np.min(np.where(parallel, np.where(in_slab, inf, -inf), np.maximum(t1, t2)))
-        return max(t_near, 0.0) if (t_near <= t_far and t_far >= 0) else inf
-
-    def ray_cylinder(self, origin, direction, center, radius, half_height) -> float:
-        o = origin - center
-        a = direction[0] ** 2 + direction[1] ** 2
-        b = 2 * (o[0] * direction[0] + o[1] * direction[1])
-        c = o[0] ** 2 + o[1] ** 2 - radius**2
-        if c <= 0 and abs(o[2]) <= half_height:
-            return 0.0
-        disc = b * b - 4 * a * c
-        t_side = (-b - math.sqrt(max(disc, 0.0))) / (2 * max(a, 1e-12))
-        side_ok = a > 1e-12 and disc >= 0 and t_side >= 0 and abs(o[2] + t_side * direction[2]) <= half_height
-        t = t_side if side_ok else self.inf
-        if abs(direction[2]) > self.parallel:
-            inv_z = float(self.safe_inv(direction[2]))
-            for cap in ((half_height - o[2]) * inv_z, (-half_height - o[2]) * inv_z):
-                xy = o[:2] + cap * direction[:2]
-                if cap >= 0 and xy @ xy <= radius**2:
-                    t = min(t, cap)
-        return t
-
-    def ray_obstacles(self, origin, direction, obstacles: dict) -> float:
-        t = self.inf
-        for kind, center, size, active in zip(obstacles["kind"], obstacles["center"], obstacles["size"],
-                                              obstacles["active"]):
-            if active:
-                t = min(t, self.ray_box(origin, direction, center, size) if kind == self.box
-                        else self.ray_cylinder(origin, direction, center, size[0], size[2]))
-        return t
-
     def observation(self, pos, quat, vz: float, sonars, goal, obstacles: dict) -> np.ndarray:
         """Position (m), orientation quaternion ``(w, x, y, z)``, vertical velocity (m/s), the four sonars (m),
         the goal (m) and the obstacles (``kind``, ``center``, ``size``, ``active``) -> the task's observation."""
-        pos = np.array(pos, np.float64)
-        delta = np.asarray(goal, np.float64) - pos
-        bearing = wrap_angle(math.atan2(delta[1], delta[0]) - euler_from_quat(quat)[2])
-        obs = [float(np.linalg.norm(delta)), bearing, delta[2], *sonars]
-        if self.v2:
-            obs[2] -= self.dz_lead * float(vz)  # goal_dz where the climb stops (goto_v2._get_obs)
-            flat = np.array([delta[0], delta[1], 0.0])
-            dist = float(np.linalg.norm(flat))
-            direction = flat / max(dist, 1e-6)
-            grown = dict(obstacles, size=obstacles["size"] + np.array([self.grow, self.grow, 0.0]))
-            ray = self.ray_obstacles(pos, direction, grown)
-            obs.append(min(ray, self.sonar_range) if ray < dist else self.sonar_range)
-        return np.asarray(obs).astype(np.float32)
+        pos, goal = np.asarray(pos, np.float64).tolist(), np.asarray(goal, np.float64).tolist()
+        yaw = euler(ScalarMath, *np.asarray(quat, np.float64).tolist())[2]
+        obstacles = {"kind": np.asarray(obstacles["kind"]), "center": np.asarray(obstacles["center"], np.float64),
+                     "size": np.asarray(obstacles["size"], np.float64), "active": np.asarray(obstacles["active"])}
+        obs, _, _ = observe(ScalarMath, pos, yaw, float(vz), goal, self.p, self.v2, kinds_of("mixed"),
+                            loop_fold(ScalarMath, obstacles), sonars=[float(s) for s in sonars])
+        return np.asarray(obs, np.float64).astype(np.float32)
 
     def command(self, action) -> tuple:
         """``(action as recorded, Twist [vx, vy, vz, yaw_rate])`` (heading frame, m/s, rad/s): a discrete action's
@@ -349,15 +296,16 @@ class CartPoleIO:
         if self.continuous:
             self.max_command = _number(c, "max_command", 0.0)
         else:
-            self.steps = _table(c, "steps", None)
+            self.steps = _table(c, "steps", None)  # each action's step (the task's ACTION_STEPS)
+            self.pos_step = _number(c, "pos_step", 0.0)
             self.n_actions = len(self.steps)
             self.velocity = _flag(c, "velocity")
             self.vmax = _number(c, "vmax", 0.0)
 
     def observation(self, joints) -> np.ndarray:
-        """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` -> the task's observation."""
-        obs = np.asarray(joints, np.float64).astype(np.float32)
-        return np.round(obs, 1) if self.round_obs else obs
+        """``[cart_x, cart_v, pole_angle, pole_angular_velocity]`` -> the task's observation
+        (:func:`envs.cartpole.rules.observation`)."""
+        return observation(np.asarray(joints, np.float64), self.round_obs, np)
 
     def command(self, action, command: float) -> tuple:
         """``(action as recorded, new cart command)`` after the last ``command``."""
@@ -365,8 +313,8 @@ class CartPoleIO:
             a = np.reshape(np.asarray(action, np.float64), -1)[:1]
             return a, self.max_command * min(max(float(a[0]), -1.0), 1.0)
         a = int(action)
-        command = command + self.steps[a]
-        return a, (min(max(command, -self.vmax), self.vmax) if self.velocity else command)
+        return a, command_after(command, float(self.steps[a]), self.pos_step, self.vmax if self.velocity else None,
+                                ScalarMath)
 
 
 #: The task families with a robot section, by its ``family``.
@@ -384,5 +332,4 @@ def task_io(section: dict):
         raise ValueError(f"no field {err}") from None
 
 
-__all__ = ["Policy", "FORMAT", "POLICY_NPZ", "POLICY_JSON", "CartPoleIO", "QuadcopterIO", "TASK_IO",
-           "euler_from_quat", "task_io", "wrap_angle"]
+__all__ = ["Policy", "FORMAT", "POLICY_NPZ", "POLICY_JSON", "CartPoleIO", "QuadcopterIO", "TASK_IO", "task_io"]

@@ -276,8 +276,9 @@ class TaskEnv(Env):
     #: env's class, so a wrapper (whose step the kernel would skip) offers none.
     chunk_kernel: ClassVar[Any] = None
     #: The task's step for one env on the host without JAX, where the task offers one (the cart-pole's,
-    #: :mod:`envs.cartpole.host`); None otherwise. A class built as ``host_step(env)``, with ``unsupported(env)``
-    #: (why this env cannot take it; None: it can), ``backends`` (the backends it runs), ``set_params(params)``,
+    #: :mod:`envs.cartpole.host`; the Goto tasks', :mod:`envs.quadcopter.host`); None otherwise. A
+    #: :class:`jaxrobo.task.host.HostStep` built as ``host_step(env)``, with ``unsupported(env)`` (why this env
+    #: cannot take it; None: it can), ``backends`` (the backends it runs), ``set_params(params)``,
     #: ``start(states, i)`` (an episode from the i-th of a batch of the JAX reset's first states, on the host) and
     #: ``step(action)``; what ``JaxroboEnv(..., engine="numpy")`` steps. Read from the env's class, so a wrapper
     #: (whose step it would skip) offers none.

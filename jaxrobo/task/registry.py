@@ -211,7 +211,7 @@ def registration(id: str) -> Registration:
 
 
 def _load_builtin() -> None:
-    importlib.import_module(BUILTIN_ENVS)  # registers the built-in robots and tasks (once: Python caches it)
+    importlib.import_module(BUILTIN_ENVS).register_builtin()  # the built-in robots and tasks (once: it caches)
 
 
 def _lookup(id: str, where: str = "environment id") -> Registration:
