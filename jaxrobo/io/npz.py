@@ -30,21 +30,50 @@ class NpzError(ConfigError):
 STORE_ABOVE_BYTES = 32 << 20
 
 
-def write_npz_deflated(path: str | IO[bytes], **arrays: Any) -> None:
+def write_npz_deflated(path: str | IO[bytes], *, store_above: int = STORE_ABOVE_BYTES, **arrays: Any) -> None:
     """``arrays`` to ``path`` (a file name, or a binary file open for writing) as an ``.npz`` that ``np.load``
-    reads like ``np.savez_compressed``'s: each array
-    up to :data:`STORE_ABOVE_BYTES` deflated at level 1 (nearly as small as zlib's default level in about half the
-    time), each larger one stored as it is. Writing is part of every ``jaxrobo train``'s wall: 65,536 per-env
-    cart-pole tables (0.5 GB) took tens of seconds to deflate on 2 CPU cores, and under a second to store."""
+    reads like ``np.savez_compressed``'s: each array up to ``store_above`` bytes (default
+    :data:`STORE_ABOVE_BYTES`; -1: none, the layout of ``np.savez``) deflated at level 1 (nearly as small as zlib's
+    default level in about half the time), each larger one stored as it is. Writing is part of every ``jaxrobo
+    train``'s wall: 65,536 per-env cart-pole tables (0.5 GB) took tens of seconds to deflate on 2 CPU cores, and
+    under a second to store."""
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1, allowZip64=True) as zf:
         for name, value in arrays.items():
             value = np.asanyarray(value)
             member: str | zipfile.ZipInfo = f"{name}.npy"  # a name takes the file's compression (deflate, level 1)
-            if value.nbytes > STORE_ABOVE_BYTES:
+            if value.nbytes > store_above:
                 member = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 member.compress_type = zipfile.ZIP_STORED
             with zf.open(member, "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, value, allow_pickle=False)
+                write_array(f, value)
+
+
+#: Bytes handed to a zip member per write (:func:`write_array`): each is checksummed and written in turn.
+WRITE_CHUNK_BYTES = 16 << 20
+
+
+def write_array(f: IO[bytes], value: np.ndarray) -> None:
+    """``value`` to ``f`` as the ``.npy`` bytes ``np.lib.format.write_array(f, value, allow_pickle=False)`` writes,
+    without its copies: numpy copies every 16 MB of an array into a new ``bytes`` object before writing it to a
+    file object that is not a real file (a zip member), and at hundreds of MB those fresh pages cost more than the
+    writing. A C-contiguous array is written from its own memory; any other through one reused buffer, a block of
+    rows at a time."""
+    fmt = np.lib.format
+    if value.dtype.hasobject or (value.flags.f_contiguous and not value.flags.c_contiguous):
+        fmt.write_array(f, value, allow_pickle=False)  # refuses objects; keeps a Fortran array's own layout
+        return
+    fmt.write_array_header_1_0(f, fmt.header_data_from_array_1_0(value))
+    if value.flags.c_contiguous:
+        flat = value.reshape(-1).view(np.uint8)
+        for start in range(0, flat.size, WRITE_CHUNK_BYTES):
+            f.write(flat[start:start + WRITE_CHUNK_BYTES])
+        return
+    rows = max(1, WRITE_CHUNK_BYTES // max(1, value[:1].nbytes))
+    buffer = np.empty((min(rows, value.shape[0]),) + value.shape[1:], value.dtype)
+    for start in range(0, value.shape[0], rows):
+        block = buffer[:min(rows, value.shape[0] - start)]
+        np.copyto(block, value[start:start + block.shape[0]])
+        f.write(block.reshape(-1).view(np.uint8))
 
 
 def _header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
