@@ -161,3 +161,29 @@ def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):
                         ("best_100_mean_length", np.mean(top)), ("final_100_mean_return", last.mean()),
                         ("overall_mean_length", recorded.mean())):
         assert whole[name] == pytest.approx(float(value), rel=1e-12), name
+
+
+def test_npz_written_past_the_page_cache_is_the_same_file(monkeypatch, tmp_path):
+    """Large stored arrays go through :class:`jaxrobo.io.npz.UncachedWrites` (``O_DIRECT`` for the aligned middle of
+    each large write, the page cache for the rest): the file is byte for byte the one written through the page
+    cache, whatever the alignments; where the file system has no ``O_DIRECT`` it is written as usual."""
+    from jaxrobo.io import npz
+
+    rng = np.random.default_rng(0)
+    arrays = dict(q=rng.random((9, 1, 321, 7), dtype=np.float32), strided=rng.random((300, 1001))[:, 3:900],
+                  small=np.arange(5), text=np.array("x" * 77))
+    cached, uncached = tmp_path / "cached.npz", tmp_path / "uncached.npz"
+    npz.write_npz_deflated(str(cached), store_above=100, **arrays)
+    monkeypatch.setattr(npz, "UNCACHED_ABOVE_BYTES", 1)
+    monkeypatch.setattr(npz.UncachedWrites, "DIRECT_FROM", 4096)
+    monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 40_000)  # several direct pieces per array, none aligned alike
+    with open(uncached, "wb") as f:
+        try:
+            npz.UncachedWrites(f).close()
+        except OSError:
+            pytest.skip("no O_DIRECT on this file system")
+    npz.write_npz_deflated(str(uncached), store_above=100, **arrays)
+    assert uncached.read_bytes() == cached.read_bytes()
+    with open(uncached, "r+b") as f:  # through an open file, as the checkpoint writes it
+        npz.write_npz_deflated(f, store_above=100, **arrays)
+    assert uncached.read_bytes() == cached.read_bytes()

@@ -9,7 +9,11 @@ one :class:`NpzError` (a :class:`~jaxrobo.core.config.ConfigError`) naming the f
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import math
+import mmap
+import os
 import zipfile
 import zlib
 from typing import IO, Any, Mapping
@@ -36,16 +40,97 @@ def write_npz_deflated(path: str | IO[bytes], *, store_above: int = STORE_ABOVE_
     :data:`STORE_ABOVE_BYTES`; -1: none, the layout of ``np.savez``) deflated at level 1 (nearly as small as zlib's
     default level in about half the time), each larger one stored as it is. Writing is part of every ``jaxrobo
     train``'s wall: 65,536 per-env cart-pole tables (0.5 GB) took tens of seconds to deflate on 2 CPU cores, and
-    under a second to store."""
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1, allowZip64=True) as zf:
+    under a second to store. Where the stored arrays are :data:`UNCACHED_ABOVE_BYTES` or more, the file goes
+    through :class:`UncachedWrites` (where the file system allows it)."""
+    arrays = {name: np.asanyarray(value) for name, value in arrays.items()}
+    stored = sum(x.nbytes for x in arrays.values() if x.nbytes > store_above)
+    with contextlib.ExitStack() as stack:
+        if stored >= UNCACHED_ABOVE_BYTES:
+            f = stack.enter_context(open(path, "wb")) if isinstance(path, (str, os.PathLike)) else path
+            try:
+                path = stack.enter_context(UncachedWrites(f))
+            except OSError:  # no O_DIRECT here (tmpfs, some network file systems): the page cache, as usual
+                path = f
+        zf = stack.enter_context(zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1,
+                                                 allowZip64=True))
         for name, value in arrays.items():
-            value = np.asanyarray(value)
             member: str | zipfile.ZipInfo = f"{name}.npy"  # a name takes the file's compression (deflate, level 1)
             if value.nbytes > store_above:
                 member = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 member.compress_type = zipfile.ZIP_STORED
             with zf.open(member, "w", force_zip64=True) as f:
                 write_array(f, value)
+
+
+#: Stored arrays of at least this many bytes in all are written past the page cache (:class:`UncachedWrites`).
+UNCACHED_ABOVE_BYTES = 64 << 20
+
+
+class UncachedWrites(io.RawIOBase):
+    """A binary file open for writing (``f``, at its position), written with ``O_DIRECT`` where a write is large:
+    its 4096-byte-aligned middle goes from an aligned buffer straight to the disk, the unaligned ends (and every
+    small write: zip headers) through ``f``'s descriptor and the page cache as usual. Every write is positional;
+    ``f``'s own buffer is not used (close this before using ``f`` again; its ``fsync`` covers both).
+
+    Why: a file of hundreds of MB written through the page cache needs as many fresh pages, which on a virtual
+    machine that hands its free memory back to the host cost several times the writing (a 0.5 GB checkpoint:
+    seconds, where the same bytes written with ``O_DIRECT`` took a fraction of one, already on the disk). Opening
+    ``O_DIRECT`` raises OSError where the file system does not have it."""
+
+    ALIGN = 4096
+    #: Writes of at least this many bytes take the direct path.
+    DIRECT_FROM = 1 << 20
+
+    def __init__(self, f: IO[bytes]) -> None:
+        super().__init__()
+        f.flush()
+        self._fd, self._pos = f.fileno(), f.tell()
+        if not hasattr(os, "O_DIRECT"):
+            raise OSError("no O_DIRECT on this system")
+        self._direct = os.open(f"/proc/self/fd/{self._fd}", os.O_WRONLY | os.O_DIRECT)
+        self._buffer = mmap.mmap(-1, WRITE_CHUNK_BYTES)  # page-aligned, reused for every direct write
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._pos, os.SEEK_END: os.fstat(self._fd).st_size}[whence]
+        self._pos = base + offset
+        return self._pos
+
+    def _pwrite(self, fd: int, data: memoryview, offset: int) -> None:
+        while data.nbytes:
+            n = os.pwrite(fd, data, offset)
+            data, offset = data[n:], offset + n
+
+    def write(self, data: Any) -> int:
+        view = memoryview(data).cast("B")
+        n, pos = view.nbytes, self._pos
+        head = (-pos) % self.ALIGN
+        middle = (n - head) // self.ALIGN * self.ALIGN if n >= self.DIRECT_FROM else 0
+        if middle <= 0:
+            self._pwrite(self._fd, view, pos)
+        else:
+            self._pwrite(self._fd, view[:head], pos)
+            for start in range(head, head + middle, len(self._buffer)):
+                k = min(len(self._buffer), head + middle - start)
+                self._buffer[:k] = view[start:start + k]
+                self._pwrite(self._direct, memoryview(self._buffer)[:k], pos + start)
+            self._pwrite(self._fd, view[head + middle:], pos + head + middle)
+        self._pos = pos + n
+        return n
+
+    def close(self) -> None:
+        if not self.closed:
+            os.close(self._direct)
+            self._buffer.close()
+        super().close()
 
 
 #: Bytes handed to a zip member per write (:func:`write_array`): each is checksummed and written in turn.
