@@ -151,19 +151,18 @@ def _masked_stats(returns: np.ndarray, lengths: np.ndarray, done: np.ndarray) ->
 
 
 def _nan_percentiles(x: np.ndarray, count: np.ndarray, qs: tuple[int, ...]) -> list[np.ndarray]:
-    """``np.nanpercentile(x, q, axis=0)`` for each ``q`` (linear interpolation), from one sort: NaNs sort last,
-    and ``count`` (non-NaN entries per column, each >= 1) says where each column's values end. numpy's
-    nanpercentile goes column by column, seconds for 65,536 envs."""
-    ordered = np.sort(x, axis=0)
-    cols = np.arange(x.shape[1])
-    out = []
-    for q in qs:
-        pos = (count - 1) * (q / 100.0)
-        lo = np.floor(pos).astype(np.int64)
-        hi = np.minimum(lo + 1, count - 1)
-        frac = pos - lo
-        out.append(ordered[lo, cols] + (ordered[hi, cols] - ordered[lo, cols]) * frac)
-    return out
+    """``np.nanpercentile(x, q, axis=0)`` for each ``q`` (linear interpolation), from one partition of each column
+    at the ranks the ``qs`` need: NaNs go last, and ``count`` (non-NaN entries per column, each >= 1) says where a
+    column's values end. numpy's nanpercentile took seconds for 65,536 envs, a sort of every column most of one."""
+    pos = [(count - 1) * (q / 100.0) for q in qs]
+    lo = [np.floor(p).astype(np.int64) for p in pos]
+    hi = [np.minimum(r + 1, count - 1) for r in lo]
+    low_values, high_values = np.empty((len(qs), x.shape[1]), x.dtype), np.empty((len(qs), x.shape[1]), x.dtype)
+    for c in range(x.shape[1]):
+        ranks = [int(r[c]) for r in lo + hi]
+        part = np.partition(x[:, c], sorted(set(ranks)))
+        low_values[:, c], high_values[:, c] = part[ranks[:len(qs)]], part[ranks[len(qs):]]
+    return [low_values[i] + (high_values[i] - low_values[i]) * (pos[i] - lo[i]) for i in range(len(qs))]
 
 
 def discretiser_arrays(disc: Discretiser | None) -> dict[str, np.ndarray]:
