@@ -89,6 +89,7 @@ class UncachedWrites(io.RawIOBase):
             raise OSError("no O_DIRECT on this system")
         self._direct = os.open(f"/proc/self/fd/{self._fd}", os.O_WRONLY | os.O_DIRECT)
         self._buffer = mmap.mmap(-1, WRITE_CHUNK_BYTES)  # page-aligned, reused for every direct write
+        self._aligned = np.frombuffer(self._buffer, np.uint8)  # copied into by numpy, without the GIL
 
     def writable(self) -> bool:
         return True
@@ -120,7 +121,7 @@ class UncachedWrites(io.RawIOBase):
             self._pwrite(self._fd, view[:head], pos)
             for start in range(head, head + middle, len(self._buffer)):
                 k = min(len(self._buffer), head + middle - start)
-                self._buffer[:k] = view[start:start + k]
+                np.copyto(self._aligned[:k], np.frombuffer(view[start:start + k], np.uint8))
                 self._pwrite(self._direct, memoryview(self._buffer)[:k], pos + start)
             self._pwrite(self._fd, view[head + middle:], pos + head + middle)
         self._pos = pos + n
@@ -129,6 +130,7 @@ class UncachedWrites(io.RawIOBase):
     def close(self) -> None:
         if not self.closed:
             os.close(self._direct)
+            del self._aligned  # the buffer's only export: it closes then
             self._buffer.close()
         super().close()
 
