@@ -88,7 +88,8 @@ class UncachedWrites(io.RawIOBase):
         if not hasattr(os, "O_DIRECT"):
             raise OSError("no O_DIRECT on this system")
         self._direct = os.open(f"/proc/self/fd/{self._fd}", os.O_WRONLY | os.O_DIRECT)
-        self._buffer = mmap.mmap(-1, WRITE_CHUNK_BYTES)  # page-aligned, reused for every direct write
+        # Page-aligned, reused for every direct write; a whole number of aligned blocks.
+        self._buffer = mmap.mmap(-1, max(self.ALIGN, WRITE_CHUNK_BYTES // self.ALIGN * self.ALIGN))
         self._aligned = np.frombuffer(self._buffer, np.uint8)  # copied into by numpy, without the GIL
 
     def writable(self) -> bool:
