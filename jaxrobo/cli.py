@@ -497,6 +497,19 @@ def _resumable_on_error(live: str, out: str, resume_cmd: str) -> Iterator[None]:
         raise
 
 
+@contextlib.contextmanager
+def _landed(saves: Any) -> Iterator[None]:
+    """On an error, wait for the checkpoint being written (:class:`jaxrobo.training.checkpoint.SaveInThread`)
+    before the error goes on: :func:`_resumable_on_error` then finds it on disk. The error raised is the block's,
+    not the save's."""
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(Exception):
+            saves.wait()
+        raise
+
+
 def _checkpoint_every(given: int | None, run_dir: str) -> int | None:
     """``--checkpoint-every`` of a resumed run: the one given now, else the one its ``status.json`` kept (a file
     read back: anything but an integer in 0..2^31-1 is ignored), else None (the time-based default)."""
@@ -613,6 +626,10 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
                             chunks=n_chunks, resume=resume_cmd, **keep)
 
+    # The checkpoint after the last chunk is written while the run evaluates and computes its results; it lands
+    # before anything that needs it: the results (which link its tables), an interrupted status, an error's hint.
+    saves = checkpoint.SaveInThread(save)
+
     def notice(signum: int) -> None:
         import signal
 
@@ -620,17 +637,19 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
               "(again to quit without saving)", file=sys.stderr)
 
     # SIGINT/SIGTERM: finish the chunk, save, write what there is, exit 128 + signal; a second one exits at once.
-    with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop:
+    with _resumable_on_error(live, out, resume_cmd), driver.StopOnSignal(notice, second="exit") as stop, \
+            _landed(saves):
         from jaxrobo.core.clock import command_seconds
 
         startup = command_seconds()  # imports, device discovery, config: the wall before the first compile
         result = train(spec.env, cfg, spec.agent_params, None, hooks, initial=initial, start_chunk=start_chunk,
-                       checkpoint=save, checkpoint_every=every_chunks or 0,
+                       checkpoint=saves, checkpoint_every=every_chunks or 0,
                        checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None, should_stop=stop,
                        trainer=trainer)  # the trainer whose carry was checked above: its trace of init is reused
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.
+            saves.wait()
             write_episodes(live, result.returns, result.lengths, result.terminated, result.epsilon,
                            episodes_done=result.episodes_done)
             done_min = int(result.episodes_done.min())
@@ -644,15 +663,19 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         t_write = time.perf_counter()
         summary = result.summary()  # once: summary.json and the lines below (a sort of every env's records)
 
-        # The closing checkpoint's tables are the result's unless the run chose its final table after it.
-        tables = saved_tables.get("path") if saved_tables.get("chunks") == result.chunks_done \
-            and result.final_table_choice is None else None
+        def tables() -> str | None:
+            """The closing checkpoint's tables, once written: the result's unless the run chose its final table
+            after it."""
+            saves.wait()
+            return saved_tables.get("path") if saved_tables.get("chunks") == result.chunks_done \
+                and result.final_table_choice is None else None
 
         def write(staged: str) -> None:
             t = time.perf_counter()
             save_run(staged, result, spec.to_dict(), trainer.disc, summary=summary, tables=tables)
             keep_live_scalars(live, staged)
             write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t, 3),
+                                   "checkpoint_write_seconds": round(saves.seconds, 3),
                                    **({"startup_seconds": round(startup, 3)} if startup is not None else {})})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))

@@ -26,7 +26,7 @@ from jaxrobo.training.trainer import Trainer
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: How the run was executed (timings, what a resume restored), not what it computed.
 TIMING = {"compile_seconds", "run_seconds", "eval_seconds", "write_seconds", "env_steps_per_second", "startup_seconds",
-          "target_check_seconds", "target_met_at_run_seconds", "checkpoint_seconds",
+          "target_check_seconds", "target_met_at_run_seconds", "checkpoint_seconds", "checkpoint_write_seconds",
           "restored_env_steps", "env_steps_this_process", "resumed_after_chunk"}
 CARTPOLE = dict(n_envs=4, nepisodes=6, nsteps=40, chunk_steps=15, eval_episodes=2, eval_envs=2,
                 bins=[3, 6, 8, 10], state_low=[-2.4, -1.0, -0.3, -2.0], state_high=[2.4, 1.0, 0.3, 2.0])

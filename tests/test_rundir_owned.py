@@ -295,6 +295,99 @@ def test_a_stop_during_the_evaluation_keeps_the_training_and_resume_only_evaluat
     _assert_same_run(out, done)
 
 
+def _slow_closing_save(patch: pytest.MonkeyPatch, seconds: float = 1.0) -> list[str]:
+    """The checkpoint after the last chunk takes ``seconds`` longer to write (it is written in a thread beside the
+    evaluation: checkpoint.SaveInThread); returns a log of ``save`` and ``saved`` events."""
+    import threading
+    import time
+
+    save, log = checkpoint.save_checkpoint, []
+
+    def slow(*args, **kwargs):
+        if threading.current_thread() is not threading.main_thread():
+            log.append("save")
+            time.sleep(seconds)
+        out = save(*args, **kwargs)
+        log.append("saved")
+        return out
+
+    patch.setattr(checkpoint, "save_checkpoint", slow)
+    return log
+
+
+def test_a_stop_while_the_closing_checkpoint_is_written_loses_nothing(tmp_path, monkeypatch, capsys, done):
+    """SIGINT in the evaluation, the closing checkpoint still being written beside it: the run waits for it, is
+    interrupted with it on disk, and the resume evaluates the same run without training."""
+    from jaxrobo.training import driver
+
+    from test_resume import _assert_same_run, _counting_chunks
+
+    real = driver.evaluate_tables
+
+    def signalled(trainer, runner, key, env_params, progress=None, flights=None):
+        def first_segment(p):
+            signal.raise_signal(signal.SIGINT)
+            progress(p)
+        return real(trainer, runner, key, env_params, first_segment, flights)
+
+    out = str(tmp_path / "run")
+    with monkeypatch.context() as patch:
+        log = _slow_closing_save(patch)
+        patch.setattr(driver, "evaluate_tables", signalled)
+        assert main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", out]) == 130
+    assert log == ["save", "saved"]
+    assert rundir.read_status(out)["status"] == rundir.INTERRUPTED and rundir.is_resumable(out)
+    chunks_run = _counting_chunks(monkeypatch)
+    assert main(["train", "--resume", out, "--no-progress"]) == 0
+    assert chunks_run == [] and rundir.is_complete(out)
+    _assert_same_run(out, done)
+
+
+def test_a_failed_evaluation_finds_the_closing_checkpoint_written(tmp_path, monkeypatch, capsys):
+    """An error in the evaluation while the closing checkpoint is written: the error is the one raised, and the
+    run directory holds the checkpoint, with the line saying how to go on."""
+    from jaxrobo.training import driver
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the evaluation broke")
+
+    out = str(tmp_path / "run")
+    with monkeypatch.context() as patch:
+        log = _slow_closing_save(patch)
+        patch.setattr(driver, "evaluate_tables", broken)
+        with pytest.raises(RuntimeError, match="the evaluation broke"):
+            main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", out])
+    assert log == ["save", "saved"] and rundir.is_resumable(out)
+    assert "the run failed after saving its checkpoint" in capsys.readouterr().err
+
+
+def test_save_in_thread_writes_the_last_save_beside_the_caller():
+    """``last`` returns while its save runs; ``wait`` returns once it is written and raises its error once; a save
+    on the way starts only after the one in flight."""
+    import threading
+
+    release, log = threading.Event(), []
+
+    def save(carry, chunks):
+        if carry == "slow":
+            release.wait(10)
+        if carry == "bad":
+            raise OSError("disk full")
+        log.append(chunks)
+
+    saves = checkpoint.SaveInThread(save)
+    saves.last("slow", 1)
+    assert log == []
+    threading.Timer(0.2, release.set).start()
+    saves(None, 2)  # waits for the save in flight, then saves
+    assert log == [1, 2] and saves.waited > 0
+    saves.last("bad", 3)
+    with pytest.raises(OSError, match="disk full"):
+        saves.wait()
+    saves.wait()  # raised once
+    assert log == [1, 2]
+
+
 # ---- environment variables, flags and keyword ranges: exit 2 / a ConfigError naming them ---------------------------
 @pytest.mark.parametrize("var, value, fragment", [
     ("JAXROBO_PAUSE_BEFORE_PUBLISH", "soon", "JAXROBO_PAUSE_BEFORE_PUBLISH='soon'"),

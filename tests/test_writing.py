@@ -100,3 +100,90 @@ def test_every_env_recording_each_episode_and_fewer_csv_envs(run, tmp_path):
     stats, expected = read_columns(str(tmp_path / "episode_stats.csv")), _stats(records, done)
     for name in STAT_COLUMNS:
         np.testing.assert_allclose(stats[name], expected[name], rtol=5e-6, atol=1e-9, err_msg=name)
+
+
+def test_npz_arrays_written_from_their_memory_are_numpys_bytes(monkeypatch, tmp_path):
+    """:func:`jaxrobo.io.npz.write_array` writes the bytes numpy's ``write_array`` writes, for contiguous arrays (from
+    their memory), strided ones (through its reused buffer, several blocks of rows) and Fortran ones; pickles are
+    refused; an all-stored ``.npz`` reads back equal."""
+    from jaxrobo.io import npz
+
+    monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 64)  # several chunks and row blocks for these small arrays
+    a = np.arange(1200, dtype=np.float32).reshape(40, 30)
+    for value in (a, a[:, :7], a[::3, 1:], a.T, a[:, :5].astype(bool), np.array("text"), np.array(3),
+                  np.zeros((0, 4)), np.ones((3, 4, 5))[:, 1:3, ::2]):
+        ours, numpys = io.BytesIO(), io.BytesIO()
+        npz.write_array(ours, value)
+        np.lib.format.write_array(numpys, value, allow_pickle=False)
+        assert ours.getvalue() == numpys.getvalue(), value.shape
+    with pytest.raises(ValueError, match="allow_pickle"):
+        npz.write_array(io.BytesIO(), np.array([object()]))
+    path = tmp_path / "all_stored.npz"
+    npz.write_npz_deflated(str(path), store_above=-1, a=a[:, :7], b=np.array("text"))
+    with np.load(path, allow_pickle=False) as z:
+        np.testing.assert_array_equal(z["a"], a[:, :7])
+        assert str(z["b"]) == "text"
+
+
+def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):
+    """``episode_stats`` over blocks of episode columns (a lone last column joining the block before it) and the
+    summary's figures over blocks of envs give the floats one block over the whole arrays gives."""
+    from jaxrobo.io import results
+    from jaxrobo.training import summary
+
+    result, _ = run
+    done = result.episodes_done
+    returns, lengths = np.asarray(result.returns), np.asarray(result.lengths)
+    n = int(done.min())
+    cases = [(returns, lengths, done), (returns, lengths, np.minimum(done, 7)),  # 7 columns: a lone last one
+             (returns[:, :n], lengths[:, :n], np.full(len(done), n))]  # every env recorded each column
+    for r, ln, d in cases:
+        monkeypatch.setattr(results, "STATS_BLOCK_BYTES", 1 << 40)
+        whole = results.episode_stats(r, ln, result.epsilon, d)
+        assert len(whole[0]) == int(d.max())
+        for cols in (2, 3):
+            monkeypatch.setattr(results, "STATS_BLOCK_BYTES", 8 * len(d) * cols)
+            blocked = results.episode_stats(r, ln, result.epsilon, d)
+            for name, x, y in zip(STAT_COLUMNS, whole, blocked):
+                assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), (name, cols)
+
+    monkeypatch.setattr(summary, "FIGURE_BLOCK_ENVS", 1 << 30)
+    whole = result.summary()
+    monkeypatch.setattr(summary, "FIGURE_BLOCK_ENVS", 5)
+    assert result.summary() == whole
+    # The seed's figures, env by env, over the recorded episodes.
+    envs = [e for e in range(len(done)) if done[e] > 0]
+    highest = [returns[e, :done[e]].max() for e in envs]
+    top = [np.sort(lengths[e, :done[e]])[-100:].mean() for e in envs]
+    last = np.concatenate([returns[e, max(0, done[e] - 100):done[e]] for e in envs]).astype(np.float64)
+    recorded = np.concatenate([lengths[e, :done[e]] for e in envs]).astype(np.float64)
+    for name, value in (("highest_reward_mean", np.mean(highest)), ("highest_reward_max", np.max(highest)),
+                        ("best_100_mean_length", np.mean(top)), ("final_100_mean_return", last.mean()),
+                        ("overall_mean_length", recorded.mean())):
+        assert whole[name] == pytest.approx(float(value), rel=1e-12), name
+
+
+def test_npz_written_past_the_page_cache_is_the_same_file(monkeypatch, tmp_path):
+    """Large stored arrays go through :class:`jaxrobo.io.npz.UncachedWrites` (``O_DIRECT`` for the aligned middle of
+    each large write, the page cache for the rest): the file is byte for byte the one written through the page
+    cache, whatever the alignments; where the file system has no ``O_DIRECT`` it is written as usual."""
+    from jaxrobo.io import npz
+
+    rng = np.random.default_rng(0)
+    arrays = dict(q=rng.random((9, 1, 321, 7), dtype=np.float32), strided=rng.random((300, 1001))[:, 3:900],
+                  small=np.arange(5), text=np.array("x" * 77))
+    cached, uncached = tmp_path / "cached.npz", tmp_path / "uncached.npz"
+    npz.write_npz_deflated(str(cached), store_above=100, **arrays)
+    monkeypatch.setattr(npz, "UNCACHED_ABOVE_BYTES", 1)
+    monkeypatch.setattr(npz.UncachedWrites, "DIRECT_FROM", 4096)
+    monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 40_000)  # several direct pieces per array, none aligned alike
+    with open(uncached, "wb") as f:
+        try:
+            npz.UncachedWrites(f).close()
+        except OSError:
+            pytest.skip("no O_DIRECT on this file system")
+    npz.write_npz_deflated(str(uncached), store_above=100, **arrays)
+    assert uncached.read_bytes() == cached.read_bytes()
+    with open(uncached, "r+b") as f:  # through an open file, as the checkpoint writes it
+        npz.write_npz_deflated(f, store_above=100, **arrays)
+    assert uncached.read_bytes() == cached.read_bytes()

@@ -34,7 +34,6 @@ import sys
 import tempfile
 from typing import IO, Any, Callable, Iterator
 
-import numpy as np
 
 from jaxrobo.core.config import ConfigError
 
@@ -658,8 +657,10 @@ def atomic_write_json(path: str, obj: Any) -> None:
 
 
 def atomic_savez(path: str, **arrays: Any) -> None:
-    """``np.savez`` (uncompressed, no pickled objects) written atomically."""
-    atomic_write(path, lambda f: np.savez(f, **arrays))
+    """An uncompressed ``.npz`` (``np.savez``'s layout, no pickled objects) written atomically."""
+    from jaxrobo.io.npz import write_npz_deflated
+
+    atomic_write(path, lambda f: write_npz_deflated(f, store_above=-1, **arrays))
 
 
 #: Checkpoints of runs and sweeps record this hash: resuming under other code is refused (a carry from other code

@@ -55,6 +55,10 @@ class LazyModule:
                     contextlib.redirect_stderr(io.StringIO()):
                 warnings.filterwarnings("ignore", message=".*warp.*")
                 warnings.filterwarnings("ignore", message=".*not actively being maintained.*")
+                if self._name.startswith("mujoco.mjx"):
+                    from jaxrobo.physics.mjx_import import import_mjx
+
+                    import_mjx()  # without its mesh libraries, which jaxrobo's robots never call
                 self._module = importlib.import_module(self._name)
         return self._module
 

@@ -12,9 +12,9 @@ A run's checkpoint may keep the learner's tables in a file of its own beside it,
 ``qtables.npz`` (:func:`save_checkpoint`'s ``tables``): the finished run links that file as its results, so the
 tables are written once.
 
-Public surface: :data:`CHECKPOINT_FORMAT`, :data:`TABLES_LEAF`, :class:`CheckpointError`, :func:`carry_template`,
-:func:`carry_fingerprint`, :func:`fingerprint_mismatch`, :func:`save_checkpoint`, :func:`read_fingerprint`,
-:func:`load_checkpoint`, :func:`write_npz`, :func:`read_npz`.
+Public surface: :data:`CHECKPOINT_FORMAT`, :data:`TABLES_LEAF`, :class:`CheckpointError`, :class:`SaveInThread`,
+:func:`carry_template`, :func:`carry_fingerprint`, :func:`fingerprint_mismatch`, :func:`save_checkpoint`,
+:func:`read_fingerprint`, :func:`load_checkpoint`, :func:`write_npz`, :func:`read_npz`.
 """
 from __future__ import annotations
 
@@ -23,8 +23,10 @@ import json
 import os
 import re
 import secrets
+import threading
+import time
 import zipfile
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -161,6 +163,51 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
                 with contextlib.suppress(OSError):
                     os.unlink(os.path.join(os.path.dirname(tables_path), name))
     return tables_path
+
+
+class SaveInThread:
+    """A run's checkpoints through ``save(carry, chunks_done)``: those on the way as they come (the next chunk
+    reuses the carry's buffers), the one after the last chunk (:meth:`last`, called by
+    :func:`jaxrobo.training.driver.run_chunks`) in a thread, while the run evaluates and computes its results;
+    :meth:`wait` before anything that needs it on disk (publishing the results, marking the run interrupted,
+    saying that a failed run can be resumed). The thread is not a daemon: an exit waits for the checkpoint, as it
+    waited for a save in the caller's thread. ``seconds`` is how long the last save took to write, ``waited``
+    how long :meth:`wait` held the caller."""
+
+    def __init__(self, save: Callable[[Any, int], None]) -> None:
+        self._save = save
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self.seconds = self.waited = 0.0
+
+    def __call__(self, carry: Any, chunks_done: int) -> None:
+        self.wait()
+        self._save(carry, chunks_done)
+
+    def last(self, carry: Any, chunks_done: int) -> None:
+        self.wait()
+
+        def run() -> None:
+            t = time.perf_counter()
+            try:
+                self._save(carry, chunks_done)
+            except BaseException as err:  # handed to the caller's thread by wait()
+                self._error = err
+            self.seconds = time.perf_counter() - t
+
+        self._thread = threading.Thread(target=run, name="jaxrobo-checkpoint")
+        self._thread.start()
+
+    def wait(self) -> None:
+        """Return once no save is being written; raise the error the last one ended with, if any (once)."""
+        if self._thread is not None:
+            t = time.perf_counter()
+            self._thread.join()
+            self.waited += time.perf_counter() - t
+            self._thread = None
+        error, self._error = self._error, None
+        if error is not None:
+            raise error
 
 
 #: The carry's leaf of the learner's tables (``[n_envs, n_tables, n_states, n_actions]``; a shared table's

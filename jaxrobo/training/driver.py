@@ -89,7 +89,10 @@ class Progress:
 #: ``progress(Progress)`` after each chunk; a callable of three positional parameters is called the earlier way,
 #: ``progress(done, total, mean_last_return)``.
 ProgressFn = Callable[..., None]
-#: ``checkpoint(carry, chunks_done)``, called at the checkpoint cadence and when the run stops early.
+#: ``checkpoint(carry, chunks_done)``, called at the checkpoint cadence and when the run stops early. One with a
+#: ``last`` method of the same signature (:class:`jaxrobo.training.checkpoint.SaveInThread`) gets the save after
+#: the last chunk through it: no chunk follows (none reuses the carry's buffers), so it may go on reading the carry
+#: once it has returned.
 CheckpointFn = Callable[[Any, int], None]
 
 
@@ -299,7 +302,7 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
     unsaved = saved_at != chunks_done and (chunks_done > start_chunk or stopped)
     t_save = time.perf_counter()
     if checkpoint is not None and unsaved and (save_at_end or stopped):
-        checkpoint(carry, chunks_done)
+        getattr(checkpoint, "last", checkpoint)(carry, chunks_done)
     return ChunkRun(carry, chunks_done, done, stopped, seconds, checked_at, check_seconds,
                     time.perf_counter() - t_save)
 

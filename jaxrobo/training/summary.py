@@ -73,7 +73,8 @@ class TrainResult:
     target_every: int = 0
     target_met_chunk: int | None = None
     target_check_seconds: float = 0.0
-    #: Wall time of the checkpoint saved after the last chunk, before the evaluation (0: none was saved then).
+    #: Wall time of the checkpoint saved after the last chunk, before the evaluation (0: none was saved then; one
+    #: written in a thread beside the evaluation, :class:`jaxrobo.training.checkpoint.SaveInThread`, its start).
     checkpoint_seconds: float = 0.0
 
     @property
@@ -120,7 +121,7 @@ class TrainResult:
                        "best_100_mean_length": float(best100.mean()),
                        "final_100_mean_return": float(returns[:, -100:].mean())}
         else:
-            figures = _masked_figures(returns.astype(np.float64), lengths.astype(np.float64), mask)
+            figures = _masked_figures(returns, lengths, mask)
         rank = ranking(self.learning_target)
         figure = returns if rank.episode_figure == "return" else lengths
         figures[f"best_100_window_mean_{rank.episode_figure}"] = best_window(figure, mask, rank)
@@ -200,7 +201,7 @@ def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, wind
     """The best ``window``-episode moving mean of ``figure`` (``[n_envs, episodes]``) in each env, best by
     ``rank``'s direction, averaged over envs; an env with fewer recorded episodes than ``window`` gives the
     mean of all of them, one with none (``mask``: the recorded slots; None: all) is left out."""
-    figure = np.asarray(figure, np.float64)
+    figure = np.asarray(figure)
     # The recorded slots are each env's first ones (``TrainResult.recorded``), so the envs with the same count
     # share one window width: one vectorised pass per distinct count, not a Python loop over (up to 10^6) envs.
     counts = np.full(figure.shape[0], figure.shape[1]) if mask is None else np.asarray(mask).sum(axis=1)
@@ -208,11 +209,17 @@ def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, wind
     for n in np.unique(counts[counts > 0]):
         rows = counts == n
         w = min(window, int(n))
-        sums = np.cumsum(np.concatenate([np.zeros((int(rows.sum()), 1)), figure[rows, :n]], axis=1), axis=1)
+        sums = np.cumsum(np.concatenate([np.zeros((int(rows.sum()), 1)), figure[rows, :n].astype(np.float64)], axis=1),
+                         axis=1)
         means = (sums[:, w:] - sums[:, :-w]) / w
         best[rows] = means.max(axis=1) if rank.higher else means.min(axis=1)
     kept = best[counts > 0]
     return float(np.mean(kept)) if kept.size else float("nan")
+
+
+#: Envs per block of :func:`_masked_figures`: a block's float64 temporaries are memory the allocator reuses, where
+#: float64 copies of the whole ``[envs, episodes]`` records were fresh pages (seconds at 65,536 envs).
+FIGURE_BLOCK_ENVS = 4096
 
 
 def _masked_figures(returns: np.ndarray, lengths: np.ndarray, mask: np.ndarray) -> dict[str, float]:
@@ -223,18 +230,35 @@ def _masked_figures(returns: np.ndarray, lengths: np.ndarray, mask: np.ndarray) 
         nan = float("nan")
         return {"highest_reward_mean": nan, "highest_reward_max": nan, "overall_mean_length": nan,
                 "best_100_mean_length": nan, "final_100_mean_return": nan}
-    # Vectorised over envs (a Python loop took seconds at 65,536 envs), reducing each row before dropping the envs
-    # with no episode (copying the [envs, episodes] arrays took longer than the figures). The recorded slots are
+    # Vectorised over blocks of envs (a Python loop over envs took seconds at 65,536 envs). The recorded slots are
     # each env's first ones (TrainResult.recorded): an env's last k = min(100, count) episodes are the slots
-    # [count - k, count). Lengths are whole numbers, so the sum of an env's 100 longest is exact in any order.
+    # [count - k, count). Lengths are whole numbers, so the sum of an env's 100 longest, and of all of them, is
+    # exact in any order; each figure is the float64 value a reduction over the whole arrays gives.
     count = mask.sum(axis=1)
     k = np.minimum(count, 100)
-    highest = np.where(mask, returns, -np.inf).max(axis=1)[has]
-    kept = np.where(mask, lengths, -np.inf)
-    top = kept if kept.shape[1] <= 100 else np.partition(kept, kept.shape[1] - 100, axis=1)[:, -100:]
-    best100 = np.where(np.isfinite(top), top, 0.0).sum(axis=1)[has] / k[has]
-    slots = np.arange(mask.shape[1])[None, :]
-    last = (slots >= (count - k)[:, None]) & (slots < count[:, None])
+    n_envs, width = mask.shape
+    highest, best_sum = np.empty(n_envs), np.empty(n_envs)
+    last_returns = np.empty(int(k.sum()))  # the returns of each env's last k episodes, env by env
+    slots = np.arange(width)[None, :]
+    whole = np.issubdtype(lengths.dtype, np.integer)
+    length_sum, recorded_lengths, filled = 0, [], 0
+    for a in range(0, n_envs, FIGURE_BLOCK_ENVS):
+        b = min(a + FIGURE_BLOCK_ENVS, n_envs)
+        m, r, ln = mask[a:b], returns[a:b], lengths[a:b]
+        highest[a:b] = np.where(m, r, -np.inf).max(axis=1)
+        kept = np.where(m, ln.astype(np.float64), -np.inf)
+        top = kept if width <= 100 else np.partition(kept, width - 100, axis=1)[:, -100:]
+        best_sum[a:b] = np.where(np.isfinite(top), top, 0.0).sum(axis=1)
+        last = (slots >= (count[a:b] - k[a:b])[:, None]) & (slots < count[a:b, None])
+        values = r[last]
+        last_returns[filled:filled + values.size] = values
+        filled += values.size
+        if whole:
+            length_sum += int(ln[m].sum(dtype=np.int64))
+        else:
+            recorded_lengths.append(ln[m].astype(np.float64))
+    highest, best100 = highest[has], best_sum[has] / k[has]
+    overall = np.float64(length_sum) / int(count.sum()) if whole else np.concatenate(recorded_lengths).mean()
     return {"highest_reward_mean": float(highest.mean()), "highest_reward_max": float(highest.max()),
-            "overall_mean_length": float(lengths[mask].mean()), "best_100_mean_length": float(np.mean(best100)),
-            "final_100_mean_return": float(returns[last].mean())}
+            "overall_mean_length": float(overall), "best_100_mean_length": float(np.mean(best100)),
+            "final_100_mean_return": float(last_returns.mean())}

@@ -1,0 +1,104 @@
+"""``import mujoco.mjx`` without its mesh libraries: trimesh and scipy.spatial load when a model has a mesh.
+
+MJX's mesh module (``mujoco.mjx._src.mesh``, imported by ``mujoco.mjx`` through its collision code) imports
+``trimesh`` and ``scipy.spatial`` at its top, and they took most of the import of ``mujoco.mjx``: seconds of every
+``jaxrobo train`` of an MJX task before its first compile. MJX calls them only to build the convex hulls of mesh
+geoms (``mesh.convex``, ``mesh._convex_hull_2d``), which jaxrobo's robots do not have. :func:`import_mjx` imports
+``mujoco.mjx`` with both deferred: while the mesh module is imported they are stand-ins in ``sys.modules`` (the
+module reads ``trimesh.Trimesh`` in a function annotation as it is defined, nothing else of them), and afterwards
+the mesh module's names for them import the real modules on first use; ``sys.modules`` is left without them, so
+any other import of them is the usual one. A model with meshes loads them when MJX builds its hulls, as before.
+
+It reaches into MJX's private mesh module, so it is guarded: it applies only to ``mujoco-mjx`` versions in
+:data:`WRITTEN_FOR` whose mesh module imports exactly those names; elsewhere ``mujoco.mjx`` is imported as it is
+(:func:`unavailable` says why). ``tests/test_mjx_import.py`` checks it on the installed version: nothing of trimesh
+or scipy.spatial loaded after the import, a mesh model's hull the same as with the libraries loaded up front.
+
+Public surface: :func:`import_mjx`, :func:`unavailable`, :data:`WRITTEN_FOR`.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import re
+import sys
+import types
+from typing import Any
+
+#: The ``mujoco-mjx`` versions this was written and tested for: ``[low, high)`` as (major, minor).
+WRITTEN_FOR = ((3, 17), (3, 18))
+#: MJX's mesh module, and the top-level imports of it that are deferred.
+_MESH = "mujoco.mjx._src.mesh"
+_DEFERRED = ("trimesh", "scipy.spatial")
+
+
+def unavailable() -> str | None:
+    """Why :func:`import_mjx` imports ``mujoco.mjx`` as it is (a sentence), or None when it defers the mesh
+    libraries."""
+    from jaxrobo.physics.mjx_lean import installed_version
+
+    version = installed_version()
+    match = re.match(r"(\d+)\.(\d+)", version or "")
+    low, high = WRITTEN_FOR
+    if match is None or not low <= (int(match[1]), int(match[2])) < high:
+        return (f"mujoco-mjx {version} is outside the versions it was written for "
+                f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
+    if any(name in sys.modules for name in _DEFERRED + (_MESH,)):
+        return "MJX's mesh module or its libraries are imported already"
+    if "from scipy import spatial\nimport trimesh\n" not in _mesh_source() \
+            or any(importlib.util.find_spec(name) is None for name in _DEFERRED):
+        return f"mujoco-mjx {version}'s mesh module does not import trimesh and scipy.spatial as expected"
+    return None
+
+
+def _mesh_source() -> str:
+    """The source of MJX's mesh module ("" where it is not found), read without importing ``mujoco.mjx`` (a spec
+    of a submodule imports its packages, and ``mujoco.mjx``'s imports the mesh module)."""
+    spec = importlib.util.find_spec("mujoco")
+    for root in (spec.submodule_search_locations or []) if spec is not None else []:
+        path = os.path.join(root, *_MESH.split(".")[1:]) + ".py"
+        try:
+            with open(path, encoding="utf-8") as f:
+                return f.read()
+        except OSError:
+            continue
+    return ""
+
+
+class _StandIn(types.ModuleType):
+    """A deferred module in ``sys.modules`` while MJX's mesh module is imported: ``Trimesh`` for the annotation
+    it reads as it is defined; anything else raises, naming this module."""
+
+    class Trimesh:  # the annotation's value only
+        pass
+
+    def __getattr__(self, attr: str) -> Any:
+        raise AttributeError(f"jaxrobo.physics.mjx_import: {self.__name__}.{attr} used while mujoco.mjx was "
+                             "imported")
+
+
+class _Deferred(types.ModuleType):
+    """The mesh module's name for a deferred module afterwards: the module, imported on first attribute access."""
+
+    def __getattr__(self, attr: str) -> Any:
+        return getattr(importlib.import_module(self.__name__), attr)
+
+
+def import_mjx() -> types.ModuleType:
+    """``mujoco.mjx``, imported with trimesh and scipy.spatial deferred where :func:`unavailable` says None."""
+    if "mujoco.mjx" in sys.modules or unavailable() is not None:
+        return importlib.import_module("mujoco.mjx")
+    names = {"trimesh": "trimesh", "scipy.spatial": "spatial"}  # the module, and the mesh module's name for it
+    for name in names:
+        sys.modules[name] = _StandIn(name)
+    try:
+        mjx = importlib.import_module("mujoco.mjx")
+    finally:
+        for name in names:
+            del sys.modules[name]  # an import of them from now on is the real one
+        mesh = sys.modules.get(_MESH)
+        for name, attr in names.items():
+            if mesh is not None and isinstance(getattr(mesh, attr, None), _StandIn):
+                setattr(mesh, attr, _Deferred(name))
+    return mjx

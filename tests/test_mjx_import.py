@@ -1,0 +1,57 @@
+"""``mujoco.mjx`` imported without its mesh libraries (jaxrobo.physics.mjx_import): none of them loaded by the
+import, a mesh model's convex hull the same as with them imported up front, version-guarded."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from jaxrobo.physics import mjx_import
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+#: A tetrahedron mesh geom: MJX builds its convex hull with trimesh and scipy.spatial.
+HULL = """
+import json, sys
+import mujoco
+{import_line}
+loaded = sorted(n for n in ("trimesh", "scipy.spatial") if n in sys.modules)
+xml = '''<mujoco><asset><mesh name="tet" vertex="0 0 0  1 0 0  0 1 0  0 0 1  0.2 0.2 0.2"/></asset>
+<worldbody><body><freejoint/><geom type="mesh" mesh="tet"/></body>
+<geom type="plane" size="1 1 .1"/></worldbody></mujoco>'''
+m = mjx.put_model(mujoco.MjModel.from_xml_string(xml))
+hull = m.mesh_convex[0]
+print(json.dumps({{"loaded_by_import": loaded, "vert": hull.vert.tolist(), "face": hull.face.tolist(),
+                  "edge": hull.edge.tolist(), "loaded_after": "trimesh" in sys.modules}}))
+"""
+
+
+def _run(import_line: str) -> dict:
+    env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.run([sys.executable, "-c", HULL.format(import_line=import_line)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(mjx_import.unavailable() is not None, reason="the installed mujoco-mjx is not the one it was "
+                    "written for (jaxrobo.physics.mjx_import.unavailable)")
+def test_mjx_imports_without_mesh_libraries_and_builds_the_same_hulls():
+    deferred = _run("from jaxrobo.physics.mjx_import import import_mjx; mjx = import_mjx()")
+    stock = _run("import trimesh, scipy.spatial; import mujoco.mjx as mjx")
+    assert deferred["loaded_by_import"] == []  # neither is imported until a mesh hull is built
+    assert stock["loaded_by_import"] == ["scipy.spatial", "trimesh"]
+    assert deferred["loaded_after"]
+    for key in ("vert", "face", "edge"):
+        assert deferred[key] == stock[key], key
+    assert len(deferred["vert"]) == 4  # the hull: the inner vertex is not on it
+
+
+def test_outside_the_versions_it_was_written_for_mjx_is_imported_as_it_is(monkeypatch):
+    from jaxrobo.physics import mjx_lean
+
+    monkeypatch.setattr(mjx_lean, "installed_version", lambda: "3.99.0")
+    assert "outside the versions it was written for" in mjx_import.unavailable()
