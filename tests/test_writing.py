@@ -187,3 +187,35 @@ def test_npz_written_past_the_page_cache_is_the_same_file(monkeypatch, tmp_path)
     with open(uncached, "r+b") as f:  # through an open file, as the checkpoint writes it
         npz.write_npz_deflated(f, store_above=100, **arrays)
     assert uncached.read_bytes() == cached.read_bytes()
+
+
+def test_a_refused_direct_write_falls_back_to_the_page_cache(monkeypatch, tmp_path):
+    """A device that opens ``O_DIRECT`` but refuses a 4096-aligned write (EINVAL: larger blocks) gets the rest of
+    the file through the page cache: the same bytes, no error."""
+    import errno
+
+    from jaxrobo.io import npz
+
+    arrays = dict(q=np.random.default_rng(1).random((64, 999), dtype=np.float32), small=np.arange(3))
+    cached, uncached = tmp_path / "cached.npz", tmp_path / "uncached.npz"
+    npz.write_npz_deflated(str(cached), store_above=100, **arrays)
+    with open(uncached, "wb") as f:
+        try:
+            npz.UncachedWrites(f).close()
+        except OSError:
+            pytest.skip("no O_DIRECT on this file system")
+    monkeypatch.setattr(npz, "UNCACHED_ABOVE_BYTES", 1)
+    monkeypatch.setattr(npz.UncachedWrites, "DIRECT_FROM", 4096)
+    monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 40_000)
+    refused = []
+    pwrite = npz.UncachedWrites._pwrite
+
+    def refuse_direct(self, fd, data, offset):
+        if fd == self._direct:
+            refused.append(offset)
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return pwrite(self, fd, data, offset)
+
+    monkeypatch.setattr(npz.UncachedWrites, "_pwrite", refuse_direct)
+    npz.write_npz_deflated(str(uncached), store_above=100, **arrays)
+    assert refused and uncached.read_bytes() == cached.read_bytes()

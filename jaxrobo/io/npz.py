@@ -10,6 +10,7 @@ one :class:`NpzError` (a :class:`~jaxrobo.core.config.ConfigError`) naming the f
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import math
 import mmap
@@ -88,6 +89,7 @@ class UncachedWrites(io.RawIOBase):
         if not hasattr(os, "O_DIRECT"):
             raise OSError("no O_DIRECT on this system")
         self._direct = os.open(f"/proc/self/fd/{self._fd}", os.O_WRONLY | os.O_DIRECT)
+        self._direct_ok = True  # until a direct write is refused (EINVAL): the rest then go through the page cache
         # Page-aligned, reused for every direct write; a whole number of aligned blocks.
         self._buffer = mmap.mmap(-1, max(self.ALIGN, WRITE_CHUNK_BYTES // self.ALIGN * self.ALIGN))
         self._aligned = np.frombuffer(self._buffer, np.uint8)  # copied into by numpy, without the GIL
@@ -115,15 +117,23 @@ class UncachedWrites(io.RawIOBase):
         view = memoryview(data).cast("B")
         n, pos = view.nbytes, self._pos
         head = (-pos) % self.ALIGN
-        middle = (n - head) // self.ALIGN * self.ALIGN if n >= self.DIRECT_FROM else 0
+        middle = (n - head) // self.ALIGN * self.ALIGN if n >= self.DIRECT_FROM and self._direct_ok else 0
         if middle <= 0:
             self._pwrite(self._fd, view, pos)
         else:
             self._pwrite(self._fd, view[:head], pos)
             for start in range(head, head + middle, len(self._buffer)):
                 k = min(len(self._buffer), head + middle - start)
-                np.copyto(self._aligned[:k], np.frombuffer(view[start:start + k], np.uint8))
-                self._pwrite(self._direct, memoryview(self._buffer)[:k], pos + start)
+                if self._direct_ok:
+                    np.copyto(self._aligned[:k], np.frombuffer(view[start:start + k], np.uint8))
+                    try:
+                        self._pwrite(self._direct, memoryview(self._buffer)[:k], pos + start)
+                        continue
+                    except OSError as err:  # a device whose blocks are not 4096-aligned: the page cache from here
+                        if err.errno != errno.EINVAL:
+                            raise
+                        self._direct_ok = False
+                self._pwrite(self._fd, view[start:start + k], pos + start)
             self._pwrite(self._fd, view[head + middle:], pos + head + middle)
         self._pos = pos + n
         return n
