@@ -51,7 +51,5 @@ def test_mjx_imports_without_mesh_libraries_and_builds_the_same_hulls():
 
 
 def test_outside_the_versions_it_was_written_for_mjx_is_imported_as_it_is(monkeypatch):
-    from jaxrobo.physics import mjx_lean
-
-    monkeypatch.setattr(mjx_lean, "installed_version", lambda: "3.99.0")
+    monkeypatch.setattr(mjx_import, "installed_version", lambda: "3.99.0")
     assert "outside the versions it was written for" in mjx_import.unavailable()

@@ -81,6 +81,12 @@ RUNNER, RUNNER_SOURCES = "jaxrobo.interop.numpy_policy", frozenset({"envs.quadco
 #: and a new forbidden edge fails the test.
 ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {}
 
+#: The one module that writes into ``sys.modules``, and why: while ``mujoco.mjx`` imports, stand-ins for its mesh
+#: libraries (trimesh, scipy.spatial; seconds of every MJX command's start-up), removed right after. A trick on a
+#: library's private module, in its own module, version-guarded and tested (``tests/test_mjx_import.py``); no alias
+#: of a jaxrobo module. Any other write fails the test.
+SYS_MODULES_WRITERS = frozenset({"jaxrobo.physics.mjx_import"})
+
 #: Module-global knobs still read at trace time, ``(module, name)``, each with what removes it. A knob that is
 #: gone must come off (``test_knobs_allowed_for_now_still_exist``); a new one fails the test.
 KNOBS_ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {}
@@ -427,7 +433,7 @@ def test_the_checker_finds_circles_and_forbidden_edges():
 
 def test_no_sys_modules_aliasing():
     """No module path is made importable under a second name, and no module plants names in its own globals."""
-    found = module_aliasing(_sources(PACKAGES))
+    found = [m for m in module_aliasing(_sources(PACKAGES)) if m.split(":")[0] not in SYS_MODULES_WRITERS]
     assert not found, "writes into sys.modules or globals() (aliases, shims): " + ", ".join(found)
 
 

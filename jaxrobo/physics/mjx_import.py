@@ -14,11 +14,13 @@ It reaches into MJX's private mesh module, so it is guarded: it applies only to 
 (:func:`unavailable` says why). ``tests/test_mjx_import.py`` checks it on the installed version: nothing of trimesh
 or scipy.spatial loaded after the import, a mesh model's hull the same as with the libraries loaded up front.
 
-Public surface: :func:`import_mjx`, :func:`unavailable`, :data:`WRITTEN_FOR`.
+Public surface: :func:`import_mjx`, :func:`unavailable`, :func:`installed_version`, :data:`WRITTEN_FOR`.
 """
 from __future__ import annotations
 
+import functools
 import importlib
+import importlib.metadata
 import importlib.util
 import os
 import re
@@ -33,11 +35,18 @@ _MESH = "mujoco.mjx._src.mesh"
 _DEFERRED = ("trimesh", "scipy.spatial")
 
 
+@functools.lru_cache(maxsize=None)
+def installed_version() -> str | None:
+    """The installed ``mujoco-mjx`` version string, or None if its metadata cannot be found."""
+    try:
+        return importlib.metadata.version("mujoco-mjx")
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
 def unavailable() -> str | None:
     """Why :func:`import_mjx` imports ``mujoco.mjx`` as it is (a sentence), or None when it defers the mesh
     libraries."""
-    from jaxrobo.physics.mjx_lean import installed_version
-
     version = installed_version()
     match = re.match(r"(\d+)\.(\d+)", version or "")
     low, high = WRITTEN_FOR

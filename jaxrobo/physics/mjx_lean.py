@@ -22,15 +22,15 @@ choices. So it travels with tracing, not with the values: :func:`choose` sets th
 step inside ``lean(wanted())``. Since the choice acts while tracing, a function jitted and traced once keeps the
 choice it was traced with; JAX's persistent cache keys on the lowered program, which differs with the choice.
 
-Public surface: :func:`lean`, :func:`choose`, :func:`wanted`, :func:`unavailable`, :data:`WRITTEN_FOR`,
-:func:`installed_version`. Everything with a leading underscore is private (it follows MJX's internals).
+Public surface: :func:`lean`, :func:`choose`, :func:`wanted`, :func:`unavailable`, :data:`WRITTEN_FOR`.
+Everything with a leading underscore is private (it follows MJX's internals).
 """
 from __future__ import annotations
 
 import contextlib
 import contextvars
 import functools
-import importlib.metadata
+import importlib
 import io
 import re
 import warnings
@@ -39,6 +39,7 @@ from typing import Any, Callable, Iterator
 import jax
 import jax.numpy as jnp
 
+from jaxrobo.physics.mjx_import import import_mjx, installed_version
 
 
 class LazyModule:
@@ -56,8 +57,6 @@ class LazyModule:
                 warnings.filterwarnings("ignore", message=".*warp.*")
                 warnings.filterwarnings("ignore", message=".*not actively being maintained.*")
                 if self._name.startswith("mujoco.mjx"):
-                    from jaxrobo.physics.mjx_import import import_mjx
-
                     import_mjx()  # without its mesh libraries, which jaxrobo's robots never call
                 self._module = importlib.import_module(self._name)
         return self._module
@@ -87,15 +86,6 @@ _TRIU = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 _WANTED: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_mjx_lean", default=True)
 _WARNED: set[str] = set()
-
-
-@functools.lru_cache(maxsize=None)
-def installed_version() -> str | None:
-    """The installed ``mujoco-mjx`` version string, or None if its metadata cannot be found."""
-    try:
-        return importlib.metadata.version("mujoco-mjx")
-    except importlib.metadata.PackageNotFoundError:
-        return None
 
 
 def unavailable() -> str | None:
