@@ -71,13 +71,15 @@ def train(env_id: str, seeds: list[int], overrides: dict,
 
 def evaluate(env, disc, q: np.ndarray, key: jax.Array, episodes: int) -> dict[str, np.ndarray]:
     """Every run's greedy table flies the same ``episodes`` goals (drawn from ``key``): per-run ``success``,
-    ``failure``, ``timeout`` rates and ``mean_steps``, each ``[runs]``."""
-    def one(table):
+    ``failure``, ``timeout`` rates and ``mean_steps``, each ``[runs]``. The key is an argument of the compiled
+    flight, not a constant in it: the fresh and the selection flights of one size share one compile."""
+    def one(table, key):
         last = rollout(env, greedy_policy(table, disc), key, episodes)["last"]
         arrived, crashed = last.task.arrived, last.task.crashed
         return {"success": arrived.mean(), "failure": crashed.mean(), "timeout": (~arrived & ~crashed).mean(),
                 "mean_steps": last.steps.mean()}
-    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(one))(jnp.asarray(q)).items()}
+    flights = jax.jit(jax.vmap(one, in_axes=(0, None)))
+    return {k: np.asarray(v) for k, v in flights(jnp.asarray(q), key).items()}
 
 
 def main(argv=None) -> int:

@@ -115,7 +115,7 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     out = tmp_path / "goto.json"
     sets = [f"--set={k}={v}" for k, v in TINY.items()]
     assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--runs", "3", "--episodes", "5", "--seed-base", "7",
-                               "--select-episodes", "3", "--out", str(out), *sets]) == 0
+                               "--select-episodes", "5", "--out", str(out), *sets]) == 0
     data = json.loads(out.read_text())
     per_run = data["fresh_success_per_run"]
     assert data["env"] == "QuadcopterGoto-v2" and data["runs"] == 3 and len(per_run) == 3
@@ -133,7 +133,7 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     # --seeds retrains chosen seeds (e.g. a larger run's worst): each run depends on its own seed only.
     again = tmp_path / "again.json"
     assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--seeds", "9,7", "--episodes", "5",
-                               "--select-episodes", "3", "--out", str(again), *sets]) == 0
+                               "--select-episodes", "5", "--out", str(again), *sets]) == 0
     chosen = json.loads(again.read_text())
     assert chosen["seeds"] == [9, 7] and chosen["runs"] == 2
     assert chosen["fresh_success_per_run"] == [per_run[2], per_run[0]]
@@ -141,7 +141,7 @@ def test_benchmark_tiny_run_reports_every_run_and_their_median(tmp_path, capsys)
     # nominal physics, so the same tables arrive as often; a key of the learner or the loop is refused.
     flown = tmp_path / "flown.json"
     assert goto_learning.main(["--env", "QuadcopterGoto-v2", "--seeds", "9,7", "--episodes", "5",
-                               "--select-episodes", "3", "--out", str(flown), "--fly-set", "randomise=true",
+                               "--select-episodes", "5", "--out", str(flown), "--fly-set", "randomise=true",
                                *sets]) == 0
     flown = json.loads(flown.read_text())
     assert flown["fly_overrides"] == ["randomise=true"]
