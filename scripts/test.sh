@@ -38,6 +38,13 @@ set -- ${args[@]+"${args[@]}"}
 for arg in "$@"; do
   case "$arg" in --pdb|--trace|no:xdist|-pno:xdist) xdist=() ;; esac
 done
+# Each xdist worker compiles into a cache folder of its own (tests/conftest.py says why). Before a session, while no
+# worker writes, each folder takes the entries the others wrote in earlier sessions, so a program compiled once
+# (CI's first tier, then its slow tier) is found whichever worker compiled it.
+cache=${JAXROBO_TEST_CACHE:-.jax_cache/tests}
+for d in "$cache"/gw*/; do
+  for o in "$cache"/gw*/; do [ "$d" = "$o" ] || cp -rn "$o". "$d" 2>/dev/null || true; done
+done
 set +e
 # --durations: the slowest tests in every log, where the suite's time goes (kept under ~20 min on 2 cores).
 python -m pytest ${xdist[@]+"${xdist[@]}"} ${tier[@]+"${tier[@]}"} --durations=25 "$@"
