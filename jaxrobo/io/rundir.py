@@ -34,7 +34,6 @@ import sys
 import tempfile
 from typing import IO, Any, Callable, Iterator
 
-
 from jaxrobo.core.config import ConfigError
 
 #: The training carry of an unfinished run (see :func:`jaxrobo.training.checkpoint.save_checkpoint`), or a sweep's
