@@ -180,13 +180,17 @@ class Listener:
             self.got.append(msg)
             self.cv.notify_all()
 
-    def connected(self, timeout=BOUND) -> bool:
-        """Whether a publisher of the topic has connected to this subscriber (rospy connects in the background: a
-        message published before the connection is not delivered)."""
+    def connected_to(self, uri: str, timeout=BOUND) -> bool:
+        """Whether the publisher of node ``uri`` (:func:`node_uri`) has connected to this subscriber: rospy connects
+        in the background, a message published before the connection is not delivered, and another node's
+        connection (a node of an earlier test still shutting down) says nothing of this one's."""
+        def linked() -> bool:
+            return any(getattr(c, "endpoint_id", None) == uri for c in list(self.sub.impl.connections or ()))
+
         end = time.monotonic() + timeout
-        while self.sub.get_num_connections() < 1 and time.monotonic() < end:
+        while not linked() and time.monotonic() < end:
             time.sleep(0.05)
-        return self.sub.get_num_connections() >= 1
+        return linked()
 
     def wait(self, n, timeout=30.0):
         end = time.monotonic() + timeout
@@ -194,6 +198,26 @@ class Listener:
             while len(self.got) < n and time.monotonic() < end:
                 self.cv.wait(0.05)
         return len(self.got) >= n
+
+
+def node_uri(proc, name: str, timeout=BOUND) -> str:
+    """The XML-RPC URI of the ROS node ``name`` that process ``proc`` runs, once it has registered with the master
+    (the master may still list a node of the same name from an earlier test: its pid tells them apart)."""
+    from xmlrpc.client import ServerProxy
+
+    import rosgraph
+
+    master = rosgraph.Master("/jaxrobo_test_lookup")
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            uri = master.lookupNode(name)
+            if ServerProxy(uri).getPid("/jaxrobo_test_lookup")[2] == proc.pid:
+                return uri
+        except Exception:  # not registered yet, or the URI of a node that has gone
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"node {name} (pid {proc.pid}) did not register within {timeout} s:\n{log(proc)}")
 
 
 @needs_ros
@@ -225,7 +249,7 @@ def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
                    str(results), name="goto_sim")
     # In lockstep no episode ends before the policy node answers: starting it once the sim's /openai/reward has
     # reached this listener keeps the first episode's message (one CI run on a loaded machine lost it)
-    assert rewards.connected(), log(sim)
+    assert rewards.connected_to(node_uri(sim, "/jaxrobo_sim")), log(sim)
     policy = ros.policy(goto_export, "--stats", str(stats), name="goto_policy")
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
@@ -448,9 +472,11 @@ def test_drone_node_builds_the_training_observation_from_messages(ros, goto_expo
             for k in ("odom", *SONARS)}
     policy = ros.node("policy", goto_export, "--topics", str(topics), name="goal_param_policy")
     try:
+        # this test's readings reach the node, and the node's commands this listener (not another node's)
+        assert commands.connected_to(node_uri(policy, "/jaxrobo_policy")), log(policy)
         end = time.monotonic() + BOUND
-        while (any(p.get_num_connections() == 0 for p in pubs.values())
-               or commands.sub.get_num_connections() == 0) and time.monotonic() < end:
+        while any(all(getattr(c, "endpoint_id", None) != "/jaxrobo_policy" for c in list(p.impl.connections or ()))
+                  for p in pubs.values()) and time.monotonic() < end:
             time.sleep(0.05)
         rng = np.random.default_rng(0)
         for k in range(6):
