@@ -220,6 +220,18 @@ def node_uri(proc, name: str, timeout=BOUND) -> str:
     raise AssertionError(f"node {name} (pid {proc.pid}) did not register within {timeout} s:\n{log(proc)}")
 
 
+def subscribed_by(pub, caller_id: str, timeout=BOUND) -> bool:
+    """Whether node ``caller_id`` has connected to the publisher ``pub`` of this process: another subscriber (this
+    process's own, an earlier test's node) connected first says nothing of it."""
+    def linked() -> bool:
+        return any(getattr(c, "endpoint_id", None) == caller_id for c in list(pub.impl.connections or ()))
+
+    end = time.monotonic() + timeout
+    while not linked() and time.monotonic() < end:
+        time.sleep(0.01)
+    return linked()
+
+
 @needs_ros
 def test_policy_node_imports_no_jax(goto_export, cartpole_export):
     """The policy node from an export: its module, the export's runner and robot section, rospy; no JAX, no task
@@ -387,9 +399,7 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, goto_export, tm
         assert "stopping the robot (zero command): no new /cartpole_v0/joint_states" in log(policy)
         # the node acts again on fresh readings (here from this test), then a NaN stops it at once
         pub = rospy.Publisher("/cartpole_v0/joint_states", JointState, queue_size=10)
-        end = time.monotonic() + 10
-        while pub.get_num_connections() == 0 and time.monotonic() < end:
-            time.sleep(0.01)
+        assert subscribed_by(pub, "/jaxrobo_policy"), log(policy)
 
         def joints(t, pole=0.01):
             m = JointState(name=["foot_joint", "pole_joint"], position=[0.0, pole], velocity=[0.0, 0.0])
@@ -474,10 +484,7 @@ def test_drone_node_builds_the_training_observation_from_messages(ros, goto_expo
     try:
         # this test's readings reach the node, and the node's commands this listener (not another node's)
         assert commands.connected_to(node_uri(policy, "/jaxrobo_policy")), log(policy)
-        end = time.monotonic() + BOUND
-        while any(all(getattr(c, "endpoint_id", None) != "/jaxrobo_policy" for c in list(p.impl.connections or ()))
-                  for p in pubs.values()) and time.monotonic() < end:
-            time.sleep(0.05)
+        assert all(subscribed_by(p, "/jaxrobo_policy") for p in pubs.values()), log(policy)
         rng = np.random.default_rng(0)
         for k in range(6):
             t = rospy.Time.from_sec(10.0 + 0.3 * k)
