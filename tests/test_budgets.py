@@ -7,7 +7,6 @@ import json
 import re
 import time
 
-import jax
 import numpy as np
 import pytest
 
