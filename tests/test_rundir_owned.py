@@ -267,19 +267,24 @@ def test_export_into_the_run_itself_is_refused(done, tmp_path, capsys):
 
 
 # ---- a stop during the evaluation keeps the finished training ------------------------------------------------------
+def _sigint_in_the_evaluation(real):
+    """``driver.evaluate_tables`` (``real``) with a SIGINT raised at its first segment, as a Ctrl-C there would."""
+    def signalled(trainer, runner, key, env_params, progress=None, flights=None):
+        def first_segment(p):
+            signal.raise_signal(signal.SIGINT)
+            progress(p)
+        return real(trainer, runner, key, env_params, first_segment, flights)
+
+    return signalled
+
+
 def test_a_stop_during_the_evaluation_keeps_the_training_and_resume_only_evaluates(tmp_path, monkeypatch, capsys,
                                                                                   done):
     from jaxrobo.training import driver
 
     from test_resume import _assert_same_run, _counting_chunks
 
-    real = driver.evaluate_tables
-
-    def signalled(trainer, runner, key, env_params, progress=None, flights=None):
-        def first_segment(p):
-            signal.raise_signal(signal.SIGINT)
-            progress(p)
-        return real(trainer, runner, key, env_params, first_segment, flights)
+    signalled = _sigint_in_the_evaluation(driver.evaluate_tables)
 
     out = str(tmp_path / "run")
     with monkeypatch.context() as patch:
@@ -322,13 +327,7 @@ def test_a_stop_while_the_closing_checkpoint_is_written_loses_nothing(tmp_path, 
 
     from test_resume import _assert_same_run, _counting_chunks
 
-    real = driver.evaluate_tables
-
-    def signalled(trainer, runner, key, env_params, progress=None, flights=None):
-        def first_segment(p):
-            signal.raise_signal(signal.SIGINT)
-            progress(p)
-        return real(trainer, runner, key, env_params, first_segment, flights)
+    signalled = _sigint_in_the_evaluation(driver.evaluate_tables)
 
     out = str(tmp_path / "run")
     with monkeypatch.context() as patch:

@@ -45,7 +45,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import importlib.metadata
 import re
 import warnings
 from typing import Any, Callable, Iterator
@@ -53,6 +52,8 @@ from typing import Any, Callable, Iterator
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaxrobo.core.version import installed
 
 #: The ``brax`` versions both tricks were written and tested for: ``[low, high)`` as (major, minor).
 WRITTEN_FOR = ((0, 14), (0, 15))
@@ -66,13 +67,9 @@ class BraxCompatError(RuntimeError):
     """The installed Brax does not have the internals a jaxrobo trick needs (the message names the version)."""
 
 
-@functools.lru_cache(maxsize=None)
 def installed_version() -> str | None:
     """The installed ``brax`` version string, or None if its metadata cannot be found."""
-    try:
-        return importlib.metadata.version("brax")
-    except importlib.metadata.PackageNotFoundError:
-        return None
+    return installed("brax")
 
 
 def unavailable(version: str | None = None) -> str | None:

@@ -18,15 +18,15 @@ Public surface: :func:`import_mjx`, :func:`unavailable`, :func:`installed_versio
 """
 from __future__ import annotations
 
-import functools
 import importlib
-import importlib.metadata
 import importlib.util
 import os
 import re
 import sys
 import types
 from typing import Any
+
+from jaxrobo.core.version import installed
 
 #: The ``mujoco-mjx`` versions this was written and tested for: ``[low, high)`` as (major, minor).
 WRITTEN_FOR = ((3, 17), (3, 18))
@@ -35,13 +35,9 @@ _MESH = "mujoco.mjx._src.mesh"
 _DEFERRED = ("trimesh", "scipy.spatial")
 
 
-@functools.lru_cache(maxsize=None)
 def installed_version() -> str | None:
     """The installed ``mujoco-mjx`` version string, or None if its metadata cannot be found."""
-    try:
-        return importlib.metadata.version("mujoco-mjx")
-    except importlib.metadata.PackageNotFoundError:
-        return None
+    return installed("mujoco-mjx")
 
 
 def unavailable() -> str | None:
