@@ -45,7 +45,7 @@ def test_for_run_derives_the_choices_per_device():
 
     gpu = ExecutionPlan.for_run(spec.env, spec.config, "gpu")
     assert gpu == ExecutionPlan(env_group=262_144, unrolled_groups=4, lean_mjx=True, reset_capacity=12,
-                                carry_rows=False)
+                                carry_rows=False, compile_beside=True)
     assert ExecutionPlan.for_run(spec.env, spec.config.replace(env_group=5), "gpu").env_group == 5
     for backend in ("analytic", "generalized"):  # a closed form, Brax's pipelines: the whole batch
         other = _spec(backend)
@@ -137,8 +137,9 @@ def test_repr_is_short_and_names_every_choice():
     assert json.loads(json.dumps(fast.to_dict())) == {
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
         "fused": "off", "fused_block": None, "task_kernel": False, "skip_resets": True, "group_resets": True,
-        "fast_sincos": True, "ordered_sums": False, "devices": 1, "compiler_options": FAST}
+        "fast_sincos": True, "ordered_sums": False, "devices": 1, "compile_beside": False, "compiler_options": FAST}
     assert repr(plan.replace(devices=2)).endswith("carry_rows=on, devices=2)")  # named only when more than one
+    assert repr(plan.replace(compile_beside=True)).endswith("carry_rows=on, compile_beside=on)")  # only when on
     # The whole-chunk kernel's choices: named only when off under fused="pallas", where they are read.
     kernel = plan.replace(fused="pallas", fused_block=16, group_resets=False, fast_sincos=False)
     assert repr(kernel).endswith("fused=pallas, fused_block=16, group_resets=off, fast_sincos=off)")
@@ -192,10 +193,12 @@ def test_map_groups_applies_fn_slice_by_slice():
 
 
 # ---- the plan reaches every consumer and changes no value -----------------------------------------------------
-def test_train_under_another_plan_gives_the_recorded_values(monkeypatch):
+@pytest.mark.parametrize("beside", [False, True])
+def test_train_under_another_plan_gives_the_recorded_values(monkeypatch, beside):
     """Groups of 3 (one written out, then a loop), one gathered reset per step, no carried rows and stock MJX give
     the values recorded before the plan existed (the fingerprint of the closed-form cart-pole case), and
-    ``train`` hands its plan to the trainer and traces under it."""
+    ``train`` hands its plan to the trainer and traces under it; so does the evaluation compiled beside the
+    training chunk (``compile_beside``)."""
     import importlib.util
 
     path = os.path.join(ROOT, "scripts", "fingerprints.py")
@@ -207,7 +210,8 @@ def test_train_under_another_plan_gives_the_recorded_values(monkeypatch):
     case = next(c for c in fingerprints.cases() if fingerprints.name(c) ==
                 "CartPoleStayUp-v0/default/qlearn/env.backend=analytic")
     spec = resolve(case["env_id"], case["preset"], {**fingerprints.SMALL, **case["extra"]}, agent=case["agent"])
-    plan = ExecutionPlan(env_group=3, unrolled_groups=1, lean_mjx=False, reset_capacity=1, carry_rows=False)
+    plan = ExecutionPlan(env_group=3, unrolled_groups=1, lean_mjx=False, reset_capacity=1, carry_rows=False,
+                         compile_beside=beside)
     built, chosen = [], []
     init, choose = Trainer.__init__, mjx_lean.choose
 

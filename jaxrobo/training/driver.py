@@ -331,15 +331,17 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         if initial is None else initial
     # Read before the first chunk takes the carry's buffers: a resumed run's steps/s counts this process's steps.
     restored = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64).sum())
-    chunk = compiled_chunk(trainer, runner, agent_params, env_params)
-    stats = compiled_progress(runner, trainer)
     flights = Flights(trainer, env_params)
     check_every, checks = trainer.target_every(), []
     check = target_check(trainer, flights, key, checks) if check_every else None
-    preparing = None
-    if (check_every or config.eval_episodes) and trainer.plan.devices == 1:
-        preparing = prepare_evaluation(trainer, flights, runner, key)  # compiled while the first chunks train
+    prepare = (check_every or config.eval_episodes) and trainer.plan.devices == 1
+    beside = prepare and trainer.plan.compile_beside  # see ExecutionPlan: beside the chunk's compile, or after it
+    preparing = [prepare_evaluation(trainer, flights, runner, key)] if beside else []
     with _joined(preparing):
+        chunk = compiled_chunk(trainer, runner, agent_params, env_params)
+        stats = compiled_progress(runner, trainer)
+        if prepare and not beside:  # compiled while the first chunks train
+            preparing.append(prepare_evaluation(trainer, flights, runner, key))
         jax.block_until_ready(runner)
         compile_seconds = time.perf_counter() - t0
 
@@ -406,14 +408,14 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
 
 
 @contextlib.contextmanager
-def _joined(thread: threading.Thread | None) -> Iterator[None]:
-    """Wait for ``thread`` on the way out, however the block ends: a run that stops (or fails) while the
-    evaluation still compiles would otherwise end its process with a thread inside XLA's compiler, which the C++
-    runtime aborts when the thread comes back."""
+def _joined(threads: list[threading.Thread]) -> Iterator[None]:
+    """Wait for ``threads`` (those in the list when the block ends) on the way out, however the block ends: a run
+    that stops (or fails) while the evaluation still compiles would otherwise end its process with a thread inside
+    XLA's compiler, which the C++ runtime aborts when the thread comes back."""
     try:
         yield
     finally:
-        if thread is not None:
+        for thread in threads:
             thread.join()
 
 
