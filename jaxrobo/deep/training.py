@@ -429,13 +429,15 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
         t0 = time.perf_counter()
         if timer["evaluate"] is None:
             timer["evaluate"] = evaluate(spec.env, benv, make_policy, c.eval_episodes, length)
-        res = jax.device_get(timer["evaluate"](params, jax.random.fold_in(key, len(evaluations))))
+        # The host copy is evaluated: the trainer hands its first parameters and its trained ones with other
+        # shardings, and the jitted evaluation would compile again for the second kind.
+        host = jax.device_get(params)
+        res = jax.device_get(timer["evaluate"](host, jax.random.fold_in(key, len(evaluations))))
         row = {k: np.asarray(v) for k, v in res.items()}
         row["env_steps"] = int(step)
         row["seconds"] = train_seconds(t0)
         evaluations.append(row)
         timer["eval"] += time.perf_counter() - t0
-        host = jax.device_get(params)
         if c.agent == "ppo" and step != 0:
             pending["params"] = host  # PPO hands its training metrics over next, in progress_fn
         else:
