@@ -2,7 +2,7 @@
 evaluation (Brax's own ``training.wrap`` and ``EvalWrapper``, which adds a ``reward`` metric), MuJoCo Playground's
 training wrapper inside ``ppo.train``, and the Gymnasium envs through stdlib ``pickle`` and a ``multiprocessing``
 pool (what SB3's ``SubprocVecEnv`` and user pools do). SB3 itself needs PyTorch, which the test extra does not
-carry."""
+carry: tests/test_sb3.py runs it where the sb3 extra is installed (CI installs it)."""
 from __future__ import annotations
 
 import functools

@@ -188,19 +188,40 @@ def test_a_process_that_never_joins_is_one_line_exit_2(process_id):
     assert "JAXROBO_INIT_TIMEOUT=1 s" in line
 
 
-@pytest.mark.parametrize("family", ["ipv4", "ipv6-only"])
+@pytest.mark.parametrize("family", ["ipv4", "ipv6-only", "reuseport"])
 def test_a_coordinator_port_in_use_is_one_line_exit_2(family):
-    """A port another program listens on, over IPv4 or over IPv6 alone (JAX's service binds both)."""
+    """A port another program listens on, over IPv4, over IPv6 alone (JAX's service binds both), or with
+    SO_REUSEPORT as a gRPC server (another JAX coordinator) binds: JAX's service would then share the port, and its
+    peers register with the other program, so the join fails later with a message that blames them."""
     import socket
 
     if family == "ipv6-only" and not socket.has_ipv6:
         pytest.skip("no IPv6 on this host")
-    with socket.socket(socket.AF_INET if family == "ipv4" else socket.AF_INET6, socket.SOCK_STREAM) as taken:
-        if family != "ipv4":
+    with socket.socket(socket.AF_INET6 if family == "ipv6-only" else socket.AF_INET, socket.SOCK_STREAM) as taken:
+        if family == "ipv6-only":
             taken.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
-        taken.bind(("" if family == "ipv4" else "::", 0))
+        if family == "reuseport":
+            taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        taken.bind(("::" if family == "ipv6-only" else "", 0))
         taken.listen(1)
         port = taken.getsockname()[1]
         line = _one_line_exit_2({"JAXROBO_COORDINATOR": f"127.0.0.1:{port}", "JAXROBO_NUM_PROCESSES": "2",
                                  "JAXROBO_PROCESS_ID": "0", "JAXROBO_INIT_TIMEOUT": "1"})
-    assert f"port {port} is already in use" in line and "JAXROBO_COORDINATOR" in line
+    assert line.endswith(f"JAXROBO_COORDINATOR='127.0.0.1:{port}': port {port} is already in use on this host "
+                         "(process 0 serves the coordinator there); choose a free port")
+
+
+def test_a_coordinator_port_held_by_another_program_is_one_line_exit_2_for_process_1():
+    """For process 1 the port is the coordinator's, in use by design: a program there that is not JAX's
+    coordinator (it accepts the connection and never answers) ends the join at JAXROBO_INIT_TIMEOUT, in one line."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(4)
+        port = taken.getsockname()[1]
+        line = _one_line_exit_2({"JAXROBO_COORDINATOR": f"127.0.0.1:{port}", "JAXROBO_NUM_PROCESSES": "2",
+                                 "JAXROBO_PROCESS_ID": "1", "JAXROBO_INIT_TIMEOUT": "1"})
+    assert line == (f"jaxrobo train: JAXROBO_COORDINATOR='127.0.0.1:{port}': the 2 processes (JAXROBO_NUM_PROCESSES) "
+                    "did not all join within JAXROBO_INIT_TIMEOUT=1 s: process 1 could not register with the "
+                    "coordinator")
