@@ -231,7 +231,7 @@ def test_the_written_out_goto_control_step_is_the_closed_form_bit_for_bit():
     """Goto's host control step (rigid) is the controller and ``dynamics.physics_step`` on Python floats, written
     out once (``straight_line``, its ``where`` as conditional expressions): the same floats as calling them."""
     from envs.quadcopter.dynamics import controller, physics_step
-    from envs.quadcopter.geometry import ScalarMath
+    from jaxrobo.core.scalar import FLOATS
 
     host = JaxroboEnv("QuadcopterGoto-v1", engine="numpy")._host
     rng = np.random.default_rng(5)
@@ -241,7 +241,7 @@ def test_the_written_out_goto_control_step_is_the_closed_form_bit_for_bit():
         v, command = rng.uniform(-2.0, 2.0, 6).tolist(), rng.uniform(-1.0, 1.0, 4).tolist()
         got = host.advance(*q, *v, *command)
         for _ in range(host.n_substeps):
-            q, v = physics_step(ScalarMath, host.body, q, v, controller(ScalarMath, host.control, q, v, command))
+            q, v = physics_step(FLOATS, host.body, q, v, controller(FLOATS, host.control, q, v, command))
         assert list(got) == q + v
 
 

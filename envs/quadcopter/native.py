@@ -20,7 +20,8 @@ import numpy as np
 
 from envs.quadcopter import goto_step
 from envs.quadcopter.dynamics import controller
-from envs.quadcopter.geometry import ScalarMath, euler
+from envs.quadcopter.geometry import euler
+from jaxrobo.api import scalar
 from jaxrobo.interop.numpy_policy import QuadcopterIO
 from jaxrobo.interop.native import NativeSim
 
@@ -54,7 +55,7 @@ class NativeGoto(NativeSim):
     def controller(self, command: np.ndarray) -> np.ndarray:
         """Twist -> rotor thrusts (N): :func:`envs.quadcopter.dynamics.controller` on float64 scalars."""
         q, v = self.data.qpos.tolist(), self.data.qvel.tolist()
-        return np.array(controller(ScalarMath, self.control, q, v, [float(x) for x in command]), np.float64)
+        return np.array(controller(scalar.FLOATS, self.control, q, v, [float(x) for x in command]), np.float64)
 
     # ---- task -------------------------------------------------------------------------------------------
     def _observe(self, goal: np.ndarray, obstacles: dict) -> tuple:
