@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import gymnasium
 from gymnasium.envs.registration import EnvSpec
@@ -18,7 +19,10 @@ from gymnasium.envs.registration import EnvSpec
 NAMESPACE = "jaxrobo"
 #: The module holding the single and vector env classes the registrations name.
 ADAPTER = "jaxrobo.interop.gym_adapter"
-_UNREAD = object()
+
+
+class _Unread:
+    """A step limit not read yet (a class, so that a copy or a pickle of a spec keeps it as it is)."""
 
 
 class JaxroboSpec(EnvSpec):
@@ -27,12 +31,17 @@ class JaxroboSpec(EnvSpec):
     default's one home is the task module, and importing it imports JAX and MuJoCo, which ``import jaxrobo`` does
     not. ``gymnasium.make`` asks after building the env, so its ``TimeLimit`` ends episodes at the task's limit."""
 
+    def __init__(self, *args: Any, jaxrobo_id: str | None = None, **fields: Any):
+        # The id apart from ``kwargs``, which ``gymnasium.make_vec`` empties on its copy before it reads the limit.
+        self.jaxrobo_id = jaxrobo_id
+        super().__init__(*args, **fields)
+
     @property
     def max_episode_steps(self) -> int | None:
-        if self._max_episode_steps is _UNREAD:
+        if self._max_episode_steps is _Unread:
             from jaxrobo.task.registry import spec
 
-            self._max_episode_steps = spec(self.kwargs["env_id"]).max_episode_steps
+            self._max_episode_steps = spec(self.jaxrobo_id).max_episode_steps
         return self._max_episode_steps
 
     @max_episode_steps.setter
@@ -74,7 +83,7 @@ def register_gymnasium_id(env_id: str) -> str | None:
                            kwargs={"env_id": env_id})
         plain = gymnasium.registry[name]
         fields = {f.name: getattr(plain, f.name) for f in dataclasses.fields(plain) if f.init}
-        gymnasium.registry[name] = JaxroboSpec(**{**fields, "max_episode_steps": _UNREAD})
+        gymnasium.registry[name] = JaxroboSpec(**{**fields, "max_episode_steps": _Unread}, jaxrobo_id=env_id)
     return gid
 
 
