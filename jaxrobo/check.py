@@ -585,7 +585,8 @@ class _Checker:
         import gymnasium
         from gymnasium.utils.env_checker import check_env as gym_check_env
 
-        from jaxrobo.interop.gym_adapter import JaxroboEnv, gym_id, register_gymnasium_id
+        from jaxrobo.interop.gym_adapter import JaxroboEnv
+        from jaxrobo.interop.gym_ids import gym_id, register_gymnasium_id
         from jaxrobo.task.registry import registration
 
         if self.env_id is not None:
@@ -597,7 +598,7 @@ class _Checker:
                 register_gymnasium_id(bare)
             if gid not in gymnasium.registry:
                 return _skip(f"{gid} is not registered with Gymnasium (call "
-                             "jaxrobo.interop.gym_adapter.register_gymnasium_envs() after registering it)")
+                             "jaxrobo.interop.gym_ids.register_gymnasium_envs() after registering it)")
             genv = gymnasium.make(gid).unwrapped
             what = f"gymnasium.make({gid!r})"
         else:

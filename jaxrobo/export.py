@@ -312,8 +312,8 @@ def _top_names(tree: ast.Module) -> set[str]:
 def runner_source(root: str = RUNNER_MODULE) -> str:
     """``jaxrobo_policy.py``: the source of :mod:`jaxrobo.interop.numpy_policy` with the JAX-free task modules it
     imports (the Goto task's geometry and observation: :mod:`envs.quadcopter.geometry`,
-    :mod:`envs.quadcopter.goto_step`; the cart-pole's command and observation: :mod:`envs.cartpole.rules`) written
-    in before it, dependencies first, as one module: the runner computes
+    :mod:`envs.quadcopter.goto_step`; the cart-pole's command and observation: :mod:`envs.cartpole.rules`;
+    the Python-float math they run on, :mod:`jaxrobo.core.scalar`) written in before it, dependencies first, as one module: the runner computes
     with the task's own functions and still needs nothing but numpy. A module so written in may be imported only
     by ``from module import name`` of names it defines at its top level (they share one namespace), and no two
     may define the same name: anything else is refused (``RuntimeError``), not written."""
@@ -359,7 +359,8 @@ def runner_source(root: str = RUNNER_MODULE) -> str:
                 continue
             drop.update(range(node.lineno - 1, node.end_lineno))
         body = "\n".join(line for i, line in enumerate(lines) if i not in drop).strip("\n")
-        why = "" if name == root else ": the task's own source, written in by jaxrobo export"
+        owner = "the task" if name.split(".")[0] == "envs" else "jaxrobo"
+        why = "" if name == root else f": {owner}'s own source, written in by jaxrobo export"
         parts.append(f"# ---- {name}{why} ----\n{body}")
     out = [head + "from __future__ import annotations"] + parts
     return "\n\n\n".join(out) + "\n"

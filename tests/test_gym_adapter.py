@@ -20,7 +20,7 @@ from gymnasium.utils.env_checker import check_env, data_equivalence
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 import jaxrobo
-from jaxrobo.interop import gym_adapter
+from jaxrobo.interop import gym_adapter, gym_ids
 from jaxrobo.interop.gym_adapter import InvalidActionError, JaxroboEnv, JaxroboVectorEnv
 from jaxrobo.task.registry import _lookup
 
@@ -88,14 +88,14 @@ def test_every_id_is_registered_with_its_step_limit():
         assert spec.entry_point == "jaxrobo.interop.gym_adapter:JaxroboEnv"
         assert spec.vector_entry_point == "jaxrobo.interop.gym_adapter:JaxroboVectorEnv"
         assert spec.kwargs == {"env_id": env_id}
-    assert gym_adapter.register_gymnasium_envs() == []  # idempotent
+    assert gym_ids.register_gymnasium_envs() == []  # idempotent
 
 
 def test_registration_is_cheap_and_namespace_needs_import():
     """In a fresh process: Gymnasium does not import a module named after the namespace (so ``gymnasium.make(
     "jaxrobo/...")`` needs ``import jaxrobo`` first, or the ``"jaxrobo:jaxrobo/<id>"`` form); ``import jaxrobo``
-    registers every id without loading any model. (It imports the task modules: each id's step limit is its
-    task's ``Params`` default, the one home of that number.)"""
+    registers every id without loading any model or task module (each id's step limit, its task's ``Params``
+    default, is read when Gymnasium asks for it: ``test_every_id_is_registered_with_its_step_limit``)."""
     code = (
         "import sys, gymnasium as gym, mujoco\n"
         "loaded = []\n"
@@ -105,13 +105,13 @@ def test_registration_is_cheap_and_namespace_needs_import():
         "except gym.error.Error as e:\n    print('NEEDS_IMPORT', type(e).__name__)\n"
         "import jaxrobo\n"
         "ids = [k for k in gym.registry if k.startswith('jaxrobo/')]\n"
-        "print('IDS', len(ids), 'TASKS', loaded)\n"
+        "print('IDS', len(ids), 'TASKS', loaded, sorted(m for m in sys.modules if m.startswith('envs.')))\n"
     )
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "NEEDS_IMPORT NamespaceNotFound" in out.stdout, out.stdout  # Gymnasium 1.x: no namespace auto-import
-    assert f"IDS {len(IDS)} TASKS []" in out.stdout, out.stdout
+    assert f"IDS {len(IDS)} TASKS [] []" in out.stdout, out.stdout
 
 
 def test_module_prefix_form_imports_jaxrobo():
@@ -349,9 +349,9 @@ def test_gym_make_of_every_id_raises_no_warning():
     for name, versions in names.items():
         older = sorted(versions, key=int)[:-1]
         assert all(f"{name}-v{v}" in SUPERSEDED for v in older), f"{name} has versions {versions}"
-    gym_adapter.register_gymnasium_envs()
+    gym_ids.register_gymnasium_envs()
     for env_id in IDS:
-        _clean_make(lambda: gym.make(gym_adapter.gym_id(env_id)), env_id).close()
+        _clean_make(lambda: gym.make(gym_ids.gym_id(env_id)), env_id).close()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         env = gym.make("jaxrobo/CartPoleStayUp-v0", backend="analytic")

@@ -231,7 +231,7 @@ def test_the_written_out_goto_control_step_is_the_closed_form_bit_for_bit():
     """Goto's host control step (rigid) is the controller and ``dynamics.physics_step`` on Python floats, written
     out once (``straight_line``, its ``where`` as conditional expressions): the same floats as calling them."""
     from envs.quadcopter.dynamics import controller, physics_step
-    from envs.quadcopter.geometry import ScalarMath
+    from jaxrobo.core.scalar import FLOATS
 
     host = JaxroboEnv("QuadcopterGoto-v1", engine="numpy")._host
     rng = np.random.default_rng(5)
@@ -241,7 +241,7 @@ def test_the_written_out_goto_control_step_is_the_closed_form_bit_for_bit():
         v, command = rng.uniform(-2.0, 2.0, 6).tolist(), rng.uniform(-1.0, 1.0, 4).tolist()
         got = host.advance(*q, *v, *command)
         for _ in range(host.n_substeps):
-            q, v = physics_step(ScalarMath, host.body, q, v, controller(ScalarMath, host.control, q, v, command))
+            q, v = physics_step(FLOATS, host.body, q, v, controller(FLOATS, host.control, q, v, command))
         assert list(got) == q + v
 
 
@@ -253,3 +253,20 @@ def test_straight_line_refuses_a_branch_on_a_computed_value():
     assert pick(4.0, 1.0) == (2.0,) and pick(1.0, 1.0) == (np.arctan2(1.0, 1.0),)
     with pytest.raises(TypeError, match="branches on a value it computes"):
         straight_line(lambda xp, a: (a if a else 1.0,), ("a",))
+
+
+def test_straight_line_writes_out_every_function_of_floats():
+    """``FLOATS`` is the one Python-float ``xp`` (host steps, native ports, the exported runner): each of its
+    functions, written out by ``straight_line``, gives the same float as called."""
+    from jaxrobo.core.scalar import FLOATS, straight_line
+
+    calls = {"sin": lambda xp, a, b: xp.sin(a), "cos": lambda xp, a, b: xp.cos(a),
+             "minimum": lambda xp, a, b: xp.minimum(a, b), "maximum": lambda xp, a, b: xp.maximum(a, b),
+             "where": lambda xp, a, b: xp.where(a < b, a * 3.0, b), "clip": lambda xp, a, b: xp.clip(a, -0.25, b),
+             "abs": lambda xp, a, b: xp.abs(a), "sqrt": lambda xp, a, b: xp.sqrt(xp.abs(b)),
+             "arctan2": lambda xp, a, b: xp.arctan2(a, b), "arcsin": lambda xp, a, b: xp.arcsin(xp.clip(a, -1.0, 1.0))}
+    assert set(calls) == set(vars(FLOATS))
+    for name, call in calls.items():
+        written = straight_line(lambda xp, a, b, call=call: (call(xp, a, b),), ("a", "b"))
+        for a, b in ((0.3, 0.7), (-0.9, 0.2), (1.5, -2.0)):
+            assert written(a, b) == (call(FLOATS, a, b),), (name, a, b)

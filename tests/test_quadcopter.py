@@ -267,11 +267,11 @@ def test_sonar_sees_obstacle_ahead_and_ground_below():
 
 
 def test_controller_on_python_floats_is_numpys_float64():
-    """The native port runs the controller on Python floats (``ScalarMath``): numpy's float64 values on the same
+    """The native port runs the controller on Python floats (``FLOATS``): numpy's float64 values on the same
     states to float64 round-off (numpy's vector atan2/asin are another implementation), and the float32 JAX
     controller's to its round-off."""
     from envs.quadcopter.dynamics import controller
-    from envs.quadcopter.geometry import ScalarMath
+    from jaxrobo.core.scalar import FLOATS
 
     robot = Quadcopter("rigid", running_step=0.3, min_altitude=0.3)
     rs = np.random.default_rng(0)
@@ -279,7 +279,7 @@ def test_controller_on_python_floats_is_numpys_float64():
     q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
     v, cmd = rs.normal(size=(64, 6)), rs.uniform(-1, 1, (64, 4))
     vector = np.stack(controller(np, robot.control, list(q.T), list(v.T), list(cmd.T)), axis=1)
-    scalar = np.array([controller(ScalarMath, robot.control, qi.tolist(), vi.tolist(), ci.tolist())
+    scalar = np.array([controller(FLOATS, robot.control, qi.tolist(), vi.tolist(), ci.tolist())
                        for qi, vi, ci in zip(q, v, cmd)])
     assert scalar.dtype == np.float64
     np.testing.assert_allclose(scalar, vector, rtol=1e-13, atol=1e-13)

@@ -100,23 +100,3 @@ def test_task_step_modules_import_no_jax():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]", out.stdout
-
-
-def test_quadcopter_port_imports_no_jax():
-    """The quadcopter's port imports no JAX below a bare ``jaxrobo`` package (its ``__init__`` registers the
-    Gymnasium ids, through the registry, which is JAX's side): imported in a fresh process, ``jax`` is never
-    loaded."""
-    import subprocess
-    import sys
-
-    code = ("import os, sys, types\n"
-            "for name in ('jaxrobo',):\n"
-            "    pkg = types.ModuleType(name)\n"
-            "    pkg.__path__ = [os.path.join(sys.argv[1], name)]\n"
-            "    sys.modules[name] = pkg\n"
-            "import envs.quadcopter.native, envs.quadcopter.geometry, envs.quadcopter.dynamics\n"
-            "import envs.quadcopter.goto_step\n"
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib')))\n")
-    out = subprocess.run([sys.executable, "-c", code, ROOT], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]", out.stdout

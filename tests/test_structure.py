@@ -431,6 +431,30 @@ def test_the_checker_finds_circles_and_forbidden_edges():
     assert not forbidden(e("jaxrobo.training.driver", "jaxrobo.training.trainer"))
 
 
+def test_import_jaxrobo_loads_no_jax():
+    """In a fresh process, ``import jaxrobo``, ``import envs`` and a native port (``envs.quadcopter.native``) load
+    neither JAX nor MJX, yet every id is registered with Gymnasium and :class:`ConfigError` and the registry work;
+    the package root's JAX names load on first access, ``dir`` lists them, and ``gymnasium.make`` builds the env
+    (importing JAX then) with the task's step limit, which its spec reads when asked, also from a copy."""
+    import subprocess
+
+    code = ("import sys, gymnasium as gym\n"
+            "import jaxrobo, envs, envs.quadcopter.native\n"
+            "from jaxrobo.core.config import ConfigError\n"
+            "from jaxrobo.api import register, scalar\n"
+            "assert 'jaxrobo/CartPoleStayUp-v0' in gym.registry and 'CartPoleStayUp-v0' in jaxrobo.registered()\n"
+            "print(sorted(m for m in ('jax', 'jaxlib', 'mujoco.mjx') if m in sys.modules))\n"
+            "print(sorted(set(jaxrobo.__all__) - set(dir(jaxrobo))), jaxrobo.TaskEnv.__module__, 'jax' in sys.modules)\n"
+            "import copy\n"  # gymnasium.make_vec reads the step limit from a deep copy of the spec
+            "print(copy.deepcopy(gym.spec('jaxrobo/CartPoleStayUp-v0')).max_episode_steps)\n"
+            "env = gym.make('jaxrobo/CartPoleStayUp-v0')\n"
+            "print(type(env.unwrapped).__name__, env.spec.max_episode_steps, jaxrobo.spec('CartPoleStayUp-v0').max_episode_steps)\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": ROOT})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.splitlines() == ["[]", "[] jaxrobo.task.env True", "1000", "JaxroboEnv 1000 1000"], out.stdout
+
+
 def test_no_sys_modules_aliasing():
     """No module path is made importable under a second name, and no module plants names in its own globals."""
     found = [m for m in module_aliasing(_sources(PACKAGES)) if m.split(":")[0] not in SYS_MODULES_WRITERS]

@@ -16,7 +16,6 @@ kernel's level and down rays). Any other value (an array, a numpy scalar) is the
 """
 from __future__ import annotations
 
-import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -30,25 +29,6 @@ BOX, CYLINDER = 0, 1
 #: Unit sonar rays in the body frame: forward, forward-left 35°, forward-right 35°, down.
 SONAR_RAYS = np.array([[1.0, 0.0, 0.0], [np.cos(0.61), np.sin(0.61), 0.0], [np.cos(0.61), -np.sin(0.61), 0.0],
                        [0.0, 0.0, -1.0]], np.float32)
-
-
-class ScalarMath:
-    """``xp`` for plain Python floats: :mod:`math` and the built-ins. The native port runs the controller on one
-    env's float64 scalars 30 times per control step, where numpy's functions cost about a microsecond a call on
-    a 0-d value; these compute float64 values in a fraction of it (equal to numpy's to float64 round-off: numpy's
-    vector loops take ``atan2``/``asin`` from another implementation). No ``~`` on their
-    comparisons (a Python bool's ``~`` is an integer's): the controller uses none."""
-
-    where = staticmethod(lambda cond, a, b: a if cond else b)
-    maximum = staticmethod(max)
-    minimum = staticmethod(min)
-    clip = staticmethod(lambda x, low, high: min(max(x, low), high))
-    abs = staticmethod(abs)
-    sqrt = staticmethod(math.sqrt)
-    sin = staticmethod(math.sin)
-    cos = staticmethod(math.cos)
-    arctan2 = staticmethod(math.atan2)
-    arcsin = staticmethod(math.asin)
 
 
 def _known(d: Any) -> bool:

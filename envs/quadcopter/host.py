@@ -4,7 +4,7 @@
 Nothing of the task is written here. The action map, the observation, the outcome and the reward are
 :mod:`envs.quadcopter.goto_step`'s (on :mod:`envs.quadcopter.geometry`), the on-board cascade is
 :func:`envs.quadcopter.dynamics.controller`: the functions the task's hooks, its Pallas kernel and the native port
-(:mod:`envs.quadcopter.native`) run, here on Python floats (:class:`envs.quadcopter.geometry.ScalarMath`). The
+(:mod:`envs.quadcopter.native`) run, here on Python floats (:data:`jaxrobo.core.scalar.FLOATS`). The
 physics is the backend's own on the host:
 
 * ``rigid``: :func:`envs.quadcopter.dynamics.physics_step`, the closed form the JAX path runs, on Python floats,
@@ -25,8 +25,10 @@ import numpy as np
 
 from envs.quadcopter import goto_step
 from envs.quadcopter.dynamics import body_constants, controller, physics_step
-from envs.quadcopter.geometry import ScalarMath as F, euler
+from envs.quadcopter.geometry import euler
 from jaxrobo.api import HostStep, NativeSim, scalar
+
+F = scalar.FLOATS
 
 
 class HostGoto(HostStep):

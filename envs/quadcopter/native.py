@@ -5,12 +5,13 @@ Nothing of the task is ported here. The on-board cascade run before every ``mj_s
 :func:`envs.quadcopter.dynamics.controller`; the level sonars, the outcome (arrival, crash into the ground or an
 obstacle, leaving the workspace, altitude and inclination limits) and the reward are
 :mod:`envs.quadcopter.goto_step`'s (on :mod:`envs.quadcopter.geometry`): the functions the JAX task's hooks and its
-Pallas kernel run, called here with ``xp = numpy`` on float64 scalars. The observation and the command are
+Pallas kernel run, called here on float64 scalars (``xp = numpy``; the controller, 30 times a control step, on
+Python floats: :data:`jaxrobo.core.scalar.FLOATS`). The observation and the command are
 :class:`jaxrobo.interop.numpy_policy.QuadcopterIO`'s, the robot side an export carries (``policy.json``'s ``robot``,
 :meth:`NativeGoto.robot_section`): the port and an exported policy compute them with the same code. Every constant
 is read from the task object the run built (its options, params and robot: mass, inertia, mixing, gains, all
 derived from the MJCF) and the model is the robot's own compiled ``MjModel``; nothing here imports JAX
-(``tests/test_sim2sim.py`` checks it).
+(``tests/test_structure.py`` checks it).
 """
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ import numpy as np
 
 from envs.quadcopter import goto_step
 from envs.quadcopter.dynamics import controller
-from envs.quadcopter.geometry import ScalarMath, euler
+from envs.quadcopter.geometry import euler
+from jaxrobo.api import scalar
 from jaxrobo.interop.numpy_policy import QuadcopterIO
 from jaxrobo.interop.native import NativeSim
 
@@ -54,7 +56,7 @@ class NativeGoto(NativeSim):
     def controller(self, command: np.ndarray) -> np.ndarray:
         """Twist -> rotor thrusts (N): :func:`envs.quadcopter.dynamics.controller` on float64 scalars."""
         q, v = self.data.qpos.tolist(), self.data.qvel.tolist()
-        return np.array(controller(ScalarMath, self.control, q, v, [float(x) for x in command]), np.float64)
+        return np.array(controller(scalar.FLOATS, self.control, q, v, [float(x) for x in command]), np.float64)
 
     # ---- task -------------------------------------------------------------------------------------------
     def _observe(self, goal: np.ndarray, obstacles: dict) -> tuple:

@@ -1,11 +1,16 @@
-"""Python floats as an array module: ``FLOATS`` is the ``xp`` a task's per-coordinate functions take when one env
-steps on the host (:class:`jaxrobo.interop.gym_adapter.JaxroboEnv` with ``engine="numpy"``).
+"""Python floats as an array module: ``FLOATS`` is the ``xp`` a task's per-coordinate functions take on one env's
+float64 scalars: when one env steps on the host (:class:`jaxrobo.interop.gym_adapter.JaxroboEnv` with
+``engine="numpy"``), in a native-MuJoCo port (``envs/*/native.py``: the quadcopter's controller 30 times per control
+step) and in an exported policy's runner (:mod:`jaxrobo.interop.numpy_policy`, which ``jaxrobo export`` writes out
+with this module in it: it imports nothing but the standard library).
 
 One env's state is a handful of numbers; as Python floats (IEEE float64) each operation costs tens of nanoseconds,
-where a numpy scalar costs hundreds and a JAX call microseconds. Only the functions those per-coordinate functions
-use are here. ``minimum``/``maximum`` are Python's ``min``/``max``, which do not propagate a NaN as ``jnp`` does:
-a host step checks its state for non-finite values itself. :func:`straight_line` writes such a function out once
-as plain arithmetic, for a host loop that calls it every step.
+where a numpy function on a 0-d value costs about a microsecond and a JAX call more. The values equal numpy's to
+float64 round-off (numpy's vector loops take ``atan2``/``asin`` from another implementation). Only the functions
+those per-coordinate functions use are here. ``minimum``/``maximum`` are Python's ``min``/``max``, which do not
+propagate a NaN as ``jnp`` does: a host step checks its state for non-finite values itself; ``where`` picks with
+Python's ``if`` (a scalar condition), and a comparison has no ``~`` (a Python bool's is an integer's).
+:func:`straight_line` writes such a function out once as plain arithmetic, for a host loop that calls it every step.
 """
 from __future__ import annotations
 
@@ -13,8 +18,13 @@ import math
 from types import SimpleNamespace
 from typing import Any, Callable, Sequence
 
-#: ``xp`` over Python floats: ``sin``, ``cos``, ``minimum``, ``maximum``.
-FLOATS = SimpleNamespace(sin=math.sin, cos=math.cos, minimum=min, maximum=max)
+def _clip(x: float, low: float, high: float) -> float:
+    return min(max(x, low), high)
+
+
+#: ``xp`` over Python floats: :mod:`math` and the built-ins.
+FLOATS = SimpleNamespace(sin=math.sin, cos=math.cos, minimum=min, maximum=max, where=lambda cond, a, b: a if cond else b,
+                         clip=_clip, abs=abs, sqrt=math.sqrt, arctan2=math.atan2, arcsin=math.asin)
 
 
 class _Value:
@@ -71,11 +81,10 @@ def _where(cond: Any, a: Any, b: Any) -> Any:
     return _emit(owner, "{} if {} else {}", a, cond, b)  # both sides are computed first, as an array's where does
 
 
-#: The ``xp`` :func:`straight_line` runs a function with, its functions written out: :data:`FLOATS`' and those of
-#: ``envs.quadcopter.geometry.ScalarMath`` (Python floats for the quadcopter's equations, a module without jaxrobo).
+#: The ``xp`` :func:`straight_line` runs a function with: :data:`FLOATS`' functions, written out.
 _WRITING = SimpleNamespace(sin=_call("_sin"), cos=_call("_cos"), minimum=_call("_min"), maximum=_call("_max"),
                            sqrt=_call("_sqrt"), arctan2=_call("_atan2"), arcsin=_call("_asin"), abs=_call("_abs"),
-                           where=_where)
+                           where=_where, clip=lambda x, low, high: _WRITING.minimum(_WRITING.maximum(x, low), high))
 
 
 def straight_line(fn: Callable[..., Sequence[Any]], names: Sequence[str]) -> Callable[..., tuple[float, ...]]:

@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable, Sequence, TypeVar
 
-import jax
-
 T = TypeVar("T")
 
 _RULES = "jaxrobo_rules"
@@ -22,6 +20,8 @@ INT32_MAX = 2**31 - 1
 
 def pytree_dataclass(cls: type[T]) -> type[T]:
     """A frozen dataclass registered as a pytree; fields declared with ``static=True`` become treedef metadata."""
+    import jax  # here, not at the top: the rules and :class:`Rule` (config validation, ``import jaxrobo``) need no JAX
+
     cls = dataclasses.dataclass(frozen=True)(cls)
     data, meta = [], []
     for f in dataclasses.fields(cls):

@@ -11,10 +11,9 @@ and libraries that expect Gymnasium, over the same pure functions the vectorised
 * :class:`JaxroboVectorEnv` - a :class:`gymnasium.vector.VectorEnv` stepping ``num_envs`` copies as one vmapped
   jitted call, numpy batches out, with any of Gymnasium's autoreset modes (``AutoresetMode.NEXT_STEP`` by
   default, ``SAME_STEP`` with ``final_obs``/``final_info``, ``DISABLED`` with ``reset(options={"reset_mask": m})``).
-* :func:`register_gymnasium_envs` - every jaxrobo id as ``jaxrobo/<id>`` for ``gymnasium.make`` and
-  ``gymnasium.make_vec``. It runs on ``import jaxrobo`` and only records strings (no env is built); an id
-  registered later (a user's module) becomes a Gymnasium id at once, through :data:`jaxrobo.task.registry.
-  REGISTER_HOOKS`, also under its bare name for Gymnasium's ``gymnasium.make("my_mod:MyEnv-v0")``.
+
+The ids ``jaxrobo/<id>`` that name these classes are registered by :mod:`jaxrobo.interop.gym_ids` on ``import
+jaxrobo``, without importing this module (nor JAX) until Gymnasium makes an env.
 
 Seeding: ``reset(seed=s)`` starts from ``env.reset(jax.random.key(s))`` of the functional API (for
 ``s < 2**32``), so both give the same trajectory; a later ``reset()`` without a seed continues from the key the
@@ -39,9 +38,9 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from jaxrobo.core import spaces
+from jaxrobo.interop.gym_ids import NAMESPACE
 from jaxrobo.speed.compiled import CHAIN, N_EXTRA, compiled_for
 
-NAMESPACE = "jaxrobo"
 _KEY_MOD = 2**64  # Gymnasium seeds are any non-negative int; keys hold 64 bits
 
 
@@ -648,64 +647,3 @@ class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
     def __repr__(self) -> str:
         mode = "" if self.autoreset_mode == AutoresetMode.NEXT_STEP else f" {self.autoreset_mode.name}"
         return f"<JaxroboVectorEnv {self.jax_env.name} x{self.num_envs}{mode}>"
-
-
-# ---- registration --------------------------------------------------------------------------------------------
-def gym_id(env_id: str) -> str:
-    """The Gymnasium id of a jaxrobo id: ``jaxrobo/<id>``."""
-    return f"{NAMESPACE}/{env_id}"
-
-
-def register_gymnasium_envs() -> list[str]:
-    """Register every jaxrobo id with Gymnasium as ``jaxrobo/<id>`` (idempotent). :func:`jaxrobo.register` calls
-    :func:`register_gymnasium_id` for each id it adds after ``import jaxrobo``, so ``gymnasium.make("jaxrobo/<id>")``
-    works after importing the user's module that registers it. Records strings only: no env, model or JAX
-    function is built."""
-    from jaxrobo.task.registry import registered
-
-    return [gid for gid in (register_gymnasium_id(env_id) for env_id in registered()) if gid]
-
-
-def register_gymnasium_id(env_id: str) -> str | None:
-    """Register ``jaxrobo/<env_id>`` with Gymnasium; its id, or ``None`` if it was already registered.
-
-    An id a user's module registers (``jaxrobo.register`` called from ``my_mod``) is also registered under its bare
-    name, unless Gymnasium already has that name: Gymnasium's own ``gymnasium.make("my_mod:MyEnv-v0")`` imports
-    ``my_mod`` and looks up ``MyEnv-v0``, so that form works like ``"my_mod:jaxrobo/MyEnv-v0"``."""
-    from jaxrobo.task.registry import env_config, max_episode_steps, registration
-
-    gid = gym_id(env_id)
-    if gid in gymnasium.registry:
-        return None
-    try:
-        steps = int(env_config(env_id).get("max_episode_steps", max_episode_steps(env_id, with_yaml=False)))
-    except Exception:  # noqa: BLE001 - a broken YAML shows up when the env is made, not at import
-        try:
-            steps = max_episode_steps(env_id, with_yaml=False)
-        except Exception:  # noqa: BLE001 - the task class is not importable yet (its module is still importing
-            steps = None  # the register call): the task truncates by itself at its own limit
-    names = [gid]
-    if registration(env_id).module is not None and env_id not in gymnasium.registry:
-        names.append(env_id)
-    for name in names:
-        gymnasium.register(
-            id=name,
-            entry_point=f"{__name__}:JaxroboEnv",
-            vector_entry_point=f"{__name__}:JaxroboVectorEnv",
-            max_episode_steps=steps,
-            kwargs={"env_id": env_id},
-        )
-    return gid
-
-
-register_gymnasium_envs()
-
-
-def _install_hook() -> None:
-    from jaxrobo.task.registry import REGISTER_HOOKS
-
-    if register_gymnasium_id not in REGISTER_HOOKS:
-        REGISTER_HOOKS.append(register_gymnasium_id)
-
-
-_install_hook()  # after the built-in ids: every id registered from now on becomes a Gymnasium id at once

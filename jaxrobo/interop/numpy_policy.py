@@ -2,7 +2,8 @@
 
 ``jaxrobo export`` writes this module into every exported policy directory (beside ``policy.npz`` and
 ``policy.json``) with the JAX-free task modules it imports written in before it
-(:func:`jaxrobo.export.runner_source`: the Goto task's geometry and observation, the cart-pole's rules): the file imports nothing but
+(:func:`jaxrobo.export.runner_source`: the Goto task's geometry and observation, the cart-pole's rules, and
+:data:`jaxrobo.core.scalar.FLOATS`, the Python-float math they run on here): the file imports nothing but
 numpy and the standard library, and runs where JAX is not installed (a robot's computer, a native MuJoCo loop). It reproduces the JAX policy of the run:
 
 * **tabular** (``kind: tabular``): the observation is cast to float32 and cut into bins exactly as
@@ -38,8 +39,9 @@ import os
 import numpy as np
 
 from envs.cartpole.rules import command_after, observation
-from envs.quadcopter.geometry import ScalarMath, euler
+from envs.quadcopter.geometry import euler
 from envs.quadcopter.goto_step import kinds_of, loop_fold, observe
+from jaxrobo.core.scalar import FLOATS
 
 #: The version of the exported files this runner reads.
 FORMAT = 1
@@ -263,11 +265,11 @@ class QuadcopterIO:
         """Position (m), orientation quaternion ``(w, x, y, z)``, vertical velocity (m/s), the four sonars (m),
         the goal (m) and the obstacles (``kind``, ``center``, ``size``, ``active``) -> the task's observation."""
         pos, goal = np.asarray(pos, np.float64).tolist(), np.asarray(goal, np.float64).tolist()
-        yaw = euler(ScalarMath, *np.asarray(quat, np.float64).tolist())[2]
+        yaw = euler(FLOATS, *np.asarray(quat, np.float64).tolist())[2]
         obstacles = {"kind": np.asarray(obstacles["kind"]), "center": np.asarray(obstacles["center"], np.float64),
                      "size": np.asarray(obstacles["size"], np.float64), "active": np.asarray(obstacles["active"])}
-        obs, _, _ = observe(ScalarMath, pos, yaw, float(vz), goal, self.p, self.v2, kinds_of("mixed"),
-                            loop_fold(ScalarMath, obstacles), sonars=[float(s) for s in sonars])
+        obs, _, _ = observe(FLOATS, pos, yaw, float(vz), goal, self.p, self.v2, kinds_of("mixed"),
+                            loop_fold(FLOATS, obstacles), sonars=[float(s) for s in sonars])
         return np.asarray(obs, np.float64).astype(np.float32)
 
     def command(self, action) -> tuple:
@@ -314,7 +316,7 @@ class CartPoleIO:
             return a, self.max_command * min(max(float(a[0]), -1.0), 1.0)
         a = int(action)
         return a, command_after(command, float(self.steps[a]), self.pos_step, self.vmax if self.velocity else None,
-                                ScalarMath)
+                                FLOATS)
 
 
 #: The task families with a robot section, by its ``family``.

@@ -36,6 +36,7 @@ from jaxrobo.task import randomise
 from jaxrobo.core.precision import check_precision
 from jaxrobo.task.robot import Robot
 from jaxrobo.core.struct import param, pytree_dataclass
+from jaxrobo.task.spec import EnvSpec
 
 
 @pytree_dataclass
@@ -66,19 +67,6 @@ class BaseParams:
     """Parameters every task has; tasks extend this with their own (see each task's environment card)."""
 
     max_episode_steps: int = param(1000, low=1, doc="episode step cap (the seed's timestep_limit)", unit="steps")
-
-
-@dataclasses.dataclass(frozen=True)
-class EnvSpec:
-    """How an environment was registered: id, step limit and the default overrides it was made with."""
-
-    id: str
-    #: None in a registration that leaves the step limit to its task's Params default (``jaxrobo.spec`` and
-    #: ``make`` fill it in).
-    max_episode_steps: int | None
-    description: str = ""
-    config: str | None = None  # YAML with the env parameters (the seed's split)
-    agent_config: str | None = None  # YAML with the learner parameters
 
 
 @dataclasses.dataclass(frozen=True)

@@ -26,12 +26,15 @@ import dataclasses
 import importlib
 import os
 import sys
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from jaxrobo.core.config import ConfigError, check_relations, coerce, load_yaml, split_and_validate, unknown_key
-from jaxrobo.task.env import Env, EnvSpec
 from jaxrobo.core.precision import check_precision
 from jaxrobo.core.struct import rules
+from jaxrobo.task.spec import EnvSpec
+
+if TYPE_CHECKING:
+    from jaxrobo.task.env import Env
 
 #: The package whose import registers the built-in robots and tasks.
 BUILTIN_ENVS = "envs"
