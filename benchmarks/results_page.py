@@ -65,6 +65,14 @@ WHAT = {
     "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes: the same rows on each (a step "
                              "of 64 envs a row launches the same kernels on half the rows, so the run scales "
                              "sublinearly)",
+    "scale_sweep_4gpu.json": "`jaxrobo sweep` (Goto-v2, 4 configurations x 1,024 seeds x 64 envs) on 1, 2 and 4 GPUs "
+                             "and 4 processes: the same rows on each; the run scales sublinearly because each "
+                             "GPU's share (65,536 envs on four) steps at about half the rate of the whole batch "
+                             "on one",
+    "compile_beside.json": "Goto-v2's and the arm's default commands, cold and warm, before and after the "
+                           "evaluation compiles beside the training chunk (`ExecutionPlan.compile_beside`), one call",
+    "step_budget_65536.json": "The 65,536-env cart-pole run under a step budget, cold and warm: where its wall goes "
+                              "(the run stops at the learning target)",
     "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "
                                     "plan (the whole-chunk kernel on each GPU's envs): the same tables and records "
                                     "(the run is too short to time)",
