@@ -66,9 +66,9 @@ WHAT = {
                              "of 64 envs a row launches the same kernels on half the rows, so the run scales "
                              "sublinearly)",
     "scale_sweep_4gpu.json": "`jaxrobo sweep` (Goto-v2, 4 configurations x 1,024 seeds x 64 envs) on 1, 2 and 4 GPUs "
-                             "and 4 processes: the same rows on each; the run scales sublinearly because each "
-                             "GPU's share (65,536 envs on four) steps at about half the rate of the whole batch "
-                             "on one",
+                             "and 4 processes: the same rows on each; the run scales sublinearly because a "
+                             "GPU stepping its share (65,536 envs on four) reaches about half the env steps per "
+                             "second that one GPU reaches with the whole batch",
     "compile_beside.json": "Goto-v2's and the arm's default commands, cold and warm, before and after the "
                            "evaluation compiles beside the training chunk (`ExecutionPlan.compile_beside`), one call",
     "step_budget_65536.json": "The 65,536-env cart-pole run under a step budget, cold and warm: where its wall goes "
