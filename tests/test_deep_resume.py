@@ -44,7 +44,8 @@ def _status(path: str) -> dict:
         return json.load(f)
 
 
-@pytest.fixture(scope="module", params=["ppo", "sac"])
+# SAC's case re-checks with the other trainer what PPO's checks in the default tier: the slow tier runs it.
+@pytest.fixture(scope="module", params=["ppo", pytest.param("sac", marks=pytest.mark.slow)])
 def runs(request, tmp_path_factory):
     """An uninterrupted run, and the same run stopped by SIGTERM after epoch 3 (the scalars read from its event
     file while it was still training, at epoch 2, and a copy of it as it was when stopped), then resumed."""

@@ -193,7 +193,7 @@ def test_map_groups_applies_fn_slice_by_slice():
 
 
 # ---- the plan reaches every consumer and changes no value -----------------------------------------------------
-@pytest.mark.parametrize("beside", [False, True])
+@pytest.mark.parametrize("beside", [False, pytest.param(True, marks=pytest.mark.slow)])  # beside: a GPU default
 def test_train_under_another_plan_gives_the_recorded_values(monkeypatch, beside):
     """Groups of 3 (one written out, then a loop), one gathered reset per step, no carried rows and stock MJX give
     the values recorded before the plan existed (the fingerprint of the closed-form cart-pole case), and

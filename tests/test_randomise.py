@@ -82,6 +82,7 @@ def test_each_reset_draws_within_the_ranges_and_an_episode_keeps_its_draw():
     np.testing.assert_array_equal(np.asarray(states[0].task.goal), np.asarray(plain.task.goal))
 
 
+@pytest.mark.slow  # the rigid body against MJX is held unrandomised in the default tier (test_quadcopter)
 def test_the_rigid_body_and_mjx_fly_the_same_randomised_drone():
     kw = dict(randomise=True, rand_mass=[0.7, 1.4], rand_motor_gain=[0.8, 1.2], rand_wind=[0.5, 1.5])
     rigid = _roll(jaxrobo.make(GOTO, backend="rigid", **kw), steps=6, action=0)

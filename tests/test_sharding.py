@@ -211,6 +211,7 @@ def test_a_coordinator_port_in_use_is_one_line_exit_2(family):
                          "(process 0 serves the coordinator there); choose a free port")
 
 
+@pytest.mark.slow  # waits for JAXROBO_INIT_TIMEOUT; process 0's refusal is the default tier's
 def test_a_coordinator_port_held_by_another_program_is_one_line_exit_2_for_process_1():
     """For process 1 the port is the coordinator's, in use by design: a program there that is not JAX's
     coordinator (it accepts the connection and never answers) ends the join at JAXROBO_INIT_TIMEOUT, in one line."""
