@@ -103,6 +103,17 @@ def stop(*procs):
     stop_all(procs)
 
 
+def eventually(predicate, timeout=BOUND, every=0.05) -> bool:
+    """Whether ``predicate()`` holds within ``timeout`` seconds: a node's log line is written after the message
+    it reacts to, and the watchdog's zero commands count among the messages a test waits for."""
+    end = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > end:
+            return False
+        time.sleep(every)
+    return True
+
+
 def log(p) -> str:
     return p.log.read_text()
 
@@ -411,13 +422,13 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, goto_export, tm
             pub.publish(joints(1000.0 + 0.04 * k))
             time.sleep(0.05)
         assert commands.wait(before + 5, timeout=5)
-        assert "acting again" in log(policy)
+        assert eventually(lambda: "acting again" in log(policy), timeout=10), log(policy)
         before = len(commands.got)
         pub.publish(joints(1000.2, pole=float("nan")))
         assert commands.wait(before + 1, timeout=5)
         assert commands.got[-1].data == 0.0
-        time.sleep(0.3)
-        assert "/cartpole_v0/joint_states: non-finite value in the message" in log(policy)
+        assert eventually(lambda: "/cartpole_v0/joint_states: non-finite value in the message" in log(policy),
+                          timeout=10), log(policy)
         # a sensor that stops: (nothing more is published) the watchdog keeps the cart stopped
         before = len(commands.got)
         assert commands.wait(before + 1, timeout=5)
