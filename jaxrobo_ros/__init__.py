@@ -11,5 +11,6 @@ This directory is also the ROS package ``jaxrobo_ros`` (``package.xml``, ``jaxro
 jaxrobo.launch export:=DIR`` starts the sim and the policy. The sim node and the Gymnasium env over ROS need the
 task itself and live in :mod:`jaxrobo.ros`.
 
-Nothing here imports ``jaxrobo`` (whose package imports JAX): ``tests/test_ros.py`` checks it.
+Nothing here imports ``jaxrobo``: a robot's computer needs only the export, numpy and rospy (``tests/test_ros.py``
+checks it).
 """

@@ -246,7 +246,7 @@ def subscribed_by(pub, caller_id: str, timeout=BOUND) -> bool:
 @needs_ros
 def test_policy_node_imports_no_jax(goto_export, cartpole_export):
     """The policy node from an export: its module, the export's runner and robot section, rospy; no JAX, no task
-    module, no MuJoCo, not even jaxrobo's package (whose import is JAX's)."""
+    module, no MuJoCo, not even jaxrobo's package (a robot's computer needs none of it)."""
     code = ("import json, sys\n"
             "from jaxrobo_ros.policy_node import PolicyNode\n"
             "nodes = [PolicyNode(d) for d in sys.argv[1:]]\n"
