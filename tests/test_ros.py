@@ -405,9 +405,10 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, goto_export, tm
         assert commands.wait(25, timeout=90), log(policy)
         os.killpg(sim.pid, signal.SIGKILL)
         sim.wait()
-        time.sleep(2.5)
-        assert commands.got[-1].data == 0.0
-        assert "stopping the robot (zero command): no new /cartpole_v0/joint_states" in log(policy)
+        assert eventually(lambda: "stopping the robot (zero command): no new /cartpole_v0/joint_states"
+                          in log(policy), timeout=30), log(policy)
+        before = len(commands.got)  # the watchdog's commands from here on: zero
+        assert commands.wait(before + 1, timeout=5) and commands.got[-1].data == 0.0
         # the node acts again on fresh readings (here from this test), then a NaN stops it at once
         pub = rospy.Publisher("/cartpole_v0/joint_states", JointState, queue_size=10)
         assert subscribed_by(pub, "/jaxrobo_policy"), log(policy)
