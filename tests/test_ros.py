@@ -195,13 +195,7 @@ class Listener:
         """Whether the publisher of node ``uri`` (:func:`node_uri`) has connected to this subscriber: rospy connects
         in the background, a message published before the connection is not delivered, and another node's
         connection (a node of an earlier test still shutting down) says nothing of this one's."""
-        def linked() -> bool:
-            return any(getattr(c, "endpoint_id", None) == uri for c in list(self.sub.impl.connections or ()))
-
-        end = time.monotonic() + timeout
-        while not linked() and time.monotonic() < end:
-            time.sleep(0.05)
-        return linked()
+        return linked(self.sub, uri, timeout)
 
     def wait(self, n, timeout=30.0):
         end = time.monotonic() + timeout
@@ -234,13 +228,14 @@ def node_uri(proc, name: str, timeout=BOUND) -> str:
 def subscribed_by(pub, caller_id: str, timeout=BOUND) -> bool:
     """Whether node ``caller_id`` has connected to the publisher ``pub`` of this process: another subscriber (this
     process's own, an earlier test's node) connected first says nothing of it."""
-    def linked() -> bool:
-        return any(getattr(c, "endpoint_id", None) == caller_id for c in list(pub.impl.connections or ()))
+    return linked(pub, caller_id, timeout)
 
-    end = time.monotonic() + timeout
-    while not linked() and time.monotonic() < end:
-        time.sleep(0.01)
-    return linked()
+
+def linked(end_of_topic, endpoint: str, timeout=BOUND) -> bool:
+    """Whether a connection of this process's publisher or subscriber ``end_of_topic`` comes from ``endpoint`` (a
+    node's caller id or URI) within ``timeout`` seconds."""
+    return eventually(lambda: any(getattr(c, "endpoint_id", None) == endpoint
+                                  for c in list(end_of_topic.impl.connections or ())), timeout, every=0.01)
 
 
 @needs_ros
@@ -543,9 +538,7 @@ def test_policy_node_stops_when_the_master_restarts(ros, cartpole_export):
     sim = ros.node("sim", cartpole_export, "--speed", "1", name="restart_sim", env=env)
     policy = ros.node("policy", cartpole_export, name="restart_policy", env=env)
     try:
-        end = time.monotonic() + BOUND
-        while "1 x real time" not in log(sim) and time.monotonic() < end:
-            time.sleep(0.2)
+        assert eventually(lambda: "1 x real time" in log(sim), every=0.2), log(sim)
         time.sleep(2.0)
         assert policy.poll() is None, log(policy)
         stop(master)

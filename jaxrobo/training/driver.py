@@ -334,7 +334,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     flights = Flights(trainer, env_params)
     check_every, checks = trainer.target_every(), []
     check = target_check(trainer, flights, key, checks) if check_every else None
-    prepare = (check_every or config.eval_episodes) and trainer.plan.devices == 1
+    prepare = bool(check_every or config.eval_episodes) and trainer.plan.devices == 1
     beside = prepare and trainer.plan.compile_beside  # see ExecutionPlan: beside the chunk's compile, or after it
     preparing = [prepare_evaluation(trainer, flights, runner, key)] if beside else []
     with _joined(preparing):
