@@ -32,6 +32,10 @@ if os.environ.get("JAXROBO_CACHE_DIR") in (None, _BASE):
     os.environ["JAXROBO_CACHE_DIR"] = _CACHE
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
+# Plans reuse traces (jaxrobo.speed.reuse) only where a test asks (tests/test_reuse.py, tests/test_cache.py): the
+# suite's programs are many small ones each compiled once, which reuse would trace and export on top.
+os.environ.setdefault("JAXROBO_REUSE_TRACES", "off")
+
 import jaxrobo  # noqa: E402  (picks an OpenGL backend whose library loads, or none: jaxrobo.pictures.render)
 
 

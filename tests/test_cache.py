@@ -74,7 +74,10 @@ config = TrainConfig(n_envs=4, nepisodes=3, nsteps=40, chunk_steps=40, seed=5, e
 def run():
     r = train(env, config)
     digest = hashlib.sha256(np.asarray(r.q).tobytes() + np.asarray(r.returns).tobytes()).hexdigest()
-    return {"digest": digest, "nan_episodes": int(r.nan_episodes.sum()), "entries": entries(d)}
+    from jaxrobo.speed import reuse
+
+    return {"digest": digest, "nan_episodes": int(r.nan_episodes.sum()), "entries": entries(d),
+            "chunk": reuse.LAST.get("chunk", "off")}
 
 
 out = {}
@@ -99,11 +102,13 @@ def _train_child(env, *args):
 def test_warm_cache_never_serves_stale_training_code(tmp_path):
     """With the cache filled by a first process, a second process that patches the physics step at run time
     trains with the patched step (its NaN episodes are counted), and after undoing the patch trains exactly as the
-    first process did, reading the first process's compiles instead of writing new ones."""
-    env = {**os.environ, cache.ENV_VAR: str(tmp_path / "jax"), "JAX_PLATFORMS": "cpu"}
+    first process did, reading the first process's compiles instead of writing new ones. With traces reused
+    (jaxrobo.speed.reuse), as a user's runs do: the patched step is another key, the undone patch the first one."""
+    env = {**os.environ, cache.ENV_VAR: str(tmp_path / "jax"), "JAX_PLATFORMS": "cpu", "JAXROBO_REUSE_TRACES": "on"}
     first = _train_child(env)["plain"]
-    assert first["nan_episodes"] == 0 and first["entries"] > 0
+    assert first["nan_episodes"] == 0 and first["entries"] > 0 and first["chunk"] == "traced"
     second = _train_child(env, "patch")
+    assert second["patched"]["chunk"] == "traced" and second["plain"]["chunk"] == "read"
     assert second["patched"]["nan_episodes"] > 0  # training ran the patched step, not the cached one
     assert second["patched"]["digest"] != first["digest"]
     assert second["patched"]["entries"] > first["entries"]  # another program, so another compile

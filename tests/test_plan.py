@@ -137,7 +137,9 @@ def test_repr_is_short_and_names_every_choice():
     assert json.loads(json.dumps(fast.to_dict())) == {
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
         "fused": "off", "fused_block": None, "task_kernel": False, "skip_resets": True, "group_resets": True,
-        "fast_sincos": True, "ordered_sums": False, "devices": 1, "compile_beside": False, "compiler_options": FAST}
+        "fast_sincos": True, "ordered_sums": False, "devices": 1, "compile_beside": False, "reuse_traces": False,
+        "compiler_options": FAST}
+    assert repr(plan.replace(reuse_traces=True)).endswith("carry_rows=on, reuse_traces=on)")
     assert repr(plan.replace(devices=2)).endswith("carry_rows=on, devices=2)")  # named only when more than one
     assert repr(plan.replace(compile_beside=True)).endswith("carry_rows=on, compile_beside=on)")  # only when on
     # The whole-chunk kernel's choices: named only when off under fused="pallas", where they are read.

@@ -396,6 +396,7 @@ def test_save_in_thread_writes_the_last_save_beside_the_caller():
     ("JAXROBO_NUM_PROCESSES", "0", "JAXROBO_NUM_PROCESSES=0"),
     ("JAXROBO_PROCESS_ID", "-1", "JAXROBO_PROCESS_ID=-1"),
     ("JAXROBO_COORDINATOR", "nohost:x", "JAXROBO_COORDINATOR='nohost:x'"),
+    ("JAXROBO_REUSE_TRACES", "sometimes", "JAXROBO_REUSE_TRACES='sometimes': expected on or off"),
 ])
 def test_a_bad_jaxrobo_variable_is_refused_before_any_command(monkeypatch, capsys, tmp_path, var, value, fragment):
     monkeypatch.setenv(var, value)

@@ -17,6 +17,7 @@ import sys
 #: jaxrobo's own variables: what each may hold (docs/scaling.md for the multi-host ones).
 JAXROBO_VARIABLES = {
     "JAXROBO_CACHE_DIR": "the compilation cache directory, or off (jaxrobo.speed.cache)",
+    "JAXROBO_REUSE_TRACES": "on (the default) or off: read traced programs back (jaxrobo.speed.reuse)",
     "JAXROBO_COORDINATOR": "host:port of process 0 of a multi-host run",
     "JAXROBO_NUM_PROCESSES": "processes of a multi-host run, an integer >= 1",
     "JAXROBO_PROCESS_ID": "this process's index, 0 .. JAXROBO_NUM_PROCESSES - 1",
@@ -101,6 +102,22 @@ def env_seconds(name: str, high: float) -> float | None:
     return value
 
 
+#: An on/off variable's spellings.
+_ON, _OFF = ("1", "on", "true", "yes"), ("0", "off", "false", "no")
+
+
+def switch(name: str, default: bool = True) -> bool:
+    """The on/off variable ``name`` (``default`` when unset or empty); a ConfigError naming it otherwise."""
+    from jaxrobo.core.config import ConfigError
+
+    text = os.environ.get(name, "").strip().lower()
+    if not text:
+        return default
+    if text not in _ON + _OFF:
+        raise ConfigError(f"{name}={os.environ[name]!r}: expected on or off ({', '.join(_ON + _OFF)})")
+    return text in _ON
+
+
 def check_jaxrobo_variables() -> None:
     """jaxrobo's own variables (:data:`JAXROBO_VARIABLES`), each parsed as its reader will; ConfigError naming
     the first bad one."""
@@ -114,6 +131,7 @@ def check_jaxrobo_variables() -> None:
     if n is not None and pid is not None and pid >= n:
         raise ConfigError(f"JAXROBO_PROCESS_ID={pid}: must be in 0..{n - 1} (JAXROBO_NUM_PROCESSES={n})")
     env_int("JAXROBO_INIT_TIMEOUT", 1)
+    switch("JAXROBO_REUSE_TRACES")
     env_seconds("JAXROBO_PAUSE_BEFORE_PUBLISH", PAUSE_MAX)
     coordinator = os.environ.get("JAXROBO_COORDINATOR")
     if coordinator:

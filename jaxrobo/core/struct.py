@@ -18,6 +18,10 @@ _RULES = "jaxrobo_rules"
 INT32_MAX = 2**31 - 1
 
 
+#: Every class :func:`pytree_dataclass` made, in order (:mod:`jaxrobo.speed.reuse` names them for ``jax.export``).
+DATACLASSES: list[type] = []
+
+
 def pytree_dataclass(cls: type[T]) -> type[T]:
     """A frozen dataclass registered as a pytree; fields declared with ``static=True`` become treedef metadata."""
     import jax  # here, not at the top: the rules and :class:`Rule` (config validation, ``import jaxrobo``) need no JAX
@@ -28,6 +32,7 @@ def pytree_dataclass(cls: type[T]) -> type[T]:
         (meta if f.metadata.get("static", False) else data).append(f.name)
     jax.tree_util.register_dataclass(cls, data_fields=data, meta_fields=meta)
     cls.replace = lambda self, **kw: dataclasses.replace(self, **kw)  # type: ignore[attr-defined]
+    DATACLASSES.append(cls)
     return cls
 
 

@@ -8,9 +8,9 @@ on the program and the device, so it is written to disk and reused by every late
 JAX keys each entry on the lowered module itself (with the JAX version, the backend and the compile options),
 so the cache can never run code other than what the process has just traced: a physics step patched at run
 time, or another execution plan (:class:`jaxrobo.speed.plan.ExecutionPlan`), lowers to another module and compiles
-afresh. That is why jaxrobo keeps no cache of traced programs on top of it: a second start traces its
-training chunk again (about a second on 2 CPU cores) instead of trusting a key that cannot see the code
-actually running in the process.
+afresh. A second start therefore still traces its programs, which on a GPU host took most of a warm compile
+(seconds for an MJX step); :mod:`jaxrobo.speed.reuse` keeps the traces too, in ``traced/`` under this directory,
+keyed on everything a trace reads except code patched at run time (a plan's ``reuse_traces``).
 """
 from __future__ import annotations
 

@@ -37,6 +37,7 @@ import jax
 
 from jaxrobo.physics import fused as _fused
 from jaxrobo.physics import mjx_lean
+from jaxrobo.speed import reuse as _reuse
 from jaxrobo.core.config import ConfigError
 from jaxrobo.task.env import Env, EnvState, layers, simulator_of
 
@@ -268,6 +269,12 @@ class ExecutionPlan:
     and the overlap was slower (Goto-v2's default, an empty cache: 13.6 s sequential, 18.1 s beside). On by
     default on a GPU. The programs are the same either way.
 
+    ``reuse_traces``: keep the run's traced programs (training chunk, init, greedy evaluation) exported beside the
+    persistent compilation cache, and read them back in a later process of the same configuration instead of
+    tracing again (:mod:`jaxrobo.speed.reuse`, which says what the key holds and the one thing it cannot see: code
+    patched at run time). On by default for a run on one device where a compilation cache is in use; the programs
+    are the same either way.
+
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
     """
@@ -286,6 +293,7 @@ class ExecutionPlan:
     ordered_sums: bool = False
     devices: int = 1
     compile_beside: bool = False
+    reuse_traces: bool = False
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
@@ -301,7 +309,7 @@ class ExecutionPlan:
                 or self.unrolled_groups < 1:
             raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
         for name in ("lean_mjx", "carry_rows", "task_kernel", "skip_resets", "group_resets", "fast_sincos",
-                     "ordered_sums", "compile_beside"):
+                     "ordered_sums", "compile_beside", "reuse_traces"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ExecutionPlan {name}={getattr(self, name)!r}: expected True or False")
         options = self.compiler_options
@@ -376,6 +384,7 @@ class ExecutionPlan:
             # A GPU sums a shared table's updates as float atomics in no fixed order: sum them in order there.
             ordered_sums=backend == "gpu" and config.shared_table,
             compile_beside=not cpu,
+            reuse_traces=devices == 1 and _reuse.available(),
             compiler_options=compiler_options,
         )
 
@@ -431,6 +440,8 @@ class ExecutionPlan:
             parts.append("compile_beside=on")
         if self.ordered_sums:  # likewise
             parts.append("ordered_sums=on")
+        if self.reuse_traces:  # likewise
+            parts.append("reuse_traces=on")
         if self.devices > 1:  # likewise
             parts.append(f"devices={self.devices}")
         if self.compiler_options is not None:

@@ -37,6 +37,7 @@ import numpy as np
 from jaxrobo.tabular import learner as tabular
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
+from jaxrobo.speed import reuse
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
 from jaxrobo.task.env import ranking
@@ -103,7 +104,8 @@ def compile_under(plan: ExecutionPlan, jitted: Any, *args: Any) -> Callable:
     Traced afresh in every process and every call, so a run executes the code as it is now in this process (a
     patched physics step, another plan). A second start of the same configuration still skips XLA: the
     persistent compilation cache (:mod:`jaxrobo.speed.cache`) is keyed on the lowered module, so it serves the
-    executable only when the traced program is the same."""
+    executable only when the traced program is the same. (A run's init, chunk and evaluation on one device go
+    through :func:`jaxrobo.speed.reuse.compile_reusing`, which with the plan's ``reuse_traces`` skips the trace.)"""
     with plan.tracing():
         return jitted.lower(*args).compile()
 
@@ -120,6 +122,8 @@ def env_mesh(trainer: Trainer) -> Any:
 def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, env_params: Any) -> Callable:
     """``trainer.init`` compiled under the plan, its carry split over the plan's devices (:func:`env_mesh`)."""
     mesh = env_mesh(trainer)
+    if mesh is None and trainer.plan.reuse_traces:  # a trace kept by an earlier process, read back
+        return reuse.compile_reusing(trainer.plan, "init", trainer.init, (key, agent_params, env_params), trainer)
     if mesh is None:
         jitted = trainer.jitted_init  # the trace the checkpoint's template made, if it made one
     else:
@@ -139,8 +143,8 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
     plan = trainer.plan
     mesh = env_mesh(trainer)
     if mesh is None:
-        jitted = jax.jit(trainer.run_chunk, donate_argnums=0, compiler_options=plan.xla_options)
-        return compile_under(plan, jitted, runner, agent_params, env_params)
+        return reuse.compile_reusing(plan, "chunk", trainer.run_chunk, (runner, agent_params, env_params), trainer,
+                                     donate=(0,))
     n = trainer.config.n_envs
     carry = _carry_shardings(runner, mesh, n)
     rep = sharding.replicated(mesh)
@@ -566,8 +570,16 @@ class Flights:
                 if over_tables:
                     start = jax.vmap(start)
                     advance = jax.vmap(advance, in_axes=(0, None if shared else 0, None))
-                start, advance = jax.jit(self.trainer.plan.traced(start)), jax.jit(self.trainer.plan.traced(advance))
-                if self.trainer.plan.devices == 1:  # compiled ahead (a thread may do it); over several devices
+                plan = self.trainer.plan
+                if plan.devices == 1 and plan.reuse_traces:  # traces kept by an earlier process, read back
+                    parts = (self.trainer, self.env_params, self.horizon, self.steps, name)
+                    start = reuse.compile_reusing(plan, "eval_start", start, (keys,), parts)
+                    carry = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), start.out_info)
+                    advance = reuse.compile_reusing(plan, "eval_advance", advance, (carry, agents, np.int32(0)), parts)
+                    self._compiled[name] = (start, advance, time.perf_counter() - t)
+                    return self._compiled[name]
+                start, advance = jax.jit(plan.traced(start)), jax.jit(plan.traced(advance))
+                if plan.devices == 1:  # compiled ahead (a thread may do it); over several devices
                     # the inputs' shardings vary between flights: jit compiles for each as they come
                     carry = jax.eval_shape(start, keys)
                     start = start.lower(keys).compile()

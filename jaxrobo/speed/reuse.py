@@ -1,0 +1,388 @@
+"""Traced programs kept across processes, so that a warm start skips tracing as well as XLA.
+
+The persistent compilation cache (:mod:`jaxrobo.speed.cache`) serves XLA's output, but it is keyed on the lowered
+module, so every process still traces and lowers its programs in Python before it can look one up. On an H200
+host that was most of a warm default run's compile (JAX's compile log, warm cache): Goto-v2 traced its training
+chunk for 2.8 s and its greedy evaluation for 1.1 s of a 4.4 s compile, ArmReach-v0 3.1 s and 3.6 s of 5.3 s.
+
+Where the execution plan says so (``ExecutionPlan.reuse_traces``), a program is traced once, exported with
+:mod:`jax.export` and kept under ``<compilation cache>/traced/``; a later process with the same key reads it back
+and compiles it (a persistent-cache hit) without tracing. The file is JAX's serialised StableHLO, not a pickle:
+reading it runs no Python. A file that cannot be read back (truncated, another format, not a regular file, too
+big) is ignored and the program traced as before; the run never depends on the file.
+
+The key names everything a trace reads: the bytes of every file of the ``jaxrobo``, ``envs`` and ``agents``
+packages; the code of every function and class method those packages and MJX hold at the moment of the key
+(:func:`_live_code`), so a step patched at run time (``CartPoleSim.physics_step = ...``, a monkeypatched version
+check) is another key, and undoing the patch gives the first key back; the versions of JAX, jaxlib, MuJoCo and
+MJX; the backend and device kind; JAX's configuration; the execution plan; the objects the program is built from
+(env, training config, learner, discretiser, evaluation sizes: :func:`describe` walks them, hashing arrays by
+their bytes and naming functions by their code); and the arguments' structure, shapes and dtypes. What it does
+not follow is a patch inside JAX or jaxlib themselves: a process doing that sets ``JAXROBO_REUSE_TRACES=off``
+(or ``JAXROBO_CACHE_DIR=off``, or runs a plan with ``reuse_traces=False``). Cold and warm runs execute the same
+exported program, so a result does not depend on whether the trace was read back (``tests/test_reuse.py``).
+
+Public surface: :func:`available`, :func:`compile_reusing`, :func:`describe`, :data:`LAST`, :data:`VARIABLE`.
+"""
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import hashlib
+import os
+import sys
+import tempfile
+import types
+from typing import Any, Callable, Sequence
+
+import jax
+import numpy as np
+
+#: The environment's switch: ``off`` (or 0, false, no) turns reuse off in every plan :meth:`for_run` makes.
+VARIABLE = "JAXROBO_REUSE_TRACES"
+#: A kept program bigger than this is not read (a training chunk exports to a few MB).
+MAX_BYTES = 512 << 20
+#: Custom calls our programs make that jax.export does not list as stable across JAX versions; the key holds the
+#: JAX version, so a program is only ever read back by the version that wrote it.
+_CUSTOM_CALLS = ("__gpu$xla.gpu.triton",)
+_PACKAGES = ("jaxrobo", "envs", "agents")
+
+
+class NotKeyable(Exception):
+    """An object the key cannot describe for certain (its repr names a memory address, or it is too large)."""
+
+
+def available() -> bool:
+    """Whether this process may reuse traces: ``JAXROBO_REUSE_TRACES`` not ``off`` and a persistent compilation
+    cache in use."""
+    from jaxrobo.core.environ import switch
+
+    return switch(VARIABLE) and bool(jax.config.jax_compilation_cache_dir)
+
+
+def _directory() -> str | None:
+    base = jax.config.jax_compilation_cache_dir
+    return os.path.join(str(base), "traced") if base else None
+
+
+@functools.lru_cache(maxsize=1)
+def _sources() -> str:
+    """One hash of every file of the packages whose code a trace runs (sources, MJCF models, presets)."""
+    h = hashlib.sha256()
+    for name in _PACKAGES:
+        module = sys.modules.get(name)
+        if module is None:
+            __import__(name)
+            module = sys.modules[name]
+        for root in sorted(getattr(module, "__path__", [])):
+            for folder, dirs, files in os.walk(root):
+                dirs[:] = sorted(d for d in dirs if d != "__pycache__" and not d.startswith("."))
+                for f in sorted(files):
+                    if f.endswith((".pyc", ".pyo")):
+                        continue
+                    path = os.path.join(folder, f)
+                    h.update(os.path.relpath(path, root).encode() + b"\0")
+                    with open(path, "rb") as fh:
+                        h.update(hashlib.sha256(fh.read()).digest())
+    return h.hexdigest()
+
+
+def _code(code: types.CodeType, h: Any) -> None:
+    """A code object's instructions, names and constants into ``h``, the same in every process (a set constant's
+    order, which string hashing varies between processes, is sorted)."""
+    h.update(code.co_code)
+    h.update(repr((code.co_names, code.co_varnames, code.co_freevars)).encode())
+    for c in code.co_consts:
+        if isinstance(c, types.CodeType):
+            _code(c, h)
+        else:
+            h.update(_constant(c).encode())
+
+
+def _constant(c: Any) -> str:
+    if isinstance(c, (frozenset, set)):
+        return "{" + ",".join(sorted(_constant(i) for i in c)) + "}"
+    if isinstance(c, tuple):
+        return "(" + ",".join(_constant(i) for i in c) + ")"
+    return repr(c)
+
+
+def _live_code() -> str:
+    """One hash of the code every module of ``jaxrobo``, ``envs``, ``agents`` and MJX holds now: each module-level
+    function, and each function of each class (methods, static and class methods), by name and code. Computed at
+    every key: a patch made at run time, or undone, changes it."""
+    h = hashlib.sha256()
+    for name in sorted(sys.modules):
+        if name.split(".")[0] not in _PACKAGES and not name.startswith("mujoco.mjx"):
+            continue
+        for attr, value in sorted(getattr(sys.modules[name], "__dict__", {}).items()):
+            if isinstance(value, types.FunctionType):
+                h.update(f"{name}.{attr}".encode())
+                _code(value.__code__, h)
+            elif isinstance(value, type) and value.__module__ == name:
+                for k, v in sorted(vars(value).items()):
+                    f = v.__func__ if isinstance(v, (staticmethod, classmethod)) else v
+                    if isinstance(f, types.FunctionType):
+                        h.update(f"{name}.{attr}.{k}".encode())
+                        _code(f.__code__, h)
+    return h.hexdigest()
+
+
+def _versions() -> str:
+    from jaxrobo.core.version import installed
+
+    return repr([(d, installed(d)) for d in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "jax-cuda12-plugin")])
+
+
+def _device() -> str:
+    d = jax.devices()[0]
+    return f"{d.platform}:{getattr(d, 'device_kind', '')}:{jax.device_count()}:{jax.process_count()}"
+
+
+def _jax_config() -> str:
+    skip = ("cache", "log_compiles", "explain", "debug_log", "logging")
+    values = getattr(jax.config, "values", {})
+    return repr(sorted((k, repr(v)) for k, v in values.items() if not any(s in k for s in skip)))
+
+
+def describe(obj: Any, *, limit: int = 50_000) -> str:
+    """A text that determines ``obj`` as a trace sees it: plain values by repr, arrays by dtype, shape and a hash
+    of their bytes, functions by module and qualified name, containers, dataclasses and objects field by field.
+    Raises :class:`NotKeyable` for what it cannot pin down (a repr with a memory address), or past ``limit``
+    parts."""
+    out: list[str] = []
+    seen: dict[int, int] = {}
+
+    def walk(x: Any, depth: int) -> None:
+        if len(out) > limit or depth > 40:
+            raise NotKeyable("too large to describe")
+        if x is None or isinstance(x, (bool, int, float, complex, str, bytes)):
+            out.append(f"{type(x).__name__}:{x!r}")
+            return
+        if isinstance(x, np.generic):
+            out.append(f"np:{x.dtype}:{x!r}")
+            return
+        if isinstance(x, (np.ndarray, jax.Array)):
+            a = np.asarray(x)
+            digest = hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:32]
+            out.append(f"array:{a.dtype}:{a.shape}:{digest}")
+            return
+        if isinstance(x, types.FunctionType):  # by name and code (every lambda is '<lambda>')
+            h = hashlib.sha256()
+            _code(x.__code__, h)
+            out.append(f"function:{x.__module__}.{x.__qualname__}:{h.hexdigest()[:32]}")
+            if x.__closure__:  # what it closes over is part of what it does
+                walk(tuple(c.cell_contents for c in x.__closure__ if _filled(c)), depth + 1)
+            return
+        if isinstance(x, (type, types.BuiltinFunctionType, types.ModuleType)):
+            out.append(f"{type(x).__name__}:{getattr(x, '__module__', '')}.{getattr(x, '__qualname__', x.__name__)}")
+            return
+        if isinstance(x, (jax.ShapeDtypeStruct,)):
+            out.append(f"aval:{x.dtype}:{x.shape}")
+            return
+        if id(x) in seen:
+            out.append(f"ref:{seen[id(x)]}")
+            return
+        seen[id(x)] = len(out)
+        if isinstance(x, types.MethodType):
+            out.append(f"method:{x.__func__.__qualname__}")
+            walk(x.__self__, depth + 1)
+            return
+        if isinstance(x, functools.partial):
+            out.append("partial")
+            walk(x.func, depth + 1)
+            walk(x.args, depth + 1)
+            walk(sorted(x.keywords.items()), depth + 1)
+            return
+        wrapped = getattr(x, "__wrapped__", None)
+        if wrapped is not None and callable(x):  # jax.jit's wrapper, functools.wraps
+            out.append(f"wraps:{type(x).__name__}")
+            walk(wrapped, depth + 1)
+            return
+        if isinstance(x, (list, tuple)):
+            out.append(f"{type(x).__name__}:{len(x)}")
+            for item in x:
+                walk(item, depth + 1)
+            return
+        if isinstance(x, dict):
+            out.append(f"dict:{len(x)}")
+            for k in sorted(x, key=repr):
+                walk(k, depth + 1)
+                walk(x[k], depth + 1)
+            return
+        if isinstance(x, (set, frozenset)):
+            out.append(f"{type(x).__name__}:{sorted(repr(i) for i in x)}")
+            return
+        kind = f"{type(x).__module__}.{type(x).__qualname__}"
+        if kind == "mujoco._structs.MjModel":  # a compiled MuJoCo model: all of it, as MuJoCo saves it
+            import mujoco
+
+            buf = np.zeros(mujoco.mj_sizeModel(x), np.uint8)
+            mujoco.mj_saveModel(x, None, buf)
+            out.append(f"{kind}:{hashlib.sha256(buf.tobytes()).hexdigest()[:32]}")
+            return
+        if dataclasses.is_dataclass(x):
+            out.append(f"dataclass:{kind}")
+            for f in dataclasses.fields(x):
+                out.append(f.name)
+                walk(getattr(x, f.name), depth + 1)
+            return
+        state = getattr(x, "__dict__", None)
+        if state is not None:
+            out.append(f"object:{kind}")
+            for k in sorted(state):
+                if k.startswith("_lock") or k == "_compiled":  # a lock or a table of compiled programs: no trace input
+                    continue
+                out.append(k)
+                walk(state[k], depth + 1)
+            return
+        text = repr(x)
+        if " at 0x" in text:
+            raise NotKeyable(f"{kind} has no description but its address")
+        out.append(f"{kind}:{text}")
+
+    walk(obj, 0)
+    return "\n".join(out)
+
+
+def _filled(cell: Any) -> bool:
+    try:
+        cell.cell_contents
+    except ValueError:  # a cell not yet filled
+        return False
+    return True
+
+
+def _key(name: str, parts: Any, plan: Any, args: Sequence[Any], donate: Sequence[int]) -> str:
+    avals = jax.tree.map(lambda x: (tuple(np.shape(x)), str(getattr(x, "dtype", type(x).__name__))), args)
+    text = "\n".join([name, _sources(), _live_code(), _versions(), _device(), _jax_config(), _plan_text(plan), repr(sorted(donate)),
+                      str(jax.tree.structure(args)), repr(jax.tree.leaves(avals)), describe(parts)])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _plan_text(plan: Any) -> str:
+    return repr(sorted(plan.to_dict().items())) if hasattr(plan, "to_dict") else repr(plan)
+
+
+def _register_structs() -> None:
+    """jax.export serialises a pytree's structure: name jaxrobo's pytree dataclasses (their static fields as
+    Python literals) so it can."""
+    from jax import export
+
+    from jaxrobo.core import struct
+
+    for cls in list(struct.DATACLASSES):
+        if cls in _REGISTERED:
+            continue
+        try:
+            export.register_pytree_node_serialization(
+                cls, serialized_name=f"{cls.__module__}.{cls.__qualname__}",
+                serialize_auxdata=_aux_bytes, deserialize_auxdata=_aux_value)
+        except ValueError:  # registered already (a module loaded twice under another name)
+            pass
+        _REGISTERED.add(cls)
+
+
+_REGISTERED: set[type] = set()
+
+
+def _aux_bytes(aux: Any) -> bytes:
+    text = repr(aux)
+    if _aux_value(text.encode()) != aux:
+        raise NotKeyable(f"static fields {text[:80]} do not read back as Python literals")
+    return text.encode()
+
+
+def _aux_value(data: bytes) -> Any:
+    return ast.literal_eval(data.decode())  # literals only: a file read back runs no code
+
+
+def _read(path: str) -> Any | None:
+    """The exported program kept at ``path``, or None (absent, not a regular file, too big, unreadable)."""
+    from jax import export
+
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    except OSError:
+        return None
+    try:
+        st = os.fstat(fd)
+        import stat
+
+        if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_BYTES or st.st_size == 0:
+            return None
+        with os.fdopen(fd, "rb") as fh:
+            fd = -1
+            data = fh.read(MAX_BYTES + 1)
+    finally:
+        if fd >= 0:
+            os.close(fd)
+    try:
+        return export.deserialize(bytearray(data))
+    except Exception:  # noqa: BLE001 - a damaged or foreign file: trace as if it were absent
+        return None
+
+
+def _write(path: str, data: bytes) -> None:
+    """Atomically, beside the final name (a crash leaves no partial file under it); failures are not errors."""
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".tmp.", dir=os.path.dirname(path))
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            os.unlink(tmp)
+            raise
+    except OSError:
+        pass
+
+
+#: What the last :func:`compile_reusing` of each name did: "read" (no trace), "traced" (kept for later runs) or
+#: "off" (not reused: why follows). Tests and benchmarks read it.
+LAST: dict[str, str] = {}
+
+
+def compile_reusing(plan: Any, name: str, fn: Callable, args: Sequence[Any], parts: Any, *,
+                    donate: Sequence[int] = (), in_shardings: Any = None, out_shardings: Any = None) -> Callable:
+    """``fn`` compiled for ``args`` under ``plan`` (traced under its trace-time choices, its compiler options),
+    donating the arguments ``donate``; where ``plan.reuse_traces`` and :func:`available`, through a kept export
+    named by :func:`_key` of ``name``, ``parts`` (what ``fn`` is built from) and the arguments."""
+    options = plan.xla_options
+    kw: dict[str, Any] = {"donate_argnums": tuple(donate), "compiler_options": options}
+    if in_shardings is not None:
+        kw.update(in_shardings=in_shardings, out_shardings=out_shardings)
+    directory = _directory()
+    if not (getattr(plan, "reuse_traces", False) and available() and directory) or in_shardings is not None:
+        LAST[name] = "off"
+        with plan.tracing():
+            return jax.jit(fn, **kw).lower(*args).compile()
+    from jax import export
+
+    try:
+        key = _key(name, parts, plan, args, donate)
+    except NotKeyable as why:
+        LAST[name] = f"off: {why}"
+        with plan.tracing():
+            return jax.jit(fn, **kw).lower(*args).compile()
+    _register_structs()
+    path = os.path.join(directory, f"{name}-{key[:40]}.jaxexport")
+    exported = _read(path)
+    if exported is not None:
+        try:  # exported.call checks the arguments' structure and avals against the kept ones
+            compiled = jax.jit(exported.call, **kw).lower(*args).compile()
+            LAST[name] = "read"
+            return compiled
+        except Exception:  # noqa: BLE001 - a kept program that does not fit these arguments: trace afresh
+            pass
+    with plan.tracing():
+        exported = export.export(jax.jit(fn), disabled_checks=[
+            export.DisabledSafetyCheck.custom_call(c) for c in _CUSTOM_CALLS])(*args)
+    try:
+        _write(path, exported.serialize())
+        LAST[name] = "traced"
+    except (NotKeyable, ValueError) as why:  # a structure jax.export cannot name: run it, keep nothing
+        LAST[name] = f"off: {why}"
+    return jax.jit(exported.call, **kw).lower(*args).compile()

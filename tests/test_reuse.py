@@ -1,0 +1,145 @@
+"""Traced programs kept across processes (jaxrobo.speed.reuse): the same run whether a trace was read back or made,
+a key that follows what the trace reads, and kept files that cannot be trusted traced afresh."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from jaxrobo.speed import reuse
+from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import train
+from jaxrobo.training.trainer import Trainer
+
+SMALL = {"env.backend": "analytic", "n_envs": 8, "nepisodes": 4, "nsteps": 40, "chunk_steps": 40, "eval_episodes": 4,
+         "eval_envs": 2, "stop_at_target": False}
+PROGRAMS = ("init", "chunk", "eval_start", "eval_advance")
+
+
+@pytest.fixture
+def kept(tmp_path, monkeypatch):
+    """Reuse on, its files in a folder of this test's own."""
+    monkeypatch.setenv("JAXROBO_REUSE_TRACES", "on")
+    monkeypatch.setattr(reuse, "_directory", lambda: str(tmp_path / "traced"))
+    monkeypatch.setattr(reuse, "LAST", {})
+    return tmp_path / "traced"
+
+
+def run(reuse_traces: bool, **overrides):
+    spec = resolve("CartPoleStayUp-v0", overrides={**SMALL, **overrides})
+    plan = Trainer(spec.env, spec.config).plan.replace(reuse_traces=reuse_traces)
+    r = train(spec.env, spec.config, spec.agent_params, plan=plan)
+    return [np.asarray(a) for a in (r.q, r.returns, r.lengths, r.eval_returns, r.eval_lengths)]
+
+
+def same(a, b):
+    return all(x.shape == y.shape and x.dtype == y.dtype and x.tobytes() == y.tobytes() for x, y in zip(a, b))
+
+
+def test_a_run_is_the_same_traced_kept_or_read_back(kept):
+    plain = run(False)
+    assert all(reuse.LAST.get(p, "off") == "off" for p in PROGRAMS)
+    first = run(True)
+    assert {p: reuse.LAST[p] for p in PROGRAMS} == dict.fromkeys(PROGRAMS, "traced")
+    assert {f.split("-")[0] for f in os.listdir(kept)} == set(PROGRAMS)
+    second = run(True)
+    assert {p: reuse.LAST[p] for p in PROGRAMS} == dict.fromkeys(PROGRAMS, "read")
+    assert same(plain, first) and same(first, second)
+
+
+def test_another_configuration_is_traced_again(kept):
+    run(True)
+    before = set(os.listdir(kept))
+    run(True, nsteps=30)  # a static setting (the episode's step limit): other programs, other keys
+    assert reuse.LAST["chunk"] == "traced"
+    assert any(f.startswith("chunk-") for f in set(os.listdir(kept)) - before)
+
+
+@pytest.mark.parametrize("damage", ["garbage", "empty", "fifo", "link", "directory"])
+def test_a_kept_file_that_cannot_be_trusted_is_traced_afresh(kept, tmp_path, damage):
+    good = run(True)
+    for name in os.listdir(kept):
+        path = kept / name
+        path.unlink()
+        if damage == "garbage":
+            path.write_bytes(os.urandom(4096))
+        elif damage == "empty":
+            path.write_bytes(b"")
+        elif damage == "fifo":
+            os.mkfifo(path)  # reading it would wait for a writer
+        elif damage == "link":
+            (tmp_path / "elsewhere").write_bytes(b"not an export")
+            path.symlink_to(tmp_path / "elsewhere")
+        else:
+            path.mkdir()
+    again = run(True)
+    assert all(reuse.LAST[p].startswith(("traced", "off")) for p in PROGRAMS)
+    assert same(good, again)
+    if damage == "link":  # the link's target is never written through
+        assert (tmp_path / "elsewhere").read_bytes() == b"not an export"
+
+
+def test_the_key_follows_what_the_trace_reads():
+    spec = resolve("CartPoleStayUp-v0", overrides=SMALL)
+    t = Trainer(spec.env, spec.config)
+    args = (np.zeros(3, np.float32),)
+    base = reuse._key("chunk", t, t.plan, args, (0,))
+    assert base == reuse._key("chunk", t, t.plan, args, (0,))  # deterministic
+    other = resolve("CartPoleStayUp-v0", overrides={**SMALL, "n_envs": 16})
+    assert base != reuse._key("chunk", Trainer(other.env, other.config), t.plan, args, (0,))
+    assert base != reuse._key("chunk", t, t.plan.replace(unrolled_groups=2), args, (0,))
+    assert base != reuse._key("chunk", t, t.plan, (np.zeros(4, np.float32),), (0,))
+    assert base != reuse._key("chunk", t, t.plan, (np.zeros(3, np.int32),), (0,))
+    assert base != reuse._key("init", t, t.plan, args, (0,))
+    assert base != reuse._key("chunk", t, t.plan, args, ())
+    # arrays count by their values, not their repr (which numpy abbreviates)
+    a, b = np.zeros(5000, np.float32), np.zeros(5000, np.float32)
+    b[2500] = 1
+    assert reuse.describe(a) != reuse.describe(b)
+
+
+def test_the_environment_switch_turns_reuse_off(kept, monkeypatch):
+    assert reuse.available()
+    monkeypatch.setenv("JAXROBO_REUSE_TRACES", "off")
+    assert not reuse.available()
+    spec = resolve("CartPoleStayUp-v0", overrides=SMALL)
+    assert not Trainer(spec.env, spec.config).plan.reuse_traces
+    monkeypatch.setenv("JAXROBO_REUSE_TRACES", "on")
+    assert Trainer(spec.env, spec.config).plan.reuse_traces
+
+
+def test_what_the_key_cannot_describe_is_not_reused(kept):
+    class Opaque:
+        __slots__ = ()
+
+    with pytest.raises(reuse.NotKeyable):
+        reuse.describe([1, Opaque()])
+    plan = ExecutionPlan(reuse_traces=True)
+    f = reuse.compile_reusing(plan, "probe", lambda x: x * 2, (np.float32(3),), Opaque())
+    assert float(f(np.float32(3))) == 6.0 and reuse.LAST["probe"].startswith("off: ")
+
+
+def test_the_command_line_reads_its_traces_back_in_a_second_process(tmp_path):
+    """As a user runs it: the second start of the same command reads every program back and trains the same."""
+    code = ("import sys; from jaxrobo.cli import main; from jaxrobo.speed import reuse\n"
+            "rc = main(sys.argv[1:]); print('REUSE', sorted(reuse.LAST.items())); sys.exit(rc)")
+    env = {**os.environ, "JAXROBO_CACHE_DIR": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu",
+           "JAXROBO_REUSE_TRACES": "on"}
+    out = []
+    for i in range(2):
+        cmd = [sys.executable, "-c", code, "train", "--env", "CartPoleStayUp-v0", "--no-progress", "--out",
+               str(tmp_path / f"run{i}"), "--set", "env.backend=analytic", "--n-envs", "8", "--set", "nepisodes=4",
+               "--set", "nsteps=40", "--set", "stop_at_target=false"]
+        p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+        assert p.returncode == 0, p.stderr[-2000:]
+        out.append(p.stdout)
+    assert "reuse_traces=on" in out[0]
+    assert "('chunk', 'traced')" in out[0] and "('chunk', 'read')" in out[1], out[1][-500:]
+    assert "('eval_advance', 'read')" in out[1]
+    tables = [np.load(tmp_path / f"run{i}" / "qtables.npz") for i in range(2)]
+    assert sorted(tables[0].files) == sorted(tables[1].files)
+    assert all(tables[0][k].tobytes() == tables[1][k].tobytes() for k in tables[0].files)
