@@ -71,6 +71,8 @@ WHAT = {
                              "second that one GPU reaches with the whole batch",
     "compile_beside.json": "Goto-v2's and the arm's default commands, cold and warm, before and after the "
                            "evaluation compiles beside the training chunk (`ExecutionPlan.compile_beside`), one call",
+    "reuse_traces.json": "The tabular default commands warm, traces read back (`ExecutionPlan.reuse_traces`) and "
+                         "traced afresh, alternating in one call on one cache (`jaxrobo.speed.reuse`)",
     "step_budget_65536.json": "The 65,536-env cart-pole run under a step budget, cold and warm: where its wall goes "
                               "(the run stops at the learning target)",
     "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "
