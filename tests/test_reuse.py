@@ -143,3 +143,19 @@ def test_the_command_line_reads_its_traces_back_in_a_second_process(tmp_path):
     tables = [np.load(tmp_path / f"run{i}" / "qtables.npz") for i in range(2)]
     assert sorted(tables[0].files) == sorted(tables[1].files)
     assert all(tables[0][k].tobytes() == tables[1][k].tobytes() for k in tables[0].files)
+
+
+def test_a_sweep_reads_its_group_back_and_gives_the_same_rows(kept):
+    from jaxrobo.training.sweep.running import run_sweep
+
+    def sweep():
+        r = run_sweep("CartPoleStayUp-v0", [{"alpha": 0.1}, {"alpha": 0.3}], seeds=(0, 1), eval_episodes=2,
+                      overrides={k: v for k, v in SMALL.items() if k not in ("eval_episodes", "eval_envs")})
+        return [{k: v for k, v in row.items() if not k.endswith("seconds")} for row in r.rows]
+
+    first = sweep()
+    assert reuse.LAST["sweep_chunk"] == "traced"
+    second = sweep()
+    assert {p: reuse.LAST[p] for p in ("sweep_init", "sweep_chunk", "sweep_finish")} == dict.fromkeys(
+        ("sweep_init", "sweep_chunk", "sweep_finish"), "read")
+    assert repr(first) == repr(second)

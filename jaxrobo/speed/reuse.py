@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import hashlib
 import os
+import stat
 import sys
 import tempfile
 import types
@@ -148,7 +149,8 @@ def _jax_config() -> str:
 
 def describe(obj: Any, *, limit: int = 50_000) -> str:
     """A text that determines ``obj`` as a trace sees it: plain values by repr, arrays by dtype, shape and a hash
-    of their bytes, functions by module and qualified name, containers, dataclasses and objects field by field.
+    of their bytes, functions by qualified name, code and what they close over, a MuJoCo model by its saved
+    bytes, containers, dataclasses and objects field by field.
     Raises :class:`NotKeyable` for what it cannot pin down (a repr with a memory address), or past ``limit``
     parts."""
     out: list[str] = []
@@ -256,8 +258,9 @@ def _filled(cell: Any) -> bool:
 
 def _key(name: str, parts: Any, plan: Any, args: Sequence[Any], donate: Sequence[int]) -> str:
     avals = jax.tree.map(lambda x: (tuple(np.shape(x)), str(getattr(x, "dtype", type(x).__name__))), args)
-    text = "\n".join([name, _sources(), _live_code(), _versions(), _device(), _jax_config(), _plan_text(plan), repr(sorted(donate)),
-                      str(jax.tree.structure(args)), repr(jax.tree.leaves(avals)), describe(parts)])
+    text = "\n".join([name, _sources(), _live_code(), _versions(), _device(), _jax_config(), _plan_text(plan),
+                      repr(sorted(donate)), str(jax.tree.structure(args)), repr(jax.tree.leaves(avals)),
+                      describe(parts)])
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -308,8 +311,6 @@ def _read(path: str) -> Any | None:
         return None
     try:
         st = os.fstat(fd)
-        import stat
-
         if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_BYTES or st.st_size == 0:
             return None
         with os.fdopen(fd, "rb") as fh:

@@ -277,12 +277,20 @@ class GroupRunner:
         t0 = time.perf_counter()
         plan = self.trainer.plan
         opts = plan.xla_options
-        init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
-        runner = driver.compile_under(plan, init, kd, ap, ep)(kd, ap, ep)
-        chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,), compiler_options=opts)
-        chunk = driver.compile_under(plan, chunk, runner, ap, ep)
-        finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
-        finish = driver.compile_under(plan, finish, runner, kd, ep)
+        if mesh is None and plan.reuse_traces:  # on one device: traces kept by an earlier process, read back
+            from jaxrobo.speed import reuse
+
+            parts = (self.trainer, n, self.n_last, self.eval_episodes)
+            runner = reuse.compile_reusing(plan, "sweep_init", self._init, (kd, ap, ep), parts)(kd, ap, ep)
+            chunk = reuse.compile_reusing(plan, "sweep_chunk", self._chunk, (runner, ap, ep), parts, donate=(0,))
+            finish = reuse.compile_reusing(plan, "sweep_finish", self._finish, (runner, kd, ep), parts)
+        else:
+            init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
+            runner = driver.compile_under(plan, init, kd, ap, ep)(kd, ap, ep)
+            chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,), compiler_options=opts)
+            chunk = driver.compile_under(plan, chunk, runner, ap, ep)
+            finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
+            finish = driver.compile_under(plan, finish, runner, kd, ep)
         stats = driver.compiled_progress(runner, self.trainer)
         jax.block_until_ready(runner)
         self.compile_seconds = time.perf_counter() - t0
