@@ -112,6 +112,22 @@ def test_the_environment_switch_turns_reuse_off(kept, monkeypatch):
     assert Trainer(spec.env, spec.config).plan.reuse_traces
 
 
+def test_a_patch_at_run_time_changes_the_key_and_undoing_it_restores_it(monkeypatch):
+    import importlib
+
+    from envs.cartpole.dynamics import CartPoleSim
+
+    before = reuse._live_code()
+    for name in ("envs.quadcopter.native", "jaxrobo.pictures.plots", "jaxrobo.interop.numpy_policy"):
+        importlib.import_module(name)  # more modules loaded, none patched: the same key
+    assert reuse._live_code() == before
+    monkeypatch.setattr(CartPoleSim, "physics_step", lambda self, s, ctrl: s)
+    patched = reuse._live_code()
+    assert patched != before
+    monkeypatch.undo()
+    assert reuse._live_code() == before
+
+
 def test_what_the_key_cannot_describe_is_not_reused(kept):
     class Opaque:
         __slots__ = ()
@@ -159,3 +175,37 @@ def test_a_sweep_reads_its_group_back_and_gives_the_same_rows(kept):
     assert {p: reuse.LAST[p] for p in ("sweep_init", "sweep_chunk", "sweep_finish")} == dict.fromkeys(
         ("sweep_init", "sweep_chunk", "sweep_finish"), "read")
     assert repr(first) == repr(second)
+
+
+@pytest.mark.slow  # three processes of a user's own task
+def test_a_users_own_task_edited_between_runs_is_traced_again(tmp_path):
+    """A task in the user's own module (examples/custom_task): its code is part of the key, so a second run reads
+    the traces back, and a run after an edit of the task's step traces afresh and trains the edited task."""
+    import shutil
+
+    folder = tmp_path / "custom_task"
+    shutil.copytree(os.path.join(os.path.dirname(__file__), "..", "examples", "custom_task"), folder)
+    code = ("import sys; from jaxrobo.cli import main; from jaxrobo.speed import reuse\n"
+            "rc = main(sys.argv[1:]); print('REUSE', sorted(reuse.LAST.items())); sys.exit(rc)")
+    env = {**os.environ, "JAXROBO_CACHE_DIR": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu",
+           "JAXROBO_REUSE_TRACES": "on", "PYTHONPATH": os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}
+
+    def run(i):
+        cmd = [sys.executable, "-c", code, "train", "--env", "my_task:MyPendulum-v0", "--n-envs", "2", "--nepisodes",
+               "3", "--no-progress", "--set", "nsteps=20", "--set", "eval_episodes=2", "--set", "eval_envs=1",
+               "--set", "stop_at_target=false", "--out", str(tmp_path / f"run{i}")]
+        p = subprocess.run(cmd, env=env, cwd=folder, capture_output=True, text=True, timeout=600)
+        assert p.returncode == 0, p.stderr[-2000:]
+        with np.load(tmp_path / f"run{i}" / "qtables.npz") as z:
+            return p.stdout, z["q"].tobytes()
+
+    out0, q0 = run(0)
+    out1, q1 = run(1)
+    assert "('chunk', 'traced')" in out0 and "('chunk', 'read')" in out1 and q0 == q1
+    task = folder / "my_task.py"
+    text = task.read_text()
+    assert "return jnp.abs(obs[0]) >= params.max_angle" in text
+    task.write_text(text.replace("return jnp.abs(obs[0]) >= params.max_angle",
+                                 "return jnp.abs(obs[0]) >= 0.5 * params.max_angle"))
+    out2, q2 = run(2)
+    assert "('chunk', 'traced')" in out2 and q2 != q0

@@ -11,18 +11,21 @@ and compiles it (a persistent-cache hit) without tracing. The file is JAX's seri
 reading it runs no Python. A file that cannot be read back (truncated, another format, not a regular file, too
 big) is ignored and the program traced as before; the run never depends on the file.
 
-The key names everything a trace reads: the bytes of every file of the ``jaxrobo``, ``envs`` and ``agents``
-packages; the code of every function and class method those packages and MJX hold at the moment of the key
-(:func:`_live_code`), so a step patched at run time (``CartPoleSim.physics_step = ...``, a monkeypatched version
-check) is another key, and undoing the patch gives the first key back; the versions of JAX, jaxlib, MuJoCo and
-MJX; the backend and device kind; JAX's configuration; the execution plan; the objects the program is built from
-(env, training config, learner, discretiser, evaluation sizes: :func:`describe` walks them, hashing arrays by
-their bytes and naming functions by their code); and the arguments' structure, shapes and dtypes. What it does
-not follow is a patch inside JAX or jaxlib themselves: a process doing that sets ``JAXROBO_REUSE_TRACES=off``
-(or ``JAXROBO_CACHE_DIR=off``, or runs a plan with ``reuse_traces=False``). Cold and warm runs execute the same
-exported program, so a result does not depend on whether the trace was read back (``tests/test_reuse.py``).
+The key names everything a trace reads: the bytes of every file of the ``jaxrobo``, ``envs``, ``agents`` and
+``jaxrobo_ros`` packages; the functions patched into them (or into MJX) at run time from a script, a test or a
+notebook (:func:`_live_code`: a patched step is another key, and undoing the patch gives the first key back); the
+user's own modules the program's objects come from (a task or robot written outside the packages: their files, or
+a notebook's functions, :func:`_user_code`); the versions of JAX, jaxlib, MuJoCo and MJX; the backend and device
+kind; JAX's configuration; the execution plan; the objects the program is built from (env, training config,
+learner, discretiser, evaluation sizes: :func:`describe` walks them, hashing arrays by their bytes and functions by
+their code and what they close over); and the arguments' structure, shapes and dtypes. What it does not follow is
+a patch inside JAX, jaxlib or another installed library, or one of the packages' functions swapped for another of
+theirs: a process doing that sets ``JAXROBO_REUSE_TRACES=off`` (or ``JAXROBO_CACHE_DIR=off``, or runs a plan with
+``reuse_traces=False``). Cold and warm runs execute the same exported program, so a result does not depend on
+whether the trace was read back (``tests/test_reuse.py``).
 
-Public surface: :func:`available`, :func:`compile_reusing`, :func:`describe`, :data:`LAST`, :data:`VARIABLE`.
+Public surface: :func:`available`, :func:`compile_reusing`, :func:`kept_shapes`, :func:`describe`, :data:`LAST`,
+:data:`VARIABLE`.
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ import ast
 import dataclasses
 import functools
 import hashlib
+import importlib
 import os
 import stat
 import sys
@@ -47,7 +51,12 @@ MAX_BYTES = 512 << 20
 #: Custom calls our programs make that jax.export does not list as stable across JAX versions; the key holds the
 #: JAX version, so a program is only ever read back by the version that wrote it.
 _CUSTOM_CALLS = ("__gpu$xla.gpu.triton",)
-_PACKAGES = ("jaxrobo", "envs", "agents")
+_PACKAGES = ("jaxrobo", "envs", "agents", "jaxrobo_ros")
+
+
+#: Attributes that cache programs made from an object's other fields (the evaluation's compiled flights, a
+#: trainer's jitted init): not inputs of a trace, and set or not depending on what ran before the key.
+_DERIVED = ("_compiled", "_jitted_init")
 
 
 class NotKeyable(Exception):
@@ -74,8 +83,10 @@ def _sources() -> str:
     for name in _PACKAGES:
         module = sys.modules.get(name)
         if module is None:
-            __import__(name)
-            module = sys.modules[name]
+            try:
+                module = importlib.import_module(name)
+            except ImportError:  # a package of the tree that is not installed here (its code cannot run either)
+                continue
         for root in sorted(getattr(module, "__path__", [])):
             for folder, dirs, files in os.walk(root):
                 dirs[:] = sorted(d for d in dirs if d != "__pycache__" and not d.startswith("."))
@@ -109,24 +120,99 @@ def _constant(c: Any) -> str:
     return repr(c)
 
 
+def _roots() -> tuple[str, ...]:
+    """The folders whose files :func:`_sources` hashes, and MJX's."""
+    roots = [os.path.realpath(r) for name in _PACKAGES for r in getattr(sys.modules.get(name), "__path__", [])]
+    mjx = sys.modules.get("mujoco.mjx")
+    roots += [os.path.realpath(r) for r in getattr(mjx, "__path__", [])]
+    return tuple(r + os.sep for r in roots)
+
+
+def _foreign(f: types.FunctionType, home: tuple[str, ...], qualname: str) -> bool:
+    """Whether ``f``, found where a function named ``qualname`` is defined, was written elsewhere by the user: in a
+    script, a test, a notebook cell, ``python -c`` or the interpreter's prompt. A function that ``exec`` generated
+    for its class (``<string>``: a dataclass's ``__init__``, named as where it sits) and a library's (a
+    decorator's wrapper, ``dataclasses``' ``__repr__``) count as ``home``'s: they sit there by definition."""
+    file = f.__code__.co_filename
+    if file.startswith("<"):
+        return not (file == "<string>" and f.__qualname__ == qualname)
+    file = os.path.realpath(file)
+    return not (file.startswith(home) or _third_party(file))
+
+
+def _functions(module: types.ModuleType) -> Any:
+    """``(where, qualname, function)`` for each module-level function and each function of each class the module
+    holds: where it sits, and the qualified name a function defined there has."""
+    name = module.__name__
+    for attr, value in sorted(getattr(module, "__dict__", {}).items()):
+        if isinstance(value, types.FunctionType):
+            yield f"{name}.{attr}", attr, value
+        elif isinstance(value, type) and value.__module__ == name:
+            for k, v in sorted(vars(value).items()):
+                f = v.__func__ if isinstance(v, (staticmethod, classmethod)) else v
+                if isinstance(f, types.FunctionType):
+                    yield f"{name}.{attr}.{k}", f"{value.__qualname__}.{k}", f
+
+
 def _live_code() -> str:
-    """One hash of the code every module of ``jaxrobo``, ``envs``, ``agents`` and MJX holds now: each module-level
-    function, and each function of each class (methods, static and class methods), by name and code. Computed at
-    every key: a patch made at run time, or undone, changes it."""
+    """One hash of the functions patched into ``jaxrobo``, ``envs``, ``agents`` and MJX at run time: each
+    module-level function and class function of their loaded modules whose code comes from a file outside them
+    (a test's or a notebook's replacement), by where it sits and its code. Unpatched, it is the same whichever of
+    their modules are loaded (their files are :func:`_sources`'s); a patch changes it, and undoing it changes it
+    back. A swap of two of their own functions is not seen."""
     h = hashlib.sha256()
+    home = _roots()
     for name in sorted(sys.modules):
         if name.split(".")[0] not in _PACKAGES and not name.startswith("mujoco.mjx"):
             continue
-        for attr, value in sorted(getattr(sys.modules[name], "__dict__", {}).items()):
-            if isinstance(value, types.FunctionType):
-                h.update(f"{name}.{attr}".encode())
-                _code(value.__code__, h)
-            elif isinstance(value, type) and value.__module__ == name:
-                for k, v in sorted(vars(value).items()):
-                    f = v.__func__ if isinstance(v, (staticmethod, classmethod)) else v
-                    if isinstance(f, types.FunctionType):
-                        h.update(f"{name}.{attr}.{k}".encode())
-                        _code(f.__code__, h)
+        for where, qualname, f in _functions(sys.modules[name]):
+            if _foreign(f, home, qualname):
+                h.update(where.encode())
+                _code(f.__code__, h)
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _library_places() -> tuple[str, ...]:
+    import site
+    import sysconfig
+
+    places = {sysconfig.get_paths()[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")}
+    places.update(site.getsitepackages() if hasattr(site, "getsitepackages") else [])
+    return tuple(os.path.realpath(p) + os.sep for p in places if p)
+
+
+def _third_party(path: str) -> bool:
+    """Whether ``path`` is the standard library's or an installed package's."""
+    return os.path.realpath(path).startswith(_library_places())
+
+
+def _user_code(modules: set[str]) -> str:
+    """The code of the user's own modules that the described objects come from (a task or robot written outside
+    the packages, docs/extending.md): each one's file, or for a module without one (a notebook's ``__main__``)
+    every function it holds, with the functions patched into it from elsewhere."""
+    h = hashlib.sha256()
+    for name in sorted(modules):
+        module = sys.modules.get(name)
+        if module is None or name.split(".")[0] in _PACKAGES or name.split(".")[0] in ("builtins", "jax", "jaxlib",
+                                                                                      "numpy", "mujoco"):
+            continue
+        path = getattr(module, "__file__", None)
+        if path and _third_party(path):
+            continue
+        h.update(name.encode() + b"\0")
+        if path and os.path.isfile(path):
+            with open(path, "rb") as fh:
+                h.update(hashlib.sha256(fh.read()).digest())
+            own = os.path.realpath(path)
+            for where, qualname, f in _functions(module):  # what was patched into it from elsewhere
+                if os.path.realpath(f.__code__.co_filename) != own and _foreign(f, (), qualname):
+                    h.update(where.encode())
+                    _code(f.__code__, h)
+        else:
+            for where, _, f in _functions(module):
+                h.update(where.encode())
+                _code(f.__code__, h)
     return h.hexdigest()
 
 
@@ -147,14 +233,16 @@ def _jax_config() -> str:
     return repr(sorted((k, repr(v)) for k, v in values.items() if not any(s in k for s in skip)))
 
 
-def describe(obj: Any, *, limit: int = 50_000) -> str:
+def describe(obj: Any, *, limit: int = 50_000, modules: set[str] | None = None) -> str:
     """A text that determines ``obj`` as a trace sees it: plain values by repr, arrays by dtype, shape and a hash
     of their bytes, functions by qualified name, code and what they close over, a MuJoCo model by its saved
     bytes, containers, dataclasses and objects field by field.
     Raises :class:`NotKeyable` for what it cannot pin down (a repr with a memory address), or past ``limit``
-    parts."""
+    parts. ``modules`` (a set) receives the module of every class and function met (:func:`_user_code`)."""
     out: list[str] = []
     seen: dict[int, int] = {}
+    if modules is None:
+        modules = set()
 
     def walk(x: Any, depth: int) -> None:
         if len(out) > limit or depth > 40:
@@ -171,12 +259,15 @@ def describe(obj: Any, *, limit: int = 50_000) -> str:
             out.append(f"array:{a.dtype}:{a.shape}:{digest}")
             return
         if isinstance(x, types.FunctionType):  # by name and code (every lambda is '<lambda>')
+            modules.add(x.__module__)
             h = hashlib.sha256()
             _code(x.__code__, h)
             out.append(f"function:{x.__module__}.{x.__qualname__}:{h.hexdigest()[:32]}")
             if x.__closure__:  # what it closes over is part of what it does
                 walk(tuple(c.cell_contents for c in x.__closure__ if _filled(c)), depth + 1)
             return
+        if isinstance(x, type):
+            modules.update(c.__module__ for c in x.__mro__)
         if isinstance(x, (type, types.BuiltinFunctionType, types.ModuleType)):
             out.append(f"{type(x).__name__}:{getattr(x, '__module__', '')}.{getattr(x, '__qualname__', x.__name__)}")
             return
@@ -217,6 +308,7 @@ def describe(obj: Any, *, limit: int = 50_000) -> str:
             out.append(f"{type(x).__name__}:{sorted(repr(i) for i in x)}")
             return
         kind = f"{type(x).__module__}.{type(x).__qualname__}"
+        modules.update(c.__module__ for c in type(x).__mro__)
         if kind == "mujoco._structs.MjModel":  # a compiled MuJoCo model: all of it, as MuJoCo saves it
             import mujoco
 
@@ -234,7 +326,7 @@ def describe(obj: Any, *, limit: int = 50_000) -> str:
         if state is not None:
             out.append(f"object:{kind}")
             for k in sorted(state):
-                if k.startswith("_lock") or k == "_compiled":  # a lock or a table of compiled programs: no trace input
+                if k.startswith("_lock") or k in _DERIVED:  # a lock, or programs made from the other fields
                     continue
                 out.append(k)
                 walk(state[k], depth + 1)
@@ -258,9 +350,11 @@ def _filled(cell: Any) -> bool:
 
 def _key(name: str, parts: Any, plan: Any, args: Sequence[Any], donate: Sequence[int]) -> str:
     avals = jax.tree.map(lambda x: (tuple(np.shape(x)), str(getattr(x, "dtype", type(x).__name__))), args)
-    text = "\n".join([name, _sources(), _live_code(), _versions(), _device(), _jax_config(), _plan_text(plan),
-                      repr(sorted(donate)), str(jax.tree.structure(args)), repr(jax.tree.leaves(avals)),
-                      describe(parts)])
+    modules: set[str] = set()
+    described = describe(parts, modules=modules)
+    text = "\n".join([name, _sources(), _live_code(), _user_code(modules), _versions(), _device(), _jax_config(),
+                      _plan_text(plan), repr(sorted(donate)), str(jax.tree.structure(args)),
+                      repr(jax.tree.leaves(avals)), described])
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -346,31 +440,61 @@ def _write(path: str, data: bytes) -> None:
 LAST: dict[str, str] = {}
 
 
+_READ: dict[str, Any] = {}  # kept programs this process has read, by path (kept_shapes, then compile_reusing)
+
+
+def _kept(path: str, args: Sequence[Any]) -> Any | None:
+    """The program kept at ``path`` if its arguments' structure and avals are ``args``'s (read once a process)."""
+    exported = _READ.get(path) or _read(path)
+    if exported is None:
+        return None
+    # (exported.call checks the avals too, when it is compiled for these arguments)
+    if str(exported.in_tree) != str(jax.tree.structure((tuple(args), {}))) \
+            or len(exported.in_avals) != len(jax.tree.leaves(args)):
+        return None
+    _READ[path] = exported
+    return exported
+
+
+def _path(plan: Any, name: str, args: Sequence[Any], parts: Any, donate: Sequence[int]) -> tuple[str | None, str]:
+    """Where the program of this key is kept, or None and why not: the plan or the process does not reuse
+    traces ("off"), or the key cannot describe ``parts`` ("off: ...")."""
+    directory = _directory()
+    if not (getattr(plan, "reuse_traces", False) and available() and directory):
+        return None, "off"
+    try:
+        key = _key(name, parts, plan, args, donate)
+    except NotKeyable as why:
+        return None, f"off: {why}"
+    _register_structs()
+    return os.path.join(directory, f"{name}-{key[:40]}.jaxexport"), ""
+
+
+def kept_shapes(plan: Any, name: str, args: Sequence[Any], parts: Any, *, donate: Sequence[int] = ()) -> Any | None:
+    """The output's structure as ``jax.ShapeDtypeStruct`` leaves, read from the kept program of this key without
+    tracing; None where there is none (then ``jax.eval_shape`` traces it, as before)."""
+    path, _ = _path(plan, name, args, parts, donate)
+    exported = None if path is None else _kept(path, args)
+    if exported is None:
+        return None
+    return jax.tree.unflatten(exported.out_tree, [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.out_avals])
+
+
 def compile_reusing(plan: Any, name: str, fn: Callable, args: Sequence[Any], parts: Any, *,
-                    donate: Sequence[int] = (), in_shardings: Any = None, out_shardings: Any = None) -> Callable:
+                    donate: Sequence[int] = ()) -> Callable:
     """``fn`` compiled for ``args`` under ``plan`` (traced under its trace-time choices, its compiler options),
     donating the arguments ``donate``; where ``plan.reuse_traces`` and :func:`available`, through a kept export
     named by :func:`_key` of ``name``, ``parts`` (what ``fn`` is built from) and the arguments."""
     options = plan.xla_options
     kw: dict[str, Any] = {"donate_argnums": tuple(donate), "compiler_options": options}
-    if in_shardings is not None:
-        kw.update(in_shardings=in_shardings, out_shardings=out_shardings)
-    directory = _directory()
-    if not (getattr(plan, "reuse_traces", False) and available() and directory) or in_shardings is not None:
-        LAST[name] = "off"
+    path, why = _path(plan, name, args, parts, donate)
+    if path is None:
+        LAST[name] = why
         with plan.tracing():
             return jax.jit(fn, **kw).lower(*args).compile()
     from jax import export
 
-    try:
-        key = _key(name, parts, plan, args, donate)
-    except NotKeyable as why:
-        LAST[name] = f"off: {why}"
-        with plan.tracing():
-            return jax.jit(fn, **kw).lower(*args).compile()
-    _register_structs()
-    path = os.path.join(directory, f"{name}-{key[:40]}.jaxexport")
-    exported = _read(path)
+    exported = _kept(path, args)
     if exported is not None:
         try:  # exported.call checks the arguments' structure and avals against the kept ones
             compiled = jax.jit(exported.call, **kw).lower(*args).compile()

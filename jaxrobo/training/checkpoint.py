@@ -95,8 +95,15 @@ def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any 
     (:func:`jaxrobo.training.train.train`'s ``trainer``) compiles its first carry from this trace instead of
     tracing the env's reset again."""
     env_params = trainer.env.default_params if env_params is None else env_params
+    args = (jax.random.key(trainer.config.seed), agent_params, env_params)
+    if trainer.plan.reuse_traces:  # the init an earlier process kept says its carry's shapes without a trace
+        from jaxrobo.speed import reuse
+
+        kept = reuse.kept_shapes(trainer.plan, "init", args, trainer)
+        if kept is not None:
+            return kept
     with trainer.plan.tracing():
-        return jax.eval_shape(trainer.jitted_init, jax.random.key(trainer.config.seed), agent_params, env_params)
+        return jax.eval_shape(trainer.jitted_init, *args)
 
 
 def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:

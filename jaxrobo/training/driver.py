@@ -123,7 +123,9 @@ def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, e
     """``trainer.init`` compiled under the plan, its carry split over the plan's devices (:func:`env_mesh`)."""
     mesh = env_mesh(trainer)
     if mesh is None and trainer.plan.reuse_traces:  # a trace kept by an earlier process, read back
-        return reuse.compile_reusing(trainer.plan, "init", trainer.init, (key, agent_params, env_params), trainer)
+        # (trainer.jitted_init: where the checkpoint's template traced it, the export takes that trace)
+        return reuse.compile_reusing(trainer.plan, "init", trainer.jitted_init, (key, agent_params, env_params),
+                                     trainer)
     if mesh is None:
         jitted = trainer.jitted_init  # the trace the checkpoint's template made, if it made one
     else:
