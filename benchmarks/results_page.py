@@ -73,6 +73,11 @@ WHAT = {
                            "evaluation compiles beside the training chunk (`ExecutionPlan.compile_beside`), one call",
     "reuse_traces.json": "The tabular default commands warm, traces read back (`ExecutionPlan.reuse_traces`) and "
                          "traced afresh, alternating in one call on one cache (`jaxrobo.speed.reuse`)",
+    "xla_autotune_cold.json": "Goto-v2's and the arm's default commands cold with XLA's GPU autotuning as it is, at "
+                              "level 0, and without Triton GEMM fusions (one call)",
+    "ppo_twist_warm_profile.json": "Where a warm QuadcopterGotoTwist-v0 PPO run's wall goes: its evaluation points' "
+                                   "seconds and JAX's compile log",
+    "stop_latency.json": "PPO and SAC stopped by SIGINT on a GPU: how soon they exit, what they keep, the resume",
     "step_budget_65536.json": "The 65,536-env cart-pole run under a step budget, cold and warm: where its wall goes "
                               "(the run stops at the learning target)",
     "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "
