@@ -10,7 +10,7 @@ so the cache can never run code other than what the process has just traced: a p
 time, or another execution plan (:class:`jaxrobo.speed.plan.ExecutionPlan`), lowers to another module and compiles
 afresh. A second start therefore still traces its programs, which on a GPU host took most of a warm compile
 (seconds for an MJX step); :mod:`jaxrobo.speed.reuse` keeps the traces too, in ``traced/`` under this directory,
-keyed on everything a trace reads except code patched at run time (a plan's ``reuse_traces``).
+keyed on everything a trace reads, a function patched in at run time included (a plan's ``reuse_traces``).
 """
 from __future__ import annotations
 

@@ -271,9 +271,10 @@ class ExecutionPlan:
 
     ``reuse_traces``: keep the run's traced programs (training chunk, init, greedy evaluation) exported beside the
     persistent compilation cache, and read them back in a later process of the same configuration instead of
-    tracing again (:mod:`jaxrobo.speed.reuse`, which says what the key holds and the one thing it cannot see: code
-    patched at run time). On by default for a run on one device where a compilation cache is in use; the programs
-    are the same either way.
+    tracing again (:mod:`jaxrobo.speed.reuse`, which says what the key holds, a function patched in at run time
+    included, and what it cannot see: a patch inside JAX or another installed library). On by default for a run on
+    one device where a compilation cache is in use (``JAXROBO_REUSE_TRACES=off`` turns it off); the programs are
+    the same either way.
 
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
