@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo_ros.bridge import Fault, make_bridge, stamp
-from jaxrobo_ros.system import SetupError, rospy as import_rospy
+from jaxrobo_ros.system import SetupError, line_buffered, rospy as import_rospy
 
 #: The numpy runner ``jaxrobo export`` copies into every export.
 RUNNER = "jaxrobo_policy.py"
@@ -266,6 +266,7 @@ def main(argv=None) -> int:
 
 
 def run(args) -> int:
+    line_buffered()
     try:
         node = PolicyNode(args.export_dir, args.topics, args.ros_args)
     except SetupError as err:

@@ -40,6 +40,17 @@ def rospy():
     raise RosUnavailable(INSTALL)
 
 
+def line_buffered() -> None:
+    """Each line a node writes reaches its log file when it is written: rospy's INFO lines go to stdout without a
+    flush, and Python buffers stdout in blocks when it is a file (roslaunch's ``output="log"``, a node started with
+    its output redirected), so a line such as "acting again" would show only at exit."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.reconfigure(line_buffering=True)
+        except (AttributeError, ValueError, OSError):  # a stream that is not a text file (a test's capture)
+            pass
+
+
 def split_ros_args(argv) -> tuple[list[str], list[str]]:
     """``(argv without ROS's own arguments, those arguments)``: the ``name:=value`` arguments roslaunch and rosrun
     give a node (remappings ``from:=to``, ``__name:=``, ``__ns:=``, ``__log:=``, private parameters ``_p:=v``), told

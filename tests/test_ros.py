@@ -714,3 +714,19 @@ def test_robot_sections_are_checked_field_by_field(cartpole_export, tmp_path, ed
     with pytest.raises(SetupError) as err:
         load_export(str(bad))
     assert says in str(err.value) and str(bad / "policy.json") in str(err.value), str(err.value)
+
+
+def test_a_nodes_log_lines_reach_a_file_as_they_are_written(tmp_path):
+    """rospy writes INFO lines to stdout without a flush: a node's stdout, redirected to a file, is line-buffered
+    (jaxrobo_ros.system.line_buffered), so "acting again" shows while the node runs, not at its exit."""
+    code = ("import sys, time; from jaxrobo_ros.system import line_buffered; line_buffered(); "
+            "sys.stdout.write('acting again\\n'); time.sleep(30)")
+    log_path = tmp_path / "node.log"
+    with open(log_path, "w") as out:
+        p = subprocess.Popen([sys.executable, "-c", code], stdout=out, stderr=subprocess.STDOUT, cwd=ROOT,
+                             env={**os.environ, "PYTHONUNBUFFERED": ""})
+    try:
+        assert eventually(lambda: "acting again" in log_path.read_text(), timeout=20)
+    finally:
+        p.kill()
+        p.wait()

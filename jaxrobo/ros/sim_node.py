@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxrobo_ros.system import rospy as import_rospy
+from jaxrobo_ros.system import line_buffered, rospy as import_rospy
 from jaxrobo.core.config import ConfigError
 from jaxrobo.ros.bridge import make_bridge, make_env
 
@@ -175,6 +175,8 @@ class SimNode:
 
 def run(args) -> int:
     import signal
+
+    line_buffered()  # its log lines reach a log file as they are written
 
     if os.path.isdir(args.env_id):  # an export: its task with the run's options and parameters
         from jaxrobo.interop.numpy_policy import POLICY_JSON
