@@ -11,8 +11,8 @@ and compiles it (a persistent-cache hit) without tracing. The file is JAX's seri
 reading it runs no Python. A file that cannot be read back (truncated, another format, not a regular file, too
 big) is ignored and the program traced as before; the run never depends on the file.
 
-The key names everything a trace reads: the bytes of every file of the ``jaxrobo``, ``envs``, ``agents`` and
-``jaxrobo_ros`` packages; the functions patched into them (or into MJX) at run time from a script, a test or a
+The key names everything a trace reads: the code of the ``jaxrobo``, ``envs`` and ``agents`` packages (their
+Python and MJCF files, as a checkpoint's fingerprint hashes them); the functions patched into them (or into MJX) at run time from a script, a test or a
 notebook (:func:`_live_code`: a patched step is another key, and undoing the patch gives the first key back); the
 user's own modules the program's objects come from (a task or robot written outside the packages: their files, or
 a notebook's functions, :func:`_user_code`); the versions of JAX, jaxlib, MuJoCo and MJX; the backend and device
@@ -33,11 +33,9 @@ import ast
 import dataclasses
 import functools
 import hashlib
-import importlib
 import os
 import stat
 import sys
-import tempfile
 import types
 from typing import Any, Callable, Sequence
 
@@ -51,6 +49,8 @@ MAX_BYTES = 512 << 20
 #: Custom calls our programs make that jax.export does not list as stable across JAX versions; the key holds the
 #: JAX version, so a program is only ever read back by the version that wrote it.
 _CUSTOM_CALLS = ("__gpu$xla.gpu.triton",)
+#: The tree's packages: their own functions are not patches (:func:`_live_code`), nor their modules the user's.
+#: (jaxrobo_ros, the robot-side node that jaxrobo.ros imports, runs in no traced program.)
 _PACKAGES = ("jaxrobo", "envs", "agents", "jaxrobo_ros")
 
 
@@ -78,26 +78,11 @@ def _directory() -> str | None:
 
 @functools.lru_cache(maxsize=1)
 def _sources() -> str:
-    """One hash of every file of the packages whose code a trace runs (sources, MJCF models, presets)."""
-    h = hashlib.sha256()
-    for name in _PACKAGES:
-        module = sys.modules.get(name)
-        if module is None:
-            try:
-                module = importlib.import_module(name)
-            except ImportError:  # a package of the tree that is not installed here (its code cannot run either)
-                continue
-        for root in sorted(getattr(module, "__path__", [])):
-            for folder, dirs, files in os.walk(root):
-                dirs[:] = sorted(d for d in dirs if d != "__pycache__" and not d.startswith("."))
-                for f in sorted(files):
-                    if f.endswith((".pyc", ".pyo")):
-                        continue
-                    path = os.path.join(folder, f)
-                    h.update(os.path.relpath(path, root).encode() + b"\0")
-                    with open(path, "rb") as fh:
-                        h.update(hashlib.sha256(fh.read()).digest())
-    return h.hexdigest()
+    """The packages' code as a checkpoint's fingerprint hashes it (:func:`jaxrobo.io.rundir.source_hash`), once a
+    process (presets need not be in it: the config values they give are :func:`describe`'s)."""
+    from jaxrobo.io.rundir import source_hash
+
+    return source_hash()
 
 
 def _code(code: types.CodeType, h: Any) -> None:
@@ -420,17 +405,13 @@ def _read(path: str) -> Any | None:
 
 
 def _write(path: str, data: bytes) -> None:
-    """Atomically, beside the final name (a crash leaves no partial file under it); failures are not errors."""
+    """Atomically (:func:`jaxrobo.io.rundir.atomic_path`: a crash leaves no torn file under the name); a cache
+    that cannot be written is not an error (the next run traces again)."""
+    from jaxrobo.io.rundir import atomic_path
+
     try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".tmp.", dir=os.path.dirname(path))
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            os.unlink(tmp)
-            raise
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            fh.write(data)
     except OSError:
         pass
 
