@@ -1,8 +1,9 @@
 """The package version: one home, read by ``pyproject.toml`` (``[tool.setuptools.dynamic]``), ``jaxrobo.__version__``,
-checkpoints and sweep state; and :func:`installed`, the version of a dependency (for the version guards of the
-modules that reach into one's private code)."""
+checkpoints and sweep state; :func:`installed`, the version of a dependency (for the version guards of the
+modules that reach into one's private code); and :func:`source_hash`, the identity of the code itself."""
 import functools
 import importlib.metadata
+import os
 
 __version__ = "0.1.0"
 
@@ -14,3 +15,26 @@ def installed(distribution: str) -> str | None:
         return importlib.metadata.version(distribution)
     except importlib.metadata.PackageNotFoundError:
         return None
+
+
+#: Checkpoints of runs and sweeps record :func:`source_hash`: resuming under other code is refused (a carry from
+#: other code would not continue the same run bit for bit); kept traces are keyed on it (jaxrobo.speed.reuse).
+_SOURCE_DIRS = ("jaxrobo", "envs", "agents")
+_SOURCE_SUFFIXES = (".py", ".xml")
+
+
+def source_hash() -> str:
+    """SHA-256 over the code that shapes a run (``jaxrobo``, ``envs``, ``agents``: Python and MJCF files)."""
+    import hashlib
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    h = hashlib.sha256()
+    for top in _SOURCE_DIRS:
+        for dirpath, dirnames, files in os.walk(os.path.join(root, top)):
+            dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+            for name in sorted(f for f in files if f.endswith(_SOURCE_SUFFIXES)):
+                path = os.path.join(dirpath, name)
+                h.update(os.path.relpath(path, root).encode() + b"\0")
+                with open(path, "rb") as f:
+                    h.update(f.read() + b"\0")
+    return h.hexdigest()

@@ -36,13 +36,12 @@ def fingerprint(spec: Any) -> dict[str, Any]:
     """What a checkpoint must match to be resumed: the run's resolved config and the code that ran it."""
     import jax
 
-    from jaxrobo.core.version import __version__
+    from jaxrobo.core.version import __version__, source_hash
     from jaxrobo.interop.brax_compat import installed_version
-    from jaxrobo.io import rundir
 
     return json.loads(json.dumps({"format": FORMAT, "config": spec.to_dict(), "jaxrobo": __version__,
                                   "jax": jax.__version__, "brax": installed_version(),
-                                  "sources": rundir.source_hash()}))
+                                  "sources": source_hash()}))
 
 
 @dataclasses.dataclass

@@ -660,26 +660,3 @@ def atomic_savez(path: str, **arrays: Any) -> None:
     from jaxrobo.io.npz import write_npz_deflated
 
     atomic_write(path, lambda f: write_npz_deflated(f, store_above=-1, **arrays))
-
-
-#: Checkpoints of runs and sweeps record this hash: resuming under other code is refused (a carry from other code
-#: would not continue the same run bit for bit).
-_SOURCE_DIRS = ("jaxrobo", "envs", "agents")
-_SOURCE_SUFFIXES = (".py", ".xml")
-
-
-def source_hash() -> str:
-    """SHA-256 over the code that shapes a run (``jaxrobo``, ``envs``, ``agents``: Python and MJCF files)."""
-    import hashlib
-
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    h = hashlib.sha256()
-    for top in _SOURCE_DIRS:
-        for dirpath, dirnames, files in os.walk(os.path.join(root, top)):
-            dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
-            for name in sorted(f for f in files if f.endswith(_SOURCE_SUFFIXES)):
-                path = os.path.join(dirpath, name)
-                h.update(os.path.relpath(path, root).encode() + b"\0")
-                with open(path, "rb") as f:
-                    h.update(f.read() + b"\0")
-    return h.hexdigest()

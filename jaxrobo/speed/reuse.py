@@ -36,6 +36,7 @@ import hashlib
 import os
 import stat
 import sys
+import tempfile
 import types
 from typing import Any, Callable, Sequence
 
@@ -78,9 +79,9 @@ def _directory() -> str | None:
 
 @functools.lru_cache(maxsize=1)
 def _sources() -> str:
-    """The packages' code as a checkpoint's fingerprint hashes it (:func:`jaxrobo.io.rundir.source_hash`), once a
+    """The packages' code as a checkpoint's fingerprint hashes it (:func:`jaxrobo.core.version.source_hash`), once a
     process (presets need not be in it: the config values they give are :func:`describe`'s)."""
-    from jaxrobo.io.rundir import source_hash
+    from jaxrobo.core.version import source_hash
 
     return source_hash()
 
@@ -405,13 +406,20 @@ def _read(path: str) -> Any | None:
 
 
 def _write(path: str, data: bytes) -> None:
-    """Atomically (:func:`jaxrobo.io.rundir.atomic_path`: a crash leaves no torn file under the name); a cache
-    that cannot be written is not an error (the next run traces again)."""
-    from jaxrobo.io.rundir import atomic_path
-
+    """Atomically, beside the final name: a crash leaves no torn file under it, and a link there is replaced, not
+    written through. A cache that cannot be written is not an error (the next run traces again). (The run
+    directory's ``rundir.atomic_path`` sits in ``io``, a layer this module may not import; a cache file needs
+    neither its ``fsync`` nor its permissions.)"""
     try:
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            fh.write(data)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".tmp.", dir=os.path.dirname(path))
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            os.unlink(tmp)
+            raise
     except OSError:
         pass
 

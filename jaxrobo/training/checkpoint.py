@@ -108,14 +108,14 @@ def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any 
 
 def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:
     """What a checkpoint must match to be loaded: the resolved run config, the jaxrobo and JAX versions, the
-    carry's tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`jaxrobo.io.rundir.source_hash`)."""
-    from jaxrobo.core.version import __version__
+    carry's tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`jaxrobo.core.version.source_hash`)."""
+    from jaxrobo.core.version import __version__, source_hash
 
     leaves, treedef = jax.tree.flatten(template)
     return json.loads(json.dumps({
         "format": CHECKPOINT_FORMAT, "config": run_config, "jaxrobo": __version__, "jax": jax.__version__,
         "treedef": str(treedef), "leaves": [[list(x.shape), str(x.dtype)] for x in leaves],
-        "sources": rundir.source_hash()}))
+        "sources": source_hash()}))
 
 
 def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: dict[str, Any], *,

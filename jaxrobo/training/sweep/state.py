@@ -35,7 +35,7 @@ def code_version() -> dict[str, str]:
     from importlib import metadata
 
     from jaxrobo.core.version import __version__
-    from jaxrobo.io.rundir import source_hash
+    from jaxrobo.core.version import source_hash
 
     out = {"jaxrobo": __version__, "jaxrobo_sources": source_hash()}
     for dist in ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx", "brax"):
