@@ -2,6 +2,7 @@
 a key that follows what the trace reads, and kept files that cannot be trusted traced afresh."""
 from __future__ import annotations
 
+import enum
 import os
 import subprocess
 import sys
@@ -18,6 +19,10 @@ from jaxrobo.training.trainer import Trainer
 SMALL = {"env.backend": "analytic", "n_envs": 8, "nepisodes": 4, "nsteps": 40, "chunk_steps": 40, "eval_episodes": 4,
          "eval_envs": 2, "stop_at_target": False}
 PROGRAMS = ("init", "chunk", "eval_start", "eval_advance")
+
+
+class Mode(enum.Enum):
+    FAST = 1
 
 
 @pytest.fixture
@@ -209,3 +214,30 @@ def test_a_users_own_task_edited_between_runs_is_traced_again(tmp_path):
                                  "return jnp.abs(obs[0]) >= 0.5 * params.max_angle"))
     out2, q2 = run(2)
     assert "('chunk', 'traced')" in out2 and q2 != q0
+
+
+def test_a_deep_runs_evaluation_is_read_back_and_evaluates_the_same(kept):
+    """A PPO run's evaluation of its policy (jaxrobo.deep.training.evaluate) is kept like a tabular program: the
+    second run reads it back instead of tracing it, and every evaluation point has the same bytes."""
+    from jaxrobo import deep
+
+    spec = deep.resolve("QuadcopterGotoTwist-v0", "ppo", "tiny",
+                        {"episode_length": 20, "eval_episodes": 3, "num_timesteps": 512})
+    got = []
+    for expected in ("traced", "read"):
+        result = deep.train(spec)
+        assert reuse.LAST["deep_evaluation"] == expected
+        got.append([np.asarray(e[k]) for e in result.evaluations for k in ("return", "length", "success")])
+    assert len(got[0]) >= 6 and same(got[0], got[1])
+
+
+def test_static_fields_are_kept_as_literals_and_enums_by_name():
+    """A structure's static fields are written as Python literals (reading them back runs no code); an enum
+    member (Brax's normaliser names its mode with one) by its loaded class and name; anything else is refused."""
+    aux = (("a", 1), {"mode": "x"}, [2.5, None], Mode.FAST)
+    assert reuse._aux_value(reuse._aux_bytes(aux)) == aux
+    with pytest.raises(reuse.NotKeyable):
+        reuse._aux_bytes((object(),))
+    forged = repr({reuse._ENUM: ("os", "system", "x")}).encode()  # names something that is not an enum
+    with pytest.raises(ValueError, match="not a loaded enum"):
+        reuse._aux_value(forged)

@@ -207,11 +207,12 @@ class EpochHook:
     calls: int = 0
     _restore: Callable[[tuple], tuple] | None = None
 
-    def wrap(self, epoch_fn: Callable) -> Callable:
+    def wrap(self, epoch_fn: Callable, axis_name: Any = None) -> Callable:
         def run(*args: Any) -> Any:
             *states, key = args
             if self._restore is not None:
                 states, self._restore = list(self._restore(tuple(states))), None
+            states = _as_mapped(states, axis_name)
             ours = self.epoch_keys(self.epochs_done, key.shape[0])
             if ours.shape != key.shape or ours.dtype != key.dtype:
                 raise BraxCompatError(f"brax {self.version}: training_epoch's key is {key.dtype}{list(key.shape)}, "
@@ -242,7 +243,31 @@ class _JaxWithEpochHook:
 
     def pmap(self, fun: Callable, *args: Any, **kwargs: Any) -> Any:
         mapped = jax.pmap(fun, *args, **kwargs)
-        return self._hook.wrap(mapped) if getattr(fun, "__name__", None) == "training_epoch" else mapped
+        if getattr(fun, "__name__", None) != "training_epoch":
+            return mapped
+        return self._hook.wrap(mapped, kwargs.get("axis_name"))
+
+
+def _as_mapped(states: list, axis_name: Any) -> list:
+    """``states`` with every leaf on the sharding the mapped epoch gives its outputs (a mesh of the leaves' devices
+    along ``axis_name``), so that the first epoch's arguments match every later epoch's and the epoch is lowered
+    and compiled once, not twice: the trainer's first state comes from ``device_put_replicated`` (another mesh's
+    axis name), and the jit cache keys on the arguments' shardings. A leaf already there is not moved."""
+    if axis_name is None:
+        return states
+    targets: dict[tuple, Any] = {}
+
+    def put(leaf: Any) -> Any:
+        sharding = getattr(leaf, "sharding", None)
+        if not isinstance(sharding, jax.sharding.NamedSharding) or sharding.mesh.axis_names == (axis_name,):
+            return leaf
+        devices = tuple(sharding.mesh.devices.flat)
+        if devices not in targets:
+            mesh = jax.sharding.Mesh(np.asarray(devices), (axis_name,))
+            targets[devices] = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(axis_name))
+        return jax.device_put(leaf, targets[devices])
+
+    return jax.tree.map(put, states)
 
 
 @contextlib.contextmanager

@@ -205,7 +205,7 @@ def _user_code(modules: set[str]) -> str:
 def _versions() -> str:
     from jaxrobo.core.version import installed
 
-    return repr([(d, installed(d)) for d in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "jax-cuda12-plugin")])
+    return repr([(d, installed(d)) for d in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "jax-cuda12-plugin", "brax", "flax")])
 
 
 def _device() -> str:
@@ -348,14 +348,32 @@ def _plan_text(plan: Any) -> str:
     return repr(sorted(plan.to_dict().items())) if hasattr(plan, "to_dict") else repr(plan)
 
 
-def _register_structs() -> None:
-    """jax.export serialises a pytree's structure: name jaxrobo's pytree dataclasses (their static fields as
-    Python literals) so it can."""
+def _dataclasses_in(tree: Any, found: set[type]) -> set[type]:
+    """The classes of the dataclass nodes of ``tree`` (another library's pytree dataclasses in a program's
+    arguments: Brax's parameters hold flax struct dataclasses)."""
+    if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
+        found.add(type(tree))
+        children: Any = [getattr(tree, f.name) for f in dataclasses.fields(tree)]
+    elif isinstance(tree, (list, tuple)):
+        children = tree
+    elif isinstance(tree, dict):
+        children = list(tree.values())
+    else:
+        return found
+    for child in children:
+        _dataclasses_in(child, found)
+    return found
+
+
+def _register_structs(args: Any = ()) -> None:
+    """jax.export serialises a pytree's structure: name jaxrobo's pytree dataclasses, and those met in ``args``
+    (their static fields as Python literals), so it can."""
     from jax import export
 
     from jaxrobo.core import struct
 
-    for cls in list(struct.DATACLASSES):
+    for cls in list(struct.DATACLASSES) + sorted(_dataclasses_in(args, set()) - set(struct.DATACLASSES),
+                                                 key=lambda c: (c.__module__, c.__qualname__)):
         if cls in _REGISTERED:
             continue
         try:
@@ -370,15 +388,53 @@ def _register_structs() -> None:
 _REGISTERED: set[type] = set()
 
 
+#: How an enum member among a structure's static fields is written (a dict no literal aux holds by chance).
+_ENUM = "__enum__"
+
+
+def _encode(x: Any) -> Any:
+    import enum
+
+    if isinstance(x, enum.Enum):  # Brax's normaliser state names its mode with one
+        return {_ENUM: (type(x).__module__, type(x).__qualname__, x.name)}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_encode(i) for i in x)
+    if isinstance(x, dict):
+        return {k: _encode(v) for k, v in x.items()}
+    return x
+
+
+def _decode(x: Any) -> Any:
+    import enum
+
+    if isinstance(x, dict) and set(x) == {_ENUM}:
+        module, qualname, name = x[_ENUM]
+        cls: Any = sys.modules.get(module)  # only a module already loaded: reading a file imports nothing
+        for part in str(qualname).split("."):
+            cls = getattr(cls, part, None)
+        if not (isinstance(cls, type) and issubclass(cls, enum.Enum)):
+            raise ValueError(f"kept structure names {module}.{qualname}, not a loaded enum")
+        return cls[name]
+    if isinstance(x, (list, tuple)):
+        return type(x)(_decode(i) for i in x)
+    if isinstance(x, dict):
+        return {k: _decode(v) for k, v in x.items()}
+    return x
+
+
 def _aux_bytes(aux: Any) -> bytes:
-    text = repr(aux)
-    if _aux_value(text.encode()) != aux:
+    text = repr(_encode(aux))
+    try:
+        same = _aux_value(text.encode()) == aux
+    except (ValueError, SyntaxError):
+        same = False
+    if not same:
         raise NotKeyable(f"static fields {text[:80]} do not read back as Python literals")
     return text.encode()
 
 
 def _aux_value(data: bytes) -> Any:
-    return ast.literal_eval(data.decode())  # literals only: a file read back runs no code
+    return _decode(ast.literal_eval(data.decode()))  # literals only: a file read back runs no code
 
 
 def _read(path: str) -> Any | None:
@@ -455,7 +511,7 @@ def _path(plan: Any, name: str, args: Sequence[Any], parts: Any, donate: Sequenc
         key = _key(name, parts, plan, args, donate)
     except NotKeyable as why:
         return None, f"off: {why}"
-    _register_structs()
+    _register_structs(args)
     return os.path.join(directory, f"{name}-{key[:40]}.jaxexport"), ""
 
 
