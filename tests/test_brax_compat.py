@@ -175,6 +175,35 @@ def test_the_first_epoch_runs_the_program_of_every_later_one(caplog):
     assert np.asarray(state).tolist() == [[12.0, 12.0, 12.0]] and np.asarray(env).tolist() == [[3.0, 3.0, 3.0]]
 
 
+def test_the_epochs_run_the_program_compile_epoch_gives():
+    """``compile_epoch`` is asked once, with the first epoch's arguments (jaxrobo's key last) and the mapped
+    epoch's donated positions; every epoch then runs what it returned, its arguments on the shardings it was
+    compiled for. Where it returns None the mapped epoch runs."""
+    import types
+
+    import jax
+
+    def training_epoch(state, key):
+        return state + 1.0, key
+
+    keys = lambda i, n: jax.random.split(jax.random.fold_in(jax.random.PRNGKey(0), i), n)  # noqa: E731
+    asked = []
+
+    def compile_epoch(mapped, args, donate):
+        asked.append((len(args), donate))
+        return jax.jit(mapped, donate_argnums=donate).lower(*args).compile()
+
+    for make, expected in ((compile_epoch, [(2, (0,))]), (lambda *a: None, [])):
+        asked.clear()
+        module = types.SimpleNamespace(__name__="fake_trainer", jax=jax)
+        state = brax_compat.device_put_replicated(np.zeros(2, np.float32), jax.local_devices()[:1])
+        with brax_compat.hook_epochs(module, keys, compile_epoch=make) as hook:
+            epoch = module.jax.pmap(training_epoch, axis_name="i", donate_argnums=0)
+            for _ in range(3):
+                state, _ = epoch(state, jax.random.split(jax.random.PRNGKey(1), 1))
+        assert asked == expected and hook.calls == 3 and np.asarray(state).tolist() == [[3.0, 3.0]]
+
+
 def test_epoch_hook_guard_trips():
     import types
 

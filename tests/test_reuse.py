@@ -216,9 +216,10 @@ def test_a_users_own_task_edited_between_runs_is_traced_again(tmp_path):
     assert "('chunk', 'traced')" in out2 and q2 != q0
 
 
-def test_a_deep_runs_evaluation_is_read_back_and_evaluates_the_same(kept):
-    """A PPO run's evaluation of its policy (jaxrobo.deep.training.evaluate) is kept like a tabular program: the
-    second run reads it back instead of tracing it, and every evaluation point has the same bytes."""
+def test_a_deep_runs_programs_are_read_back_and_evaluate_the_same(kept):
+    """A PPO run's evaluation of its policy (jaxrobo.deep.training.evaluate) and Brax's training epoch are kept
+    like a tabular run's programs: the second run reads them back instead of tracing them, and every evaluation
+    point has the same bytes."""
     from jaxrobo import deep
 
     spec = deep.resolve("QuadcopterGotoTwist-v0", "ppo", "tiny",
@@ -226,7 +227,7 @@ def test_a_deep_runs_evaluation_is_read_back_and_evaluates_the_same(kept):
     got = []
     for expected in ("traced", "read"):
         result = deep.train(spec)
-        assert reuse.LAST["deep_evaluation"] == expected
+        assert reuse.LAST["deep_evaluation"] == reuse.LAST["deep_epoch_ppo"] == expected
         got.append([np.asarray(e[k]) for e in result.evaluations for k in ("return", "length", "success")])
     assert len(got[0]) >= 6 and same(got[0], got[1])
 
@@ -241,3 +242,38 @@ def test_static_fields_are_kept_as_literals_and_enums_by_name():
     forged = repr({reuse._ENUM: ("os", "system", "x")}).encode()  # names something that is not an enum
     with pytest.raises(ValueError, match="not a loaded enum"):
         reuse._aux_value(forged)
+
+
+def test_a_deep_run_through_kept_traces_stopped_and_resumed_ends_as_the_plain_run(kept, tmp_path, monkeypatch):
+    """Brax's training epoch runs through a kept trace (program ``deep_epoch_ppo``) where the process reuses
+    traces: a run stopped by SIGTERM after its third epoch and resumed, both through kept traces, ends with the
+    bytes of the uninterrupted run that traced nothing (Brax's own mapped epoch)."""
+    import signal
+
+    from jaxrobo import deep
+    from jaxrobo.cli import main
+
+    args = ["train", "--env", "CartPoleContinuous-v0", "--agent", "ppo", "--preset", "tiny", "--set",
+            "episode_length=20", "--set", "eval_episodes=3", "--set", "num_evals=6", "--total-steps", "1024",
+            "--no-progress"]
+    plain, stopped = str(tmp_path / "plain"), str(tmp_path / "stopped")
+    monkeypatch.setenv("JAXROBO_REUSE_TRACES", "off")
+    assert main([*args, "--out", plain]) == 0
+    assert reuse.LAST.get("deep_epoch_ppo") is None
+    monkeypatch.setenv("JAXROBO_REUSE_TRACES", "on")
+    original = deep.LiveRun.point
+
+    def point(self, p):
+        original(self, p)
+        if p.epochs_done == 3:
+            os.kill(os.getpid(), signal.SIGTERM)  # StopOnSignal takes it: the run stops right after this point
+
+    with monkeypatch.context() as m:
+        m.setattr(deep.LiveRun, "point", point)
+        assert main([*args, "--out", stopped]) == 128 + signal.SIGTERM
+    assert reuse.LAST["deep_epoch_ppo"] == "traced"
+    assert main(["train", "--resume", stopped, "--no-progress"]) == 0
+    assert reuse.LAST["deep_epoch_ppo"] == "traced"  # the resumed call's budget is another key
+    for name in ("policy.npz", "evaluations.csv", "best/policy.npz"):
+        with open(os.path.join(plain, name), "rb") as a, open(os.path.join(stopped, name), "rb") as b:
+            assert a.read() == b.read(), name

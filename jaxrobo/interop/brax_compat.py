@@ -18,6 +18,8 @@
    function named ``training_epoch`` (every other name passes through unchanged): each epoch's random keys are
    jaxrobo's own (``epoch_keys(i, n_devices)`` of the epoch's index over the whole run), the state the epoch leaves
    is kept (:attr:`EpochHook.states`), and a resumed run's saved state replaces the fresh one at its first epoch.
+   The first epoch's state is put on the sharding the mapped epoch gives its outputs, so the epoch is compiled
+   once; given ``compile_epoch``, every epoch runs the program it returns (jaxrobo's kept trace of the epoch).
    The swap is of that module's global only and is undone on the way out, also when training raises.
    :func:`advance_epoch_keys` gives the key a Brax epoch carries after some of its training steps, so one epoch
    can run as several shorter ones with the same random numbers.
@@ -206,8 +208,13 @@ class EpochHook:
     states: Any = None
     calls: int = 0
     _restore: Callable[[tuple], tuple] | None = None
+    #: ``compile_epoch(mapped, args, donate) -> callable or None``: the program the epochs run instead of the
+    #: mapped epoch itself (asked once, with the first epoch's arguments; None: the mapped epoch).
+    compile_epoch: Callable[[Callable, tuple, tuple], Callable | None] | None = None
 
-    def wrap(self, epoch_fn: Callable, axis_name: Any = None) -> Callable:
+    def wrap(self, epoch_fn: Callable, axis_name: Any = None, donate: tuple = ()) -> Callable:
+        compiled: list[Callable] = []
+
         def run(*args: Any) -> Any:
             *states, key = args
             if self._restore is not None:
@@ -218,7 +225,13 @@ class EpochHook:
                 raise BraxCompatError(f"brax {self.version}: training_epoch's key is {key.dtype}{list(key.shape)}, "
                                       f"jaxrobo's epoch key {ours.dtype}{list(ours.shape)} (written for brax "
                                       f"{_range()})")
-            out = epoch_fn(*states, ours)
+            if not compiled:
+                made = None if self.compile_epoch is None else self.compile_epoch(epoch_fn, (*states, ours), donate)
+                compiled.append(made if made is not None else epoch_fn)
+            fn = compiled[0]
+            if fn is not epoch_fn:  # a compiled program takes its arguments on the shardings it was compiled for
+                states = list(jax.device_put(tuple(states), tuple(fn.input_shardings[0][:-1])))
+            out = fn(*states, ours)
             self.states, self.epochs_done, self.calls = tuple(out[:-1]), self.epochs_done + 1, self.calls + 1
             return out
 
@@ -245,7 +258,8 @@ class _JaxWithEpochHook:
         mapped = jax.pmap(fun, *args, **kwargs)
         if getattr(fun, "__name__", None) != "training_epoch":
             return mapped
-        return self._hook.wrap(mapped, kwargs.get("axis_name"))
+        donate = kwargs.get("donate_argnums", ())
+        return self._hook.wrap(mapped, kwargs.get("axis_name"), (donate,) if isinstance(donate, int) else tuple(donate))
 
 
 def _as_mapped(states: list, axis_name: Any) -> list:
@@ -272,12 +286,17 @@ def _as_mapped(states: list, axis_name: Any) -> list:
 
 @contextlib.contextmanager
 def hook_epochs(trainer_module: Any, epoch_keys: Callable[[int, int], Any], first_epoch: int = 0,
-                restore: Callable[[tuple], tuple] | None = None, version: str | None = None
+                restore: Callable[[tuple], tuple] | None = None, version: str | None = None,
+                compile_epoch: Callable[[Callable, tuple, tuple], Callable | None] | None = None
                 ) -> Iterator[EpochHook]:
     """For the block, the trainer module's epochs run through the yielded :class:`EpochHook` (see the module
     docstring): ``epoch_keys(i, n_devices)`` (raw ``uint32[n_devices, 2]`` keys, as Brax's own) are the keys of the
     run's ``i``-th epoch, counting from ``first_epoch``; ``restore(fresh_states) -> states``, if given, replaces
-    the state tuple at the first epoch. ``version`` (default: the installed Brax) exists so the guard can be tested."""
+    the state tuple at the first epoch. ``compile_epoch(mapped, args, donate)``, if given, is asked once, with the
+    first epoch's arguments and the mapped epoch's donated positions, for the program every epoch then runs (a
+    compiled one: its arguments are put on its input shardings), or None to run the mapped epoch (see
+    :func:`jaxrobo.deep.training.train`: a kept trace of it). ``version`` (default: the installed Brax) exists so
+    the guard can be tested."""
     version = installed_version() if version is None else version
     if getattr(trainer_module, "jax", None) is not jax:
         raise BraxCompatError(f"brax {version}: {getattr(trainer_module, '__name__', trainer_module)} does not use "
@@ -287,7 +306,7 @@ def hook_epochs(trainer_module: Any, epoch_keys: Callable[[int, int], Any], firs
     if reason is not None:
         _warn_once(f"jaxrobo.interop.brax_compat: {reason}; hooking {trainer_module.__name__}'s training_epoch "
                    "anyway, untested with this Brax")
-    hook = EpochHook(version, epoch_keys, epochs_done=first_epoch, _restore=restore)
+    hook = EpochHook(version, epoch_keys, epochs_done=first_epoch, _restore=restore, compile_epoch=compile_epoch)
     trainer_module.jax = _JaxWithEpochHook(hook)
     try:
         yield hook

@@ -9,13 +9,15 @@ Where the execution plan says so (``ExecutionPlan.reuse_traces``), a program is 
 :mod:`jax.export` and kept under ``<compilation cache>/traced/``; a later process with the same key reads it back
 and compiles it (a persistent-cache hit) without tracing. The file is JAX's serialised StableHLO, not a pickle:
 reading it runs no Python. A file that cannot be read back (truncated, another format, not a regular file, too
-big) is ignored and the program traced as before; the run never depends on the file.
+big) is ignored and the program traced as before; the run never depends on the file. The programs kept: a
+tabular run's init, training chunk and greedy evaluation, a sweep group's init, chunk and finish, and a PPO or SAC
+run's evaluation and Brax's training epoch (:mod:`jaxrobo.deep.training`).
 
 The key names everything a trace reads: the code of the ``jaxrobo``, ``envs`` and ``agents`` packages (their
 Python and MJCF files, as a checkpoint's fingerprint hashes them); the functions patched into them (or into MJX) at run time from a script, a test or a
 notebook (:func:`_live_code`: a patched step is another key, and undoing the patch gives the first key back); the
 user's own modules the program's objects come from (a task or robot written outside the packages: their files, or
-a notebook's functions, :func:`_user_code`); the versions of JAX, jaxlib, MuJoCo and MJX; the backend and device
+a notebook's functions, :func:`_user_code`); the versions of JAX, jaxlib, MuJoCo, MJX, Brax and Flax; the backend and device
 kind; JAX's configuration; the execution plan; the objects the program is built from (env, training config,
 learner, discretiser, evaluation sizes: :func:`describe` walks them, hashing arrays by their bytes and functions by
 their code and what they close over); and the arguments' structure, shapes and dtypes. What it does not follow is
@@ -348,38 +350,47 @@ def _plan_text(plan: Any) -> str:
     return repr(sorted(plan.to_dict().items())) if hasattr(plan, "to_dict") else repr(plan)
 
 
-def _dataclasses_in(tree: Any, found: set[type]) -> set[type]:
-    """The classes of the dataclass nodes of ``tree`` (another library's pytree dataclasses in a program's
-    arguments: Brax's parameters hold flax struct dataclasses)."""
+def _is_namedtuple(x: Any) -> bool:
+    return isinstance(x, tuple) and hasattr(type(x), "_fields")
+
+
+def _structures_in(tree: Any, found: set[type]) -> set[type]:
+    """The classes of the dataclass and named-tuple nodes of ``tree`` (another library's pytree nodes in a
+    program's arguments: Brax's trainer state holds flax struct dataclasses and optax's named tuples)."""
     if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
         found.add(type(tree))
         children: Any = [getattr(tree, f.name) for f in dataclasses.fields(tree)]
     elif isinstance(tree, (list, tuple)):
+        if _is_namedtuple(tree):
+            found.add(type(tree))
         children = tree
     elif isinstance(tree, dict):
         children = list(tree.values())
     else:
         return found
     for child in children:
-        _dataclasses_in(child, found)
+        _structures_in(child, found)
     return found
 
 
 def _register_structs(args: Any = ()) -> None:
-    """jax.export serialises a pytree's structure: name jaxrobo's pytree dataclasses, and those met in ``args``
-    (their static fields as Python literals), so it can."""
+    """jax.export serialises a pytree's structure: name jaxrobo's pytree dataclasses, and the dataclasses and
+    named tuples met in ``args`` (static fields as Python literals), so it can."""
     from jax import export
 
     from jaxrobo.core import struct
 
-    for cls in list(struct.DATACLASSES) + sorted(_dataclasses_in(args, set()) - set(struct.DATACLASSES),
-                                                 key=lambda c: (c.__module__, c.__qualname__)):
+    met = sorted(_structures_in(args, set()) - set(struct.DATACLASSES), key=lambda c: (c.__module__, c.__qualname__))
+    for cls in list(struct.DATACLASSES) + met:
         if cls in _REGISTERED:
             continue
+        name = f"{cls.__module__}.{cls.__qualname__}"
         try:
-            export.register_pytree_node_serialization(
-                cls, serialized_name=f"{cls.__module__}.{cls.__qualname__}",
-                serialize_auxdata=_aux_bytes, deserialize_auxdata=_aux_value)
+            if issubclass(cls, tuple):
+                export.register_namedtuple_serialization(cls, serialized_name=name)
+            else:
+                export.register_pytree_node_serialization(
+                    cls, serialized_name=name, serialize_auxdata=_aux_bytes, deserialize_auxdata=_aux_value)
         except ValueError:  # registered already (a module loaded twice under another name)
             pass
         _REGISTERED.add(cls)
