@@ -126,8 +126,8 @@ def test_npz_arrays_written_from_their_memory_are_numpys_bytes(monkeypatch, tmp_
 
 
 def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):
-    """``episode_stats`` over blocks of episode columns (a lone last column joining the block before it) and the
-    summary's figures over blocks of envs give the floats one block over the whole arrays gives."""
+    """``episode_stats`` over blocks of episode columns (a lone last column joining the block before it), in turn
+    or by several threads, and the summary's figures over blocks of envs give the floats one block over the whole arrays gives."""
     from jaxrobo.io import results
     from jaxrobo.training import summary
 
@@ -142,10 +142,12 @@ def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):
         whole = results.episode_stats(r, ln, result.epsilon, d)
         assert len(whole[0]) == int(d.max())
         for cols in (2, 3):
-            monkeypatch.setattr(results, "STATS_BLOCK_BYTES", 8 * len(d) * cols)
-            blocked = results.episode_stats(r, ln, result.epsilon, d)
-            for name, x, y in zip(STAT_COLUMNS, whole, blocked):
-                assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), (name, cols)
+            for cores in (1, 4):  # the blocks computed in turn, or by a pool of threads
+                monkeypatch.setattr(results.os, "cpu_count", lambda cores=cores: cores)
+                monkeypatch.setattr(results, "STATS_BLOCK_BYTES", 8 * len(d) * cols)
+                blocked = results.episode_stats(r, ln, result.epsilon, d)
+                for name, x, y in zip(STAT_COLUMNS, whole, blocked):
+                    assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), (name, cols, cores)
 
     monkeypatch.setattr(summary, "FIGURE_BLOCK_ENVS", 1 << 30)
     whole = result.summary()
