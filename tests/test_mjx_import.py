@@ -53,3 +53,26 @@ def test_mjx_imports_without_mesh_libraries_and_builds_the_same_hulls():
 def test_outside_the_versions_it_was_written_for_mjx_is_imported_as_it_is(monkeypatch):
     monkeypatch.setattr(mjx_import, "installed_version", lambda: "3.99.0")
     assert "outside the versions it was written for" in mjx_import.unavailable()
+
+
+def test_the_lines_about_warp_not_installed_are_not_said_and_other_output_is():
+    """MJX prints two "Failed to import" lines on import where its optional Warp backend is not installed;
+    jaxrobo's import drops exactly those (also where Brax imports MJX: jaxrobo's Brax face imports it first),
+    and any other output of the import is written as it came."""
+    env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
+    for module in ("jaxrobo.physics.mjx_import as m; m.import_mjx()", "jaxrobo.interop.brax_env"):
+        proc = subprocess.run([sys.executable, "-c", f"import {module}"], env=env, capture_output=True, text=True,
+                              timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        assert "Failed to import" not in proc.stdout + proc.stderr, module
+    import io
+    from contextlib import redirect_stdout
+
+    out = io.StringIO()
+    with redirect_stdout(out):
+        with mjx_import._quiet_about_warp():
+            print("Failed to import warp: No module named 'warp'")
+            print("Failed to import mujoco_warp: No module named 'warp'")
+            print("Failed to import warp: CUDA driver too old")  # an installed Warp that fails: said
+            print("something else")
+    assert out.getvalue() == "Failed to import warp: CUDA driver too old\nsomething else\n"

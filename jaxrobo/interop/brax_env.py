@@ -80,8 +80,14 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.envs import base as brax_base
-from flax import struct
+
+from jaxrobo.physics.mjx_import import import_mjx
+
+# Brax imports mujoco.mjx: imported here first, MJX's mesh libraries are deferred and its lines about the optional
+# Warp backend not said (jaxrobo.physics.mjx_import), as for every other command.
+import_mjx()
+from brax.envs import base as brax_base  # noqa: E402
+from flax import struct  # noqa: E402
 
 from jaxrobo.task import registry
 from jaxrobo.core import rng, spaces

@@ -14,17 +14,22 @@ It reaches into MJX's private mesh module, so it is guarded: it applies only to 
 (:func:`unavailable` says why). ``tests/test_mjx_import.py`` checks it on the installed version: nothing of trimesh
 or scipy.spatial loaded after the import, a mesh model's hull the same as with the libraries loaded up front.
 
+MJX also prints two "Failed to import" lines on import where its optional Warp backend is not installed;
+:func:`import_mjx` drops exactly those lines (and writes any other output of the import).
+
 Public surface: :func:`import_mjx`, :func:`unavailable`, :func:`installed_version`, :data:`WRITTEN_FOR`.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
+import io
 import os
 import re
 import sys
 import types
-from typing import Any
+from typing import Any, Iterator
 
 from jaxrobo.core.version import installed
 
@@ -90,15 +95,39 @@ class _Deferred(types.ModuleType):
         return getattr(importlib.import_module(self.__name__), attr)
 
 
+#: What MJX prints on import where its optional Warp backend is not installed (jaxrobo does not use it): two
+#: "Failed to import" lines on every command's output, though nothing failed that jaxrobo needs.
+_NO_WARP = re.compile(r"Failed to import (mujoco_)?warp: No module named '(warp|mujoco_warp)[\w.]*'\n?")
+
+
+@contextlib.contextmanager
+def _quiet_about_warp() -> Iterator[None]:
+    """Standard output of the block, less MJX's lines saying the optional Warp backend is not installed (any
+    other line, a Warp that is installed but fails included, is written as it came)."""
+    buffer = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buffer):
+            yield
+    finally:
+        text = _NO_WARP.sub("", buffer.getvalue())
+        if text:
+            sys.stdout.write(text)
+
+
 def import_mjx() -> types.ModuleType:
-    """``mujoco.mjx``, imported with trimesh and scipy.spatial deferred where :func:`unavailable` says None."""
-    if "mujoco.mjx" in sys.modules or unavailable() is not None:
-        return importlib.import_module("mujoco.mjx")
+    """``mujoco.mjx``, imported with trimesh and scipy.spatial deferred where :func:`unavailable` says None, and
+    without MJX's lines saying its optional Warp backend is not installed."""
+    if "mujoco.mjx" in sys.modules:
+        return sys.modules["mujoco.mjx"]
+    if unavailable() is not None:
+        with _quiet_about_warp():
+            return importlib.import_module("mujoco.mjx")
     names = {"trimesh": "trimesh", "scipy.spatial": "spatial"}  # the module, and the mesh module's name for it
     for name in names:
         sys.modules[name] = _StandIn(name)
     try:
-        mjx = importlib.import_module("mujoco.mjx")
+        with _quiet_about_warp():
+            mjx = importlib.import_module("mujoco.mjx")
     finally:
         for name in names:
             del sys.modules[name]  # an import of them from now on is the real one
