@@ -259,7 +259,8 @@ class _JaxWithEpochHook:
         if getattr(fun, "__name__", None) != "training_epoch":
             return mapped
         donate = kwargs.get("donate_argnums", ())
-        return self._hook.wrap(mapped, kwargs.get("axis_name"), (donate,) if isinstance(donate, int) else tuple(donate))
+        donate = (donate,) if isinstance(donate, int) else tuple(donate)
+        return self._hook.wrap(mapped, kwargs.get("axis_name"), donate)
 
 
 def _as_mapped(states: list, axis_name: Any) -> list:

@@ -13,18 +13,18 @@ big) is ignored and the program traced as before; the run never depends on the f
 tabular run's init, training chunk and greedy evaluation, a sweep group's init, chunk and finish, and a PPO or SAC
 run's evaluation and Brax's training epoch (:mod:`jaxrobo.deep.training`).
 
-The key names everything a trace reads: the code of the ``jaxrobo``, ``envs`` and ``agents`` packages (their
-Python and MJCF files, as a checkpoint's fingerprint hashes them); the functions patched into them (or into MJX) at run time from a script, a test or a
-notebook (:func:`_live_code`: a patched step is another key, and undoing the patch gives the first key back); the
-user's own modules the program's objects come from (a task or robot written outside the packages: their files, or
-a notebook's functions, :func:`_user_code`); the versions of JAX, jaxlib, MuJoCo, MJX, Brax and Flax; the backend and device
-kind; JAX's configuration; the execution plan; the objects the program is built from (env, training config,
-learner, discretiser, evaluation sizes: :func:`describe` walks them, hashing arrays by their bytes and functions by
-their code and what they close over); and the arguments' structure, shapes and dtypes. What it does not follow is
-a patch inside JAX, jaxlib or another installed library, or one of the packages' functions swapped for another of
-theirs: a process doing that sets ``JAXROBO_REUSE_TRACES=off`` (or ``JAXROBO_CACHE_DIR=off``, or runs a plan with
-``reuse_traces=False``). Cold and warm runs execute the same exported program, so a result does not depend on
-whether the trace was read back (``tests/test_reuse.py``).
+The key names everything a trace reads: the code of the ``jaxrobo``, ``envs`` and ``agents`` packages (their Python
+and MJCF files, as a checkpoint's fingerprint hashes them); the functions patched into them (or into MJX) at run
+time from a script, a test or a notebook (:func:`_live_code`: a patched step is another key, and undoing the patch
+gives the first key back); the user's own modules the program's objects come from (a task or robot written outside
+the packages: their files, or a notebook's functions, :func:`_user_code`); the versions of JAX, jaxlib, MuJoCo, MJX,
+Brax and Flax; the backend and device kind; JAX's configuration; the execution plan; the objects the program is
+built from (env, training config, learner, discretiser, evaluation sizes: :func:`describe` walks them, hashing
+arrays by their bytes and functions by their code and what they close over); and the arguments' structure, shapes
+and dtypes. What it does not follow is a patch inside JAX, jaxlib or another installed library, or one of the
+packages' functions swapped for another of theirs: a process doing that sets ``JAXROBO_REUSE_TRACES=off`` (or
+``JAXROBO_CACHE_DIR=off``, or runs a plan with ``reuse_traces=False``). Cold and warm runs execute the same
+exported program, so a result does not depend on whether the trace was read back (``tests/test_reuse.py``).
 
 Public surface: :func:`available`, :func:`compile_reusing`, :func:`kept_shapes`, :func:`describe`, :data:`LAST`,
 :data:`VARIABLE`.
@@ -207,7 +207,8 @@ def _user_code(modules: set[str]) -> str:
 def _versions() -> str:
     from jaxrobo.core.version import installed
 
-    return repr([(d, installed(d)) for d in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "jax-cuda12-plugin", "brax", "flax")])
+    names = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "jax-cuda12-plugin", "brax", "flax")
+    return repr([(d, installed(d)) for d in names])
 
 
 def _device() -> str:
