@@ -127,7 +127,8 @@ def test_npz_arrays_written_from_their_memory_are_numpys_bytes(monkeypatch, tmp_
 
 def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):
     """``episode_stats`` over blocks of episode columns (a lone last column joining the block before it), in turn
-    or by several threads, and the summary's figures over blocks of envs give the floats one block over the whole arrays gives."""
+    or by several threads, and the summary's figures over blocks of envs give the floats one block over the whole
+    arrays gives."""
     from jaxrobo.io import results
     from jaxrobo.training import summary
 
