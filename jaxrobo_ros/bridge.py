@@ -4,7 +4,13 @@ the policy needs, the observation built from them and the command message of an 
 ports compute with). numpy, yaml and the ROS message packages only: no JAX, no task module, no MuJoCo.
 
 A reading is refused (:class:`Fault`, the node stops the robot) when it is missing, older than ``max_age`` against
-the primary reading (the odometry, the joint states) or not finite."""
+the primary reading (the odometry, the joint states) or not finite.
+
+Each command also goes out stamped, on ``command_stamped`` (default: the command topic's name + ``_stamped``): the
+same command with the stamp of the state it answers (``geometry_msgs/TwistStamped`` for the drone,
+``sensor_msgs/JointState`` with the cart joint's velocity for the cart-pole). The command topics themselves
+(``std_msgs/Float64``, ``geometry_msgs/Twist``) carry no stamp; the lockstep sim steps on the stamped copy, so it can
+tell an answer to the state it waits on from a late or repeated answer to a state it has already stepped."""
 from __future__ import annotations
 
 import os
@@ -20,6 +26,8 @@ TOPIC_KEYS = {"quadcopter": ("cmd_vel", "takeoff", "land", "odom", "gt_pose", "g
                              "sonar_left", "sonar_right", "sonar_down", "goal", "obstacles", "episode"),
               "cartpole": ("joint_states", "command", "episode")}
 SONARS = ("sonar_forward", "sonar_left", "sonar_right", "sonar_down")
+#: The command's topic key of each family (``topics.command_stamped`` defaults to its name + ``_stamped``).
+COMMAND_KEYS = {"quadcopter": "cmd_vel", "cartpole": "command"}
 
 
 class Fault(Exception):
@@ -43,7 +51,9 @@ def load_topics(fam: str, path: str | None = None) -> dict:
         got = cfg.get("family") if isinstance(cfg, dict) else type(cfg).__name__
         raise SetupError(f"{path}: family={got!r}, but the policy's task is a {fam} (topics/{fam}.yaml)")
     topics = cfg.get("topics")
-    for key in TOPIC_KEYS[fam]:
+    for key in TOPIC_KEYS[fam] + ("command_stamped",):
+        if key == "command_stamped" and topics.get(key) is None:  # optional: topic files without it keep working
+            topics[key] = topics[COMMAND_KEYS[fam]] + "_stamped"
         if not isinstance(topics, dict) or not isinstance(topics.get(key), str) or not topics[key].startswith("/"):
             raise SetupError(f"{path}: topics.{key} must be a global topic name (a string starting with '/')")
     for key in ("max_age", "stale_after"):
@@ -97,6 +107,15 @@ class Bridge:
                 raise Fault(f"{self.topics[name]}: stamp {stamp(latest[name]):.3f} s is more than {self.max_age:g} "
                             f"s from {self.topics[self.primary]}'s {t:.3f} s (stale)", waiting=True)
         return t
+
+    def stamped_type(self) -> Any:
+        """The message type of ``command_stamped``."""
+        raise NotImplementedError
+
+    def stamped_command(self, out: Any, when: Any) -> Any:
+        """The command message ``out`` again, stamped ``when`` (the ``rospy.Time`` of the primary reading it
+        answers), for ``command_stamped``."""
+        raise NotImplementedError
 
 
 class DroneBridge(Bridge):
@@ -153,6 +172,18 @@ class DroneBridge(Bridge):
 
     def zero_msg(self) -> Any:
         return self.twist(np.zeros(4))
+
+    def stamped_type(self) -> Any:
+        from geometry_msgs.msg import TwistStamped
+
+        return TwistStamped
+
+    def stamped_command(self, out: Any, when: Any) -> Any:
+        from geometry_msgs.msg import TwistStamped
+
+        m = TwistStamped(twist=out)
+        m.header.stamp = when
+        return m
 
     def twist(self, c) -> Any:
         from geometry_msgs.msg import Twist
@@ -214,6 +245,18 @@ class CartPoleBridge(Bridge):
         from std_msgs.msg import Float64
 
         return Float64(data=0.0)
+
+    def stamped_type(self) -> Any:
+        from sensor_msgs.msg import JointState
+
+        return JointState
+
+    def stamped_command(self, out: Any, when: Any) -> Any:
+        from sensor_msgs.msg import JointState
+
+        m = JointState(name=[self.cfg["joints"]["cart"]], velocity=[float(out.data)])
+        m.header.stamp = when
+        return m
 
     def reset_memory(self) -> None:
         self.command = self.start

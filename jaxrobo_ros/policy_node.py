@@ -7,7 +7,10 @@ It acts once per control period of sim or sensor time: when the primary reading 
 period has arrived together with every other reading it needs within ``max_age`` of it, it builds the task's
 observation with the export's ``robot`` section (:mod:`jaxrobo_ros.bridge`: the training's numbers, units and
 frames, computed by the same code as the task's native port), runs the policy and publishes the command, from the
-callback of the message that completed the set (no queue between message in and command out). A missing, stale or non-finite reading, or none at all for ``stale_after``
+callback of the message that completed the set (no queue between message in and command out), and the same command
+stamped with the state it answers on ``command_stamped`` (what a lockstep sim steps on: docs/ros.md). The same state
+again (a lockstep sim republishes a state it has no command for) is answered with the same command again, both
+copies. A missing, stale or non-finite reading, or none at all for ``stale_after``
 wall-clock seconds (a sim or sensor that died), stops the robot: a zero command and one warning saying why, repeated
 while the cause lasts; the node keeps running and acts again once fresh readings arrive. A reading stamped before
 the last one (Gazebo's ``reset_simulation`` rewinds time) or a new ``/jaxrobo/episode`` starts a new episode (the
@@ -59,6 +62,7 @@ class PolicyNode:
         self.master_lost: str | None = None
         self.fault: str | None = None
         self.last_out, self.acted_t = None, None  # the last command sent, and the stamp it answered
+        self.last_stamped = None  # the last command again, stamped with the state it answered
         self.latency: deque = deque(maxlen=HISTORY)  # s, message in -> command out
         self.acted: deque = deque(maxlen=HISTORY)  # (wall s, stamp s) of each command
 
@@ -66,6 +70,8 @@ class PolicyNode:
         rospy = self.rospy
         rospy.init_node("jaxrobo_policy", argv=[sys.argv[0], *self.ros_args], disable_signals=True)
         types, top = self.b.msg_types(), self.b.topics
+        self.stamped_pub = rospy.Publisher(top["command_stamped"], self.b.stamped_type(), queue_size=1,
+                                           tcp_nodelay=True)
         self.pub = rospy.Publisher(top[self.b.command_topic], types[self.b.command_topic], queue_size=1,
                                    tcp_nodelay=True)
         if self.b.family == "quadcopter" and self.b.cfg.get("goal_param"):
@@ -130,7 +136,10 @@ class PolicyNode:
                     self._new_episode()
                     self.latest[name] = msg  # the first reading of the new episode
                 elif t == self.acted_t and self.last_out is not None and self.fault is None:
-                    self.pub.publish(self.last_out)  # the same state again: its command was lost, send it again
+                    # the same state again: its command was lost or is late; send it again (a late one then
+                    # reaches a lockstep sim twice, and the sim steps on the first stamped copy only)
+                    self.pub.publish(self.last_out)
+                    self.stamped_pub.publish(self.last_stamped)
                     return
                 self.last_t = t
             else:
@@ -149,7 +158,9 @@ class PolicyNode:
                 return
             out = self.b.command_msg(self.policy(obs))
             self.pub.publish(out)
-            self.last_out, self.acted_t = out, t
+            stamped = self.b.stamped_command(out, self.latest[self.b.primary].header.stamp)
+            self.stamped_pub.publish(stamped)
+            self.last_out, self.last_stamped, self.acted_t = out, stamped, t
             self.latency.append(time.perf_counter() - t_in)
             self.commands += 1
             now = time.monotonic()

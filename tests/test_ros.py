@@ -321,6 +321,126 @@ def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
     assert "Traceback" not in log(policy) + log(sim)
 
 
+def subscribers(topic: str) -> list[str]:
+    """The nodes the master lists as subscribers of ``topic``."""
+    import rosgraph
+
+    _, subs, _ = rosgraph.Master("/jaxrobo_test_lookup").getSystemState()
+    return next((nodes for t, nodes in subs if t == topic), [])
+
+
+@needs_ros
+def test_lockstep_sim_steps_once_per_state_when_an_answer_comes_twice(ros, cartpole_export):
+    """A late answer, not a lost one: the lockstep sim republishes a state it has no command for after REPUBLISH s,
+    the policy node answers the state seen again with its command again, and the sim receives two answers to one
+    state (a fresh clone under load once flew its roslaunch episodes with one command counted twice). The command
+    topics carry no stamp; the policy node sends each command again stamped with the state it answers, and the sim
+    steps each state once, on the copy stamped with it. Here this test answers the sim's states as the policy node
+    does (plain and stamped) and sends its answer to one state a second time once the sim has stepped that state:
+    the sim does not step on it, and flies the in-process episode state for state. No timing decides the outcome:
+    the second answer goes out after the sim has published the next state."""
+    from sensor_msgs.msg import JointState
+
+    from jaxrobo.ros.sim_node import REPUBLISH
+    from jaxrobo_ros.bridge import make_bridge
+    from jaxrobo_ros.policy_node import load_export
+    from jaxrobo_ros.system import rospy as get
+
+    rospy = get()
+    seed, again = 4, 5  # the answer to state 5 (the sixth) goes out twice
+    policy = load_export(cartpole_export)
+    b = make_bridge(policy.io)
+    top = b.topics
+    results = ros.tmp / "twice_results.json"
+    states = Listener(top["joint_states"], JointState)
+    plain = rospy.Publisher(top["command"], b.msg_types()["command"], queue_size=10)
+    stamped = rospy.Publisher(top["command_stamped"], b.stamped_type(), queue_size=10)
+    sim = ros.node("sim", cartpole_export, "--episodes", "1", "--lockstep", "--seed", str(seed), "--results",
+                   str(results), name="twice_sim")
+    seen = []  # the observation of each state answered
+    try:
+        assert states.connected_to(node_uri(sim, "/jaxrobo_sim")), log(sim)
+        # this test's answers reach the sim on each command topic it takes them from (it subscribes to the stamped
+        # copies before the plain commands: once it is on the one, the master lists it on the other)
+        assert subscribed_by(plain, "/jaxrobo_sim"), log(sim)
+        if "/jaxrobo_sim" in subscribers(top["command_stamped"]):
+            assert subscribed_by(stamped, "/jaxrobo_sim"), log(sim)
+
+        def state(i):
+            """The i-th state message received, once it is there; None once the sim has ended without it."""
+            while not states.wait(i + 1, timeout=0.1):
+                if sim.poll() is not None:
+                    return None
+            return states.got[i]
+
+        i, last = 0, None
+        while (msg := state(i)) is not None:
+            i += 1
+            if last is not None and msg.header.stamp <= last:
+                continue  # the same state republished: its answer is on its way
+            last = msg.header.stamp
+            obs = b.observation({"joint_states": msg})
+            out = b.command_msg(policy(obs))
+            copy = b.stamped_command(out, last)
+            plain.publish(out)
+            stamped.publish(copy)
+            seen.append(obs)
+            if len(seen) == again + 1:
+                # once the sim has stepped this state (its next one is out), the same answer again: what the policy
+                # node sends when its first answer was late and the sim republished the state meanwhile
+                assert eventually(lambda: any(m.header.stamp > last for m in states.got[i:]), timeout=60), log(sim)
+                plain.publish(out)
+                stamped.publish(copy)
+                time.sleep(2 * REPUBLISH)
+                newer = {m.header.stamp.to_nsec() for m in states.got[i:] if m.header.stamp > last}
+                assert len(newer) == 1, f"the sim stepped on a second answer to one state:\n{log(sim)}"
+        assert sim.wait(timeout=BOUND) == 0, log(sim)
+    finally:
+        stop(sim)
+        states.sub.unregister()
+        plain.unregister()
+        stamped.unregister()
+    native = in_process(cartpole_export, 1, seed)[0]
+    eps = json.loads(results.read_text())["episodes"]
+    assert len(seen) > again + 1
+    assert [e["steps"] for e in eps] == [native["length"]] == [len(seen)], (eps, native["length"], len(seen))
+    assert np.array_equal(np.asarray(seen), native["obs"][:len(seen)])  # the same states, the same answers
+    assert "dropped 1 late or repeated answer " in log(sim), log(sim)
+    assert "Traceback" not in log(sim)
+
+
+@needs_ros
+def test_policy_node_answers_a_state_seen_again_with_the_same_stamped_command(cartpole_export):
+    """The policy node's side of lockstep: each command goes out plain and again stamped with the state it answers
+    (the primary reading's stamp); the same state seen again (republished by a sim that has no command for it) is
+    answered with the same two messages; the watchdog's zero command answers no state and is not stamped."""
+    from types import SimpleNamespace
+
+    from sensor_msgs.msg import JointState
+
+    from jaxrobo_ros.policy_node import PolicyNode
+    from jaxrobo_ros.system import rospy as get
+
+    node = PolicyNode(cartpole_export)
+    plain, stamped = [], []
+    node.pub, node.stamped_pub = SimpleNamespace(publish=plain.append), SimpleNamespace(publish=stamped.append)
+
+    def joints(t, pole):
+        m = JointState(name=["foot_joint", "pole_joint"], position=[0.01, pole], velocity=[0.1, -0.2])
+        m.header.stamp = get().Time.from_sec(t)
+        return m
+
+    for t, pole in ((2.0, 0.02), (2.0, 0.02), (2.04, -0.05)):
+        node._on_msg(joints(t, pole), "joint_states")
+    assert node.commands == 2  # two states answered; the second message was the first state again
+    assert len(plain) == len(stamped) == 3
+    assert plain[1] is plain[0] and stamped[1] is stamped[0]  # the same answer again, both copies
+    assert [m.header.stamp.to_sec() for m in stamped] == pytest.approx([2.0, 2.0, 2.04], abs=1e-9)
+    assert [(m.name, list(m.velocity)) for m in stamped] == [(["foot_joint"], [p.data]) for p in plain]
+    node._hold("a test")
+    assert len(stamped) == 3 and len(plain) == 4 and plain[-1].data == 0.0
+
+
 @needs_ros
 def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
     import gymnasium as gym

@@ -94,6 +94,10 @@ class DroneSim(DroneBridge):
         c = np.array([msg.linear.x, msg.linear.y, msg.linear.z, msg.angular.z], np.float64)
         return c if np.all(np.isfinite(c)) else np.zeros(4)
 
+    def command_of_stamped(self, msg) -> np.ndarray:
+        """The command of ``command_stamped``'s TwistStamped (:meth:`DroneBridge.stamped_command`)."""
+        return self.command_of(msg.twist)
+
     def zero_command(self):
         return np.zeros(4)
 
@@ -180,6 +184,14 @@ class CartPoleSim(CartPoleBridge):
     # ---- the sim's side -------------------------------------------------------------------------------------
     def command_of(self, msg) -> float:
         return float(msg.data) if math.isfinite(msg.data) else 0.0
+
+    def command_of_stamped(self, msg) -> float:
+        """The cart command of ``command_stamped``'s JointState (:meth:`CartPoleBridge.stamped_command`): the cart
+        joint's velocity."""
+        names = list(msg.name)
+        cart = self.cfg["joints"]["cart"]
+        v = msg.velocity[names.index(cart)] if cart in names and names.index(cart) < len(msg.velocity) else 0.0
+        return float(v) if math.isfinite(v) else 0.0
 
     def zero_command(self):
         return self.start

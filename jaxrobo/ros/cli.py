@@ -20,7 +20,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--episodes", type=int, default=0,
                    help="run this many episodes back to back, then exit (0: episodes change on /gazebo/reset_*)")
     s.add_argument("--seed", type=int, default=12345, help="key of the episodes' resets")
-    s.add_argument("--lockstep", action="store_true", help="one control period per command (deterministic)")
+    s.add_argument("--lockstep", action="store_true",
+                   help="one control period per state, on the one command that answers it (deterministic)")
     s.add_argument("--speed", type=float, default=1.0, help="x real time without --lockstep; 0: as fast as possible")
     s.add_argument("--topics", default=None, help="topic YAML (default: jaxrobo_ros/topics/<family>.yaml)")
     s.add_argument("--results", default=None, help="write each episode's steps and success here (JSON)")

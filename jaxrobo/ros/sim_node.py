@@ -6,6 +6,15 @@ publishes ``/clock`` and the state topics stamped with sim time. ``--lockstep`` 
 state before the next period (deterministic: a policy answering each state sees exactly the native loop's
 episodes; Gazebo has no such mode), otherwise it runs at ``--speed`` x real time holding the last command.
 
+In lockstep each state is stepped once, with one command: the first that answers it. The command topics carry no
+stamp, so a node sends, beside each command, a copy stamped with the state it answers on ``command_stamped`` (the
+policy node does): the sim steps on the copy stamped with the state it waits on, drops a copy that answers a state
+already stepped (a late answer, or the policy node's copy of it sent again when the state was republished) or a
+second answer, and does not take the plain commands of a node that sends stamped copies. From a node that sends
+none (the Gymnasium env over ROS, a seed-style script) the first plain command received after a state went out
+answers it: such a client must send one command per state. A state republished after ``REPUBLISH`` s keeps its
+stamp and its answer.
+
 Episodes start from the task's own resets (``jaxrobo.task.rollout.rollout_start`` with key ``--seed``: episode ``i``
 is the ``i``-th reset of ``jaxrobo eval``/``scripts/sim2sim.py`` with that key). With ``--episodes N`` the sim runs
 ``N`` episodes back to back (a new one when the task ends one or at the horizon), publishes each one's return on
@@ -65,7 +74,10 @@ class SimNode:
         self.episodes, self.lockstep, self.speed = episodes, lockstep, speed
         self.qpos, self.qvel, self.tasks = episode_starts(env, episodes or pool, seed)
         self.lock = threading.Condition()
-        self.paused, self.commands, self.used = False, 0, 0  # used: commands counted when the state went out
+        self.paused = False
+        # lockstep: the stamp of the state waiting for its command, the command answering it (None: not yet), the
+        # commands dropped as answers to a state already stepped or as second answers
+        self.out, self.answer, self.dropped = None, None, 0
         self.t, self.steps, self.index, self.results = 0.0, 0, -1, []
         self.tick = self.published = time.monotonic()  # wall clock: the period's end, the last publication
         self.command = self.b.zero_command()
@@ -79,6 +91,9 @@ class SimNode:
         self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
         self.reward = rospy.Publisher("/openai/reward", msgs.RLExperimentInfo, queue_size=10)
         self.Int32, self.Clock, self.Info = Int32, Clock, msgs.RLExperimentInfo
+        # lockstep: the commands' stamped copies (subscribed first: a node found on the command topic is on this one)
+        self.stamped = rospy.Subscriber(top["command_stamped"], self.b.stamped_type(), self._on_stamped,
+                                        queue_size=10, tcp_nodelay=True) if lockstep else None
         rospy.Subscriber(top[self.b.command_topic], types[self.b.command_topic], self._on_command, queue_size=10,
                          tcp_nodelay=True)
         for name, fn in (("pause_physics", self._pause), ("unpause_physics", self._unpause),
@@ -88,9 +103,32 @@ class SimNode:
     # ---- callbacks (rospy's threads) ------------------------------------------------------------------------
     def _on_command(self, msg) -> None:
         with self.lock:
-            self.command = self.b.command_of(msg)
-            self.commands += 1
-            self.lock.notify_all()
+            if not self.lockstep:
+                self.command = self.b.command_of(msg)  # held from the next period on
+            elif not self._stamps(msg):  # a node that sends stamped copies answers with those alone
+                self._answer(self.b.command_of(msg))
+
+    def _on_stamped(self, msg) -> None:
+        with self.lock:
+            if msg.header.stamp == self.out:
+                self._answer(self.b.command_of_stamped(msg))
+            else:
+                self.dropped += 1  # it answers a state already stepped (late, or sent again), or none published
+
+    def _stamps(self, msg) -> bool:
+        """Whether the node that published ``msg`` also publishes stamped copies to this node (is connected to it on
+        ``command_stamped``)."""
+        caller = (getattr(msg, "_connection_header", None) or {}).get("callerid")
+        return caller is not None and any((getattr(c, "header", None) or {}).get("callerid") == caller
+                                          for c in list(self.stamped.impl.connections or ()))
+
+    def _answer(self, command) -> None:
+        """``command`` answers the state out, unless another did already: the state is stepped once."""
+        if self.out is None or self.answer is not None:
+            self.dropped += 1
+            return
+        self.answer = command
+        self.lock.notify_all()
 
     def _pause(self, _req):
         with self.lock:
@@ -128,14 +166,18 @@ class SimNode:
         self.publish_state()
         self.tick = time.monotonic()  # the first period of the episode is a whole one
 
-    def publish_state(self) -> None:
+    def publish_state(self, again: bool = False) -> None:
+        """The state now; ``again``: the same state once more (same stamp; an answer it had stays its answer)."""
         self.published = time.monotonic()
+        if not again:  # a new state: nothing answers it yet (lockstep)
+            self.out, self.answer = self.stamp(), None
         self.clock.publish(self.Clock(clock=self.stamp()))
         for k, m in self.b.state_msgs(self.task, self.stamp()).items():
             self.pubs[k].publish(m)
-        self.used = self.commands
 
     def step(self) -> None:
+        if self.lockstep:
+            self.command, self.answer, self.out = self.answer, None, None  # taken: no other command answers it
         self.b.advance(self.command)
         self.steps += 1
         self.t += self.b.period
@@ -150,16 +192,18 @@ class SimNode:
         else:
             self.publish_state()
 
+    def ready(self) -> bool:
+        return not self.paused and (not self.lockstep or self.answer is not None)
+
     def run(self, stop: threading.Event) -> list[dict]:
         with self.lock:
             self.new_episode()
         while not stop.is_set() and not self.rospy.is_shutdown():
             with self.lock:
-                ready = not self.paused and (not self.lockstep or self.commands > self.used)
-                if not ready:
+                if not self.ready():
                     self.lock.wait(0.05)
-                    if time.monotonic() - self.published > REPUBLISH:
-                        self.publish_state()  # the same state again, for a subscriber that connected after it
+                    if not self.ready() and time.monotonic() - self.published > REPUBLISH:
+                        self.publish_state(again=True)  # for a subscriber that connected after it, or lost its answer
                     continue
                 if self.speed > 0 and not self.lockstep:
                     self.tick += self.b.period / self.speed
@@ -205,5 +249,8 @@ def run(args) -> int:
         rate = np.mean([r["success"] for r in results])
         print(f"jaxrobo ros sim: {len(results)} episodes, success {rate:.3f}, mean steps "
               f"{np.mean([r['steps'] for r in results]):.1f}", flush=True)
+    if node.dropped:
+        print(f"jaxrobo ros sim: dropped {node.dropped} late or repeated answer{'s' * (node.dropped != 1)} "
+              "(lockstep: each state is stepped once)", flush=True)
     node.rospy.signal_shutdown("done")
     return 0
