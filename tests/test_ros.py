@@ -192,10 +192,26 @@ class Listener:
             self.cv.notify_all()
 
     def connected_to(self, uri: str, timeout=BOUND) -> bool:
-        """Whether the publisher of node ``uri`` (:func:`node_uri`) has connected to this subscriber: rospy connects
-        in the background, a message published before the connection is not delivered, and another node's
-        connection (a node of an earlier test still shutting down) says nothing of this one's."""
-        return linked(self.sub, uri, timeout)
+        """Whether the publisher of node ``uri`` (:func:`node_uri`) has connected to this subscriber, on both ends:
+        rospy connects in the background, a message published before the connection is not delivered, and another
+        node's connection (a node of an earlier test still shutting down) says nothing of this one's. This end
+        lists the connection a moment before the publisher's does (rospy's publisher adds it after writing its
+        header), and a message the node publishes in between is lost: so the node's own list (its ``getBusInfo``,
+        the connections its publisher writes to) must hold it too."""
+        from xmlrpc.client import ServerProxy
+
+        from jaxrobo_ros.system import rospy
+
+        me, topic = rospy().get_caller_id(), self.sub.resolved_name
+
+        def publishing() -> bool:
+            try:
+                info = ServerProxy(uri).getBusInfo(me)[2]
+            except Exception:  # the node is going, or not serving yet
+                return False
+            return any(c[1] == me and c[2] == "o" and c[4] == topic for c in info)
+
+        return linked(self.sub, uri, timeout) and eventually(publishing, timeout, every=0.01)
 
     def wait(self, n, timeout=30.0):
         end = time.monotonic() + timeout
