@@ -240,8 +240,10 @@ def test_static_fields_are_kept_as_literals_and_enums_by_name():
     with pytest.raises(reuse.NotKeyable):
         reuse._aux_bytes((object(),))
     forged = repr({reuse._ENUM: ("os", "system", "x")}).encode()  # names something that is not an enum
-    with pytest.raises(ValueError, match="not a loaded enum"):
+    with pytest.raises(ValueError, match="not a member of a loaded enum"):
         reuse._aux_value(forged)
+    with pytest.raises(ValueError, match="not a member of a loaded enum"):  # a loaded enum, no such member
+        reuse._aux_value(repr({reuse._ENUM: (Mode.__module__, "Mode", "SLOW")}).encode())
 
 
 def test_a_deep_run_through_kept_traces_stopped_and_resumed_ends_as_the_plain_run(kept, tmp_path, monkeypatch):

@@ -404,41 +404,50 @@ _REGISTERED: set[type] = set()
 _ENUM = "__enum__"
 
 
-def _encode(x: Any) -> Any:
+#: What a ``convert`` of :func:`_rebuilt` returns for a value it leaves as it is.
+_KEEP = object()
+
+
+def _rebuilt(x: Any, convert: Callable[[Any], Any]) -> Any:
+    """``x`` with every value ``convert`` replaces (it returns ``_KEEP`` for one it leaves) replaced, through plain
+    lists, tuples and dicts; anything else is left as it is (and then must read back as a literal)."""
+    got = convert(x)
+    if got is not _KEEP:
+        return got
+    if type(x) in (list, tuple):
+        return type(x)(_rebuilt(i, convert) for i in x)
+    if type(x) is dict:
+        return {k: _rebuilt(v, convert) for k, v in x.items()}
+    return x
+
+
+def _enum_to_literal(x: Any) -> Any:
     import enum
 
     if isinstance(x, enum.Enum):  # Brax's normaliser state names its mode with one
         return {_ENUM: (type(x).__module__, type(x).__qualname__, x.name)}
-    if isinstance(x, (list, tuple)):
-        return type(x)(_encode(i) for i in x)
-    if isinstance(x, dict):
-        return {k: _encode(v) for k, v in x.items()}
-    return x
+    return _KEEP
 
 
-def _decode(x: Any) -> Any:
+def _literal_to_enum(x: Any) -> Any:
     import enum
 
-    if isinstance(x, dict) and set(x) == {_ENUM}:
-        module, qualname, name = x[_ENUM]
-        cls: Any = sys.modules.get(module)  # only a module already loaded: reading a file imports nothing
-        for part in str(qualname).split("."):
-            cls = getattr(cls, part, None)
-        if not (isinstance(cls, type) and issubclass(cls, enum.Enum)):
-            raise ValueError(f"kept structure names {module}.{qualname}, not a loaded enum")
-        return cls[name]
-    if isinstance(x, (list, tuple)):
-        return type(x)(_decode(i) for i in x)
-    if isinstance(x, dict):
-        return {k: _decode(v) for k, v in x.items()}
-    return x
+    if not (type(x) is dict and set(x) == {_ENUM}):
+        return _KEEP
+    module, qualname, name = x[_ENUM]
+    cls: Any = sys.modules.get(module)  # only a module already loaded: reading a file imports nothing
+    for part in str(qualname).split("."):
+        cls = getattr(cls, part, None)
+    if not (isinstance(cls, type) and issubclass(cls, enum.Enum)) or name not in cls.__members__:
+        raise ValueError(f"kept structure names {module}.{qualname}.{name}, not a member of a loaded enum")
+    return cls[name]
 
 
 def _aux_bytes(aux: Any) -> bytes:
-    text = repr(_encode(aux))
+    text = repr(_rebuilt(aux, _enum_to_literal))
     try:
         same = _aux_value(text.encode()) == aux
-    except (ValueError, SyntaxError):
+    except (ValueError, SyntaxError, TypeError):
         same = False
     if not same:
         raise NotKeyable(f"static fields {text[:80]} do not read back as Python literals")
@@ -446,7 +455,7 @@ def _aux_bytes(aux: Any) -> bytes:
 
 
 def _aux_value(data: bytes) -> Any:
-    return _decode(ast.literal_eval(data.decode()))  # literals only: a file read back runs no code
+    return _rebuilt(ast.literal_eval(data.decode()), _literal_to_enum)  # literals only: reading runs no code
 
 
 def _read(path: str) -> Any | None:
