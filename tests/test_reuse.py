@@ -64,6 +64,30 @@ def test_another_configuration_is_traced_again(kept):
     assert any(f.startswith("chunk-") for f in set(os.listdir(kept)) - before)
 
 
+def test_another_seed_reads_the_traces_back_and_runs_as_its_plain_run(kept):
+    """The seed is host-only (it makes the first key, an argument of every program): a run of seed 3 reads the
+    traces a seed-0 run kept, and ends with the bytes of seed 3 traced afresh."""
+    run(True)
+    before = set(os.listdir(kept))
+    again = run(True, seed=3)
+    assert {p: reuse.LAST[p] for p in PROGRAMS} == dict.fromkeys(PROGRAMS, "read")
+    assert set(os.listdir(kept)) == before
+    assert same(run(False, seed=3), again) and not same(run(False), again)
+
+
+def test_no_program_reads_the_seed():
+    """What makes the seed host-only: the training chunk traced under two seeds is the same program."""
+    import jax
+
+    traced = []
+    for seed in (0, 5):
+        spec = resolve("CartPoleStayUp-v0", overrides={**SMALL, "seed": seed})
+        t = Trainer(spec.env, spec.config)
+        runner = jax.eval_shape(t.init, jax.random.key(0), spec.agent_params, spec.env.default_params)
+        traced.append(str(jax.make_jaxpr(t.run_chunk)(runner, spec.agent_params, spec.env.default_params)))
+    assert traced[0] == traced[1]
+
+
 @pytest.mark.parametrize("damage", ["garbage", "empty", "fifo", "link", "directory"])
 def test_a_kept_file_that_cannot_be_trusted_is_traced_afresh(kept, tmp_path, damage):
     good = run(True)

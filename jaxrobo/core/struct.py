@@ -76,16 +76,20 @@ def param(
     kind: type | None = None,
     default_factory: Callable[[], Any] | None = None,
     within: tuple[str, str] | None = None,
+    host_only: bool = False,
 ) -> Any:
     """Declare a user-settable field. ``static`` fields select code paths or shapes; the rest are traced leaves.
     ``within=(lo, hi)``: the value must also lie between the values of the fields ``lo`` and ``hi`` (a start
-    position inside the track), checked with the whole dataclass (:func:`jaxrobo.core.config.check_relations`)."""
+    position inside the track), checked with the whole dataclass (:func:`jaxrobo.core.config.check_relations`).
+    ``host_only``: only host code reads the value (a seed, which makes the first key: programs get the key as an
+    argument), so a program traced under one value serves every other: a kept trace's key leaves it out
+    (:func:`jaxrobo.speed.reuse.describe`)."""
     kind = kind or type(default)
     if kind is int and high is None:
         high = INT32_MAX
     rule = Rule(kind, low, high, tuple(choices) if choices is not None else None, doc, unit, low_open,
                 optional=default is None and default_factory is None, within=within)
-    meta = {"static": static, _RULES: rule}
+    meta = {"static": static, _RULES: rule, **({"host_only": True} if host_only else {})}
     if default_factory is not None:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)

@@ -48,7 +48,7 @@ class DeepConfig:
     reward_scaling: float = param(1.0, low=0.0, low_open=True, doc="factor on rewards in the losses")
     num_evals: int = param(10, low=1, high=1000, doc="evaluation points over the run (the first before training)")
     eval_episodes: int = param(128, low=1, high=100_000, doc="fresh episodes of each evaluation")
-    seed: int = param(0, low=0, doc="random seed; the same seed gives the same run")
+    seed: int = param(0, low=0, host_only=True, doc="random seed; the same seed gives the same run")
     iteration_steps: int = _per_agent(int, low=1, doc="most env steps of one host iteration of the trainer (at "
                                                      "least one training step): where a stop keeps the trainer's "
                                                      "state between evaluation points; the policy is the same "

@@ -308,6 +308,8 @@ def describe(obj: Any, *, limit: int = 50_000, modules: set[str] | None = None) 
         if dataclasses.is_dataclass(x):
             out.append(f"dataclass:{kind}")
             for f in dataclasses.fields(x):
+                if f.metadata.get("host_only"):  # no program reads it (a seed): one trace serves every value
+                    continue
                 out.append(f.name)
                 walk(getattr(x, f.name), depth + 1)
             return

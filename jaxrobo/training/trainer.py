@@ -68,7 +68,7 @@ class TrainConfig:
     n_envs: int = param(64, low=1, static=True, doc="independent copies of the experiment run at once")
     nepisodes: int = param(1000, low=1, static=True, doc="episodes per environment")
     nsteps: int = param(1000, low=1, static=True, doc="step cap per episode in the training loop")
-    seed: int = param(0, low=0, static=True, doc="random seed; the same seed gives the same results")
+    seed: int = param(0, low=0, static=True, host_only=True, doc="random seed; the same seed gives the same results")
     seed_compat: bool = param(False, static=True,
                               doc="reproduce the seed's learners exactly (docs/cartpole.md, Presets)")
     shared_table: bool = param(False, static=True, doc="one table learning from all environments")
