@@ -539,6 +539,11 @@ def run_population(trainer: Trainer, population: Population, agent_params: Any, 
     when stopped, not after the last chunk (the measures are what a finished population keeps)."""
     from jaxrobo.speed import sharding
 
+    if agent_params is None or env_params is None:
+        raise ValueError("train(population=...): agent_params and env_params must be the rows' parameters, stacked")
+    if trainer.plan.devices != 1:
+        raise ValueError("train(population=...): the rows are split over population.mesh, not each row's envs "
+                         f"(the plan has devices={trainer.plan.devices}; give a plan of one device)")
     kd, ap, ep = sharding.put_batch(population.padded(agent_params, env_params), population.mesh)
     # Read before the first chunk takes the carry's buffers: the padding rows' steps are not the rows'.
     restored = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64)[:population.n_rows]
