@@ -114,6 +114,22 @@ def test_train_and_the_sweep_run_their_chunks_through_the_same_driver(monkeypatc
     assert len(out.rows) == 2 and len(loops) == 2 and loops[1][0] == (2, 2)  # rows × envs
 
 
+def test_a_population_needs_its_rows_parameters_and_a_plan_of_one_device():
+    import jax
+
+    from jaxrobo.speed.plan import ExecutionPlan
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
+
+    spec = resolve("CartPoleStayUp-v0", overrides={"n_envs": 2, "nepisodes": 2, "nsteps": 10, "backend": "analytic"})
+    rows = driver.Population(np.stack([jax.random.key_data(jax.random.key(s)) for s in (0, 1)]), lambda *a: {})
+    with pytest.raises(ValueError, match="rows' parameters"):
+        train(spec.env, spec.config, population=rows)
+    plan = ExecutionPlan.for_run(spec.env, spec.config).replace(devices=2)
+    with pytest.raises(ValueError, match="devices=2"):
+        train(spec.env, spec.config, spec.agent_params, spec.env.default_params, plan=plan, population=rows)
+
+
 # The sizes of the tiny runs of tests/test_goto_v2.py and tests/test_arm_reach.py (their compiled chunks are reused);
 # a wide arrival radius (a traced parameter: the same programs), so that some episodes arrive and some do not.
 @pytest.mark.parametrize("env_id, overrides", [

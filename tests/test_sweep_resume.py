@@ -331,3 +331,57 @@ def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chun
         f.write(b"PK\x03\x04 not an npz")
     with pytest.raises(ConfigError, match=r"group_0\.npz.*remove .*group_0\.npz to run group 1 from its first"):
         sweep.run_plan(plan, state_dir=bad)
+
+
+def test_a_sweep_group_trains_through_train_and_its_callbacks(uninterrupted, tmp_path, monkeypatch):
+    """Every group is one train() of a population: a Callback handed to run_plan hears each group's start (its
+    trainer, its carry), every chunk and the end; on_chunk returning False stops the sweep at that chunk with the
+    group's carry saved, and the resumed group starts from that carry and writes the uninterrupted sweep.csv."""
+    from jaxrobo.training import driver
+    from jaxrobo.training import train as training
+    from jaxrobo.training.callbacks import Callback
+
+    train, calls = training.train, []
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs.get("population"))
+        return train(*args, **kwargs)
+
+    monkeypatch.setattr(training, "train", spy)
+
+    class Recorder(Callback):
+        def __init__(self, stop_at=None):
+            self.events, self.stop_at = [], stop_at
+
+        def on_training_start(self, trainer, initial):
+            steps = None if initial is None else int(np.asarray(initial.env_steps, np.int64).sum())
+            self.events.append(("start", trainer.config.number_splits, steps))
+
+        def on_chunk(self, progress):
+            self.events.append(("chunk", progress.chunks_done))
+            return progress.chunks_done != self.stop_at
+
+        def on_training_end(self, result):
+            self.events.append(("end", type(result).__name__, result.stopped, result.chunks_done))
+
+    state = str(tmp_path / "state")
+    os.makedirs(state)
+    plan = _plan()
+    stopper = Recorder(stop_at=2)
+    with pytest.raises(sweep.SweepInterrupted) as info:
+        sweep.run_plan(plan, state_dir=state, callbacks=stopper)
+    assert info.value.partial == (0, 2, 9) and os.path.exists(sweep_state.group_carry_path(state, 0))
+    assert stopper.events == [("start", 4, None), ("chunk", 1), ("chunk", 2), ("end", "PopulationResult", True, 2)]
+    assert len(calls) == 1 and isinstance(calls[0], driver.Population) and calls[0].n_rows == 4
+
+    calls.clear()
+    heard = Recorder()
+    result = sweep.run_plan(plan, state_dir=state, callbacks=[heard])
+    assert [type(p) for p in calls] == [driver.Population] * 2  # both groups, each one train()
+    starts = [e for e in heard.events if e[0] == "start"]
+    assert starts[0][:2] == ("start", 4) and starts[0][2] > 0 and starts[1] == ("start", 6, None)
+    group_1 = heard.events[:heard.events.index(starts[1])]
+    assert group_1[1] == ("chunk", 3) and group_1[-1] == ("end", "PopulationResult", False, 9)
+    sweep.write_csv(result, str(tmp_path / "resumed.csv"))
+    with open(tmp_path / "resumed.csv") as f:
+        assert f.read() == _outputs(uninterrupted)[0]

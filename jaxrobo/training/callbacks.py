@@ -24,7 +24,7 @@ class Callback:
 
     def on_training_start(self, trainer: Any, initial: Any) -> None:
         """Before the first compile: ``trainer`` (:class:`~jaxrobo.training.trainer.Trainer`) and the carry the run
-        starts from (None: a fresh one)."""
+        starts from (None: a fresh one; a sweep group's: its rows' carry)."""
 
     def on_chunk(self, progress: Progress) -> bool | None:
         """After each chunk (:class:`~jaxrobo.training.driver.Progress`); False stops the run at this boundary."""
@@ -37,7 +37,8 @@ class Callback:
         """After each segment of the greedy evaluation (:class:`~jaxrobo.training.driver.EvalProgress`)."""
 
     def on_training_end(self, result: Any) -> None:
-        """The run's :class:`~jaxrobo.training.summary.TrainResult` (complete or stopped)."""
+        """The run's :class:`~jaxrobo.training.summary.TrainResult` (complete or stopped); a sweep group's
+        :class:`~jaxrobo.training.driver.PopulationResult`."""
 
 
 class CallbackList(Callback):

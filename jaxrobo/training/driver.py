@@ -1,23 +1,27 @@
 """The host driver: compile a training chunk once, then run it chunk after chunk from a carry.
 
-One loop serves every caller that trains: :func:`jaxrobo.training.train.train` (``jaxrobo train``), the sweep's compiled
-groups (:class:`jaxrobo.training.sweep.GroupRunner`, a chunk vmapped or sharded over rows) and the benchmarks. The chunk is
-traced and compiled under the run's execution plan (:func:`compile_under`, :func:`compiled_chunk`); the loop
-(:func:`run_chunks`) only dispatches compiled chunks and, between them, reads two numbers (fewest episodes done,
+One loop serves every caller that trains: :func:`jaxrobo.training.train.train` (``jaxrobo train``, and the sweep's
+groups as a :class:`Population`: a chunk vmapped or sharded over rows, :func:`run_population`) and the benchmarks.
+The chunk is traced and compiled under the run's execution plan (:func:`compile_under`, :func:`compiled_chunk`); the
+loop (:func:`run_chunks`) only dispatches compiled chunks and, between them, reads two numbers (fewest episodes done,
 mean last return) for the done test and the progress bar, so the hot loop never syncs with the host inside a
 chunk. Between chunks it asks a stop hook (``should_stop``: a chunk boundary is the only place a run stops) and
 hands the carry to a checkpoint hook at its cadence (every N chunks and/or every T seconds), and at the end.
 
 :func:`run_training` is a whole training run: compile, loop from a fresh or saved carry, greedy evaluation at the
 end (:func:`evaluate_tables`, whose one flight also counts the arrivals of a task whose target is a success
-rate), a :class:`~jaxrobo.training.summary.TrainResult`. :class:`StopOnSignal` turns SIGINT / SIGTERM into a stop request
-for both command lines (``jaxrobo train``, ``jaxrobo sweep``); the library itself installs no signal handlers.
+rate), a :class:`~jaxrobo.training.summary.TrainResult`; :func:`run_population` is a whole training of a
+:class:`Population`'s rows (compiled by :func:`compiled_population`), a :class:`PopulationResult`.
+:class:`StopOnSignal` turns SIGINT / SIGTERM into a stop request for both command lines (``jaxrobo train``,
+``jaxrobo sweep``); the library itself installs no signal handlers.
 
 Public surface: :func:`compile_under`, :func:`compiled_chunk`, :func:`compiled_progress`, :func:`run_chunks` and
-its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :func:`evaluate_tables` (flown in segments by
+its :class:`ChunkRun` and :class:`Progress`, :func:`run_training`, :class:`Population`, :func:`compiled_population`,
+:func:`run_population` and its :class:`PopulationResult`, :func:`evaluate_tables` (flown in segments by
 :func:`fly`, reporting :class:`EvalProgress`; its pieces :func:`evaluated_tables`, :func:`evaluation_keys`,
 :func:`table_figures` and :func:`choose_table`, which the learning benchmarks judge runs by),
-:class:`StopOnSignal`, the hook types :data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore are private.
+:class:`StopOnSignal`, the hook types :data:`ProgressFn` and :data:`CheckpointFn`. Names with a leading underscore
+are private.
 """
 from __future__ import annotations
 
@@ -411,6 +415,162 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         target_checks=checks if check_every else None, target_every=check_every,
         target_met_chunk=loop.checked_done_at, target_check_seconds=loop.check_seconds,
         checkpoint_seconds=loop.save_seconds)
+
+
+# ---- a population of runs ----------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True, eq=False)
+class Population:
+    """Rows of one trainer's runs trained as one program (a sweep's group): ``Trainer.init`` / ``run_chunk``
+    vmapped over a leading row axis, the rows split over ``mesh``'s devices (None: one device), each row with
+    its own key, agent and env parameters. :func:`jaxrobo.training.train.train` runs it when given one
+    (:func:`run_population`).
+
+    ``key_data``: the rows' ``jax.random.key_data`` (``[n_rows, ...]``, host). ``finish(carry, key_data,
+    env_params)``: traceable, the rows' measures at the end (a dict of ``[rows]`` arrays), compiled with the
+    chunk; ``finish_parts``: what ``finish`` is built from besides the trainer (the rows' count is added), which
+    names its kept traces (:func:`jaxrobo.speed.reuse.compile_reusing`). ``max_seconds``: the rows stop training
+    before a chunk once this much time has passed (at least one chunk run), not stopped, not complete."""
+
+    key_data: np.ndarray
+    finish: Callable[[Runner, jax.Array, Any], dict[str, jax.Array]]
+    mesh: Any = None
+    finish_parts: tuple = ()
+    max_seconds: float | None = None
+
+    @property
+    def n_rows(self) -> int:
+        return int(np.shape(self.key_data)[0])
+
+    @property
+    def n_padded(self) -> int:
+        """Rows with the padding that splits them evenly over the mesh (padding rows repeat the last row and are
+        dropped from every answer)."""
+        from jaxrobo.speed import sharding
+
+        return sharding.padded_size(self.n_rows, self.mesh)
+
+    def padded(self, agent_params: Any, env_params: Any) -> tuple[Any, Any, Any]:
+        """``(key_data, agent_params, env_params)`` padded to :attr:`n_padded` rows, host arrays."""
+        from jaxrobo.speed import sharding
+
+        return sharding.pad_rows((self.key_data, agent_params, env_params), self.n_padded)
+
+    def template(self, trainer: Trainer, agent_params: Any, env_params: Any) -> Any:
+        """The rows' carry as shapes (``jax.ShapeDtypeStruct`` leaves, padded rows), traced, not compiled: what a
+        saved carry is checked against before it is handed to :func:`run_population` as ``initial``."""
+        with trainer.plan.tracing():
+            return jax.eval_shape(_population_init(trainer), *self.padded(agent_params, env_params))
+
+
+@dataclasses.dataclass
+class PopulationResult:
+    """What :func:`run_population` ends with. ``metrics``: ``finish``'s measures per row, host arrays of
+    ``n_rows`` (None when stopped). ``complete``: every row reached its budget (not cut by ``max_seconds``);
+    ``stopped``: a stop ended it at a chunk boundary (its carry handed to ``checkpoint``). ``slot_steps``: the
+    env slots the chunks this process ran stepped; ``restored_env_steps``: the rows' env steps in ``initial``."""
+
+    metrics: dict[str, np.ndarray] | None
+    complete: bool
+    stopped: bool
+    chunks_done: int
+    n_chunks: int
+    start_chunk: int
+    compile_seconds: float
+    run_seconds: float
+    eval_seconds: float
+    slot_steps: int
+    restored_env_steps: int
+
+
+def _population_init(trainer: Trainer) -> Callable:
+    def init(key_data, agent_params, env_params):
+        return jax.vmap(trainer.init)(jax.random.wrap_key_data(key_data), agent_params, env_params)
+    return init
+
+
+def _population_chunk(trainer: Trainer) -> Callable:
+    def chunk(runner, agent_params, env_params):
+        return jax.vmap(trainer.run_chunk)(runner, agent_params, env_params)
+    return chunk
+
+
+def compiled_population(trainer: Trainer, population: Population, key_data: jax.Array, agent_params: Any,
+                        env_params: Any, initial: Runner | None = None) -> tuple[Runner, Callable, Callable]:
+    """``(carry, chunk, finish)``: the rows' carry (a fresh vmapped ``init``, run, or ``initial`` placed as that
+    one would be), and the vmapped ``run_chunk`` (carry donated) and ``finish`` compiled for it under the plan.
+    ``key_data`` and the parameters are padded and placed (:func:`run_population`). On one device with the plan's
+    ``reuse_traces`` the three go through :func:`jaxrobo.speed.reuse.compile_reusing` (``sweep_init``,
+    ``sweep_chunk``, ``sweep_finish``); over a mesh each device runs its rows
+    (:func:`jaxrobo.speed.sharding.jit_batched`)."""
+    from jaxrobo.speed import sharding
+
+    plan, mesh, n = trainer.plan, population.mesh, population.n_padded
+    kd, ap, ep = key_data, agent_params, env_params
+    init, step, finish = _population_init(trainer), _population_chunk(trainer), population.finish
+    if initial is not None:  # placed as the fresh carry is: split over the mesh's rows, else on the default device
+        runner = jax.device_put(initial, sharding.shardings_like(initial, mesh, n) if mesh is not None
+                                else jax.devices()[0])
+    if mesh is None and plan.reuse_traces:  # on one device: traces kept by an earlier process, read back
+        parts = (trainer, n, *population.finish_parts)
+        if initial is None:
+            runner = reuse.compile_reusing(plan, "sweep_init", init, (kd, ap, ep), parts)(kd, ap, ep)
+        chunk = reuse.compile_reusing(plan, "sweep_chunk", step, (runner, ap, ep), parts, donate=(0,))
+        return runner, chunk, reuse.compile_reusing(plan, "sweep_finish", finish, (runner, kd, ep), parts)
+    opts = plan.xla_options
+    if initial is None:
+        init = sharding.jit_batched(init, mesh, n, (kd, ap, ep), compiler_options=opts)
+        runner = compile_under(plan, init, kd, ap, ep)(kd, ap, ep)
+    chunk = sharding.jit_batched(step, mesh, n, (runner, ap, ep), donate=(0,), compiler_options=opts)
+    chunk = compile_under(plan, chunk, runner, ap, ep)
+    finish = sharding.jit_batched(finish, mesh, n, (runner, kd, ep), compiler_options=opts)
+    return runner, chunk, compile_under(plan, finish, runner, kd, ep)
+
+
+def run_population(trainer: Trainer, population: Population, agent_params: Any, env_params: Any,
+                   progress: ProgressFn | None = None, *, initial: Runner | None = None, start_chunk: int = 0,
+                   checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
+                   checkpoint_seconds: float | None = None,
+                   should_stop: Callable[[], bool] | None = None) -> PopulationResult:
+    """Train every row of ``population`` (``agent_params`` / ``env_params``: the rows' parameters stacked on a
+    leading axis, host arrays) from a fresh carry or ``initial`` (the rows' carry after ``start_chunk`` chunks,
+    padded rows included, e.g. loaded against :meth:`Population.template`) until every row's budget or
+    ``max_seconds``, then ``finish``: the population body of :func:`jaxrobo.training.train.train`. The loop and
+    its hooks are :func:`run_chunks`'s, as a single run's; the carry goes to ``checkpoint`` at its cadence and
+    when stopped, not after the last chunk (the measures are what a finished population keeps)."""
+    from jaxrobo.speed import sharding
+
+    if agent_params is None or env_params is None:
+        raise ValueError("train(population=...): agent_params and env_params must be the rows' parameters, stacked")
+    if trainer.plan.devices != 1:
+        raise ValueError("train(population=...): the rows are split over population.mesh, not each row's envs "
+                         f"(the plan has devices={trainer.plan.devices}; give a plan of one device)")
+    kd, ap, ep = sharding.put_batch(population.padded(agent_params, env_params), population.mesh)
+    # Read before the first chunk takes the carry's buffers: the padding rows' steps are not the rows'.
+    restored = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64)[:population.n_rows]
+                                              .sum())
+    t0 = time.perf_counter()
+    runner, chunk, finish = compiled_population(trainer, population, kd, ap, ep, initial)
+    stats = compiled_progress(runner, trainer)
+    jax.block_until_ready(runner)
+    compile_seconds = time.perf_counter() - t0
+    total, unit = trainer.budget_total
+    c, n_chunks = trainer.config, trainer.max_chunks()
+    slots = float(c.chunk_steps) * c.n_envs * population.n_rows
+    loop = run_chunks(lambda r: chunk(r, ap, ep), runner, n_chunks, start_chunk=start_chunk, read=stats,
+                      total=total, progress=progress, should_stop=should_stop, max_seconds=population.max_seconds,
+                      unit=unit, slots_per_chunk=slots, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                      checkpoint_seconds=checkpoint_seconds, save_at_end=False)
+    metrics, eval_seconds = None, 0.0
+    if not loop.stopped:
+        t_eval = time.perf_counter()  # the rows' measures (a greedy evaluation among them), gathered to the host
+        out = sharding.gather(finish(loop.carry, kd, ep))
+        metrics = {k: np.asarray(v)[:population.n_rows] for k, v in out.items()}
+        eval_seconds = time.perf_counter() - t_eval
+    return PopulationResult(metrics, complete=not loop.stopped and loop.done >= total, stopped=loop.stopped,
+                            chunks_done=loop.chunks_done, n_chunks=n_chunks, start_chunk=start_chunk,
+                            compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_seconds=eval_seconds,
+                            slot_steps=loop.chunks_done * c.chunk_steps * c.n_envs * population.n_rows,
+                            restored_env_steps=restored)
 
 
 @contextlib.contextmanager

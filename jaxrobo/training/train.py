@@ -1,10 +1,13 @@
-"""The one training entry: :func:`train`, which the command line, notebooks and the Python API all call.
+"""The one training entry: :func:`train`, which the command line, the sweeps, notebooks and the Python API all call.
 
 It builds a :class:`~jaxrobo.training.trainer.Trainer` for an env and a :class:`~jaxrobo.training.trainer.TrainConfig`
 and runs it with the host driver (:func:`jaxrobo.training.driver.run_training`: compile, run chunk after chunk
 until the budget or the task's learning target, evaluate) under the run's execution plan, telling its callbacks
 (:mod:`jaxrobo.training.callbacks`, Stable-Baselines3's shape) as it goes, and returns a
-:class:`~jaxrobo.training.summary.TrainResult`.
+:class:`~jaxrobo.training.summary.TrainResult`. Given a :class:`~jaxrobo.training.driver.Population` (a sweep's
+group: rows of runs vmapped into one program, :mod:`jaxrobo.training.sweep`), it runs the rows through the same
+host loop, hooks and callbacks (:func:`jaxrobo.training.driver.run_population`) and returns a
+:class:`~jaxrobo.training.driver.PopulationResult`.
 
 Where the pieces live: the config, the carry and the jitted step in :mod:`jaxrobo.training.trainer`; the host loop
 in :mod:`jaxrobo.training.driver`; the result and its summary in :mod:`jaxrobo.training.summary`; checkpoints in
@@ -18,7 +21,7 @@ from jaxrobo.speed.plan import ExecutionPlan
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.task.env import Env
 from jaxrobo.training.callbacks import Callback, as_callbacks
-from jaxrobo.training.driver import CheckpointFn, run_training
+from jaxrobo.training.driver import CheckpointFn, Population, PopulationResult, run_population, run_training
 from jaxrobo.training.summary import TrainResult
 from jaxrobo.training.trainer import Runner, TrainConfig, Trainer
 
@@ -29,7 +32,8 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
           callbacks: Callback | Callable[..., Any] | Iterable[Any] | None = None, *, initial: Runner | None = None,
           start_chunk: int = 0, checkpoint: CheckpointFn | None = None, checkpoint_every: int = 0,
           checkpoint_seconds: float | None = None, should_stop: Callable[[], bool] | None = None,
-          plan: ExecutionPlan | None = None, trainer: Trainer | None = None) -> TrainResult:
+          plan: ExecutionPlan | None = None, trainer: Trainer | None = None,
+          population: Population | None = None) -> TrainResult | PopulationResult:
     """Run a whole training: until the budget ends or the task's learning target holds (``stop_at_target``),
     then a greedy evaluation.
 
@@ -54,7 +58,13 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
 
     ``trainer``: the :class:`~jaxrobo.training.trainer.Trainer` of this ``env`` and ``config`` that the caller
     built already (the command line builds one to check the budget and the memory and to trace the checkpoint's
-    template): the run uses it, so what that trainer traced (its ``init``, under its plan) is not traced again."""
+    template): the run uses it, so what that trainer traced (its ``init``, under its plan) is not traced again.
+
+    ``population``: train its rows as one program instead of one run (:func:`jaxrobo.training.driver.run_population`;
+    ``agent_params`` / ``env_params`` hold the rows' parameters stacked, ``initial`` is the rows' carry): the same
+    hooks, stop and checkpoints, except that the carry is not saved after the last chunk (the rows' measures are
+    what a finished population keeps), there is no learning-target stop and no evaluation callbacks (the rows'
+    greedy evaluation is part of the population's ``finish``); a :class:`~jaxrobo.training.driver.PopulationResult`."""
     hooks = as_callbacks(callbacks)
     if trainer is None:
         trainer = Trainer(env, config, plan=plan)
@@ -66,9 +76,14 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
         return hooks.stop_requested or (should_stop is not None and should_stop())
 
     with trainer.plan.tracing():
-        result = run_training(trainer, agent_params, env_params, hooks.on_chunk, initial=initial,
-                              start_chunk=start_chunk, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
-                              checkpoint_seconds=checkpoint_seconds, should_stop=stop,
-                              announce=hooks.on_evaluation_start, eval_progress=hooks.on_evaluation)
+        if population is None:
+            result = run_training(trainer, agent_params, env_params, hooks.on_chunk, initial=initial,
+                                  start_chunk=start_chunk, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                                  checkpoint_seconds=checkpoint_seconds, should_stop=stop,
+                                  announce=hooks.on_evaluation_start, eval_progress=hooks.on_evaluation)
+        else:
+            result = run_population(trainer, population, agent_params, env_params, hooks.on_chunk, initial=initial,
+                                    start_chunk=start_chunk, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                                    checkpoint_seconds=checkpoint_seconds, should_stop=stop)
     hooks.on_training_end(result)
     return result

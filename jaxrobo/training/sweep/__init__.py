@@ -33,8 +33,10 @@ One concern per module:
 * :mod:`jaxrobo.training.sweep.planning`: the swept keys and their points (grid or random sample), checked and grouped by
   the values that change shapes or code, every group's run resolved (:func:`plan_sweep`), before anything
   compiles;
-* :mod:`jaxrobo.training.sweep.running`: one compiled program per group (:class:`GroupRunner`), the groups run one after
-  the other (:func:`run_plan`, :func:`run_sweep`) into a :class:`SweepResult`;
+* :mod:`jaxrobo.training.sweep.running`: one compiled program per group (:class:`GroupRunner`: the group's rows as a
+  :class:`~jaxrobo.training.driver.Population` trained by :func:`jaxrobo.training.train.train`, with the callbacks
+  given to :func:`run_plan`), the groups run one after the other (:func:`run_plan`, :func:`run_sweep`) into a
+  :class:`SweepResult`;
 * :mod:`jaxrobo.training.sweep.state`: the saved progress (``sweep_state.json``, ``checkpoint.npz``) that ``--resume``
   reads back;
 * :mod:`jaxrobo.training.sweep.output`: ``sweep.csv`` and the heatmaps;

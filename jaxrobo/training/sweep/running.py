@@ -1,7 +1,9 @@
 """Running a planned sweep: every group one compiled program, its rows vmapped (and sharded) over a leading axis.
 
-:class:`GroupRunner` compiles ``Trainer.init`` / ``Trainer.run_chunk`` vmapped over the rows of one group and
-drives them with the host loop of :func:`jaxrobo.training.driver.run_chunks`; :func:`run_plan` runs the groups of a
+:class:`GroupRunner` makes one group a :class:`~jaxrobo.training.driver.Population` of its trainer's runs and its
+measures (the rows' metrics and greedy evaluation) and trains it with :func:`jaxrobo.training.train.train`, the entry
+every training goes through (``Trainer.init`` / ``Trainer.run_chunk`` vmapped over the rows, the host loop of
+:func:`jaxrobo.training.driver.run_chunks`, the callbacks); :func:`run_plan` runs the groups of a
 :class:`~jaxrobo.training.sweep.planning.SweepPlan` one after the other, saving each finished group through
 :mod:`jaxrobo.training.sweep.state` when given a state directory, and gathers the rows into a :class:`SweepResult`.
 
@@ -20,12 +22,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.training import driver
+from jaxrobo.training import train as training
 from jaxrobo.speed.plan import ExecutionPlan
 from jaxrobo.core.struct import rules
 from jaxrobo.training.sweep import state
 from jaxrobo.training.sweep.planning import SweepPlan, plan_sweep
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.task.env import Ranking, ranking
+from jaxrobo.training.callbacks import as_callbacks
 from jaxrobo.training.trainer import Runner, Trainer
 
 #: Metrics written for every row; ``final_return`` (mean return of the last 100 episodes) ranks by default.
@@ -213,8 +217,9 @@ def _row_metrics_recorded(runner: Runner, n_last: int) -> dict[str, jax.Array]:
 
 
 class GroupRunner:
-    """The compiled sweep of one static group: ``init`` / ``run_chunk`` vmapped over the row axis, compiled
-    with the trainer's plan (``trainer.plan``: its compiler options, traced under it)."""
+    """One static group of a sweep as a :class:`~jaxrobo.training.driver.Population` of its trainer's runs, trained
+    by :func:`jaxrobo.training.train.train` (``init`` / ``run_chunk`` vmapped over the rows, compiled with the
+    trainer's plan: its compiler options, traced under it); the group's measures are :meth:`_finish`'s."""
 
     def __init__(self, trainer: Trainer, n_rows: int, mesh: Any = None, eval_episodes: int = 0,
                  n_last: int = 100):
@@ -231,12 +236,10 @@ class GroupRunner:
         self.start_chunk = 0  # the chunk a restored carry went on from (0: the group ran from its start)
         self.restored_env_steps = 0  # the env steps of the rows that carry had run (another process timed them)
 
-    def _init(self, key_data, agent_params, env_params):
-        keys = jax.random.wrap_key_data(key_data)
-        return jax.vmap(self.trainer.init)(keys, agent_params, env_params)
-
-    def _chunk(self, runner, agent_params, env_params):
-        return jax.vmap(self.trainer.run_chunk)(runner, agent_params, env_params)
+    def population(self, key_data: np.ndarray, max_seconds: float | None = None) -> driver.Population:
+        """The group's rows (``key_data``: each row's ``jax.random.key_data``) as ``train``'s population."""
+        return driver.Population(np.asarray(key_data), self._finish, self.mesh, (self.n_last, self.eval_episodes),
+                                 max_seconds)
 
     def _finish(self, runner, key_data, env_params):
         if runner.snapshots is not None:  # each row keeps the table its `jaxrobo train` run would keep
@@ -259,66 +262,37 @@ class GroupRunner:
     def run(self, key_data: np.ndarray, agent_params: Any, env_params: Any,
             progress: Callable[..., None] | None = None,
             max_seconds: float | None = None, stop: Callable[[], bool] | None = None,
-            restore: Callable[[Any], tuple[Any, int] | None] | None = None,
+            restore: Callable[[Callable[[], Any]], tuple[Any, int] | None] | None = None,
             checkpoint: driver.CheckpointFn | None = None,
-            checkpoint_seconds: float | None = None) -> dict[str, np.ndarray]:
-        """Train every row to its last episode (or until ``max_seconds`` of running); per-row metrics as host
-        arrays of length ``n_rows``. ``self.complete`` says whether every row finished. The chunk loop is the
-        host driver's (:func:`jaxrobo.training.driver.run_chunks`): ``stop`` is polled before every chunk; when it
-        returns True the group is abandoned with :class:`SweepInterrupted`, after ``checkpoint(carry,
-        chunks_done)`` saved its carry. ``restore(fresh_carry)`` may give a saved ``(carry, chunks_done)`` to go
-        on from (the chunks are deterministic functions of the carry, so the rows end the same);
-        ``checkpoint`` is also called every ``checkpoint_seconds`` at a chunk boundary."""
-        from jaxrobo.speed import sharding
-
-        mesh, n = self.mesh, self.n_padded
-        host = sharding.pad_rows((key_data, agent_params, env_params), n)
-        kd, ap, ep = sharding.put_batch(host, mesh)
-        t0 = time.perf_counter()
-        plan = self.trainer.plan
-        opts = plan.xla_options
-        if mesh is None and plan.reuse_traces:  # on one device: traces kept by an earlier process, read back
-            from jaxrobo.speed import reuse
-
-            parts = (self.trainer, n, self.n_last, self.eval_episodes)
-            runner = reuse.compile_reusing(plan, "sweep_init", self._init, (kd, ap, ep), parts)(kd, ap, ep)
-            chunk = reuse.compile_reusing(plan, "sweep_chunk", self._chunk, (runner, ap, ep), parts, donate=(0,))
-            finish = reuse.compile_reusing(plan, "sweep_finish", self._finish, (runner, kd, ep), parts)
-        else:
-            init = sharding.jit_batched(self._init, mesh, n, (kd, ap, ep), compiler_options=opts)
-            runner = driver.compile_under(plan, init, kd, ap, ep)(kd, ap, ep)
-            chunk = sharding.jit_batched(self._chunk, mesh, n, (runner, ap, ep), donate=(0,), compiler_options=opts)
-            chunk = driver.compile_under(plan, chunk, runner, ap, ep)
-            finish = sharding.jit_batched(self._finish, mesh, n, (runner, kd, ep), compiler_options=opts)
-            finish = driver.compile_under(plan, finish, runner, kd, ep)
-        stats = driver.compiled_progress(runner, self.trainer)
-        jax.block_until_ready(runner)
-        self.compile_seconds = time.perf_counter() - t0
-        start_chunk = 0
-        saved = restore(runner) if restore is not None else None
-        if saved is not None:  # the saved carry, placed as the fresh one is (its shapes were checked)
-            runner, start_chunk = jax.device_put(saved[0], jax.tree.map(lambda x: x.sharding, runner)), saved[1]
-        self.start_chunk = start_chunk
-        if saved is not None:
-            self.restored_env_steps = int(np.asarray(saved[0].env_steps, np.int64)[: self.n_rows].sum())
-        t0 = time.perf_counter()
-        total, unit = self.trainer.budget_total
-        c = self.trainer.config
-        n_chunks = self.trainer.max_chunks()
-        loop = driver.run_chunks(lambda r: chunk(r, ap, ep), runner, n_chunks, start_chunk=start_chunk, read=stats,
-                                 total=total, progress=progress, should_stop=stop, max_seconds=max_seconds,
-                                 unit=unit, slots_per_chunk=float(c.chunk_steps) * c.n_envs * self.n_rows,
-                                 checkpoint=checkpoint, checkpoint_seconds=checkpoint_seconds, save_at_end=False)
-        if loop.stopped:
-            raise SweepInterrupted(0, 1, None, None if checkpoint is None else (0, loop.chunks_done, n_chunks))
-        self.complete = loop.done >= total
-        self.slot_steps = loop.chunks_done * c.chunk_steps * c.n_envs * self.n_rows
-        self.run_seconds = loop.seconds
-        t0 = time.perf_counter()  # the rows' greedy evaluation and metrics, gathered to the host
-        out = finish(loop.carry, kd, ep)
-        out = sharding.gather(out)
-        self.eval_seconds = time.perf_counter() - t0
-        return {k: np.asarray(v)[: self.n_rows] for k, v in out.items()}
+            checkpoint_seconds: float | None = None, callbacks: Any = None) -> dict[str, np.ndarray]:
+        """Train every row to its last episode (or until ``max_seconds`` of running) through
+        :func:`jaxrobo.training.train.train`; per-row metrics as host arrays of length ``n_rows``.
+        ``self.complete`` says whether every row finished. ``progress`` (a function of each chunk's
+        :class:`~jaxrobo.training.driver.Progress`) and ``callbacks`` are ``train``'s callbacks. ``stop`` is
+        polled before every chunk; when it returns True, or a callback's ``on_chunk`` returned False, the group is
+        abandoned with :class:`SweepInterrupted`, after ``checkpoint(carry, chunks_done)`` saved its carry.
+        ``restore(template)`` may give a saved ``(carry, chunks_done)`` to go on from, checked against
+        ``template()`` (the rows' carry as shapes); the chunks are deterministic functions of the carry, so the
+        rows end the same. ``checkpoint`` is also called every ``checkpoint_seconds`` at a chunk boundary."""
+        population = self.population(key_data, max_seconds)
+        saved = None
+        if restore is not None:
+            saved = restore(lambda: population.template(self.trainer, agent_params, env_params))
+        initial, start_chunk = (None, 0) if saved is None else saved
+        trainer = self.trainer
+        result = training.train(trainer.env, trainer.config, agent_params, env_params,
+                                [c for c in (progress, as_callbacks(callbacks)) if c is not None],
+                                initial=initial, start_chunk=start_chunk, checkpoint=checkpoint,
+                                checkpoint_seconds=checkpoint_seconds, should_stop=stop, trainer=trainer,
+                                population=population)
+        self.start_chunk, self.restored_env_steps = result.start_chunk, result.restored_env_steps
+        self.compile_seconds = result.compile_seconds
+        if result.stopped:
+            partial = None if checkpoint is None else (0, result.chunks_done, result.n_chunks)
+            raise SweepInterrupted(0, 1, None, partial)
+        self.complete, self.slot_steps = result.complete, result.slot_steps
+        self.run_seconds, self.eval_seconds = result.run_seconds, result.eval_seconds
+        return result.metrics
 
 
 def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[int] = (0,),
@@ -327,17 +301,19 @@ def run_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence[
               log: Callable[[str], None] | None = None,
               progress: Callable[[int, int], None] | None = None,
               compiler_options: dict[str, Any] | None = None, max_seconds: float | None = None,
-              state_dir: str | None = None, should_stop: Callable[[], bool] | None = None) -> SweepResult:
+              state_dir: str | None = None, should_stop: Callable[[], bool] | None = None,
+              callbacks: Any = None) -> SweepResult:
     """Train every point × seed; rows grouped by static settings, one compiled program per group.
 
     ``points`` map swept keys to values (see :func:`classify`); ``overrides`` apply to every point (like
     ``--set``); ``max_seconds`` stops each group's training early (its rows then have ``episodes_done`` below
     ``nepisodes`` and the group ``complete: False``). Raises :class:`ConfigError` naming the key for any bad
-    key or value, before compiling. ``state_dir`` and ``should_stop`` make it resumable: see :func:`run_plan`.
+    key or value, before compiling. ``state_dir`` and ``should_stop`` make it resumable, ``callbacks`` hear every
+    group's training: see :func:`run_plan`.
     """
     plan = plan_sweep(env_id, points, seeds, preset, agent, overrides, eval_episodes, n_last, compiler_options,
                       max_seconds)
-    return run_plan(plan, mesh, log, progress, state_dir, should_stop)
+    return run_plan(plan, mesh, log, progress, state_dir, should_stop, callbacks=callbacks)
 
 
 #: Default cadence of a sweep's group carry: at the first chunk boundary this long after the last save (as
@@ -348,8 +324,11 @@ GROUP_CHECKPOINT_SECONDS = 300.0
 def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | None = None,
              progress: Callable[[int, int], None] | None = None, state_dir: str | None = None,
              should_stop: Callable[[], bool] | None = None, state_extra: Mapping[str, Any] | None = None,
-             checkpoint_seconds: float | None = GROUP_CHECKPOINT_SECONDS) -> SweepResult:
-    """Run a planned sweep, group by group.
+             checkpoint_seconds: float | None = GROUP_CHECKPOINT_SECONDS, callbacks: Any = None) -> SweepResult:
+    """Run a planned sweep, group by group: each group one :func:`jaxrobo.training.train.train` of its rows
+    (:class:`GroupRunner`'s population), whose callbacks are ``progress`` (a function of each chunk's
+    :class:`~jaxrobo.training.driver.Progress`) and ``callbacks`` (told of every group's start, chunks and end;
+    an ``on_chunk`` that returns False stops the sweep as ``should_stop`` does).
 
     ``state_dir`` makes the sweep resumable: the sweep's settings, the code's versions and their fingerprint go
     to ``state_dir/sweep_state.json`` before the first compile (with ``state_extra``, kept but not compared), the
@@ -407,8 +386,10 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                 f"{spec.config.n_envs} envs, {budget} ≤ {spec.config.nsteps} steps")
             hooks: dict[str, Any] = {}
             if carries:
-                def restore(fresh: Any, g: int = g) -> tuple[Any, int] | None:
-                    got = state.load_group_carry(state_dir, fingerprint, g, fresh)
+                def restore(template: Callable[[], Any], g: int = g) -> tuple[Any, int] | None:
+                    if not os.path.exists(state.group_carry_path(state_dir, g)):
+                        return None  # nothing saved: the template is not traced
+                    got = state.load_group_carry(state_dir, fingerprint, g, template())
                     if got is not None:
                         log(f"  going on from chunk {got[1]} of {trainer.max_chunks()} (saved in "
                             f"{state.group_carry_path(state_dir, g)})")
@@ -420,7 +401,7 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                 hooks = {"restore": restore, "checkpoint": save_carry, "checkpoint_seconds": checkpoint_seconds}
             try:
                 metrics = group.run(key_data, _stack(p.agent_list), _stack(p.env_list), progress, plan.max_seconds,
-                                    stop=should_stop, **hooks)
+                                    stop=should_stop, callbacks=callbacks, **hooks)
             except SweepInterrupted as err:
                 partial = None if err.partial is None else (g, *err.partial[1:])
                 raise SweepInterrupted(len(saved), len(planned), state_dir, partial) from None
