@@ -944,5 +944,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
+def entry() -> None:
+    """The ``jaxrobo`` console script and ``python -m jaxrobo.cli``: :func:`main`, then the process ends without
+    the interpreter's teardown (:mod:`jaxrobo.core.quick_exit`)."""
+    from jaxrobo.core.quick_exit import exit_process
+
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()
