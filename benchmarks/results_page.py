@@ -80,6 +80,8 @@ WHAT = {
     "stop_latency.json": "PPO and SAC stopped by SIGINT on a GPU: how soon they exit, what they keep, the resume",
     "step_budget_65536.json": "The 65,536-env cart-pole run under a step budget, cold and warm: where its wall goes "
                               "(the run stops at the learning target)",
+    "compile_init_beside.json": "The tabular default commands cold and warm, before and after the first carry's "
+                                "program compiles beside the training chunk (`ExecutionPlan.compile_beside`), one call",
     "quick_exit.json": "The default commands warm before and after the command's exit skips the interpreter's "
                        "teardown (`jaxrobo.core.quick_exit`), alternating in one call; the 65,536-env run after it",
     "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "

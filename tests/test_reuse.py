@@ -34,9 +34,9 @@ def kept(tmp_path, monkeypatch):
     return tmp_path / "traced"
 
 
-def run(reuse_traces: bool, **overrides):
+def run(reuse_traces: bool, beside: bool = False, **overrides):
     spec = resolve("CartPoleStayUp-v0", overrides={**SMALL, **overrides})
-    plan = Trainer(spec.env, spec.config).plan.replace(reuse_traces=reuse_traces)
+    plan = Trainer(spec.env, spec.config).plan.replace(reuse_traces=reuse_traces, compile_beside=beside)
     r = train(spec.env, spec.config, spec.agent_params, plan=plan)
     return [np.asarray(a) for a in (r.q, r.returns, r.lengths, r.eval_returns, r.eval_lengths)]
 
@@ -45,13 +45,16 @@ def same(a, b):
     return all(x.shape == y.shape and x.dtype == y.dtype and x.tobytes() == y.tobytes() for x, y in zip(a, b))
 
 
-def test_a_run_is_the_same_traced_kept_or_read_back(kept):
+@pytest.mark.parametrize("beside", [False, True])
+def test_a_run_is_the_same_traced_kept_or_read_back(kept, beside):
+    """Also with the first carry and the evaluation compiled in threads beside the chunk (``compile_beside``, a
+    GPU's default), from the carry's shapes: the same programs, keys and bytes."""
     plain = run(False)
     assert all(reuse.LAST.get(p, "off") == "off" for p in PROGRAMS)
-    first = run(True)
+    first = run(True, beside)
     assert {p: reuse.LAST[p] for p in PROGRAMS} == dict.fromkeys(PROGRAMS, "traced")
     assert {f.split("-")[0] for f in os.listdir(kept)} == set(PROGRAMS)
-    second = run(True)
+    second = run(True, beside)
     assert {p: reuse.LAST[p] for p in PROGRAMS} == dict.fromkeys(PROGRAMS, "read")
     assert same(plain, first) and same(first, second)
 

@@ -262,12 +262,13 @@ class ExecutionPlan:
     bit; under ``jax.distributed`` the devices of every process count. With several devices the env axis is not
     also stepped in groups (``env_group`` None): each device steps its share at once.
 
-    ``compile_beside``: a training run compiles its greedy evaluation (which the learning-target checks fly too) in
-    a thread beside the training chunk, not after it (then beside the first chunks' training). XLA compiles
-    outside Python's lock, so on a host with cores to spare a first run's two compiles overlap instead of its
-    first check waiting for the evaluation's; on 2 CPU cores the two compiles and the training share the cores
-    and the overlap was slower (Goto-v2's default, an empty cache: 13.6 s sequential, 18.1 s beside). On by
-    default on a GPU. The programs are the same either way.
+    ``compile_beside``: a training run compiles its first carry's program (the envs' reset) and its greedy
+    evaluation (which the learning-target checks fly too) in threads beside the training chunk, from the carry's
+    shapes, not before and after it (then the evaluation beside the first chunks' training). XLA compiles
+    outside Python's lock, so on a host with cores to spare a first run's compiles overlap instead of its chunk
+    waiting for the reset's and its first check for the evaluation's; on 2 CPU cores the compiles and the
+    training share the cores and the overlap was slower (Goto-v2's default, an empty cache: 13.6 s sequential,
+    18.1 s beside). On by default on a GPU. The programs are the same either way.
 
     ``reuse_traces``: keep the run's traced programs (training chunk, init, greedy evaluation) exported beside the
     persistent compilation cache, and read them back in a later process of the same configuration instead of

@@ -337,19 +337,33 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     budget.check_memory(env, config, trainer.disc.n_states, where=env.name)
     key = jax.random.key(config.seed)
     t0 = time.perf_counter()
-    runner = compiled_init(trainer, key, agent_params, env_params)(key, agent_params, env_params) \
-        if initial is None else initial
+    check_every, checks = trainer.target_every(), []
+    prepare = bool(check_every or config.eval_episodes) and trainer.plan.devices == 1
+    beside = prepare and trainer.plan.compile_beside  # see ExecutionPlan: beside the chunk's compile, or after it
+    first: list[Callable] = []  # the first carry's compiled program, where a thread compiles it
+    compiling_init = None
+    if initial is not None:
+        runner = initial
+    elif beside:  # the first carry's program compiles in a thread; the others compile from the carry's shapes
+        from jaxrobo.training.checkpoint import carry_template
+
+        runner = carry_template(trainer, agent_params, env_params)  # traced once here, or read from a kept trace
+        compiling_init = _in_thread(first, compiled_init, trainer, key, agent_params, env_params)
+    else:
+        runner = compiled_init(trainer, key, agent_params, env_params)(key, agent_params, env_params)
     # Read before the first chunk takes the carry's buffers: a resumed run's steps/s counts this process's steps.
     restored = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64).sum())
     flights = Flights(trainer, env_params)
-    check_every, checks = trainer.target_every(), []
     check = target_check(trainer, flights, key, checks) if check_every else None
-    prepare = bool(check_every or config.eval_episodes) and trainer.plan.devices == 1
-    beside = prepare and trainer.plan.compile_beside  # see ExecutionPlan: beside the chunk's compile, or after it
     preparing = [prepare_evaluation(trainer, flights, runner, key)] if beside else []
-    with _joined(preparing):
+    with _joined(preparing + ([] if compiling_init is None else [compiling_init])):
         chunk = compiled_chunk(trainer, runner, agent_params, env_params)
         stats = compiled_progress(runner, trainer)
+        if compiling_init is not None:
+            compiling_init.join()
+            if not first:  # the thread failed: compile here, where the caller sees the error
+                first.append(compiled_init(trainer, key, agent_params, env_params))
+            runner = first[0](key, agent_params, env_params)
         if prepare and not beside:  # compiled while the first chunks train
             preparing.append(prepare_evaluation(trainer, flights, runner, key))
         jax.block_until_ready(runner)
@@ -583,6 +597,21 @@ def _joined(threads: list[threading.Thread]) -> Iterator[None]:
     finally:
         for thread in threads:
             thread.join()
+
+
+def _in_thread(out: list, fn: Callable, *args: Any) -> threading.Thread:
+    """A started thread appending ``fn(*args)`` to ``out``; an exception leaves ``out`` as it was (the caller runs
+    ``fn`` again where it can raise)."""
+
+    def work() -> None:
+        try:
+            out.append(fn(*args))
+        except Exception:  # noqa: BLE001 - see the docstring
+            pass
+
+    thread = threading.Thread(target=work, name=f"jaxrobo-compile-{getattr(fn, '__name__', 'program')}", daemon=True)
+    thread.start()
+    return thread
 
 
 def prepare_evaluation(trainer: Trainer, flights: Flights, runner: Runner, key: jax.Array) -> threading.Thread:
