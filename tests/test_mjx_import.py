@@ -76,3 +76,22 @@ def test_the_lines_about_warp_not_installed_are_not_said_and_other_output_is():
             print("Failed to import warp: CUDA driver too old")  # an installed Warp that fails: said
             print("something else")
     assert out.getvalue() == "Failed to import warp: CUDA driver too old\nsomething else\n"
+
+
+@pytest.mark.skipif(mjx_import.unavailable() is not None, reason="the installed mujoco-mjx is not the one it was "
+                    "written for (jaxrobo.physics.mjx_import.unavailable)")
+def test_an_installed_warp_is_kept_out_of_the_import_and_imports_as_usual_afterwards(tmp_path):
+    """A ``warp`` package on the path (standing in for warp-lang, which marks its import): jaxrobo's MJX import does
+    not import it, MJX reads its Warp backend as not installed and says nothing about it, and an ``import warp``
+    afterwards imports it."""
+    (tmp_path / "warp").mkdir()
+    (tmp_path / "warp" / "__init__.py").write_text("import sys\nsys.stderr.write('WARP IMPORTED\\n')\n")
+    code = ("import sys; from jaxrobo.physics.mjx_import import import_mjx; mjx = import_mjx(); "
+            "print('during', 'warp' in sys.modules, mjx.warp.WARP_INSTALLED); import warp; print('after', warp.__file__)")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), ROOT]), "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("WARP IMPORTED") == 1  # once: by the program's own import, not by MJX's
+    lines = proc.stdout.splitlines()
+    assert lines == ["during False False", f"after {tmp_path / 'warp' / '__init__.py'}"]
+    assert "Failed to import" not in proc.stdout

@@ -14,7 +14,13 @@ It reaches into MJX's private mesh module, so it is guarded: it applies only to 
 (:func:`unavailable` says why). ``tests/test_mjx_import.py`` checks it on the installed version: nothing of trimesh
 or scipy.spatial loaded after the import, a mesh model's hull the same as with the libraries loaded up front.
 
-MJX also prints two "Failed to import" lines on import where its optional Warp backend is not installed;
+MJX also imports its optional Warp backend (``warp``, and the ``mujoco_warp`` it vendors) at its top where
+``warp-lang`` is installed (MuJoCo Playground, in the ``bench`` extra, brings it): 1.1 s more import and 0.7 s
+more exit for every command of an MJX task on 2 CPU cores, for a backend jaxrobo never selects. While
+:func:`import_mjx` imports ``mujoco.mjx``, ``warp`` is kept out (``None`` in ``sys.modules``, which MJX reads as
+not installed) unless it was imported already; afterwards an ``import warp`` is the usual one. So in a process
+where jaxrobo imported MJX, MJX's Warp backend is off: a program that wants it imports ``mujoco.mjx`` (or
+``warp``) itself before jaxrobo needs MJX. MJX prints two "Failed to import" lines where it finds no Warp;
 :func:`import_mjx` drops exactly those lines (and writes any other output of the import).
 
 Public surface: :func:`import_mjx`, :func:`unavailable`, :func:`installed_version`, :data:`WRITTEN_FOR`.
@@ -95,9 +101,10 @@ class _Deferred(types.ModuleType):
         return getattr(importlib.import_module(self.__name__), attr)
 
 
-#: What MJX prints on import where its optional Warp backend is not installed (jaxrobo does not use it): two
-#: "Failed to import" lines on every command's output, though nothing failed that jaxrobo needs.
-_NO_WARP = re.compile(r"Failed to import (mujoco_)?warp: No module named '(warp|mujoco_warp)[\w.]*'\n?")
+#: What MJX prints on import where its optional Warp backend is not installed or kept out (jaxrobo does not use
+#: it): two "Failed to import" lines on every command's output, though nothing failed that jaxrobo needs.
+_NO_WARP = re.compile(r"Failed to import (mujoco_)?warp: (No module named '(warp|mujoco_warp)[\w.]*'"
+                      r"|import of warp halted; None in sys\.modules)\n?")
 
 
 @contextlib.contextmanager
@@ -115,8 +122,8 @@ def _quiet_about_warp() -> Iterator[None]:
 
 
 def import_mjx() -> types.ModuleType:
-    """``mujoco.mjx``, imported with trimesh and scipy.spatial deferred where :func:`unavailable` says None, and
-    without MJX's lines saying its optional Warp backend is not installed."""
+    """``mujoco.mjx``, imported with trimesh and scipy.spatial deferred and Warp kept out where :func:`unavailable`
+    says None, and without MJX's lines saying its optional Warp backend is not installed."""
     if "mujoco.mjx" in sys.modules:
         return sys.modules["mujoco.mjx"]
     if unavailable() is not None:
@@ -125,10 +132,15 @@ def import_mjx() -> types.ModuleType:
     names = {"trimesh": "trimesh", "scipy.spatial": "spatial"}  # the module, and the mesh module's name for it
     for name in names:
         sys.modules[name] = _StandIn(name)
+    warp_kept_out = "warp" not in sys.modules
+    if warp_kept_out:
+        sys.modules["warp"] = None  # type: ignore[assignment]  # `import warp` raises ImportError: not installed
     try:
         with _quiet_about_warp():
             mjx = importlib.import_module("mujoco.mjx")
     finally:
+        if warp_kept_out:
+            del sys.modules["warp"]
         for name in names:
             del sys.modules[name]  # an import of them from now on is the real one
         mesh = sys.modules.get(_MESH)
