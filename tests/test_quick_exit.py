@@ -7,6 +7,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
@@ -65,3 +67,13 @@ def test_a_profiled_command_keeps_pythons_exit_so_the_profile_is_written(tmp_pat
     traced = python("-c", "import sys; sys.settrace(lambda *a: None); "
                           "from jaxrobo.core.quick_exit import available; print(available())")
     assert traced.stdout.strip() == "False"
+
+
+def test_outside_the_checked_versions_the_exit_is_pythons_own(monkeypatch):
+    from jaxrobo.core import quick_exit
+
+    monkeypatch.setattr(sys, "version_info", (quick_exit.CHECKED[1][0], quick_exit.CHECKED[1][1] + 1, 0))
+    assert not quick_exit.available()
+    with pytest.raises(SystemExit) as raised:  # sys.exit, not os._exit: this test process goes on
+        quick_exit.exit_process(4)
+    assert raised.value.code == 4

@@ -7,7 +7,7 @@ cores. :func:`exit_process` does what Python's shutdown does that can matter, in
 threads that are not daemons, runs every ``atexit`` handler: JAX's, logging's, a caller's), flushes the standard
 streams and ends the process with ``os._exit``; the operating system frees the memory and the device.
 
-It reaches into CPython's private ``atexit._run_exitfuncs`` (present from 3.0 to 3.14), so it is guarded: another
+It reaches into CPython's private ``atexit._run_exitfuncs`` (present in every CPython 3), so it is guarded: another
 interpreter, a missing function, or a process being traced or profiled (coverage's tracer and cProfile write
 their results in the teardown it skips) takes Python's own exit instead. Only the command's own process calls it
 (``jaxrobo.cli.entry``); ``jaxrobo.cli.main`` returns to a caller as any function does.
@@ -19,8 +19,9 @@ import os
 import sys
 import threading
 
-#: The CPython versions whose ``atexit._run_exitfuncs`` runs every handler and clears them (checked in tests).
-CHECKED = ((3, 9), (3, 14))
+#: The CPython versions whose ``atexit._run_exitfuncs`` runs every handler, last registered first, and clears them
+#: (the running one is checked by ``tests/test_quick_exit.py``); outside them the exit is Python's own.
+CHECKED = ((3, 10), (3, 14))
 
 
 def available() -> bool:
