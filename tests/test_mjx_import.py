@@ -13,6 +13,17 @@ from jaxrobo.physics import mjx_import
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
+
+def _guard_refuses() -> bool:
+    """Whether the fresh processes these tests start would import MJX as it is (the installed version is not the
+    one it was written for), whatever this process (another test module, collected first) has imported already."""
+    reason = mjx_import.unavailable()
+    return reason is not None and reason != mjx_import.IMPORTED_ALREADY
+
+
+GUARDED = pytest.mark.skipif(_guard_refuses(), reason="the installed mujoco-mjx is not the one it was written for "
+                             "(jaxrobo.physics.mjx_import.unavailable)")
+
 #: A tetrahedron mesh geom: MJX builds its convex hull with trimesh and scipy.spatial.
 HULL = """
 import json, sys
@@ -37,8 +48,7 @@ def _run(import_line: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.skipif(mjx_import.unavailable() is not None, reason="the installed mujoco-mjx is not the one it was "
-                    "written for (jaxrobo.physics.mjx_import.unavailable)")
+@GUARDED
 def test_mjx_imports_without_mesh_libraries_and_builds_the_same_hulls():
     deferred = _run("from jaxrobo.physics.mjx_import import import_mjx; mjx = import_mjx()")
     stock = _run("import trimesh, scipy.spatial; import mujoco.mjx as mjx")
@@ -78,8 +88,7 @@ def test_the_lines_about_warp_not_installed_are_not_said_and_other_output_is():
     assert out.getvalue() == "Failed to import warp: CUDA driver too old\nsomething else\n"
 
 
-@pytest.mark.skipif(mjx_import.unavailable() is not None, reason="the installed mujoco-mjx is not the one it was "
-                    "written for (jaxrobo.physics.mjx_import.unavailable)")
+@GUARDED
 def test_an_installed_warp_is_kept_out_of_the_import_and_imports_as_usual_afterwards(tmp_path):
     """A ``warp`` package on the path (standing in for warp-lang, which marks its import): jaxrobo's MJX import does
     not import it, MJX reads its Warp backend as not installed and says nothing about it, and an ``import warp``

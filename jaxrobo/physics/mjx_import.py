@@ -51,6 +51,10 @@ def installed_version() -> str | None:
     return installed("mujoco-mjx")
 
 
+#: :func:`unavailable`'s reason where this process has imported MJX's mesh module or its libraries already.
+IMPORTED_ALREADY = "MJX's mesh module or its libraries are imported already"
+
+
 def unavailable() -> str | None:
     """Why :func:`import_mjx` imports ``mujoco.mjx`` as it is (a sentence), or None when it defers the mesh
     libraries."""
@@ -61,7 +65,7 @@ def unavailable() -> str | None:
         return (f"mujoco-mjx {version} is outside the versions it was written for "
                 f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
     if any(name in sys.modules for name in _DEFERRED + (_MESH,)):
-        return "MJX's mesh module or its libraries are imported already"
+        return IMPORTED_ALREADY
     if "from scipy import spatial\nimport trimesh\n" not in _mesh_source() \
             or any(importlib.util.find_spec(name) is None for name in _DEFERRED):
         return f"mujoco-mjx {version}'s mesh module does not import trimesh and scipy.spatial as expected"
