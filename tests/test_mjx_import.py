@@ -96,7 +96,8 @@ def test_an_installed_warp_is_kept_out_of_the_import_and_imports_as_usual_afterw
     (tmp_path / "warp").mkdir()
     (tmp_path / "warp" / "__init__.py").write_text("import sys\nsys.stderr.write('WARP IMPORTED\\n')\n")
     code = ("import sys; from jaxrobo.physics.mjx_import import import_mjx; mjx = import_mjx(); "
-            "print('during', 'warp' in sys.modules, mjx.warp.WARP_INSTALLED); import warp; print('after', warp.__file__)")
+            "print('during', 'warp' in sys.modules, mjx.warp.WARP_INSTALLED); "
+            "import warp; print('after', warp.__file__)")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), ROOT]), "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr

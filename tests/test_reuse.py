@@ -48,7 +48,8 @@ def same(a, b):
 @pytest.mark.parametrize("beside", [False, True])
 def test_a_run_is_the_same_traced_kept_or_read_back(kept, beside):
     """Also with the first carry and the evaluation compiled in threads beside the chunk (``compile_beside``, a
-    GPU's default), from the carry's shapes: the same programs, keys and bytes."""
+    GPU's default), from the carry's shapes: every program traced and kept, then read back, and the plain run's
+    bytes both times."""
     plain = run(False)
     assert all(reuse.LAST.get(p, "off") == "off" for p in PROGRAMS)
     first = run(True, beside)
