@@ -626,18 +626,13 @@ def prepare_evaluation(trainer: Trainer, flights: Flights, runner: Runner, key: 
     keys, fresh = jax.eval_shape(lambda k: evaluation_keys(k, n_eval), key)
     episodes = max(config.eval_episodes, 1)
 
-    def work() -> None:
-        try:
-            flights.prepare(keys, agents, episodes, over_tables=True, shared=config.shared_table)
-            if n_eval > 1:
-                one = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), agents)
-                flights.prepare(fresh, one, episodes, over_tables=False)
-        except Exception:  # noqa: BLE001 - see the docstring
-            pass
+    def evaluation() -> None:
+        flights.prepare(keys, agents, episodes, over_tables=True, shared=config.shared_table)
+        if n_eval > 1:
+            one = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), agents)
+            flights.prepare(fresh, one, episodes, over_tables=False)
 
-    thread = threading.Thread(target=work, name="jaxrobo-prepare-evaluation", daemon=True)
-    thread.start()
-    return thread
+    return _in_thread([], evaluation)
 
 
 def pick_tables(trainer: Trainer, runner: Runner) -> tuple[jax.Array | None, Any]:
