@@ -6,7 +6,8 @@
   as in-process from the same initial states;
 * faults: the sim killed mid-episode, a sensor that stops, a NaN in a message, an export of another task, topics of
   another task: the policy node stops the robot (zero command) and says why; no traceback;
-* the seed-style example (examples/ros/cartpole_qlearn.py) learns against the sim node.
+* the seed-style example (examples/ros/cartpole_qlearn.py) against a lockstep sim node sees the episodes it sees
+  with the sim's model in its own process (``--local``), and its learner improves on average over 16 seeds.
 
 Skipped, with the reason, where rospy or roscore is missing (``apt-get install ros-core python3-rospy ...``)."""
 from __future__ import annotations
@@ -774,20 +775,46 @@ def test_roslaunch_remappings_and_names_reach_the_nodes(ros, cartpole_export, tm
     assert "Traceback" not in out, out
 
 
+QLEARN = os.path.join(ROOT, "examples", "ros", "cartpole_qlearn.py")
+
+
 @pytest.mark.slow
 @needs_ros
-def test_seed_style_qlearning_against_the_sim_improves(ros):
-    sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "0", name="ql_sim")
-    out = ros.tmp / "ql.json"
+def test_seed_style_qlearning_against_the_sim_sees_the_local_episodes(ros):
+    """Through the topics and Gazebo's services, the seed's loop trains on exactly the episodes of the sim's model in
+    its own process: every episode length the same (the learner's choices follow the observations, so one
+    observation off by a bit, a lost reset or a command that stepped the wrong state would change them)."""
+    sim = ros.node("sim", "CartPoleStayUp-v0", "--lockstep", "--seed", "3", name="ql_sim")
+    over_ros, local = ros.tmp / "ql.json", ros.tmp / "ql_local.json"
+    args = ("--episodes", "60", "--seed", "5")
     try:
-        r = ros.script(os.path.join(ROOT, "examples", "ros", "cartpole_qlearn.py"), "--episodes", "100", "--out",
-                       str(out))
+        r = ros.script(QLEARN, *args, "--out", str(over_ros))
         assert r.returncode == 0, r.stdout + r.stderr
     finally:
         stop(sim)
-    lengths = json.loads(out.read_text())
-    assert len(lengths) == 100
-    assert np.mean(lengths[-25:]) > np.mean(lengths[:25]) + 10, (lengths[:25], lengths[-25:])
+    r = ros.script(QLEARN, *args, "--local", "--sim-seed", "3", "--out", str(local))
+    assert r.returncode == 0, r.stdout + r.stderr
+    lengths = json.loads(over_ros.read_text())
+    assert len(lengths) == 60 and lengths == json.loads(local.read_text())
+
+
+@pytest.mark.slow
+def test_seed_style_qlearning_improves_on_average(tmp_path):
+    """The seed's learner, as the example runs it. One run may never leave its first policy (9 of 40 seeds gained
+    under 10 steps in 200 episodes on this machine, and which seeds do depends on the CPU's last bits: CI's run of
+    seed 0 did not learn where this machine's did), so the claim is on the mean gain of 16 seeds, the last 50
+    episodes over the first 25. Over 40 seeds: mean 65 steps, standard deviation 57, so a 16-seed mean has a
+    standard error of 14; every run of 16 consecutive seeds gave 42-91. The bound, 15, sits 3.5 errors below."""
+    import runpy
+
+    main = runpy.run_path(QLEARN)["main"]
+    gains = []
+    for seed in range(16):
+        out = tmp_path / f"{seed}.json"
+        assert main(["--local", "--episodes", "200", "--seed", str(seed), "--out", str(out)]) == 0
+        lengths = np.array(json.loads(out.read_text()))
+        gains.append(lengths[-50:].mean() - lengths[:25].mean())
+    assert np.mean(gains) > 15, np.round(gains, 1)
 
 
 def test_without_ros_the_command_says_how_to_install(monkeypatch, capsys):

@@ -8,6 +8,11 @@ reward) on binned observations. Nothing here is jaxrobo's training code: jaxrobo
     roscore -p 11311 &
     jaxrobo ros sim CartPoleStayUp-v0 --lockstep &
     python examples/ros/cartpole_qlearn.py --episodes 200 --out lengths.json
+
+``--local`` runs the same loop with no ROS at all: the task env drives the sim node's own model, resets and
+command handling in this process. Against a ``--lockstep`` sim of the same ``--sim-seed`` it sees the same episodes,
+so both give the same episode lengths (what ``tests/test_ros.py`` checks); it is also how to try the learner's
+settings quickly.
 """
 from __future__ import annotations
 
@@ -18,21 +23,14 @@ import sys
 import threading
 import time
 
-import jaxrobo
-from jaxrobo.ros import msgs
-from jaxrobo_ros.system import rospy as import_rospy
-
-rospy = import_rospy()
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
-
+ENV_ID = "CartPoleStayUp-v0"
 ACTION_STEPS = (-1.0, 1.0, -10.0, 10.0)  # the seed's cart-pole actions: left, right, left big, right big
 
 
 class GazeboConnection:
     """The seed's GazeboConnection: pause, unpause and reset through the Gazebo services."""
 
-    def __init__(self):
+    def __init__(self, rospy, msgs):
         for name in ("pause_physics", "unpause_physics", "reset_simulation"):
             rospy.wait_for_service(f"/gazebo/{name}", timeout=60)
         self.pause = rospy.ServiceProxy("/gazebo/pause_physics", msgs.Empty, persistent=True)
@@ -49,16 +47,28 @@ class GazeboConnection:
         self.reset()
 
 
-class CartPoleStayUpEnv:
-    """The seed's task env: set_action / get_obs / is_done / compute_reward over the cart-pole's topics."""
+class RosCartPole:
+    """The robot env over ROS: the velocity command out, the joint states in, the simulation behind Gazebo's
+    services. ``reset`` and ``act`` return the joint readings ``(cart x, cart v, pole angle, pole angular v)``."""
 
     def __init__(self):
-        self.p = jaxrobo.make("CartPoleStayUp-v0").default_params  # the seed: rospy.get_param(...)
-        self.gazebo = GazeboConnection()
+        from jaxrobo.ros import msgs
+        from jaxrobo_ros.system import rospy as import_rospy
+
+        rospy = import_rospy()
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64
+
+        rospy.init_node("cartpole_qlearn", anonymous=True, disable_signals=True)
+        self.rospy, self.Float64 = rospy, Float64
+        self.gazebo = GazeboConnection(rospy, msgs)
         self.cmd = rospy.Publisher("/cartpole_v0/foot_joint_velocity_controller/command", Float64, queue_size=1)
         self.cv, self.joints = threading.Condition(), None
         self.sub = rospy.Subscriber("/cartpole_v0/joint_states", JointState, self._on_joints, queue_size=1)
         self._check_publishers_connection()
+        # The seed's _check_all_sensors_ready: the simulation's first state, so that a reset's state is told apart
+        # from one published before it (stamps grow).
+        self.t = self._joints_after(-1.0, timeout=30.0).header.stamp.to_sec()
 
     def _check_publishers_connection(self, timeout=30.0):
         """The seed's check: a command sent before the simulation's subscriber is connected is lost."""
@@ -82,23 +92,73 @@ class CartPoleStayUpEnv:
                 self.cv.wait(0.05)
             return self.joints
 
-    def _get_obs(self, msg):
+    def _readings(self, msg):
         self.t = msg.header.stamp.to_sec()
         return msg.position[0], msg.velocity[0], msg.position[1], msg.velocity[1]
 
     def reset(self):
         self.gazebo.pauseSim()
         self.gazebo.resetSim()
+        return self._readings(self._joints_after(self.t))
+
+    def act(self, command):
+        self.gazebo.unpauseSim()
+        self.cmd.publish(self.Float64(data=command))
+        readings = self._readings(self._joints_after(self.t))
+        self.gazebo.pauseSim()
+        return readings
+
+    def close(self):
+        self.rospy.signal_shutdown("done")
+
+
+class LocalCartPole:
+    """The same robot env with no ROS: the sim node's model, resets and command handling in this process (its
+    first episode starts with the node; each reset takes the next, as ``/gazebo/reset_simulation`` does)."""
+
+    def __init__(self, sim_seed: int):
+        from jaxrobo.ros.bridge import make_bridge, make_env
+        from jaxrobo.ros.sim_node import POOL, episode_starts
+
+        env = make_env({"env_id": ENV_ID}, where="ID")
+        self.bridge, self.index = make_bridge(env), 0
+        self.qpos, self.qvel, _ = episode_starts(env, POOL, sim_seed)
+
+    def _readings(self):
+        j = self.bridge.port.joints()
+        return float(j[0]), float(j[1]), float(j[2]), float(j[3])
+
+    def reset(self):
+        self.index += 1
+        i = self.index % len(self.qpos)
+        self.bridge.port.reset(self.qpos[i], self.qvel[i])
+        return self._readings()
+
+    def act(self, command):
+        self.bridge.advance(float(command))
+        return self._readings()
+
+    def close(self):
+        pass
+
+
+class CartPoleStayUpEnv:
+    """The seed's task env: set_action / get_obs / is_done / compute_reward over a robot env."""
+
+    def __init__(self, robot):
+        import jaxrobo
+
+        self.p = jaxrobo.make(ENV_ID).default_params  # the seed: rospy.get_param(...)
+        self.robot = robot
+
+    def reset(self):
         self.pos = 0.0  # the seed's accumulated velocity command
-        return self._get_obs(self._joints_after(getattr(self, "t", -1.0)))
+        return self.robot.reset()
 
     def step(self, action):
-        self.gazebo.unpauseSim()
-        self.pos = min(max(self.pos + ACTION_STEPS[action] * float(self.p.pos_step), -float(self.p.max_base_velocity)),
-                       float(self.p.max_base_velocity))
-        self.cmd.publish(Float64(data=self.pos))
-        obs = self._get_obs(self._joints_after(self.t))
-        self.gazebo.pauseSim()
+        vmax = float(self.p.max_base_velocity)
+        self.pos = min(max(self.pos + ACTION_STEPS[action] * float(self.p.pos_step), -vmax), vmax)
+        obs = self.robot.act(self.pos)
         p = self.p
         done = not (float(p.min_base_pose_x) < obs[0] < float(p.max_base_pose_x)
                     and float(p.min_pole_angle) < obs[2] < float(p.max_pole_angle))
@@ -139,12 +199,16 @@ def main(argv=None) -> int:
     ap.add_argument("--gamma", type=float, default=0.99)
     ap.add_argument("--epsilon", type=float, default=0.3)
     ap.add_argument("--epsilon-discount", type=float, default=0.97)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="the learner's random seed")
+    ap.add_argument("--local", action="store_true", help="no ROS: the sim node's model in this process")
+    ap.add_argument("--sim-seed", type=int, default=0, help="with --local: the sim's --seed (its resets)")
     ap.add_argument("--out", default=None, help="write the episode lengths here (JSON)")
     args = ap.parse_args(argv)
+    for name in ("episodes", "nsteps"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name} must be at least 1, got {getattr(args, name)}")
     random.seed(args.seed)
-    rospy.init_node("cartpole_qlearn", anonymous=True, disable_signals=True)
-    env = CartPoleStayUpEnv()
+    env = CartPoleStayUpEnv(LocalCartPole(args.sim_seed) if args.local else RosCartPole())
     agent = QLearn(list(range(len(ACTION_STEPS))), args.epsilon, args.alpha, args.gamma)
     lengths, t0 = [], time.monotonic()
     for episode in range(args.episodes):
@@ -165,7 +229,7 @@ def main(argv=None) -> int:
     if args.out:
         with open(args.out, "w") as f:
             json.dump(lengths, f)
-    rospy.signal_shutdown("done")
+    env.robot.close()
     return 0
 
 

@@ -44,6 +44,8 @@ EPISODE_MARGIN = 0.05
 #: Wall-clock seconds without a step (paused, or waiting for a lockstep command) before the sim publishes its
 #: state again (same stamp).
 REPUBLISH = 0.5
+#: Without ``--episodes``: the resets drawn ahead; episode ``i`` starts from reset ``i % POOL``.
+POOL = 1000
 
 
 def episode_starts(env: Any, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, list]:
@@ -62,7 +64,7 @@ def episode_starts(env: Any, n: int, seed: int) -> tuple[np.ndarray, np.ndarray,
 
 class SimNode:
     def __init__(self, env: Any, episodes: int, seed: int, lockstep: bool, speed: float, topics: str | None = None,
-                 pool: int = 1000, ros_args=()):
+                 pool: int = POOL, ros_args=()):
         """``ros_args``: the node's own ``name:=value`` arguments (remappings, ``__name``, ...) for rospy."""
         self.rospy = rospy = import_rospy()
         from rosgraph_msgs.msg import Clock
