@@ -81,11 +81,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrobo.interop.deferred_imports import defer_brax_extras
 from jaxrobo.physics.mjx_import import import_mjx
 
 # Brax imports mujoco.mjx: imported here first, MJX's mesh libraries are deferred and its lines about the optional
-# Warp backend not said (jaxrobo.physics.mjx_import), as for every other command.
+# Warp backend not said (jaxrobo.physics.mjx_import), as for every other command. JAXopt and Orbax, which Brax
+# imports and a jaxrobo run never calls, load on first use (jaxrobo.interop.deferred_imports).
 import_mjx()
+defer_brax_extras()
 from brax.envs import base as brax_base  # noqa: E402
 from flax import struct  # noqa: E402
 

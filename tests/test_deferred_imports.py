@@ -1,0 +1,119 @@
+"""Brax's JAXopt and Orbax imports deferred to first use (jaxrobo.interop.deferred_imports): a PPO run never loads
+them, the ``generalized`` pipeline loads JAXopt as it traces a step with constraints to solve and steps as with it
+imported up front, a stand-in loads once under threads, version-guarded."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from jaxrobo.interop import deferred_imports
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+GUARDED = pytest.mark.skipif(
+    deferred_imports.unavailable() not in (None, "brax's envs or checkpoint module are imported already"),
+    reason="the installed brax is not the one it was written for (jaxrobo.interop.deferred_imports.unavailable)")
+
+PPO_RUN = """
+import json, sys, tempfile
+from jaxrobo.cli import main
+out = tempfile.mkdtemp()
+code = main(["train", "--env", "CartPoleContinuous-v0", "--agent", "ppo", "--preset", "tiny", "--set",
+             "episode_length=20", "--set", "eval_episodes=3", "--set", "num_timesteps=512", "--out", out + "/r",
+             "--no-progress"])
+print(json.dumps({"code": code, "state": {n: type(sys.modules.get(n)).__name__
+                                          for n in ("jaxopt", "orbax.checkpoint")},
+                  "scipy.optimize": "scipy.optimize" in sys.modules}))
+"""
+
+#: A sphere on a plane through Brax's generalized pipeline: its contact makes the step solve constraints (JAXopt).
+GENERALIZED = """
+import json, sys
+{first}
+import jax, jax.numpy as jp, numpy as np
+from brax.generalized import pipeline
+from brax.io import mjcf
+model = mjcf.loads('<mujoco><option timestep="0.01" integrator="Euler"/><worldbody><geom type="plane" '
+                   'size="1 1 .1"/><body pos="0 0 0.105"><freejoint/><geom type="sphere" size="0.1" mass="1"/>'
+                   '</body></worldbody></mujoco>')
+state = pipeline.init(model, model.init_q, jp.zeros(model.qd_size()))
+step = jax.jit(lambda s: pipeline.step(model, s, jp.zeros(model.act_size())))
+for _ in range(5):
+    state = step(state)
+print(json.dumps({{"q": np.asarray(state.q).tolist(), "jaxopt": type(sys.modules.get("jaxopt")).__name__}}))
+"""
+
+
+def _run(code: str) -> dict:
+    env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600,
+                          cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+@GUARDED
+def test_a_ppo_run_never_loads_jaxopt_or_orbax():
+    got = _run(PPO_RUN)
+    assert got["code"] == 0
+    assert got["state"] == {"jaxopt": "Deferred", "orbax.checkpoint": "Deferred"}, got
+    assert not got["scipy.optimize"]
+
+
+@pytest.mark.slow
+@GUARDED
+def test_the_generalized_pipeline_loads_jaxopt_as_it_traces_and_steps_as_with_it_up_front():
+    deferred = _run(GENERALIZED.format(first="import jaxrobo.interop.brax_env"))
+    stock = _run(GENERALIZED.format(first="import jaxopt"))
+    assert deferred["jaxopt"] == "module" and stock["jaxopt"] == "module"  # loaded, and replaced in sys.modules
+    assert deferred["q"] == stock["q"]
+    assert deferred["q"][2] != 0.105  # it moved: gravity, and the contact's constraint force
+
+
+def test_a_stand_in_loads_its_module_once_and_forwards_everything(monkeypatch):
+    name = "json.tool"  # a real, small module, not imported by the suite
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    stand_in = deferred_imports.Deferred(name)
+    monkeypatch.setitem(sys.modules, name, stand_in)
+    imports = []
+    real_import = deferred_imports.importlib.import_module
+
+    def counting(n, *a):
+        imports.append(n)
+        return real_import(n, *a)
+
+    monkeypatch.setattr(deferred_imports.importlib, "import_module", counting)
+    got, start = [], threading.Barrier(8)
+
+    def use():
+        start.wait()
+        got.append(stand_in.main)
+
+    threads = [threading.Thread(target=use) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert imports == [name] and stand_in.loaded
+    assert len({id(f) for f in got}) == 1 and sys.modules[name] is not stand_in
+    assert got[0] is sys.modules[name].main
+
+
+def test_a_module_that_fails_to_import_says_why_and_stays_deferred(monkeypatch):
+    stand_in = deferred_imports.Deferred("jaxrobo_no_such_module")
+    monkeypatch.setitem(sys.modules, "jaxrobo_no_such_module", stand_in)
+    with pytest.raises(ModuleNotFoundError, match="jaxrobo_no_such_module"):
+        stand_in.anything
+    assert sys.modules["jaxrobo_no_such_module"] is stand_in and not stand_in.loaded
+
+
+def test_outside_the_versions_it_was_written_for_brax_imports_as_it_does(monkeypatch):
+    monkeypatch.setattr(deferred_imports, "installed", lambda name: "0.99.1")
+    assert "written for brax 0.14.x" in deferred_imports.unavailable()
+    monkeypatch.setitem(sys.modules, "jaxopt_probe_unused", None)
+    assert deferred_imports.defer_brax_extras() == []
