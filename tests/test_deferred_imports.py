@@ -117,3 +117,31 @@ def test_outside_the_versions_it_was_written_for_brax_imports_as_it_does(monkeyp
     assert "written for brax 0.14.x" in deferred_imports.unavailable()
     monkeypatch.setitem(sys.modules, "jaxopt_probe_unused", None)
     assert deferred_imports.defer_brax_extras() == []
+
+
+BRAX_CHECKPOINT = """
+import json, sys, tempfile
+import jaxrobo.interop.brax_env  # the stand-ins, as in any jaxrobo process
+import jax.numpy as jnp, numpy as np
+from brax.training import checkpoint
+from brax.training.acme import running_statistics, specs
+from ml_collections import config_dict
+before = type(sys.modules["orbax.checkpoint"]).__name__
+norm = running_statistics.init_state(specs.Array((3,), jnp.float32))
+params = (norm, {"w": jnp.arange(6.0).reshape(2, 3)}, {"b": jnp.ones(4)})
+path = tempfile.mkdtemp()
+checkpoint.save(path, 7, params, config_dict.ConfigDict({"network_factory_kwargs": {}}))
+back = checkpoint.load(path + "/000000000007")
+print(json.dumps({"before": before, "after": type(sys.modules["orbax.checkpoint"]).__name__,
+                  "same": bool(np.array_equal(back[1]["w"], params[1]["w"])
+                               and np.array_equal(back[2]["b"], params[2]["b"])
+                               and np.array_equal(back[0].std, norm.std))}))
+"""
+
+
+@GUARDED
+def test_brax_own_checkpoints_save_and_load_through_the_stand_in():
+    """A user's Brax checkpoint (``save_checkpoint_path``'s ``checkpoint.save``/``load``, Orbax) in a process where
+    jaxrobo deferred Orbax: it loads on first use and the parameters come back."""
+    got = _run(BRAX_CHECKPOINT)
+    assert got == {"before": "Deferred", "after": "module", "same": True}, got
