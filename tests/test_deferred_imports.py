@@ -127,12 +127,16 @@ from brax.training import checkpoint
 from brax.training.acme import running_statistics, specs
 from ml_collections import config_dict
 before = type(sys.modules["orbax.checkpoint"]).__name__
+import orbax
+ocp_class = orbax.checkpoint.PyTreeCheckpointer  # through the package's attribute: loads the real module
 norm = running_statistics.init_state(specs.Array((3,), jnp.float32))
 params = (norm, {"w": jnp.arange(6.0).reshape(2, 3)}, {"b": jnp.ones(4)})
 path = tempfile.mkdtemp()
 checkpoint.save(path, 7, params, config_dict.ConfigDict({"network_factory_kwargs": {}}))
 back = checkpoint.load(path + "/000000000007")
+import orbax.checkpoint  # a user's own spelling, after the real module loaded through the stand-in
 print(json.dumps({"before": before, "after": type(sys.modules["orbax.checkpoint"]).__name__,
+                  "package": orbax.checkpoint.PyTreeCheckpointer is ocp_class,
                   "same": bool(np.array_equal(back[1]["w"], params[1]["w"])
                                and np.array_equal(back[2]["b"], params[2]["b"])
                                and np.array_equal(back[0].std, norm.std))}))
@@ -144,4 +148,4 @@ def test_brax_own_checkpoints_save_and_load_through_the_stand_in():
     """A user's Brax checkpoint (``save_checkpoint_path``'s ``checkpoint.save``/``load``, Orbax) in a process where
     jaxrobo deferred Orbax: it loads on first use and the parameters come back."""
     got = _run(BRAX_CHECKPOINT)
-    assert got == {"before": "Deferred", "after": "module", "same": True}, got
+    assert got == {"before": "Deferred", "after": "module", "package": True, "same": True}, got

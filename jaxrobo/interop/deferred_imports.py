@@ -107,6 +107,9 @@ def defer_brax_extras() -> list[str]:
         except (ImportError, ValueError):
             found = False
         if found:
-            sys.modules[name] = Deferred(name)
+            stand_in = sys.modules[name] = Deferred(name)
+            parent, _, child = name.rpartition(".")
+            if parent:  # ``import orbax.checkpoint`` then ``orbax.checkpoint.X``: the package's attribute too
+                setattr(sys.modules[parent], child, stand_in)  # the real import sets it to the real module
             done.append(name)
     return done
