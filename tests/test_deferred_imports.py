@@ -11,11 +11,12 @@ import threading
 
 import pytest
 
-from jaxrobo.interop import deferred_imports
+from jaxrobo.core import deferred
+from jaxrobo.interop import brax_compat, deferred_imports
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 GUARDED = pytest.mark.skipif(
-    deferred_imports.unavailable() not in (None, "brax's envs or checkpoint module are imported already"),
+    deferred_imports.unavailable() not in (None, deferred_imports.IMPORTED_ALREADY),
     reason="the installed brax is not the one it was written for (jaxrobo.interop.deferred_imports.unavailable)")
 
 PPO_RUN = """
@@ -78,16 +79,16 @@ def test_the_generalized_pipeline_loads_jaxopt_as_it_traces_and_steps_as_with_it
 def test_a_stand_in_loads_its_module_once_and_forwards_everything(monkeypatch):
     name = "json.tool"  # a real, small module, not imported by the suite
     monkeypatch.delitem(sys.modules, name, raising=False)
-    stand_in = deferred_imports.Deferred(name)
+    stand_in = deferred.Deferred(name)
     monkeypatch.setitem(sys.modules, name, stand_in)
     imports = []
-    real_import = deferred_imports.importlib.import_module
+    real_import = deferred.importlib.import_module
 
     def counting(n, *a):
         imports.append(n)
         return real_import(n, *a)
 
-    monkeypatch.setattr(deferred_imports.importlib, "import_module", counting)
+    monkeypatch.setattr(deferred.importlib, "import_module", counting)
     got, start = [], threading.Barrier(8)
 
     def use():
@@ -105,7 +106,7 @@ def test_a_stand_in_loads_its_module_once_and_forwards_everything(monkeypatch):
 
 
 def test_a_module_that_fails_to_import_says_why_and_stays_deferred(monkeypatch):
-    stand_in = deferred_imports.Deferred("jaxrobo_no_such_module")
+    stand_in = deferred.Deferred("jaxrobo_no_such_module")
     monkeypatch.setitem(sys.modules, "jaxrobo_no_such_module", stand_in)
     with pytest.raises(ModuleNotFoundError, match="jaxrobo_no_such_module"):
         stand_in.anything
@@ -113,9 +114,9 @@ def test_a_module_that_fails_to_import_says_why_and_stays_deferred(monkeypatch):
 
 
 def test_outside_the_versions_it_was_written_for_brax_imports_as_it_does(monkeypatch):
-    monkeypatch.setattr(deferred_imports, "installed", lambda name: "0.99.1")
-    assert "written for brax 0.14.x" in deferred_imports.unavailable()
-    monkeypatch.setitem(sys.modules, "jaxopt_probe_unused", None)
+    """The guard is brax_compat's: one range for every Brax trick."""
+    monkeypatch.setattr(brax_compat, "installed_version", lambda: "0.99.1")
+    assert "outside the versions jaxrobo.interop.brax_compat was written for" in deferred_imports.unavailable()
     assert deferred_imports.defer_brax_extras() == []
 
 

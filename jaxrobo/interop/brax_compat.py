@@ -36,8 +36,9 @@ written and tested for. Outside it (or where ``acting.Evaluator`` does not have 
   trainer then never handed parameters to the evaluator, :meth:`EvaluatorHook.check` says so with the version
   instead of leaving the run without evaluations.
 
-To widen the range, run ``tests/test_brax_compat.py``, ``tests/test_brax_env.py``, ``tests/test_deep.py`` and
-``tests/test_deep_resume.py`` (resume bit for bit) on the new version. Public surface: :data:`WRITTEN_FOR`,
+To widen the range, run ``tests/test_brax_compat.py``, ``tests/test_brax_env.py``, ``tests/test_deep.py``,
+``tests/test_deep_resume.py`` (resume bit for bit) and ``tests/test_deferred_imports.py`` (the range guards
+:mod:`jaxrobo.interop.deferred_imports` too) on the new version. Public surface: :data:`WRITTEN_FOR`,
 :func:`installed_version`, :func:`unavailable`, :func:`install_jax_compat`, :func:`keep_evaluator_params`,
 :class:`EvaluatorHook`, :func:`hook_epochs`, :class:`EpochHook`, :func:`advance_epoch_keys`,
 :class:`BraxCompatError`.

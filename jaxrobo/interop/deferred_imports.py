@@ -10,86 +10,46 @@ constraint solve (``jaxopt.ProjectedGradient``, as it traces its step), Orbax on
 ``save_checkpoint_path``/``checkpoint.load`` (jaxrobo keeps its own checkpoints, ``jaxrobo/deep/checkpoint.py``).
 Both modules use them inside functions alone.
 
-:func:`defer_brax_extras` puts a stand-in for each in ``sys.modules`` before Brax is imported: Brax binds the
-stand-in, and the first attribute anything reads of it (a function call, ``from jaxopt import X``, a submodule
-import) imports the real module, once, under a lock (trainers trace in threads), puts it in ``sys.modules`` and
-answers from it from then on. A user's own ``import jaxopt`` afterwards gets the stand-in until it loads, then the
-module itself; the stand-in forwards every attribute either way.
+:func:`defer_brax_extras` puts a stand-in for each in ``sys.modules`` before Brax is imported (a
+:class:`jaxrobo.core.deferred.Deferred`, as :mod:`jaxrobo.physics.mjx_import` uses): Brax binds the stand-in, and
+the first attribute anything reads of it (a function call, ``from jaxopt import X``, a submodule import) imports
+the real module, once, under a lock (trainers trace in threads), puts it in ``sys.modules`` and answers from it
+from then on. A user's own ``import jaxopt`` afterwards gets the stand-in until it loads, then the module itself;
+the stand-in forwards every attribute either way.
 
-Guarded: only for the Brax versions in :data:`WRITTEN_FOR` (whose modules read both only inside functions), only
-for a module that is installed and not imported yet; elsewhere Brax imports them as it does
+Guarded: only for the Brax versions of :data:`jaxrobo.interop.brax_compat.WRITTEN_FOR`, the range of every Brax
+trick of jaxrobo (whose modules read both only inside functions), and only for a module that is installed and not
+imported yet; elsewhere Brax imports them as it does
 (:func:`unavailable` says why). ``tests/test_deferred_imports.py`` checks it on the installed versions: a PPO
 run leaves both unloaded; the ``generalized`` pipeline loads JAXopt as it traces a step with constraints and steps
 as with it loaded up front; eight threads loading one stand-in import it once.
 
-Public surface: :func:`defer_brax_extras`, :func:`unavailable`, :data:`WRITTEN_FOR`, :data:`DEFERRED`.
+Public surface: :func:`defer_brax_extras`, :func:`unavailable`, :data:`DEFERRED`, :data:`IMPORTED_ALREADY`.
 """
 from __future__ import annotations
 
-import importlib
 import importlib.util
 import sys
-import threading
-import types
 
-from jaxrobo.core.version import installed
+from jaxrobo.core.deferred import Deferred
+from jaxrobo.interop import brax_compat
 
-#: The ``brax`` versions this was written and tested for: ``[low, high)`` as (major, minor).
-WRITTEN_FOR = ((0, 14), (0, 15))
+#: :func:`unavailable`'s reason where this process has imported Brax's envs or checkpoint module already.
+IMPORTED_ALREADY = "brax's envs or checkpoint module are imported already"
+
 #: The modules deferred: what Brax imports at its top and calls only inside functions jaxrobo does not run.
 DEFERRED = ("jaxopt", "orbax.checkpoint")
 
 
-class Deferred(types.ModuleType):
-    """A stand-in for module ``name``: its first missing attribute imports the real module."""
-
-    def __init__(self, name: str):
-        super().__init__(name, f"{name} (deferred by jaxrobo: imported on first use)")
-        self.__dict__["_jaxrobo_lock"] = threading.RLock()
-        self.__dict__["_jaxrobo_module"] = None
-
-    def __getattr__(self, attr: str):
-        return getattr(self._jaxrobo_load(), attr)
-
-    def _jaxrobo_load(self) -> types.ModuleType:
-        with self._jaxrobo_lock:
-            module = self.__dict__["_jaxrobo_module"]
-            if module is None:
-                if sys.modules.get(self.__name__) is self:
-                    del sys.modules[self.__name__]  # the import below finds and runs the real one
-                try:
-                    module = importlib.import_module(self.__name__)
-                except BaseException:
-                    sys.modules.setdefault(self.__name__, self)  # a later use tries again, and says why
-                    raise
-                self.__dict__["_jaxrobo_module"] = module
-            return module
-
-    @property
-    def loaded(self) -> bool:
-        """Whether the real module has been imported through this stand-in."""
-        return self.__dict__["_jaxrobo_module"] is not None
-
-
-def _version() -> tuple[int, int] | None:
-    v = installed("brax")
-    try:
-        return tuple(int(p) for p in v.split(".")[:2]) if v else None  # type: ignore[return-value]
-    except ValueError:
-        return None
-
-
 def unavailable() -> str | None:
-    """Why :func:`defer_brax_extras` leaves Brax's imports as they are (a sentence), or None when it defers them."""
-    v = _version()
-    low, high = WRITTEN_FOR
-    if v is None:
-        return "brax's version cannot be read"
-    if not low <= v < high:
-        return (f"written for brax {low[0]}.{low[1]}.x; brax {installed('brax')} is installed, so its imports are "
-                "left as they are")
+    """Why :func:`defer_brax_extras` leaves Brax's imports as they are (a sentence), or None when it defers them:
+    a Brax outside :data:`jaxrobo.interop.brax_compat.WRITTEN_FOR` (the range every Brax trick of jaxrobo was
+    written for), or Brax's modules that import them imported already."""
+    why = brax_compat.unavailable()
+    if why is not None:
+        return why
     if "brax.envs" in sys.modules or "brax.training.checkpoint" in sys.modules:
-        return "brax's envs or checkpoint module are imported already"
+        return IMPORTED_ALREADY
     return None
 
 

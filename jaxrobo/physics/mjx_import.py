@@ -37,6 +37,7 @@ import sys
 import types
 from typing import Any, Iterator
 
+from jaxrobo.core.deferred import Deferred
 from jaxrobo.core.version import installed
 
 #: The ``mujoco-mjx`` versions this was written and tested for: ``[low, high)`` as (major, minor).
@@ -98,13 +99,6 @@ class _StandIn(types.ModuleType):
                              "imported")
 
 
-class _Deferred(types.ModuleType):
-    """The mesh module's name for a deferred module afterwards: the module, imported on first attribute access."""
-
-    def __getattr__(self, attr: str) -> Any:
-        return getattr(importlib.import_module(self.__name__), attr)
-
-
 #: What MJX prints on import where its optional Warp backend is not installed or kept out (jaxrobo does not use
 #: it): two "Failed to import" lines on every command's output, though nothing failed that jaxrobo needs.
 _NO_WARP = re.compile(r"Failed to import (mujoco_)?warp: (No module named '(warp|mujoco_warp)[\w.]*'"
@@ -150,5 +144,5 @@ def import_mjx() -> types.ModuleType:
         mesh = sys.modules.get(_MESH)
         for name, attr in names.items():
             if mesh is not None and isinstance(getattr(mesh, attr, None), _StandIn):
-                setattr(mesh, attr, _Deferred(name))
+                setattr(mesh, attr, Deferred(name))
     return mjx
