@@ -82,6 +82,11 @@ WHAT = {
                               "(the run stops at the learning target)",
     "compile_init_beside.json": "The tabular default commands cold and warm, before and after the first carry's "
                                 "program compiles beside the training chunk (`ExecutionPlan.compile_beside`), one call",
+    "writing_parallel.json": "Writing at 65,536 and 1 M envs before and after the `.npz` blocks are checksummed and "
+                             "deflated by a thread per core (`jaxrobo.io.npz.write_npz_deflated`) and the records "
+                             "cross cut to their written columns (`cut_records`), two calls; the tables file's A/B",
+    "levers_not_adopted.json": "Start-up with JAX's backend started in a thread, and a cold compile under four XLA "
+                               "flags: measured, not adopted",
     "quick_exit.json": "The default commands warm before and after the command's exit skips the interpreter's "
                        "teardown (`jaxrobo.core.quick_exit`), alternating in one call; the 65,536-env run after it",
     "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "

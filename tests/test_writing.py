@@ -102,27 +102,57 @@ def test_every_env_recording_each_episode_and_fewer_csv_envs(run, tmp_path):
         np.testing.assert_allclose(stats[name], expected[name], rtol=5e-6, atol=1e-9, err_msg=name)
 
 
-def test_npz_arrays_written_from_their_memory_are_numpys_bytes(monkeypatch, tmp_path):
-    """:func:`jaxrobo.io.npz.write_array` writes the bytes numpy's ``write_array`` writes, for contiguous arrays (from
-    their memory), strided ones (through its reused buffer, several blocks of rows) and Fortran ones; pickles are
-    refused; an all-stored ``.npz`` reads back equal."""
+@pytest.mark.parametrize("compress", [True, False])
+def test_npz_members_are_numpys_bytes_whoever_writes_the_blocks(monkeypatch, tmp_path, compress):
+    """:func:`jaxrobo.io.npz.write_npz_deflated` writes each array's ``.npy`` bytes as numpy's ``write_array`` does,
+    for contiguous, strided, Fortran, boolean, 0-d, empty and string arrays, cut into many blocks, by 1, 2 or 4
+    threads (4: the mostly-zero blocks of a large array deflated, the others stored in the deflate stream), deflated
+    or stored: ``zipfile`` finds every CRC right and ``np.load`` reads them back equal; pickles are refused."""
+    import zipfile
+
     from jaxrobo.io import npz
 
-    monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 64)  # several chunks and row blocks for these small arrays
+    monkeypatch.setattr(npz, "BLOCK_BYTES", 64)  # several blocks per array
+    monkeypatch.setattr(npz, "SMALL_BYTES", 1000)  # the larger arrays take the large arrays' path
     a = np.arange(1200, dtype=np.float32).reshape(40, 30)
-    for value in (a, a[:, :7], a[::3, 1:], a.T, a[:, :5].astype(bool), np.array("text"), np.array(3),
-                  np.zeros((0, 4)), np.ones((3, 4, 5))[:, 1:3, ::2]):
-        ours, numpys = io.BytesIO(), io.BytesIO()
-        npz.write_array(ours, value)
-        np.lib.format.write_array(numpys, value, allow_pickle=False)
-        assert ours.getvalue() == numpys.getvalue(), value.shape
+    sparse = np.zeros((50, 40), np.float32)
+    sparse[3, 4] = sparse[30, 1] = 1.5
+    arrays = dict(a=a, cols=a[:, :7], strided=a[::3, 1:], fortran=a.T, flags=a[:, :5].astype(bool),
+                  text=np.array("text"), scalar=np.array(3), empty=np.zeros((0, 4)), sparse=sparse,
+                  mixed=np.concatenate([sparse.ravel(), a.ravel()]), odd=np.ones((3, 4, 5))[:, 1:3, ::2])
+    sizes = {}
+    for threads in (1, 2, 4):
+        path = tmp_path / f"t{threads}.npz"
+        npz.write_npz_deflated(str(path), compress=compress, threads=threads, **arrays)
+        with zipfile.ZipFile(path) as zf:
+            assert zf.testzip() is None
+            for name, value in arrays.items():
+                numpys = io.BytesIO()
+                np.lib.format.write_array(numpys, value, allow_pickle=False)
+                assert zf.read(f"{name}.npy") == numpys.getvalue(), (name, threads)
+            sizes[threads] = {i.filename: (i.compress_type, i.compress_size) for i in zf.infolist()}
+        with np.load(path, allow_pickle=False) as z:
+            for name, value in arrays.items():
+                np.testing.assert_array_equal(z[name], value)
+    if compress:  # a large sparse array is deflated by 4 threads, stored with fewer; a small one always deflated
+        assert sizes[4]["sparse.npy"][1] < sparse.nbytes / 4 and sizes[2]["sparse.npy"] == sizes[1]["sparse.npy"]
+        assert sizes[2]["sparse.npy"][0] == zipfile.ZIP_STORED and sizes[1]["text.npy"][0] == zipfile.ZIP_DEFLATED
+    else:
+        assert {t for s in sizes.values() for t, _ in s.values()} == {zipfile.ZIP_STORED}
     with pytest.raises(ValueError, match="allow_pickle"):
-        npz.write_array(io.BytesIO(), np.array([object()]))
-    path = tmp_path / "all_stored.npz"
-    npz.write_npz_deflated(str(path), store_above=-1, a=a[:, :7], b=np.array("text"))
-    with np.load(path, allow_pickle=False) as z:
-        np.testing.assert_array_equal(z["a"], a[:, :7])
-        assert str(z["b"]) == "text"
+        npz.write_npz_deflated(str(tmp_path / "pickled.npz"), x=np.array([object()]))
+
+
+def test_crc32_of_blocks_combined_is_the_crc32_of_the_whole():
+    """The writer checksums blocks in threads and combines their CRCs as zlib's ``crc32_combine`` does."""
+    import zlib
+
+    from jaxrobo.io import npz
+
+    rng = np.random.default_rng(2)
+    for n1, n2 in ((0, 0), (0, 5), (7, 0), (1, 1), (1000, 8 << 10), (12345, 54321)):
+        a, b = rng.bytes(n1), rng.bytes(n2)
+        assert npz._crc32_combine(zlib.crc32(a), zlib.crc32(b), n2) == zlib.crc32(a + b), (n1, n2)
 
 
 def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):
@@ -175,8 +205,10 @@ def test_npz_written_past_the_page_cache_is_the_same_file(monkeypatch, tmp_path)
     rng = np.random.default_rng(0)
     arrays = dict(q=rng.random((9, 1, 321, 7), dtype=np.float32), strided=rng.random((300, 1001))[:, 3:900],
                   small=np.arange(5), text=np.array("x" * 77))
+    monkeypatch.setattr(npz, "SMALL_BYTES", 100)
+    monkeypatch.setattr(npz, "BLOCK_BYTES", 300_000)  # stored blocks written as they are, several per array
     cached, uncached = tmp_path / "cached.npz", tmp_path / "uncached.npz"
-    npz.write_npz_deflated(str(cached), store_above=100, **arrays)
+    npz.write_npz_deflated(str(cached), **arrays)
     monkeypatch.setattr(npz, "UNCACHED_ABOVE_BYTES", 1)
     monkeypatch.setattr(npz.UncachedWrites, "DIRECT_FROM", 4096)
     monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 40_000)  # several direct pieces per array, none aligned alike
@@ -185,10 +217,10 @@ def test_npz_written_past_the_page_cache_is_the_same_file(monkeypatch, tmp_path)
             npz.UncachedWrites(f).close()
         except OSError:
             pytest.skip("no O_DIRECT on this file system")
-    npz.write_npz_deflated(str(uncached), store_above=100, **arrays)
+    npz.write_npz_deflated(str(uncached), **arrays)
     assert uncached.read_bytes() == cached.read_bytes()
     with open(uncached, "r+b") as f:  # through an open file, as the checkpoint writes it
-        npz.write_npz_deflated(f, store_above=100, **arrays)
+        npz.write_npz_deflated(f, **arrays)
     assert uncached.read_bytes() == cached.read_bytes()
 
 
@@ -200,8 +232,9 @@ def test_a_refused_direct_write_falls_back_to_the_page_cache(monkeypatch, tmp_pa
     from jaxrobo.io import npz
 
     arrays = dict(q=np.random.default_rng(1).random((64, 999), dtype=np.float32), small=np.arange(3))
+    monkeypatch.setattr(npz, "SMALL_BYTES", 100)
     cached, uncached = tmp_path / "cached.npz", tmp_path / "uncached.npz"
-    npz.write_npz_deflated(str(cached), store_above=100, **arrays)
+    npz.write_npz_deflated(str(cached), **arrays)
     with open(uncached, "wb") as f:
         try:
             npz.UncachedWrites(f).close()
@@ -220,5 +253,36 @@ def test_a_refused_direct_write_falls_back_to_the_page_cache(monkeypatch, tmp_pa
         return pwrite(self, fd, data, offset)
 
     monkeypatch.setattr(npz.UncachedWrites, "_pwrite", refuse_direct)
-    npz.write_npz_deflated(str(uncached), store_above=100, **arrays)
+    npz.write_npz_deflated(str(uncached), **arrays)
     assert refused and uncached.read_bytes() == cached.read_bytes()
+
+
+def test_records_cross_cut_to_their_written_columns_and_come_back_whole():
+    """:func:`jaxrobo.training.checkpoint.cut_records` cuts a carry's episode records, on the device, to the columns
+    up to the last one any of them wrote (the same arrays when cut again, so the checkpoint's thread and the result
+    copy them once); :func:`~jaxrobo.training.checkpoint.pad_columns` gives the host copy its zeros back, in turn or
+    by a thread per core: the arrays the whole records were."""
+    import collections
+
+    import jax.numpy as jnp
+
+    from jaxrobo.training import checkpoint as ckpt
+
+    Carry = collections.namedtuple("Carry", "q returns lengths terminated")
+    rng = np.random.default_rng(3)
+    done = rng.integers(0, 5, 37)
+    written = np.arange(9)[None, :] < done[:, None]
+    lengths = np.where(written, rng.integers(1, 30, (37, 9)), 0).astype(np.int32)
+    returns = np.where(written, rng.normal(size=(37, 9)), 0).astype(np.float32)
+    returns[done == done.max(), done.max() - 1] = 0.0  # a last episode of return 0: its lengths still say written
+    carry = Carry(jnp.ones((37, 3)), jnp.asarray(returns), jnp.asarray(lengths), jnp.asarray(written & (lengths > 9)))
+    cut = ckpt.cut_records(carry)
+    assert cut.q is carry.q and all(x.shape == (37, done.max()) for x in cut[1:])
+    again = ckpt.cut_records(carry._replace(q=None))
+    assert all(a is b for a, b in zip(again[1:], cut[1:]))
+    for threaded_from in (1 << 40, 0):  # in turn, then by a thread per core
+        for whole, part in zip(carry[1:], cut[1:]):
+            padded = ckpt.pad_columns(np.asarray(part), 9, threaded_from=threaded_from)
+            assert padded.dtype == whole.dtype and np.array_equal(padded, np.asarray(whole))
+    empty = Carry(None, *(jnp.zeros((5, 4), d) for d in (jnp.float32, jnp.int32, bool)))
+    assert all(x.shape == (5, 0) for x in ckpt.cut_records(empty)[1:])

@@ -659,4 +659,4 @@ def atomic_savez(path: str, **arrays: Any) -> None:
     """An uncompressed ``.npz`` (``np.savez``'s layout, no pickled objects) written atomically."""
     from jaxrobo.io.npz import write_npz_deflated
 
-    atomic_write(path, lambda f: write_npz_deflated(f, store_above=-1, **arrays))
+    atomic_write(path, lambda f: write_npz_deflated(f, compress=False, **arrays))

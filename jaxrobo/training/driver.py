@@ -41,6 +41,7 @@ import numpy as np
 from jaxrobo.tabular import learner as tabular
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
+from jaxrobo.training import checkpoint as checkpoint_io
 from jaxrobo.speed import reuse
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
@@ -412,7 +413,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                                 if checkpoint is not None else ""))
         eval_seconds = time.perf_counter() - t_eval
 
-    host = host_get(runner.replace(key=None, env_state=None))
+    # The records cross cut to their written columns (as the closing checkpoint cuts them: one copy), then
+    # get their zeros back here.
+    host = host_get(checkpoint_io.cut_records(runner.replace(key=None, env_state=None)))
+    host = host.replace(**{name: checkpoint_io.pad_columns(np.asarray(getattr(host, name)), runner.returns.shape[1])
+                           for name in ("returns", "lengths", "terminated")})
     q = np.asarray(host.agent.q)
     return TrainResult(
         env_id=env.name, config=config, agent_params=agent_params,
