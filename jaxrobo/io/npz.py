@@ -60,8 +60,9 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
     zero bytes in 1 M cart-pole envs stopped at their target), which level 1 shrinks ten-fold at about 200 MB/s a
     core; at 1 M envs that is 8 GB, which an H200 host's disk took 22-34 s to take raw. On 2 cores the deflating
     would be slower than the disk (0.5 GB of such tables: 1.1 s deflated by 4 threads, 0.4-0.5 s stored), and
-    dense blocks go through level 1 at 35-65 MB/s a core for a third less. Where the file's large arrays are :data:`UNCACHED_ABOVE_BYTES` or
-    more, it goes through :class:`UncachedWrites` (where the file system allows it)."""
+    dense blocks go through level 1 at 35-65 MB/s a core for a third less. Where the file's large arrays are
+    :data:`UNCACHED_ABOVE_BYTES` or more, it goes through :class:`UncachedWrites` (where the file system allows
+    it)."""
     arrays = {name: np.asanyarray(value) for name, value in arrays.items()}
     if threads is None:
         threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
@@ -98,7 +99,7 @@ def _npy_parts(value: np.ndarray) -> tuple[bytes, list[memoryview | _Rows]]:
     fmt.write_array_header_1_0(head, fmt.header_data_from_array_1_0(value))
     fortran = value.flags.f_contiguous and not value.flags.c_contiguous
     if value.flags.c_contiguous or fortran:
-        flat = memoryview((value.T if fortran else value).reshape(-1).view(np.uint8)) if value.size else memoryview(b"")
+        flat = memoryview((value.T if fortran else value).reshape(-1).view(np.uint8) if value.size else b"")
         return head.getvalue(), [flat[i:i + BLOCK_BYTES] for i in range(0, flat.nbytes, BLOCK_BYTES)]
     rows = max(1, BLOCK_BYTES // max(1, value[:1].nbytes))
     return head.getvalue(), [_Rows(value, r, min(r + rows, len(value))) for r in range(0, len(value), rows)]
@@ -146,8 +147,9 @@ class _ZipWriter:
 
     def member(self, name: str, header: bytes, blocks: list[memoryview | _Rows], level: int | None,
                pool: ThreadPoolExecutor | None, depth: int) -> None:
-        """One member: ``header`` then the ``blocks``' bytes (:func:`_npy_parts`), stored (``level`` None) or deflated at ``level`` (-1:
-        :func:`_block` chooses per block); ``depth`` blocks at most are on the way in ``pool`` at once."""
+        """One member: ``header`` then the ``blocks``' bytes (:func:`_npy_parts`), stored (``level`` None) or
+        deflated at ``level`` (-1: :func:`_block` chooses per block); ``depth`` blocks at most are on the way in
+        ``pool`` at once."""
         raw = name.encode()
         offset, method = self._pos, 0 if level is None else 8
         self._write(struct.pack("<IHHHHHIIIHH", 0x04034B50, 45, 0, method, 0, _DOS_DATE, 0, _FULL, _FULL,

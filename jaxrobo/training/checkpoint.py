@@ -47,8 +47,8 @@ CHECKPOINT_FORMAT = 2
 
 #: Leaves of the carry holding per-episode records (``[n_envs, nepisodes]``, zeros until an episode is written):
 #: a checkpoint keeps their columns up to the last one written (``records_<i>``, :func:`cut_records`), the loader
-#: pads the zeros back. At 65,536 envs and 1,000 episodes they are 590 MB, of which a run that learns in tens of episodes
-#: writes a few percent.
+#: pads the zeros back. At 65,536 envs and 1,000 episodes they are 590 MB, of which a run that learns in tens of
+#: episodes writes a few percent.
 RECORD_LEAVES = (".returns", ".lengths", ".terminated")
 
 
@@ -184,8 +184,9 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
     Layout (``np.savez``, no pickled objects, so ``np.load(allow_pickle=False)`` reads it): ``leaf_<i>`` the
     i-th leaf of ``jax.tree.flatten(runner)`` as a plain array (a PRNG key array as its ``jax.random.key_data``),
     except the episode records (:data:`RECORD_LEAVES`), saved as ``records_<i>`` up to the last column that is
-    not all zeros in any of them (:func:`cut_records`); ``key_impls`` a JSON list with each leaf's PRNG implementation name or null, ``chunks_done`` the
-    number of chunks the carry has run, and ``fingerprint`` the JSON of :func:`carry_fingerprint`.
+    not all zeros in any of them (:func:`cut_records`); ``key_impls`` a JSON list with each leaf's PRNG
+    implementation name or null, ``chunks_done`` the number of chunks the carry has run, and ``fingerprint`` the
+    JSON of :func:`carry_fingerprint`.
 
     ``tables`` (the discretiser's arrays of ``qtables.npz``, :func:`jaxrobo.io.results.discretiser_arrays`): the
     learner's tables (:data:`TABLES_LEAF`, hundreds of MB at tens of thousands of envs) go to a file of their own
