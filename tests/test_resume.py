@@ -406,3 +406,30 @@ def test_a_run_with_snapshots_resumes_to_the_same_final_table(tmp_path):
     for field in ("q", "returns", "lengths", "eval_returns", "eval_lengths", "eval_success"):
         np.testing.assert_array_equal(getattr(resumed, field), getattr(full, field), err_msg=field)
     assert resumed.final_table_choice == full.final_table_choice is not None
+
+
+def test_large_records_are_cut_on_the_device_and_come_back_whole(tmp_path):
+    """Records of 64 MB or more (:func:`jaxrobo.training.checkpoint.cut_records`) cross to the host cut to their
+    written columns: the checkpoint keeps those (the widest env's episodes), the loader pads them back, and the
+    result's records are the whole ``[envs, nepisodes]`` arrays, equal to the loaded ones."""
+    spec = resolve("CartPoleStayUp-v0", overrides=dict(CARTPOLE, n_envs=64, nepisodes=120_000))
+    trainer = Trainer(spec.env, spec.config)
+    template = ckpt.carry_template(trainer, spec.agent_params)
+    assert sum(np.prod(x.shape) * x.dtype.itemsize for x in (template.returns, template.lengths,
+                                                               template.terminated)) >= 64 << 20
+    fingerprint = ckpt.carry_fingerprint(template, spec.to_dict())
+    path, asked = str(tmp_path / rundir.CHECKPOINT), []
+
+    def should_stop():
+        asked.append(1)
+        return len(asked) > 2
+
+    part = training.train(spec.env, spec.config, spec.agent_params, should_stop=should_stop,
+                          checkpoint=lambda runner, chunks: ckpt.save_checkpoint(path, runner, chunks, fingerprint))
+    assert not part.complete and part.returns.shape == (64, 120_000) and 0 < part.episodes_done.max() < 40
+    with np.load(path, allow_pickle=False) as data:
+        assert {data[k].shape for k in data if k.startswith("records_")} == {(64, int(part.episodes_done.max()))}
+    runner, _ = ckpt.load_checkpoint(path, template, fingerprint)
+    for name in ("returns", "lengths", "terminated"):
+        np.testing.assert_array_equal(np.asarray(getattr(runner, name)), getattr(part, name), err_msg=name)
+    assert part.lengths[:, :int(part.episodes_done.max())].any(axis=0).all() and not part.lengths[:, 40:].any()

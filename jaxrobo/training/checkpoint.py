@@ -56,20 +56,21 @@ _CUT_LOCK = threading.Lock()
 _CUT: dict[tuple[int, ...], tuple[list[weakref.ref], list[Any]]] = {}
 
 
-def cut_records(tree: Any) -> Any:
+def cut_records(tree: Any, *, from_bytes: int = 64 << 20) -> Any:
     """``tree`` (a carry) with its episode records (:data:`RECORD_LEAVES`, ``[n_envs, nepisodes]`` on the device)
-    cut, on the device, to the columns up to the last one any of them wrote, so that only those
-    cross to the host: at 1 M envs x 1,000 episodes the records are 9.4 GB, of which a run stopped at its learning
-    target wrote a third, and an H200 host copied the whole of them in 6.0 s, the written third in under 2.
-    Cutting the same arrays again (the closing checkpoint's thread, then the result) gives the same arrays while
-    the first ones live, so their bytes cross once. A carry split over several processes is returned whole."""
+    cut, on the device, to the columns up to the last one any of them wrote, so that only those cross to the
+    host: at 1 M envs x 1,000 episodes the records are 9.4 GB, of which a run stopped at its learning target wrote
+    a third, and an H200 host copied the whole of them in 6.0 s, the written third in under 2. Cutting the same
+    arrays again (the closing checkpoint's thread, then the result) gives the same arrays while the first ones
+    live, so their bytes cross once. Records under ``from_bytes`` in all (a copy of them is quick; cutting them
+    would compile small programs of its own) and a carry split over several processes are returned whole."""
     with_paths, treedef = jax.tree_util.tree_flatten_with_path(tree)
     leaves = [x for _, x in with_paths]
     index = [i for i, (keypath, x) in enumerate(with_paths)
              if jax.tree_util.keystr(keypath) in RECORD_LEAVES and isinstance(x, jax.Array) and x.ndim == 2]
-    if not index or jax.process_count() > 1:
-        return tree
     records = [leaves[i] for i in index]
+    if not index or jax.process_count() > 1 or sum(x.nbytes for x in records) < from_bytes:
+        return tree
     key = tuple(id(x) for x in records)
     with _CUT_LOCK:
         hit = _CUT.get(key)
@@ -196,6 +197,7 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
     checkpoint, which names it (``tables_file``) with the CRC-32 of its ``q`` (``tables_crc``); the previous
     checkpoint's file is removed only after: whenever the process stops, the checkpoint on disk names a whole
     file. Returns that file's path (None without ``tables``)."""
+    whole = [x.shape for x in jax.tree.leaves(runner)]
     with_paths = jax.tree_util.tree_flatten_with_path(cut_records(runner))[0]
     leaves = [x for _, x in with_paths]
     records = {i for i, (keypath, x) in enumerate(with_paths)
@@ -214,7 +216,7 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
     for i, x in enumerate(host):
         x = np.asarray(x)
         if i in records:
-            if jax.process_count() > 1:  # gathered whole: cut here (in one process cut_records cut it on the device)
+            if x.shape == whole[i]:  # not cut on the device (small, or gathered from several processes): cut here
                 written = np.flatnonzero(x.any(axis=0))
                 x = x[:, :int(written[-1]) + 1 if written.size else 0]
             arrays[f"records_{i}"] = x
