@@ -85,6 +85,8 @@ WHAT = {
     "writing_parallel.json": "Writing at 65,536 and 1 M envs before and after the `.npz` blocks are checksummed and "
                              "deflated by a thread per core (`jaxrobo.io.npz.write_npz_deflated`) and the records "
                              "cross cut to their written columns (`cut_records`), two calls; the tables file's A/B",
+    "time_to_trained_check.json": "The tabular default commands cold and warm after this session's writing changes "
+                                  "(a check beside the README's table, another host)",
     "levers_not_adopted.json": "Start-up with JAX's backend started in a thread, and a cold compile under four XLA "
                                "flags: measured, not adopted",
     "quick_exit.json": "The default commands warm before and after the command's exit skips the interpreter's "
