@@ -210,3 +210,11 @@ def check(light: bool = False) -> None:
     distributed = os.environ.get("JAXROBO_COORDINATOR") or os.environ.get("JAXROBO_DISTRIBUTED", "").strip()
     if not light and not distributed:
         check_platforms()
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on: its affinity where the system reports one (a container's or
+    ``taskset``'s share), else ``os.cpu_count()``."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1

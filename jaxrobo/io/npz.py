@@ -20,12 +20,13 @@ import os
 import struct
 import zipfile
 import zlib
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import IO, Any, Mapping
 
 import numpy as np
 
 from jaxrobo.core.config import ConfigError
+from jaxrobo.core.environ import usable_cores
 
 #: Largest array (bytes) read from a file by default: a run's tables and carry are far below it.
 MAX_ARRAY_BYTES = 16 << 30
@@ -65,7 +66,7 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
     it)."""
     arrays = {name: np.asanyarray(value) for name, value in arrays.items()}
     if threads is None:
-        threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        threads = usable_cores()
     large = sum(x.nbytes for x in arrays.values() if x.nbytes > SMALL_BYTES)
     with contextlib.ExitStack() as stack:
         f = stack.enter_context(open(path, "wb")) if isinstance(path, (str, os.PathLike)) else path
@@ -160,7 +161,7 @@ class _ZipWriter:
         out = bytearray()
         for i, piece in enumerate(pieces):
             args = (piece, level, i == len(pieces) - 1)
-            pending.append((pool.submit(_block, *args) if pool is not None else _Done(_block(*args)), piece.nbytes))
+            pending.append((pool.submit(_block, *args) if pool is not None else _done(_block(*args)), piece.nbytes))
             while pending and (len(pending) > depth or i == len(pieces) - 1):
                 future, n = pending.popleft()
                 block, block_crc = future.result()
@@ -200,12 +201,11 @@ _FULL = 0xFFFFFFFF  # a 32-bit field whose value is in the zip64 record
 _DOS_DATE = 33  # 1980-01-01, as np.savez's members (time 00:00)
 
 
-class _Done:
-    def __init__(self, value: Any) -> None:
-        self._value = value
-
-    def result(self) -> Any:
-        return self._value
+def _done(value: Any) -> Future:
+    """A future already holding ``value`` (a block computed in the caller's thread)."""
+    future: Future = Future()
+    future.set_result(value)
+    return future
 
 
 def _crc32_multiply(a: int, b: int) -> int:

@@ -37,6 +37,7 @@ import numpy as np
 
 from jaxrobo.io import rundir
 from jaxrobo.core.config import ConfigError, flat_keys
+from jaxrobo.core.environ import usable_cores
 
 if TYPE_CHECKING:
     from jaxrobo.tabular.learner import AgentParams
@@ -100,7 +101,7 @@ def pad_columns(x: np.ndarray, width: int, *, threaded_from: int = 64 << 20) -> 
         out[start:stop, :k] = x[start:stop]
         out[start:stop, k:] = 0
 
-    threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    threads = usable_cores()
     if threads == 1 or out.nbytes < threaded_from:
         fill(0, x.shape[0])
         return out
