@@ -89,6 +89,9 @@ WHAT = {
                                   "(a check beside the README's table, another host)",
     "levers_not_adopted.json": "Start-up with JAX's backend started in a thread, and a cold compile under four XLA "
                                "flags: measured, not adopted",
+    "compile_order.json": "The tabular default commands cold and warm before and after the chunk is traced first "
+                          "and the small programs (bounds, keys, tables picked) are built on the host or compiled "
+                          "ahead, alternating in one call",
     "quick_exit.json": "The default commands warm before and after the command's exit skips the interpreter's "
                        "teardown (`jaxrobo.core.quick_exit`), alternating in one call; the 65,536-env run after it",
     "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "

@@ -171,3 +171,57 @@ def test_the_greedy_evaluation_flies_once_and_counts_arrivals_as_a_second_flight
     assert res.eval_success.dtype == bool and 0.0 < arrived.mean() < 1.0
     np.testing.assert_array_equal(res.eval_success, arrived)
     assert res.summary()["eval_success_rate"] == float(arrived.mean())
+
+
+def _compiles(caplog, fn):
+    """``fn()``'s result and the names of the programs JAX compiled while it ran (its compile log)."""
+    import logging
+
+    import jax
+
+    caplog.clear()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        out = fn()
+    return out, [r.getMessage().split(" ")[1] for r in caplog.records if r.getMessage().startswith("Compiling")]
+
+
+def test_small_programs_compile_once_from_their_shapes_whichever_asks_first(caplog):
+    """:class:`driver.PerShape`: prepared ahead from abstract values or called first with arrays, one program per
+    shapes (the same one either way: lowered from the shapes), its values those of the eager operations; and a
+    :class:`driver.CompilingInThread` returns what the caller's own compile would."""
+    import jax
+
+    x, x1, key, x6 = jnp.arange(4.0), jnp.arange(1.0, 5.0), jax.random.key(7), jnp.arange(6.0)
+    for scale, prepare_first in ((2.0, True), (3.0, False)):  # another scale: another program, not JAX's kept one
+        def inputs(x, key, n):
+            return x * scale, jax.random.split(jax.random.fold_in(key, n), 3)
+
+        f = driver.PerShape(inputs)
+        abstract = (jax.ShapeDtypeStruct(x.shape, x.dtype), jax.ShapeDtypeStruct(key.shape, key.dtype),
+                    jax.ShapeDtypeStruct((), np.int32))
+        _, compiled = _compiles(caplog, lambda: (f.prepare(*abstract) if prepare_first else None,
+                                                 f(x, key, np.int32(5)), f(x1, key, np.int32(5))))
+        assert compiled == ["jit(inputs)"]
+        got = f(x, key, np.int32(5))
+        assert np.array_equal(got[0], x * scale)
+        assert np.array_equal(jax.random.key_data(got[1]),
+                              jax.random.key_data(jax.random.split(jax.random.fold_in(key, 5), 3)))
+        _, compiled = _compiles(caplog, lambda: f(x6, key, np.int32(5)))  # another shape: its own program
+        assert compiled == ["jit(inputs)"]
+    ahead = driver.CompilingInThread(jax.jit(lambda v: v + 1.0).lower(x))
+    assert np.array_equal(ahead(x), x1) and ahead.wait() is ahead.wait()
+
+
+@pytest.mark.parametrize("env_id", ["CartPoleStayUp-v0", "QuadcopterGoto-v2", "ArmReach-v0"])
+def test_a_runs_bounds_and_discretiser_are_built_on_the_host(env_id, caplog):
+    """The task's state bounds (numpy float32) and the discretiser built from them compile no program: each
+    eager ``jax.numpy`` operation there was one more program a GPU compiled before the run started."""
+    from jaxrobo.tabular.discretise import make_discretiser_for
+    from jaxrobo.training.run import resolve
+
+    spec = resolve(env_id)
+    (low, high), compiled = _compiles(caplog, spec.env.state_bounds)
+    assert compiled == [] and low.dtype == high.dtype == np.float32 and isinstance(low, np.ndarray)
+    assert np.all(low < high)
+    disc, compiled = _compiles(caplog, lambda: make_discretiser_for(spec.env, spec.config))
+    assert compiled == [] and disc.n_states > 1

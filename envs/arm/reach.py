@@ -134,7 +134,7 @@ class ArmReach(TaskEnv):
         o = self.options
         self.robot = ArmRobot(o.backend, o.running_step, o.timestep)
         randomise.check(self)
-        self._deltas = jnp.asarray(ACTION_DELTAS, jnp.float32)
+        self._deltas = jax.device_put(np.asarray(ACTION_DELTAS, np.float32))  # on the host: no program to compile
 
     # ---- spaces -----------------------------------------------------------------------------------------
     def action_space(self, params: Params | None = None) -> spaces.Discrete:
@@ -145,11 +145,10 @@ class ArmReach(TaskEnv):
         high = np.array([np.inf, GOAL_BOUND, GOAL_BOUND], np.float32)
         return spaces.Box(-high, high, OBS_NAMES)
 
-    def state_bounds(self, params: Params | None = None) -> tuple[jax.Array, jax.Array]:
+    def state_bounds(self, params: Params | None = None) -> tuple[np.ndarray, np.ndarray]:
         p = self.default_params if params is None else params
-        low = jnp.stack([jnp.zeros(()), -p.goal_bound, -p.goal_bound])
-        high = jnp.stack([p.elbow_bound, p.goal_bound, p.goal_bound])
-        return low.astype(jnp.float32), high.astype(jnp.float32)
+        elbow, goal = float(p.elbow_bound), float(p.goal_bound)
+        return np.array([0.0, -goal, -goal], np.float32), np.array([elbow, goal, goal], np.float32)
 
     # ---- rendering (optional hooks read by jaxrobo.pictures.render) --------------------------------------------------
     #: The MJCF's camera looking down on the arm's plane.

@@ -92,7 +92,7 @@ class CartPoleStayUp(TaskEnv):
         super().__init__(options, params)
         o = self.options
         self.robot = CartPoleRobot(o.control_type, o.backend, o.running_step, o.timestep)
-        self._steps = jnp.asarray(ACTION_STEPS[: o.n_actions], jnp.float32)
+        self._steps = jax.device_put(np.asarray(ACTION_STEPS[: o.n_actions], np.float32))  # on the host: no program
         randomise.check(self)
 
     # ---- spaces -----------------------------------------------------------------------------------------
@@ -103,11 +103,11 @@ class CartPoleStayUp(TaskEnv):
         inf = np.full(4, np.inf, np.float32)
         return spaces.Box(-inf, inf, OBS_NAMES)
 
-    def state_bounds(self, params: Params | None = None) -> tuple[jax.Array, jax.Array]:
+    def state_bounds(self, params: Params | None = None) -> tuple[np.ndarray, np.ndarray]:
         p = self.default_params if params is None else params
-        low = jnp.stack([p.min_base_pose_x, -p.cart_v_bound, p.min_pole_angle, -p.pole_vel_bound])
-        high = jnp.stack([p.max_base_pose_x, p.cart_v_bound, p.max_pole_angle, p.pole_vel_bound])
-        return low.astype(jnp.float32), high.astype(jnp.float32)
+        x_lo, v, a_lo, w = (float(b) for b in (p.min_base_pose_x, p.cart_v_bound, p.min_pole_angle, p.pole_vel_bound))
+        x_hi, a_hi = float(p.max_base_pose_x), float(p.max_pole_angle)
+        return np.array([x_lo, -v, a_lo, -w], np.float32), np.array([x_hi, v, a_hi, w], np.float32)
 
     # ---- the seed's hooks -------------------------------------------------------------------------------
     def _set_init_pose(self, key: jax.Array, params: Params) -> tuple[jax.Array, jax.Array]:

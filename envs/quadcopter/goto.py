@@ -140,13 +140,11 @@ class QuadcopterGoto(QuadcopterTask):
         n = len(OBS_NAMES)
         return spaces.Box(np.full(n, -np.inf, np.float32), np.full(n, np.inf, np.float32), OBS_NAMES)
 
-    def state_bounds(self, params: Params | None = None) -> tuple[jax.Array, jax.Array]:
+    def state_bounds(self, params: Params | None = None) -> tuple[np.ndarray, np.ndarray]:
         p = self.default_params if params is None else params
-        zero = jnp.zeros(())
-        low = jnp.stack([zero, -jnp.pi + zero, -p.dz_bound, zero, zero, zero, zero])
-        high = jnp.stack([p.dist_bound, jnp.pi + zero, p.dz_bound, p.sonar_bound, p.sonar_bound, p.sonar_bound,
-                          p.down_bound])
-        return low.astype(jnp.float32), high.astype(jnp.float32)
+        dist, dz, sonar, down = (float(b) for b in (p.dist_bound, p.dz_bound, p.sonar_bound, p.down_bound))
+        return (np.array([0.0, -np.pi, -dz, 0.0, 0.0, 0.0, 0.0], np.float32),
+                np.array([dist, np.pi, dz, sonar, sonar, sonar, down], np.float32))
 
     # ---- episode layout ---------------------------------------------------------------------------------
     def _obstacles(self, key: jax.Array, start: jax.Array, goal: jax.Array, params: Params) -> Obstacles:

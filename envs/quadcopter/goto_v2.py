@@ -89,11 +89,10 @@ class QuadcopterGoto2(QuadcopterGoto):
         n = len(OBS_NAMES)
         return spaces.Box(np.full(n, -np.inf, np.float32), np.full(n, np.inf, np.float32), OBS_NAMES)
 
-    def state_bounds(self, params: Params | None = None) -> tuple[jax.Array, jax.Array]:
+    def state_bounds(self, params: Params | None = None) -> tuple[np.ndarray, np.ndarray]:
         p = self.default_params if params is None else params
         low, high = super().state_bounds(p)
-        return (jnp.concatenate([low, jnp.zeros(1, jnp.float32)]),
-                jnp.concatenate([high, jnp.reshape(p.sonar_bound, (1,)).astype(jnp.float32)]))
+        return np.append(low, np.float32(0.0)), np.append(high, np.float32(float(p.sonar_bound)))
 
     def _goal_clear(self, pos: jax.Array, task: TaskVars, params: Params) -> jax.Array:
         """Free length of the level flight from ``pos`` towards the goal: the observation's ``goal_clear``

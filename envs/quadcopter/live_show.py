@@ -76,9 +76,9 @@ class QuadcopterLiveShow(QuadcopterTask):
     def observation_space(self, params: Params | None = None) -> spaces.Box:
         return spaces.Box(np.full(1, -np.inf, np.float32), np.full(1, np.inf, np.float32), ("x",))
 
-    def state_bounds(self, params: Params | None = None) -> tuple[jax.Array, jax.Array]:
+    def state_bounds(self, params: Params | None = None) -> tuple[np.ndarray, np.ndarray]:
         p = self.default_params if params is None else params
-        return jnp.stack([p.x_low]).astype(jnp.float32), jnp.stack([p.x_high]).astype(jnp.float32)
+        return np.array([float(p.x_low)], np.float32), np.array([float(p.x_high)], np.float32)
 
     @staticmethod
     def _goal(params: Params) -> jax.Array:

@@ -264,11 +264,13 @@ class ExecutionPlan:
 
     ``compile_beside``: a training run compiles its first carry's program (the envs' reset) and its greedy
     evaluation (which the learning-target checks fly too) in threads beside the training chunk, from the carry's
-    shapes, not before and after it (then the evaluation beside the first chunks' training). XLA compiles
-    outside Python's lock, so on a host with cores to spare a first run's compiles overlap instead of its chunk
-    waiting for the reset's and its first check for the evaluation's; on 2 CPU cores the compiles and the
-    training share the cores and the overlap was slower (Goto-v2's default, an empty cache: 13.6 s sequential,
-    18.1 s beside). On by default on a GPU. The programs are the same either way.
+    shapes, not before and after it (then the evaluation beside the first chunks' training). The chunk, whose
+    XLA compile is the longest, is traced first and compiled in a thread; the evaluation is traced after it and
+    compiled beside it, and the small programs that pick the evaluated tables and their keys in another thread.
+    XLA compiles outside Python's lock, so on a host with cores to spare a first run's compiles overlap instead
+    of its chunk waiting for the reset's and its first check for the evaluation's; on 2 CPU cores the compiles and
+    the training share the cores and the overlap was slower (Goto-v2's default, an empty cache: 13.6 s
+    sequential, 18.1 s beside). On by default on a GPU. The programs are the same either way.
 
     ``reuse_traces``: keep the run's traced programs (training chunk, init, greedy evaluation) exported beside the
     persistent compilation cache, and read them back in a later process of the same configuration instead of

@@ -26,8 +26,8 @@ packages' functions swapped for another of theirs: a process doing that sets ``J
 ``JAXROBO_CACHE_DIR=off``, or runs a plan with ``reuse_traces=False``). Cold and warm runs execute the same
 exported program, so a result does not depend on whether the trace was read back (``tests/test_reuse.py``).
 
-Public surface: :func:`available`, :func:`compile_reusing`, :func:`kept_shapes`, :func:`describe`, :data:`LAST`,
-:data:`VARIABLE`.
+Public surface: :func:`available`, :func:`compile_reusing` (and its first half, :func:`lower_reusing`),
+:func:`kept_shapes`, :func:`describe`, :data:`LAST`, :data:`VARIABLE`.
 """
 from __future__ import annotations
 
@@ -553,21 +553,28 @@ def compile_reusing(plan: Any, name: str, fn: Callable, args: Sequence[Any], par
     """``fn`` compiled for ``args`` under ``plan`` (traced under its trace-time choices, its compiler options),
     donating the arguments ``donate``; where ``plan.reuse_traces`` and :func:`available`, through a kept export
     named by :func:`_key` of ``name``, ``parts`` (what ``fn`` is built from) and the arguments."""
+    return lower_reusing(plan, name, fn, args, parts, donate=donate).compile()
+
+
+def lower_reusing(plan: Any, name: str, fn: Callable, args: Sequence[Any], parts: Any, *,
+                  donate: Sequence[int] = ()) -> Any:
+    """:func:`compile_reusing` up to XLA: the lowered program (``jax.stages.Lowered``), whose ``compile()`` a
+    thread may run (XLA's compile holds no Python lock) while the caller traces the next program."""
     options = plan.xla_options
     kw: dict[str, Any] = {"donate_argnums": tuple(donate), "compiler_options": options}
     path, why = _path(plan, name, args, parts, donate)
     if path is None:
         LAST[name] = why
         with plan.tracing():
-            return jax.jit(fn, **kw).lower(*args).compile()
+            return jax.jit(fn, **kw).lower(*args)
     from jax import export
 
     exported = _kept(path, args)
     if exported is not None:
         try:  # exported.call checks the arguments' structure and avals against the kept ones
-            compiled = jax.jit(exported.call, **kw).lower(*args).compile()
+            lowered = jax.jit(exported.call, **kw).lower(*args)
             LAST[name] = "read"
-            return compiled
+            return lowered
         except Exception:  # noqa: BLE001 - a kept program that does not fit these arguments: trace afresh
             pass
     with plan.tracing():
@@ -578,4 +585,4 @@ def compile_reusing(plan: Any, name: str, fn: Callable, args: Sequence[Any], par
         LAST[name] = "traced"
     except (NotKeyable, ValueError) as why:  # a structure jax.export cannot name: run it, keep nothing
         LAST[name] = f"off: {why}"
-    return jax.jit(exported.call, **kw).lower(*args).compile()
+    return jax.jit(exported.call, **kw).lower(*args)

@@ -178,15 +178,17 @@ def make_discretiser(low: Sequence[float], high: Sequence[float], mode: str = "b
     """Build a discretiser; raises ``ValueError`` naming the bad field (see :func:`check`)."""
     low_np, high_np, bins, edges_t = check(low, high, mode, number_splits, resolution, edges)
     dims = low_np.shape[0]
+    # Cast on the host, then put on the device: a cast (or jnp.asarray's copy) in JAX is a program to compile.
+    f32 = lambda x: jax.device_put(np.asarray(x, np.float32))  # noqa: E731
     if mode == "edges":
-        return Discretiser(jnp.asarray(low_np, jnp.float32), jnp.ones(dims, jnp.float32), bins, edges_t)
+        return Discretiser(f32(low_np), f32(np.ones(dims)), bins, edges_t)
     if mode == "round":
         first = np.round(low_np / resolution)
         start = (first - 0.5) * resolution
         width = np.full(dims, resolution)
-        return Discretiser(jnp.asarray(start, jnp.float32), jnp.asarray(width, jnp.float32), bins)
+        return Discretiser(f32(start), f32(width), bins)
     width = (high_np - low_np) / np.asarray(bins)
-    return Discretiser(jnp.asarray(low_np, jnp.float32), jnp.asarray(width, jnp.float32), bins)
+    return Discretiser(f32(low_np), f32(width), bins)
 
 
 def make_discretiser_for(env: Any, config: Any, env_params: Any = None) -> Discretiser:

@@ -208,8 +208,10 @@ class Env:
     def observation_size(self) -> int:
         return int(self.observation_space().shape[0])
 
-    def state_bounds(self, params: Any = None) -> tuple[jax.Array, jax.Array]:
-        """Finite per-dimension ranges of the observation that a discretiser should cover."""
+    def state_bounds(self, params: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        """Finite per-dimension ranges of the observation that a discretiser should cover: two float32 numpy
+        arrays, computed on the host from the parameters' values (never in ``jax.numpy``: each eager operation there
+        is a program of its own, which a GPU compiles on first use before the run starts)."""
         raise NotImplementedError
 
     @property

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import os
 import signal
 import threading
@@ -139,19 +138,25 @@ def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, e
     return compile_under(trainer.plan, jitted, key, agent_params, env_params)
 
 
-def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, env_params: Any) -> Callable:
+def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, env_params: Any, *,
+                   in_thread: bool = False) -> Callable:
     """``trainer.run_chunk`` compiled for ``runner`` under the trainer's plan (its compiler options, its
     trace-time choices), the carry donated: ``runner = chunk(runner, agent_params, env_params)``. Over several
     devices (``plan.devices``) the carry's env axis is split over them: XLA partitions the chunk (a shared table's
     update and a run-wide episode count become reductions across devices), and the Pallas chunk kernel, which
-    XLA cannot partition, runs on each device's envs through ``shard_map`` (its envs are independent)."""
+    XLA cannot partition, runs on each device's envs through ``shard_map`` (its envs are independent).
+
+    ``in_thread``: traced here, compiled by XLA in a thread (a :class:`CompilingInThread`, which waits for it when
+    first called), so that the caller traces its other programs during the chunk's compile, a default GPU run's
+    longest (6 s of the arm's cold start on an H200)."""
     from jaxrobo.speed import sharding
 
     plan = trainer.plan
     mesh = env_mesh(trainer)
     if mesh is None:
-        return reuse.compile_reusing(plan, "chunk", trainer.run_chunk, (runner, agent_params, env_params), trainer,
-                                     donate=(0,))
+        lowered = reuse.lower_reusing(plan, "chunk", trainer.run_chunk, (runner, agent_params, env_params), trainer,
+                                      donate=(0,))
+        return CompilingInThread(lowered) if in_thread else lowered.compile()
     n = trainer.config.n_envs
     carry = _carry_shardings(runner, mesh, n)
     rep = sharding.replicated(mesh)
@@ -169,7 +174,31 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
         fn = lambda r, ap, ep: trainer.keep_snapshots(steps(r, ap, ep))  # noqa: E731
     jitted = jax.jit(fn, donate_argnums=0, compiler_options=plan.xla_options, in_shardings=(carry,) + params,
                      out_shardings=carry)
-    return compile_under(plan, jitted, runner, agent_params, env_params)
+    if not in_thread:
+        return compile_under(plan, jitted, runner, agent_params, env_params)
+    with plan.tracing():
+        return CompilingInThread(jitted.lower(runner, agent_params, env_params))
+
+
+class CompilingInThread:
+    """A lowered program (``jax.stages.Lowered``) whose XLA compile runs in a thread: XLA holds no Python lock
+    while it compiles, so the caller traces its next programs meanwhile. Calling it (or :meth:`wait`) waits for
+    the compile; a compile that failed in the thread runs again in the caller's, where its error is raised."""
+
+    def __init__(self, lowered: Any) -> None:
+        self.lowered, self._done = lowered, []
+        self.thread = _in_thread(self._done, lowered.compile)
+
+    def wait(self) -> Callable:
+        """The compiled program, once compiled."""
+        if not self._done:
+            self.thread.join()
+            if not self._done:
+                self._done.append(self.lowered.compile())
+        return self._done[0]
+
+    def __call__(self, *args: Any) -> Any:
+        return self.wait()(*args)
 
 
 def _carry_shardings(carry: Runner, mesh: Any, n_envs: int) -> Any:
@@ -181,10 +210,12 @@ def _carry_shardings(carry: Runner, mesh: Any, n_envs: int) -> Any:
     return out if carry.snapshots is None else out.replace(snapshots=sharding.replicated(mesh))
 
 
-def compiled_progress(carry: Runner, trainer: Trainer | None = None) -> Callable:
+def compiled_progress(carry: Runner, trainer: Trainer | None = None, *, in_thread: bool = False) -> Callable:
     """:meth:`jaxrobo.training.trainer.Trainer.progress` (without a trainer: the episode budget's
-    :func:`~jaxrobo.training.trainer.progress_stats`) compiled for ``carry`` (one run's, or a sweep's rows)."""
-    return jax.jit(progress_stats if trainer is None else trainer.progress).lower(carry).compile()
+    :func:`~jaxrobo.training.trainer.progress_stats`) compiled for ``carry`` (one run's, or a sweep's rows);
+    ``in_thread``: by XLA in a thread (a :class:`CompilingInThread`)."""
+    lowered = jax.jit(progress_stats if trainer is None else trainer.progress).lower(carry)
+    return CompilingInThread(lowered) if in_thread else lowered.compile()
 
 
 def _caller_of(progress: ProgressFn | None) -> Callable[[Progress], None] | None:
@@ -356,17 +387,23 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     restored = 0 if initial is None else int(np.asarray(host_get(initial.env_steps), np.int64).sum())
     flights = Flights(trainer, env_params)
     check = target_check(trainer, flights, key, checks) if check_every else None
-    preparing = [prepare_evaluation(trainer, flights, runner, key)] if beside else []
-    with _joined(preparing + ([] if compiling_init is None else [compiling_init])):
-        chunk = compiled_chunk(trainer, runner, agent_params, env_params)
-        stats = compiled_progress(runner, trainer)
+    threads = [] if compiling_init is None else [compiling_init]  # joined however the block ends
+    with _joined(threads):
+        # Beside: the chunk is traced first (its XLA compile is the longest), then compiles in a thread while the
+        # evaluation's programs are traced and compiled in another.
+        chunk = compiled_chunk(trainer, runner, agent_params, env_params, in_thread=beside)
+        stats = compiled_progress(runner, trainer, in_thread=beside)
+        if beside:
+            threads += [chunk.thread, stats.thread, *prepare_evaluation(trainer, flights, runner, key)]
         if compiling_init is not None:
             compiling_init.join()
             if not first:  # the thread failed: compile here, where the caller sees the error
                 first.append(compiled_init(trainer, key, agent_params, env_params))
             runner = first[0](key, agent_params, env_params)
         if prepare and not beside:  # compiled while the first chunks train
-            preparing.append(prepare_evaluation(trainer, flights, runner, key))
+            threads += prepare_evaluation(trainer, flights, runner, key)
+        if beside:
+            chunk, stats = chunk.wait(), stats.wait()
         jax.block_until_ready(runner)
         compile_seconds = time.perf_counter() - t0
 
@@ -619,11 +656,13 @@ def _in_thread(out: list, fn: Callable, *args: Any) -> threading.Thread:
     return thread
 
 
-def prepare_evaluation(trainer: Trainer, flights: Flights, runner: Runner, key: jax.Array) -> threading.Thread:
+def prepare_evaluation(trainer: Trainer, flights: Flights, runner: Runner, key: jax.Array
+                       ) -> list[threading.Thread]:
     """Compile the greedy flights of :func:`evaluate_tables` (and so of the learning-target checks) in a thread,
-    from the carry's shapes, while the caller goes on training: the device trains while the host compiles, and
-    the evaluation at the end flies at once. A failure here is left to the flight itself, which compiles again
-    and raises where the caller sees it."""
+    and what picks their tables and keys (:class:`Flights`' small programs) in another, from the carry's shapes,
+    while the caller goes on training: the device trains while the host compiles, and the evaluation at the end
+    flies at once. A failure here is left to the flight itself, which compiles again and raises where the caller
+    sees it."""
     config = trainer.config
     n_eval = evaluated_tables(config)
     agents = jax.eval_shape(lambda r: r.agent if config.shared_table
@@ -631,13 +670,24 @@ def prepare_evaluation(trainer: Trainer, flights: Flights, runner: Runner, key: 
     keys, fresh = jax.eval_shape(lambda k: evaluation_keys(k, n_eval), key)
     episodes = max(config.eval_episodes, 1)
 
+    carry = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=getattr(x, "weak_type", False)),
+                         runner)
+    run_key = jax.ShapeDtypeStruct(key.shape, key.dtype)
+
     def evaluation() -> None:
         flights.prepare(keys, agents, episodes, over_tables=True, shared=config.shared_table)
         if n_eval > 1:
             one = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), agents)
             flights.prepare(fresh, one, episodes, over_tables=False)
 
-    return _in_thread([], evaluation)
+    def inputs() -> None:  # small, but a GPU compiles a sort for 0.5-0.8 s (H200): beside the flights
+        if trainer.target_every():
+            flights.check_inputs.prepare(carry, run_key, np.int32(0))
+        flights.eval_inputs.prepare(carry, run_key)
+        if n_eval > 1:
+            flights.one_table.prepare(agents, np.int32(0))
+
+    return [_in_thread([], evaluation), _in_thread([], inputs)]
 
 
 def pick_tables(trainer: Trainer, runner: Runner) -> tuple[jax.Array | None, Any]:
@@ -668,28 +718,22 @@ def target_check(trainer: Trainer, flights: Flights, key: jax.Array, log: list) 
     choice's 3): never those of training or of the final evaluation. Each check appends ``{"chunks", "score",
     "confirmed"}`` to ``log`` (``confirmed`` NaN when the first flight missed)."""
     config, target = trainer.config, trainer.env.learning_target
-    n_eval = evaluated_tables(config)
-    base = jax.random.fold_in(key, 4)
-    pick_c = jax.jit(functools.partial(pick_tables, trainer))
 
     def figure(out: dict[str, Any]) -> np.ndarray:
         return table_figures(out, target)[target.metric].astype(np.float64).mean(axis=-1)
 
     def check(carry: Runner, chunks_done: int) -> bool:
-        k_tables, k_confirm = jax.random.split(jax.random.fold_in(base, chunks_done))
-        _, tables = pick_c(carry)
-        out = flights.fly(jax.random.split(k_tables, n_eval), tables, config.eval_episodes, over_tables=True,
-                          shared=config.shared_table)
+        keys, confirm, tables = flights.check_inputs(carry, key, np.int32(chunks_done))
+        out = flights.fly(keys, tables, config.eval_episodes, over_tables=True, shared=config.shared_table)
         best, _ = choose_table(table_figures(out, target), target)
         score = float(figure(out)[best])
         confirmed = float("nan")
         if bool(target.reached(score)):
             if config.shared_table:  # the one table again, on other keys: the same program
-                again = flights.fly(jax.random.split(k_confirm, n_eval), tables, config.eval_episodes,
-                                    over_tables=True, shared=True)
+                again = flights.fly(confirm, tables, config.eval_episodes, over_tables=True, shared=True)
             else:
-                table = jax.tree.map(lambda x: x[best], tables)
-                again = flights.fly(k_confirm, table, config.eval_episodes, over_tables=False)
+                table = flights.one_table(tables, np.int32(best))
+                again = flights.fly(confirm, table, config.eval_episodes, over_tables=False)
             confirmed = float(figure(again).reshape(-1)[0])
         log.append({"chunks": chunks_done, "score": score, "confirmed": confirmed})
         return bool(target.reached(confirmed))
@@ -726,6 +770,36 @@ class EvalProgress:
 EVAL_SEGMENTS = 10
 
 
+class PerShape:
+    """``jax.jit(fn)`` compiled once per structure, shapes and dtypes of its arguments and kept; :meth:`prepare`
+    compiles it ahead from abstract values (``jax.ShapeDtypeStruct``: a thread may do it while the device trains).
+    Over several devices (``devices > 1``) the arguments' shardings vary between calls: jit compiles as they
+    come."""
+
+    def __init__(self, fn: Callable, devices: int = 1) -> None:
+        self._jitted, self._devices = jax.jit(fn), devices
+        self._kept: dict[str, Callable] = {}
+        self._lock = threading.Lock()
+
+    def _compiled(self, args: tuple) -> Callable:
+        # Lowered from abstract values whether given arrays or not: the same program (and persistent-cache key)
+        # whichever comes first, a call or a thread's prepare.
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
+                                                               weak_type=bool(getattr(x, "weak_type", False))), args)
+        name = str((jax.tree.structure(abstract), jax.tree.leaves(abstract)))
+        with self._lock:
+            if name not in self._kept:
+                self._kept[name] = self._jitted.lower(*abstract).compile()
+            return self._kept[name]
+
+    def prepare(self, *args: Any) -> None:
+        if self._devices == 1:
+            self._compiled(args)
+
+    def __call__(self, *args: Any) -> Any:
+        return self._jitted(*args) if self._devices > 1 else self._compiled(args)(*args)
+
+
 class Flights:
     """Greedy flights of a trainer's tables (:meth:`~jaxrobo.training.trainer.Trainer.evaluate_episodes`'s outcomes,
     host arrays), flown in :data:`EVAL_SEGMENTS` segments of the horizon (:func:`jaxrobo.task.rollout.rollout_advance`:
@@ -750,6 +824,27 @@ class Flights:
                                            env_params)
         self._start, self._advance = start, advance
 
+        # What a flight flies and with which keys, each one small program (their parts run one by one would each
+        # be a program a GPU compiles on first use), compiled ahead by prepare_evaluation where it runs.
+        config, n_eval = trainer.config, evaluated_tables(trainer.config)
+
+        def check_inputs(runner, key, chunks_done):  # target_check's keys: fold_in(key, 4), then the chunk count
+            k_tables, k_confirm = jax.random.split(jax.random.fold_in(jax.random.fold_in(key, 4), chunks_done))
+            _, tables = pick_tables(trainer, runner)
+            confirm = jax.random.split(k_confirm, n_eval) if config.shared_table else k_confirm
+            return jax.random.split(k_tables, n_eval), confirm, tables
+
+        def eval_inputs(runner, key):
+            return pick_tables(trainer, runner), evaluation_keys(key, n_eval)
+
+        devices = trainer.plan.devices
+        #: ``(runner, key, np.int32(chunks_done)) -> (keys, confirming keys, tables)`` of a learning-target check.
+        self.check_inputs = PerShape(check_inputs, devices)
+        #: ``(runner, key) -> ((index, tables), (keys, fresh))`` of the final evaluation (:func:`evaluate_tables`).
+        self.eval_inputs = PerShape(eval_inputs, devices)
+        #: ``(tables, np.int32(i)) -> table i``: the best table, flown again on fresh episodes.
+        self.one_table = PerShape(lambda tables, i: jax.tree.map(lambda x: x[i], tables), devices)
+
     def _programs(self, keys: Any, agents: Any, n_episodes: int, over_tables: bool, shared: bool):
         shapes = jax.tree.map(lambda x: (x.shape, str(x.dtype)), (keys, agents))
         name = (over_tables, shared, n_episodes, str(shapes))
@@ -762,19 +857,22 @@ class Flights:
                     start = jax.vmap(start)
                     advance = jax.vmap(advance, in_axes=(0, None if shared else 0, None))
                 plan = self.trainer.plan
+                # Both traced, then compiled side by side (the start in a thread: XLA holds no Python lock).
                 if plan.devices == 1 and plan.reuse_traces:  # traces kept by an earlier process, read back
                     parts = (self.trainer, self.env_params, self.horizon, self.steps, name)
-                    start = reuse.compile_reusing(plan, "eval_start", start, (keys,), parts)
-                    carry = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), start.out_info)
-                    advance = reuse.compile_reusing(plan, "eval_advance", advance, (carry, agents, np.int32(0)), parts)
-                    self._compiled[name] = (start, advance, time.perf_counter() - t)
+                    start = CompilingInThread(reuse.lower_reusing(plan, "eval_start", start, (keys,), parts))
+                    carry = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), start.lowered.out_info)
+                    advance = reuse.lower_reusing(plan, "eval_advance", advance, (carry, agents, np.int32(0)), parts)
+                    advance = advance.compile()
+                    self._compiled[name] = (start.wait(), advance, time.perf_counter() - t)
                     return self._compiled[name]
                 start, advance = jax.jit(plan.traced(start)), jax.jit(plan.traced(advance))
                 if plan.devices == 1:  # compiled ahead (a thread may do it); over several devices
                     # the inputs' shardings vary between flights: jit compiles for each as they come
                     carry = jax.eval_shape(start, keys)
-                    start = start.lower(keys).compile()
+                    start = CompilingInThread(start.lower(keys))
                     advance = advance.lower(carry, agents, np.int32(0)).compile()
+                    start = start.wait()
                 self._compiled[name] = (start, advance, time.perf_counter() - t)
             return self._compiled[name]
 
@@ -877,8 +975,7 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
     config = trainer.config
     flights = Flights(trainer, env_params) if flights is None else flights
     n_eval = evaluated_tables(config)
-    index, tables = jax.jit(functools.partial(pick_tables, trainer))(runner)
-    keys, fresh = evaluation_keys(key, n_eval)
+    (index, tables), (keys, fresh) = flights.eval_inputs(runner, key)
     out = flights.fly(keys, tables, config.eval_episodes, over_tables=True, shared=config.shared_table,
                       progress=progress)
     target = getattr(trainer.env, "learning_target", None)
@@ -888,7 +985,7 @@ def evaluate_tables(trainer: Trainer, runner: Runner, key: jax.Array, env_params
     selected = None
     if n_eval > 1:
         best, _ = choose_table(per_table, target)  # the summary's best table: the task's target decides
-        table = jax.tree.map(lambda x: x[best], tables)
+        table = flights.one_table(tables, np.int32(best))
         sel = flights.fly(fresh, table, config.eval_episodes, over_tables=False, progress=progress,
                           what="best table")
         selected = {"table": int(np.asarray(index)[best]), "returns": np.asarray(sel["return"]),
