@@ -107,7 +107,8 @@ def _percentiles(x: np.ndarray, qs: tuple[int, ...]) -> np.ndarray:
 STATS_BLOCK_BYTES = 8 << 20
 
 
-def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray, done: np.ndarray) -> list:
+def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray, done: np.ndarray, *,
+                  threads: int | None = None) -> list:
     """The columns of ``episode_stats.csv`` (:data:`STAT_COLUMNS`): per episode index, the mean, spread and
     percentiles over the envs that recorded that episode (``done``: recorded episodes per env). Where every env
     recorded the same number (the episode budget) that is every env; under a run-wide budget the envs differ
@@ -115,7 +116,8 @@ def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
 
     Computed over blocks of episode columns (:data:`STATS_BLOCK_BYTES`), each column by the same reductions over
     the envs as over the whole array; a block is at least two columns wide (numpy folds a lone column's axis away
-    and would sum it in another order)."""
+    and would sum it in another order). ``threads``: how many compute the blocks (default: a usable core each;
+    the numbers are the same for any count)."""
     n_envs = returns.shape[0]
     if n_envs == 0:
         return [np.arange(0)] * len(STAT_COLUMNS)
@@ -136,7 +138,11 @@ def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
     # stats were most of write_episodes (262,144 envs x 123 episodes on 2 CPU cores: 3.4 of 4.0 s; 2.2 s in all
     # with two threads), which took 38.8 s of a 1,048,576-env run's writing on an H200 host. Each block's numbers
     # are the same whichever thread computes it.
-    workers = min(len(starts), os.cpu_count() or 1)
+    if threads is None:
+        from jaxrobo.core.environ import usable_cores
+
+        threads = usable_cores()
+    workers = min(len(starts), max(int(threads), 1))
     if workers > 1:
         from concurrent.futures import ThreadPoolExecutor
 
