@@ -212,6 +212,21 @@ def test_small_programs_compile_once_from_their_shapes_whichever_asks_first(capl
     assert np.array_equal(ahead(x), x1) and ahead.wait() is ahead.wait()
 
 
+def test_a_compile_that_fails_in_its_thread_fails_again_where_the_caller_sees_it():
+    """The thread keeps nothing of a failed compile; waiting compiles again in the caller's thread, which raises."""
+    attempts = []
+
+    class Failing:
+        def compile(self):
+            attempts.append(1)
+            raise RuntimeError("XLA says no")
+
+    ahead = driver.CompilingInThread(Failing())
+    with pytest.raises(RuntimeError, match="XLA says no"):
+        ahead.wait()
+    assert len(attempts) == 2 and not ahead.thread.is_alive()
+
+
 @pytest.mark.parametrize("env_id", ["CartPoleStayUp-v0", "QuadcopterGoto-v2", "ArmReach-v0"])
 def test_a_runs_bounds_and_discretiser_are_built_on_the_host(env_id, caplog):
     """The task's state bounds (numpy float32) and the discretiser built from them compile no program: each
