@@ -392,9 +392,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         # Beside: the chunk is traced first (its XLA compile is the longest), then compiles in a thread while the
         # evaluation's programs are traced and compiled in another.
         chunk = compiled_chunk(trainer, runner, agent_params, env_params, in_thread=beside)
+        if beside:
+            threads.append(chunk.thread)
         stats = compiled_progress(runner, trainer, in_thread=beside)
         if beside:
-            threads += [chunk.thread, stats.thread, *prepare_evaluation(trainer, flights, runner, key)]
+            threads += [stats.thread, *prepare_evaluation(trainer, flights, runner, key)]
         if compiling_init is not None:
             compiling_init.join()
             if not first:  # the thread failed: compile here, where the caller sees the error
@@ -861,9 +863,10 @@ class Flights:
                 if plan.devices == 1 and plan.reuse_traces:  # traces kept by an earlier process, read back
                     parts = (self.trainer, self.env_params, self.horizon, self.steps, name)
                     start = CompilingInThread(reuse.lower_reusing(plan, "eval_start", start, (keys,), parts))
-                    carry = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), start.lowered.out_info)
-                    advance = reuse.lower_reusing(plan, "eval_advance", advance, (carry, agents, np.int32(0)), parts)
-                    advance = advance.compile()
+                    with _joined([start.thread]):  # never left inside XLA, whatever the advance's fate
+                        carry = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), start.lowered.out_info)
+                        advance = reuse.lower_reusing(plan, "eval_advance", advance, (carry, agents, np.int32(0)),
+                                                      parts).compile()
                     self._compiled[name] = (start.wait(), advance, time.perf_counter() - t)
                     return self._compiled[name]
                 start, advance = jax.jit(plan.traced(start)), jax.jit(plan.traced(advance))
@@ -871,7 +874,8 @@ class Flights:
                     # the inputs' shardings vary between flights: jit compiles for each as they come
                     carry = jax.eval_shape(start, keys)
                     start = CompilingInThread(start.lower(keys))
-                    advance = advance.lower(carry, agents, np.int32(0)).compile()
+                    with _joined([start.thread]):
+                        advance = advance.lower(carry, agents, np.int32(0)).compile()
                     start = start.wait()
                 self._compiled[name] = (start, advance, time.perf_counter() - t)
             return self._compiled[name]
