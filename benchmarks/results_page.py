@@ -92,6 +92,8 @@ WHAT = {
     "compile_order.json": "The tabular default commands cold and warm before and after the chunk is traced first "
                           "and the small programs (bounds, keys, tables picked) are built on the host or compiled "
                           "ahead, alternating in one call",
+    "large_runs_check.json": "The 65,536- and 1,048,576-env cart-pole runs under a step budget, cold and warm, after "
+                             "this session's compile order (one call)",
     "quick_exit.json": "The default commands warm before and after the command's exit skips the interpreter's "
                        "teardown (`jaxrobo.core.quick_exit`), alternating in one call; the 65,536-env run after it",
     "scale_train_kernel_2gpu.json": "`jaxrobo train` of the analytic cart-pole on 1 and 2 GPUs under the automatic "

@@ -626,8 +626,9 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
                             chunks=n_chunks, resume=resume_cmd, **keep)
 
-    # The checkpoint after the last chunk is written while the run evaluates and computes its results; it lands
-    # before anything that needs it: the results (which link its tables), an interrupted status, an error's hint.
+    # The checkpoint after the last chunk is written while the run computes its results (its copy of the carry
+    # waits for the evaluation's reads: SaveInThread.hold); it lands before anything that needs it: the results
+    # (which link its tables), an interrupted status, an error's hint.
     saves = checkpoint.SaveInThread(save)
 
     def notice(signum: int) -> None:

@@ -240,3 +240,52 @@ def test_a_runs_bounds_and_discretiser_are_built_on_the_host(env_id, caplog):
     assert np.all(low < high)
     disc, compiled = _compiles(caplog, lambda: make_discretiser_for(spec.env, spec.config))
     assert compiled == [] and disc.n_states > 1
+
+
+def test_the_closing_checkpoint_copies_the_carry_after_the_evaluation_and_a_failed_one_still_saves():
+    """:class:`~jaxrobo.training.checkpoint.SaveInThread` held by the driver: the save after the last chunk is
+    handed over before the evaluation but reads the carry only after the evaluation's last segment (their reads
+    from the device share one queue); an evaluation that fails releases it, and the finished carry is saved."""
+    import threading
+    import time
+
+    from jaxrobo.training import checkpoint
+    from jaxrobo.training.callbacks import Callback
+    from jaxrobo.training.run import resolve
+    from jaxrobo.training.train import train
+
+    spec = resolve("CartPoleStayUp-v0", overrides={"env.backend": "analytic", "n_envs": 4, "nepisodes": 3,
+                                                    "nsteps": 20, "chunk_steps": 20, "eval_episodes": 2,
+                                                    "eval_envs": 2, "stop_at_target": False})
+    events, lock = [], threading.Lock()
+
+    def save(carry, chunks_done):
+        with lock:
+            events.append(("save", chunks_done, int(np.asarray(carry.episode).min())))
+
+    class Segments(Callback):
+        def __init__(self, fail=False):
+            self.fail = fail
+
+        def on_evaluation(self, progress):
+            with lock:
+                events.append(("segment",))
+            if self.fail:
+                raise RuntimeError("the evaluation broke")
+
+    saves = checkpoint.SaveInThread(save)
+    saves.HOLD_SECONDS = 120.0  # were it never released, the save would come two minutes late
+    t0 = time.perf_counter()
+    result = train(spec.env, spec.config, spec.agent_params, callbacks=[Segments()], checkpoint=saves)
+    saves.wait()
+    assert time.perf_counter() - t0 < saves.HOLD_SECONDS
+    kinds = [e[0] for e in events]
+    assert result.complete and kinds.count("save") == 1 and kinds[-1] == "save" and "segment" in kinds
+    assert events[-1][1:] == (result.chunks_done, 3)  # the finished carry
+    events.clear()
+    saves = checkpoint.SaveInThread(save)
+    saves.HOLD_SECONDS = 120.0
+    with pytest.raises(RuntimeError, match="the evaluation broke"):
+        train(spec.env, spec.config, spec.agent_params, callbacks=[Segments(fail=True)], checkpoint=saves)
+    saves.wait()
+    assert [e[0] for e in events] == ["segment", "save"] and events[-1][2] == 3

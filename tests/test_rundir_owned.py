@@ -337,7 +337,8 @@ def test_a_stop_while_the_closing_checkpoint_is_written_loses_nothing(tmp_path, 
     assert log == ["save", "saved"]
     assert rundir.read_status(out)["status"] == rundir.INTERRUPTED and rundir.is_resumable(out)
     chunks_run = _counting_chunks(monkeypatch)
-    assert main(["train", "--resume", out, "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["train", "--resume", out, "--no-progress"]) == 0, capsys.readouterr().err
     assert chunks_run == [] and rundir.is_complete(out)
     _assert_same_run(out, done)
 

@@ -388,7 +388,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     flights = Flights(trainer, env_params)
     check = target_check(trainer, flights, key, checks) if check_every else None
     threads = [] if compiling_init is None else [compiling_init]  # joined however the block ends
-    with _joined(threads):
+    with _joined(threads), _saved_after_evaluation(checkpoint, config.eval_episodes > 0):
         # Beside: the chunk is traced first (its XLA compile is the longest), then compiles in a thread while the
         # evaluation's programs are traced and compiled in another.
         chunk = compiled_chunk(trainer, runner, agent_params, env_params, in_thread=beside)
@@ -629,6 +629,22 @@ def run_population(trainer: Trainer, population: Population, agent_params: Any, 
                             compile_seconds=compile_seconds, run_seconds=loop.seconds, eval_seconds=eval_seconds,
                             slot_steps=loop.chunks_done * c.chunk_steps * c.n_envs * population.n_rows,
                             restored_env_steps=restored)
+
+
+@contextlib.contextmanager
+def _saved_after_evaluation(checkpoint: CheckpointFn | None, evaluates: bool) -> Iterator[None]:
+    """Inside the block, a checkpoint that saves in a thread (one with ``hold`` and ``release``:
+    :class:`jaxrobo.training.checkpoint.SaveInThread`) starts its closing save's copy of the carry only when the
+    block ends (the greedy evaluation read back), however it ends."""
+    hold = getattr(checkpoint, "hold", None) if evaluates else None
+    if hold is None:
+        yield
+        return
+    hold()
+    try:
+        yield
+    finally:
+        checkpoint.release()
 
 
 @contextlib.contextmanager

@@ -48,7 +48,9 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
 
     ``checkpoint(runner, chunks_done)`` is called with the carry every ``checkpoint_every`` chunks and/or at the
     first chunk boundary ``checkpoint_seconds`` after the last one (neither: none on the way), once more after the
-    last chunk (before the evaluation, so a late failure never loses the finished carry), and when the run is asked
+    last chunk (before the evaluation, so a late failure never loses the finished carry; one that saves in a
+    thread, :class:`~jaxrobo.training.checkpoint.SaveInThread`, copies the carry once the evaluation is read back,
+    whose reads from the device would otherwise queue behind that copy), and when the run is asked
     to stop (``should_stop()`` before each chunk, or a callback): the current chunk finishes, is saved, and the
     result has ``complete=False`` (episodes so far, no evaluation). The library installs no signal handlers; the
     CLI's ``should_stop`` is a :class:`jaxrobo.training.driver.StopOnSignal`.
