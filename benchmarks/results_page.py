@@ -338,8 +338,8 @@ def readme_block() -> str | None:
         return None
     with open(path, encoding="utf-8") as f:
         data = json.load(f)
-    anchors = "; ".join(f"{a['what']}: {a['seconds']:.0f} s on {a['hardware']}" for a in data.get("anchors", [])
-                        if a.get("seconds") is not None)
+    anchors = "; ".join(f"{a['what']}: {'under ' if a.get('at_most') else ''}{a['seconds']:.0f} s on {a['hardware']}"
+                        for a in data.get("anchors", []) if a.get("seconds") is not None)
     lines = [BEGIN, f"`jaxrobo train --env ID` with no other flag, start to exit, on one {data['device']}: it "
              "trains until the task's learning target holds on fresh greedy episodes, then evaluates and writes the "
              "run (seconds; a ppo run's compile is inside its run; [docs/results.md](docs/results.md) has every "

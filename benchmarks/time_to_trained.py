@@ -29,10 +29,14 @@ TASKS = (("CartPoleStayUp-v0", None), ("QuadcopterGoto-v2", None), ("ArmReach-v0
          ("CartPoleContinuous-v0", "ppo"), ("QuadcopterGotoTwist-v0", "ppo"))
 
 #: Published anchors: what users compare with, with the hardware their authors name. Only figures we could
-#: trace to their source carry a number; the others say what their authors claim.
+#: trace to their source carry a number (``at_most``: the source gives a bound, "under a minute"); the others say
+#: what their authors claim.
 ANCHORS = (
     {"what": "L2F (RLtools, 'Learning to Fly in Seconds'): a quadrotor control policy trained", "seconds": 18.0,
      "hardware": "a consumer laptop (the paper's figure)"},
+    {"what": "Aerial Gym Simulator: a quadrotor position-setpoint policy (rl_games PPO, 8,192 envs) trained",
+     "seconds": 60.0, "at_most": True,
+     "hardware": "one NVIDIA RTX 3090 (ntnu-arl/aerial_gym_simulator, docs/6_rl_training.md: 'under a minute')"},
     {"what": "PureJaxRL: PPO on gymnax CartPole-v1", "seconds": None,
      "hardware": "one GPU; its README claims over 1000x the speed of PyTorch baselines, no time-to-trained figure"},
 )
