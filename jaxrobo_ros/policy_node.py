@@ -60,6 +60,7 @@ class PolicyNode:
         self.commands = 0
         self.goal = None  # the goal parameter's value, where the topic file names one (else the goal topic)
         self.master_lost: str | None = None
+        self.closing = False  # set by stop(): a reading that arrives later sends nothing (its topic is closing)
         self.fault: str | None = None
         self.last_out, self.acted_t = None, None  # the last command sent, and the stamp it answered
         self.last_stamped = None  # the last command again, stamped with the state it answered
@@ -120,6 +121,8 @@ class PolicyNode:
     def _on_msg(self, msg, name: str) -> None:
         t_in = time.perf_counter()
         with self.lock:
+            if self.closing:  # stop() sent the zero command: nothing after it (rospy closes the topics next)
+                return
             self.latest[name] = msg
             if name == "episode":
                 if self.episode is not None and msg.data != self.episode:
@@ -217,7 +220,9 @@ class PolicyNode:
                 "loop_rate_hz": (1.0 / q(wall, 50)) if wall.size and q(wall, 50) > 0 else None}
 
     def stop(self) -> None:
-        self.pub.publish(self.b.zero_msg())
+        with self.lock:  # after a reading's command in flight, before any later one
+            self.closing = True
+            self.pub.publish(self.b.zero_msg())
         top, types = self.b.topics, self.b.msg_types()
         if "land" in top:
             self.rospy.Publisher(top["land"], types["land"], queue_size=1, latch=True).publish(types["land"]())

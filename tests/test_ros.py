@@ -456,6 +456,13 @@ def test_policy_node_answers_a_state_seen_again_with_the_same_stamped_command(ca
     assert [(m.name, list(m.velocity)) for m in stamped] == [(["foot_joint"], [p.data]) for p in plain]
     node._hold("a test")
     assert len(stamped) == 3 and len(plain) == 4 and plain[-1].data == 0.0
+    # Stopping sends the zero command last: a reading that arrives after it (rospy's callback threads run until
+    # the shutdown closes the topics) sends nothing, where a publish to a closed topic would raise in the callback.
+    node.rospy = SimpleNamespace(Publisher=None)
+    node.stop()
+    assert node.closing and len(plain) == 5 and plain[-1].data == 0.0
+    node._on_msg(joints(2.08, 0.1), "joint_states")
+    assert len(plain) == 5 and len(stamped) == 3 and node.commands == 2
 
 
 @needs_ros
