@@ -672,17 +672,21 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
                 and result.final_table_choice is None else None
 
         def write(staged: str) -> None:
-            t = time.perf_counter()
             save_run(staged, result, spec.to_dict(), trainer.disc, summary=summary, tables=tables)
             keep_live_scalars(live, staged)
-            write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t, 3),
+            # The results' copy to the host, the figures and the files (the closing checkpoint's wait before the
+            # evaluation is checkpoint_seconds).
+            write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t_write
+                                                                     + result.copy_seconds, 3),
                                    "checkpoint_write_seconds": round(saves.seconds, 3),
                                    **({"startup_seconds": round(startup, 3)} if startup is not None else {})})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
 
         rundir.publish_results(out, live, write)
-        write_seconds = time.perf_counter() - t_write + result.checkpoint_seconds  # the closing checkpoint too
+        # The results' copy to the host and the closing checkpoint's wait before the evaluation too: the wall's parts
+        # add up to it but for the exit.
+        write_seconds = time.perf_counter() - t_write + result.copy_seconds + result.checkpoint_seconds
     s = summary
     restored = f" ({s['restored_env_steps']:,} restored from the checkpoint)" if "restored_env_steps" in s else ""
     print(f"compiled in {s['compile_seconds']:.1f} s; {s['env_steps'] - s.get('restored_env_steps', 0):,} env steps "

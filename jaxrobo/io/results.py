@@ -32,6 +32,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
 import numpy as np
@@ -63,19 +64,24 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
     terminated = np.atleast_2d(terminated)
     n_envs, n_ep = returns.shape
     done = np.full(n_envs, n_ep) if episodes_done is None else np.minimum(np.asarray(episodes_done), n_ep)
-    with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
-        f.write(",".join(EPISODE_COLUMNS) + "\r\n")  # the csv module's dialect: nothing here needs quoting
-        f.write(episode_rows(returns, lengths, terminated, epsilon, done, max_csv_envs))
-    extra = {} if episodes_done is None else {"episodes_done": done}
-    # Only the episode slots some env recorded: a run that stopped at its learning target recorded a few of its
-    # nepisodes slots, and the empty rest is most of the bytes to write.
-    kept = int(done.max()) if n_envs else 0
-    write_npz_deflated(os.path.join(out_dir, "records.npz"), returns=returns[:, :kept], lengths=lengths[:, :kept],
-                       terminated=terminated[:, :kept], epsilon=np.asarray(epsilon)[:kept], **extra)
+    # The stats are computed while the records are written (at 1,048,576 envs on an H200 host, 2.9 s of stats
+    # after 1.9 s of records.npz, one after the other): both release Python's lock for most of their work.
+    with ThreadPoolExecutor(1, thread_name_prefix="jaxrobo-stats-all") as pool:
+        stats_future = pool.submit(episode_stats, returns, lengths, epsilon, done)
+        with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
+            f.write(",".join(EPISODE_COLUMNS) + "\r\n")  # the csv module's dialect: nothing here needs quoting
+            f.write(episode_rows(returns, lengths, terminated, epsilon, done, max_csv_envs))
+        extra = {} if episodes_done is None else {"episodes_done": done}
+        # Only the episode slots some env recorded: a run that stopped at its learning target recorded a few of its
+        # nepisodes slots, and the empty rest is most of the bytes to write.
+        kept = int(done.max()) if n_envs else 0
+        write_npz_deflated(os.path.join(out_dir, "records.npz"), returns=returns[:, :kept],
+                           lengths=lengths[:, :kept], terminated=terminated[:, :kept],
+                           epsilon=np.asarray(epsilon)[:kept], **extra)
+        stats = stats_future.result()
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(STAT_COLUMNS)
-        stats = episode_stats(returns, lengths, epsilon, done)
         for row in zip(*stats):
             w.writerow([int(row[0])] + [f"{v:.6g}" for v in row[1:]])
     return stats

@@ -454,9 +454,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
 
     # The records cross cut to their written columns (as the closing checkpoint cuts them: one copy), then
     # get their zeros back here.
+    t_copy = time.perf_counter()
     host = host_get(checkpoint_io.cut_records(runner.replace(key=None, env_state=None)))
     host = host.replace(**{name: checkpoint_io.pad_columns(np.asarray(getattr(host, name)), runner.returns.shape[1])
                            for name in ("returns", "lengths", "terminated")})
+    copy_seconds = time.perf_counter() - t_copy
     q = np.asarray(host.agent.q)
     return TrainResult(
         env_id=env.name, config=config, agent_params=agent_params,
@@ -472,7 +474,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         final_table_choice=final_choice,
         target_checks=checks if check_every else None, target_every=check_every,
         target_met_chunk=loop.checked_done_at, target_check_seconds=loop.check_seconds,
-        checkpoint_seconds=loop.save_seconds)
+        checkpoint_seconds=loop.save_seconds, copy_seconds=copy_seconds)
 
 
 # ---- a population of runs ----------------------------------------------------------------------------------------

@@ -13,7 +13,8 @@ Public surface: :class:`TrainResult`.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable
 
 import numpy as np
 
@@ -76,6 +77,9 @@ class TrainResult:
     #: Wall time of the checkpoint saved after the last chunk, before the evaluation (0: none was saved then; one
     #: written in a thread beside the evaluation, :class:`jaxrobo.training.checkpoint.SaveInThread`, its start).
     checkpoint_seconds: float = 0.0
+    #: Wall time of the carry's records and tables copied to the host after the evaluation (this result's arrays):
+    #: part of a run's writing (at 1,048,576 envs on an H200, 6.1 s for 8 GB of tables and 3 GB of records).
+    copy_seconds: float = 0.0
 
     @property
     def steps_per_second(self) -> float:
@@ -114,7 +118,9 @@ class TrainResult:
             width = max(min(int(np.max(self.episodes_done)), returns.shape[1]), 1)  # columns (nor its mask)
             mask, returns, lengths = self.recorded(width), returns[:, :width], lengths[:, :width]
         if mask is None:
-            best100 = np.sort(lengths.astype(np.float64), axis=1)[:, -100:].mean(axis=1)
+            # Each env's 100 longest (a sort of each row: most of this at a million envs), block by block.
+            best100 = np.concatenate(over_env_blocks(
+                returns.shape[0], lambda a, b: np.sort(lengths[a:b].astype(np.float64), axis=1)[:, -100:].mean(axis=1)))
             figures = {"highest_reward_mean": float(returns.max(axis=1).mean()),
                        "highest_reward_max": float(returns.max()),
                        "overall_mean_length": float(lengths.astype(np.float64).mean()),
@@ -202,19 +208,50 @@ def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, wind
     ``rank``'s direction, averaged over envs; an env with fewer recorded episodes than ``window`` gives the
     mean of all of them, one with none (``mask``: the recorded slots; None: all) is left out."""
     figure = np.asarray(figure)
-    # The recorded slots are each env's first ones (``TrainResult.recorded``), so the envs with the same count
-    # share one window width: one vectorised pass per distinct count, not a Python loop over (up to 10^6) envs.
     counts = np.full(figure.shape[0], figure.shape[1]) if mask is None else np.asarray(mask).sum(axis=1)
-    best = np.full(figure.shape[0], np.nan)
-    for n in np.unique(counts[counts > 0]):
-        rows = counts == n
-        w = min(window, int(n))
-        sums = np.cumsum(np.concatenate([np.zeros((int(rows.sum()), 1)), figure[rows, :n].astype(np.float64)], axis=1),
-                         axis=1)
-        means = (sums[:, w:] - sums[:, :-w]) / w
-        best[rows] = means.max(axis=1) if rank.higher else means.min(axis=1)
+
+    def block(a: int, b: int) -> np.ndarray:
+        # The recorded slots are each env's first ones (``TrainResult.recorded``): an env with n of them has its
+        # windows end at slots w..n of the prefix sums (w = min(window, n)); one with fewer than ``window`` has
+        # one window, all of them. Whole blocks at once, no loop over envs or over their counts (a loop over the
+        # distinct counts held Python's lock: 5.0-5.7 s at 1,048,576 envs on an H200 host, whatever the threads).
+        # The prefix sums up to a slot do not depend on the slots after it, so every window's mean is the one
+        # summed over that env's recorded slots alone.
+        c = counts[a:b]
+        sums = np.cumsum(np.concatenate([np.zeros((b - a, 1)), figure[a:b].astype(np.float64)], axis=1), axis=1)
+        best = np.full(b - a, np.nan)
+        few = (c > 0) & (c < window)
+        best[few] = np.take_along_axis(sums[few], c[few, None], axis=1)[:, 0] / c[few]
+        if figure.shape[1] >= window:
+            means = (sums[:, window:] - sums[:, :-window]) / window  # the window ending at slot window + i
+            inside = np.arange(means.shape[1])[None, :] <= (c - window)[:, None]
+            means = np.where(inside, means, -np.inf if rank.higher else np.inf)
+            many = c >= window
+            best[many] = (means.max(axis=1) if rank.higher else means.min(axis=1))[many]
+        return best
+
+    best = np.concatenate(over_env_blocks(figure.shape[0], block)) if figure.shape[0] else np.zeros(0)
     kept = best[counts > 0]
     return float(np.mean(kept)) if kept.size else float("nan")
+
+
+def over_env_blocks(n_envs: int, fn: Callable[[int, int], Any], *, threads: int | None = None) -> list:
+    """``[fn(a, b) for each block [a, b) of FIGURE_BLOCK_ENVS envs]``, in order, the blocks computed by a thread
+    per usable core (numpy's sorts, partitions and reductions release Python's lock). Each figure's per-env
+    values are row by row, so a block's are the same whichever thread computes it, and the reductions over
+    every env run once on the blocks put back together: the numbers do not depend on the thread count. At
+    1,048,576 envs x 330 recorded episodes the summary took 7.1 s of an H200 host's one core."""
+    starts = list(range(0, n_envs, FIGURE_BLOCK_ENVS))
+    ends = [min(a + FIGURE_BLOCK_ENVS, n_envs) for a in starts]
+    if threads is None:
+        from jaxrobo.core.environ import usable_cores
+
+        threads = usable_cores()
+    workers = min(len(starts), max(int(threads), 1))
+    if workers <= 1:
+        return [fn(a, b) for a, b in zip(starts, ends)]
+    with ThreadPoolExecutor(workers, thread_name_prefix="jaxrobo-figures") as pool:
+        return list(pool.map(fn, starts, ends))
 
 
 #: Envs per block of :func:`_masked_figures`: a block's float64 temporaries are memory the allocator reuses, where
@@ -237,26 +274,23 @@ def _masked_figures(returns: np.ndarray, lengths: np.ndarray, mask: np.ndarray) 
     count = mask.sum(axis=1)
     k = np.minimum(count, 100)
     n_envs, width = mask.shape
-    highest, best_sum = np.empty(n_envs), np.empty(n_envs)
-    last_returns = np.empty(int(k.sum()))  # the returns of each env's last k episodes, env by env
     slots = np.arange(width)[None, :]
     whole = np.issubdtype(lengths.dtype, np.integer)
-    length_sum, recorded_lengths, filled = 0, [], 0
-    for a in range(0, n_envs, FIGURE_BLOCK_ENVS):
-        b = min(a + FIGURE_BLOCK_ENVS, n_envs)
+
+    def block(a: int, b: int) -> tuple:
         m, r, ln = mask[a:b], returns[a:b], lengths[a:b]
-        highest[a:b] = np.where(m, r, -np.inf).max(axis=1)
+        highest = np.where(m, r, -np.inf).max(axis=1).astype(np.float64)
         kept = np.where(m, ln.astype(np.float64), -np.inf)
         top = kept if width <= 100 else np.partition(kept, width - 100, axis=1)[:, -100:]
-        best_sum[a:b] = np.where(np.isfinite(top), top, 0.0).sum(axis=1)
+        best_sum = np.where(np.isfinite(top), top, 0.0).sum(axis=1)
         last = (slots >= (count[a:b] - k[a:b])[:, None]) & (slots < count[a:b, None])
-        values = r[last]
-        last_returns[filled:filled + values.size] = values
-        filled += values.size
-        if whole:
-            length_sum += int(ln[m].sum(dtype=np.int64))
-        else:
-            recorded_lengths.append(ln[m].astype(np.float64))
+        # (the returns of each env's last k episodes, env by env; the recorded lengths' sum, exact in int64)
+        lengths_part = int(ln[m].sum(dtype=np.int64)) if whole else ln[m].astype(np.float64)
+        return highest, best_sum, r[last].astype(np.float64), lengths_part
+
+    highest, best_sum, last_returns, lengths_parts = (list(x) for x in zip(*over_env_blocks(n_envs, block)))
+    highest, best_sum, last_returns = np.concatenate(highest), np.concatenate(best_sum), np.concatenate(last_returns)
+    length_sum, recorded_lengths = (sum(lengths_parts), None) if whole else (0, lengths_parts)
     highest, best100 = highest[has], best_sum[has] / k[has]
     overall = np.float64(length_sum) / int(count.sum()) if whole else np.concatenate(recorded_lengths).mean()
     return {"highest_reward_mean": float(highest.mean()), "highest_reward_max": float(highest.max()),
