@@ -41,7 +41,7 @@ from jaxrobo.tabular import learner as tabular
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
 from jaxrobo.training import checkpoint as checkpoint_io
-from jaxrobo.speed import reuse
+from jaxrobo.speed import reuse, sharding
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
 from jaxrobo.task.env import ranking
@@ -134,7 +134,9 @@ def compiled_init(trainer: Trainer, key: jax.Array, agent_params: AgentParams, e
         jitted = trainer.jitted_init  # the trace the checkpoint's template made, if it made one
     else:
         out = jax.eval_shape(trainer.init, key, agent_params, env_params)
-        jitted = jax.jit(trainer.init, out_shardings=_carry_shardings(out, mesh, trainer.config.n_envs))
+        # (spmd_options: on CPUs the passes that round a program for several devices otherwise than one device's)
+        jitted = jax.jit(trainer.init, out_shardings=_carry_shardings(out, mesh, trainer.config.n_envs),
+                         compiler_options=sharding.spmd_options(trainer.plan.xla_options, mesh))
     return compile_under(trainer.plan, jitted, key, agent_params, env_params)
 
 
@@ -172,8 +174,10 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
                               check_vma=False)
         # The snapshots follow the whole run's progress, so they are kept outside the per-device kernels.
         fn = lambda r, ap, ep: trainer.keep_snapshots(steps(r, ap, ep))  # noqa: E731
-    jitted = jax.jit(fn, donate_argnums=0, compiler_options=plan.xla_options, in_shardings=(carry,) + params,
-                     out_shardings=carry)
+    # spmd_options: compiled as a sweep's rows are, so that each device's envs round as one device's do (on 4 forced
+    # CPU devices Goto-v2's per-env returns otherwise moved in their last bits from the first episode on).
+    jitted = jax.jit(fn, donate_argnums=0, compiler_options=sharding.spmd_options(plan.xla_options, mesh),
+                     in_shardings=(carry,) + params, out_shardings=carry)
     if not in_thread:
         return compile_under(plan, jitted, runner, agent_params, env_params)
     with plan.tracing():
@@ -887,7 +891,11 @@ class Flights:
                                                       parts).compile()
                     self._compiled[name] = (start.wait(), advance, time.perf_counter() - t)
                     return self._compiled[name]
-                start, advance = jax.jit(plan.traced(start)), jax.jit(plan.traced(advance))
+                # Over several devices, compiled as the chunk is (spmd_options), so that each flight rounds as one
+                # device's does.
+                opts = None if plan.devices == 1 else sharding.spmd_options(None, env_mesh(self.trainer))
+                start = jax.jit(plan.traced(start), compiler_options=opts)
+                advance = jax.jit(plan.traced(advance), compiler_options=opts)
                 if plan.devices == 1:  # compiled ahead (a thread may do it); over several devices
                     # the inputs' shardings vary between flights: jit compiles for each as they come
                     carry = jax.eval_shape(start, keys)
