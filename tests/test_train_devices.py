@@ -26,7 +26,8 @@ from jaxrobo.training.train import train
 
 small = dict(n_envs=8, nepisodes=4, nsteps=40, chunk_steps=25, eval_episodes=2, eval_envs=2, backend="analytic")
 out = {"devices": jax.device_count(), "cases": {}}
-# 4 envs a device: with 2 a device XLA's CPU code for the tiny batch rounds the quadcopter otherwise (docs/scaling.md)
+# 16 envs over 4 devices: XLA's CPU code rounds the quadcopter's step by its batch, and other splits (8 or 64
+# envs over 4) move its last bits (docs/scaling.md)
 goto = dict(n_envs=16, nepisodes=4, nsteps=40, chunk_steps=25, eval_episodes=2, eval_envs=2)
 cases = {"per_env": {}, "shared": {"shared_table": True}, "steps": {"total_steps": 8 * 60},
          "pallas": {"fused": "pallas"},
