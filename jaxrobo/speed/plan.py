@@ -5,10 +5,10 @@ envs are reset, whether table rows are carried, the XLA options) live in one fro
 built once from the device and the run's config by :meth:`ExecutionPlan.for_run` and passed explicitly to
 whatever traces the run: :class:`jaxrobo.training.trainer.Trainer` (and so :func:`jaxrobo.training.train.train`), the sweep's
 compiled groups, :class:`jaxrobo.interop.gym_adapter.JaxroboVectorEnv`, the benchmarks. Every choice gives the same
-values bit for bit (the tests compare them); what changes is the program XLA compiles (one exception found: on a CPU,
+values bit for bit (the tests compare them); what changes is the program XLA compiles (exceptions found: on a CPU,
 XLA rounds the quadcopter's step by the batch it is given, so ``env_group`` and ``devices`` may move its last bits
-there: docs/scaling.md). There are no module-global knobs: to measure another choice, build another plan
-(``plan.replace(lean_mjx=False)``).
+there, and on GPUs ``devices`` moves them: docs/scaling.md). There are no module-global knobs: to measure another
+choice, build another plan (``plan.replace(lean_mjx=False)``).
 
 The plan acts while a program is traced: its fields are read by the code that builds the step
 (:func:`step_batch`, the trainer's step), and the one choice that sits deep under the pure

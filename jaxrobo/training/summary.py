@@ -52,7 +52,8 @@ class TrainResult:
     episodes_done: np.ndarray | None = None  # [n_envs] finished episodes per env
     #: The task's declared target (:class:`jaxrobo.task.env.LearningTarget`; None: no target), for :meth:`summary`.
     learning_target: LearningTarget | None = None
-    plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it)
+    plan: str | None = None  # repr of the run's ExecutionPlan (how it ran; the values do not depend on it but for
+    # the device splits docs/scaling.md names)
     #: Env steps the carry had already run when this process restored it (``--resume``): ``env_steps`` counts
     #: them, the speed does not (they were run, and timed, by an earlier process).
     restored_env_steps: int = 0
