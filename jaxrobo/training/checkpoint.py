@@ -251,7 +251,7 @@ class SaveInThread:
     :meth:`release` before it reads the carry, at most :data:`HOLD_SECONDS`: the evaluation's few reads from the
     device wait behind that copy of the whole carry (1,048,576 envs on an H200: the evaluation took 5.7-7.0 s in
     runs whose copy was under way, 0.085 s in one whose copy started later: writing_parallel.json; the hold's own
-    effect on a GPU is not measured yet). The save is handed over before the evaluation either way, and a failed
+    effect: 0.06 s, run_end.json). The save is handed over before the evaluation either way, and a failed
     or stopped evaluation releases it."""
 
     #: The longest the closing save waits for :meth:`release` once held (a hung evaluation never holds it longer).
