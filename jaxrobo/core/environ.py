@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from typing import Any, Sequence
 
 #: jaxrobo's own variables: what each may hold (docs/scaling.md for the multi-host ones).
 JAXROBO_VARIABLES = {
@@ -218,3 +219,19 @@ def usable_cores() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
+
+
+def in_threads(fn: Any, starts: Sequence[int], ends: Sequence[int], *, threads: int | None = None,
+               name: str = "jaxrobo-blocks") -> list:
+    """``[fn(a, b) for a, b in zip(starts, ends)]``, in order, the blocks run by up to ``threads`` threads (default:
+    a thread per usable core; one block or one thread: in the caller). For numpy work on independent blocks of a
+    large array, whose sorts, reductions and copies release Python's lock: a block's result is the same whichever
+    thread computes it."""
+    threads = usable_cores() if threads is None else max(int(threads), 1)
+    workers = min(len(starts), threads)
+    if workers <= 1:
+        return [fn(a, b) for a, b in zip(starts, ends)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers, thread_name_prefix=name) as pool:
+        return list(pool.map(fn, starts, ends))

@@ -144,18 +144,9 @@ def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
     # stats were most of write_episodes (262,144 envs x 123 episodes on 2 CPU cores: 3.4 of 4.0 s; 2.2 s in all
     # with two threads), which took 38.8 s of a 1,048,576-env run's writing on an H200 host. Each block's numbers
     # are the same whichever thread computes it.
-    if threads is None:
-        from jaxrobo.core.environ import usable_cores
+    from jaxrobo.core.environ import in_threads
 
-        threads = usable_cores()
-    workers = min(len(starts), max(int(threads), 1))
-    if workers > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(workers, thread_name_prefix="jaxrobo-stats") as pool:
-            blocks = list(pool.map(block, starts, ends))
-    else:
-        blocks = [block(a, b) for a, b in zip(starts, ends)]
+    blocks = in_threads(block, starts, ends, threads=threads, name="jaxrobo-stats")
     columns = [np.concatenate(c) for c in zip(*blocks)] if blocks else [np.zeros(0)] * (len(STAT_COLUMNS) - 2)
     return [np.arange(n_ep), *columns, np.asarray(epsilon)[:n_ep]]
 

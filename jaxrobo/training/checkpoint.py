@@ -28,7 +28,6 @@ import threading
 import time
 import weakref
 import zipfile
-from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, Callable
 
 import jax
@@ -37,7 +36,7 @@ import numpy as np
 
 from jaxrobo.io import rundir
 from jaxrobo.core.config import ConfigError, flat_keys
-from jaxrobo.core.environ import usable_cores
+from jaxrobo.core.environ import in_threads, usable_cores
 
 if TYPE_CHECKING:
     from jaxrobo.tabular.learner import AgentParams
@@ -101,13 +100,10 @@ def pad_columns(x: np.ndarray, width: int, *, threaded_from: int = 64 << 20) -> 
         out[start:stop, :k] = x[start:stop]
         out[start:stop, k:] = 0
 
-    threads = usable_cores()
-    if threads == 1 or out.nbytes < threaded_from:
-        fill(0, x.shape[0])
-        return out
+    threads = 1 if out.nbytes < threaded_from else usable_cores()
     step = max(1, -(-x.shape[0] // threads))
-    with ThreadPoolExecutor(threads, thread_name_prefix="jaxrobo-pad") as pool:
-        list(pool.map(lambda start: fill(start, min(start + step, x.shape[0])), range(0, x.shape[0], step)))
+    starts = list(range(0, x.shape[0], step))
+    in_threads(fill, starts, [min(a + step, x.shape[0]) for a in starts], threads=threads, name="jaxrobo-pad")
     return out
 
 
