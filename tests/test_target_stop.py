@@ -68,6 +68,38 @@ def test_automatic_check_spacing_is_a_function_of_the_config():
     assert Trainer(spec.env, c).target_every() == every
 
 
+@pytest.mark.parametrize("env_id", ["ArmReach-v0", "QuadcopterGoto-v2", "QuadcopterGotoTwist-v0",
+                                    "CartPoleStayUp-v0", "CartPoleContinuous-v0"])
+def test_the_declared_task_fields_are_the_reset_states(env_id):
+    """Whether a success-rate target is measurable is read from the task hook's annotation (no trace of the reset
+    at start-up): where it names a dataclass, its fields are the traced reset's task fields."""
+    import dataclasses
+
+    import jaxrobo
+    from jaxrobo.task.env import reset_shapes, task_fields
+
+    env = jaxrobo.make(env_id)
+    task = getattr(reset_shapes(env), "task", None)
+    declared = task_fields(env)
+    if dataclasses.is_dataclass(task):
+        assert declared == tuple(f.name for f in dataclasses.fields(task))
+    else:  # CartPoleContinuous-v0: a tuple, which no dataclass annotation describes
+        assert declared is None
+
+
+def test_an_env_without_a_declared_task_is_traced_for_its_target(monkeypatch):
+    """Without the annotation (or wrapped), the trainer falls back to the reset's traced shapes: the same answer."""
+    from jaxrobo.training import trainer as trainer_mod
+
+    spec = resolve("ArmReach-v0", overrides={"n_envs": 4})
+    traced, shapes = [], trainer_mod.reset_shapes
+    monkeypatch.setattr(trainer_mod, "reset_shapes", lambda env: traced.append(env) or shapes(env))
+    declared = Trainer(spec.env, spec.config).target_every()
+    assert declared > 0 and not traced
+    monkeypatch.setattr(trainer_mod, "task_fields", lambda env: None)
+    assert Trainer(spec.env, spec.config).target_every() == declared and traced == [spec.env]
+
+
 def test_deep_runs_stop_at_the_first_evaluation_that_meets_the_target():
     from jaxrobo.deep.training import target_met
     from jaxrobo.task.env import LearningTarget

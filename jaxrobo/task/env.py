@@ -387,6 +387,25 @@ def reset_shapes(env: Env) -> Any:
     return state
 
 
+def task_fields(env: Env) -> tuple[str, ...] | None:
+    """The fields of ``env``'s task variables as its ``_init_env_variables`` hook declares them (the dataclass its
+    return annotation names), without tracing a reset; None where that says nothing certain: a wrapped env (a
+    wrapper may change the state), a hook without such an annotation. A learning-target check asks whether the
+    task records ``arrived`` before the run starts, and a trace of a task's reset takes tenths of a second."""
+    import typing
+
+    if len(layers(env)) != 1:
+        return None
+    hook = getattr(type(env), "_init_env_variables", None)
+    try:
+        declared = typing.get_type_hints(hook).get("return") if hook is not None else None
+    except Exception:  # noqa: BLE001 - an annotation that does not resolve says nothing
+        return None
+    if not (isinstance(declared, type) and dataclasses.is_dataclass(declared)):
+        return None
+    return tuple(f.name for f in dataclasses.fields(declared))
+
+
 def layers(env: Env) -> list[Env]:
     """The env and every env it wraps (wrappers hold theirs in ``.env``), outermost first."""
     out = [env]

@@ -45,7 +45,7 @@ from jaxrobo.tabular.learner import AgentParams, AgentState, Learner
 from jaxrobo.task import autoreset, registry, rollout
 from jaxrobo.core import rng
 from jaxrobo.tabular.discretise import MODES, Discretiser, make_discretiser_for
-from jaxrobo.task.env import Env, EnvState, ranking, reset_shapes
+from jaxrobo.task.env import Env, EnvState, ranking, reset_shapes, task_fields
 from jaxrobo.speed.plan import FUSED_CHOICES, ExecutionPlan, check_pallas, map_groups, physics_kernel, step_batch
 from jaxrobo.core.struct import param, pytree_dataclass
 
@@ -501,6 +501,9 @@ class Trainer:
     def _target_measurable(self, target: Any) -> bool:
         if target.metric != "success_rate":
             return True
+        declared = task_fields(self.env)  # the hook's annotation; else the reset's traced shapes
+        if declared is not None:
+            return "arrived" in declared
         return hasattr(getattr(reset_shapes(self.env), "task", None), "arrived")
 
     def max_chunks(self) -> int:
