@@ -284,5 +284,45 @@ def test_records_cross_cut_to_their_written_columns_and_come_back_whole():
         for whole, part in zip(carry[1:], cut[1:]):
             padded = ckpt.pad_columns(np.asarray(part), 9, threaded_from=threaded_from)
             assert padded.dtype == whole.dtype and np.array_equal(padded, np.asarray(whole))
+            assert padded.flags.f_contiguous  # the zero columns are memory nothing writes
     empty = Carry(None, *(jnp.zeros((5, 4), d) for d in (jnp.float32, jnp.int32, bool)))
     assert all(x.shape == (5, 0) for x in ckpt.cut_records(empty, from_bytes=0)[1:])
+
+
+@pytest.mark.parametrize("counts", ["masked", "equal"])
+def test_the_figures_and_stats_are_the_same_for_records_in_either_order(counts, tmp_path):
+    """A run that recorded fewer episodes than its slots hands its records over in Fortran order (pad_columns): the
+    summary's figures, ``episode_stats.csv`` and ``records.npz`` hold the same numbers, bit for bit, as from the
+    C-ordered arrays (numpy's reductions over the envs sum in the order of the memory they read; float returns
+    whose sums round)."""
+    from jaxrobo.io import results
+    from jaxrobo.task.env import ranking
+    from jaxrobo.training import summary as S
+    from jaxrobo.training.checkpoint import pad_columns
+
+    rng = np.random.default_rng(5)
+    n, width, k = 3000, 400, 150
+    done = rng.integers(k - 40, k + 1, n) if counts == "masked" else np.full(n, k - 20)
+    written = np.arange(k)[None, :] < done[:, None]
+    lengths = np.where(written, rng.integers(1, 500, (n, k)), 0).astype(np.int32)
+    returns = np.where(written, lengths * np.float32(0.37) - rng.random((n, k), np.float32) * 11, 0).astype(np.float32)
+    terminated = written & (lengths % 3 == 0)
+    c_order = [np.ascontiguousarray(pad_columns(x, width)) for x in (returns, lengths, terminated)]
+    f_order = [pad_columns(x, width) for x in (returns, lengths, terminated)]
+    assert c_order[0].flags.c_contiguous and f_order[0].flags.f_contiguous
+    eps = np.linspace(1.0, 0.0, width)
+    got = {}
+    for name, (r, ln, t) in {"C": c_order, "F": f_order}.items():
+        w = int(done.max())
+        mask = np.arange(w)[None, :] < done[:, None]
+        figures = S._masked_figures(r[:, :w], ln[:, :w], mask)
+        windows = [S.best_window(x[:, :w], mask, ranking(None)) for x in (r, ln)]
+        stats = results.write_episodes(str(tmp_path / name), r, ln, t, eps, episodes_done=done)
+        with np.load(tmp_path / name / "records.npz") as z:
+            records = {key: z[key] for key in z.files}
+        csv_text = (tmp_path / name / "episode_stats.csv").read_text() + (tmp_path / name / "episodes.csv").read_text()
+        got[name] = (figures, windows, stats, records, csv_text)
+    (fc, wc, sc, rc, tc), (ff, wf, sf, rf, tf) = got["C"], got["F"]
+    assert fc == ff and wc == wf and tc == tf
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(sc, sf))
+    assert rc.keys() == rf.keys() and all(np.array_equal(rc[key], rf[key]) for key in rc)

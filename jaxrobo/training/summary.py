@@ -29,7 +29,7 @@ class TrainResult:
     env_id: str
     config: TrainConfig
     agent_params: AgentParams
-    returns: np.ndarray  # [n_envs, nepisodes]
+    returns: np.ndarray  # [n_envs, nepisodes] (Fortran order where fewer were recorded: pad_columns)
     lengths: np.ndarray
     terminated: np.ndarray
     epsilon: np.ndarray  # [nepisodes]
