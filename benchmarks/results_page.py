@@ -47,6 +47,8 @@ WHAT = {
     "sweep_analytic.json": "Many independent runs in one sweep call, analytic backend (`benchmarks/sweep.py`)",
     "startup.json": "Start-up to the first training chunk, fresh and cached (`benchmarks/startup.py`)",
     "run_end_ab.json": "Whole commands before and after a change, alternating on one machine (the wall line's parts)",
+    "run_end_ab_tables.json": "A run's end before and after the checkpoint's tables file is written beside the "
+                              "records' cut, alternating on one machine (the wall line's parts)",
     "startup_analytic.json": "Start-up on the analytic backend (`benchmarks/startup.py`)",
     "arm_learning.json": "ArmReach-v0 learning over independent runs (`benchmarks/arm_learning.py`)",
     "goto_learning.json": "QuadcopterGoto-v1 learning over independent runs (`benchmarks/goto_learning.py`)",
