@@ -121,12 +121,17 @@ def test_a_checkpoint_of_another_config_or_code_is_refused(uninterrupted, tmp_pa
         ckpt.load_checkpoint(path, template, {**fingerprint, "jax": "0.0.1"})
 
 
-@pytest.mark.parametrize("shared", [False, True])
-def test_the_checkpoints_tables_are_the_results_file_and_load_back(tmp_path, shared):
+@pytest.mark.parametrize("shared,tables_first", [(False, True), (True, True), (False, False)])
+def test_the_checkpoints_tables_are_the_results_file_and_load_back(tmp_path, monkeypatch, shared, tables_first):
     """With ``tables=`` the carry's tables go to a file beside the checkpoint laid out as qtables.npz (what a
-    finished run links as its results); a later checkpoint replaces that file, the carry loads back whole."""
+    finished run links as its results); a later checkpoint replaces that file, the carry loads back whole. The
+    checkpoint names that file and its CRC in its last members, whichever copy starts first (an accelerator's
+    order, the records' copies before the tables', taken here on the CPU)."""
+    import zipfile
+
     from jaxrobo.io.results import discretiser_arrays, write_tables
 
+    monkeypatch.setattr(ckpt, "tables_copy_first", lambda tables: tables_first)
     spec = resolve("CartPoleStayUp-v0", overrides={**CARTPOLE, "shared_table": shared})
     trainer = Trainer(spec.env, spec.config)
     template = ckpt.carry_template(trainer, spec.agent_params)
@@ -142,6 +147,9 @@ def test_the_checkpoints_tables_are_the_results_file_and_load_back(tmp_path, sha
     assert all(rundir.owned(n) for n in os.listdir(tmp_path))
     with np.load(path, allow_pickle=False) as data:  # the tables are not in the checkpoint itself
         assert max(data[k].size for k in data.files if k.startswith("leaf_")) < runner.agent.q.size
+        assert data.files[-2:] == ["tables_file", "tables_crc"] and str(data["tables_file"]) == os.path.basename(second)
+    with zipfile.ZipFile(second) as zf:
+        assert int(np.load(path)["tables_crc"]) == zf.getinfo("q.npy").CRC
     q = np.asarray(runner.agent.q)
     write_tables(str(tmp_path), q[None] if shared else q, trainer.disc)  # what save_run writes without a link
     with np.load(second, allow_pickle=False) as a, np.load(tmp_path / "qtables.npz", allow_pickle=False) as b:

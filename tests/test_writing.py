@@ -143,6 +143,25 @@ def test_npz_members_are_numpys_bytes_whoever_writes_the_blocks(monkeypatch, tmp
         npz.write_npz_deflated(str(tmp_path / "pickled.npz"), x=np.array([object()]))
 
 
+def test_npz_members_given_as_functions_are_called_in_their_turn(tmp_path):
+    """A member given as a function is called once the members before it are written (a checkpoint's last members
+    name the tables' file written meanwhile); one that returns a large array is refused, and the file not renamed
+    in place by :func:`jaxrobo.io.rundir.atomic_savez`."""
+    from jaxrobo.io import npz, rundir
+
+    path, seen = tmp_path / "late.npz", []
+    big = np.ones((1 << 16, 8))
+    with open(path, "wb") as f:
+        npz.write_npz_deflated(f, compress=False, big=big, name=lambda: (seen.append(f.tell()), np.array("x"))[1])
+    assert seen[0] >= big.nbytes  # the large member was written before the function was called
+    with np.load(path, allow_pickle=False) as z:
+        assert z.files == ["big", "name"] and str(z["name"]) == "x" and np.array_equal(z["big"], big)
+    target = tmp_path / "refused.npz"
+    with pytest.raises(ValueError, match="late: an array given as a function must be at most"):
+        rundir.atomic_savez(str(target), a=np.zeros(3), late=lambda: np.zeros(npz.SMALL_BYTES // 8 + 1))
+    assert not target.exists()
+
+
 def test_crc32_of_blocks_combined_is_the_crc32_of_the_whole():
     """The writer checksums blocks in threads and combines their CRCs as zlib's ``crc32_combine`` does."""
     import zlib

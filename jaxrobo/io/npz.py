@@ -63,11 +63,16 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
     would be slower than the disk (0.5 GB of such tables: 1.1 s deflated by 4 threads, 0.4-0.5 s stored), and
     dense blocks go through level 1 at 35-65 MB/s a core for a third less. Where the file's large arrays are
     :data:`UNCACHED_ABOVE_BYTES` or more, it goes through :class:`UncachedWrites` (where the file system allows
-    it)."""
-    arrays = {name: np.asanyarray(value) for name, value in arrays.items()}
+    it).
+
+    A value may be a function of no arguments returning a small array (at most :data:`SMALL_BYTES`): it is called
+    when its turn comes, after the members before it are written (a checkpoint names the tables' file, written
+    meanwhile in another thread, in its last members)."""
+    arrays = {name: value if callable(value) else np.asanyarray(value) for name, value in arrays.items()}
     if threads is None:
         threads = usable_cores()
-    large = sum(x.nbytes for x in arrays.values() if x.nbytes > SMALL_BYTES)
+    eager = [x for x in arrays.values() if not callable(x)]
+    large = sum(x.nbytes for x in eager if x.nbytes > SMALL_BYTES)
     with contextlib.ExitStack() as stack:
         f = stack.enter_context(open(path, "wb")) if isinstance(path, (str, os.PathLike)) else path
         if large >= UNCACHED_ABOVE_BYTES:
@@ -76,9 +81,13 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
             except OSError:  # no O_DIRECT here (tmpfs, some network file systems): the page cache, as usual
                 pass
         pool = stack.enter_context(ThreadPoolExecutor(threads, thread_name_prefix="jaxrobo-npz")) \
-            if threads > 1 and any(x.nbytes > BLOCK_BYTES for x in arrays.values()) else None
+            if threads > 1 and any(x.nbytes > BLOCK_BYTES for x in eager) else None
         writer = _ZipWriter(f)
         for name, value in arrays.items():
+            if callable(value):
+                value = np.asanyarray(value())
+                if value.nbytes > SMALL_BYTES:
+                    raise ValueError(f"{name}: an array given as a function must be at most {SMALL_BYTES} bytes")
             header, blocks = _npy_parts(value)
             if value.nbytes <= SMALL_BYTES:
                 level = 1 if compress else None
