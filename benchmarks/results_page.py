@@ -49,6 +49,10 @@ WHAT = {
     "run_end_ab.json": "Whole commands before and after a change, alternating on one machine (the wall line's parts)",
     "run_end_ab_tables.json": "A run's end before and after the checkpoint's tables file is written beside the "
                               "records' cut, alternating on one machine (the wall line's parts)",
+    "run_end_ab_s15.json": "A run's end before and after the checkpoint's file is written beside its tables (and, "
+                           "on a GPU, the records' host copies start first), alternating; host copy rates",
+    "device_splits_one_program.json": "Training split over GPUs with each device's one-device program, against "
+                                      "one GPU: tables, records and figures compared",
     "startup_analytic.json": "Start-up on the analytic backend (`benchmarks/startup.py`)",
     "arm_learning.json": "ArmReach-v0 learning over independent runs (`benchmarks/arm_learning.py`)",
     "goto_learning.json": "QuadcopterGoto-v1 learning over independent runs (`benchmarks/goto_learning.py`)",

@@ -35,19 +35,28 @@ cases = {"per_env": {}, "shared": {"shared_table": True}, "steps": {"total_steps
          "snapshots": {"shared_table": True, "snapshots": 8, "snapshot_episodes": 2},
          # a physics step with reductions (XLA's CPU partitioner otherwise rounds them otherwise than one device)
          "goto_per_env": ("QuadcopterGoto-v2", {**goto, "shared_table": False, "snapshots": 0}),
-         "goto_shared": ("QuadcopterGoto-v2", {**goto, "shared_table": True})}
+         "goto_shared": ("QuadcopterGoto-v2", {**goto, "shared_table": True}),
+         # a step budget that 8 envs do not divide: each device's share steps ceil(total / 8) steps an env
+         "one_program_steps": {"total_steps": 8 * 60 + 5}, "one_program_episodes": {}}
+from jaxrobo.training import driver
+partitioned, taken = driver.per_device_chunk, []
 for name, extra in cases.items():
     env_id, extra = extra if isinstance(extra, tuple) else ("CartPoleStayUp-v0", {**small, **extra})
+    # "one_program_*": each device's envs stepped by the one-device program (shard_map), the split GPUs take for
+    # independent envs, taken on these CPUs for the cart-pole (whose CPU rounding does not follow the batch)
+    driver.per_device_chunk = (lambda trainer, mesh: not taken.append(name)) if name.startswith("one_program") \
+        else partitioned
     res = {}
     for d in (1, 4):
         spec = resolve(env_id, overrides={**extra, "devices": d})
         res[d] = train(spec.env, spec.config, spec.agent_params)
     out["cases"][name] = {
-        "plan": res[4].plan,
+        "plan": res[4].plan, "env_steps": int(res[4].env_steps),
         "same": {k: bool(np.array_equal(np.asarray(getattr(res[1], k)), np.asarray(getattr(res[4], k))))
                  for k in ("q", "returns", "lengths", "terminated", "env_steps", "eval_returns", "eval_success",
                            "final_table_choice")},
         "selected": json.dumps(res[1].selected, default=str) == json.dumps(res[4].selected, default=str)}
+out["one_program_taken"] = sorted(set(taken))
 from jaxrobo.cli import main
 rc = main(["train", "--env", "CartPoleStayUp-v0", "--set", "env.backend=analytic", "--n-envs", "6",
            "--total-steps", "300", "--set", "chunk_steps=25", "--set", "nsteps=40", "--set", "eval_episodes=2",
@@ -71,6 +80,8 @@ def test_several_devices_give_the_one_device_tables(tmp_path):
         assert "devices=4" in case["plan"], (name, case["plan"])
         assert all(case["same"].values()) and case["selected"], (name, case["same"])
     assert "fused=pallas" in out["cases"]["pallas"]["plan"]
+    assert out["cases"]["one_program_steps"]["env_steps"] == 8 * 61
+    assert out["one_program_taken"] == ["one_program_episodes", "one_program_steps"]
     # the CLI: 6 envs over the most of the 4 devices that divide 6 (3), one run directory
     assert out["cli_rc"] == 0
     summary = json.loads((run / "summary.json").read_text())

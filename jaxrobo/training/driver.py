@@ -164,15 +164,13 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
     rep = sharding.replicated(mesh)
     params = (jax.tree.map(lambda _: rep, agent_params), jax.tree.map(lambda _: rep, env_params))
     fn = trainer.run_chunk
-    if plan.fused == "pallas" and not physics_kernel(trainer.env):
+    if per_device_chunk(trainer, mesh):
         from jax.sharding import PartitionSpec as P
 
-        local = Trainer(trainer.env, dataclasses.replace(trainer.config, n_envs=n // plan.devices, devices=1),
-                        trainer.disc, trainer.learner, plan=plan.replace(devices=1))
         specs = jax.tree.map(lambda s: s.spec, carry)
-        steps = jax.shard_map(local._run_steps, mesh=mesh, in_specs=(specs, P(), P()), out_specs=specs,
-                              check_vma=False)
-        # The snapshots follow the whole run's progress, so they are kept outside the per-device kernels.
+        steps = jax.shard_map(per_device_trainer(trainer)._run_steps, mesh=mesh, in_specs=(specs, P(), P()),
+                              out_specs=specs, check_vma=False)
+        # The snapshots follow the whole run's progress, so they are kept outside the per-device programs.
         fn = lambda r, ap, ep: trainer.keep_snapshots(steps(r, ap, ep))  # noqa: E731
     # spmd_options: compiled as a sweep's rows are, so that each device's envs round as one device's do (on 4 forced
     # CPU devices Goto-v2's per-env returns otherwise moved in their last bits from the first episode on).
@@ -182,6 +180,29 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
         return compile_under(plan, jitted, runner, agent_params, env_params)
     with plan.tracing():
         return CompilingInThread(jitted.lower(runner, agent_params, env_params))
+
+
+def per_device_chunk(trainer: Trainer, mesh: Any) -> bool:
+    """Whether a run split over ``mesh`` steps each device's envs with the one-device program (``shard_map``)
+    rather than a chunk XLA partitions: always for the Pallas chunk kernel, which XLA cannot partition; and on
+    GPUs for envs that are independent (per-env tables, a budget per env), since there the partitioned program
+    rounded QuadcopterGoto-v2's step otherwise than one GPU's (device_splits.json), while one GPU's program
+    rounds alike whatever its batch (``env_group``). On CPUs the partitioned program, compiled without the CSE
+    passes, is the one that matches: XLA's CPU code rounds the quadcopter's step by the batch it is given."""
+    if trainer.plan.fused == "pallas" and not physics_kernel(trainer.env):
+        return True
+    independent = not trainer.config.shared_table and trainer.budget != "run_episodes"
+    return independent and any(d.platform != "cpu" for d in mesh.devices.flat)
+
+
+def per_device_trainer(trainer: Trainer) -> Trainer:
+    """The trainer of one device's share of ``trainer``'s envs (``n_envs / plan.devices``), its step budget
+    the same per env (``total_steps`` scaled to its envs)."""
+    c, d = trainer.config, trainer.plan.devices
+    local = c.n_envs // d
+    total = trainer.steps_per_env * local if trainer.budget == "steps" else c.total_steps
+    return Trainer(trainer.env, dataclasses.replace(c, n_envs=local, devices=1, total_steps=total), trainer.disc,
+                   trainer.learner, plan=trainer.plan.replace(devices=1))
 
 
 class CompilingInThread:
