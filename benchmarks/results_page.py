@@ -49,6 +49,8 @@ WHAT = {
     "run_end_ab.json": "Whole commands before and after a change, alternating on one machine (the wall line's parts)",
     "run_end_ab_tables.json": "A run's end before and after the checkpoint's tables file is written beside the "
                               "records' cut, alternating on one machine (the wall line's parts)",
+    "run_end_ab_s14.json": "A run's end before and after the records' Fortran-ordered padding and the tables' "
+                           "file in a thread (CPU-measured changes), alternating on a GPU host",
     "run_end_ab_s15.json": "A run's end before and after the checkpoint's file is written beside its tables (and, "
                            "on a GPU, the records' host copies start first), alternating; host copy rates",
     "device_splits_one_program.json": "Training split over GPUs with each device's one-device program, against "
