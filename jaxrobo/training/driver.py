@@ -168,7 +168,8 @@ def compiled_chunk(trainer: Trainer, runner: Runner, agent_params: AgentParams, 
         from jax.sharding import PartitionSpec as P
 
         specs = jax.tree.map(lambda s: s.spec, carry)
-        steps = jax.shard_map(per_device_trainer(trainer)._run_steps, mesh=mesh, in_specs=(specs, P(), P()),
+        local = trainer.share(n // plan.devices, plan.replace(devices=1), devices=1)  # one device's envs
+        steps = jax.shard_map(local._run_steps, mesh=mesh, in_specs=(specs, P(), P()),
                               out_specs=specs, check_vma=False)
         # The snapshots follow the whole run's progress, so they are kept outside the per-device programs.
         fn = lambda r, ap, ep: trainer.keep_snapshots(steps(r, ap, ep))  # noqa: E731
@@ -193,16 +194,6 @@ def per_device_chunk(trainer: Trainer, mesh: Any) -> bool:
         return True
     independent = not trainer.config.shared_table and trainer.budget != "run_episodes"
     return independent and any(d.platform != "cpu" for d in mesh.devices.flat)
-
-
-def per_device_trainer(trainer: Trainer) -> Trainer:
-    """The trainer of one device's share of ``trainer``'s envs (``n_envs / plan.devices``), its step budget
-    the same per env (``total_steps`` scaled to its envs)."""
-    c, d = trainer.config, trainer.plan.devices
-    local = c.n_envs // d
-    total = trainer.steps_per_env * local if trainer.budget == "steps" else c.total_steps
-    return Trainer(trainer.env, dataclasses.replace(c, n_envs=local, devices=1, total_steps=total), trainer.disc,
-                   trainer.learner, plan=trainer.plan.replace(devices=1))
 
 
 class CompilingInThread:

@@ -446,15 +446,23 @@ class Trainer:
         body = lambda r, _: (self.step(r, agent_params, env_params), None)  # noqa: E731
         return jax.lax.scan(body, runner, None, length=self.config.chunk_steps)[0]
 
+    def share(self, n_envs: int, plan: ExecutionPlan, **config: Any) -> "Trainer":
+        """A trainer of ``n_envs`` of this trainer's envs (a block of them, or one device's) under ``plan``: the
+        same env, learner and discretiser, the step budget the same per env (``total_steps`` scaled to its envs, so
+        that :attr:`steps_per_env` is this trainer's), ``config`` replacing other fields."""
+        c = self.config
+        total = self.steps_per_env * n_envs if self.budget == "steps" else c.total_steps
+        return Trainer(self.env, dataclasses.replace(c, n_envs=n_envs, total_steps=total, **config), self.disc,
+                       self.learner, plan=plan)
+
     def _block_trainer(self, size: int) -> "Trainer":
-        """A trainer for ``size`` of this trainer's envs: the same env, learner, discretiser and plan, unfused (it
-        is the block's body), with the plan's reset capacity scaled to the block."""
+        """A trainer for ``size`` of this trainer's envs (:meth:`share`), unfused (it is the block's body), with the
+        plan's reset capacity scaled to the block."""
         c, plan = self.config, self.plan
         capacity = None
         if plan.reset_capacity is not None and plan.reset_capacity < c.n_envs:
             capacity = max(1, -(-plan.reset_capacity * size // c.n_envs))
-        return Trainer(self.env, dataclasses.replace(c, n_envs=size), self.disc, self.learner,
-                       plan=plan.replace(fused="off", fused_block=None, reset_capacity=capacity))
+        return self.share(size, plan.replace(fused="off", fused_block=None, reset_capacity=capacity))
 
     def run_chunk_blocked(self, runner: Runner, agent_params: AgentParams, env_params: Any, block: int) -> Runner:
         """``run_chunk`` with the loop over steps inside a loop over blocks of ``block`` envs (the last block
