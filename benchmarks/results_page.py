@@ -53,6 +53,8 @@ WHAT = {
                            "file in a thread (CPU-measured changes), alternating on a GPU host",
     "run_end_ab_s15.json": "A run's end before and after the checkpoint's file is written beside its tables (and, "
                            "on a GPU, the records' host copies start first), alternating; host copy rates",
+    "run_end_ab_s16.json": "A run's end before and after the tables cross to the host as their nonzero entries (and "
+                           "the summary is computed beside the episode files), alternating",
     "device_splits_one_program.json": "Training split over GPUs with each device's one-device program, against "
                                       "one GPU: tables, records and figures compared",
     "startup_analytic.json": "Start-up on the analytic backend (`benchmarks/startup.py`)",

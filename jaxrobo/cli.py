@@ -662,7 +662,12 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
             return 128 + stop.signum
 
         t_write = time.perf_counter()
-        summary = result.summary()  # once: summary.json and the lines below (a sort of every env's records)
+        # Once: summary.json and the lines below (a sort of every env's records), computed in a thread while the
+        # episode files are written (65,536 envs on an H200 host: 0.3 s each, one after the other before).
+        from concurrent.futures import ThreadPoolExecutor
+
+        figures = ThreadPoolExecutor(1, thread_name_prefix="jaxrobo-summary")
+        pending_summary = figures.submit(result.summary)
 
         def tables() -> str | None:
             """The closing checkpoint's tables, once written: the result's unless the run chose its final table
@@ -672,18 +677,22 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
                 and result.final_table_choice is None else None
 
         def write(staged: str) -> None:
-            save_run(staged, result, spec.to_dict(), trainer.disc, summary=summary, tables=tables)
+            save_run(staged, result, spec.to_dict(), trainer.disc, summary=pending_summary.result, tables=tables)
             keep_live_scalars(live, staged)
             # The results' copy to the host, the figures and the files (the closing checkpoint's wait before the
             # evaluation is checkpoint_seconds).
-            write_summary(staged, {**summary, "write_seconds": round(time.perf_counter() - t_write
-                                                                     + result.copy_seconds, 3),
+            write_summary(staged, {**pending_summary.result(),
+                                   "write_seconds": round(time.perf_counter() - t_write + result.copy_seconds, 3),
                                    "checkpoint_write_seconds": round(saves.seconds, 3),
                                    **({"startup_seconds": round(startup, 3)} if startup is not None else {})})
             rundir.write_status(staged, rundir.COMPLETE, chunks_done=result.chunks_done, chunks=n_chunks,
                                 **({"resumed_after_chunk": start_chunk} if resume else {}))
 
-        rundir.publish_results(out, live, write)
+        try:
+            rundir.publish_results(out, live, write)
+        finally:
+            figures.shutdown(wait=True)  # a failed write still leaves no thread reading the result
+        summary = pending_summary.result()
         # The results' copy to the host and the closing checkpoint's wait before the evaluation too: the wall's parts
         # add up to it but for the exit.
         write_seconds = time.perf_counter() - t_write + result.copy_seconds + result.checkpoint_seconds

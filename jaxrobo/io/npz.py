@@ -67,8 +67,11 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
 
     A value may be a function of no arguments returning a small array (at most :data:`SMALL_BYTES`): it is called
     when its turn comes, after the members before it are written (a checkpoint names the tables' file, written
-    meanwhile in another thread, in its last members)."""
-    arrays = {name: value if callable(value) else np.asanyarray(value) for name, value in arrays.items()}
+    meanwhile in another thread, in its last members). A value with ``npy_pieces(BLOCK_BYTES)`` (and ``shape``,
+    ``dtype``, ``nbytes``: a :class:`jaxrobo.training.nonzero_copy.NonzeroCopy`) is written from the pieces it
+    makes, C-ordered, the same bytes as its dense array's."""
+    arrays = {name: value if callable(value) or _pieced(value) else np.asanyarray(value)
+              for name, value in arrays.items()}
     if threads is None:
         threads = usable_cores()
     eager = [x for x in arrays.values() if not callable(x)]
@@ -97,7 +100,12 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
         writer.close()
 
 
-def _npy_parts(value: np.ndarray) -> tuple[bytes, list[memoryview | _Rows]]:
+def _pieced(value: Any) -> bool:
+    """Whether ``value`` gives its bytes in pieces (``npy_pieces``) rather than as an array."""
+    return not isinstance(value, np.ndarray) and hasattr(value, "npy_pieces")
+
+
+def _npy_parts(value: Any) -> tuple[bytes, list[Any]]:
     """The ``.npy`` header ``np.lib.format.write_array`` writes for ``value``, and its data in blocks of about
     :data:`BLOCK_BYTES`: views of the array's own memory where it is contiguous (in C or Fortran order), otherwise
     blocks of rows (:class:`_Rows`) copied one at a time by the thread that takes them, so that a strided array (an
@@ -106,6 +114,10 @@ def _npy_parts(value: np.ndarray) -> tuple[bytes, list[memoryview | _Rows]]:
     if value.dtype.hasobject:
         raise ValueError("Object arrays cannot be saved when allow_pickle=False")
     head = io.BytesIO()
+    if _pieced(value):
+        fmt.write_array_header_1_0(head, {"descr": fmt.dtype_to_descr(np.dtype(value.dtype)), "fortran_order": False,
+                                          "shape": tuple(value.shape)})
+        return head.getvalue(), value.npy_pieces(BLOCK_BYTES)
     fmt.write_array_header_1_0(head, fmt.header_data_from_array_1_0(value))
     fortran = value.flags.f_contiguous and not value.flags.c_contiguous
     if value.flags.c_contiguous or fortran:
@@ -126,11 +138,11 @@ class _Rows:
         return memoryview(np.ascontiguousarray(self.value[self.start:self.stop]).reshape(-1).view(np.uint8))
 
 
-def _block(piece: memoryview | _Rows, level: int | None, last: bool) -> tuple[bytes | memoryview, int]:
+def _block(piece: Any, level: int | None, last: bool) -> tuple[bytes | memoryview, int]:
     """One block's bytes as the member holds them, and its CRC-32: the piece's bytes themselves (``level`` None:
     stored), or a piece of one raw deflate stream at ``level`` (-1: 1 where :data:`SPARSE_SHARE` of its bytes are
     zero, else 0)."""
-    data = piece.view() if isinstance(piece, _Rows) else piece
+    data = piece if isinstance(piece, memoryview) else piece.view()  # a _Rows or another maker of its bytes
     crc = zlib.crc32(data)
     if level is None:
         return data, crc

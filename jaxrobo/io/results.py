@@ -209,7 +209,7 @@ def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None, *
             return
         except OSError:
             pass
-    write_npz_deflated(path, q=np.asarray(q), **discretiser_arrays(disc))
+    write_npz_deflated(path, q=q if hasattr(q, "npy_pieces") else np.asarray(q), **discretiser_arrays(disc))
 
 
 def write_summary(out_dir: str, summary: dict[str, Any]) -> None:
@@ -247,9 +247,11 @@ def write_tensorboard(out_dir: str, stats: list) -> None:
 
 
 def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None,
-             summary: dict[str, Any] | None = None, tables: str | Callable[[], str | None] | None = None) -> str:
+             summary: dict[str, Any] | Callable[[], dict[str, Any]] | None = None,
+             tables: str | Callable[[], str | None] | None = None) -> str:
     """Write everything a :class:`jaxrobo.training.summary.TrainResult` holds into ``out_dir``; returns ``out_dir``.
-    ``summary``: ``result.summary()`` where the caller has it already (None: computed here). ``tables``: a file
+    ``summary``: ``result.summary()`` where the caller has it already, or a function giving it (called after the
+    episode files are written: the caller may be computing it meanwhile), or None: computed here. ``tables``: a file
     holding ``result.q`` as ``qtables.npz`` would (:func:`write_tables`' ``link``), or a function giving it (or
     None), called once everything else is written: the checkpoint that writes that file may still be writing it
     (:class:`jaxrobo.training.checkpoint.SaveInThread`).
@@ -265,11 +267,11 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
     partial = not result.all_recorded() if hasattr(result, "all_recorded") else False
     stats = write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
                            episodes_done=result.episodes_done if partial else None)
-    write_summary(out_dir, result.summary() if summary is None else summary)
+    write_summary(out_dir, result.summary() if summary is None else summary() if callable(summary) else summary)
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)
     write_tensorboard(out_dir, stats)  # the CSV's statistics, not computed again
-    write_tables(out_dir, result.q, disc, link=tables() if callable(tables) else tables)
+    write_tables(out_dir, result.tables, disc, link=tables() if callable(tables) else tables)
     return out_dir
 
 

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.io import rundir
+from jaxrobo.training import nonzero_copy
 from jaxrobo.core.config import ConfigError, flat_keys
 from jaxrobo.core.environ import in_threads, usable_cores
 
@@ -227,7 +228,7 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
     pool = ThreadPoolExecutor(1, thread_name_prefix="jaxrobo-tables") if one else None
     try:
         def start_tables():
-            return pool.submit(lambda: _write_tables(directory, np.asarray(jax.device_get(uncut[table][1])), tables))
+            return pool.submit(lambda: _write_tables(directory, nonzero_copy.host_copy(uncut[table][1]), tables))
         pending = start_tables() if tables_first else None
         with_paths = jax.tree_util.tree_flatten_with_path(cut_records(runner))[0]
         leaves = [x for _, x in with_paths]
@@ -353,8 +354,9 @@ TABLES_LEAF = ".agent.q"
 _TABLES_NAME = re.compile(r"checkpoint\.tables\.[0-9a-f]{8}\.npz")
 
 
-def _write_tables(directory: str, q: np.ndarray, extra: dict[str, Any]) -> tuple[str, int]:
-    """``q`` (a shared table given a leading axis of one) and ``extra`` to a fresh ``checkpoint.tables.<id>.npz``
+def _write_tables(directory: str, q: Any, extra: dict[str, Any]) -> tuple[str, int]:
+    """``q`` (an array or its :class:`~jaxrobo.training.nonzero_copy.NonzeroCopy`; a shared table given a leading
+    axis of one) and ``extra`` to a fresh ``checkpoint.tables.<id>.npz``
     in ``directory``, atomically and flushed to disk (as ``qtables.npz`` is written:
     :func:`jaxrobo.io.npz.write_npz_deflated`); returns its path and the CRC-32 of its ``q``."""
     from jaxrobo.io.npz import write_npz_deflated

@@ -41,6 +41,7 @@ from jaxrobo.tabular import learner as tabular
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
 from jaxrobo.training import checkpoint as checkpoint_io
+from jaxrobo.training import nonzero_copy
 from jaxrobo.speed import reuse, sharding
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
@@ -468,14 +469,15 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
                                 if checkpoint is not None else ""))
         eval_seconds = time.perf_counter() - t_eval
 
-    # The records cross cut to their written columns (as the closing checkpoint cuts them: one copy), then
-    # get their zeros back here.
+    # The records cross cut to their written columns, the tables as their nonzero entries (as the closing
+    # checkpoint copies them: their bytes cross once), and get their zeros back here; the tables only where read.
     t_copy = time.perf_counter()
-    host = host_get(checkpoint_io.cut_records(runner.replace(key=None, env_state=None)))
+    rest = runner.replace(key=None, env_state=None, agent=runner.agent.replace(q=None))
+    host = host_get(checkpoint_io.cut_records(rest))
     host = host.replace(**{name: checkpoint_io.pad_columns(np.asarray(getattr(host, name)), runner.returns.shape[1])
                            for name in ("returns", "lengths", "terminated")})
+    q = host_get(runner.agent.q) if jax.process_count() > 1 else nonzero_copy.host_copy(runner.agent.q)
     copy_seconds = time.perf_counter() - t_copy
-    q = np.asarray(host.agent.q)
     return TrainResult(
         env_id=env.name, config=config, agent_params=agent_params,
         returns=np.asarray(host.returns), lengths=np.asarray(host.lengths), terminated=np.asarray(host.terminated),

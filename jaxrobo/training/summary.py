@@ -35,7 +35,9 @@ class TrainResult:
     epsilon: np.ndarray  # [nepisodes]
     nan_episodes: np.ndarray  # [n_envs]
     env_steps: int
-    q: np.ndarray  # [n_envs or 1, n_tables, n_states, n_actions]
+    #: ``[n_envs or 1, n_tables, n_states, n_actions]``. May be given as the tables' host copy of their nonzero
+    #: entries (:class:`jaxrobo.training.nonzero_copy.NonzeroCopy`, ``tables``): made dense when first read.
+    q: np.ndarray
     compile_seconds: float
     run_seconds: float
     eval_returns: np.ndarray | None = None  # [eval_envs, eval_episodes]
@@ -80,6 +82,12 @@ class TrainResult:
     #: Wall time of the carry's records and tables copied to the host after the evaluation (this result's arrays):
     #: part of a run's writing (at 1,048,576 envs on an H200, 6.1 s for 8 GB of tables and 3 GB of records).
     copy_seconds: float = 0.0
+
+    @property
+    def tables(self) -> Any:
+        """``q`` as it was given: an array, or its :class:`~jaxrobo.training.nonzero_copy.NonzeroCopy` (written to a
+        file block by block without the dense array, :func:`jaxrobo.io.results.write_tables`)."""
+        return self.__dict__["q"]
 
     @property
     def steps_per_second(self) -> float:
@@ -201,6 +209,22 @@ class TrainResult:
             out["selected_table_fresh_mean_length"] = float(self.selected["lengths"].mean())
             out["selected_table_fresh_mean_return"] = float(self.selected["returns"].mean())
         return out
+
+
+def _q(result: TrainResult) -> np.ndarray:
+    q = result.__dict__["q"]
+    if not isinstance(q, np.ndarray) and hasattr(q, "dense"):  # a NonzeroCopy: dense from its first read on
+        q = result.__dict__["q"] = q.dense()
+    return q
+
+
+def _set_q(result: TrainResult, q: Any) -> None:
+    result.__dict__["q"] = q
+
+
+# ``q`` read through a property (dataclasses sets it in __init__ through the setter): a 1 M-env run's 8 GB of tables
+# are made dense only if something reads them, not to write qtables.npz.
+TrainResult.q = property(_q, _set_q, doc="The learner's tables, dense when read.")  # type: ignore[assignment]
 
 
 def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, window: int = 100) -> float:

@@ -1,0 +1,189 @@
+"""A device array's host copy made from its nonzero entries: which entries are nonzero (a bit each) and their values
+cross to the host, the zeros are made there.
+
+Why: a run's per-env Q-tables are mostly unvisited entries, still zero (1 M cart-pole envs stopped at their target:
+8 GB, 93 % zero bytes), and the copy to the host was the largest part of a big run's end: an H200 host copied
+into fresh host memory at 0.8-1.5 GB/s however the copy was issued (``benchmarks/results/h200/run_end_ab_s15.json``),
+so 4.7 s of the tables alone at 1 M envs, 0.5 s at 65,536. Here two small programs run on the device: one packs
+the mask (entries whose bits are not all zero, so ``-0.0`` is kept as it is) and counts the nonzero entries of each
+block of :data:`jaxrobo.io.npz.BLOCK_BYTES`; the other gathers those entries' bits in order into an array sized
+to their count (rounded up to one of 16 sizes an octave, so that runs of other counts reuse its compiled program).
+About a bit and a tenth of an entry's bytes cross instead of the entry.
+
+The host copy (:class:`NonzeroCopy`) is made dense only where it is read: :meth:`NonzeroCopy.dense` (a thread
+per core, block by block), or block by block by the ``.npz`` writer (:func:`jaxrobo.io.npz.write_npz_deflated`
+takes it as an array), whose file is the same bytes as the dense array's. The same array copied again (the
+closing checkpoint's thread, then the run's result) gives the same copy while the array lives: its bytes cross once.
+
+Used on accelerators only, for arrays of :data:`FROM_BYTES` or more with at most :data:`MAX_SHARE` of their
+entries nonzero (otherwise, and on CPUs where the array is host memory already, the plain copy: a numpy array).
+The values are the array's bit for bit either way.
+
+Public surface: :func:`host_copy`, :class:`NonzeroCopy`, :data:`FROM_BYTES`, :data:`MAX_SHARE`.
+"""
+from __future__ import annotations
+
+import functools
+import threading
+import weakref
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrobo.core.environ import in_threads, usable_cores
+
+#: Arrays smaller than this cross whole (the two programs and their reads cost more than they save).
+FROM_BYTES = 64 << 20
+#: Arrays with more than this share of nonzero entries cross whole (mask and values would be most of their bytes).
+MAX_SHARE = 0.75
+
+
+class NonzeroCopy:
+    """A host copy of an array as the mask of its nonzero entries (``bits``: packed, ``np.packbits`` order over the
+    flat C-ordered entries) and their bit patterns in order (``values``, padded at the end), with the count of
+    nonzero entries in each block of ``block`` entries (``counts``). Shaped like the array (``shape``, ``dtype``,
+    ``ndim``, ``nbytes``, ``size``; :meth:`reshape`); :meth:`dense` makes the array, :meth:`npy_pieces` its bytes
+    block by block for the ``.npz`` writer."""
+
+    def __init__(self, shape: tuple[int, ...], dtype: Any, bits: np.ndarray, values: np.ndarray, counts: np.ndarray,
+                 block: int) -> None:
+        self.shape, self.dtype, self.block = tuple(int(n) for n in shape), np.dtype(dtype), int(block)
+        self.bits, self.values = bits, values
+        self.counts = np.asarray(counts, np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(self.counts)])  # where each block's values start
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+    def reshape(self, *shape: Any) -> "NonzeroCopy":
+        """The same entries under another shape (C order, as ``np.reshape``)."""
+        shape = tuple(shape[0]) if len(shape) == 1 and isinstance(shape[0], (tuple, list)) else shape
+        if int(np.prod(shape, dtype=np.int64)) != self.size:
+            raise ValueError(f"cannot reshape {self.shape} into {shape}")
+        copy = object.__new__(NonzeroCopy)
+        copy.__dict__.update(self.__dict__, shape=tuple(int(n) for n in shape))
+        return copy
+
+    def __getitem__(self, index: Any) -> "NonzeroCopy":
+        """Only ``copy[None]`` (a leading axis of one, as a shared table is given in ``qtables.npz``)."""
+        if index is None:
+            return self.reshape((1, *self.shape))
+        raise TypeError("a NonzeroCopy is indexed only by None; take .dense() first")
+
+    def fill(self, out: np.ndarray, start: int, stop: int) -> None:
+        """Entries ``start:stop`` (flat; ``start`` a multiple of ``block``) into ``out`` (their length)."""
+        word = np.dtype(f"u{self.dtype.itemsize}")
+        k = start // self.block
+        mask = np.unpackbits(self.bits[start // 8:-(-stop // 8)], count=stop - start).view(bool)
+        target = out.view(word)
+        target[...] = 0
+        target[mask] = self.values[self.offsets[k]:self.offsets[k] + int(mask.sum())]
+
+    def dense(self) -> np.ndarray:
+        """The array (a thread per core, a block each at a time)."""
+        out = np.empty(self.size, self.dtype)
+        starts = list(range(0, self.size, self.block))
+        stops = [min(s + self.block, self.size) for s in starts]
+        in_threads(lambda a, b: self.fill(out[a:b], a, b), starts, stops,
+                   threads=1 if len(starts) < 2 else usable_cores(), name="jaxrobo-dense")
+        return out.reshape(self.shape)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        out = self.dense()
+        return out if dtype is None else out.astype(dtype)
+
+    def npy_pieces(self, block_bytes: int) -> list["_Piece"]:
+        """The array's C-ordered bytes in pieces of ``block_bytes`` (which must be ``block`` entries), each made
+        when the writer's thread takes it."""
+        if block_bytes != self.block * self.dtype.itemsize:
+            raise ValueError(f"pieces of {block_bytes} bytes asked of a copy counted in blocks of {self.block} "
+                             "entries")
+        return [_Piece(self, s, min(s + self.block, self.size)) for s in range(0, self.size, self.block)]
+
+
+class _Piece:
+    """Entries ``start:stop`` of a :class:`NonzeroCopy`, as bytes made when :meth:`view` is called."""
+
+    def __init__(self, copy: NonzeroCopy, start: int, stop: int) -> None:
+        self.copy, self.start, self.stop = copy, start, stop
+        self.nbytes = (stop - start) * copy.dtype.itemsize
+
+    def view(self) -> memoryview:
+        out = np.empty(self.stop - self.start, self.copy.dtype)
+        self.copy.fill(out, self.start, self.stop)
+        return memoryview(out.view(np.uint8))
+
+
+def _word(dtype: Any) -> Any:
+    return jnp.dtype(f"uint{8 * jnp.dtype(dtype).itemsize}")
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _mask(x: jax.Array, block: int) -> tuple[jax.Array, jax.Array]:
+    """The packed mask of ``x``'s nonzero entries (bits not all zero) and their count per block of entries."""
+    nonzero = jax.lax.bitcast_convert_type(x, _word(x.dtype)).reshape(-1) != 0
+    pad = -nonzero.size % block
+    counts = jnp.pad(nonzero, (0, pad)).reshape(-1, block).sum(axis=1, dtype=jnp.int32)
+    return jnp.packbits(nonzero), counts
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _gather(x: jax.Array, cap: int) -> jax.Array:
+    """The bits of ``x``'s nonzero entries in order, in an array of ``cap`` (at least their count)."""
+    bits = jax.lax.bitcast_convert_type(x, _word(x.dtype)).reshape(-1)
+    nonzero = bits != 0
+    at = jnp.where(nonzero, jnp.cumsum(nonzero, dtype=jnp.int32) - 1, cap)
+    return jnp.zeros(cap, bits.dtype).at[at].set(bits, mode="drop")
+
+
+def _rounded(count: int) -> int:
+    """``count`` rounded up to one of 16 sizes an octave (at least 1,024)."""
+    step = 1 << max(10, count.bit_length() - 4)
+    return max(step, -(-count // step) * step)
+
+
+_LOCK = threading.Lock()
+_COPIES: dict[int, tuple[weakref.ref, Any]] = {}
+
+
+def host_copy(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) -> np.ndarray | NonzeroCopy:
+    """``x`` on the host: a :class:`NonzeroCopy` where it is a single-process accelerator array of ``from_bytes``
+    (default :data:`FROM_BYTES`) or more with at most :data:`MAX_SHARE` of its entries nonzero, else the plain
+    copy (``np.asarray(jax.device_get(x))``). ``on_cpu``: a CPU array too (tests). The same array asked for again
+    while it lives (by another thread too) gives the same copy, made once."""
+    from jaxrobo.io import npz
+
+    from_bytes = FROM_BYTES if from_bytes is None else from_bytes
+    if not isinstance(x, jax.Array) or x.nbytes < from_bytes or x.size == 0 or jax.process_count() > 1 \
+            or (not on_cpu and {d.platform for d in x.devices()} == {"cpu"}) or x.dtype.itemsize not in (1, 2, 4, 8):
+        return np.asarray(jax.device_get(x))
+    with _LOCK:
+        hit = _COPIES.get(id(x))
+        if hit is not None and hit[0]() is x:
+            return hit[1]
+        block = max(8, npz.BLOCK_BYTES // x.dtype.itemsize)
+        copy: Any = None
+        try:
+            bits, counts = jax.device_get(_mask(x, block))
+            total = int(np.asarray(counts, np.int64).sum())
+            if total <= MAX_SHARE * x.size and total < 2 ** 31 - 1:
+                values = np.asarray(jax.device_get(_gather(x, _rounded(total))))
+                copy = NonzeroCopy(x.shape, x.dtype, np.asarray(bits), values, counts, block)
+        except RuntimeError:  # the programs' temporaries did not fit beside the run's arrays: the plain copy
+            copy = None
+        if copy is None:
+            copy = np.asarray(jax.device_get(x))
+        _COPIES.clear()  # the latest array only: a run's tables, copied by its checkpoint and its result
+        _COPIES[id(x)] = (weakref.ref(x, lambda _, key=id(x): _COPIES.pop(key, None)), copy)
+        return copy

@@ -1,0 +1,123 @@
+"""The tables' host copy made from their nonzero entries (jaxrobo.training.nonzero_copy): the same values bit for bit,
+the same file bytes, one copy however often asked for, and a run's files the same as with the plain copy."""
+from __future__ import annotations
+
+import functools
+import io
+import os
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxrobo.cli import main
+from jaxrobo.io import npz
+from jaxrobo.training import nonzero_copy
+from jaxrobo.training.nonzero_copy import NonzeroCopy, host_copy
+from jaxrobo.training.summary import TrainResult
+
+
+def _sparse(shape, share, seed=0):
+    """Mostly zeros, a few -0.0 and a NaN's bits among the others (bits, not values, are what is kept)."""
+    rng = np.random.default_rng(seed)
+    a = np.zeros(shape, np.float32)
+    nonzero = rng.random(shape) < share
+    a[nonzero] = rng.normal(size=int(nonzero.sum())).astype(np.float32)
+    flat = a.reshape(-1)
+    flat[: min(3, flat.size)] = -0.0
+    flat[-1:] = np.nan
+    return a
+
+
+def _npz_bytes(q, threads):
+    f = io.BytesIO()
+    npz.write_npz_deflated(f, q=q, threads=threads)
+    return f.getvalue()
+
+
+@pytest.mark.parametrize("shape", [(3, 5, 7, 2), (37, 1, 101, 3), (2, 1, 1024, 2)])
+def test_the_copy_is_the_array_bit_for_bit_and_writes_the_same_file(monkeypatch, shape):
+    monkeypatch.setattr(npz, "BLOCK_BYTES", 1024)  # several blocks, and a last one cut short
+    a = _sparse(shape, 0.1)
+    copy = host_copy(jnp.asarray(a), from_bytes=0, on_cpu=True)
+    assert isinstance(copy, NonzeroCopy) and copy.shape == a.shape and copy.dtype == a.dtype
+    assert int(copy.counts.sum()) == np.count_nonzero(a.view(np.uint32)) <= copy.values.size
+    assert copy.bits.nbytes == -(-a.size // 8)
+    assert copy.dense().tobytes() == a.tobytes()
+    assert np.asarray(copy[None]).tobytes() == a.tobytes() and copy[None].shape == (1, *a.shape)
+    for threads in (1, 4):  # stored, and deflated block by block: the same bytes as the dense array's file
+        assert _npz_bytes(copy, threads) == _npz_bytes(a, threads)
+    with np.load(io.BytesIO(_npz_bytes(copy, 4)), allow_pickle=False) as z:
+        assert z["q"].tobytes() == a.tobytes()
+
+
+def test_the_same_array_is_copied_once_and_the_plain_copy_where_it_would_not_pay():
+    a = _sparse((64, 1, 50, 2), 0.05)
+    x = jnp.asarray(a)
+    first = host_copy(x, from_bytes=0, on_cpu=True)
+    assert host_copy(x, from_bytes=0, on_cpu=True) is first
+    dense = host_copy(jnp.asarray(_sparse((64, 1, 50, 2), 0.9)), from_bytes=0, on_cpu=True)
+    assert isinstance(dense, np.ndarray)  # most entries nonzero: the plain copy
+    small = host_copy(jnp.asarray(a), on_cpu=True)  # under FROM_BYTES
+    assert isinstance(small, np.ndarray) and small.tobytes() == a.tobytes()
+    on_cpu = host_copy(jnp.asarray(a), from_bytes=0)  # a CPU array is host memory already
+    assert isinstance(on_cpu, np.ndarray)
+    with pytest.raises(TypeError):
+        first[0]
+    with pytest.raises(ValueError, match="cannot reshape"):
+        first.reshape(3, -1)
+
+
+def test_a_result_given_the_copy_reads_its_tables_dense_once():
+    a = _sparse((8, 1, 40, 2), 0.1)
+    copy = host_copy(jnp.asarray(a), from_bytes=0, on_cpu=True)
+    result = TrainResult(env_id="x", config=None, agent_params=None, returns=np.zeros((8, 1)),
+                         lengths=np.zeros((8, 1)), terminated=np.zeros((8, 1), bool), epsilon=np.zeros(1),
+                         nan_episodes=np.zeros(8), env_steps=0, q=copy, compile_seconds=0.0, run_seconds=0.0)
+    assert result.tables is copy
+    q = result.q
+    assert isinstance(q, np.ndarray) and q.tobytes() == a.tobytes() and result.q is q and result.tables is q
+    result.q = a
+    assert result.q is a
+
+
+def _files(out):
+    with np.load(os.path.join(out, "qtables.npz"), allow_pickle=False) as z:
+        tables = {k: z[k] for k in z.files}
+    with open(os.path.join(out, "qtables.npz"), "rb") as f:
+        return tables, f.read()
+
+
+def test_a_run_whose_tables_cross_as_their_nonzero_entries_writes_the_same_files(tmp_path, monkeypatch):
+    """The whole command, its closing checkpoint and its result copying the tables as on an accelerator (forced on
+    the CPU): qtables.npz the same bytes as the plain copy's run."""
+    args = ["train", "--env", "CartPoleStayUp-v0", "--n-envs", "16", "--nepisodes", "8", "--no-progress",
+            "--set", "nsteps=40", "--set", "chunk_steps=20", "--set", "eval_episodes=2", "--set", "eval_envs=2"]
+    assert main([*args, "--out", str(tmp_path / "plain")]) == 0
+    made = []
+    original = nonzero_copy.host_copy
+
+    def forced(x, **_):
+        copy = original(x, from_bytes=0, on_cpu=True)
+        made.append(copy)
+        return copy
+
+    monkeypatch.setattr(nonzero_copy, "host_copy", forced)
+    assert main([*args, "--out", str(tmp_path / "nonzero")]) == 0
+    assert made and all(isinstance(c, NonzeroCopy) for c in made)
+    assert made[0] is made[-1]  # the checkpoint's and the result's copy: one crossing
+    plain, nonzero = _files(tmp_path / "plain"), _files(tmp_path / "nonzero")
+    assert plain[1] == nonzero[1]
+    for k in plain[0]:
+        np.testing.assert_array_equal(plain[0][k], nonzero[0][k], err_msg=k)
+
+
+def test_the_plain_copy_when_the_programs_fail(monkeypatch):
+    """A device out of memory for the mask's or the gather's temporaries: the plain copy, nothing lost."""
+    def fail(*a, **k):
+        raise RuntimeError("RESOURCE_EXHAUSTED: out of memory")
+
+    monkeypatch.setattr(nonzero_copy, "_mask", fail)
+    a = _sparse((16, 1, 30, 2), 0.1)
+    copy = functools.partial(host_copy, from_bytes=0, on_cpu=True)(jnp.asarray(a))
+    assert isinstance(copy, np.ndarray) and copy.tobytes() == a.tobytes()
