@@ -55,6 +55,8 @@ WHAT = {
                            "on a GPU, the records' host copies start first), alternating; host copy rates",
     "run_end_ab_s16.json": "A run's end before and after the tables cross to the host as their nonzero entries (and "
                            "the summary is computed beside the episode files), alternating",
+    "device_eval_one_device.json": "A split run's greedy flights on its first device with the one-device "
+                                   "programs: evaluation seconds and figures against one GPU",
     "device_splits_one_program.json": "Training split over GPUs with each device's one-device program, against "
                                       "one GPU: tables, records and figures compared",
     "startup_analytic.json": "Start-up on the analytic backend (`benchmarks/startup.py`)",

@@ -1,6 +1,6 @@
 """``jaxrobo train`` over several devices (``ExecutionPlan.devices``): on 4 forced host devices the tables, records,
 counters and evaluation are those of one device, bit for bit, per-env tables and a shared table alike, under every
-budget, the analytic cart-pole and the quadcopter;
+budget, the analytic cart-pole and the quadcopter; the greedy flights fly on the first device;
 the CLI splits its envs over every device by default and writes one run directory.
 
 XLA_FLAGS must be set before JAX starts, so the check runs in a subprocess, at XLA's default optimisation level
@@ -40,6 +40,9 @@ cases = {"per_env": {}, "shared": {"shared_table": True}, "steps": {"total_steps
          "one_program_steps": {"total_steps": 8 * 60 + 5}, "one_program_episodes": {}}
 from jaxrobo.training import driver
 partitioned, taken = driver.per_device_chunk, []
+# Where the flights fly: a split run's on its first device, with the one-device programs
+flown, fly = set(), driver.Flights.fly
+driver.Flights.fly = lambda self, *a, **k: flown.add((self.trainer.plan.devices, str(self.device))) or fly(self, *a, **k)
 for name, extra in cases.items():
     env_id, extra = extra if isinstance(extra, tuple) else ("CartPoleStayUp-v0", {**small, **extra})
     # "one_program_*": each device's envs stepped by the one-device program (shard_map), the split GPUs take for
@@ -57,6 +60,7 @@ for name, extra in cases.items():
                            "final_table_choice")},
         "selected": json.dumps(res[1].selected, default=str) == json.dumps(res[4].selected, default=str)}
 out["one_program_taken"] = sorted(set(taken))
+out["flown"], out["first_device"] = sorted(flown), str(jax.devices()[0])
 from jaxrobo.cli import main
 rc = main(["train", "--env", "CartPoleStayUp-v0", "--set", "env.backend=analytic", "--n-envs", "6",
            "--total-steps", "300", "--set", "chunk_steps=25", "--set", "nsteps=40", "--set", "eval_episodes=2",
@@ -82,6 +86,7 @@ def test_several_devices_give_the_one_device_tables(tmp_path):
     assert "fused=pallas" in out["cases"]["pallas"]["plan"]
     assert out["cases"]["one_program_steps"]["env_steps"] == 8 * 61
     assert out["one_program_taken"] == ["one_program_episodes", "one_program_steps"]
+    assert out["flown"] == [[1, "None"], [4, out["first_device"]]]  # the split runs' flights: on one device
     # the CLI: 6 envs over the most of the 4 devices that divide 6 (3), one run directory
     assert out["cli_rc"] == 0
     summary = json.loads((run / "summary.json").read_text())

@@ -15,8 +15,9 @@ per core, block by block), or block by block by the ``.npz`` writer (:func:`jaxr
 takes it as an array), whose file is the same bytes as the dense array's. The same array copied again (the
 closing checkpoint's thread, then the run's result) gives the same copy while the array lives: its bytes cross once.
 
-Used on accelerators only, for arrays of :data:`FROM_BYTES` or more with at most :data:`MAX_SHARE` of their
-entries nonzero (otherwise, and on CPUs where the array is host memory already, the plain copy: a numpy array).
+Used on accelerators only, for arrays on one device of :data:`FROM_BYTES` or more with at most :data:`MAX_SHARE` of
+their entries nonzero (otherwise the plain copy, a numpy array: on CPUs the array is host memory already; an array
+split over devices would need the programs' collectives, issued from the checkpoint's thread beside the run's).
 The values are the array's bit for bit either way.
 
 Public surface: :func:`host_copy`, :class:`NonzeroCopy`, :data:`FROM_BYTES`, :data:`MAX_SHARE`.
@@ -158,14 +159,14 @@ _COPIES: dict[int, tuple[weakref.ref, Any]] = {}
 
 
 def host_copy(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) -> np.ndarray | NonzeroCopy:
-    """``x`` on the host: a :class:`NonzeroCopy` where it is a single-process accelerator array of ``from_bytes``
+    """``x`` on the host: a :class:`NonzeroCopy` where it is an accelerator array on one device of ``from_bytes``
     (default :data:`FROM_BYTES`) or more with at most :data:`MAX_SHARE` of its entries nonzero, else the plain
     copy (``np.asarray(jax.device_get(x))``). ``on_cpu``: a CPU array too (tests). The same array asked for again
     while it lives (by another thread too) gives the same copy, made once."""
     from jaxrobo.io import npz
 
     from_bytes = FROM_BYTES if from_bytes is None else from_bytes
-    if not isinstance(x, jax.Array) or x.nbytes < from_bytes or x.size == 0 or jax.process_count() > 1 \
+    if not isinstance(x, jax.Array) or x.nbytes < from_bytes or x.size == 0 or len(x.devices()) != 1 \
             or (not on_cpu and {d.platform for d in x.devices()} == {"cpu"}) or x.dtype.itemsize not in (1, 2, 4, 8):
         return np.asarray(jax.device_get(x))
     with _LOCK:
