@@ -944,9 +944,10 @@ class Flights:
 
         if self.device is not None:  # the picked tables and keys, split as the run's carry, to the one device
             # through the host: no copy between the devices while the run's programs may still hold them
-            keys_data = jax.random.key_data(keys)
-            keys_data, agents = jax.device_put(jax.device_get((keys_data, agents)), self.device)
-            keys = jax.random.wrap_key_data(keys_data, impl=jax.random.key_impl(keys))
+            typed = jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key)
+            data, agents = jax.device_put(jax.device_get((jax.random.key_data(keys) if typed else keys, agents)),
+                                          self.device)
+            keys = jax.random.wrap_key_data(data, impl=jax.random.key_impl(keys)) if typed else data
         start, advance, compile_seconds = self._programs(keys, agents, n_episodes, over_tables, shared)
         carry = start(keys)
         running = count = int(np.prod(carry["alive"].shape))

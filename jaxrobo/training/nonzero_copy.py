@@ -83,13 +83,14 @@ class NonzeroCopy:
         raise TypeError("a NonzeroCopy is indexed only by None; take .dense() first")
 
     def fill(self, out: np.ndarray, start: int, stop: int) -> None:
-        """Entries ``start:stop`` (flat; ``start`` a multiple of ``block``) into ``out`` (their length)."""
+        """Entries ``start:stop`` into ``out`` (their length): a block, ``start`` a multiple of ``block`` and ``stop``
+        the next one or the end."""
         word = np.dtype(f"u{self.dtype.itemsize}")
         k = start // self.block
         mask = np.unpackbits(self.bits[start // 8:-(-stop // 8)], count=stop - start).view(bool)
         target = out.view(word)
         target[...] = 0
-        target[mask] = self.values[self.offsets[k]:self.offsets[k] + int(mask.sum())]
+        target[mask] = self.values[self.offsets[k]:self.offsets[k + 1]]
 
     def dense(self) -> np.ndarray:
         """The array (a thread per core, a block each at a time)."""
@@ -166,14 +167,16 @@ def host_copy(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) ->
     from jaxrobo.io import npz
 
     from_bytes = FROM_BYTES if from_bytes is None else from_bytes
+    itemsize = np.dtype(x.dtype).itemsize if isinstance(x, jax.Array) else 0
+    block = npz.BLOCK_BYTES // max(itemsize, 1)  # the writer's blocks, each a whole number of mask bytes
     if not isinstance(x, jax.Array) or x.nbytes < from_bytes or x.size == 0 or len(x.devices()) != 1 \
-            or (not on_cpu and {d.platform for d in x.devices()} == {"cpu"}) or x.dtype.itemsize not in (1, 2, 4, 8):
+            or (not on_cpu and {d.platform for d in x.devices()} == {"cpu"}) or itemsize not in (1, 2, 4, 8) \
+            or block < 8 or block % 8 or block * itemsize != npz.BLOCK_BYTES:
         return np.asarray(jax.device_get(x))
     with _LOCK:
         hit = _COPIES.get(id(x))
         if hit is not None and hit[0]() is x:
             return hit[1]
-        block = max(8, npz.BLOCK_BYTES // x.dtype.itemsize)
         copy: Any = None
         try:
             bits, counts = jax.device_get(_mask(x, block))
