@@ -42,7 +42,8 @@ from jaxrobo.training import driver
 partitioned, taken = driver.per_device_chunk, []
 # Where the flights fly: a split run's on its first device, with the one-device programs
 flown, fly = set(), driver.Flights.fly
-driver.Flights.fly = lambda self, *a, **k: flown.add((self.trainer.plan.devices, str(self.device))) or fly(self, *a, **k)
+driver.Flights.fly = lambda self, *a, **k: flown.add((self.trainer.plan.devices, str(self.device))) \
+    or fly(self, *a, **k)
 for name, extra in cases.items():
     env_id, extra = extra if isinstance(extra, tuple) else ("CartPoleStayUp-v0", {**small, **extra})
     # "one_program_*": each device's envs stepped by the one-device program (shard_map), the split GPUs take for
