@@ -72,9 +72,7 @@ class NonzeroCopy:
         shape = tuple(shape[0]) if len(shape) == 1 and isinstance(shape[0], (tuple, list)) else shape
         if int(np.prod(shape, dtype=np.int64)) != self.size:
             raise ValueError(f"cannot reshape {self.shape} into {shape}")
-        copy = object.__new__(NonzeroCopy)
-        copy.__dict__.update(self.__dict__, shape=tuple(int(n) for n in shape))
-        return copy
+        return NonzeroCopy(shape, self.dtype, self.bits, self.values, self.counts, self.block)
 
     def __getitem__(self, index: Any) -> "NonzeroCopy":
         """Only ``copy[None]`` (a leading axis of one, as a shared table is given in ``qtables.npz``)."""
