@@ -88,6 +88,41 @@ def test_the_simulator_traces_mjx_under_the_choice(mjx_step_spy):
     assert swapped == [True, False]
 
 
+def test_the_simulator_traces_mjx_once_per_choice_whatever_programs_step_it(mjx_step_spy):
+    """``MjxSim.physics_step`` is jitted on its own: MJX's Python is traced once per lean choice however many
+    programs (and batch shapes) step the simulator, with the numbers of the step traced inline; the simulator
+    still pickles after use, and the trace-reuse key does not see whether it was used."""
+    import copy
+    import pickle
+
+    import jax.numpy as jnp
+
+    from envs.cartpole.robot import CartPoleRobot
+    from jaxrobo.speed import reuse
+
+    sim = CartPoleRobot("velocity", "mjx").sim
+    described = reuse.describe(sim)
+    n = 5
+    qpos = 0.3 * jax.random.normal(jax.random.key(1), (n, 2))
+    qvel = jax.random.normal(jax.random.key(2), (n, 2))
+    states = jax.vmap(sim.init)(qpos, qvel)
+    ctrl = jax.random.normal(jax.random.key(3), (n, 1))
+    stepped = jax.jit(jax.vmap(sim.physics_step))(states, ctrl)
+    jax.eval_shape(jax.vmap(jax.vmap(sim.physics_step)), *jax.tree.map(lambda x: x[None], (states, ctrl)))
+    jax.eval_shape(sim.physics_step, jax.tree.map(lambda x: x[0], states), ctrl[0])
+    with mjx_lean.choose(False):
+        jax.eval_shape(jax.vmap(sim.physics_step), states, ctrl)
+    assert mjx_step_spy == [True, False]
+    inline = jax.jit(jax.vmap(lambda s, c: sim._mjx_step(True, s, c, None)))(states, ctrl)
+    for a, b in zip(jax.tree.leaves(stepped), jax.tree.leaves(inline)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert reuse.describe(sim) == described
+    for again in (pickle.loads(pickle.dumps(sim)), copy.deepcopy(sim)):
+        out = jax.jit(jax.vmap(again.physics_step))(states, ctrl)
+        for a, b in zip(jax.tree.leaves(stepped), jax.tree.leaves(out)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 @pytest.mark.parametrize("version,ok", [("3.17.0", True), ("3.17.5rc1", True), ("3.16.9", False), ("3.18.0", False),
                                         ("4.0.0", False), ("dev", False), (None, False)])
 def test_outside_the_versions_it_was_written_for_it_is_a_no_op_that_says_why_once(monkeypatch, version, ok):
