@@ -55,6 +55,10 @@ WHAT = {
                            "on a GPU, the records' host copies start first), alternating; host copy rates",
     "run_end_ab_s16.json": "A run's end before and after the tables cross to the host as their nonzero entries (and "
                            "the summary is computed beside the episode files), alternating",
+    "run_end_cpu_s17.json": "Where a 65,536-env run's end goes, with the host's CPU seconds: the tables' file, the "
+                            "summary's figures and the episode files side by side",
+    "mjx_step_traced_once.json": "MJX's step traced once per process (not again for the greedy flights): the "
+                                 "default commands' traces and compile before and after, alternating",
     "device_eval_one_device.json": "A split run's greedy flights on its first device with the one-device "
                                    "programs: evaluation seconds and figures against one GPU",
     "device_splits_one_program.json": "Training split over GPUs with each device's one-device program, against "
