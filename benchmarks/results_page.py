@@ -57,6 +57,8 @@ WHAT = {
                            "the summary is computed beside the episode files), alternating",
     "run_end_cpu_s17.json": "Where a 65,536-env run's end goes, with the host's CPU seconds: the tables' file, the "
                             "summary's figures and the episode files side by side",
+    "startup_s17.json": "Where a warm default command's start-up goes on a GPU host: imports by -X importtime, "
+                        "JAX's import and device discovery",
     "mjx_step_traced_once.json": "MJX's step traced once per process (not again for the greedy flights): the "
                                  "default commands' traces and compile before and after, alternating",
     "device_eval_one_device.json": "A split run's greedy flights on its first device with the one-device "
