@@ -57,6 +57,8 @@ WHAT = {
                            "the summary is computed beside the episode files), alternating",
     "run_end_cpu_s17.json": "Where a 65,536-env run's end goes, with the host's CPU seconds: the tables' file, the "
                             "summary's figures and the episode files side by side",
+    "autotune_off.json": "A tabular run's files with XLA's GPU autotuning on and off, alone and after other tasks' "
+                         "compiles (ExecutionPlan.fixed_kernels)",
     "startup_s17.json": "Where a warm default command's start-up goes on a GPU host: imports by -X importtime, "
                         "JAX's import and device discovery",
     "mjx_step_traced_once.json": "MJX's step traced once per process (not again for the greedy flights): the "

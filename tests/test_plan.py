@@ -45,7 +45,8 @@ def test_for_run_derives_the_choices_per_device():
 
     gpu = ExecutionPlan.for_run(spec.env, spec.config, "gpu")
     assert gpu == ExecutionPlan(env_group=262_144, unrolled_groups=4, lean_mjx=True, reset_capacity=12,
-                                carry_rows=False, compile_beside=True)
+                                carry_rows=False, compile_beside=True, fixed_kernels=True)
+    assert not ExecutionPlan.for_run(spec.env, spec.config, "cpu").fixed_kernels  # XLA's GPU autotuning: GPU only
     assert ExecutionPlan.for_run(spec.env, spec.config.replace(env_group=5), "gpu").env_group == 5
     for backend in ("analytic", "generalized"):  # a closed form, Brax's pipelines: the whole batch
         other = _spec(backend)
@@ -86,7 +87,7 @@ def test_a_shared_table_on_a_gpu_sums_its_updates_in_order():
     CPU keep the scatter-add."""
     shared = _spec(shared_table=True)
     gpu = ExecutionPlan.for_run(shared.env, shared.config, "gpu")
-    assert gpu.ordered_sums and repr(gpu).endswith("ordered_sums=on)")  # printed, part of the plan that keys the cache
+    assert gpu.ordered_sums and "ordered_sums=on" in repr(gpu)  # printed, part of the plan that keys the cache
     assert not ExecutionPlan.for_run(shared.env, shared.config, "cpu").ordered_sums
     spec = _spec()
     assert not ExecutionPlan.for_run(spec.env, spec.config, "gpu").ordered_sums
@@ -138,10 +139,16 @@ def test_repr_is_short_and_names_every_choice():
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
         "fused": "off", "fused_block": None, "task_kernel": False, "skip_resets": True, "group_resets": True,
         "fast_sincos": True, "ordered_sums": False, "devices": 1, "compile_beside": False, "reuse_traces": False,
-        "compiler_options": FAST}
+        "fixed_kernels": False, "compiler_options": FAST}
     assert repr(plan.replace(reuse_traces=True)).endswith("carry_rows=on, reuse_traces=on)")
     assert repr(plan.replace(devices=2)).endswith("carry_rows=on, devices=2)")  # named only when more than one
     assert repr(plan.replace(compile_beside=True)).endswith("carry_rows=on, compile_beside=on)")  # only when on
+    fixed = plan.replace(fixed_kernels=True)
+    assert repr(fixed).endswith("carry_rows=on, fixed_kernels=on)") and fixed.xla_options == {"xla_gpu_autotune_level": 0}
+    # XLA's autotuning off comes first: an option the caller gives wins.
+    assert fixed.replace(compiler_options={"xla_gpu_autotune_level": 4, **FAST}).xla_options == {
+        "xla_gpu_autotune_level": 4, **FAST}
+    assert fixed.to_dict()["compiler_options"] == {"xla_gpu_autotune_level": 0}
     # The whole-chunk kernel's choices: named only when off under fused="pallas", where they are read.
     kernel = plan.replace(fused="pallas", fused_block=16, group_resets=False, fast_sincos=False)
     assert repr(kernel).endswith("fused=pallas, fused_block=16, group_resets=off, fast_sincos=off)")
@@ -164,6 +171,8 @@ def test_plans_are_validated_frozen_and_hashable():
                        ({"env_group": True}, "env_group")):
         with pytest.raises(ValueError, match=f"ExecutionPlan {field}="):
             ExecutionPlan(**bad)
+    with pytest.raises(ValueError, match="ExecutionPlan fixed_kernels=0: expected True or False"):
+        ExecutionPlan(fixed_kernels=0)
 
 
 def test_tracing_sets_the_mjx_choice_for_its_block_only():

@@ -281,6 +281,14 @@ class ExecutionPlan:
     one device where a compilation cache is in use (``JAXROBO_REUSE_TRACES=off`` turns it off); the programs are
     the same either way.
 
+    ``fixed_kernels``: compile with XLA's GPU autotuning off (``xla_gpu_autotune_level`` 0), so each kernel takes
+    XLA's default configuration instead of the one its compile timed fastest. The timings vary with the GPU's state,
+    and a program's numbers varied with them: on an H200, QuadcopterGoto-v2's default run compiled after the
+    cart-pole's and the arm's recorded 59 of its 2,048 first episodes' returns one ulp away from the run compiled
+    alone (two calls); with autotuning off it recorded the run alone's, and the three tasks' default runs wrote the
+    files they write with it on, as fast warm (``benchmarks/results/h200/autotune_off.json``). On by default on a
+    GPU; no effect elsewhere.
+
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
     """
@@ -300,6 +308,7 @@ class ExecutionPlan:
     devices: int = 1
     compile_beside: bool = False
     reuse_traces: bool = False
+    fixed_kernels: bool = False
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
@@ -315,7 +324,7 @@ class ExecutionPlan:
                 or self.unrolled_groups < 1:
             raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
         for name in ("lean_mjx", "carry_rows", "task_kernel", "skip_resets", "group_resets", "fast_sincos",
-                     "ordered_sums", "compile_beside", "reuse_traces"):
+                     "ordered_sums", "compile_beside", "reuse_traces", "fixed_kernels"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ExecutionPlan {name}={getattr(self, name)!r}: expected True or False")
         options = self.compiler_options
@@ -391,6 +400,7 @@ class ExecutionPlan:
             ordered_sums=backend == "gpu" and config.shared_table,
             compile_beside=not cpu,
             reuse_traces=devices == 1 and _reuse.available(),
+            fixed_kernels=backend == "gpu",
             compiler_options=compiler_options,
         )
 
@@ -400,8 +410,11 @@ class ExecutionPlan:
 
     @property
     def xla_options(self) -> dict[str, Any] | None:
-        """``compiler_options`` as the dict ``jax.jit(..., compiler_options=...)`` takes (None: XLA's defaults)."""
-        return None if self.compiler_options is None else dict(self.compiler_options)
+        """``compiler_options`` as the dict ``jax.jit(..., compiler_options=...)`` takes (None: XLA's defaults), with
+        ``fixed_kernels``' option first (an option given in ``compiler_options`` wins)."""
+        options = {"xla_gpu_autotune_level": 0} if self.fixed_kernels else {}
+        options.update(self.compiler_options or ())
+        return options or None
 
     @contextlib.contextmanager
     def tracing(self) -> Iterator["ExecutionPlan"]:
@@ -448,6 +461,8 @@ class ExecutionPlan:
             parts.append("ordered_sums=on")
         if self.reuse_traces:  # likewise
             parts.append("reuse_traces=on")
+        if self.fixed_kernels:
+            parts.append("fixed_kernels=on")
         if self.devices > 1:  # likewise
             parts.append(f"devices={self.devices}")
         if self.compiler_options is not None:
