@@ -144,7 +144,8 @@ def test_repr_is_short_and_names_every_choice():
     assert repr(plan.replace(devices=2)).endswith("carry_rows=on, devices=2)")  # named only when more than one
     assert repr(plan.replace(compile_beside=True)).endswith("carry_rows=on, compile_beside=on)")  # only when on
     fixed = plan.replace(fixed_kernels=True)
-    assert repr(fixed).endswith("carry_rows=on, fixed_kernels=on)") and fixed.xla_options == {"xla_gpu_autotune_level": 0}
+    assert repr(fixed).endswith("carry_rows=on, fixed_kernels=on)")
+    assert fixed.xla_options == {"xla_gpu_autotune_level": 0}
     # XLA's autotuning off comes first: an option the caller gives wins.
     assert fixed.replace(compiler_options={"xla_gpu_autotune_level": 4, **FAST}).xla_options == {
         "xla_gpu_autotune_level": 4, **FAST}

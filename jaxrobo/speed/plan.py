@@ -282,12 +282,12 @@ class ExecutionPlan:
     the same either way.
 
     ``fixed_kernels``: compile with XLA's GPU autotuning off (``xla_gpu_autotune_level`` 0), so each kernel takes
-    XLA's default configuration instead of the one its compile timed fastest. The timings vary with the GPU's state,
-    and a program's numbers varied with them: on an H200, QuadcopterGoto-v2's default run compiled after the
+    XLA's default configuration instead of the one its compile timed fastest. The timings vary with the GPU's
+    state, and a program's numbers varied with them: on an H200, QuadcopterGoto-v2's default run compiled after the
     cart-pole's and the arm's recorded 59 of its 2,048 first episodes' returns one ulp away from the run compiled
-    alone (two calls); with autotuning off it recorded the run alone's, and the three tasks' default runs wrote the
-    files they write with it on, as fast warm (``benchmarks/results/h200/autotune_off.json``). On by default on a
-    GPU; no effect elsewhere.
+    alone (three calls); with autotuning off it recorded the run alone's, and the three tasks' default runs wrote
+    the files they write with it on, as fast warm (``benchmarks/results/h200/autotune_off.json``). On by default
+    on a GPU; no effect elsewhere.
 
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
