@@ -202,6 +202,28 @@ def test_rng_draws_equal_jax_random_under_jit_and_vmap():
         rng.subkey(jax.random.key(0), 3, 3)
 
 
+def test_rng_traces_its_hash_once_per_shape_of_counters():
+    """The draws call the hash jitted on its own: a program that draws twice at one shape holds one trace of it
+    (the same jaxpr in both calls), one per shape; the plain hash a Pallas kernel calls stays inline ops."""
+    from jaxrobo.core import rng
+
+    def draws(key):
+        k1, k2, k3 = rng.split(key, 3)
+        return (rng.uniform(k1, (3,)), rng.uniform(k2, (3,)), rng.bits(k3, (5,)), rng.subkey(k1, 1, 4),
+                rng.subkey(k2, 2, 4), rng.uniform_pair(k3))
+
+    eqns = jax.make_jaxpr(draws)(jax.random.key(0)).jaxpr.eqns
+    hashed = [e for e in eqns if e.primitive.name in ("pjit", "jit")]
+    by_counters = {}
+    for e in hashed:
+        by_counters.setdefault(tuple(e.invars[3].aval.shape), []).append(e.params["jaxpr"])
+    assert sorted(by_counters) == [(), (3,), (5,)], by_counters  # split's (3,) counters and two uniforms: one shape
+    assert all(all(j is js[0] for j in js) for js in by_counters.values())
+    assert [len(js) for _, js in sorted(by_counters.items())] == [3, 3, 1]
+    words = [jnp.uint32(1), jnp.uint32(2), jnp.zeros(4, jnp.uint32), jnp.arange(4, dtype=jnp.uint32)]
+    assert not [e for e in jax.make_jaxpr(rng.threefry2x32)(*words).jaxpr.eqns if e.primitive.name in ("pjit", "jit")]
+
+
 def test_rng_defers_to_jax_random_for_other_key_implementations():
     from jaxrobo.core import rng
 

@@ -171,3 +171,45 @@ def test_goto_training_smoke_and_flights_png(tmp_path):
     parser = argparse.ArgumentParser()
     flights.configure_parser(parser)
     assert flights.run(parser.parse_args([])) == 2  # neither a run nor an env: usage error
+
+
+def test_jaxrobos_programs_trace_an_envs_reset_once_with_the_numbers_of_the_hooks_inline():
+    """Under a plan's tracing (jaxrobo's own programs) an env's resets share one trace of its reset per
+    trace-time choice: two batches of resets in one program run the hooks' Python once, and the program's numbers
+    are those of the hooks traced inline, as a caller's own jit traces them. After use the env still deep-copies
+    (the copy makes its own) and the trace-reuse key does not see whether it was used."""
+    import copy
+
+    from jaxrobo.speed import reuse
+    from jaxrobo.speed.plan import ExecutionPlan
+
+    env = jaxrobo.make("QuadcopterGoto-v2")
+    described = reuse.describe(env)
+    calls = []
+    hook = env._get_obs
+    env._get_obs = lambda *a: calls.append(1) or hook(*a)
+    keys = jax.random.split(jax.random.key(0), 6)
+
+    def two(keys):
+        return jax.vmap(env.reset)(keys), jax.vmap(env.reset)(keys[:2])
+
+    inline = jax.jit(two)(keys)
+    assert len(calls) == 2
+    plan = ExecutionPlan()
+    shared = jax.jit(plan.traced(two))(keys)
+    assert len(calls) == 3  # both batches in one trace of the reset
+    jax.jit(plan.traced(lambda k: jax.vmap(env.reset)(k)))(keys[:3])
+    assert len(calls) == 3  # and other programs reuse it
+    def same(xs, ys):
+        for a, b in zip(jax.tree.leaves(xs), jax.tree.leaves(ys), strict=True):
+            if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+                a, b = jax.random.key_data(a), jax.random.key_data(b)
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    same(inline, shared)
+    del env._get_obs
+    assert reuse.describe(env) == described
+    again = copy.deepcopy(env)
+    with plan.tracing():
+        out = jax.jit(jax.vmap(again.reset))(keys)
+    same(inline[0], out)

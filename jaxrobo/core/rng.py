@@ -39,6 +39,12 @@ def threefry2x32(k1: jax.Array, k2: jax.Array, x1: jax.Array, x2: jax.Array) -> 
     return x1, x2
 
 
+#: :func:`threefry2x32` jitted on its own, for the draws below: JAX traces its 20 rounds once per shape of counters
+#: instead of at every draw a program makes (each trace about a hundred ``jnp`` ops), and XLA inlines the call, so the
+#: fused code and its bits are the same. (A Pallas kernel hashes with :func:`threefry2x32` itself.)
+_hash = jax.jit(threefry2x32)
+
+
 def _words(key: jax.Array) -> tuple[jax.Array, jax.Array] | None:
     """The two key words of a threefry key, or None where this module must defer to ``jax.random``."""
     if not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) or key.ndim:
@@ -55,7 +61,7 @@ def _hash_counters(words: tuple[jax.Array, jax.Array], shape: tuple[int, ...]) -
     if size >= 2**32:
         raise ValueError(f"at most 2**32 - 1 random words per draw, asked for {size}")
     lo = jax.lax.iota(jnp.uint32, size).reshape(shape) if size else jnp.zeros(shape, jnp.uint32)
-    return threefry2x32(words[0], words[1], jnp.zeros(shape, jnp.uint32), lo)
+    return _hash(words[0], words[1], jnp.zeros(shape, jnp.uint32), lo)
 
 
 def split(key: jax.Array, num: int = 2) -> jax.Array:
@@ -74,7 +80,7 @@ def subkey(key: jax.Array, index: int, num: int) -> jax.Array:
     words = _words(key)
     if words is None:
         return jax.random.split(key, num)[index]
-    x1, x2 = threefry2x32(words[0], words[1], jnp.uint32(0), jnp.uint32(index))
+    x1, x2 = _hash(words[0], words[1], jnp.uint32(0), jnp.uint32(index))
     return jax.random.wrap_key_data(jnp.stack([x1, x2]), impl=jax.random.key_impl(key))
 
 
@@ -98,7 +104,7 @@ def uniform_pair(key: jax.Array) -> tuple[jax.Array, jax.Array]:
     if words is None:
         u = unit_float(jax.random.bits(key, (2,), jnp.uint32))
         return u[0], u[1]
-    x1, x2 = threefry2x32(words[0], words[1], jnp.uint32(0), jnp.uint32(0))
+    x1, x2 = _hash(words[0], words[1], jnp.uint32(0), jnp.uint32(0))
     return unit_float(x1), unit_float(x2)
 
 

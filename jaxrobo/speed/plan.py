@@ -41,7 +41,7 @@ from jaxrobo.physics import fused as _fused
 from jaxrobo.physics import mjx_lean
 from jaxrobo.speed import reuse as _reuse
 from jaxrobo.core.config import ConfigError
-from jaxrobo.task.env import Env, EnvState, layers, simulator_of
+from jaxrobo.task.env import Env, EnvState, layers, shared_resets, simulator_of
 
 #: Envs stepped at once on a GPU when the env runs on MJX: beyond this size a step's intermediates no longer fit
 #: the GPU's L2 cache and larger batches ran slower as one batch than as groups of this size (a reading, not
@@ -419,8 +419,9 @@ class ExecutionPlan:
     @contextlib.contextmanager
     def tracing(self) -> Iterator["ExecutionPlan"]:
         """A block whose traces follow this plan's trace-time choices (the MJX stage replacement, a closed form's
-        substeps written out under ``fused``); nests, and is local to the thread or task that enters it."""
-        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused, self.task_kernel):
+        substeps written out under ``fused``) and share each env's reset trace (:func:`jaxrobo.task.env.
+        shared_resets`); nests, and is local to the thread or task that enters it."""
+        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused, self.task_kernel), shared_resets():
             yield self
 
     def traced(self, fn: Callable) -> Callable:

@@ -60,7 +60,7 @@ _PACKAGES = ("jaxrobo", "envs", "agents", "jaxrobo_ros")
 #: Attributes that cache programs made from an object's other fields (the evaluation's compiled flights, a
 #: trainer's jitted init, an MJX simulator's jitted step): not inputs of a trace, and set or not depending on what
 #: ran before the key.
-_DERIVED = ("_compiled", "_jitted_init", "_jitted_steps")
+_DERIVED = ("_compiled", "_jitted_init", "_jitted_steps", "_jitted_resets")
 
 
 class NotKeyable(Exception):

@@ -22,15 +22,17 @@ ends the episode, and flags it, if the physics produced a non-finite number, so 
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import weakref
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Iterator
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrobo.physics import fused
+from jaxrobo.physics import fused, mjx_lean
 from jaxrobo.core import rng, spaces
 from jaxrobo.task import randomise
 from jaxrobo.core.precision import check_precision
@@ -306,6 +308,25 @@ class TaskEnv(Env):
         then), naming the argument."""
         check_key(key, f"{type(self).__name__}.reset(key)")
         params = self.default_params if params is None else params
+        if _SHARED_RESETS.get() and isinstance(key, jax.core.Tracer):
+            # Traced for one of jaxrobo's programs (:func:`shared_resets`): through this env's reset jitted on its
+            # own, so that the task's Python is traced once per trace-time choice however many resets the
+            # programs hold (the first carry, a chunk's autoreset branches, the greedy flights); XLA inlines the
+            # call. Otherwise (called eagerly, or a caller's own jit or vmap) the hooks run inline as they are.
+            return self._jitted_reset(trace_choices())(key, params)
+        return self._first_state(key, params)
+
+    def _jitted_reset(self, choices: tuple[bool, ...]) -> Any:
+        jitted = self.__dict__.setdefault("_jitted_resets", {})
+        if choices not in jitted:
+            jitted[choices] = jax.jit(self._first_state)
+        return jitted[choices]
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k != "_jitted_resets"}  # made again on first use
+
+    def _first_state(self, key: jax.Array, params: Any) -> EnvState:
+        """:meth:`reset`'s state: the seed's hooks composed."""
         # Drawn from the reset key before it is split (folded, not split), so the reset's own draws keep their keys.
         domain = randomise.draw(key, params, self.robot.directional) if self.randomised else ()
         key, pose_key, var_key = rng.split(key, 3)
@@ -364,6 +385,30 @@ class TaskEnv(Env):
         obs = randomise.noisy(obs, state.domain, state.key, steps)
         return EnvState(pipeline_state, obs, reward, terminated, truncated, steps, task, state.key, ~ok,
                         domain=state.domain)
+
+
+#: Whether resets traced now share each env's one trace of its reset (:meth:`TaskEnv.reset`): set while jaxrobo
+#: traces its own programs (:meth:`jaxrobo.speed.plan.ExecutionPlan.tracing` enters :func:`shared_resets`).
+_SHARED_RESETS: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_shared_resets", default=False)
+
+
+@contextlib.contextmanager
+def shared_resets() -> Iterator[None]:
+    """Within this block (this thread or task), an env's reset traced under jit or vmap is its reset jitted on its
+    own, one trace per env and :func:`trace_choices` (a default run's programs traced Goto-v2's reset three times
+    in its training chunk alone); the values are those of the hooks traced inline."""
+    token = _SHARED_RESETS.set(True)
+    try:
+        yield
+    finally:
+        _SHARED_RESETS.reset(token)
+
+
+def trace_choices() -> tuple[bool, ...]:
+    """The trace-time choices in force in this thread or task (what :meth:`jaxrobo.speed.plan.ExecutionPlan.tracing`
+    sets: the MJX stage replacement, the fused path's flags): a program traced under other choices is another
+    program, so what is jitted on its own is kept per choice (:meth:`TaskEnv.reset`)."""
+    return (mjx_lean.wanted(), fused.unroll_all_substeps(), fused.physics_kernels(), fused.task_kernels())
 
 
 # ---- the layers of a wrapped env ---------------------------------------------------------------------------
