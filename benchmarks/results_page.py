@@ -61,6 +61,14 @@ WHAT = {
                          "compiles (ExecutionPlan.fixed_kernels)",
     "startup_s17.json": "Where a warm default command's start-up goes on a GPU host: imports by -X importtime, "
                         "JAX's import and device discovery",
+    "time_to_trained_s18.json": "Time to a trained robot (`benchmarks/time_to_trained.py`) again, at the shared "
+                                "traces, on another H200 host",
+    "traces_shared.json": "The random hash and each env's reset traced once per process, not at every draw and "
+                          "reset a program holds: cold compiles before and after, the files' bytes",
+    "compile_split_s18.json": "Where a default GPU run's compile goes, cold (XLA's own timers) and warm (JAX's "
+                              "monitoring events), and the XLA levers tried on it",
+    "fixed_kernels_devices.json": "XLA's GPU autotuning off (fixed_kernels) with --devices 2 and a sweep on two "
+                                  "GPUs: one GPU's bytes and rows",
     "mjx_step_traced_once.json": "MJX's step traced once per process (not again for the greedy flights): the "
                                  "default commands' traces and compile before and after, alternating",
     "device_eval_one_device.json": "A split run's greedy flights on its first device with the one-device "
