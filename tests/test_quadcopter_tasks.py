@@ -200,6 +200,7 @@ def test_jaxrobos_programs_trace_an_envs_reset_once_with_the_numbers_of_the_hook
     assert len(calls) == 3  # both batches in one trace of the reset
     jax.jit(plan.traced(lambda k: jax.vmap(env.reset)(k)))(keys[:3])
     assert len(calls) == 3  # and other programs reuse it
+
     def same(xs, ys):
         for a, b in zip(jax.tree.leaves(xs), jax.tree.leaves(ys), strict=True):
             if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
