@@ -189,6 +189,26 @@ def test_tracing_sets_the_mjx_choice_for_its_block_only():
     assert seen == (False, 1) and mjx_lean.wanted()
 
 
+def test_what_tracing_sets_is_what_keys_an_envs_shared_reset():
+    """An env's reset jitted on its own is kept per :func:`jaxrobo.task.env.trace_choices`: every trace-time
+    switch the plan's ``tracing`` sets is in that key (a switch added to ``tracing`` and not to the key would let
+    one plan's trace of the reset serve another plan's program), and the resets are shared inside it only."""
+    import contextvars
+    import itertools
+
+    from jaxrobo.task import env as task_env
+
+    seen: dict = {}
+    for lean, fused, task_kernel in itertools.product((True, False), ("off", "xla", "pallas"), (False, True)):
+        with ExecutionPlan(lean_mjx=lean, fused=fused, task_kernel=task_kernel).tracing():
+            switches = tuple(sorted((var.name, value) for var, value in contextvars.copy_context().items()
+                                    if var.name.startswith("jaxrobo_") and var.name != "jaxrobo_shared_resets"))
+            assert task_env._SHARED_RESETS.get()
+            seen.setdefault(task_env.trace_choices(), set()).add(switches)
+    assert all(len(switches) == 1 for switches in seen.values()), seen  # one key, one set of switches
+    assert len(seen) > 1 and not task_env._SHARED_RESETS.get()
+
+
 # ---- grouped stepping ------------------------------------------------------------------------------------------
 def test_map_groups_applies_fn_slice_by_slice():
     tree = {"x": jnp.arange(7.0), "y": jnp.arange(14).reshape(7, 2)}
