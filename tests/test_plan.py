@@ -139,7 +139,7 @@ def test_repr_is_short_and_names_every_choice():
         "env_group": 3, "unrolled_groups": 4, "lean_mjx": False, "reset_capacity": 2, "carry_rows": True,
         "fused": "off", "fused_block": None, "task_kernel": False, "skip_resets": True, "group_resets": True,
         "fast_sincos": True, "ordered_sums": False, "devices": 1, "compile_beside": False, "reuse_traces": False,
-        "fixed_kernels": False, "compiler_options": FAST}
+        "fixed_kernels": False, "hash_kernel": False, "compiler_options": FAST}
     assert repr(plan.replace(reuse_traces=True)).endswith("carry_rows=on, reuse_traces=on)")
     assert repr(plan.replace(devices=2)).endswith("carry_rows=on, devices=2)")  # named only when more than one
     assert repr(plan.replace(compile_beside=True)).endswith("carry_rows=on, compile_beside=on)")  # only when on
@@ -150,6 +150,7 @@ def test_repr_is_short_and_names_every_choice():
     assert fixed.replace(compiler_options={"xla_gpu_autotune_level": 4, **FAST}).xla_options == {
         "xla_gpu_autotune_level": 4, **FAST}
     assert fixed.to_dict()["compiler_options"] == {"xla_gpu_autotune_level": 0}
+    assert repr(fixed.replace(hash_kernel=True)).endswith("fixed_kernels=on, hash_kernel=on)")  # only when on
     # The whole-chunk kernel's choices: named only when off under fused="pallas", where they are read.
     kernel = plan.replace(fused="pallas", fused_block=16, group_resets=False, fast_sincos=False)
     assert repr(kernel).endswith("fused=pallas, fused_block=16, group_resets=off, fast_sincos=off)")
@@ -189,18 +190,21 @@ def test_tracing_sets_the_mjx_choice_for_its_block_only():
     assert seen == (False, 1) and mjx_lean.wanted()
 
 
-def test_what_tracing_sets_is_what_keys_an_envs_shared_reset():
+def test_what_tracing_sets_is_what_keys_an_envs_shared_reset(monkeypatch):
     """An env's reset jitted on its own is kept per :func:`jaxrobo.task.env.trace_choices`: every trace-time
     switch the plan's ``tracing`` sets is in that key (a switch added to ``tracing`` and not to the key would let
     one plan's trace of the reset serve another plan's program), and the resets are shared inside it only."""
     import contextvars
     import itertools
 
+    from jaxrobo.core import hash_kernel
     from jaxrobo.task import env as task_env
 
+    monkeypatch.setattr(hash_kernel, "usable", lambda: True)  # as on a CUDA GPU (nothing is lowered here)
     seen: dict = {}
-    for lean, fused, task_kernel in itertools.product((True, False), ("off", "xla", "pallas"), (False, True)):
-        with ExecutionPlan(lean_mjx=lean, fused=fused, task_kernel=task_kernel).tracing():
+    for lean, fused, task_kernel, kernel_hash in itertools.product((True, False), ("off", "xla", "pallas"),
+                                                                  (False, True), (False, True)):
+        with ExecutionPlan(lean_mjx=lean, fused=fused, task_kernel=task_kernel, hash_kernel=kernel_hash).tracing():
             switches = tuple(sorted((var.name, value) for var, value in contextvars.copy_context().items()
                                     if var.name.startswith("jaxrobo_") and var.name != "jaxrobo_shared_resets"))
             assert task_env._SHARED_RESETS.get()

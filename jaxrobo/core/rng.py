@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrobo.core import hash_kernel
+
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 _PARITY = np.uint32(0x1BD11BDA)
 
@@ -42,7 +44,15 @@ def threefry2x32(k1: jax.Array, k2: jax.Array, x1: jax.Array, x2: jax.Array) -> 
 #: :func:`threefry2x32` jitted on its own, for the draws below: JAX traces its 20 rounds once per shape of counters
 #: instead of at every draw a program makes (each trace about a hundred ``jnp`` ops), and XLA inlines the call, so the
 #: fused code and its bits are the same. (A Pallas kernel hashes with :func:`threefry2x32` itself.)
-_hash = jax.jit(threefry2x32)
+_hash_ops = jax.jit(threefry2x32)
+#: The same hash as one call of jaxlib's GPU kernel (:mod:`jaxrobo.core.hash_kernel`), where the plan traces with it.
+_hash_call = jax.jit(hash_kernel.threefry2x32)
+
+
+def _hash(k1: jax.Array, k2: jax.Array, x1: jax.Array, x2: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """:func:`threefry2x32` for the draws below: the kernel where the plan traces with it, else the ops (the same bits
+    either way)."""
+    return (_hash_call if hash_kernel.wanted() else _hash_ops)(k1, k2, x1, x2)
 
 
 def _words(key: jax.Array) -> tuple[jax.Array, jax.Array] | None:

@@ -22,10 +22,11 @@ record the plan: the values do not depend on it (a carry written under one plan 
 long as the carry's structure, which ``carry_rows`` changes, is the same; the checkpoint checks that).
 
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
-:meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`, :attr:`~ExecutionPlan.xla_options`,
-:meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`, :func:`physics_kernel`,
-:func:`task_kernel`, :func:`chunk_kernel_refusal`, :func:`check_pallas`, :func:`step_batch` (``env.step``
-over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after group).
+:meth:`~ExecutionPlan.partitioned`, :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`,
+:attr:`~ExecutionPlan.xla_options`, :meth:`~ExecutionPlan.to_dict`), :func:`default_env_group`, :func:`default_fused`,
+:func:`physics_kernel`, :func:`task_kernel`, :func:`chunk_kernel_refusal`, :func:`check_pallas`, :func:`step_batch`
+(``env.step`` over a batch, as the plan groups it) and :func:`map_groups` (any row-independent function, group after
+group).
 Names with a leading underscore are private.
 """
 from __future__ import annotations
@@ -39,6 +40,7 @@ import jax
 
 from jaxrobo.physics import fused as _fused
 from jaxrobo.physics import mjx_lean
+from jaxrobo.core import hash_kernel as _hash_kernel
 from jaxrobo.speed import reuse as _reuse
 from jaxrobo.core.config import ConfigError
 from jaxrobo.task.env import Env, EnvState, layers, shared_resets, simulator_of
@@ -289,6 +291,13 @@ class ExecutionPlan:
     the files they write with it on, as fast warm (``benchmarks/results/h200/autotune_off.json``). On by default
     on a GPU; no effect elsewhere.
 
+    ``hash_kernel``: on a CUDA GPU, the random draws hash their counters with jaxlib's threefry kernel
+    (:mod:`jaxrobo.core.hash_kernel`) instead of the hash's integer ops fused into the step: the same bits, a
+    smaller program to compile (QuadcopterGoto-v2's default on an H200: 6.2-7.1 -> 4.1-4.6 s cold), a slower step
+    at large batches (27 % at 65,536 Goto-v2 envs). On by default for a run on one GPU of up to
+    :data:`jaxrobo.core.hash_kernel.MAX_ENVS` envs (a sweep's rows on one GPU too); elsewhere (several devices,
+    whose partitioned program cannot split the kernel's call; where the kernel is unavailable) the ops.
+
     ``compiler_options``: XLA options for the run's compiles, as sorted ``(name, value)`` pairs (a mapping is
     accepted and sorted), or None for XLA's defaults. Tests lower the optimisation level to compile faster.
     """
@@ -309,6 +318,7 @@ class ExecutionPlan:
     compile_beside: bool = False
     reuse_traces: bool = False
     fixed_kernels: bool = False
+    hash_kernel: bool = False
     compiler_options: tuple[tuple[str, Any], ...] | None = None
 
     def __post_init__(self) -> None:
@@ -324,7 +334,7 @@ class ExecutionPlan:
                 or self.unrolled_groups < 1:
             raise ValueError(f"ExecutionPlan unrolled_groups={self.unrolled_groups!r}: expected an integer >= 1")
         for name in ("lean_mjx", "carry_rows", "task_kernel", "skip_resets", "group_resets", "fast_sincos",
-                     "ordered_sums", "compile_beside", "reuse_traces", "fixed_kernels"):
+                     "ordered_sums", "compile_beside", "reuse_traces", "fixed_kernels", "hash_kernel"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ExecutionPlan {name}={getattr(self, name)!r}: expected True or False")
         options = self.compiler_options
@@ -354,7 +364,8 @@ class ExecutionPlan:
         kernel on one device stays on one (the plan does not depend on the device count); ``agent`` (a learner's name) and ``discretiser`` (a
         :class:`jaxrobo.tabular.discretise.Discretiser`) are the run's where they differ from the config's (a
         :class:`jaxrobo.training.trainer.Trainer` given its own passes them). ``compiler_options``: see the class docstring
-        (XLA's defaults unless given). ``ordered_sums`` is on for a shared table on a GPU."""
+        (XLA's defaults unless given). ``ordered_sums`` is on for a shared table on a GPU, ``hash_kernel`` on one GPU
+        up to :data:`jaxrobo.core.hash_kernel.MAX_ENVS` envs."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
         if config is None:
@@ -401,12 +412,21 @@ class ExecutionPlan:
             compile_beside=not cpu,
             reuse_traces=devices == 1 and _reuse.available(),
             fixed_kernels=backend == "gpu",
+            # The hash as a kernel where a run is small enough that its compile, not its steps, is most of the wall;
+            # on one device (a program XLA partitions over several cannot split a custom call).
+            hash_kernel=backend == "gpu" and devices == 1 and config.n_envs <= _hash_kernel.MAX_ENVS
+            and _hash_kernel.usable(),
             compiler_options=compiler_options,
         )
 
     def replace(self, **changes: Any) -> "ExecutionPlan":
         """A copy with some choices changed (validated again)."""
         return dataclasses.replace(self, **changes)
+
+    def partitioned(self, devices: int) -> "ExecutionPlan":
+        """This plan for a program XLA partitions over ``devices`` (a sweep's rows split over a mesh): with several,
+        ``hash_kernel`` off (the partitioner cannot split a custom call; the hash's ops give the same values)."""
+        return self.replace(hash_kernel=False) if devices > 1 and self.hash_kernel else self
 
     @property
     def xla_options(self) -> dict[str, Any] | None:
@@ -421,7 +441,8 @@ class ExecutionPlan:
         """A block whose traces follow this plan's trace-time choices (the MJX stage replacement, a closed form's
         substeps written out under ``fused``) and share each env's reset trace (:func:`jaxrobo.task.env.
         shared_resets`); nests, and is local to the thread or task that enters it."""
-        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused, self.task_kernel), shared_resets():
+        with mjx_lean.choose(self.lean_mjx), _fused.choose(self.fused, self.task_kernel), \
+                _hash_kernel.choose(self.hash_kernel), shared_resets():
             yield self
 
     def traced(self, fn: Callable) -> Callable:
@@ -464,6 +485,8 @@ class ExecutionPlan:
             parts.append("reuse_traces=on")
         if self.fixed_kernels:
             parts.append("fixed_kernels=on")
+        if self.hash_kernel:
+            parts.append("hash_kernel=on")
         if self.devices > 1:  # likewise
             parts.append(f"devices={self.devices}")
         if self.compiler_options is not None:

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.physics import fused, mjx_lean
-from jaxrobo.core import rng, spaces
+from jaxrobo.core import hash_kernel, rng, spaces
 from jaxrobo.task import randomise
 from jaxrobo.core.precision import check_precision
 from jaxrobo.task.robot import Robot
@@ -406,9 +406,10 @@ def shared_resets() -> Iterator[None]:
 
 def trace_choices() -> tuple[bool, ...]:
     """The trace-time choices in force in this thread or task (what :meth:`jaxrobo.speed.plan.ExecutionPlan.tracing`
-    sets: the MJX stage replacement, the fused path's flags): a program traced under other choices is another
-    program, so what is jitted on its own is kept per choice (:meth:`TaskEnv.reset`)."""
-    return (mjx_lean.wanted(), fused.unroll_all_substeps(), fused.physics_kernels(), fused.task_kernels())
+    sets: the MJX stage replacement, the fused path's flags, the hash kernel): a program traced under other choices
+    is another program, so what is jitted on its own is kept per choice (:meth:`TaskEnv.reset`)."""
+    return (mjx_lean.wanted(), fused.unroll_all_substeps(), fused.physics_kernels(), fused.task_kernels(),
+            hash_kernel.wanted())
 
 
 # ---- the layers of a wrapped env ---------------------------------------------------------------------------

@@ -377,6 +377,8 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
             # A sweep splits its rows over the devices (the mesh), not each row's envs.
             config = dataclasses.replace(spec.config, devices=1)
             execution = ExecutionPlan.for_run(spec.env, config, compiler_options=plan.compiler_options)
+            if mesh is not None:  # rows split over devices: a program XLA partitions
+                execution = execution.partitioned(mesh.devices.size)
             trainer = Trainer(spec.env, config, plan=execution)
             group = GroupRunner(trainer, len(meta), mesh, plan.eval_episodes, plan.n_last)
             budget = {"steps": f"{trainer.steps_per_env:,} steps each (total_steps {spec.config.total_steps:,})",
