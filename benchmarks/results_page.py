@@ -69,7 +69,7 @@ WHAT = {
                               "monitoring events), and the XLA levers tried on it",
     "hash_kernel.json": "The random hash as jaxlib's GPU threefry kernel (ExecutionPlan.hash_kernel): cold and warm "
                         "compiles of the default runs and a sweep before and after, large batches' run time, the "
-                        "files' bytes",
+                        "files' bytes, a sweep's rows on one and two GPUs",
     "fixed_kernels_devices.json": "XLA's GPU autotuning off (fixed_kernels) with --devices 2 and a sweep on two "
                                   "GPUs: one GPU's bytes and rows",
     "mjx_step_traced_once.json": "MJX's step traced once per process (not again for the greedy flights): the "
