@@ -38,6 +38,8 @@ from typing import Iterator
 import jax
 import jax.numpy as jnp
 
+from jaxrobo.core.version import outside
+
 #: jaxlib's threefry kernel's FFI target on CUDA.
 TARGET = "cu_threefry2x32_ffi"
 #: JAX versions ``[low, high)`` this was written and tested for (0.10 on CPU: the lowering; 0.11.2 on an H200).
@@ -71,11 +73,9 @@ def wanted() -> bool:
 @functools.cache
 def unavailable() -> str | None:
     """Why the kernel is not used in this process (None: it is): the JAX version, or a backend other than CUDA."""
-    version = tuple(int(p) for p in jax.__version__.split(".")[:2] if p.isdigit())
-    low, high = WRITTEN_FOR
-    if not low <= version < high:
-        return (f"jax {jax.__version__} is outside {'.'.join(map(str, low))} to {'.'.join(map(str, high))} "
-                "(the versions the call to jaxlib's kernel was written for)")
+    reason = outside("jax", jax.__version__, WRITTEN_FOR, "the call to jaxlib's kernel")
+    if reason:
+        return reason
     if not hasattr(jax, "ffi"):
         return "this JAX has no jax.ffi"
     backend = jax.default_backend()
@@ -93,6 +93,7 @@ def unavailable() -> str | None:
 
 
 def usable() -> bool:
+    """Whether this process can call the kernel (:func:`unavailable` gives no reason)."""
     return unavailable() is None
 
 

@@ -1,11 +1,27 @@
 """The package version: one home, read by ``pyproject.toml`` (``[tool.setuptools.dynamic]``), ``jaxrobo.__version__``,
-checkpoints and sweep state; :func:`installed`, the version of a dependency (for the version guards of the
-modules that reach into one's private code); and :func:`source_hash`, the identity of the code itself."""
+checkpoints and sweep state; :func:`installed`, the version of a dependency, and :func:`outside`, the version
+guards' check (for the modules that reach into one's private code); and :func:`source_hash`, the identity of the code itself."""
 import functools
 import importlib.metadata
 import os
+import re
 
 __version__ = "0.1.0"
+
+
+def outside(package: str, version: str | None, written_for: tuple[tuple[int, int], tuple[int, int]],
+            what: str = "it") -> str | None:
+    """Why ``version`` of ``package`` is outside ``written_for`` (``(low, high)`` as ``(major, minor)``, high
+    excluded), the range ``what`` was written for (a sentence), or None when it is inside: the check of every
+    module that reaches into a dependency's private code."""
+    if version is None:
+        return f"the {package} package metadata was not found, so its version cannot be checked"
+    match = re.match(r"(\d+)\.(\d+)", version)
+    low, high = written_for
+    if match is None or not low <= (int(match[1]), int(match[2])) < high:
+        return (f"{package} {version} is outside the versions {what} was written for "
+                f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
+    return None
 
 
 @functools.lru_cache(maxsize=None)

@@ -48,7 +48,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import re
 import warnings
 from typing import Any, Callable, Iterator
 
@@ -56,7 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrobo.core.version import installed
+from jaxrobo.core.version import installed, outside
 
 #: The ``brax`` versions both tricks were written and tested for: ``[low, high)`` as (major, minor).
 WRITTEN_FOR = ((0, 14), (0, 15))
@@ -79,14 +78,7 @@ def unavailable(version: str | None = None) -> str | None:
     """Why the tricks are outside what they were written for (a sentence), or None when they are not.
     ``version`` defaults to :func:`installed_version`."""
     version = installed_version() if version is None else version
-    if version is None:
-        return "the brax package metadata was not found, so its version cannot be checked"
-    match = re.match(r"(\d+)\.(\d+)", version)
-    low, high = WRITTEN_FOR
-    if match is None or not low <= (int(match[1]), int(match[2])) < high:
-        return (f"brax {version} is outside the versions jaxrobo.interop.brax_compat was written for "
-                f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
-    return None
+    return outside("brax", version, WRITTEN_FOR, "jaxrobo.interop.brax_compat")
 
 
 def _warn_once(message: str) -> None:

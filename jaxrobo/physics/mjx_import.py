@@ -38,7 +38,7 @@ import types
 from typing import Any, Iterator
 
 from jaxrobo.core.deferred import Deferred
-from jaxrobo.core.version import installed
+from jaxrobo.core.version import installed, outside
 
 #: The ``mujoco-mjx`` versions this was written and tested for: ``[low, high)`` as (major, minor).
 WRITTEN_FOR = ((3, 17), (3, 18))
@@ -60,11 +60,9 @@ def unavailable() -> str | None:
     """Why :func:`import_mjx` imports ``mujoco.mjx`` as it is (a sentence), or None when it defers the mesh
     libraries."""
     version = installed_version()
-    match = re.match(r"(\d+)\.(\d+)", version or "")
-    low, high = WRITTEN_FOR
-    if match is None or not low <= (int(match[1]), int(match[2])) < high:
-        return (f"mujoco-mjx {version} is outside the versions it was written for "
-                f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
+    reason = outside("mujoco-mjx", version, WRITTEN_FOR)
+    if reason:
+        return reason
     if any(name in sys.modules for name in _DEFERRED + (_MESH,)):
         return IMPORTED_ALREADY
     if "from scipy import spatial\nimport trimesh\n" not in _mesh_source() \

@@ -32,13 +32,13 @@ import contextvars
 import functools
 import importlib
 import io
-import re
 import warnings
 from typing import Any, Callable, Iterator
 
 import jax
 import jax.numpy as jnp
 
+from jaxrobo.core.version import outside
 from jaxrobo.physics.mjx_import import import_mjx, installed_version
 
 
@@ -91,13 +91,9 @@ _WARNED: set[str] = set()
 def unavailable() -> str | None:
     """Why :func:`lean` cannot replace the stage here (a sentence), or None when it can."""
     version = installed_version()
-    if version is None:
-        return "the mujoco-mjx package metadata was not found, so its version cannot be checked"
-    match = re.match(r"(\d+)\.(\d+)", version)
-    low, high = WRITTEN_FOR
-    if match is None or not low <= (int(match[1]), int(match[2])) < high:
-        return (f"mujoco-mjx {version} is outside the versions it was written for "
-                f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
+    reason = outside("mujoco-mjx", version, WRITTEN_FOR)
+    if reason:
+        return reason
     if not (_internal(_mjx_smooth, "com_pos") and _internal(_mjx_math, "matmul_unroll") and _internal(mjx, "Impl")):
         return f"mujoco-mjx {version} does not have the internals it replaces (smooth.com_pos, math.matmul_unroll)"
     return None
