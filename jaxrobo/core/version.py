@@ -1,6 +1,7 @@
 """The package version: one home, read by ``pyproject.toml`` (``[tool.setuptools.dynamic]``), ``jaxrobo.__version__``,
 checkpoints and sweep state; :func:`installed`, the version of a dependency, and :func:`outside`, the version
-guards' check (for the modules that reach into one's private code); and :func:`source_hash`, the identity of the code itself."""
+guards' check (for the modules that reach into one's private code); and :func:`source_hash`, the identity of the
+code itself."""
 import functools
 import importlib.metadata
 import os
