@@ -162,16 +162,30 @@ def test_npz_members_given_as_functions_are_called_in_their_turn(tmp_path):
     assert not target.exists()
 
 
-def test_crc32_of_blocks_combined_is_the_crc32_of_the_whole():
-    """The writer checksums blocks in threads and combines their CRCs as zlib's ``crc32_combine`` does."""
-    import zlib
+def test_large_blocks_are_deflated_as_their_bytes_call_for(monkeypatch, tmp_path):
+    """A large array's blocks written by 4 threads: mostly zeros shrink by run lengths, whole numbers at level 1,
+    normal floats (which level 1 would grow) are copied; the CRC-32s of the blocks combined are the member's
+    (``zipfile`` checks it) and ``np.load`` reads each array back."""
+    import zipfile
 
     from jaxrobo.io import npz
 
+    monkeypatch.setattr(npz, "SMALL_BYTES", 1000)
+    monkeypatch.setattr(npz, "BLOCK_BYTES", 1 << 16)
     rng = np.random.default_rng(2)
-    for n1, n2 in ((0, 0), (0, 5), (7, 0), (1, 1), (1000, 8 << 10), (12345, 54321)):
-        a, b = rng.bytes(n1), rng.bytes(n2)
-        assert npz._crc32_combine(zlib.crc32(a), zlib.crc32(b), n2) == zlib.crc32(a + b), (n1, n2)
+    sparse = np.zeros(1 << 16, np.float32)
+    sparse[rng.integers(0, sparse.size, 300)] = rng.random(300, np.float32)
+    arrays = dict(sparse=sparse, whole=rng.integers(0, 1000, 1 << 16).astype(np.int32),
+                  noise=rng.normal(size=1 << 16).astype(np.float32))
+    path = tmp_path / "blocks.npz"
+    npz.write_npz_deflated(str(path), threads=4, **arrays)
+    with zipfile.ZipFile(path) as zf:
+        assert zf.testzip() is None
+        share = {i.filename[:-4]: i.compress_size / i.file_size for i in zf.infolist()}
+    assert share["sparse"] < 0.1 and share["whole"] < npz.DENSE_RATIO and 1.0 <= share["noise"] < 1.01, share
+    with np.load(path) as z:
+        for name, value in arrays.items():
+            np.testing.assert_array_equal(z[name], value)
 
 
 def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):

@@ -12,18 +12,19 @@ from __future__ import annotations
 import collections
 import contextlib
 import errno
-import functools
 import io
 import math
 import mmap
 import os
 import struct
 import zipfile
-import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import IO, Any, Mapping
 
 import numpy as np
+# zlib-ng: deflate streams and CRC-32s that zlib reads, made faster (8 MB blocks of a run's tables on one core of an
+# H200 host: run-length deflate 26 -> 15 ms, CRC-32 2.7 -> 1.0 ms; benchmarks/results/h200/zlib_ng.json)
+from zlib_ng import zlib_ng as zlib
 
 from jaxrobo.core.config import ConfigError
 from jaxrobo.core.environ import usable_cores
@@ -41,10 +42,13 @@ class NpzError(ConfigError):
 BLOCK_BYTES = 8 << 20
 #: Arrays up to this size are deflated at level 1 (:func:`write_npz_deflated`).
 SMALL_BYTES = 32 << 20
-#: A larger array is deflated only by :data:`DEFLATE_FROM_THREADS` threads or more, and then only its blocks of which
-#: this share of the bytes or more are zero (level 1; the others at level 0: a copy); with fewer it is stored.
+#: A larger array is deflated only by :data:`DEFLATE_FROM_THREADS` threads or more (with fewer it is stored), block by
+#: block: a block of which this share of the bytes or more are zero with run lengths only, another at level 1 where
+#: its first :data:`PROBE_BYTES` shrink to :data:`DENSE_RATIO` of their size or less, else as a copy (level 0).
 SPARSE_SHARE = 0.9
 DEFLATE_FROM_THREADS = 4
+PROBE_BYTES = 64 << 10
+DENSE_RATIO = 0.8
 
 
 def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads: int | None = None,
@@ -53,17 +57,17 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
     ``np.load`` reads like ``np.savez_compressed``'s (``compress=False``: every array stored, the layout of
     ``np.savez``). Each array's ``.npy`` bytes (those ``np.lib.format.write_array`` writes) are written from its
     own memory, in blocks of :data:`BLOCK_BYTES` checksummed and compressed by ``threads`` threads (default: one
-    per core here; zlib works without Python's lock) while the file takes the blocks before them, in order.
+    per core here; zlib-ng works without Python's lock) while the file takes the blocks before them, in order.
 
     Which arrays are deflated: those up to :data:`SMALL_BYTES` at level 1; a larger one only by
-    :data:`DEFLATE_FROM_THREADS` threads or more, and then only its blocks that are mostly zeros
-    (:data:`SPARSE_SHARE`); otherwise it is stored. Why: a run's per-env Q-tables are mostly unvisited entries (93 %
-    zero bytes in 1 M cart-pole envs stopped at their target), which level 1 shrinks ten-fold at about 200 MB/s a
-    core; at 1 M envs that is 8 GB, which an H200 host's disk took 22-34 s to take raw. On 2 cores the deflating
-    would be slower than the disk (0.5 GB of such tables: 1.1 s deflated by 4 threads, 0.4-0.5 s stored), and
-    dense blocks go through level 1 at 35-65 MB/s a core for a third less. Where the file's large arrays are
-    :data:`UNCACHED_ABOVE_BYTES` or more, it goes through :class:`UncachedWrites` (where the file system allows
-    it).
+    :data:`DEFLATE_FROM_THREADS` threads or more, block by block as :func:`_block` chooses; otherwise it is stored.
+    Why: a run's per-env Q-tables are mostly unvisited entries (93 % zero bytes in 1 M cart-pole envs stopped at
+    their target), which run lengths shrink twelve-fold, and its episode records (small whole numbers, mostly) to a
+    quarter, at 250-550 MB/s a core (zlib-ng on an H200 host); at 1 M envs that is 8 GB and 3 GB, which an H200
+    host's disk took 22-34 s to take raw. On 2 cores the deflating would be slower than the disk (0.5 GB of such
+    tables: 1.1 s deflated by 4 threads with zlib, 0.4-0.5 s stored), and floats without pattern do not shrink at
+    all (hence the probe). Where the file's large arrays are :data:`UNCACHED_ABOVE_BYTES` or more, it goes through
+    :class:`UncachedWrites` (where the file system allows it).
 
     A value may be a function of no arguments returning a small array (at most :data:`SMALL_BYTES`): it is called
     when its turn comes, after the members before it are written (a checkpoint names the tables' file, written
@@ -140,8 +144,11 @@ class _Rows:
 
 def _block(piece: Any, level: int | None, last: bool) -> tuple[bytes | memoryview, int]:
     """One block's bytes as the member holds them, and its CRC-32: the piece's bytes themselves (``level`` None:
-    stored), or a piece of one raw deflate stream at ``level`` (-1: 1 where :data:`SPARSE_SHARE` of its bytes are
-    zero, else 0)."""
+    stored), or a piece of one raw deflate stream at ``level``. ``level`` -1: run lengths only where
+    :data:`SPARSE_SHARE` of its bytes are zero (unvisited table entries), else level 1 where its first
+    :data:`PROBE_BYTES` shrink to :data:`DENSE_RATIO` or less at level 1, else level 0 (a copy). On a core of this
+    repository's 2-core machine: 8 MB of cart-pole tables with 93 % zero bytes, 8 ms to 8 % of their size with run
+    lengths against 7 ms to 10 % with level 1's matches; 8 MB of normal floats 75 ms at level 1, 6 % larger."""
     data = piece if isinstance(piece, memoryview) else piece.view()  # a _Rows or another maker of its bytes
     crc = zlib.crc32(data)
     if level is None:
@@ -149,10 +156,11 @@ def _block(piece: Any, level: int | None, last: bool) -> tuple[bytes | memoryvie
     strategy = zlib.Z_DEFAULT_STRATEGY
     if level < 0:
         zeros = data.nbytes - np.count_nonzero(np.frombuffer(data, np.uint8))
-        level = 1 if zeros >= SPARSE_SHARE * data.nbytes else 0
-        # Run lengths only: mostly zeros (unvisited table entries) compress as well and faster (8 MB of cart-pole
-        # tables, 93 % zero bytes: 20 ms to 8 % of their size, against 26 ms to 9 % with level 1's matches).
-        strategy = zlib.Z_RLE
+        if zeros >= SPARSE_SHARE * data.nbytes:
+            level, strategy = 1, zlib.Z_RLE
+        else:
+            probe = data[:PROBE_BYTES]
+            level = 1 if len(zlib.compress(probe, 1, -15)) <= DENSE_RATIO * probe.nbytes else 0
     # Raw deflate: the pieces concatenate into one stream.
     c = zlib.compressobj(level, zlib.DEFLATED, -15, 8, strategy)
     return c.compress(data) + c.flush(zlib.Z_FINISH if last else zlib.Z_SYNC_FLUSH), crc
@@ -191,7 +199,7 @@ class _ZipWriter:
             while pending and (len(pending) > depth or i == len(pieces) - 1):
                 future, n = pending.popleft()
                 block, block_crc = future.result()
-                crc = _crc32_combine(crc, block_crc, n)
+                crc = zlib.crc32_combine(crc, block_crc, n)
                 if len(block) >= BLOCK_BYTES // 4:  # a stored or dense block: written as it is, without a copy
                     self._write(out)
                     self._write(block)
@@ -232,36 +240,6 @@ def _done(value: Any) -> Future:
     future: Future = Future()
     future.set_result(value)
     return future
-
-
-def _crc32_multiply(a: int, b: int) -> int:
-    """``a(x) * b(x)`` modulo CRC-32's polynomial (bit-reflected, as zlib computes it)."""
-    m, p = 1 << 31, 0
-    while a:
-        if a & m:
-            p ^= b
-            a ^= m
-        m >>= 1
-        b = (b >> 1) ^ 0xEDB88320 if b & 1 else b >> 1
-    return p
-
-
-@functools.lru_cache(maxsize=64)
-def _crc32_shift(nbytes: int) -> int:
-    """``x^(8 * nbytes)`` modulo CRC-32's polynomial: what appending ``nbytes`` bytes multiplies a CRC by."""
-    shift, power, n = 1 << 31, 1 << 30, nbytes * 8  # shift = x^0, power = x^1 (bit-reflected)
-    while n:
-        if n & 1:
-            shift = _crc32_multiply(power, shift)
-        power = _crc32_multiply(power, power)
-        n >>= 1
-    return shift
-
-
-def _crc32_combine(crc1: int, crc2: int, len2: int) -> int:
-    """The CRC-32 of ``A + B`` from ``crc32(A)``, ``crc32(B)`` and ``len(B)`` (zlib's ``crc32_combine``, which
-    Python's zlib does not expose): ``crc1`` shifted by ``len2`` zero bytes, plus ``crc2``."""
-    return _crc32_multiply(_crc32_shift(len2), crc1) ^ crc2
 
 
 #: Stored arrays of at least this many bytes in all are written past the page cache (:class:`UncachedWrites`).
