@@ -32,13 +32,12 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import functools
-import warnings
 from typing import Iterator
 
 import jax
 import jax.numpy as jnp
 
-from jaxrobo.core.version import outside
+from jaxrobo.core.version import outside, warn_once
 
 #: jaxlib's threefry kernel's FFI target on CUDA.
 TARGET = "cu_threefry2x32_ffi"
@@ -49,6 +48,7 @@ WRITTEN_FOR = ((0, 10), (0, 12))
 #: devices: XLA's partitioner cannot split a custom call.)
 MAX_ENVS = 8192
 
+_WARNED: set[str] = set()
 _CHOICE: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxrobo_hash_kernel", default=False)
 
 
@@ -57,7 +57,7 @@ def choose(on: bool) -> Iterator[None]:
     """A block whose traces hash with the kernel (``on``, where :func:`usable`) or with the hash's ops; nests, local
     to the thread or task that enters it."""
     if on and not usable():
-        _warn_once(unavailable())
+        warn_once(_WARNED, f"hash_kernel: not used ({unavailable()}); the random hash runs as XLA ops, the same values")
     token = _CHOICE.set(bool(on))
     try:
         yield
@@ -111,12 +111,3 @@ def threefry2x32(k1: jax.Array, k2: jax.Array, x1: jax.Array, x2: jax.Array) -> 
     x1, x2 = jax.ffi.ffi_call(TARGET, (out, out), vmap_method="broadcast_all")(*args)
     return x1, x2
 
-
-_WARNED: set[str] = set()
-
-
-def _warn_once(reason: str | None) -> None:
-    if reason and reason not in _WARNED:
-        _WARNED.add(reason)
-        warnings.warn(f"hash_kernel: not used ({reason}); the random hash runs as XLA ops, the same values",
-                      RuntimeWarning, stacklevel=3)

@@ -1,11 +1,12 @@
 """The package version: one home, read by ``pyproject.toml`` (``[tool.setuptools.dynamic]``), ``jaxrobo.__version__``,
-checkpoints and sweep state; :func:`installed`, the version of a dependency, and :func:`outside`, the version
-guards' check (for the modules that reach into one's private code); and :func:`source_hash`, the identity of the
-code itself."""
+checkpoints and sweep state; :func:`installed`, the version of a dependency; :func:`outside`, the version guards'
+check, and :func:`warn_once`, their warning (for the modules that reach into one's private code); and
+:func:`source_hash`, the identity of the code itself."""
 import functools
 import importlib.metadata
 import os
 import re
+import warnings
 
 __version__ = "0.1.0"
 
@@ -23,6 +24,15 @@ def outside(package: str, version: str | None, written_for: tuple[tuple[int, int
         return (f"{package} {version} is outside the versions {what} was written for "
                 f"(>= {low[0]}.{low[1]}, < {high[0]}.{high[1]})")
     return None
+
+
+def warn_once(seen: set[str], message: str, stacklevel: int = 3) -> None:
+    """``message`` as a :class:`RuntimeWarning` the first time a module warns it (``seen``: that module's messages
+    warned so far, which a test may empty), whatever the warnings filters say of repeats; ``stacklevel`` counted from
+    here, as :func:`warnings.warn` counts it: a version guard's "runs as it is" said once per process."""
+    if message not in seen:
+        seen.add(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=stacklevel)
 
 
 @functools.lru_cache(maxsize=None)

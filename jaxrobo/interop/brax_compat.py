@@ -48,14 +48,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import warnings
 from typing import Any, Callable, Iterator
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrobo.core.version import installed, outside
+from jaxrobo.core.version import installed, outside, warn_once
 
 #: The ``brax`` versions both tricks were written and tested for: ``[low, high)`` as (major, minor).
 WRITTEN_FOR = ((0, 14), (0, 15))
@@ -79,12 +78,6 @@ def unavailable(version: str | None = None) -> str | None:
     ``version`` defaults to :func:`installed_version`."""
     version = installed_version() if version is None else version
     return outside("brax", version, WRITTEN_FOR, "jaxrobo.interop.brax_compat")
-
-
-def _warn_once(message: str) -> None:
-    if message not in _WARNED:
-        _WARNED.add(message)
-        warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
 def _sharding(devices: Any) -> Any:
@@ -113,8 +106,8 @@ def install_jax_compat(version: str | None = None) -> list[str]:
         return []
     reason = unavailable(version)
     if reason is not None:
-        _warn_once(f"jaxrobo.interop.brax_compat: {reason}; setting jax.{' and jax.'.join(missing)} (removed in JAX 0.10) "
-                   "for it anyway, untested with this Brax")
+        warn_once(_WARNED, f"jaxrobo.interop.brax_compat: {reason}; setting jax.{' and jax.'.join(missing)} "
+                  "(removed in JAX 0.10) for it anyway, untested with this Brax")
     for name in missing:
         setattr(jax, name, globals()[name])
     return missing
@@ -172,8 +165,8 @@ def keep_evaluator_params(version: str | None = None) -> Iterator[EvaluatorHook]
                               f"jaxrobo's SAC evaluation replaces (written for brax {_range()})")
     reason = unavailable(version)
     if reason is not None:
-        _warn_once(f"jaxrobo.interop.brax_compat: {reason}; swapping brax.training.acting.Evaluator for SAC's evaluation "
-                   "points anyway, untested with this Brax")
+        warn_once(_WARNED, f"jaxrobo.interop.brax_compat: {reason}; swapping brax.training.acting.Evaluator for "
+                  "SAC's evaluation points anyway, untested with this Brax")
     hook = EvaluatorHook(version)
 
     class KeepParams(original):  # type: ignore[misc, valid-type]
@@ -298,8 +291,8 @@ def hook_epochs(trainer_module: Any, epoch_keys: Callable[[int, int], Any], firs
                               f"{_range()})")
     reason = unavailable(version)
     if reason is not None:
-        _warn_once(f"jaxrobo.interop.brax_compat: {reason}; hooking {trainer_module.__name__}'s training_epoch "
-                   "anyway, untested with this Brax")
+        warn_once(_WARNED, f"jaxrobo.interop.brax_compat: {reason}; hooking {trainer_module.__name__}'s "
+                  "training_epoch anyway, untested with this Brax")
     hook = EpochHook(version, epoch_keys, epochs_done=first_epoch, _restore=restore, compile_epoch=compile_epoch)
     trainer_module.jax = _JaxWithEpochHook(hook)
     try:

@@ -38,7 +38,7 @@ from typing import Any, Callable, Iterator
 import jax
 import jax.numpy as jnp
 
-from jaxrobo.core.version import outside
+from jaxrobo.core.version import outside, warn_once
 from jaxrobo.physics.mjx_import import import_mjx, installed_version
 
 
@@ -131,9 +131,7 @@ def lean(enabled: bool = True) -> Iterator[None]:
         return
     reason = unavailable()
     if reason is not None:
-        if reason not in _WARNED:
-            _WARNED.add(reason)
-            warnings.warn(f"jaxrobo.physics.mjx_lean: MJX runs as it is: {reason}", RuntimeWarning, stacklevel=3)
+        warn_once(_WARNED, f"jaxrobo.physics.mjx_lean: MJX runs as it is: {reason}", stacklevel=4)
         yield
         return
     smooth = _mjx_smooth.load()
