@@ -32,6 +32,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
@@ -53,12 +54,14 @@ def write_config(out_dir: str, config: dict[str, Any]) -> None:
 
 
 def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray,
-                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None) -> list:
+                   epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None,
+                   order_stats: dict[str, np.ndarray] | None = None) -> list:
     """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats.
 
     ``episodes_done`` (recorded episodes per env: an interrupted run, or a run-wide budget): only those get CSV
     rows, ``records.npz`` keeps the count, and each episode index's stats cover the envs that recorded it.
-    Returns those stats (:func:`episode_stats`' columns), for TensorBoard's per-episode scalars."""
+    Returns those stats (:func:`episode_stats`' columns, ``order_stats`` its percentiles' parts where the device
+    computed them), for TensorBoard's per-episode scalars."""
     os.makedirs(out_dir, exist_ok=True)
     returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
     terminated = np.atleast_2d(terminated)
@@ -67,7 +70,7 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
     # The stats are computed while the records are written (at 1,048,576 envs on an H200 host, 2.9 s of stats
     # after 1.9 s of records.npz, one after the other): both release Python's lock for most of their work.
     with ThreadPoolExecutor(1, thread_name_prefix="jaxrobo-stats-all") as pool:
-        stats_future = pool.submit(episode_stats, returns, lengths, epsilon, done)
+        stats_future = pool.submit(episode_stats, returns, lengths, epsilon, done, order_stats=order_stats)
         with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
             f.write(",".join(EPISODE_COLUMNS) + "\r\n")  # the csv module's dialect: nothing here needs quoting
             f.write(episode_rows(returns, lengths, terminated, epsilon, done, max_csv_envs))
@@ -107,42 +110,95 @@ def _percentiles(x: np.ndarray, qs: tuple[int, ...]) -> np.ndarray:
     return np.percentile(x, np.asarray(qs, np.result_type(x.dtype, np.float16)), axis=0)
 
 
+#: The percentiles of ``episode_stats.csv`` (:data:`STAT_COLUMNS`' ``_p10``, ``_p50``, ``_p90``).
+PERCENTILES = (10, 50, 90)
+
 #: Bytes of float64 a block of episode columns holds at most (:func:`episode_stats`): a block's temporaries are
 #: then memory the allocator reuses, where copies of the whole ``[envs, episodes]`` records were fresh pages
 #: (seconds at 65,536 envs).
 STATS_BLOCK_BYTES = 8 << 20
 
+#: Bytes of float64 a block of envs holds in :func:`_masked_moments` (each thread's block stays in its core's cache).
+MOMENT_BLOCK_BYTES = 1 << 20
+
+
+def recorded_per_column(done: np.ndarray, n_ep: int) -> np.ndarray:
+    """``[n_ep]``: how many envs recorded each episode column (env ``e`` its first ``done[e]``)."""
+    hist = np.bincount(np.minimum(np.asarray(done, np.int64), n_ep), minlength=n_ep + 1)
+    return hist[::-1].cumsum()[::-1][1:]  # envs whose count exceeds the column's index
+
+
+def percentile_ranks(count: np.ndarray, qs: tuple[int, ...] = PERCENTILES) -> tuple[list, np.ndarray]:
+    """The positions of ``qs`` among a column's ``count`` values (linear interpolation, as numpy's), and the ranks
+    ``[2 * len(qs), columns]`` whose values they lie between: each ``q``'s lower rank, then each ``q``'s upper."""
+    count = np.asarray(count, np.int64)
+    pos = [(count - 1) * (q / 100.0) for q in qs]
+    lo = [np.floor(p).astype(np.int64) for p in pos]
+    hi = [np.minimum(r + 1, count - 1) for r in lo]
+    return pos, np.stack(lo + hi) if qs else np.zeros((0, count.size), np.int64)
+
+
+def from_order_statistics(values: np.ndarray, pos: list, ranks: np.ndarray) -> list[np.ndarray]:
+    """Each percentile from the float64 values at its two ranks (:func:`percentile_ranks`), the lower one plus the
+    share of the step its position takes."""
+    values = np.asarray(values, np.float64)
+    n = len(pos)
+    return [values[i] + (values[n + i] - values[i]) * (pos[i] - ranks[i]) for i in range(n)]
+
 
 def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray, done: np.ndarray, *,
-                  threads: int | None = None) -> list:
+                  threads: int | None = None, order_stats: dict[str, np.ndarray] | None = None) -> list:
     """The columns of ``episode_stats.csv`` (:data:`STAT_COLUMNS`): per episode index, the mean, spread and
     percentiles over the envs that recorded that episode (``done``: recorded episodes per env). Where every env
     recorded the same number (the episode budget) that is every env; under a run-wide budget the envs differ
-    and an index is kept while at least one env recorded it.
+    and an index is kept while at least one env recorded it: the mean and spread are ``np.nanmean`` and
+    ``np.nanstd`` over the recorded entries (a NaN return left out), the percentiles interpolate between the
+    recorded entries sorted (a NaN return among them, last).
 
-    Computed over blocks of episode columns (:data:`STATS_BLOCK_BYTES`), each column by the same reductions over
-    the envs as over the whole array; a block is at least two columns wide (numpy folds a lone column's axis away
-    and would sum it in another order). ``threads``: how many compute the blocks (default: a usable core each;
-    the numbers are the same for any count)."""
+    ``order_stats``: under a run-wide budget, ``{"returns", "lengths"}``, each ``[2 * len(PERCENTILES), >= n]``:
+    every column's values at the ranks :func:`percentile_ranks` gives for its recorded count, picked from the
+    column sorted with its unrecorded entries last (NaN among floats) — computed on the device
+    (:mod:`jaxrobo.training.record_parts`); None: partitioned here. The numbers are the same either way.
+
+    The percentiles are computed over blocks of episode columns (:data:`STATS_BLOCK_BYTES`); a block is at least two
+    columns wide (numpy folds a lone column's axis away and would sum it in another order). ``threads``: how many
+    compute the blocks (default: a usable core each; the numbers are the same for any count)."""
     n_envs = returns.shape[0]
     if n_envs == 0:
         return [np.arange(0)] * len(STAT_COLUMNS)
     done = np.asarray(done)
     equal = bool(np.all(done == done[0]))
     n_ep = int(done[0]) if equal else int(done.max())
+    if equal:
+        columns = _column_blocks(lambda a, b: _equal_stats(np.ascontiguousarray(returns[:, a:b]),
+                                                           np.ascontiguousarray(lengths[:, a:b])),
+                                 n_envs, n_ep, threads, len(STAT_COLUMNS) - 2)
+        return [np.arange(n_ep), *columns, np.asarray(epsilon)[:n_ep]]
+    pos, ranks = percentile_ranks(recorded_per_column(done, n_ep))
+    if order_stats is None:
+        def block(a: int, b: int) -> list:
+            return [_order_statistics(x[:, a:b], done - a, ranks[:, a:b]) for x in (returns, lengths)]
+
+        order_stats = dict(zip(("returns", "lengths"), _column_blocks(block, n_envs, n_ep, threads, 2)))
+    columns = []
+    for name, x in (("returns", returns), ("lengths", lengths)):
+        values = np.asarray(order_stats[name])[:, :n_ep]
+        if values.shape != ranks.shape:
+            raise ValueError(f"order_stats[{name!r}]: expected {ranks.shape[0]} rows of at least {n_ep} columns, "
+                             f"got shape {np.shape(order_stats[name])}")
+        columns += [*_masked_moments(x, done, n_ep, threads), *from_order_statistics(values, pos, ranks)]
+    return [np.arange(n_ep), *columns, np.asarray(epsilon)[:n_ep]]
+
+
+def _column_blocks(block: Callable[[int, int], list], n_envs: int, n_ep: int, threads: int | None,
+                   n_out: int) -> list[np.ndarray]:
+    """``block(a, b)``'s arrays over blocks of episode columns (:data:`STATS_BLOCK_BYTES`), each joined along the
+    columns: ``n_out`` arrays."""
     width = max(2, STATS_BLOCK_BYTES // (8 * n_envs))
     starts = list(range(0, n_ep, width))
     if len(starts) > 1 and n_ep - starts[-1] < 2:
         starts.pop()  # the last block takes the lone column
     ends = starts[1:] + [n_ep]
-
-    def block(a: int, b: int) -> list:
-        # A C-ordered copy of the block: a reduction over the envs sums in the order of the memory it reads, and a
-        # run's records are Fortran-ordered where it recorded fewer episodes than its slots (pad_columns): the
-        # same numbers whichever layout the records come in.
-        r, ln = np.ascontiguousarray(returns[:, a:b]), np.ascontiguousarray(lengths[:, a:b])
-        return _equal_stats(r, ln) if equal else _masked_stats(r, ln, done - a)
-
     # The blocks are independent and numpy's reductions and partitions release the GIL: a thread per core. The
     # stats were most of write_episodes (262,144 envs x 123 episodes on 2 CPU cores: 3.4 of 4.0 s; 2.2 s in all
     # with two threads), which took 38.8 s of a 1,048,576-env run's writing on an H200 host. Each block's numbers
@@ -150,40 +206,92 @@ def episode_stats(returns: np.ndarray, lengths: np.ndarray, epsilon: np.ndarray,
     from jaxrobo.core.environ import in_threads
 
     blocks = in_threads(block, starts, ends, threads=threads, name="jaxrobo-stats")
-    columns = [np.concatenate(c) for c in zip(*blocks)] if blocks else [np.zeros(0)] * (len(STAT_COLUMNS) - 2)
-    return [np.arange(n_ep), *columns, np.asarray(epsilon)[:n_ep]]
+    return [np.concatenate(c, axis=-1) for c in zip(*blocks)] if blocks else [np.zeros(0)] * n_out
 
 
 def _equal_stats(returns: np.ndarray, lengths: np.ndarray) -> list:
-    """:func:`episode_stats`' columns but the first and last, every env having recorded each column."""
-    return [returns.mean(0), returns.std(0), *_percentiles(returns, (10, 50, 90)),
-            lengths.mean(0), lengths.std(0), *_percentiles(lengths, (10, 50, 90))]
+    """:func:`episode_stats`' columns but the first and last, every env having recorded each column (C-ordered
+    blocks: a reduction over the envs sums in the order of the memory it reads, and a run's records are
+    Fortran-ordered where it recorded fewer episodes than its slots,
+    :func:`jaxrobo.training.checkpoint.pad_columns`)."""
+    return [returns.mean(0), returns.std(0), *_percentiles(returns, PERCENTILES),
+            lengths.mean(0), lengths.std(0), *_percentiles(lengths, PERCENTILES)]
 
 
-def _masked_stats(returns: np.ndarray, lengths: np.ndarray, done: np.ndarray) -> list:
-    """:func:`episode_stats`' columns but the first and last over the envs that recorded each column (env ``e``
-    its first ``done[e]``; each column at least one env)."""
-    mask = np.arange(returns.shape[1])[None, :] < done[:, None]
-    r = np.where(mask, returns.astype(np.float64), np.nan)
-    ln = np.where(mask, lengths.astype(np.float64), np.nan)
-    count = mask.sum(axis=0)
-    r_pct, ln_pct = _nan_percentiles(r, count, (10, 50, 90)), _nan_percentiles(ln, count, (10, 50, 90))
-    return [np.nanmean(r, 0), np.nanstd(r, 0), *r_pct, np.nanmean(ln, 0), np.nanstd(ln, 0), *ln_pct]
-
-
-def _nan_percentiles(x: np.ndarray, count: np.ndarray, qs: tuple[int, ...]) -> list[np.ndarray]:
-    """``np.nanpercentile(x, q, axis=0)`` for each ``q`` (linear interpolation), from one partition of each column
-    at the ranks the ``qs`` need: NaNs go last, and ``count`` (non-NaN entries per column, each >= 1) says where a
-    column's values end. numpy's nanpercentile took seconds for 65,536 envs, a sort of every column most of one."""
-    pos = [(count - 1) * (q / 100.0) for q in qs]
-    lo = [np.floor(p).astype(np.int64) for p in pos]
-    hi = [np.minimum(r + 1, count - 1) for r in lo]
-    low_values, high_values = np.empty((len(qs), x.shape[1]), x.dtype), np.empty((len(qs), x.shape[1]), x.dtype)
+def _order_statistics(x: np.ndarray, done: np.ndarray, ranks: np.ndarray) -> np.ndarray:
+    """``[len(ranks), columns]``: each column's value at its ranks among its recorded entries (env ``e`` its first
+    ``done[e]``; NaN after every number, as a sort puts it), float64, from one partition of each column."""
+    mask = np.arange(x.shape[1])[None, :] < done[:, None]
+    x = np.where(mask, x.astype(np.float64), np.nan)
+    out = np.empty(ranks.shape, np.float64)
     for c in range(x.shape[1]):
-        ranks = [int(r[c]) for r in lo + hi]
-        part = np.partition(x[:, c], sorted(set(ranks)))
-        low_values[:, c], high_values[:, c] = part[ranks[:len(qs)]], part[ranks[len(qs):]]
-    return [low_values[i] + (high_values[i] - low_values[i]) * (pos[i] - lo[i]) for i in range(len(qs))]
+        part = np.partition(x[:, c], np.unique(ranks[:, c]))
+        out[:, c] = part[ranks[:, c]]
+    return out
+
+
+def _masked_moments(x: np.ndarray, done: np.ndarray, n_ep: int, threads: int | None) -> tuple[np.ndarray, ...]:
+    """Each of the first ``n_ep`` columns' mean and spread over its recorded entries (env ``e`` its first ``done[e]``)
+    that are numbers: the floats ``np.nanmean`` and ``np.nanstd`` give over the float64 records with NaN in the
+    unrecorded slots. Those sum each column over the envs in order (a C-ordered reduction over the first axis);
+    here the same sums run over blocks of envs, each block's sum started from the previous blocks' (a block of a
+    few columns and every env read column by column was most of a large run's statistics: every row's cache line
+    read for a few of its bytes). Threads take groups of columns (a column's sum is its own)."""
+    from jaxrobo.core.environ import in_threads, usable_cores
+
+    n_envs = x.shape[0]
+    group = max(2, -(-n_ep // max(1, (threads or usable_cores()) * 2)))
+    starts = list(range(0, n_ep, group))
+    if len(starts) > 1 and n_ep - starts[-1] < 2:
+        starts.pop()  # at least two columns (numpy folds a lone column's axis away: another order)
+    ends = starts[1:] + [n_ep]
+
+    def columns(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        if b - a < 2:  # a lone column (n_ep 1): numpy sums it as a line of its own, pairwise
+            kept = np.where(np.arange(a, b)[None, :] < done[:, None], x[:, a:b].astype(np.float64), np.nan)
+            with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                return np.nanmean(kept, 0), np.nanstd(kept, 0)
+        rows = max(1, MOMENT_BLOCK_BYTES // (8 * (b - a)))
+        slots = np.arange(a, b)[None, :]
+
+        def blocks():  # the float64 block, zero where not a recorded number, and where it is (None: everywhere)
+            for e in range(0, n_envs, rows):
+                block = x[e:e + rows, a:b].astype(np.float64, order="C")  # C-ordered: summed row by row
+                done_here = done[e:e + rows]
+                keep = None if done_here.min() >= b else slots < done_here[:, None]
+                if x.dtype.kind == "f":
+                    nan = np.isnan(block)
+                    if nan.any():
+                        keep = ~nan if keep is None else keep & ~nan
+                if keep is not None:
+                    np.copyto(block, 0.0, where=~keep)
+                yield block, keep
+
+        count, total, squares = np.zeros(b - a, np.intp), None, None
+        for block, keep in blocks():
+            count += block.shape[0] if keep is None else keep.sum(axis=0)
+            total = _summed_on(total, block)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = total / count
+            for block, keep in blocks():
+                np.subtract(block, mean, out=block)
+                if keep is not None:
+                    np.copyto(block, 0.0, where=~keep)
+                squares = _summed_on(squares, np.multiply(block, block, out=block))
+            return mean, np.sqrt(squares / count)
+
+    parts = in_threads(columns, starts, ends, threads=threads, name="jaxrobo-moments")
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def _summed_on(total: np.ndarray | None, block: np.ndarray) -> np.ndarray:
+    """``block``'s rows added in order to ``total`` (None: from its first row; ``block`` is overwritten): a C-ordered
+    reduction over the first axis adds row by row, so the blocks of an array summed in turn give the whole array's
+    sum (``total`` added to the first row is where a reduction of ``total`` and the rows would start)."""
+    if total is not None:
+        block[0] += total
+    return np.add.reduce(block, axis=0)
 
 
 def discretiser_arrays(disc: Discretiser | None) -> dict[str, np.ndarray]:
@@ -265,8 +373,11 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
                        episodes_done=result.episodes_done)
         return out_dir
     partial = not result.all_recorded() if hasattr(result, "all_recorded") else False
+    parts = getattr(result, "record_parts", None)
     stats = write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
-                           episodes_done=result.episodes_done if partial else None)
+                           episodes_done=result.episodes_done if partial else None,
+                           order_stats=None if parts is None or not partial else
+                           {"returns": parts["order_returns"], "lengths": parts["order_lengths"]})
     write_summary(out_dir, result.summary() if summary is None else summary() if callable(summary) else summary)
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)

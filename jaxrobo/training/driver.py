@@ -41,7 +41,7 @@ from jaxrobo.tabular import learner as tabular
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
 from jaxrobo.training import checkpoint as checkpoint_io
-from jaxrobo.training import nonzero_copy
+from jaxrobo.training import nonzero_copy, record_parts
 from jaxrobo.speed import reuse, sharding
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core.precision import check_precision
@@ -427,6 +427,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
             chunk, stats = chunk.wait(), stats.wait()
         jax.block_until_ready(runner)
         compile_seconds = time.perf_counter() - t0
+        parts_program = None
+        if record_parts.wanted(*runner.returns.shape, config.nsteps):  # compiled while the run trains
+            parts_program = record_parts.Prepared(runner.returns, runner.lengths, runner.episode,
+                                                  higher=ranking(getattr(env, "learning_target", None)).higher)
+            threads.append(parts_program.thread)
 
         total, unit = trainer.budget_total
         loop = run_chunks(lambda r: chunk(r, agent_params, env_params), runner, trainer.max_chunks(),
@@ -474,11 +479,16 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     # The records cross cut to their written columns, the tables as their nonzero entries (as the closing
     # checkpoint copies them: their bytes cross once), and get their zeros back here; the tables only where read.
     t_copy = time.perf_counter()
+    # The figures' and statistics' parts, where the records are, computed and copied in a thread meanwhile (a stopped
+    # run writes neither).
+    parts = None if parts_program is None or stopped else parts_program.start(runner.returns, runner.lengths,
+                                                                               runner.episode)
     rest = runner.replace(key=None, env_state=None, agent=runner.agent.replace(q=None))
     host = host_get(checkpoint_io.cut_records(rest))
     host = host.replace(**{name: checkpoint_io.pad_columns(np.asarray(getattr(host, name)), runner.returns.shape[1])
                            for name in ("returns", "lengths", "terminated")})
     q = host_get(runner.agent.q) if jax.process_count() > 1 else nonzero_copy.host_copy(runner.agent.q)
+    parts = None if parts is None else parts.result()
     copy_seconds = time.perf_counter() - t_copy
     return TrainResult(
         env_id=env.name, config=config, agent_params=agent_params,
@@ -494,7 +504,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
         final_table_choice=final_choice,
         target_checks=checks if check_every else None, target_every=check_every,
         target_met_chunk=loop.checked_done_at, target_check_seconds=loop.check_seconds,
-        checkpoint_seconds=loop.save_seconds, copy_seconds=copy_seconds)
+        checkpoint_seconds=loop.save_seconds, copy_seconds=copy_seconds, record_parts=parts)
 
 
 # ---- a population of runs ----------------------------------------------------------------------------------------

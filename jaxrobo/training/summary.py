@@ -82,6 +82,10 @@ class TrainResult:
     #: Wall time of the carry's records and tables copied to the host after the evaluation (this result's arrays):
     #: part of a run's writing (at 1,048,576 envs on an H200, 6.1 s for 8 GB of tables and 3 GB of records).
     copy_seconds: float = 0.0
+    #: The records' per-env and per-column parts computed on the device (:mod:`jaxrobo.training.record_parts`, host
+    #: arrays), from which :meth:`summary` and ``episode_stats.csv`` take the same floats with fewer sorts; None:
+    #: computed from the records here.
+    record_parts: dict[str, np.ndarray] | None = None
 
     @property
     def tables(self) -> Any:
@@ -121,24 +125,12 @@ class TrainResult:
     def summary(self) -> dict[str, Any]:
         """The seed's figures (highest cumulated reward, overall mean length, mean of the best 100), per run, and
         how many evaluated tables reach the task's declared learning target (``learning_target``)."""
-        returns, lengths, mask = self.returns, self.lengths, None
-        if not self.all_recorded():  # no env recorded past the widest one's episodes: the figures need no more
-            width = max(min(int(np.max(self.episodes_done)), returns.shape[1]), 1)  # columns (nor its mask)
-            mask, returns, lengths = self.recorded(width), returns[:, :width], lengths[:, :width]
-        if mask is None:
-            # Each env's 100 longest (a sort of each row: most of this at a million envs), block by block.
-            best100 = np.concatenate(over_env_blocks(
-                returns.shape[0], lambda a, b: np.sort(lengths[a:b].astype(np.float64), axis=1)[:, -100:].mean(axis=1)))
-            figures = {"highest_reward_mean": float(returns.max(axis=1).mean()),
-                       "highest_reward_max": float(returns.max()),
-                       "overall_mean_length": float(lengths.astype(np.float64).mean()),
-                       "best_100_mean_length": float(best100.mean()),
-                       "final_100_mean_return": float(returns[:, -100:].mean())}
-        else:
-            figures = _masked_figures(returns, lengths, mask)
         rank = ranking(self.learning_target)
-        figure = returns if rank.episode_figure == "return" else lengths
-        figures[f"best_100_window_mean_{rank.episode_figure}"] = best_window(figure, mask, rank)
+        if self.record_parts is not None:
+            figures = _figures_from_parts(self.record_parts, self.returns, self.episodes_done,
+                                          self.all_recorded(), rank)
+        else:
+            figures = self._figures(rank)
         figures["best_ranked_by"] = rank.words
         c = self.config
         out = {
@@ -210,6 +202,27 @@ class TrainResult:
             out["selected_table_fresh_mean_return"] = float(self.selected["returns"].mean())
         return out
 
+    def _figures(self, rank: Ranking) -> dict[str, float]:
+        """The seed's figures and the best window (:meth:`summary`), from the records."""
+        returns, lengths, mask = self.returns, self.lengths, None
+        if not self.all_recorded():  # no env recorded past the widest one's episodes: the figures need no more
+            width = max(min(int(np.max(self.episodes_done)), returns.shape[1]), 1)  # columns (nor its mask)
+            mask, returns, lengths = self.recorded(width), returns[:, :width], lengths[:, :width]
+        if mask is None:
+            # Each env's 100 longest (a sort of each row: most of this at a million envs), block by block.
+            best100 = np.concatenate(over_env_blocks(
+                returns.shape[0], lambda a, b: np.sort(lengths[a:b].astype(np.float64), axis=1)[:, -100:].mean(axis=1)))
+            figures = {"highest_reward_mean": float(returns.max(axis=1).mean()),
+                       "highest_reward_max": float(returns.max()),
+                       "overall_mean_length": float(lengths.astype(np.float64).mean()),
+                       "best_100_mean_length": float(best100.mean()),
+                       "final_100_mean_return": float(returns[:, -100:].mean())}
+        else:
+            figures = _masked_figures(returns, lengths, mask)
+        figure = returns if rank.episode_figure == "return" else lengths
+        figures[f"best_100_window_mean_{rank.episode_figure}"] = best_window(figure, mask, rank)
+        return figures
+
 
 def _q(result: TrainResult) -> np.ndarray:
     q = result.__dict__["q"]
@@ -226,6 +239,42 @@ def _set_q(result: TrainResult, q: Any) -> None:
 # are made dense only if something reads them, not to write qtables.npz.
 TrainResult.q = property(_q, _set_q, doc="The learner's tables, dense when read.")  # type: ignore[assignment]
 
+
+def _figures_from_parts(parts: dict[str, np.ndarray], returns: np.ndarray, episodes_done: np.ndarray | None,
+                        all_recorded: bool, rank: Ranking) -> dict[str, float]:
+    """:meth:`TrainResult._figures` from the records' parts (:func:`jaxrobo.training.record_parts.parts`): the same
+    floats. Lengths are whole numbers, so their sums (an env's 100 longest, its windows, all of them) are exact in
+    any order and a mean is that sum divided once; maxima are exact; the returns averaged are the ones the records
+    give, in the same order. The best window of float returns (a task ranked by return) is summed here."""
+    n_envs, slots = returns.shape
+    count = np.full(n_envs, slots) if all_recorded else np.minimum(np.asarray(episodes_done), slots)
+    has = count > 0
+    if not has.any():
+        nan = float("nan")
+        figures = {"highest_reward_mean": nan, "highest_reward_max": nan, "overall_mean_length": nan,
+                   "best_100_mean_length": nan, "final_100_mean_return": nan}
+    else:
+        highest, k = parts["highest"], np.minimum(count, 100)
+        length_sum = int(np.asarray(parts["length_sum"]).sum(dtype=np.int64))
+        last = parts["last_returns"]  # each env's last k returns first, in order: env after env as the records give
+        final = (returns[:, -100:].mean() if all_recorded  # (float32, as numpy sums that view)
+                 else last[np.arange(last.shape[1])[None, :] < k[:, None]].astype(np.float64).mean())
+        # (all recorded: float32's mean of each env's maximum, as numpy gives it; else float64 over the envs with any)
+        mean_highest = highest.mean() if all_recorded else highest[has].astype(np.float64).mean()
+        figures = {"highest_reward_mean": float(mean_highest),
+                   "highest_reward_max": float(highest[has].max()),
+                   "overall_mean_length": float(np.float64(length_sum) / int(count.sum())),
+                   "best_100_mean_length": float(np.mean(parts["top_sum"][has].astype(np.float64) / k[has])),
+                   "final_100_mean_return": float(final)}
+    if rank.episode_figure == "return":
+        width = slots if all_recorded else max(int(count.max()), 1)
+        mask = None if all_recorded else np.arange(width)[None, :] < count[:, None]
+        figures["best_100_window_mean_return"] = best_window(returns[:, :width], mask, rank)
+    else:
+        window = np.where(count >= 100, 100, np.maximum(count, 1))
+        kept = np.asarray(parts["window_sum"])[has].astype(np.float64) / window[has]
+        figures["best_100_window_mean_length"] = float(np.mean(kept)) if kept.size else float("nan")
+    return figures
 
 def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, window: int = 100) -> float:
     """The best ``window``-episode moving mean of ``figure`` (``[n_envs, episodes]``) in each env, best by
