@@ -151,3 +151,42 @@ def test_parts_that_fail_leave_the_figures_to_the_host(monkeypatch):
     prepared = record_parts.Prepared(returns, lengths, episode, higher=True)
     with pytest.warns(RuntimeWarning, match="RESOURCE_EXHAUSTED.*the host computes"):
         assert prepared.start(returns, lengths, episode).result() is None
+
+
+#: A run split over 4 (CPU) devices with the parts forced on: the records are sharded over the envs, and the
+#: program's sorts over each column gather them; the figures equal the host's.
+SPLIT = r"""
+import json, sys, warnings
+sys.path.insert(0, sys.argv[1])
+import jax
+from jaxrobo.training import record_parts
+from jaxrobo.training.run import resolve
+from jaxrobo.training.train import train
+
+record_parts.wanted = lambda *a, **k: True
+spec = resolve("CartPoleStayUp-v0", overrides=dict(n_envs=16, nepisodes=130, nsteps=30, chunk_steps=40,
+               total_steps=16 * 2200, eval_episodes=2, eval_envs=2, stop_at_target=False, devices=4))
+with warnings.catch_warnings():
+    warnings.simplefilter("error", RuntimeWarning)  # the parts' fallback warns: here it must not be taken
+    result = train(spec.env, spec.config, spec.agent_params)
+device = result.summary()
+result.record_parts = None
+host = result.summary()
+keys = [k for k in host if "second" not in k]
+print("RESULT" + json.dumps({"devices": jax.device_count(), "plan": result.plan,
+                             "same": all(device[k] == host[k] for k in keys)}))
+"""
+
+
+@pytest.mark.slow
+def test_a_run_split_over_devices_takes_the_same_parts():
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": "off",
+           "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    proc = subprocess.run([sys.executable, "-c", SPLIT, root], env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.split("RESULT", 1)[1])
+    assert out["devices"] == 4 and "devices=4" in out["plan"] and out["same"], out
