@@ -25,13 +25,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.io.results import PERCENTILES
+from jaxrobo.training.summary import BEST  # the seed's "best 100": one home
 
 #: Record entries (envs x episode slots) from which the device computes the parts: below it the host's numpy is
 #: as quick as a program's dispatch and copy (65,536 envs x 64 slots is 4 M).
 MIN_ENTRIES = 1 << 22
 
-#: The figures' window and top count: the seed's "best 100" (:meth:`~jaxrobo.training.summary.TrainResult.summary`).
-BEST = 100
 
 
 def wanted(n_envs: int, slots: int, max_length: int, *, backend: str | None = None) -> bool:

@@ -21,6 +21,9 @@ from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.task.env import LearningTarget, Ranking, ranking
 from jaxrobo.training.trainer import TrainConfig
 
+#: The seed's "best 100": each env's 100 longest episodes, its last 100 and its best 100-episode window.
+BEST = 100
+
 
 @dataclasses.dataclass
 class TrainResult:
@@ -210,13 +213,15 @@ class TrainResult:
             mask, returns, lengths = self.recorded(width), returns[:, :width], lengths[:, :width]
         if mask is None:
             # Each env's 100 longest (a sort of each row: most of this at a million envs), block by block.
-            best100 = np.concatenate(over_env_blocks(
-                returns.shape[0], lambda a, b: np.sort(lengths[a:b].astype(np.float64), axis=1)[:, -100:].mean(axis=1)))
+            def longest(a: int, b: int) -> np.ndarray:
+                return np.sort(lengths[a:b].astype(np.float64), axis=1)[:, -BEST:].mean(axis=1)
+
+            best100 = np.concatenate(over_env_blocks(returns.shape[0], longest))
             figures = {"highest_reward_mean": float(returns.max(axis=1).mean()),
                        "highest_reward_max": float(returns.max()),
                        "overall_mean_length": float(lengths.astype(np.float64).mean()),
                        "best_100_mean_length": float(best100.mean()),
-                       "final_100_mean_return": float(returns[:, -100:].mean())}
+                       "final_100_mean_return": float(returns[:, -BEST:].mean())}
         else:
             figures = _masked_figures(returns, lengths, mask)
         figure = returns if rank.episode_figure == "return" else lengths
@@ -240,6 +245,12 @@ def _set_q(result: TrainResult, q: Any) -> None:
 TrainResult.q = property(_q, _set_q, doc="The learner's tables, dense when read.")  # type: ignore[assignment]
 
 
+def _no_figures() -> dict[str, float]:
+    """The seed's figures of a run in which no env recorded an episode: NaN each."""
+    return dict.fromkeys(("highest_reward_mean", "highest_reward_max", "overall_mean_length", "best_100_mean_length",
+                          "final_100_mean_return"), float("nan"))
+
+
 def _figures_from_parts(parts: dict[str, np.ndarray], returns: np.ndarray, episodes_done: np.ndarray | None,
                         all_recorded: bool, rank: Ranking) -> dict[str, float]:
     """:meth:`TrainResult._figures` from the records' parts (:func:`jaxrobo.training.record_parts.parts`): the same
@@ -250,14 +261,12 @@ def _figures_from_parts(parts: dict[str, np.ndarray], returns: np.ndarray, episo
     count = np.full(n_envs, slots) if all_recorded else np.minimum(np.asarray(episodes_done), slots)
     has = count > 0
     if not has.any():
-        nan = float("nan")
-        figures = {"highest_reward_mean": nan, "highest_reward_max": nan, "overall_mean_length": nan,
-                   "best_100_mean_length": nan, "final_100_mean_return": nan}
+        figures = _no_figures()
     else:
-        highest, k = parts["highest"], np.minimum(count, 100)
+        highest, k = parts["highest"], np.minimum(count, BEST)
         length_sum = int(np.asarray(parts["length_sum"]).sum(dtype=np.int64))
         last = parts["last_returns"]  # each env's last k returns first, in order: env after env as the records give
-        final = (returns[:, -100:].mean() if all_recorded  # (float32, as numpy sums that view)
+        final = (returns[:, -BEST:].mean() if all_recorded  # (float32, as numpy sums that view)
                  else last[np.arange(last.shape[1])[None, :] < k[:, None]].astype(np.float64).mean())
         # (all recorded: float32's mean of each env's maximum, as numpy gives it; else float64 over the envs with any)
         mean_highest = highest.mean() if all_recorded else highest[has].astype(np.float64).mean()
@@ -271,12 +280,12 @@ def _figures_from_parts(parts: dict[str, np.ndarray], returns: np.ndarray, episo
         mask = None if all_recorded else np.arange(width)[None, :] < count[:, None]
         figures["best_100_window_mean_return"] = best_window(returns[:, :width], mask, rank)
     else:
-        window = np.where(count >= 100, 100, np.maximum(count, 1))
+        window = np.where(count >= BEST, BEST, np.maximum(count, 1))
         kept = np.asarray(parts["window_sum"])[has].astype(np.float64) / window[has]
         figures["best_100_window_mean_length"] = float(np.mean(kept)) if kept.size else float("nan")
     return figures
 
-def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, window: int = 100) -> float:
+def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, window: int = BEST) -> float:
     """The best ``window``-episode moving mean of ``figure`` (``[n_envs, episodes]``) in each env, best by
     ``rank``'s direction, averaged over envs; an env with fewer recorded episodes than ``window`` gives the
     mean of all of them, one with none (``mask``: the recorded slots; None: all) is left out."""
@@ -331,15 +340,13 @@ def _masked_figures(returns: np.ndarray, lengths: np.ndarray, mask: np.ndarray) 
     budget, or a stopped run); an env with none recorded is left out."""
     has = mask.any(axis=1)
     if not has.any():
-        nan = float("nan")
-        return {"highest_reward_mean": nan, "highest_reward_max": nan, "overall_mean_length": nan,
-                "best_100_mean_length": nan, "final_100_mean_return": nan}
+        return _no_figures()
     # Vectorised over blocks of envs (a Python loop over envs took seconds at 65,536 envs). The recorded slots are
     # each env's first ones (TrainResult.recorded): an env's last k = min(100, count) episodes are the slots
     # [count - k, count). Lengths are whole numbers, so the sum of an env's 100 longest, and of all of them, is
     # exact in any order; each figure is the float64 value a reduction over the whole arrays gives.
     count = mask.sum(axis=1)
-    k = np.minimum(count, 100)
+    k = np.minimum(count, BEST)
     n_envs, width = mask.shape
     slots = np.arange(width)[None, :]
     whole = np.issubdtype(lengths.dtype, np.integer)
@@ -348,7 +355,7 @@ def _masked_figures(returns: np.ndarray, lengths: np.ndarray, mask: np.ndarray) 
         m, r, ln = mask[a:b], returns[a:b], lengths[a:b]
         highest = np.where(m, r, -np.inf).max(axis=1).astype(np.float64)
         kept = np.where(m, ln.astype(np.float64), -np.inf)
-        top = kept if width <= 100 else np.partition(kept, width - 100, axis=1)[:, -100:]
+        top = kept if width <= BEST else np.partition(kept, width - BEST, axis=1)[:, -BEST:]
         best_sum = np.where(np.isfinite(top), top, 0.0).sum(axis=1)
         last = (slots >= (count[a:b] - k[a:b])[:, None]) & (slots < count[a:b, None])
         # (the returns of each env's last k episodes, env by env; the recorded lengths' sum, exact in int64)
