@@ -69,6 +69,8 @@ WHAT = {
                               "monitoring events), and the XLA levers tried on it",
     "record_parts.json": "The summary's figures and the episode statistics' percentiles from parts computed on the "
                          "device: the cart-pole's writing at 65,536 and 1 M envs before and after, the same numbers",
+    "records_linked.json": "The closing checkpoint's records file linked as the results' records.npz: the "
+                           "cart-pole's writing at 65,536 and 1 M envs before and after, the same numbers, timelines",
     "zlib_ng.json": "The .npz writer's deflate and CRC-32 on zlib-ng: the cart-pole's writing at 65,536 and 1 M envs "
                     "before and after, file sizes, the arrays' hashes, 8 MB blocks on one core, each writer's timeline",
     "hash_kernel.json": "The random hash as jaxlib's GPU threefry kernel (ExecutionPlan.hash_kernel): cold and warm "

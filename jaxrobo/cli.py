@@ -548,6 +548,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     from jaxrobo.training.trainer import Trainer
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.results import discretiser_arrays, save_run, write_config, write_episodes, write_summary
+    from jaxrobo.tabular.learner import epsilon_schedule
 
     resume = args.resume
     agent = _deep_agent(args)
@@ -616,13 +617,15 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     if not args.no_progress:
         hooks.insert(0, callbacks.ProgressBar())
 
-    # The tables of the last checkpoint this process wrote, laid out as qtables.npz: the finished run links them.
-    saved_tables: dict[str, Any] = {}
+    # The tables and records of the last checkpoint this process wrote, laid out as qtables.npz and records.npz: the
+    # finished run links them.
+    saved_files: dict[str, Any] = {}
     disc_arrays = discretiser_arrays(trainer.disc)
+    epsilon = epsilon_schedule(spec.agent_params, cfg.nepisodes)
 
     def save(runner, chunks_done: int) -> None:
-        saved_tables.update(path=checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint,
-                                                            tables=disc_arrays), chunks=chunks_done)
+        saved_files.update(files=checkpoint.save_checkpoint(checkpoint_path, runner, chunks_done, fingerprint,
+                                                            tables=disc_arrays, epsilon=epsilon), chunks=chunks_done)
         rundir.write_status(live, rundir.RUNNING, out=os.path.abspath(out), chunks_done=chunks_done,
                             chunks=n_chunks, resume=resume_cmd, **keep)
 
@@ -669,15 +672,18 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         figures = ThreadPoolExecutor(1, thread_name_prefix="jaxrobo-summary")
         pending_summary = figures.submit(result.summary)
 
-        def tables() -> str | None:
-            """The closing checkpoint's tables, once written: the result's unless the run chose its final table
-            after it."""
+        def closing() -> checkpoint.Saved:
+            """The files of the closing checkpoint (that of the result's carry), once written."""
             saves.wait()
-            return saved_tables.get("path") if saved_tables.get("chunks") == result.chunks_done \
-                and result.final_table_choice is None else None
+            return saved_files["files"] if saved_files.get("chunks") == result.chunks_done else checkpoint.Saved()
+
+        def tables() -> str | None:
+            """The closing checkpoint's tables: the result's unless the run chose its final table after it."""
+            return closing().tables if result.final_table_choice is None else None
 
         def write(staged: str) -> None:
-            save_run(staged, result, spec.to_dict(), trainer.disc, summary=pending_summary.result, tables=tables)
+            save_run(staged, result, spec.to_dict(), trainer.disc, summary=pending_summary.result, tables=tables,
+                     records=lambda: closing().records)
             keep_live_scalars(live, staged)
             # The results' copy to the host, the figures and the files (the closing checkpoint's wait before the
             # evaluation is checkpoint_seconds).

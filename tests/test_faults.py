@@ -349,22 +349,39 @@ def _other_tables(path):
     _rewrite(_tables_file(path), lambda a: {"q": a["q"] + 1})
 
 
+def _records_file(path):
+    """The file of the checkpoint's episode records, beside it (:func:`jaxrobo.training.checkpoint.save_checkpoint`)."""
+    with np.load(path, allow_pickle=False) as z:
+        return os.path.join(os.path.dirname(path), str(z["records_file"]))
+
+
 def _records(change):
-    """Rewrite the checkpoint with its first episode-record member changed by ``change(name, array)`` (a new
-    ``{name: array}``; empty drops it)."""
+    """Rewrite the checkpoint's records file with its first episode-record member (``returns``) changed by
+    ``change(name, array)`` (a new ``{name: array}``; empty drops it), and the checkpoint with the CRC-32s of the
+    new file's members (a forged pair: the loader's own checks of the records must refuse it)."""
+    import zipfile
+
     def corrupt(path):
-        with np.load(path, allow_pickle=False) as z:
+        where = _records_file(path)
+        with np.load(where, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-        name = sorted(k for k in arrays if k.startswith("records_"))[0]
-        arrays.update(change(name, arrays.pop(name)))
-        np.savez(path, **arrays)
+        arrays.update(change("returns", arrays.pop("returns")))
+        np.savez(where, **arrays)
+        with zipfile.ZipFile(where) as zf:
+            crcs = [zf.getinfo(f"{n}.npy").CRC if f"{n}.npy" in zf.namelist() else 0
+                    for n in ("returns", "lengths", "terminated")]
+        _rewrite(path, lambda a: {"records_crc": np.array(crcs, np.int64)})
     return corrupt
 
 
 @pytest.mark.parametrize("corrupt, fragment", [
     (_records(lambda n, x: {n: np.zeros((x.shape[0], 10_000), x.dtype)}), "with at most"),
     (_records(lambda n, x: {n: x.astype(np.float64)}), "float64"),
-    (_records(lambda n, x: {}), "are missing"),
+    (_records(lambda n, x: {}), "cannot be matched to it"),
+    (lambda p: _rewrite(_records_file(p), lambda a: {"lengths": np.ones((len(a["lengths"]), 1), np.int32)}),
+     "holds other records than the checkpoint recorded"),
+    (lambda p: os.remove(_records_file(p)), "(checkpoint.records."),
+    (lambda p: _rewrite(p, lambda a: {"records_file": np.array("../records.npz")}), "not a checkpoint's records file"),
     (lambda p: open(p, "r+b").truncate(os.path.getsize(p) // 2), "cannot be read as plain arrays"),
     (lambda p: open(p, "r+b").truncate(10), "cannot be read as plain arrays"),
     (lambda p: _flip(p, os.path.getsize(p) // 3), "the checkpoint"),

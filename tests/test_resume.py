@@ -141,8 +141,8 @@ def test_the_checkpoints_tables_are_the_results_file_and_load_back(tmp_path, mon
         jax.random.key(2), runner.agent.q.shape)))
     path = str(tmp_path / rundir.CHECKPOINT)
     extra = discretiser_arrays(trainer.disc)
-    first = ckpt.save_checkpoint(path, runner, 1, fingerprint, tables=extra)
-    second = ckpt.save_checkpoint(path, runner, 2, fingerprint, tables=extra)
+    first = ckpt.save_checkpoint(path, runner, 1, fingerprint, tables=extra).tables
+    second = ckpt.save_checkpoint(path, runner, 2, fingerprint, tables=extra).tables
     assert first != second and sorted(os.listdir(tmp_path)) == sorted([rundir.CHECKPOINT, os.path.basename(second)])
     assert all(rundir.owned(n) for n in os.listdir(tmp_path))
     with np.load(path, allow_pickle=False) as data:  # the tables are not in the checkpoint itself
@@ -162,6 +162,64 @@ def test_the_checkpoints_tables_are_the_results_file_and_load_back(tmp_path, mon
         if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
             x, y = jax.random.key_data(x), jax.random.key_data(y)
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.mark.parametrize("budget", ["episodes", "steps"])
+def test_the_checkpoints_records_are_the_results_file_and_load_back(tmp_path, budget):
+    """With ``epsilon=`` the carry's episode records go to a file beside the checkpoint laid out as records.npz
+    (what a finished run links as its results; under a step budget with each env's count of recorded episodes),
+    a later checkpoint replaces that file and the older one is removed, the carry loads back whole; a checkpoint
+    whose records file holds other records is refused."""
+    from jaxrobo.io.results import write_episodes
+    from jaxrobo.tabular.learner import epsilon_schedule
+
+    overrides = dict(CARTPOLE, n_envs=6, nepisodes=5, stop_at_target=False)
+    if budget == "steps":
+        overrides.update(total_steps=6 * 90)
+    spec = resolve("CartPoleStayUp-v0", overrides=overrides)
+    trainer = Trainer(spec.env, spec.config)
+    template = ckpt.carry_template(trainer, spec.agent_params)
+    fingerprint = ckpt.carry_fingerprint(template, spec.to_dict())
+    path = str(tmp_path / rundir.CHECKPOINT)
+    epsilon = epsilon_schedule(spec.agent_params, spec.config.nepisodes)
+    carries = []
+    result = training.train(spec.env, spec.config, spec.agent_params,
+                            checkpoint=lambda runner, chunks: carries.append((jax.tree.map(jax.numpy.copy, runner),
+                                                                              chunks)),
+                            checkpoint_every=1)  # copies: the next chunk reuses the carry's buffers
+    assert result.complete and len(carries) >= 2
+    (earlier, n_earlier), (runner, chunks) = carries[-2], carries[-1]
+    first = ckpt.save_checkpoint(path, earlier, n_earlier, fingerprint, epsilon=epsilon)
+    second = ckpt.save_checkpoint(path, runner, chunks, fingerprint, epsilon=epsilon)
+    assert first.records != second.records and first.tables is second.tables is None
+    assert sorted(os.listdir(tmp_path)) == sorted([rundir.CHECKPOINT, os.path.basename(second.records)])
+    assert all(rundir.owned(n) for n in os.listdir(tmp_path))
+    with np.load(path, allow_pickle=False) as data:  # the records are not in the checkpoint itself
+        assert not [k for k in data.files if k.startswith("records_") and k[8:].isdigit()]
+        assert str(data["records_file"]) == os.path.basename(second.records) and data["records_crc"].shape == (3,)
+    # What the results write from the finished run's records, without a link: the same arrays.
+    write_episodes(str(tmp_path / "results"), result.returns, result.lengths, result.terminated, result.epsilon,
+                   episodes_done=None if result.all_recorded() else result.episodes_done)
+    assert (budget == "steps") == (not result.all_recorded())
+    with np.load(second.records, allow_pickle=False) as a, \
+            np.load(tmp_path / "results" / "records.npz", allow_pickle=False) as b:
+        assert a.files == b.files == ["returns", "lengths", "terminated", "epsilon"] + \
+            (["episodes_done"] if budget == "steps" else [])
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+            assert a[k].dtype == b[k].dtype, k
+    loaded, chunks_done = ckpt.load_checkpoint(path, template, fingerprint)
+    assert chunks_done == chunks
+    for x, y in zip(jax.tree.leaves(loaded), jax.tree.leaves(runner)):
+        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            x, y = jax.random.key_data(x), jax.random.key_data(y)
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with np.load(first.records if os.path.exists(first.records) else second.records) as z:
+        other = {k: z[k] for k in z.files}
+    other["lengths"] = other["lengths"] + 1
+    np.savez(second.records, **other)
+    with pytest.raises(ckpt.CheckpointError, match="holds other records than the checkpoint recorded"):
+        ckpt.load_checkpoint(path, template, fingerprint)
 
 
 # ---- the command line ------------------------------------------------------------------------------------------
@@ -289,6 +347,28 @@ def test_a_real_signal_leaves_a_resumable_run_that_resumes_to_the_uninterrupted_
     full = str(tmp_path / "full")
     assert main(["train", *args, "--checkpoint-every", "0", "--out", full]) == 0
     _assert_same_run(out, full)
+
+
+@pytest.mark.parametrize("budget", [[], ["--total-steps", "360"]], ids=["episodes", "steps"])
+def test_a_finished_run_links_its_closing_checkpoints_records_and_tables(tmp_path, monkeypatch, budget):
+    """A finished run's ``records.npz`` and ``qtables.npz`` are its closing checkpoint's files, linked, not written
+    again; they hold what the results write themselves where a link is refused (the same run directory)."""
+    from jaxrobo.io import results
+
+    written, real = [], results.write_npz_deflated
+    monkeypatch.setattr(results, "write_npz_deflated",
+                        lambda path, **kw: (written.append(os.path.basename(path)), real(path, **kw))[1])
+    linked = str(tmp_path / "linked")
+    assert main(["train", *CLI_TINY, *budget, "--out", linked]) == 0
+    assert written == [] and rundir.is_complete(linked)
+    assert sorted(n for n in os.listdir(linked) if n.endswith(".npz")) == ["qtables.npz", "records.npz"]
+    monkeypatch.setattr(results, "_linked", lambda source, path: False)
+    copied = str(tmp_path / "copied")
+    assert main(["train", *CLI_TINY, *budget, "--out", copied]) == 0
+    assert sorted(written) == ["qtables.npz", "records.npz"]
+    _assert_same_run(linked, copied)
+    with np.load(os.path.join(linked, "records.npz")) as z:
+        assert ("episodes_done" in z.files) == bool(budget)
 
 
 def _counting_chunks(patch: pytest.MonkeyPatch) -> list:

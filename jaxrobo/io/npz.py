@@ -341,6 +341,17 @@ def _header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...]
     return tuple(int(n) for n in shape), np.dtype(dtype)
 
 
+def member_headers(path: str) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """``{name: (shape, dtype)}`` of each array of the ``.npz`` at ``path``, in the file's order, from the members'
+    ``.npy`` headers alone (no data read); :class:`NpzError` where a header cannot be read."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return {info.filename[:-4] if info.filename.endswith(".npy") else info.filename: _header(zf, info)
+                    for info in zf.infolist()}
+    except (OSError, ValueError, SyntaxError, TypeError, OverflowError, EOFError, zipfile.BadZipFile) as err:
+        raise NpzError(f"{path}: cannot read its arrays' headers ({type(err).__name__}: {err})") from None
+
+
 def read_npz(path: str, what: str = "the file", *, expect: Mapping[str, tuple[tuple[int, ...], Any]] | None = None,
              finite: bool | Mapping[str, bool] = True, max_bytes: int = MAX_ARRAY_BYTES) -> dict[str, np.ndarray]:
     """Every array of the ``.npz`` at ``path``, checked before and after reading (see the module).

@@ -18,8 +18,9 @@ A run directory holds:
                          (``resume``: the command line)
 ``checkpoint.npz``       only in an unfinished run: the whole training carry, from which ``jaxrobo train
                          --resume DIR`` goes on (format: :func:`jaxrobo.training.checkpoint.save_checkpoint`),
-                         its tables in ``checkpoint.tables.<id>.npz`` beside it, laid out as ``qtables.npz``
-                         (a finished run's ``qtables.npz`` is that file, linked, not written again)
+                         its tables in ``checkpoint.tables.<id>.npz`` and its episode records in
+                         ``checkpoint.records.<id>.npz`` beside it, laid out as ``qtables.npz`` and
+                         ``records.npz`` (a finished run's are those files, linked, not written again)
 =======================  =====================================================================================
 
 A complete run is written into a hidden sibling and renamed into place (:mod:`jaxrobo.io.rundir`), so a directory
@@ -55,13 +56,19 @@ def write_config(out_dir: str, config: dict[str, Any]) -> None:
 
 def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray,
                    epsilon: np.ndarray, max_csv_envs: int = 1024, episodes_done: np.ndarray | None = None,
-                   order_stats: dict[str, np.ndarray] | None = None) -> list:
+                   order_stats: dict[str, np.ndarray] | None = None,
+                   link: str | Callable[[], str | None] | None = None) -> list:
     """Per-episode records: CSV rows for the first ``max_csv_envs`` envs, all envs in ``records.npz``, and stats.
 
     ``episodes_done`` (recorded episodes per env: an interrupted run, or a run-wide budget): only those get CSV
     rows, ``records.npz`` keeps the count, and each episode index's stats cover the envs that recorded it.
     Returns those stats (:func:`episode_stats`' columns, ``order_stats`` its percentiles' parts where the device
-    computed them), for TensorBoard's per-episode scalars."""
+    computed them), for TensorBoard's per-episode scalars.
+
+    ``link``: a file this process wrote with these records laid out as ``records.npz`` (:func:`records_members`:
+    the closing checkpoint's, :func:`jaxrobo.training.checkpoint.save_checkpoint`), or a function giving it (or
+    None), called once the CSV is written; hard-linked as ``records.npz`` instead of writing the records again,
+    where its arrays' names, shapes and dtypes are those the records give and the file system allows a link."""
     os.makedirs(out_dir, exist_ok=True)
     returns, lengths = np.atleast_2d(returns), np.atleast_2d(lengths)
     terminated = np.atleast_2d(terminated)
@@ -74,13 +81,11 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
         with open(os.path.join(out_dir, "episodes.csv"), "w", newline="") as f:
             f.write(",".join(EPISODE_COLUMNS) + "\r\n")  # the csv module's dialect: nothing here needs quoting
             f.write(episode_rows(returns, lengths, terminated, epsilon, done, max_csv_envs))
-        extra = {} if episodes_done is None else {"episodes_done": done}
-        # Only the episode slots some env recorded: a run that stopped at its learning target recorded a few of its
-        # nepisodes slots, and the empty rest is most of the bytes to write.
-        kept = int(done.max()) if n_envs else 0
-        write_npz_deflated(os.path.join(out_dir, "records.npz"), returns=returns[:, :kept],
-                           lengths=lengths[:, :kept], terminated=terminated[:, :kept],
-                           epsilon=np.asarray(epsilon)[:kept], **extra)
+        members = records_members(returns, lengths, terminated, epsilon, episodes_done)
+        path = os.path.join(out_dir, "records.npz")
+        linked = link() if callable(link) else link
+        if linked is None or not _same_members(linked, members) or not _linked(linked, path):
+            write_npz_deflated(path, **members)
         stats = stats_future.result()
     with open(os.path.join(out_dir, "episode_stats.csv"), "w", newline="") as f:
         w = csv.writer(f)
@@ -88,6 +93,43 @@ def write_episodes(out_dir: str, returns: np.ndarray, lengths: np.ndarray, termi
         for row in zip(*stats):
             w.writerow([int(row[0])] + [f"{v:.6g}" for v in row[1:]])
     return stats
+
+
+def records_members(returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray, epsilon: np.ndarray,
+                    episodes_done: np.ndarray | None = None, *, width: int | None = None) -> dict[str, np.ndarray]:
+    """The arrays of ``records.npz``, in its order: ``returns``, ``lengths``, ``terminated`` (``[n_envs, kept]``),
+    ``epsilon`` (``[kept]``) and, given ``episodes_done`` (recorded episodes per env, at most ``width``), that
+    count; ``kept`` is the most episodes any env recorded (``width`` without ``episodes_done``): a run that stopped at
+    its learning target recorded a few of its slots, and the empty rest is most of the bytes. ``width``: the
+    records' slots per env (default ``returns.shape[1]``), where the arrays given hold only their first columns
+    (cut by :func:`jaxrobo.training.checkpoint.cut_records`); ValueError where they hold fewer than ``kept``."""
+    width = returns.shape[1] if width is None else width
+    done = None if episodes_done is None else np.minimum(np.asarray(episodes_done), width)
+    kept = (width if done is None else int(done.max())) if returns.shape[0] else 0
+    if kept > min(x.shape[1] for x in (returns, lengths, terminated)):
+        raise ValueError(f"records of {returns.shape[1]} columns given where {kept} were recorded")
+    extra = {} if done is None else {"episodes_done": done}
+    return dict(returns=returns[:, :kept], lengths=lengths[:, :kept], terminated=terminated[:, :kept],
+                epsilon=np.asarray(epsilon)[:kept], **extra)
+
+
+def _same_members(path: str, members: dict[str, np.ndarray]) -> bool:
+    """Whether the ``.npz`` at ``path`` holds arrays of ``members``' names, in that order, shapes and dtypes."""
+    from jaxrobo.io.npz import NpzError, member_headers
+
+    try:
+        return list(member_headers(path).items()) == [(name, (x.shape, x.dtype)) for name, x in members.items()]
+    except NpzError:
+        return False
+
+
+def _linked(source: str, path: str) -> bool:
+    """``source`` hard-linked as ``path``; False where the file system refuses it."""
+    try:
+        os.link(source, path)
+        return True
+    except OSError:
+        return False
 
 
 def episode_rows(returns: np.ndarray, lengths: np.ndarray, terminated: np.ndarray, epsilon: np.ndarray,
@@ -311,13 +353,8 @@ def write_tables(out_dir: str, q: np.ndarray, disc: Discretiser | None = None, *
     :func:`jaxrobo.training.checkpoint.save_checkpoint`), hard-linked instead of writing the tables again; where
     the file system refuses a link, the tables are written."""
     path = os.path.join(out_dir, "qtables.npz")
-    if link is not None:
-        try:
-            os.link(link, path)
-            return
-        except OSError:
-            pass
-    write_npz_deflated(path, q=q if hasattr(q, "npy_pieces") else np.asarray(q), **discretiser_arrays(disc))
+    if link is None or not _linked(link, path):
+        write_npz_deflated(path, q=q if hasattr(q, "npy_pieces") else np.asarray(q), **discretiser_arrays(disc))
 
 
 def write_summary(out_dir: str, summary: dict[str, Any]) -> None:
@@ -356,13 +393,15 @@ def write_tensorboard(out_dir: str, stats: list) -> None:
 
 def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discretiser | None = None,
              summary: dict[str, Any] | Callable[[], dict[str, Any]] | None = None,
-             tables: str | Callable[[], str | None] | None = None) -> str:
+             tables: str | Callable[[], str | None] | None = None,
+             records: str | Callable[[], str | None] | None = None) -> str:
     """Write everything a :class:`jaxrobo.training.summary.TrainResult` holds into ``out_dir``; returns ``out_dir``.
     ``summary``: ``result.summary()`` where the caller has it already, or a function giving it (called after the
     episode files are written: the caller may be computing it meanwhile), or None: computed here. ``tables``: a file
     holding ``result.q`` as ``qtables.npz`` would (:func:`write_tables`' ``link``), or a function giving it (or
     None), called once everything else is written: the checkpoint that writes that file may still be writing it
-    (:class:`jaxrobo.training.checkpoint.SaveInThread`).
+    (:class:`jaxrobo.training.checkpoint.SaveInThread`). ``records``: the same for ``records.npz``
+    (:func:`write_episodes`' ``link``), called once ``episodes.csv`` is written.
 
     An interrupted result (``complete`` False) writes its config and the episodes finished so far only. The
     caller writes ``status.json`` (and, for an interrupted run, the checkpoint) and publishes the directory
@@ -377,7 +416,7 @@ def save_run(out_dir: str, result: Any, run_config: dict[str, Any], disc: Discre
     stats = write_episodes(out_dir, result.returns, result.lengths, result.terminated, result.epsilon,
                            episodes_done=result.episodes_done if partial else None,
                            order_stats=None if parts is None or not partial else
-                           {"returns": parts["order_returns"], "lengths": parts["order_lengths"]})
+                           {"returns": parts["order_returns"], "lengths": parts["order_lengths"]}, link=records)
     write_summary(out_dir, result.summary() if summary is None else summary() if callable(summary) else summary)
     if result.eval_lengths is not None:
         write_eval(out_dir, result.eval_returns, result.eval_lengths)

@@ -42,6 +42,8 @@ CHECKPOINT = "checkpoint.npz"
 #: The learner's tables of a run's checkpoint, in a file of their own beside it (``checkpoint.tables.<8 hex>.npz``,
 #: laid out as ``qtables.npz``: :func:`jaxrobo.training.checkpoint.save_checkpoint`), as an ``fnmatch`` pattern.
 CHECKPOINT_TABLES = "checkpoint.tables.*.npz"
+#: Its episode records, likewise (``checkpoint.records.<8 hex>.npz``, laid out as ``records.npz``).
+CHECKPOINT_RECORDS = "checkpoint.records.*.npz"
 #: What the directory holds: ``running``, ``interrupted`` or ``complete``, and how to resume.
 STATUS = "status.json"
 RUNNING, INTERRUPTED, COMPLETE = "running", "interrupted", "complete"
@@ -51,7 +53,7 @@ RUNNING, INTERRUPTED, COMPLETE = "running", "interrupted", "complete"
 #: an ``--overwrite`` and a sweep. tests/test_rundir_owned.py checks that real runs write nothing else.
 OWNED = (
     # tabular runs (jaxrobo.io.results)
-    "config.yaml", STATUS, CHECKPOINT, CHECKPOINT_TABLES, "summary.json", "episodes.csv", "episode_stats.csv",
+    "config.yaml", STATUS, CHECKPOINT, CHECKPOINT_TABLES, CHECKPOINT_RECORDS, "summary.json", "episodes.csv", "episode_stats.csv",
     "records.npz", "qtables.npz", "eval.csv", "tensorboard",
     # ppo/sac runs (jaxrobo.deep.output, jaxrobo.deep.policy)
     "policy.npz", "policy.json", "best", "evaluations.csv", "training_metrics.csv", "rewards.png",

@@ -8,11 +8,12 @@ carry's structure and the sources' hash) differs from the run's own, saying what
 file (:mod:`jaxrobo.training.sweep`): both write through :func:`write_npz` (atomic, no pickled objects) and read through
 :func:`read_npz`.
 
-A run's checkpoint may keep the learner's tables in a file of its own beside it, laid out as the results'
-``qtables.npz`` (:func:`save_checkpoint`'s ``tables``): the finished run links that file as its results, so the
-tables are written once.
+A run's checkpoint may keep the learner's tables and its episode records in files of their own beside it, laid out
+as the results' ``qtables.npz`` and ``records.npz`` (:func:`save_checkpoint`'s ``tables`` and ``epsilon``): the
+finished run links those files as its results, so the tables and records are written once.
 
-Public surface: :data:`CHECKPOINT_FORMAT`, :data:`TABLES_LEAF`, :class:`CheckpointError`, :class:`SaveInThread`,
+Public surface: :data:`CHECKPOINT_FORMAT`, :data:`TABLES_LEAF`, :data:`EPISODE_LEAF`, :class:`CheckpointError`,
+:class:`Saved`, :class:`SaveInThread`,
 :func:`carry_template`, :func:`carry_fingerprint`, :func:`fingerprint_mismatch`, :func:`save_checkpoint`,
 :func:`read_fingerprint`, :func:`load_checkpoint`, :func:`write_npz`, :func:`read_npz`.
 """
@@ -29,7 +30,7 @@ import time
 import weakref
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -193,8 +194,16 @@ def tables_copy_first(tables: jax.Array) -> bool:
     return {d.platform for d in tables.devices()} == {"cpu"}
 
 
+class Saved(NamedTuple):
+    """The files beside a checkpoint that :func:`save_checkpoint` wrote (None: not written): ``tables``, laid out
+    as the results' ``qtables.npz``, and ``records``, laid out as their ``records.npz``."""
+
+    tables: str | None = None
+    records: str | None = None
+
+
 def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: dict[str, Any], *,
-                    tables: dict[str, Any] | None = None) -> str | None:
+                    tables: dict[str, Any] | None = None, epsilon: np.ndarray | None = None) -> Saved:
     """Write the whole training carry to ``path`` (``.npz``), atomically.
 
     Layout (``np.savez``, no pickled objects, so ``np.load(allow_pickle=False)`` reads it): ``leaf_<i>`` the
@@ -211,7 +220,18 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
     twice. The file has a fresh name (:data:`jaxrobo.io.rundir.CHECKPOINT_TABLES`) and lands before the
     checkpoint, which names it (``tables_file``) with the CRC-32 of its ``q`` (``tables_crc``); the previous
     checkpoint's file is removed only after: whenever the process stops, the checkpoint on disk names a whole
-    file. Returns that file's path (None without ``tables``)."""
+    file.
+
+    ``epsilon`` (the run's exploration per episode, ``records.npz``'s): the episode records go to a file of their
+    own in the same way (:data:`jaxrobo.io.rundir.CHECKPOINT_RECORDS`, named in ``records_file`` with the CRC-32s of
+    the record leaves' members in ``records_crc``), laid out as the results' ``records.npz``
+    (:func:`jaxrobo.io.results.records_members`, the count of each env's recorded episodes from the carry's
+    :data:`EPISODE_LEAF`), so that a finished run links it too: at 1 M envs the records were otherwise written
+    twice (3 GB stored in the checkpoint, then deflated in the results), 4.2 s and 2.2 s of a run's writing on
+    an H200 host. Where the records' cut and that count disagree (an episode that wrote only zeros), the records
+    stay in the checkpoint. Both files: one process only (several gather the carry whole).
+
+    Returns the files written (:class:`Saved`)."""
     uncut = jax.tree_util.tree_flatten_with_path(runner)[0]
     whole = [x.shape for _, x in uncut]
     table = next((i for i, (keypath, _) in enumerate(uncut) if jax.tree_util.keystr(keypath) == TABLES_LEAF),
@@ -248,16 +268,23 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
                         x.copy_to_host_async()
                 pending = start_tables()
             host = jax.device_get(rest)
-        arrays = {}
+        arrays, cut = {}, {}
         for i, x in enumerate(host):
             x = np.asarray(x)
             if i in records:
                 if x.shape == whole[i]:  # not cut on the device (small, or gathered from several processes): cut here
                     written = np.flatnonzero(x.any(axis=0))
                     x = x[:, :int(written[-1]) + 1 if written.size else 0]
-                arrays[f"records_{i}"] = x
+                cut[i] = x
             elif i != table:
                 arrays[f"leaf_{i}"] = x
+        members = _records_members(with_paths, host, cut, whole, epsilon) if jax.process_count() == 1 else None
+        records_path = None
+        if members is None:
+            arrays.update({f"records_{i}": x for i, x in cut.items()})
+        else:  # written here while the tables are written in their thread; named below, once whole on disk
+            records_path, crcs = _write_beside(directory, "records", members, [_member(with_paths[i][0]) for i in cut])
+            arrays.update(records_file=np.array(os.path.basename(records_path)), records_crc=np.array(crcs, np.int64))
         arrays.update(key_impls=np.array(json.dumps(impls)), chunks_done=np.int64(chunks_done),
                       fingerprint=np.array(json.dumps(fingerprint, sort_keys=True)))
         if table is not None:  # the checkpoint's last members: its other members are written while the tables are
@@ -269,16 +296,16 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
             arrays.update(tables_file=lambda: np.array(os.path.basename(tables_written()[0])),
                           tables_crc=lambda: np.int64(tables_written()[1]))
         write_npz(path, **arrays)
-        tables_path = tables_written()[0] if table is not None else None
+        saved = Saved(tables_written()[0] if table is not None else None, records_path)
     finally:
         if pool is not None:
             pool.shutdown(wait=True)  # a failure above still leaves no thread writing
-    if tables_path is not None:  # the checkpoint on disk names the new file now: the older ones are not needed
-        for name in os.listdir(os.path.dirname(tables_path)):
-            if _TABLES_NAME.fullmatch(name) and name != os.path.basename(tables_path):
+    if saved.tables or saved.records:  # the checkpoint on disk names its files now: the older ones are not needed
+        for name in os.listdir(directory):
+            if _BESIDE_NAME.fullmatch(name) and os.path.join(directory, name) not in saved:
                 with contextlib.suppress(OSError):
-                    os.unlink(os.path.join(os.path.dirname(tables_path), name))
-    return tables_path
+                    os.unlink(os.path.join(directory, name))
+    return saved
 
 
 class SaveInThread:
@@ -350,25 +377,70 @@ class SaveInThread:
 #: The carry's leaf of the learner's tables (``[n_envs, n_tables, n_states, n_actions]``; a shared table's
 #: ``[n_tables, n_states, n_actions]``): what :func:`save_checkpoint` may keep in a file of its own.
 TABLES_LEAF = ".agent.q"
-#: The names that file takes (:data:`jaxrobo.io.rundir.CHECKPOINT_TABLES`); a checkpoint naming another is refused.
+#: The carry's leaf counting each env's finished episodes (``[n_envs]``): those up to ``nepisodes`` are recorded.
+EPISODE_LEAF = ".episode"
+#: The names those files take (:data:`jaxrobo.io.rundir.CHECKPOINT_TABLES`, ``CHECKPOINT_RECORDS``); a checkpoint
+#: naming another is refused.
 _TABLES_NAME = re.compile(r"checkpoint\.tables\.[0-9a-f]{8}\.npz")
+_RECORDS_NAME = re.compile(r"checkpoint\.records\.[0-9a-f]{8}\.npz")
+_BESIDE_NAME = re.compile(r"checkpoint\.(tables|records)\.[0-9a-f]{8}\.npz")
+
+
+def _member(keypath: Any) -> str:
+    """The member of a checkpoint's records file holding the record leaf at ``keypath`` (``.returns``:
+    ``returns``)."""
+    return jax.tree_util.keystr(keypath).lstrip(".")
+
+
+def _write_beside(directory: str, kind: str, arrays: dict[str, Any], crc_of: list[str]) -> tuple[str, list[int]]:
+    """``arrays`` to a fresh ``checkpoint.<kind>.<id>.npz`` in ``directory``, atomically and flushed to disk (as the
+    results' files are written: :func:`jaxrobo.io.npz.write_npz_deflated`); returns its path and the CRC-32s of its
+    members ``crc_of``."""
+    from jaxrobo.io.npz import write_npz_deflated
+
+    while True:
+        path = os.path.join(directory, f"checkpoint.{kind}.{secrets.token_hex(4)}.npz")
+        if not os.path.lexists(path):
+            break
+    rundir.atomic_write(path, lambda f: write_npz_deflated(f, **arrays))
+    with zipfile.ZipFile(path) as zf:
+        return path, [zf.getinfo(f"{name}.npy").CRC for name in crc_of]
 
 
 def _write_tables(directory: str, q: Any, extra: dict[str, Any]) -> tuple[str, int]:
     """``q`` (an array or its :class:`~jaxrobo.training.nonzero_copy.NonzeroCopy`; a shared table given a leading
-    axis of one) and ``extra`` to a fresh ``checkpoint.tables.<id>.npz``
-    in ``directory``, atomically and flushed to disk (as ``qtables.npz`` is written:
-    :func:`jaxrobo.io.npz.write_npz_deflated`); returns its path and the CRC-32 of its ``q``."""
-    from jaxrobo.io.npz import write_npz_deflated
+    axis of one) and ``extra`` to a fresh ``checkpoint.tables.<id>.npz`` in ``directory`` (:func:`_write_beside`);
+    returns its path and the CRC-32 of its ``q``."""
+    path, (crc,) = _write_beside(directory, "tables", {"q": q if q.ndim == 4 else q[None], **extra}, ["q"])
+    return path, crc
 
-    while True:
-        path = os.path.join(directory, f"checkpoint.tables.{secrets.token_hex(4)}.npz")
-        if not os.path.lexists(path):
-            break
-    q = q if q.ndim == 4 else q[None]
-    rundir.atomic_write(path, lambda f: write_npz_deflated(f, q=q, **extra))
-    with zipfile.ZipFile(path) as zf:
-        return path, zf.getinfo("q.npy").CRC
+
+def _records_members(with_paths: list, host: list, cut: dict[int, np.ndarray], whole: list[tuple[int, ...]],
+                     epsilon: np.ndarray | None) -> dict[str, np.ndarray] | None:
+    """The carry's episode records (``cut``: record leaf index -> its columns up to the last written) laid out as
+    the results' ``records.npz`` (:func:`jaxrobo.io.results.records_members`), the count of recorded episodes
+    from :data:`EPISODE_LEAF` of ``host`` (the carry's leaves on the host); None without ``epsilon``, without those
+    three records and that count, or where the cut and the count disagree (the records then stay in the
+    checkpoint: each of their written columns is kept)."""
+    from jaxrobo.io.results import records_members
+
+    names = {_member(with_paths[i][0]): i for i in cut}
+    episode = next((i for i, (keypath, _) in enumerate(with_paths) if jax.tree_util.keystr(keypath) == EPISODE_LEAF),
+                   None)
+    if epsilon is None or episode is None or set(names) != {"returns", "lengths", "terminated"}:
+        return None
+    width = whole[names["returns"]][1]
+    if {whole[i] for i in names.values()} != {whole[names["returns"]]} or np.shape(epsilon) != (width,):
+        return None
+    done = np.minimum(np.asarray(host[episode]), width)
+    try:
+        members = records_members(*(cut[names[n]] for n in ("returns", "lengths", "terminated")), epsilon,
+                                  None if bool(np.all(done >= width)) else done, width=width)
+    except ValueError:
+        return None
+    if any(members[n].shape != cut[names[n]].shape for n in names):
+        return None  # written columns past the recorded count: kept in the checkpoint, whole
+    return members
 
 
 def read_fingerprint(path: str) -> tuple[dict[str, Any], int]:
@@ -406,12 +478,7 @@ def _read_tables(path: str, data: dict[str, np.ndarray], i: int, spec: Any) -> n
     shape, dtype = tuple(spec.shape), np.dtype(spec.dtype)
     x = data.get(f"leaf_{i}")
     if x is None and "tables_file" in data:
-        name = str(data["tables_file"]) if data["tables_file"].ndim == 0 else ""
-        if not _TABLES_NAME.fullmatch(name):
-            raise CheckpointError(f"{path}: its tables_file {name[:80]!r} is not a checkpoint's tables file name")
-        where = os.path.join(os.path.dirname(os.path.abspath(path)), name)
-        if not os.path.exists(where):
-            raise CheckpointError(f"{path}: its tables ({name}) are missing beside it")
+        where, name = _beside(path, data, "tables", _TABLES_NAME)
         full = (1,) + shape if len(shape) == 3 else shape  # a shared table is kept with a leading axis of one
         x = read_npz(where, "the checkpoint's tables", expect={"q": (full, dtype)}, finite={"q": True})["q"]
         try:
@@ -431,6 +498,43 @@ def _read_tables(path: str, data: dict[str, np.ndarray], i: int, spec: Any) -> n
     return x
 
 
+def _beside(path: str, data: dict[str, np.ndarray], kind: str, pattern: re.Pattern) -> tuple[str, str]:
+    """The file beside the checkpoint at ``path`` that ``data``'s ``<kind>_file`` names: ``(its path, its name)``;
+    :class:`CheckpointError` where that is not such a file's name or the file is missing."""
+    field = data[f"{kind}_file"]
+    name = str(field) if field.ndim == 0 else ""
+    if not pattern.fullmatch(name):
+        raise CheckpointError(f"{path}: its {kind}_file {name[:80]!r} is not a checkpoint's {kind} file name")
+    where = os.path.join(os.path.dirname(os.path.abspath(path)), name)
+    if not os.path.exists(where):
+        raise CheckpointError(f"{path}: its {kind} ({name}) are missing beside it")
+    return where, name
+
+
+def _read_records(path: str, data: dict[str, np.ndarray], records: dict[int, tuple[str, Any]]) -> None:
+    """Into ``data``, each record leaf's ``records_<i>`` (``records``: leaf index -> its member's name and spec)
+    from the file the checkpoint at ``path`` names (``records_file``, beside it), whose members have the CRC-32s
+    it recorded (``records_crc``), read as hostile; :class:`CheckpointError` saying why when it does not fit. A
+    checkpoint holding its records itself (``records_<i>``) is left as it is."""
+    if "records_file" not in data:
+        return
+    where, name = _beside(path, data, "records", _RECORDS_NAME)
+    arrays = read_npz(where, "the checkpoint's records")
+    order = sorted(records)
+    try:
+        with zipfile.ZipFile(where) as zf:
+            crcs = [zf.getinfo(f"{records[i][0]}.npy").CRC for i in order]
+        recorded = [int(c) & 0xFFFFFFFF for c in np.asarray(data["records_crc"]).reshape(-1)]
+    except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as err:
+        raise CheckpointError(f"{path}: its records ({name}) cannot be matched to it ({err})") from None
+    if crcs != recorded:
+        raise CheckpointError(f"{path}: {name} holds other records than the checkpoint recorded (CRC-32s "
+                              f"{', '.join(f'{c:#010x}' for c in crcs)}, recorded "
+                              f"{', '.join(f'{c:#010x}' for c in recorded)})")
+    for i in order:
+        data[f"records_{i}"] = arrays[records[i][0]]
+
+
 def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) -> tuple[Runner, int]:
     """The carry saved at ``path`` and its chunk count, on the default device, checked against ``fingerprint``
     (:func:`carry_fingerprint` of this run) and ``template``'s structure: refused with :class:`CheckpointError`
@@ -444,7 +548,7 @@ def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) ->
             data_spec = jax.eval_shape(jax.random.key_data, spec)
             shape, dtype = data_spec.shape, data_spec.dtype
         if jax.tree_util.keystr(keypath) in RECORD_LEAVES and len(shape) == 2:
-            records[i] = spec  # records_<i>: checked and padded below
+            records[i] = (_member(keypath), spec)  # records_<i>, or in a file of its own: checked and padded below
             finite[f"records_{i}"] = False  # as the full leaf was: an episode of NaN physics may hold a NaN return
             continue
         finite[f"leaf_{i}"] = jax.tree_util.keystr(keypath).startswith(FINITE_LEAVES)
@@ -455,7 +559,8 @@ def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) ->
     data = read_npz(path, "the checkpoint", expect=expect, finite=finite)
     if table is not None:
         data[f"leaf_{table}"] = _read_tables(path, data, table, specs[table])
-    for i, spec in records.items():
+    _read_records(path, data, records)
+    for i, (_, spec) in records.items():
         x = data.pop(f"records_{i}", None)
         if x is None or x.ndim != 2 or x.shape[0] != spec.shape[0] or x.shape[1] > spec.shape[1] \
                 or x.dtype != spec.dtype:
