@@ -53,8 +53,8 @@ RUNNING, INTERRUPTED, COMPLETE = "running", "interrupted", "complete"
 #: an ``--overwrite`` and a sweep. tests/test_rundir_owned.py checks that real runs write nothing else.
 OWNED = (
     # tabular runs (jaxrobo.io.results)
-    "config.yaml", STATUS, CHECKPOINT, CHECKPOINT_TABLES, CHECKPOINT_RECORDS, "summary.json", "episodes.csv", "episode_stats.csv",
-    "records.npz", "qtables.npz", "eval.csv", "tensorboard",
+    "config.yaml", STATUS, CHECKPOINT, CHECKPOINT_TABLES, CHECKPOINT_RECORDS, "summary.json", "episodes.csv",
+    "episode_stats.csv", "records.npz", "qtables.npz", "eval.csv", "tensorboard",
     # ppo/sac runs (jaxrobo.deep.output, jaxrobo.deep.policy)
     "policy.npz", "policy.json", "best", "evaluations.csv", "training_metrics.csv", "rewards.png",
     # sweeps (jaxrobo.training.sweep.state, .output)
