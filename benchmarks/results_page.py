@@ -72,8 +72,8 @@ WHAT = {
     "records_linked.json": "The closing checkpoint's records file linked as the results' records.npz: the "
                            "cart-pole's writing at 65,536 and 1 M envs before and after, the same numbers, timelines",
     "writing_levers_s22.json": "What a 1 M-env run's writing spends its CPU on (each thread's CPU seconds) and "
-                                "five levers tried on it (the disk, the switch interval, the block, the threads, "
-                                "the copies' order), none adopted",
+                                "six levers tried on it (the disk, the switch interval, the block, the threads, "
+                                "the copies' order, the statistics' sums beside the copies), none adopted",
     "zlib_ng.json": "The .npz writer's deflate and CRC-32 on zlib-ng: the cart-pole's writing at 65,536 and 1 M envs "
                     "before and after, file sizes, the arrays' hashes, 8 MB blocks on one core, each writer's timeline",
     "hash_kernel.json": "The random hash as jaxlib's GPU threefry kernel (ExecutionPlan.hash_kernel): cold and warm "
