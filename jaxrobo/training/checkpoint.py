@@ -381,9 +381,8 @@ TABLES_LEAF = ".agent.q"
 EPISODE_LEAF = ".episode"
 #: The names those files take (:data:`jaxrobo.io.rundir.CHECKPOINT_TABLES`, ``CHECKPOINT_RECORDS``); a checkpoint
 #: naming another is refused.
-_TABLES_NAME = re.compile(r"checkpoint\.tables\.[0-9a-f]{8}\.npz")
-_RECORDS_NAME = re.compile(r"checkpoint\.records\.[0-9a-f]{8}\.npz")
-_BESIDE_NAME = re.compile(r"checkpoint\.(tables|records)\.[0-9a-f]{8}\.npz")
+_TABLES_NAME, _RECORDS_NAME, _BESIDE_NAME = (re.compile(rf"checkpoint\.({kinds})\.[0-9a-f]{{8}}\.npz")
+                                             for kinds in ("tables", "records", "tables|records"))
 
 
 def _member(keypath: Any) -> str:

@@ -285,6 +285,7 @@ def _figures_from_parts(parts: dict[str, np.ndarray], returns: np.ndarray, episo
         figures["best_100_window_mean_length"] = float(np.mean(kept)) if kept.size else float("nan")
     return figures
 
+
 def best_window(figure: np.ndarray, mask: np.ndarray | None, rank: Ranking, window: int = BEST) -> float:
     """The best ``window``-episode moving mean of ``figure`` (``[n_envs, episodes]``) in each env, best by
     ``rank``'s direction, averaged over envs; an env with fewer recorded episodes than ``window`` gives the
