@@ -74,6 +74,8 @@ WHAT = {
     "writing_levers_s22.json": "What a 1 M-env run's writing spends its CPU on (each thread's CPU seconds) and "
                                 "six levers tried on it (the disk, the switch interval, the block, the threads, "
                                 "the copies' order, the statistics' sums beside the copies), none adopted",
+    "writing_bound_s23.json": "How far the tables as mask and nonzero values and the statistics' sums left out "
+                              "would take a 1 M-env run's writing (prototypes, measured, neither adopted)",
     "zlib_ng.json": "The .npz writer's deflate and CRC-32 on zlib-ng: the cart-pole's writing at 65,536 and 1 M envs "
                     "before and after, file sizes, the arrays' hashes, 8 MB blocks on one core, each writer's timeline",
     "hash_kernel.json": "The random hash as jaxlib's GPU threefry kernel (ExecutionPlan.hash_kernel): cold and warm "
