@@ -130,6 +130,8 @@ WHAT = {
                              "cross cut to their written columns (`cut_records`), two calls; the tables file's A/B",
     "time_to_trained_check.json": "The tabular default commands cold and warm after this session's writing changes "
                                   "(a check beside the README's table, another host)",
+    "compile_beside_cpu.json": "ExecutionPlan.compile_beside on 2 CPU cores, measured again: each tabular "
+                               "task's first and warm runs with it on and off (left off)",
     "compile_flags_not_adopted.json": "ArmReach-v0's first-use compile on 2 CPU cores, and two XLA flags tried on "
                                       "it: measured, not adopted",
     "levers_not_adopted.json": "Start-up with JAX's backend started in a thread, and a cold compile under four XLA "

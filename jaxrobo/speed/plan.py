@@ -273,8 +273,9 @@ class ExecutionPlan:
     compiled beside it, and the small programs that pick the evaluated tables and their keys in another thread.
     XLA compiles outside Python's lock, so on a host with cores to spare a first run's compiles overlap instead
     of its chunk waiting for the reset's and its first check for the evaluation's; on 2 CPU cores the compiles and
-    the training share the cores and the overlap was slower (Goto-v2's default, an empty cache: 13.6 s
-    sequential, 18.1 s beside). On by default on a GPU. The programs are the same either way.
+    the first chunks share the cores either way, and the first runs gained at most 0.9 s (the arm) or lost up to
+    0.5 s (Goto-v2; ``benchmarks/results/cpu-2cores/compile_beside_cpu.json``). On by default on a GPU. The
+    programs are the same either way.
 
     ``reuse_traces``: keep the run's traced programs (training chunk, init, greedy evaluation) exported beside the
     persistent compilation cache, and read them back in a later process of the same configuration instead of
