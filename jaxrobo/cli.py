@@ -565,7 +565,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         initial, start_chunk = None, 0
         if resume is not None:
             initial, start_chunk = checkpoint.load_checkpoint(os.path.join(out, rundir.CHECKPOINT), template,
-                                                              fingerprint)
+                                                              fingerprint, max_chunks=trainer.max_chunks())
     except ConfigError as err:  # CheckpointError included
         print(f"jaxrobo train: {err}", file=sys.stderr)
         return 2

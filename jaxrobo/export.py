@@ -125,7 +125,7 @@ def tabular_export(run_dir: str, cfg: dict[str, Any], table: int | None) -> tupl
     """``(meta, arrays)`` of a tabular run's greedy policy (see the module's docstring)."""
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.results import load_tables
-    from jaxrobo.training.run import spec_from_config
+    from jaxrobo.training.run import check_tables, spec_from_config
     from jaxrobo.training.trainer import make_discretiser_for
 
     where = os.path.join(run_dir, "config.yaml")
@@ -138,9 +138,7 @@ def tabular_export(run_dir: str, cfg: dict[str, Any], table: int | None) -> tupl
     q = saved["q"]
     n_actions = int(spec.env.num_actions)
     tables_path = os.path.join(run_dir, "qtables.npz")
-    if q.shape[2:] != (disc.n_states, n_actions):
-        raise ConfigError(f"{tables_path}: q has shape {q.shape}, but the run's config gives tables of "
-                          f"{disc.n_states} states x {n_actions} actions")
+    check_tables(q, spec.env, spec.config, tables_path)
     low, width = np.asarray(disc.low, np.float32), np.asarray(disc.width, np.float32)
     for name, mine in (("low", low), ("width", width), ("bins", np.asarray(disc.bins))):
         if name in saved and not np.array_equal(np.asarray(saved[name]).astype(mine.dtype), mine):

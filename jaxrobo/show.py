@@ -82,12 +82,9 @@ def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
     q = load_tables(run_dir)["q"]
-    from jaxrobo.training.run import check_discretiser
+    from jaxrobo.training.run import check_tables
 
-    n_states, n_actions = check_discretiser(spec.env, spec.config), spec.env.num_actions
-    if q.shape[2:] != (n_states, n_actions):
-        raise ConfigError(f"{os.path.join(run_dir, 'qtables.npz')}: q has shape {q.shape}, but the run's config "
-                          f"gives tables of {n_states} states x {n_actions} actions")
+    check_tables(q, spec.env, spec.config, os.path.join(run_dir, "qtables.npz"))
     return spec, cfg, q
 
 

@@ -374,7 +374,34 @@ def _records(change):
     return corrupt
 
 
+def _negative_counts(path):
+    """Every int32 vector of the carry (the envs' counters, the episode count among them) made negative."""
+    _rewrite(path, lambda a: {k: -x - 1 for k, x in a.items()
+                              if k.startswith("leaf_") and x.dtype == np.int32 and x.ndim == 1})
+
+
+def _deflate_damaged(path):
+    """A byte in the middle of the tables file's deflated ``q`` flipped: zipfile's inflate fails (the standard
+    library's zlib.error) or its CRC does."""
+    import zipfile
+
+    where = _tables_file(path)
+    with zipfile.ZipFile(where) as zf:
+        info = zf.getinfo("q.npy")
+    assert info.compress_type == zipfile.ZIP_DEFLATED
+    with open(where, "rb") as f:
+        f.seek(info.header_offset + 26)
+        start = info.header_offset + 30 + sum(int.from_bytes(f.read(2), "little") for _ in range(2))
+    _flip(where, start + info.compress_size // 2)
+
+
 @pytest.mark.parametrize("corrupt, fragment", [
+    (lambda p: _rewrite(p, lambda a: {"chunks_done": np.int64(10**6)}), "chunks_done=1000000 is outside 0.."),
+    (lambda p: _rewrite(p, lambda a: {"chunks_done": np.int64(-1)}), "chunks_done=-1 is outside 0.."),
+    (_negative_counts, "holds negative counts"),
+    (lambda p: _rewrite(p, lambda a: {"fingerprint": np.array("[" * 100_000 + "]" * 100_000)}),
+     "not a jaxrobo checkpoint (JSON nested too deeply)"),
+    (_deflate_damaged, "cannot be read as plain arrays"),
     (_records(lambda n, x: {n: np.zeros((x.shape[0], 10_000), x.dtype)}), "with at most"),
     (_records(lambda n, x: {n: x.astype(np.float64)}), "float64"),
     (_records(lambda n, x: {}), "cannot be matched to it"),
@@ -419,6 +446,59 @@ def test_npz_headers_are_checked_before_any_data_is_read(tmp_path):
         read_npz(path, expect={"r": ((1,), np.float32)})
     with pytest.raises(NpzError, match="limit 8"):
         read_npz(path, max_bytes=8)
+
+
+def test_a_damaged_deflate_stream_is_refused_as_npz_error(tmp_path):
+    """zipfile inflates with the standard library's zlib, whose error class is not zlib-ng's: every byte of a
+    member's deflate stream flipped in turn is refused as an NpzError (never a zlib.error)."""
+    import zipfile
+
+    from jaxrobo.io.npz import NpzError, read_npz
+
+    path = str(tmp_path / "a.npz")
+    np.savez_compressed(path, q=np.arange(4096, dtype=np.float32) % 7)
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("q.npy")
+    raw = open(path, "rb").read()
+    local = info.header_offset  # the data starts after the local header, its name and its (zip64) extra field
+    start = local + 30 + int.from_bytes(raw[local + 26:local + 28], "little") + int.from_bytes(
+        raw[local + 28:local + 30], "little")
+    kinds = set()
+    for at in range(start, start + info.compress_size - 4):  # not the last bits, which may be padding
+        _flip(path, at)
+        with pytest.raises(NpzError) as err:  # the .npy header's bytes or the data's
+            read_npz(path)
+        kinds.add(str(err.value).split("(")[-1].split(":")[0])
+        open(path, "wb").write(raw)
+    assert "error" in kinds, kinds  # the inflate's own error among them, not only CRC mismatches
+
+
+def test_only_the_tables_members_are_read_from_qtables(tmp_path):
+    """A member ``qtables.npz`` has no use for is neither checked nor inflated (a few KB of file could claim GBs)."""
+    import zipfile
+
+    from jaxrobo.io.results import load_tables
+
+    np.savez_compressed(tmp_path / "qtables.npz", q=np.zeros((1, 1, 4, 2), np.float32), low=np.zeros(2),
+                        edges_0=np.arange(3.0))
+    with zipfile.ZipFile(tmp_path / "qtables.npz", "a", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("junk.npy", b"\x93NUMPY" + b"not a header at all")
+    assert sorted(load_tables(str(tmp_path))) == ["edges_0", "low", "q"]
+
+
+def test_json_read_back_nested_past_the_recursion_limit_is_malformed_json(tmp_path):
+    from jaxrobo.core.config import parse_json
+    from jaxrobo.io.results import selected_table
+
+    nested = "[" * 100_000 + "]" * 100_000
+    with pytest.raises(ValueError, match="nested too deeply"):
+        parse_json(nested)
+    (tmp_path / rundir.STATUS).write_text(nested)
+    assert rundir.read_status(str(tmp_path)) is None
+    (tmp_path / rundir.STATUS).write_text(json.dumps({"status": "complete", "pad": " " * rundir.STATUS_MAX_BYTES}))
+    assert rundir.read_status(str(tmp_path)) is None  # past the cap: not one of jaxrobo's statuses
+    (tmp_path / "summary.json").write_text(nested)
+    assert selected_table(str(tmp_path), 4) == 0
 
 
 # ---- a second signal while the main thread is stuck in C ---------------------------------------------------------

@@ -104,6 +104,26 @@ def _compose_node(loader: StrictLoader, parent: Any, index: Any) -> Any:
 StrictLoader.compose_node = _compose_node  # type: ignore[method-assign]
 
 
+#: Bits of the largest integer a config may hold: none of its values needs more, and a larger one fails later
+#: where it becomes a float (past float's range) or is printed (past Python's 4,300 digits).
+INT_MAX_BITS = 64
+
+
+def _check_ints(data: Any) -> None:
+    """ConfigError for an integer of more than :data:`INT_MAX_BITS` bits anywhere in parsed YAML."""
+    stack = [data]
+    while stack:
+        x = stack.pop()
+        if isinstance(x, dict):
+            stack.extend(x.keys())
+            stack.extend(x.values())
+        elif isinstance(x, (list, tuple)):
+            stack.extend(x)
+        elif isinstance(x, int) and not isinstance(x, bool) and x.bit_length() > INT_MAX_BITS:
+            raise ConfigError(f"an integer of {x.bit_length():,} bits; a config's numbers are at most "
+                              f"{INT_MAX_BITS}-bit integers or floats")
+
+
 def parse_yaml(text: str, where: str) -> Any:
     """YAML text through :class:`StrictLoader`; any syntax error, unknown tag, duplicate key, alias, or a text
     past :data:`YAML_MAX_BYTES` / :data:`YAML_MAX_DEPTH` / :data:`YAML_MAX_NODES` is a ConfigError."""
@@ -111,9 +131,15 @@ def parse_yaml(text: str, where: str) -> Any:
         raise ConfigError(f"{where}: {len(text):,} characters, more than a config holds (at most "
                           f"{YAML_MAX_BYTES:,})")
     try:
-        return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - StrictLoader is a SafeLoader
+        data = yaml.load(text, Loader=StrictLoader)  # noqa: S506 - StrictLoader is a SafeLoader
+        _check_ints(data)
+        return data
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
+    except (ValueError, OverflowError) as err:  # e.g. an integer past Python's 4,300 digits, as PyYAML converts it
+        why = "an integer too long to read" if "digits" in str(err) else f"a value that cannot be read ({err})"
+        raise ConfigError(f"{where}: holds {why}; a config's numbers are at most {INT_MAX_BITS}-bit integers or "
+                          "floats") from None
     except yaml.YAMLError as err:
         # e.g. "could not determine a constructor for the tag '!!python/object...'" or a syntax error with its line
         msg = " ".join(str(err).split())
@@ -131,6 +157,27 @@ def check_regular(path: str, where: str | None = None) -> None:
     if not stat.S_ISREG(st.st_mode):
         what = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, socket or device)"
         raise ConfigError(f"{where or path}: is {what}; expected a regular file")
+
+
+def parse_json(text: str | bytes) -> Any:
+    """``json.loads(text)``, with text nested past Python's recursion limit a ValueError like any other malformed
+    JSON (``json`` raises RecursionError there): every file jaxrobo reads back as JSON is hostile input."""
+    import json
+
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
+
+
+def shown(value: Any, limit: int = 200) -> str:
+    """``repr(value)`` for a message, at most ``limit`` characters (an integer past Python's 4,300 digits, whose
+    repr raises, by its size)."""
+    try:
+        text = repr(value)
+    except ValueError:
+        return f"<an integer of {value.bit_length():,} bits>" if isinstance(value, int) else f"<{type(value).__name__}>"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def load_yaml(path: str, where: str | None = None) -> dict[str, Any]:
@@ -169,22 +216,26 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
         return None
     if kind is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+            raise ConfigError(f"{loc}{key}={shown(value)}: expected {rule.describe()}")
     elif kind is int:
         if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
-            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+            raise ConfigError(f"{loc}{key}={shown(value)}: expected {rule.describe()}")
         value = int(value)
     elif kind is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
-        value = float(value)
+            raise ConfigError(f"{loc}{key}={shown(value)}: expected {rule.describe()}")
+        try:
+            value = float(value)
+        except OverflowError:  # an int past float's range
+            raise ConfigError(f"{loc}{key}={shown(value)}: is inf in float32, the precision a run computes in; its "
+                              f"magnitude must be at most {FLOAT32_MAX:.4g}") from None
         if not math.isfinite(value):
-            raise ConfigError(f"{loc}{key}={value!r}: must be finite")
+            raise ConfigError(f"{loc}{key}={shown(value)}: must be finite")
         # Values become float32 arrays: one that is 0, subnormal (flushed to 0 on most devices) or inf there is
         # not the value given ("alpha=1e-320" would pass "> 0" and train nothing).
         if value != 0 and not FLOAT32_TINY <= abs(value) <= FLOAT32_MAX:
             big = abs(value) > FLOAT32_MAX
-            raise ConfigError(f"{loc}{key}={value!r}: is {'inf' if big else '0'} in float32, the precision a run "
+            raise ConfigError(f"{loc}{key}={shown(value)}: is {'inf' if big else '0'} in float32, the precision a run "
                               f"computes in; its magnitude must be {'at most' if big else 'at least'} "
                               f"{FLOAT32_MAX if big else FLOAT32_TINY:.4g}")
     elif kind is tuple and rule.pair:
@@ -192,32 +243,40 @@ def coerce(key: str, value: Any, rule: Rule, where: str = "") -> Any:
     elif kind is tuple:
         if not isinstance(value, (list, tuple)):
             doc = f" ({rule.doc})" if rule.doc else ""
-            raise ConfigError(f"{loc}{key}={value!r}: expected a list{' or null' if rule.optional else ''}{doc}")
+            raise ConfigError(f"{loc}{key}={shown(value)}: expected a list{' or null' if rule.optional else ''}{doc}")
         value = tuple(value)
     elif kind is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+            raise ConfigError(f"{loc}{key}={shown(value)}: expected {rule.describe()}")
     if rule.choices is not None and value not in rule.choices:
-        raise ConfigError(f"{loc}{key}={value!r}: allowed values are {rule.describe()[7:]}")
+        raise ConfigError(f"{loc}{key}={shown(value)}: allowed values are {rule.describe()[7:]}")
     if kind in (int, float):
         if rule.low is not None and (value < rule.low or (rule.low_open and value == rule.low)):
-            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+            raise ConfigError(f"{loc}{key}={shown(value)}: expected {rule.describe()}")
         if rule.high is not None and value > rule.high:
-            raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+            raise ConfigError(f"{loc}{key}={shown(value)}: expected {rule.describe()}")
     return value
+
+
+def _finite(v: float) -> bool:
+    """``math.isfinite(v)``, False for an int past float's range (where it raises)."""
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
 
 
 def _range(key: str, value: Any, rule: Rule, loc: str) -> tuple[float, float]:
     """A ``[low, high]`` range (:func:`jaxrobo.core.struct.range_param`) as a tuple of two floats, or ConfigError."""
     ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+        isinstance(v, (int, float)) and not isinstance(v, bool) and _finite(v) for v in value)
     if not ok:
-        raise ConfigError(f"{loc}{key}={value!r}: expected {rule.describe()}")
+        raise ConfigError(f"{loc}{key}={shown(value)}: expected {rule.describe()}")
     low, high = float(value[0]), float(value[1])
     if low > high:
-        raise ConfigError(f"{loc}{key}={value!r}: low {low} > high {high}; expected {rule.describe()}")
+        raise ConfigError(f"{loc}{key}={shown(value)}: low {low} > high {high}; expected {rule.describe()}")
     if low < rule.low or high > rule.high:
-        raise ConfigError(f"{loc}{key}={value!r}: outside the physical limits; expected {rule.describe()}")
+        raise ConfigError(f"{loc}{key}={shown(value)}: outside the physical limits; expected {rule.describe()}")
     return (low, high)
 
 

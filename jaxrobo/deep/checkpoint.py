@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxrobo.core.config import parse_json
 from jaxrobo.training.checkpoint import CheckpointError, fingerprint_mismatch, read_npz, write_npz
 
 #: Bumped when the layout changes.
@@ -120,7 +121,7 @@ def load(path: str, fp: dict[str, Any], plan: Any, eval_episodes: int) -> Saved:
         return CheckpointError(f"{path}: {what}")
 
     try:
-        meta = json.loads(str(data["meta"]))
+        meta = parse_json(str(data["meta"]))
         epochs_done, has_states = int(meta["epochs_done"]), bool(meta["has_states"])
         names, impls = list(meta["state_names"]), list(meta["key_impls"])
         metrics = [{str(k): float(v) for k, v in m.items()} for m in meta["training_metrics"]]

@@ -11,7 +11,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from jaxrobo.core.config import ConfigError
+from jaxrobo.core.config import ConfigError, parse_json
 from jaxrobo.deep.config import AGENTS, DeepRunSpec
 
 #: Files of a deep run's saved policy.
@@ -146,8 +146,6 @@ def load_policy(run_dir: str, which: str = "latest") -> LoadedPolicy:
     """The ``which`` policy (:data:`POLICIES`) a deep run saved (a finished run, or one stopped after its first
     evaluation point); :class:`ConfigError` naming the file when it is missing, pickled, or does not match its
     ``policy.json`` (a missing, extra or misshapen array)."""
-    import zipfile
-
     import jax
 
     where = policy_dir(run_dir, which)
@@ -158,7 +156,7 @@ def load_policy(run_dir: str, which: str = "latest") -> LoadedPolicy:
                               "reached an evaluation point?")
     try:
         with open(json_path) as f:
-            net = json.load(f)
+            net = parse_json(f.read())
         if not isinstance(net, dict):
             raise ValueError("not a JSON object")
         nets_config_keys = ("agent", "observation_size", "action_size", "normalize_observations")
@@ -167,11 +165,9 @@ def load_policy(run_dir: str, which: str = "latest") -> LoadedPolicy:
             raise ValueError(f"missing {', '.join(missing)}" if missing else f"agent={net['agent']!r}")
     except (OSError, ValueError) as err:
         raise ConfigError(f"{json_path}: not a policy description ({err})") from None
-    try:
-        with np.load(npz_path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
-        raise ConfigError(f"{npz_path}: cannot be read as plain arrays ({type(err).__name__}: {err})") from None
+    from jaxrobo.io.npz import read_npz
+
+    arrays = read_npz(npz_path, "the policy's parameters", finite=False)  # headers checked first; NpzError
     try:
         template = _template(net)
     except (KeyError, TypeError, ValueError) as err:

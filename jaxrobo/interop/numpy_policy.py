@@ -89,7 +89,7 @@ class Policy:
         try:
             with open(json_path) as f:
                 meta = json.load(f)
-        except (OSError, ValueError) as err:
+        except (OSError, ValueError, RecursionError) as err:  # RecursionError: JSON nested past the limit
             raise ValueError(f"{json_path}: not an exported policy description ({err})") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("kind") not in KINDS:
             got = (meta.get("format"), meta.get("kind")) if isinstance(meta, dict) else type(meta).__name__

@@ -17,9 +17,11 @@ import math
 import mmap
 import os
 import struct
+import tokenize
 import zipfile
+import zlib as stdlib_zlib
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import IO, Any, Mapping
+from typing import IO, Any, Callable, Mapping
 
 import numpy as np
 # zlib-ng: deflate streams and CRC-32s that zlib reads, made faster (8 MB blocks of a run's tables on one core of an
@@ -348,17 +350,21 @@ def member_headers(path: str) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
         with zipfile.ZipFile(path) as zf:
             return {info.filename[:-4] if info.filename.endswith(".npy") else info.filename: _header(zf, info)
                     for info in zf.infolist()}
-    except (OSError, ValueError, SyntaxError, TypeError, OverflowError, EOFError, zipfile.BadZipFile) as err:
+    except (OSError, ValueError, SyntaxError, TypeError, OverflowError, EOFError, zipfile.BadZipFile,
+            tokenize.TokenError, stdlib_zlib.error, zlib.error) as err:
         raise NpzError(f"{path}: cannot read its arrays' headers ({type(err).__name__}: {err})") from None
 
 
 def read_npz(path: str, what: str = "the file", *, expect: Mapping[str, tuple[tuple[int, ...], Any]] | None = None,
-             finite: bool | Mapping[str, bool] = True, max_bytes: int = MAX_ARRAY_BYTES) -> dict[str, np.ndarray]:
+             finite: bool | Mapping[str, bool] = True, max_bytes: int = MAX_ARRAY_BYTES,
+             wanted: Callable[[str], bool] | None = None) -> dict[str, np.ndarray]:
     """Every array of the ``.npz`` at ``path``, checked before and after reading (see the module).
 
     ``expect``: ``{name: (shape, dtype)}`` the arrays must have (a name missing from the file is an error; names
-    not in ``expect`` are read too, under ``max_bytes``). ``finite``: refuse float arrays holding NaN or inf (all,
-    or per name). Raises :class:`NpzError` naming ``what``, the file and the array."""
+    not in ``expect`` are read too, under ``max_bytes``). ``wanted``: where given, only the members it accepts are
+    checked and read (a member nobody reads could otherwise inflate to ``max_bytes`` from a few kilobytes of file).
+    ``finite``: refuse float arrays holding NaN or inf (all, or per name). Raises :class:`NpzError` naming
+    ``what``, the file and the array."""
     where = f"{path}: {what}"
     from jaxrobo.core.config import check_regular
 
@@ -366,11 +372,14 @@ def read_npz(path: str, what: str = "the file", *, expect: Mapping[str, tuple[tu
     try:
         with zipfile.ZipFile(path) as zf:
             infos = {i.filename[:-4] if i.filename.endswith(".npy") else i.filename: i for i in zf.infolist()}
+            if wanted is not None:
+                infos = {name: info for name, info in infos.items() if wanted(name)}
             headers = {}
             for name, info in infos.items():
                 try:
                     shape, dtype = _header(zf, info)
-                except (ValueError, SyntaxError, TypeError, OverflowError) as err:
+                # tokenize.TokenError: numpy tokenizes a header it cannot parse (an unclosed bracket)
+                except (ValueError, SyntaxError, TypeError, OverflowError, tokenize.TokenError) as err:
                     raise NpzError(f"{where}: array {name!r} has no valid .npy header ({err})") from None
                 if any(n < 0 for n in shape):
                     raise NpzError(f"{where}: array {name!r} has no valid .npy header (shape {shape})")
@@ -396,7 +405,9 @@ def read_npz(path: str, what: str = "the file", *, expect: Mapping[str, tuple[tu
                     out[name] = z[name]
     except NpzError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, KeyError, RuntimeError) as err:
+    # zipfile inflates with the standard library's zlib, whose error is not zlib-ng's (a damaged deflate stream).
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, stdlib_zlib.error, zlib.error, KeyError,
+            RuntimeError) as err:
         raise NpzError(f"{where}: cannot be read as plain arrays ({type(err).__name__}: {err}); it is truncated, "
                        "corrupt, pickled or not an npz file") from None
     for name, x in out.items():

@@ -33,6 +33,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
@@ -336,6 +337,10 @@ def _summed_on(total: np.ndarray | None, block: np.ndarray) -> np.ndarray:
     return np.add.reduce(block, axis=0)
 
 
+#: The members of ``qtables.npz`` besides the discretiser's ``edges_<i>`` (:func:`discretiser_arrays`).
+TABLES_MEMBERS = ("q", "low", "width", "bins")
+
+
 def discretiser_arrays(disc: Discretiser | None) -> dict[str, np.ndarray]:
     """The arrays of ``qtables.npz`` beside ``q``: the discretiser's ``low``, ``width``, ``bins`` and ``edges_<i>``
     (none without a discretiser)."""
@@ -567,11 +572,13 @@ def selected_table(run_dir: str, n_tables: int) -> int:
     """The table a run's greedy evaluation selected (``summary.json``'s ``selected_table``), which ``jaxrobo show``,
     ``export`` and ``sim2sim`` act with by default; 0 where the run has no summary or it names no table of the
     ``n_tables`` (an older, interrupted or hostile run directory)."""
+    from jaxrobo.core.config import parse_json
+
     try:
         if not os.path.isfile(os.path.join(run_dir, "summary.json")):  # nor a FIFO or a device
             return 0
         with open(os.path.join(run_dir, "summary.json"), encoding="utf-8") as f:
-            chosen = json.loads(f.read(MAX_SUMMARY_BYTES)).get("selected_table", 0)
+            chosen = parse_json(f.read(MAX_SUMMARY_BYTES)).get("selected_table", 0)
     except (OSError, ValueError, AttributeError):
         return 0
     ok = isinstance(chosen, int) and not isinstance(chosen, bool) and 0 <= chosen < n_tables
@@ -582,18 +589,26 @@ def load_tables(run_dir: str) -> dict[str, np.ndarray]:
     """A run's ``qtables.npz`` as plain arrays (no pickle); ConfigError naming the file when it is missing,
     truncated, pickled or has no ``q`` of shape ``[n_envs, n_tables, n_states, n_actions]``."""
     from jaxrobo.core.config import ConfigError
-    from jaxrobo.io.npz import read_npz
+    from jaxrobo.io.npz import member_headers, read_npz
 
     path = os.path.join(run_dir, "qtables.npz")
     if not os.path.isfile(path):
         raise ConfigError(f"{run_dir}: no qtables.npz; is it a finished jaxrobo run directory?")
     # Headers checked before any data is read (a header claiming 2^40 rows is refused, not allocated); the tables'
     # finiteness is checked per table by the caller (one NaN table must not hide the others).
-    arrays = read_npz(path, "the q-tables", finite={"q": False})
+    arrays = read_npz(path, "the q-tables", finite={"q": False}, wanted=lambda name: name in TABLES_MEMBERS
+                      or re.fullmatch(r"edges_\d+", name) is not None)
     if "q" not in arrays:
-        raise ConfigError(f"{path}: no array 'q' (found {', '.join(arrays) or 'none'})")
+        found = ", ".join(member_headers(path)) or "none"
+        raise ConfigError(f"{path}: no array 'q' (found {found})")
     q = arrays["q"]
     if q.ndim != 4 or not np.issubdtype(q.dtype, np.floating):
         raise ConfigError(f"{path}: q must be a float array [n_envs, n_tables, n_states, n_actions], got "
                           f"{q.dtype} of shape {q.shape}")
+    if 0 in q.shape:
+        raise ConfigError(f"{path}: q of shape {q.shape} holds no table; every axis must be at least 1")
+    for name, x in arrays.items():
+        if name != "q" and (x.ndim > 1 or not np.issubdtype(x.dtype, np.number)):
+            raise ConfigError(f"{path}: {name} must be a vector of numbers (the discretiser's), got {x.dtype} of "
+                              f"shape {x.shape}")
     return arrays

@@ -34,7 +34,7 @@ import sys
 import tempfile
 from typing import IO, Any, Callable, Iterator
 
-from jaxrobo.core.config import ConfigError
+from jaxrobo.core.config import ConfigError, parse_json
 
 #: The training carry of an unfinished run (see :func:`jaxrobo.training.checkpoint.save_checkpoint`), or a sweep's
 #: finished groups.
@@ -66,14 +66,19 @@ LEGACY_MARKERS = (("summary.json", "config.yaml"), ("summary.json", "sweep.csv")
 
 
 # ---- status --------------------------------------------------------------------------------------------------
+#: Bytes of ``status.json`` read at most: jaxrobo writes a few hundred; a larger file is not one of its statuses.
+STATUS_MAX_BYTES = 1 << 20
+
+
 def read_status(path: str) -> dict[str, Any] | None:
-    """The directory's ``status.json`` as a dict, or None when it has none (or an unreadable one, or one that is
-    not a regular file)."""
+    """The directory's ``status.json`` as a dict, or None when it has none (or an unreadable one, one larger than
+    :data:`STATUS_MAX_BYTES`, or one that is not a regular file)."""
     try:
         if not stat.S_ISREG(os.stat(os.path.join(path, STATUS)).st_mode):
             return None
-        with open(os.path.join(path, STATUS)) as f:
-            status = json.load(f)
+        with open(os.path.join(path, STATUS), "rb") as f:
+            raw = f.read(STATUS_MAX_BYTES + 1)  # never more than the cap, whatever the file's size
+        status = parse_json(raw) if len(raw) <= STATUS_MAX_BYTES else None
     except (OSError, ValueError):
         return None
     return status if isinstance(status, dict) else None

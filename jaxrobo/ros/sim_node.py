@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo_ros.system import line_buffered, rospy as import_rospy
-from jaxrobo.core.config import ConfigError
+from jaxrobo.core.config import ConfigError, parse_json
 from jaxrobo.ros.bridge import make_bridge, make_env
 
 #: Wall-clock seconds between a new episode's goal (latched topics) and its first state: what lets a subscriber
@@ -229,7 +229,7 @@ def run(args) -> int:
 
         try:
             with open(os.path.join(args.env_id, POLICY_JSON)) as f:
-                meta = json.load(f)
+                meta = parse_json(f.read())
         except (OSError, ValueError) as err:
             raise ConfigError(f"{args.env_id}: not an export ({err})") from None
         env = make_env(meta if isinstance(meta, dict) else {}, where=os.path.join(args.env_id, POLICY_JSON))

@@ -38,7 +38,7 @@ import numpy as np
 
 from jaxrobo.io import rundir
 from jaxrobo.training import nonzero_copy
-from jaxrobo.core.config import ConfigError, flat_keys
+from jaxrobo.core.config import ConfigError, flat_keys, parse_json
 from jaxrobo.core.environ import in_threads, usable_cores
 
 if TYPE_CHECKING:
@@ -446,7 +446,7 @@ def read_fingerprint(path: str) -> tuple[dict[str, Any], int]:
     """A checkpoint's fingerprint and chunk count (the whole file is checked as :func:`read_npz` does)."""
     data = read_npz(path, "the checkpoint")
     try:
-        return json.loads(str(data["fingerprint"])), int(data["chunks_done"])
+        return parse_json(str(data["fingerprint"])), int(data["chunks_done"])
     except (KeyError, ValueError, TypeError) as err:
         raise CheckpointError(f"{path}: not a jaxrobo checkpoint ({err})") from None
 
@@ -534,10 +534,13 @@ def _read_records(path: str, data: dict[str, np.ndarray], records: dict[int, tup
         data[f"records_{i}"] = arrays[records[i][0]]
 
 
-def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) -> tuple[Runner, int]:
+def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any],
+                    max_chunks: int | None = None) -> tuple[Runner, int]:
     """The carry saved at ``path`` and its chunk count, on the default device, checked against ``fingerprint``
     (:func:`carry_fingerprint` of this run) and ``template``'s structure: refused with :class:`CheckpointError`
-    saying why, rather than loaded, when they differ."""
+    saying why, rather than loaded, when they differ, when the chunk count is not in ``0..max_chunks`` (the run's
+    chunks, where given) or an env's episode count (:data:`EPISODE_LEAF`) is negative: a counter the run would
+    trust to the end (a count past the budget marks a run complete that trained nothing)."""
     with_paths, treedef = jax.tree_util.tree_flatten_with_path(template)
     specs = [spec for _, spec in with_paths]
     expect, finite, records, table = {}, {}, {}, None
@@ -570,8 +573,8 @@ def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) ->
         padded[:, :x.shape[1]] = x
         data[f"leaf_{i}"] = padded
     try:
-        saved = json.loads(str(data["fingerprint"]))
-        impls = json.loads(str(data["key_impls"]))
+        saved = parse_json(str(data["fingerprint"]))
+        impls = parse_json(str(data["key_impls"]))
         chunks_done = int(data["chunks_done"])
         if not isinstance(saved, dict) or not isinstance(impls, list) or len(impls) != len(specs):
             raise ValueError("fingerprint or key_impls malformed")
@@ -580,6 +583,15 @@ def load_checkpoint(path: str, template: Runner, fingerprint: dict[str, Any]) ->
     why = fingerprint_mismatch(saved, fingerprint)
     if why is not None:
         raise CheckpointError(f"{path}: refusing to resume: {why}")
+    if chunks_done < 0 or (max_chunks is not None and chunks_done > max_chunks):
+        bound = "" if max_chunks is None else max_chunks
+        raise CheckpointError(f"{path}: chunks_done={chunks_done} is outside 0..{bound} (the run's chunks); the "
+                              "checkpoint is corrupt")
+    episode = next((i for i, (keypath, _) in enumerate(with_paths) if jax.tree_util.keystr(keypath) == EPISODE_LEAF),
+                   None)
+    if episode is not None and f"leaf_{episode}" in data and np.any(np.asarray(data[f"leaf_{episode}"]) < 0):
+        raise CheckpointError(f"{path}: leaf {episode} (each env's episode count) holds negative counts; the "
+                              "checkpoint is corrupt")
     leaves = []
     for i, (spec, impl) in enumerate(zip(specs, impls)):
         x = data.get(f"leaf_{i}")

@@ -238,6 +238,19 @@ def check_discretiser(env: Env, config: TrainConfig, where: str = "") -> int:
     return int(np.prod(bins, dtype=object))
 
 
+def check_tables(q: np.ndarray, env: Env, config: TrainConfig, path: str) -> None:
+    """A run's saved tables (``q`` of ``qtables.npz`` at ``path``) against its config: ``[n_envs, n_tables,
+    n_states, n_actions]``, one row of tables where the envs shared one, the learner's tables (two for Double
+    Q-learning); ConfigError naming the file otherwise (the files are then not of one run)."""
+    want = (1 if config.shared_table else config.n_envs, learner(config.agent).n_tables,
+            check_discretiser(env, config), int(env.num_actions))
+    if tuple(q.shape) != want:
+        raise ConfigError(f"{path}: q has shape {tuple(q.shape)}, but the run's config.yaml gives {want} ("
+                          f"{'one shared table' if config.shared_table else f'{config.n_envs} envs'}, "
+                          f"{config.agent}'s {want[1]} table(s), {want[2]} states x {want[3]} actions); the files are "
+                          "not of one run")
+
+
 def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] | None = None,
             agent: str | None = None, check_memory: bool = True, device_defaults: bool = True) -> RunSpec:
     """Build env, learner parameters and loop config for a run; raises :class:`ConfigError` on any bad value.

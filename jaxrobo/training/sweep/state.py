@@ -49,12 +49,12 @@ def code_version() -> dict[str, str]:
 def read_state(state_dir: str) -> dict[str, Any]:
     """The saved ``sweep_state.json`` of ``state_dir``: settings, versions, fingerprint and extra."""
     path = os.path.join(state_dir, STATE_FILE)
-    from jaxrobo.core.config import check_regular
+    from jaxrobo.core.config import check_regular, parse_json
 
     check_regular(path)  # a FIFO would hang the read, a device never end it
     try:
         with open(path) as f:
-            state = json.load(f)
+            state = parse_json(f.read())
     except FileNotFoundError:
         raise ConfigError(f"{state_dir}: not a sweep ({STATE_FILE} missing)") from None
     except (OSError, ValueError) as err:
