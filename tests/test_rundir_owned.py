@@ -121,6 +121,33 @@ def test_user_files_survive_an_overwrite(done, tmp_path):
     assert rundir.is_complete(out) and _user_files_kept(out) and _hidden(tmp_path) == []
 
 
+def test_user_files_inside_an_owned_folder_survive_an_overwrite(done, tmp_path, capsys):
+    """``best/`` is a deep run's name; in a tabular run's directory a user's ``best/`` keeps what the user put there
+    (jaxrobo removes only its own files inside, and the folder only if that empties it), and a ``tensorboard/``
+    keeps a user's notes beside jaxrobo's event files."""
+    out = _copy(done, tmp_path)
+    os.makedirs(os.path.join(out, "best"))
+    for rel in ("best/mine.txt", "best/policy.json", "tensorboard/README.md"):
+        with open(os.path.join(out, rel), "w") as f:
+            f.write("mine")
+    assert main(["train", *CLI_TINY, "--checkpoint-every", "0", "--out", out, "--overwrite"]) == 0
+    assert open(os.path.join(out, "best", "mine.txt")).read() == "mine"  # the new run has no best/: it moved in
+    # the new run has its own tensorboard/: the user's folder stays in the old run, kept beside it and named
+    kept = [os.path.join(d, n) for d, _, names in os.walk(tmp_path) for n in names if n == "README.md"]
+    assert len(kept) == 1 and ".old" in kept[0] or ".run." in kept[0], kept
+    assert "tensorboard" in capsys.readouterr().err
+    assert rundir.is_complete(out)
+    with pytest.raises(FileNotFoundError):  # jaxrobo's name inside: removed with the old run
+        open(os.path.join(out, "best", "policy.json"))
+    scratch = tmp_path / "scratch"
+    (scratch / "best").mkdir(parents=True)
+    (scratch / "best" / "policy.npz").write_text("x")
+    (scratch / "best" / ".policy.npz.ab12.tmp").write_text("x")
+    (scratch / "tensorboard").mkdir()
+    (scratch / "tensorboard" / "events.out.tfevents.1.vm").write_text("x")
+    assert rundir.remove_run(str(scratch)) and not scratch.exists()  # only jaxrobo's entries: all gone
+
+
 def test_user_files_survive_a_resume(stopped, tmp_path):
     out = _copy(stopped, tmp_path)
     _add_user_files(out)

@@ -60,6 +60,9 @@ OWNED = (
     # sweeps (jaxrobo.training.sweep.state, .output)
     "sweep.csv", "sweep_state.json", "group_*.npz", "sweep_*.png", "heatmap_*.png",
 )
+#: What jaxrobo writes inside the directories of :data:`OWNED` (the rest of such a directory is the user's: a
+#: ``best/`` a user made in a tabular run's directory keeps what they put there).
+OWNED_INSIDE = {"best": ("policy.npz", "policy.json"), "tensorboard": ("events.out.tfevents.*",)}
 #: Files by which a directory is recognised as a jaxrobo run (or sweep), besides a ``status.json`` of a known
 #: status: only such a directory is ever replaced. One of them alone (a project's own ``config.yaml``) is not.
 LEGACY_MARKERS = (("summary.json", "config.yaml"), ("summary.json", "sweep.csv"))
@@ -498,6 +501,15 @@ def publish(staging_dir: str, path: str, *, overwrite: bool = False) -> None:
 def _retire(old: str, new: str) -> None:
     """The old run ``old`` that ``new`` replaced: the user's entries move into ``new``, jaxrobo's are removed."""
     left = _carry_user_entries(old, new)
+    for name, patterns in OWNED_INSIDE.items():  # a user's files inside one of jaxrobo's folders move with it
+        inside = os.path.join(old, name)
+        if os.path.isdir(inside) and not os.path.islink(inside):
+            _remove_owned_inside(inside, patterns)
+            if os.path.isdir(inside) and not os.path.lexists(os.path.join(new, name)):
+                with contextlib.suppress(OSError):
+                    os.rename(inside, os.path.join(new, name))
+            if os.path.isdir(inside):
+                left.append(name)
     if not remove_run(old):
         print(f"jaxrobo: kept {old}: {', '.join(left)} of the replaced run could not move into {new} (the new run "
               "holds those names)", file=sys.stderr)
@@ -536,7 +548,10 @@ def remove_run(path: str) -> bool:
             continue
         full = os.path.join(path, name)
         if os.path.isdir(full) and not os.path.islink(full):
-            shutil.rmtree(full, ignore_errors=True)
+            if name in OWNED_INSIDE:  # jaxrobo's entries inside; the directory too if nothing else is left
+                _remove_owned_inside(full, OWNED_INSIDE[name])
+            else:  # a hidden temporary of jaxrobo's (a staging copy)
+                shutil.rmtree(full, ignore_errors=True)
         else:
             with contextlib.suppress(OSError):
                 os.unlink(full)
@@ -545,6 +560,23 @@ def remove_run(path: str) -> bool:
     except OSError:
         return False
     return True
+
+
+def _remove_owned_inside(path: str, patterns: tuple[str, ...]) -> None:
+    """The files of the directory ``path`` matching ``patterns`` (or hidden temporaries of such files, as
+    :func:`owned`), then the directory if that empties it."""
+    try:
+        names = os.listdir(path)
+    except OSError:
+        return
+    for name in names:
+        full = os.path.join(path, name)
+        ours = any(fnmatch.fnmatchcase(name, p) or fnmatch.fnmatchcase(name, f".{p}.*") for p in patterns)
+        if ours and (os.path.islink(full) or not os.path.isdir(full)):
+            with contextlib.suppress(OSError):
+                os.unlink(full)
+    with contextlib.suppress(OSError):
+        os.rmdir(path)
 
 
 def discard(staging_dir: str) -> None:
