@@ -81,7 +81,8 @@ def machine(env: dict) -> tuple[str, str]:
 def write(args, rows: list[dict], kind: str, version: str) -> None:
     """The transcript of the rows so far (written after every command, so a stopped transcript keeps its rows)."""
     head = [f"# README transcript: {kind} ({os.cpu_count()} cores visible)", "",
-            f"`python scripts/readme_transcript.py --device {args.device}` on {time.strftime('%Y-%m-%d')}, "
+            f"`python scripts/readme_transcript.py --device {args.device} --out {os.path.relpath(args.out, ROOT)}` on "
+            f"{time.strftime('%Y-%m-%d')}, "
             f"Python {platform.python_version()}, jax {version}, commit "
             f"{subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=ROOT, capture_output=True, text=True).stdout.strip()}. "
             "Each command ran in order in one checkout, as the README gives it; times are wall seconds from start to "
