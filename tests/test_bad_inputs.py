@@ -531,8 +531,34 @@ PLOT = [
     P("stats-binary", "not a text CSV file", "{tmp}/r", setup=csv_run("episode_stats.csv", b"\xff\xfe\x00\x81bad")),
     P("episodes-missing-column", "missing column(s) epsilon", "{tmp}/r",
       setup=csv_run("episodes.csv", "env,episode,return,length,terminated\n0,0,1,2,0\n")),
-    P("episodes-negative-env", "column env must hold integers >= 0", "{tmp}/r",
-      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n-1,0,1,2,0,0.1\n")),
+    P("episodes-negative-env", "episodes.csv line 2: column env=-1: expected a whole number in 0..2147483647",
+      "{tmp}/r", setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n"
+                                               "-1,0,1,2,0,0.1\n")),
+    # a value that is finite and whole but no index (its cast to int is garbage), and a pair whose product
+    # overflows int64 (the size check would pass a wrapped number)
+    P("episodes-env-1e300", "episodes.csv line 3: column env=1e+300: expected a whole number in 0..2147483647",
+      "{tmp}/r", setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,0,1,2,0,0.1\n"
+                                               "1e300,0,1,2,0,0.1\n")),
+    P("episodes-index-overflow", "episodes.csv line 2: column env=3037000500: expected a whole number", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n"
+                                    "3037000500,3037000500,1,2,0,0.1\n")),
+    P("episodes-fractional-episode", "line 2: column episode=0.5: expected a whole number", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,0.5,1,2,0,0.1\n")),
+    P("episodes-duplicate-column", "episodes.csv: column(s) 'return' named twice in the header", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon,return\n0,0,1,2,0,0.1,3\n"
+                                    "0,1,1,2,0,0.1,3\n")),
+    P("stats-duplicate-column", "episode_stats.csv: column(s) 'return_mean' named twice", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER.replace("\n", ",return_mean\n") + STATS_ROW.replace("\n", ",1\n")
+                    + STATS_ROW.replace("0,", "1,", 1).replace("\n", ",1\n"))),
+    # docs/usage.md: CSVs read back are checked for finiteness; a NaN mean would be a silent gap in the plot
+    P("stats-nan", "episode_stats.csv line 3: column return_mean='nan' is not a finite number", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW + STATS_ROW.replace("0,1,", "1,nan,", 1))),
+    P("stats-inf", "episode_stats.csv line 2: column length_p90='-inf' is not a finite number", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + "0,1,0,1,1,1,5,0,5,5,-inf,0.1\n")),
+    P("episodes-nan-return", "episodes.csv line 2: column return='NaN' is not a finite number", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,0,NaN,2,0,0.1\n")),
+    P("stats-line-after-blank", "episode_stats.csv line 4: column return_mean='inf'", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW + "\n" + STATS_ROW.replace("0,1,", "1,inf,", 1))),
     P("episodes-huge-index", "the file is malformed", "{tmp}/r",
       setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,99999999,1,2,0,0.1\n")),
     P("window-zero", "--window 0: must be an integer >= 1", "{tmp}/r", "--window", "0",
