@@ -827,7 +827,10 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jaxrobo", description="Train tabular agents on MJX robots, fast.")
+    from jaxrobo.core.cliargs import Parser
+
+    # a usage error is one line (the subcommands' parsers are of this class too: add_subparsers makes them so)
+    parser = Parser(prog="jaxrobo", description="Train tabular agents on MJX robots, fast.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("train", help="train a tabular agent on many envs at once")
