@@ -265,6 +265,28 @@ def _existing(path: str) -> str:
     return path or os.sep
 
 
+def check_writable(path: str, flag: str, *, directory: bool) -> None:
+    """Refuse, before any work, an output of a command that writes a plain directory (``directory``: ``eval
+    --out``, ``export --out``) or one file (``show --video``) where it cannot be written: ConfigError naming
+    ``flag`` and ``path`` when ``path`` is a file where a directory is wanted (or a directory where a file is), or
+    the nearest existing entry on its way (the directory itself where it exists) is not a directory (a file, a
+    dangling link) or not writable. Left alone, the command flew or exported first and failed at its first write."""
+    where = f"{flag} {path}"
+    if directory and os.path.exists(path) and not os.path.isdir(path):
+        raise ConfigError(f"{where}: is an existing file, not a directory; give a new or existing directory")
+    if not directory and os.path.isdir(path):
+        raise ConfigError(f"{where}: is a directory; give a file name")
+    ancestor = os.path.abspath(path) if directory else os.path.dirname(os.path.abspath(path))
+    while not os.path.lexists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    if os.path.isfile(ancestor):
+        raise ConfigError(f"{where}: {ancestor} is a file, not a directory")
+    if not os.path.isdir(ancestor):  # a dangling symlink, a FIFO, a device
+        raise ConfigError(f"{where}: {ancestor} is not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(f"{where}: cannot write in {ancestor} (permission denied)")
+
+
 # ---- one writer per run directory ------------------------------------------------------------------------------
 _PARTIAL = re.compile(r"^\.(?P<name>.+)\.[^.]+\.partial$")
 
