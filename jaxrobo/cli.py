@@ -438,7 +438,7 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
     if "final_eval_success_rate" in s:
         line += f", success {s['final_eval_success_rate']:.3f}"
     print(line + f" over {c.eval_episodes} fresh episodes (best: evaluation {s['best_evaluation']}, in best/)")
-    print(f"results in {out}")
+    print(f"results in {rundir.run_name(out)}")  # a resumed hidden sibling .NAME.*.partial was published as NAME
     return 0
 
 
@@ -731,7 +731,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
               f"{s['selected_table_fresh_mean_return']:.1f}")
     if s["physics_nan_episodes"]:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
-    print(f"results in {out}")
+    print(f"results in {rundir.run_name(out)}")  # a resumed hidden sibling .NAME.*.partial was published as NAME
     return 0
 
 

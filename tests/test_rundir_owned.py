@@ -146,6 +146,8 @@ def test_a_stopped_overwrite_keeps_the_old_run_whole_and_resume_replaces_it(done
     assert main(["train", "--resume", out, "--no-progress"]) == 0
     assert rundir.is_complete(out) and rundir.read_status(out)["resumed_after_chunk"] == 1
     assert _user_files_kept(out) and _hidden(tmp_path) == []
+    # the path the results were published at, not the hidden sibling the resumed run went on in
+    assert capsys.readouterr().out.rstrip().splitlines()[-1] == f"results in {os.path.abspath(out)}"
     assert not filecmp.cmp(os.path.join(out, "status.json"), os.path.join(done, "status.json"), shallow=False)
 
 
