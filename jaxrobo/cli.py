@@ -438,7 +438,7 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
     if "final_eval_success_rate" in s:
         line += f", success {s['final_eval_success_rate']:.3f}"
     print(line + f" over {c.eval_episodes} fresh episodes (best: evaluation {s['best_evaluation']}, in best/)")
-    print(f"results in {out}")
+    print(f"results in {rundir.run_name(out)}")  # a resumed hidden sibling .NAME.*.partial was published as NAME
     return 0
 
 
@@ -731,7 +731,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
               f"{s['selected_table_fresh_mean_return']:.1f}")
     if s["physics_nan_episodes"]:
         print(f"warning: {s['physics_nan_episodes']} episodes ended on non-finite physics", file=sys.stderr)
-    print(f"results in {out}")
+    print(f"results in {rundir.run_name(out)}")  # a resumed hidden sibling .NAME.*.partial was published as NAME
     return 0
 
 
@@ -827,7 +827,10 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jaxrobo", description="Train tabular agents on MJX robots, fast.")
+    from jaxrobo.core.cliargs import Parser
+
+    # a usage error is one line (the subcommands' parsers are of this class too: add_subparsers makes them so)
+    parser = Parser(prog="jaxrobo", description="Train tabular agents on MJX robots, fast.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("train", help="train a tabular agent on many envs at once")

@@ -11,7 +11,8 @@ The figure follows the task's :attr:`jaxrobo.task.env.Env.learning_target`: the 
 a ``success_rate`` target, else the mean return (or length). A tabular run evaluates its first ``--tables``
 tables (each an independent learner): the table reports the mean over them, and the worst and best table.
 Writes ``robustness.csv`` (``shift,value,metric,mean,worst,best,tables,episodes``) and ``robustness.png`` into
-``--out`` (default ``<RUN>/robustness``), and prints the table.
+``--out`` (default ``<RUN>/robustness``), and prints the table. ``--out`` is checked before anything is read or
+flown: an earlier evaluation's files there are replaced only with ``--overwrite``.
 """
 from __future__ import annotations
 
@@ -39,6 +40,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tables", type=int, default=8, help="how many of the run's tables to evaluate")
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes (the same for every value)")
     parser.add_argument("--out", default=None, help="output directory (default <RUN>/robustness)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace robustness.csv and robustness.png where --out holds them already")
 
 
 def parse_shifts(items: Sequence[str] | None, params: Any) -> dict[str, list[float]]:
@@ -178,6 +181,29 @@ def write(rows: list[dict[str, Any]], out_dir: str, title: str) -> tuple[str, st
     return path, png
 
 
+#: What ``jaxrobo eval`` writes into ``--out``.
+OUTPUTS = ("robustness.csv", "robustness.png")
+
+
+def check_out(out: str, overwrite: bool) -> None:
+    """``--out`` can be written, and holds no earlier evaluation unless ``overwrite`` (ConfigError naming it): a
+    table the user kept from an earlier evaluation is not replaced without being asked, nor found unwritable
+    after the flights."""
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.io import rundir
+
+    if os.path.isfile(out):
+        raise ConfigError(f"--out {out!r} is a file; give a directory")
+    rundir.check_writable(out, "--out", directory=True)
+    there = [name for name in OUTPUTS if os.path.lexists(os.path.join(out, name))]
+    for name in there:
+        if os.path.isdir(os.path.join(out, name)) and not os.path.islink(os.path.join(out, name)):
+            raise ConfigError(f"--out {out}: {name} is a directory; jaxrobo eval writes a file of that name")
+    if there and not overwrite:
+        raise ConfigError(f"--out {out}: holds {' and '.join(there)} already; give --overwrite to replace "
+                          f"{'them' if len(there) > 1 else 'it'}, or another --out")
+
+
 def run(args: argparse.Namespace) -> int:
     from jaxrobo.core.config import ConfigError
 
@@ -190,12 +216,13 @@ def run(args: argparse.Namespace) -> int:
 
         if not 0 <= args.seed <= INT32_MAX:
             raise ConfigError(f"--seed {args.seed}: expected an integer in 0..{INT32_MAX}")
+        if not os.path.isdir(args.run_dir):  # before --out, whose default lies in it
+            raise ConfigError(f"run directory {args.run_dir!r} does not exist (or is not a directory)")
+        out = args.out if args.out is not None else os.path.join(args.run_dir, "robustness")
+        check_out(out, args.overwrite)
         spec, policy, q = _load(args.run_dir, args.tables)
         shifts = parse_shifts(args.shift, spec.env.default_params)
         randomised_env(spec.env)  # refuse a task without randomisation before anything compiles
-        out = args.out if args.out is not None else os.path.join(args.run_dir, "robustness")
-        if os.path.isfile(out):
-            raise ConfigError(f"--out {out!r} is a file; give a directory")
     except ConfigError as err:
         print(f"jaxrobo eval: {err}", file=sys.stderr)
         return 2

@@ -229,6 +229,7 @@ def check_args(args: argparse.Namespace) -> None:
             raise ConfigError(f"--video {args.video!r}: expected a file ending in {', '.join(VIDEO_EXTENSIONS)}")
         if os.path.isdir(args.video):
             raise ConfigError(f"--video {args.video!r} is a directory; give a file name")
+        rundir.check_writable(args.video, "--video", directory=False)  # before the episode is rendered
 
 
 #: What ``--video`` writes (``.gif`` needs only imageio; the others imageio-ffmpeg).

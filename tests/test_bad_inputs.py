@@ -233,6 +233,12 @@ def T(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a
 
 
 TRAIN = [
+    # argparse's type errors: one line (jaxrobo.core.cliargs.Parser), not the usage block
+    T("n-envs-not-int", "jaxrobo train: argument --n-envs: invalid int value: 'abc'", "--n-envs", "abc"),
+    T("nepisodes-nan", "jaxrobo train: argument --nepisodes: invalid int value: 'nan'", "--nepisodes", "nan"),
+    T("total-steps-float", "jaxrobo train: argument --total-steps: invalid int value: '1e20'",
+      "--total-steps", "1e20"),
+    T("unrecognized-flag", "jaxrobo train: unrecognized arguments: --nenvs 4", "--nenvs", "4"),
     # unknown keys and ids
     T("unknown-key", "unknown key 'alfa' (did you mean alpha", "--set", "alfa=0.1"),
     T("unknown-env-key", "unknown key 'nope'", "--set", "env.nope=1"),
@@ -451,6 +457,7 @@ TRAIN = [
 ]
 
 SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
+    ("seeds-not-int", ("--seeds", "x"), "jaxrobo sweep: argument --seeds: invalid int value: 'x'"),
     ("seeds-zero", ("--seeds", "0"), "--seeds 0: must be >= 1"),
     ("eval-episodes-negative", ("--eval-episodes", "-1"), "--eval-episodes -1: must be >= 0"),
     ("eval-metric-without-eval", ("--metric", "eval_mean_length", "--eval-episodes", "0"),
@@ -538,8 +545,34 @@ PLOT = [
     P("stats-binary", "not a text CSV file", "{tmp}/r", setup=csv_run("episode_stats.csv", b"\xff\xfe\x00\x81bad")),
     P("episodes-missing-column", "missing column(s) epsilon", "{tmp}/r",
       setup=csv_run("episodes.csv", "env,episode,return,length,terminated\n0,0,1,2,0\n")),
-    P("episodes-negative-env", "column env must hold integers >= 0", "{tmp}/r",
-      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n-1,0,1,2,0,0.1\n")),
+    P("episodes-negative-env", "episodes.csv line 2: column env=-1: expected a whole number in 0..2147483647",
+      "{tmp}/r", setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n"
+                                               "-1,0,1,2,0,0.1\n")),
+    # a value that is finite and whole but no index (its cast to int is garbage), and a pair whose product
+    # overflows int64 (the size check would pass a wrapped number)
+    P("episodes-env-1e300", "episodes.csv line 3: column env=1e+300: expected a whole number in 0..2147483647",
+      "{tmp}/r", setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,0,1,2,0,0.1\n"
+                                               "1e300,0,1,2,0,0.1\n")),
+    P("episodes-index-overflow", "episodes.csv line 2: column env=3037000500: expected a whole number", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n"
+                                    "3037000500,3037000500,1,2,0,0.1\n")),
+    P("episodes-fractional-episode", "line 2: column episode=0.5: expected a whole number", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,0.5,1,2,0,0.1\n")),
+    P("episodes-duplicate-column", "episodes.csv: column(s) 'return' named twice in the header", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon,return\n0,0,1,2,0,0.1,3\n"
+                                    "0,1,1,2,0,0.1,3\n")),
+    P("stats-duplicate-column", "episode_stats.csv: column(s) 'return_mean' named twice", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER.replace("\n", ",return_mean\n") + STATS_ROW.replace("\n", ",1\n")
+                    + STATS_ROW.replace("0,", "1,", 1).replace("\n", ",1\n"))),
+    # docs/usage.md: CSVs read back are checked for finiteness; a NaN mean would be a silent gap in the plot
+    P("stats-nan", "episode_stats.csv line 3: column return_mean='nan' is not a finite number", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW + STATS_ROW.replace("0,1,", "1,nan,", 1))),
+    P("stats-inf", "episode_stats.csv line 2: column length_p90='-inf' is not a finite number", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + "0,1,0,1,1,1,5,0,5,5,-inf,0.1\n")),
+    P("episodes-nan-return", "episodes.csv line 2: column return='NaN' is not a finite number", "{tmp}/r",
+      setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,0,NaN,2,0,0.1\n")),
+    P("stats-line-after-blank", "episode_stats.csv line 4: column return_mean='inf'", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW + "\n" + STATS_ROW.replace("0,1,", "1,inf,", 1))),
     P("episodes-huge-index", "the file is malformed", "{tmp}/r",
       setup=csv_run("episodes.csv", "env,episode,return,length,terminated,epsilon\n0,99999999,1,2,0,0.1\n")),
     P("window-zero", "--window 0: must be an integer >= 1", "{tmp}/r", "--window", "0",
@@ -551,6 +584,8 @@ PLOT = [
     P("out-is-dir", "is a directory; give a file name", "{tmp}/r", "--out", "{tmp}/r.png",
       setup=lambda tmp, mp: (write_csv_run(tmp, "r", "episode_stats.csv", STATS_HEADER + STATS_ROW),
                              os.makedirs(f"{tmp}/r.png"))),
+    P("x-not-a-choice", "jaxrobo plot: argument --x: invalid choice: 'time' (choose from", "{tmp}/r", "--x", "time"),
+    P("window-not-int", "jaxrobo plot: argument --window: invalid int value: '2.5'", "{tmp}/r", "--window", "2.5"),
     P("second-run-broken", "missing column(s)", "{tmp}/r", "{tmp}/s",
       setup=lambda tmp, mp: (write_csv_run(tmp, "r", "episode_stats.csv", STATS_HEADER + STATS_ROW),
                              write_csv_run(tmp, "s", "episode_stats.csv", "episode\n0\n"))),
@@ -562,6 +597,8 @@ def S(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a
 
 
 SHOW = [
+    S("episodes-not-int", "jaxrobo show: argument --episodes: invalid int value: 'many'", "{tmp}/r", "--episodes",
+      "many"),
     S("missing-dir", "run directory '{tmp}/nope' does not exist", "{tmp}/nope"),
     S("no-config", "no config.yaml; is it a jaxrobo run directory?", "{tmp}/run", setup=run_dir(config=None)),
     S("config-malformed", "config.yaml: not valid YAML", "{tmp}/run", setup=run_dir(config_text="env_id: [1\n")),
@@ -705,6 +742,8 @@ def A(id: str, fragment: str, call: Any) -> Case:  # noqa: N802 - a table row
 
 
 CHECK = [
+    Case("check-long-not-int", "check", (CP, "--long", "1.5"), "jaxrobo check: argument --long: invalid int value"),
+    Case("check-no-id", "check", (), "jaxrobo check: the following arguments are required: ID"),
     Case("check-seed-int64-overflow", "check", (CP, "--seed", "99999999999999999999"),
          "seed=99999999999999999999: expected an integer >= 0 and <= 2147483647"),
     Case("check-seed-negative", "check", (CP, "--seed", "-1"), "seed=-1: expected an integer >= 0"),
@@ -915,17 +954,16 @@ def test_bad_input_is_refused_naming_the_field(case: Case, tmp_path, monkeypatch
             argv += ["--out", os.path.join(tmp, "out")]
         if case.command == "train":
             argv.append("--no-progress")
-        usage = False
         try:
             code = main(argv)
-        except SystemExit as exc:  # argparse's own usage errors (usage line, then the error)
-            code, usage = exc.code, True
+        except SystemExit as exc:  # argparse's own usage errors (one line too: jaxrobo.core.cliargs.Parser)
+            code = exc.code
         out, err = capsys.readouterr()
         assert code == case.code, (code, out, err)
         assert "Traceback" not in err + out
         assert fragment in err, err
         assert not os.path.exists(os.path.join(tmp, "out"))
-        assert usage or case.code == 0 or len([ln for ln in err.splitlines() if ln.strip()]) == 1, err  # one line
+        assert case.code == 0 or len([ln for ln in err.splitlines() if ln.strip()]) == 1, err  # one line
     assert _files(tmp) == before, sorted(_files(tmp) - before)
 
 
@@ -933,6 +971,39 @@ def test_the_table_is_large_and_its_ids_unique():
     assert len(CASES) >= 110
     assert len({c.id for c in CASES}) == len(CASES)
     assert {c.command for c in CASES} == {"train", "sweep", "plot", "show", "list", "check", "api"}
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["eval", "RUN", "--episodes", "x"], "jaxrobo eval: argument --episodes: invalid int value: 'x'"),
+    (["export", "RUN", "--out", "o", "--table", "first"], "jaxrobo export: argument --table: invalid int value: "
+                                                            "'first'"),
+    (["export", "RUN"], "jaxrobo export: the following arguments are required: --out"),
+    (["ros", "sim", "--bogus"], "jaxrobo ros sim: the following arguments are required: ID"),
+    (["ros", "sim", "CartPoleStayUp-v0", "--bogus"], "jaxrobo ros sim: unrecognized arguments: --bogus"),
+    (["nosuch"], "jaxrobo: argument command: invalid choice: 'nosuch' (choose from"),
+])
+def test_a_usage_error_of_any_subcommand_is_one_line_exit_2(argv, line, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    out, err = capsys.readouterr()
+    assert exc.value.code == 2 and out == "" and len(err.splitlines()) == 1 and err.startswith(line), err
+
+
+def test_a_sweep_parser_of_its_own_is_one_line_too(capsys):
+    from jaxrobo.training.sweep.cli import main as sweep_main
+
+    with pytest.raises(SystemExit) as exc:
+        sweep_main(["--seeds", "1e3"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err == "jaxrobo sweep: argument --seeds: invalid int value: '1e3'\n", err
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["train", "--help"], ["ros", "sim", "--help"]])
+def test_help_still_prints_the_usage(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    out, err = capsys.readouterr()
+    assert exc.value.code == 0 and out.startswith(f"usage: jaxrobo {' '.join(argv[:-1])}".rstrip()) and err == ""
 
 
 def test_help_never_touches_an_unusable_cache(tmp_path, monkeypatch, capsys):

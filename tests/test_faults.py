@@ -69,6 +69,36 @@ def test_a_second_writer_is_refused_with_the_first_ones_pid(tmp_path, capsys):
     assert not os.path.exists(out)  # nothing written by the refused writers
 
 
+@pytest.mark.parametrize("state", ["new", "overwrite"])
+def test_resume_of_a_run_another_process_writes_names_its_pid(state, tmp_path, capsys):
+    """``--resume DIR`` while another process writes DIR, before its first checkpoint (a new run: no checkpoint;
+    an --overwrite run: the complete old run, the new state not yet resumable): refused naming that process's pid,
+    as ``--out DIR --overwrite`` is, not 'nothing to resume'; once it is gone, the old answer."""
+    out = str(tmp_path / "lk")
+    os.makedirs(out)
+    with open(os.path.join(out, "config.yaml"), "w") as f:
+        f.write(f"env_id: {CP}\n")
+    rundir.write_status(out, rundir.RUNNING if state == "new" else rundir.COMPLETE)
+    if state == "overwrite":
+        with open(os.path.join(out, "summary.json"), "w") as f:
+            f.write("{}")
+    first = _holder(out)
+    if state == "overwrite":  # the new run's state, before its first checkpoint (made once the lock is held)
+        os.makedirs(str(tmp_path / ".lk.abcd1234.partial"))
+    try:
+        for argv, flag in ((["train", "--resume", out], "--resume"), (["train", *TINY, "--out", out, "--overwrite"],
+                                                                      "--out")):
+            assert main(argv) == 2
+            err = capsys.readouterr().err
+            assert err.startswith(f"jaxrobo train: {flag} {out}: another jaxrobo process (pid {first.pid}) is writing "
+                                  "this run directory") and len(err.splitlines()) == 1, err
+    finally:
+        first.kill()
+        first.wait()
+    assert main(["train", "--resume", out]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+
+
 def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
     out = str(tmp_path / "run")
     first = _holder(out)

@@ -173,6 +173,8 @@ def test_a_stopped_overwrite_keeps_the_old_run_whole_and_resume_replaces_it(done
     assert main(["train", "--resume", out, "--no-progress"]) == 0
     assert rundir.is_complete(out) and rundir.read_status(out)["resumed_after_chunk"] == 1
     assert _user_files_kept(out) and _hidden(tmp_path) == []
+    # the path the results were published at, not the hidden sibling the resumed run went on in
+    assert capsys.readouterr().out.rstrip().splitlines()[-1] == f"results in {os.path.abspath(out)}"
     assert not filecmp.cmp(os.path.join(out, "status.json"), os.path.join(done, "status.json"), shallow=False)
 
 
@@ -560,3 +562,45 @@ def test_ctrl_c_in_a_command_without_its_own_handler_is_one_line_exit_130(monkey
     monkeypatch.setattr(export, "export_run", interrupted)
     assert main(["export", str(tmp_path), "--out", str(tmp_path / "policy")]) == 130
     assert capsys.readouterr().err.strip() == "jaxrobo export: interrupted"
+
+
+def test_eval_keeps_an_earlier_evaluation_unless_overwrite(done, capsys, tmp_path):
+    """``jaxrobo eval --out DIR`` over a DIR with robustness.csv or robustness.png: refused before anything is read
+    or flown (the user's file kept byte for byte); ``--overwrite`` replaces them."""
+    out = tmp_path / "ev"
+    out.mkdir()
+    (out / "robustness.csv").write_text("mine")
+    argv = ["eval", done, "--shift", "cart_mass=0.9", "--episodes", "2", "--tables", "1", "--out", str(out)]
+    _refused(argv, capsys, f"--out {out}: holds robustness.csv already; give --overwrite to replace it")
+    assert (out / "robustness.csv").read_text() == "mine" and os.listdir(out) == ["robustness.csv"]
+    (out / "robustness.png").write_text("my figure")
+    _refused(argv, capsys, "holds robustness.csv and robustness.png already; give --overwrite to replace them")
+    assert main(argv + ["--overwrite"]) == 0
+    assert (out / "robustness.csv").read_text().startswith("shift,value,metric")
+    assert (out / "robustness.png").read_bytes().startswith(b"\x89PNG")
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["eval", "{run}", "--shift", "cart_mass=1", "--out", "{tmp}/afile/sub"], "--out {tmp}/afile/sub: {tmp}/afile"),
+    (["eval", "{run}", "--shift", "cart_mass=1", "--out", "{tmp}/afile/a/b"], "--out {tmp}/afile/a/b: {tmp}/afile"),
+    (["show", "{run}", "--video", "{tmp}/afile/v.gif"], "--video {tmp}/afile/v.gif: {tmp}/afile"),
+    (["export", "{run}", "--out", "{tmp}/afile/x"], "--out {tmp}/afile/x: {tmp}/afile"),
+    (["eval", "{run}", "--shift", "cart_mass=1", "--out", "{tmp}/dangling"], "--out {tmp}/dangling: {tmp}/dangling"),
+    (["export", "{run}", "--out", "{tmp}/dangling/x"], "--out {tmp}/dangling/x: {tmp}/dangling is not a directory"),
+])
+def test_an_output_under_a_file_is_refused_before_any_work(done, capsys, tmp_path, monkeypatch, argv, fragment):
+    """eval, show --video and export: an output path under a regular file (or a dangling link) is refused naming
+    the flag and the path, exit 2, before anything is flown or exported (which failed at the first write)."""
+    from jaxrobo import evaluate, export, show
+
+    def forbidden(*_a, **_kw):
+        raise AssertionError("the output path was not checked before the work")
+
+    for module, name in ((evaluate, "evaluate"), (show, "video"), (export, "_check_run_dir")):
+        monkeypatch.setattr(module, name, forbidden)
+    (tmp_path / "afile").write_text("mine")
+    os.symlink(tmp_path / "nowhere", tmp_path / "dangling")
+    sub = lambda a: a.replace("{run}", done).replace("{tmp}", str(tmp_path))  # noqa: E731
+    line = _refused([sub(a) for a in argv], capsys, sub(fragment))
+    assert "is a file, not a directory" in line or "is not a directory" in line
+    assert sorted(os.listdir(tmp_path)) == ["afile", "dangling"] and (tmp_path / "afile").read_text() == "mine"

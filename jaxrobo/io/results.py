@@ -452,19 +452,32 @@ def load_config(run_dir: str) -> dict[str, Any]:
 def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
     """A numeric CSV with a header row as ``{column: float array}``.
 
-    ValueError naming the file, and the column or line, when a ``required`` column is missing, a row is short
-    (a truncated file) or a value is not a number."""
+    ValueError naming the file, and the column or line, when a ``required`` column is missing, a column is named
+    twice, a row is short (a truncated file) or a value is not a finite number (jaxrobo writes none: a NaN or inf
+    read back would be drawn as a gap, or sized into an array, without a word)."""
+    return _read_columns(path, required)[0]
+
+
+def _read_columns(path: str, required: tuple[str, ...] = ()) -> tuple[dict[str, np.ndarray], list[int]]:
+    """:func:`read_columns`' columns and the line of the file each row ends on (a blank line is no row, so the
+    row's index alone would name the wrong line)."""
     from jaxrobo.core.config import check_regular
 
     check_regular(path)  # a FIFO would hang the read, a device never end it
+    rows, lines = [], []
     try:
         with open(path, newline="") as f:
             reader = csv.DictReader(f)
             header = reader.fieldnames or []
+            twice = sorted({name for name in header if header.count(name) > 1})
+            if twice:  # a dict row keeps one of the two values: columns of unequal lengths, or the wrong one
+                raise ValueError(f"{path}: column(s) {', '.join(map(repr, twice))} named twice in the header")
             missing = [c for c in required if c not in header]
             if missing:
                 raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; expected {', '.join(required)}")
-            rows = list(reader)
+            for row in reader:
+                rows.append(row)
+                lines.append(reader.line_num)
     except UnicodeDecodeError as err:
         raise ValueError(f"{path}: not a text CSV file ({err})") from None
     except csv.Error as err:
@@ -472,16 +485,19 @@ def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndar
     if not rows:
         raise ValueError(f"{path} has no rows")
     out: dict[str, list[float]] = {name: [] for name in header}
-    for line, row in enumerate(rows, start=2):
+    for line, row in zip(lines, rows):
         if None in row or any(row.get(name) is None for name in header):
             raise ValueError(f"{path} line {line}: expected {len(header)} values ({', '.join(header)}); "
                              "the file is truncated or malformed")
         for name in header:
             try:
-                out[name].append(float(row[name]))
+                value = float(row[name])
             except ValueError:
                 raise ValueError(f"{path} line {line}: column {name}={row[name]!r} is not a number") from None
-    return {name: np.asarray(values) for name, values in out.items()}
+            if not np.isfinite(value):
+                raise ValueError(f"{path} line {line}: column {name}={row[name]!r} is not a finite number")
+            out[name].append(value)
+    return {name: np.asarray(values) for name, values in out.items()}, lines
 
 
 #: The columns of ``episode_stats.csv`` that ``jaxrobo plot`` draws.
@@ -531,6 +547,10 @@ def read_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:
     return out
 
 
+#: Largest ``env`` or ``episode`` number read from an ``episodes.csv`` (int32's largest, as a run's counts are).
+MAX_CSV_INDEX = 2**31 - 1
+
+
 def load_stats(run_dir: str) -> dict[str, np.ndarray]:
     """Per-episode statistics of a run (from ``episode_stats.csv``, else computed from ``episodes.csv``)."""
     path = os.path.join(run_dir, "episode_stats.csv")
@@ -539,14 +559,16 @@ def load_stats(run_dir: str) -> dict[str, np.ndarray]:
     path = os.path.join(run_dir, "episodes.csv")
     if not os.path.exists(path):
         raise FileNotFoundError(f"{run_dir}: no episode_stats.csv or episodes.csv; is it a jaxrobo run directory?")
-    data = read_columns(path, ("env", "episode", "return", "length", "epsilon"))
+    data, lines = _read_columns(path, ("env", "episode", "return", "length", "epsilon"))
     for name in ("env", "episode"):
         col = data[name]
-        if not (np.all(np.isfinite(col)) and np.all(col >= 0) and np.all(col == np.round(col))):
-            raise ValueError(f"{path}: column {name} must hold integers >= 0")
-    env, ep = data["env"].astype(int), data["episode"].astype(int)
-    n_env, n_ep = env.max() + 1, ep.max() + 1
-    if n_env * n_ep > 10 * env.size + 1_000_000:
+        bad = np.flatnonzero((col < 0) | (col > MAX_CSV_INDEX) | (col != np.round(col)))
+        if bad.size:  # before any cast: 1e300 as an int is garbage, and garbage indexes or sizes an array
+            raise ValueError(f"{path} line {lines[bad[0]]}: column {name}={col[bad[0]]:.15g}: expected a whole "
+                             f"number in 0..{MAX_CSV_INDEX}")
+    env, ep = data["env"].astype(np.int64), data["episode"].astype(np.int64)
+    n_env, n_ep = int(env.max()) + 1, int(ep.max()) + 1
+    if n_env * n_ep > 10 * env.size + 1_000_000:  # Python ints: no overflow
         raise ValueError(f"{path}: env/episode numbers up to {n_env - 1}/{n_ep - 1} for {env.size} rows; "
                          "the file is malformed")
     r = np.full((n_env, n_ep), np.nan)

@@ -185,15 +185,23 @@ def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag:
         raise ConfigError(f"{where}: is an existing file, not a directory; give a new or empty directory "
                           "(--overwrite replaces run directories only)")
     if resume:
-        if not os.path.isdir(path):
-            raise ConfigError(f"{where}: no such run directory")
-        if not is_resumable(path):
-            path = pending(path) or path
-        check_owned_entries(path, flag)
-        if is_complete(path):
-            raise ConfigError(f"{where}: the run is complete, nothing to resume")
-        if not is_resumable(path):
-            raise ConfigError(f"{where}: no {CHECKPOINT} in it ({_describe(path)}); nothing to resume")
+        try:
+            if not os.path.isdir(path):
+                raise ConfigError(f"{where}: no such run directory")
+            if not is_resumable(path):
+                path = pending(path) or path
+            check_owned_entries(path, flag)
+            if is_complete(path):
+                raise ConfigError(f"{where}: the run is complete, nothing to resume")
+            if not is_resumable(path):
+                raise ConfigError(f"{where}: no {CHECKPOINT} in it ({_describe(path)}); nothing to resume")
+        except ConfigError:
+            # A run another process is writing has no checkpoint yet (or its --overwrite state no checkpoint beside
+            # the complete old run): that process is the reason, named as a second writer's refusal names it.
+            holder = lock_holder(path)
+            if holder is not None:
+                raise RunLocked(_locked_message(where, holder)) from None
+            raise
     elif os.path.isdir(path) and os.listdir(path):
         what = _describe(path)
         if not overwrite:
@@ -273,6 +281,28 @@ def _existing(path: str) -> str:
     return path or os.sep
 
 
+def check_writable(path: str, flag: str, *, directory: bool) -> None:
+    """Refuse, before any work, an output of a command that writes a plain directory (``directory``: ``eval
+    --out``, ``export --out``) or one file (``show --video``) where it cannot be written: ConfigError naming
+    ``flag`` and ``path`` when ``path`` is a file where a directory is wanted (or a directory where a file is), or
+    the nearest existing entry on its way (the directory itself where it exists) is not a directory (a file, a
+    dangling link) or not writable. Left alone, the command flew or exported first and failed at its first write."""
+    where = f"{flag} {path}"
+    if directory and os.path.exists(path) and not os.path.isdir(path):
+        raise ConfigError(f"{where}: is an existing file, not a directory; give a new or existing directory")
+    if not directory and os.path.isdir(path):
+        raise ConfigError(f"{where}: is a directory; give a file name")
+    ancestor = os.path.abspath(path) if directory else os.path.dirname(os.path.abspath(path))
+    while not os.path.lexists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    if os.path.isfile(ancestor):
+        raise ConfigError(f"{where}: {ancestor} is a file, not a directory")
+    if not os.path.isdir(ancestor):  # a dangling symlink, a FIFO, a device
+        raise ConfigError(f"{where}: {ancestor} is not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(f"{where}: cannot write in {ancestor} (permission denied)")
+
+
 # ---- one writer per run directory ------------------------------------------------------------------------------
 _PARTIAL = re.compile(r"^\.(?P<name>.+)\.[^.]+\.partial$")
 
@@ -327,8 +357,7 @@ def locked(path: str, flag: str = "--out") -> Iterator[None]:
                 holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
             finally:
                 os.close(fd)
-            raise RunLocked(f"{flag} {path}: another jaxrobo process (pid {holder}) is writing this run "
-                            "directory; wait for it to end or choose another path") from None
+            raise RunLocked(_locked_message(f"{flag} {path}", holder)) from None
         # The file may have been unlinked by its last holder between our open and flock: then lock it afresh.
         try:
             same = os.fstat(fd).st_ino == os.stat(lock).st_ino
@@ -348,6 +377,33 @@ def locked(path: str, flag: str = "--out") -> Iterator[None]:
         except OSError:
             pass
         os.close(fd)
+
+
+def _locked_message(where: str, holder: str) -> str:
+    return (f"{where}: another jaxrobo process (pid {holder}) is writing this run directory; wait for it to end or "
+            "choose another path")
+
+
+def lock_holder(path: str) -> str | None:
+    """The pid written in the lock file of the run at ``path`` while another process holds it (:func:`locked`),
+    else None. Probed with a shared lock dropped at once (called on a refusal's path only: a writer starting in
+    that instant would find the run held); this process's own lock (another descriptor of the same file) is not
+    taken for another's."""
+    try:
+        fd = os.open(lock_path(path), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:
+        return None  # no lock file, or one locked() refuses anyway (a symlink)
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            return None if holder == str(os.getpid()) else holder
+        return None
+    finally:
+        os.close(fd)  # drops the probe's shared lock
 
 
 @contextlib.contextmanager

@@ -351,7 +351,9 @@ def _chunk_line(p: Any) -> None:
 
 
 def main(argv: Sequence[str] | None = None, *, compiler_options: Mapping[str, Any] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="jaxrobo sweep", description=DESCRIPTION)
+    from jaxrobo.core.cliargs import Parser
+
+    parser = Parser(prog="jaxrobo sweep", description=DESCRIPTION)  # a usage error is one line
     configure_parser(parser)
     return run(parser.parse_args(argv), compiler_options=compiler_options)
 
