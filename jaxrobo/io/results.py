@@ -453,8 +453,9 @@ def read_columns(path: str, required: tuple[str, ...] = ()) -> dict[str, np.ndar
     """A numeric CSV with a header row as ``{column: float array}``.
 
     ValueError naming the file, and the column or line, when a ``required`` column is missing, a column is named
-    twice, a row is short (a truncated file) or a value is not a finite number (jaxrobo writes none: a NaN or inf
-    read back would be drawn as a gap, or sized into an array, without a word)."""
+    twice, a row is short (a truncated file) or a value is not a number. NaN and inf are numbers here: an episode
+    of diverged physics records a NaN return, which the plot draws as a gap (:func:`jaxrobo.pictures.plots.smooth`);
+    the columns used as indices are checked where they are used (:func:`load_stats`)."""
     return _read_columns(path, required)[0]
 
 
@@ -491,12 +492,9 @@ def _read_columns(path: str, required: tuple[str, ...] = ()) -> tuple[dict[str, 
                              "the file is truncated or malformed")
         for name in header:
             try:
-                value = float(row[name])
+                out[name].append(float(row[name]))
             except ValueError:
                 raise ValueError(f"{path} line {line}: column {name}={row[name]!r} is not a number") from None
-            if not np.isfinite(value):
-                raise ValueError(f"{path} line {line}: column {name}={row[name]!r} is not a finite number")
-            out[name].append(value)
     return {name: np.asarray(values) for name, values in out.items()}, lines
 
 

@@ -73,9 +73,9 @@ def env_steps_axis(run_dir: str, stats: dict[str, np.ndarray]) -> np.ndarray:
 
 def smooth(x: np.ndarray, window: int) -> np.ndarray:
     """Trailing moving average (window 1 = unchanged), the same length as ``x``, over the finite values only:
-    a NaN (an episode that no row of an ``episodes.csv`` holds; a CSV's own NaN or inf is refused when read) is a
-    gap in the curve, never the end of it (a running sum would carry it to every later point); a window with no
-    finite value is NaN (a gap)."""
+    a NaN or inf in a CSV (an episode of diverged physics, an episode no row of an ``episodes.csv`` holds) is a gap
+    in the curve, never the end of it (a running sum would carry it to every later point); a window with no finite
+    value is NaN (a gap)."""
     x = np.asarray(x, np.float64)
     ok = np.isfinite(x)
     if window <= 1 or x.size == 0:
