@@ -5,7 +5,6 @@ jaxrobo env)."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from typing import Any, Callable, Mapping
 
