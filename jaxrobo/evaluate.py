@@ -192,9 +192,7 @@ def check_out(out: str, overwrite: bool) -> None:
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io import rundir
 
-    if os.path.isfile(out):
-        raise ConfigError(f"--out {out!r} is a file; give a directory")
-    rundir.check_writable(out, "--out", directory=True)
+    rundir.check_writable(out, "--out", directory=True)  # a file there or on the way
     there = [name for name in OUTPUTS if os.path.lexists(os.path.join(out, name))]
     for name in there:
         if os.path.isdir(os.path.join(out, name)) and not os.path.islink(os.path.join(out, name)):

@@ -379,9 +379,7 @@ def export_run(run_dir: str, out: str, table: int | None = None, overwrite: bool
 
     from jaxrobo.io import rundir
 
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise ConfigError(f"--out {out}: exists and is not a directory")
-    rundir.check_writable(out, "--out", directory=True)  # a file on the way is refused before anything is read
+    rundir.check_writable(out, "--out", directory=True)  # a file there or on the way: refused before any read
     if rundir.looks_like_run(out) or (os.path.isdir(out) and os.path.isdir(run_dir)
                                       and os.path.samefile(out, run_dir)):
         raise ConfigError(f"--out {out}: is a jaxrobo run directory; its policy files are the run's own: export "

@@ -122,11 +122,12 @@ def looks_like_run(path: str) -> bool:
     return os.path.isdir(path) and _looks_like_run(path)
 
 
-def owned(name: str) -> bool:
-    """Whether the entry ``name`` of a run directory is jaxrobo's (:data:`OWNED`, or a hidden temporary of one)."""
-    if any(fnmatch.fnmatchcase(name, pattern) for pattern in OWNED):
+def owned(name: str, patterns: tuple[str, ...] = OWNED) -> bool:
+    """Whether the entry ``name`` of a run directory is jaxrobo's (one of ``patterns``, :data:`OWNED` by default,
+    or a hidden temporary of one)."""
+    if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns):
         return True
-    return name.startswith(".") and any(fnmatch.fnmatchcase(name, f".{pattern}.*") for pattern in OWNED)
+    return name.startswith(".") and any(fnmatch.fnmatchcase(name, f".{pattern}.*") for pattern in patterns)
 
 
 def user_entries(path: str) -> list[str]:
@@ -619,16 +620,15 @@ def remove_run(path: str) -> bool:
 
 
 def _remove_owned_inside(path: str, patterns: tuple[str, ...]) -> None:
-    """The files of the directory ``path`` matching ``patterns`` (or hidden temporaries of such files, as
-    :func:`owned`), then the directory if that empties it."""
+    """The files of the directory ``path`` that are jaxrobo's (:func:`owned` by ``patterns``), then the directory
+    if that empties it."""
     try:
         names = os.listdir(path)
     except OSError:
         return
     for name in names:
         full = os.path.join(path, name)
-        ours = any(fnmatch.fnmatchcase(name, p) or fnmatch.fnmatchcase(name, f".{p}.*") for p in patterns)
-        if ours and (os.path.islink(full) or not os.path.isdir(full)):
+        if owned(name, patterns) and (os.path.islink(full) or not os.path.isdir(full)):
             with contextlib.suppress(OSError):
                 os.unlink(full)
     with contextlib.suppress(OSError):
