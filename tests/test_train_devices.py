@@ -93,3 +93,48 @@ def test_several_devices_give_the_one_device_tables(tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert "devices=3" in summary["execution_plan"] and summary["env_steps"] == 300
     assert not list(tmp_path.glob(".run.*"))  # no staging left beside it
+
+
+RESUME_CHILD = r"""
+import signal, sys
+sys.path.insert(0, sys.argv[1])
+from jaxrobo.cli import main
+from jaxrobo.training import checkpoint
+
+out = sys.argv[2]
+tiny = ["--env", "CartPoleStayUp-v0", "--n-envs", "8", "--nepisodes", "6", "--set", "nsteps=20",
+        "--set", "chunk_steps=10", "--set", "backend=analytic", "--set", "eval_episodes=1", "--set", "devices=4",
+        "--set", "stop_at_target=false", "--no-progress"]
+real = checkpoint.save_checkpoint
+
+
+def save_then_signal(path, runner, chunks_done, fingerprint, **kwargs):
+    saved = real(path, runner, chunks_done, fingerprint, **kwargs)
+    if chunks_done == 1:
+        signal.raise_signal(signal.SIGTERM)
+    return saved
+
+
+checkpoint.save_checkpoint = save_then_signal
+assert main(["train", *tiny, "--checkpoint-every", "1", "--out", out + "/stopped"]) == 143
+checkpoint.save_checkpoint = real
+assert main(["train", "--resume", out + "/stopped", "--no-progress"]) == 0
+assert main(["train", *tiny, "--out", out + "/whole"]) == 0
+"""
+
+
+def test_a_run_split_over_devices_resumes_to_the_uninterrupted_runs_files(tmp_path):
+    """A run over 4 devices stopped after its first checkpoint resumes (its carry placed over the devices as a fresh
+    one is: the programs compiled from it take every later carry) to the uninterrupted run's files, bit for bit."""
+    import numpy as np
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": "off",
+           "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    proc = subprocess.run([sys.executable, "-c", RESUME_CHILD, ROOT, str(tmp_path)], env=env, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in ("qtables.npz", "records.npz"):
+        with np.load(tmp_path / "stopped" / name) as a, np.load(tmp_path / "whole" / name) as b:
+            assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files), name
+    for name in ("episodes.csv", "episode_stats.csv", "eval.csv"):
+        assert (tmp_path / "stopped" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name

@@ -394,7 +394,11 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     first: list[Callable] = []  # the first carry's compiled program, where a thread compiles it
     compiling_init = None
     if initial is not None:
-        runner = initial
+        # Placed as a fresh carry is (its envs split over the plan's devices): the programs compiled from the carry
+        # below (the chunk, the progress read) then take the carry every chunk returns.
+        mesh = env_mesh(trainer)
+        runner = initial if mesh is None else jax.device_put(
+            initial, _carry_shardings(initial, mesh, trainer.config.n_envs))
     elif beside:  # the first carry's program compiles in a thread; the others compile from the carry's shapes
         from jaxrobo.training.checkpoint import carry_template
 
