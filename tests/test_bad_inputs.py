@@ -766,6 +766,25 @@ def _train(config: dict | None = None, agent: dict | None = None, env: dict | No
     return call
 
 
+def _deep_train(**config: Any) -> dict[str, Any]:
+    """``jaxrobo.deep.training.train(spec)`` of the tiny PPO preset's spec with fields of its config replaced, as a
+    Python caller edits one; Brax's trainer stubbed to fail (the fixture stubs only the package's name)."""
+    def setup(_tmp: str, mp: Any) -> None:
+        from jaxrobo.deep import training
+
+        def reached(*_a: Any, **_kw: Any) -> None:
+            raise AssertionError("deep.train's epoch plan was reached: the spec was not refused")
+        mp.setattr(training, "epoch_plan", reached)
+
+    def call(_tmp: str) -> Any:
+        from jaxrobo import deep
+        from jaxrobo.deep import training
+
+        spec = deep.resolve("CartPoleContinuous-v0", "ppo", "tiny")
+        return training.train(dataclasses.replace(spec, config=dataclasses.replace(spec.config, **config)))
+    return {"call": call, "setup": setup}
+
+
 def _distributed(**values: str) -> dict[str, Any]:
     def call(_tmp: str) -> Any:
         from jaxrobo.speed import sharding
@@ -824,6 +843,11 @@ API = [
     A("train-callbacks-not-iterable", "callbacks: 5 is neither", _train(callbacks=5)),
     A("train-tabular-on-box-id", "CartPoleContinuous-v0 has continuous (Box) actions",
       _train(env_id="CartPoleContinuous-v0")),
+    A("deep-train-num-envs-zero", "deep.train(spec): num_envs=0: expected an integer >= 1", _deep_train(num_envs=0)),
+    A("deep-train-learning-rate-nan", "deep.train(spec): learning_rate=nan: must be finite",
+      _deep_train(learning_rate=float("nan"))),
+    A("deep-train-batch-not-multiple", "deep.train(spec): batch_size x num_minibatches = 3 x 4 = 12 must be a "
+      "multiple of num_envs=8", _deep_train(batch_size=3)),
     A("resolve-float32-zero", "alpha=1e-320: is 0 in float32", raises(lambda: _resolve(CP, overrides={"alpha": 1e-320}))),
     A("make-float32-inf", "is inf in float32", raises(lambda: _make(CP, pos_step=1e39))),
     A("yaml-alias", "YAML aliases (*name) are not accepted", _yaml_file("a: &x 1\nb: *x\n")),

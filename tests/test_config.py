@@ -103,3 +103,13 @@ def test_train_takes_what_resolve_gives_and_float32_copies_of_it():
     check_train_arguments(spec.env, spec.config, spec.agent_params, rows, population=True)
     with pytest.raises(ConfigError, match=r"train\(env_params\): speed_value=9.0: expected a number > 0.0"):
         check_train_arguments(spec.env, spec.config, spec.agent_params, rows.replace(speed_value=jnp.array([1., 9.])))
+
+
+def test_deep_train_takes_every_resolved_preset():
+    """deep.train's check of a Python caller's spec (deep.check_spec) refuses no spec that resolve gives."""
+    from jaxrobo import deep
+
+    for env_id in ("CartPoleContinuous-v0", "QuadcopterGotoTwist-v0"):
+        for agent in deep.AGENTS:
+            for preset in deep.presets(agent, env_id):
+                deep.check_spec(deep.resolve(env_id, agent, preset))

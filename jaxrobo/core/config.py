@@ -384,7 +384,8 @@ def check_fields(obj: Any, where: str) -> None:
         value = getattr(obj, name)
         if isinstance(value, (bool, int, float, str, list, tuple)) or value is None:
             coerce(name, value, rule, where)
-            if rule.kind is int and not isinstance(value, int):  # coerce takes 2.0 for 2 in a file; a shape needs 2
+            # coerce takes 2.0 for 2 (a file's number); a shape needs the int
+            if rule.kind is int and value is not None and not isinstance(value, int):
                 raise ConfigError(f"{loc}{name}={shown(value)}: expected {rule.describe()}")
             continue
         try:
