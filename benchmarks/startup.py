@@ -71,7 +71,7 @@ def child(args: argparse.Namespace) -> None:
         raise _FirstChunk
 
     try:
-        train(spec.env, spec.config, spec.agent_params, progress=progress)
+        train(spec.env, spec.config, spec.agent_params, callbacks=progress)  # a (done, total, last) function
     except _FirstChunk:
         pass
     print(json.dumps({

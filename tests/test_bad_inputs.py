@@ -743,6 +743,48 @@ def _env_call(fn: Callable[[Any], Any]) -> Callable[[str], Any]:
     return call
 
 
+#: The functions the fixture stubs, as they were (:func:`_train` calls the real train(), whose checks must refuse
+#: before the stubbed Trainer.init).
+_REAL: dict[str, Callable[..., Any]] = {}
+
+
+def _train(config: dict | None = None, agent: dict | None = None, env: dict | None = None, env_id: str = CP,
+           raw: dict | None = None, **kw: Any) -> Callable[[str], Any]:
+    """``train(env, config, agent_params, env_params, **kw)`` as a Python caller calls it: a small resolved cart-pole
+    run with the fields of ``config`` / ``agent`` / ``env`` replaced, the env ``env_id``'s, and the arguments of
+    ``raw`` given as they are."""
+    def call(_tmp: str) -> Any:
+        import jaxrobo
+        from jaxrobo.training.run import resolve
+
+        spec = resolve(CP, overrides={"env.backend": "analytic", "n_envs": 4, "nepisodes": 2})
+        made = spec.env if env_id == CP else jaxrobo.make(env_id)
+        args = {"config": spec.config.replace(**(config or {})),
+                "agent_params": spec.agent_params.replace(**(agent or {})),
+                "env_params": made.default_params.replace(**env) if env else None, **(raw or {})}
+        return _REAL["train"](made, **args, **kw)
+    return call
+
+
+def _deep_train(**config: Any) -> dict[str, Any]:
+    """``jaxrobo.deep.training.train(spec)`` of the tiny PPO preset's spec with fields of its config replaced, as a
+    Python caller edits one; Brax's trainer stubbed to fail (the fixture stubs only the package's name)."""
+    def setup(_tmp: str, mp: Any) -> None:
+        from jaxrobo.deep import training
+
+        def reached(*_a: Any, **_kw: Any) -> None:
+            raise AssertionError("deep.train's epoch plan was reached: the spec was not refused")
+        mp.setattr(training, "epoch_plan", reached)
+
+    def call(_tmp: str) -> Any:
+        from jaxrobo import deep
+        from jaxrobo.deep import training
+
+        spec = deep.resolve("CartPoleContinuous-v0", "ppo", "tiny")
+        return training.train(dataclasses.replace(spec, config=dataclasses.replace(spec.config, **config)))
+    return {"call": call, "setup": setup}
+
+
 def _distributed(**values: str) -> dict[str, Any]:
     def call(_tmp: str) -> Any:
         from jaxrobo.speed import sharding
@@ -776,6 +818,36 @@ API = [
       _distributed(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="nope.invalid:1", JAXROBO_PROCESS_ID="0")),
     A("coordinator-bad-port", "JAXROBO_COORDINATOR='localhost:99999': expected host:port (port 1..65535)",
       _distributed(JAXROBO_NUM_PROCESSES="2", JAXROBO_COORDINATOR="localhost:99999", JAXROBO_PROCESS_ID="0")),
+    A("train-n-envs-zero", "train(config): n_envs=0: expected an integer >= 1", _train({"n_envs": 0})),
+    A("train-n-envs-not-int", "train(config): n_envs=2.5: expected an integer", _train({"n_envs": 2.5})),
+    A("train-nepisodes-zero", "train(config): nepisodes=0: expected an integer >= 1", _train({"nepisodes": 0})),
+    A("train-agent-unknown", "train(config): agent='nope': allowed values are", _train({"agent": "nope"})),
+    A("train-snapshots-without-shared-table", "snapshots=2 needs shared_table=true", _train({"snapshots": 2})),
+    A("train-bins-wrong-length", "train(config): bins=[2, 2]: expected 4 bin counts", _train({"bins": (2, 2)})),
+    A("train-alpha-nan", "train(agent_params): alpha=nan: must be finite", _train(agent={"alpha": float("nan")})),
+    A("train-alpha-range", "train(agent_params): alpha=7.0: expected a number > 0.0 and <= 1.0",
+      _train(agent={"alpha": 7.0})),
+    A("train-alpha-array-nan", "train(agent_params): alpha=nan: expected a number > 0.0",
+      _train(agent={"alpha": np.float32("nan")})),
+    A("train-env-param-range", "train(env_params): max_episode_steps=0: expected an integer >= 1",
+      _train(env={"max_episode_steps": 0})),
+    A("train-env-params-dict", "train(env_params=...): expected envs.cartpole.stay_up.Params, got dict",
+      _train(raw={"env_params": {"max_episode_steps": 5}})),
+    A("train-config-dict", "train(config=...): expected a jaxrobo.training.trainer.TrainConfig",
+      _train(raw={"config": {"n_envs": 4}})),
+    A("train-start-chunk-negative", "train(start_chunk=-1): expected an integer >= 0", _train(start_chunk=-1)),
+    A("train-checkpoint-every-negative", "train(checkpoint_every=-5): expected an integer >= 0",
+      _train(checkpoint_every=-5)),
+    A("train-checkpoint-seconds-nan", "train(checkpoint_seconds=nan): expected a number of seconds >= 0",
+      _train(checkpoint_seconds=float("nan"))),
+    A("train-callbacks-not-iterable", "callbacks: 5 is neither", _train(callbacks=5)),
+    A("train-tabular-on-box-id", "CartPoleContinuous-v0 has continuous (Box) actions",
+      _train(env_id="CartPoleContinuous-v0")),
+    A("deep-train-num-envs-zero", "deep.train(spec): num_envs=0: expected an integer >= 1", _deep_train(num_envs=0)),
+    A("deep-train-learning-rate-nan", "deep.train(spec): learning_rate=nan: must be finite",
+      _deep_train(learning_rate=float("nan"))),
+    A("deep-train-batch-not-multiple", "deep.train(spec): batch_size x num_minibatches = 3 x 4 = 12 must be a "
+      "multiple of num_envs=8", _deep_train(batch_size=3)),
     A("resolve-float32-zero", "alpha=1e-320: is 0 in float32", raises(lambda: _resolve(CP, overrides={"alpha": 1e-320}))),
     A("make-float32-inf", "is inf in float32", raises(lambda: _make(CP, pos_step=1e39))),
     A("yaml-alias", "YAML aliases (*name) are not accepted", _yaml_file("a: &x 1\nb: *x\n")),
@@ -899,6 +971,7 @@ def nothing_runs(monkeypatch):
 
     monkeypatch.setattr(deep, "train", forbidden("deep.train (Brax's trainer)"))
 
+    _REAL["train"] = train.train
     monkeypatch.setattr(train, "train", forbidden("train()"))
     monkeypatch.setattr(trainer_module.Trainer, "init", forbidden("Trainer.init"))
     monkeypatch.setattr(sweep_running, "GroupRunner", forbidden("the sweep's compiled group"))

@@ -224,3 +224,16 @@ def test_time_to_trained_times_the_users_command_and_splits_its_wall(tmp_path):
     assert all(v is not None and v >= 0 for v in parts) and sum(parts) <= row["wall_seconds"]
     assert row["learning_figure"] == "eval_best_table_success_rate" and 0 <= row["learning_value"] <= 1
     assert "ArmReach-v0 | preset | warm" in ttt.table(rows)
+
+
+def test_startup_reaches_the_first_chunk_through_trains_callbacks(tmp_path):
+    """benchmarks/startup.py's child stops at the first chunk from a progress function; it once passed it as
+    ``train(progress=...)``, a keyword train() no longer takes (a TypeError before anything ran)."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_backend_optimization_level=0"}
+    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "startup.py"), "--runs", "1", "--n-envs", "2",
+           "--chunk-steps", "10", "--set", "backend=analytic", "--cache-dir", str(tmp_path / "cache"),
+           "--out", str(tmp_path / "startup.json")]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run = json.loads((tmp_path / "startup.json").read_text())["runs"][0]
+    assert run["to_first_chunk_s"] > 0 and run["cache_entries_after"] > 0

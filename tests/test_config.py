@@ -79,3 +79,37 @@ def test_a_saved_run_config_resolves_back_to_the_same_run():
     overrides.update({f"env.{k}": v for k, v in {**saved["env_options"], **saved["env_params"]}.items()})
     again = resolve(saved["env_id"], saved["preset"], overrides)
     assert again.to_dict() == saved
+
+
+def test_train_takes_what_resolve_gives_and_float32_copies_of_it():
+    """train()'s checks of a Python caller's arguments (run.check_train_arguments) refuse no valid run: every
+    resolved preset, its parameters as float32 arrays (a bound such as max_incl=1.6 is 1.60000002 in float32),
+    a range as an array and a sweep's rows of parameters."""
+    import numpy as np
+
+    from jaxrobo.training.run import check_train_arguments
+
+    for env_id in ("CartPoleStayUp-v0", "QuadcopterGoto-v2", "ArmReach-v0"):
+        for preset in agent_presets(env_id):
+            spec = resolve(env_id, preset)
+            check_train_arguments(spec.env, spec.config, spec.agent_params, spec.env.default_params, start_chunk=0,
+                                  checkpoint_every=3, checkpoint_seconds=None)
+    spec = resolve("QuadcopterGoto-v2")
+    ap = spec.agent_params.replace(alpha=jnp.float32(1.0), gamma=np.float32(0.99))
+    ep = spec.env.default_params.replace(max_incl=np.float32(1.6), max_episode_steps=jnp.int32(50),
+                                         rand_mass=jnp.array([0.9, 1.1]))
+    check_train_arguments(spec.env, spec.config, ap, ep, checkpoint_seconds=0.5)
+    rows = spec.env.default_params.replace(speed_value=jnp.array([0.5, 1.0, 5.0]))
+    check_train_arguments(spec.env, spec.config, spec.agent_params, rows, population=True)
+    with pytest.raises(ConfigError, match=r"train\(env_params\): speed_value=9.0: expected a number > 0.0"):
+        check_train_arguments(spec.env, spec.config, spec.agent_params, rows.replace(speed_value=jnp.array([1., 9.])))
+
+
+def test_deep_train_takes_every_resolved_preset():
+    """deep.train's check of a Python caller's spec (deep.check_spec) refuses no spec that resolve gives."""
+    from jaxrobo import deep
+
+    for env_id in ("CartPoleContinuous-v0", "QuadcopterGotoTwist-v0"):
+        for agent in deep.AGENTS:
+            for preset in deep.presets(agent, env_id):
+                deep.check_spec(deep.resolve(env_id, agent, preset))

@@ -105,6 +105,28 @@ def test_a_saved_policy_loads_back_and_acts_the_same(tmp_path, agent):
     np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
 
 
+def test_a_loaded_policy_pickles_and_refuses_an_observation_of_another_size(tmp_path):
+    """A LoadedPolicy goes through pickle (a process pool's argument; Brax's inference function is a closure pickle
+    could not name) and acts the same after; act takes a list, and an observation of the wrong size is a
+    ValueError naming both sizes (it was a broadcast error inside Brax's normaliser)."""
+    import pickle
+
+    from jaxrobo import deep
+    from jaxrobo.deep.policy import _template
+
+    net = {"format": 1, "agent": "ppo", "observation_size": 5, "action_size": 2, "normalize_observations": True,
+           "policy_hidden_layer_sizes": [8], "value_hidden_layer_sizes": [8], "env_id": CPC}
+    deep.save_policy(str(tmp_path), _template(net), net)
+    policy = deep.load_policy(str(tmp_path))
+    obs = np.random.default_rng(0).normal(size=(4, 5)).astype(np.float32)
+    again = pickle.loads(pickle.dumps(policy))
+    np.testing.assert_array_equal(np.asarray(again.act(obs)), np.asarray(policy.act(obs)))
+    np.testing.assert_array_equal(np.asarray(policy.act(obs[0].tolist())), np.asarray(policy.act(obs[0])))
+    for bad in (np.zeros(3, np.float32), np.zeros((2, 7), np.float32), 0.5):
+        with pytest.raises(ValueError, match=r"this policy takes observations of size 5"):
+            policy.act(bad)
+
+
 def test_a_policy_that_does_not_match_its_networks_is_refused(tmp_path):
     from jaxrobo import deep
     from jaxrobo.deep.policy import _template

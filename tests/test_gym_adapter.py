@@ -365,3 +365,24 @@ def test_old_v1_name_is_a_jaxrobo_alias_only():
     with pytest.warns(FutureWarning, match="CartPoleStayUpLeftRight-v0"):
         env = jaxrobo.make("CartPoleStayUp-v1")
     assert env.num_actions == 2 and env.spec.id == "CartPoleStayUpLeftRight-v0"
+
+
+@pytest.mark.parametrize("size", [{"width": -1}, {"width": 0}, {"height": 2.5}, {"width": True},
+                                  {"height": 10**6}, {"width": "320"}])
+def test_a_bad_frame_size_is_refused_when_the_env_is_made(size, monkeypatch):
+    """width/height are checked by gym.make / make_vec, before the env is built (it was a MuJoCo error at the first
+    render() for -1, an empty frame for 0, 2.5 cut to 2, and for 10**6 a framebuffer failure read as a missing GL
+    library); the Renderer checks them too."""
+    from jaxrobo.pictures import render
+
+    def built(*_a, **_kw):
+        raise AssertionError("the env was built: the frame size was not refused first")
+    monkeypatch.setattr(gym_adapter, "_make_env", built)
+    name = next(iter(size))
+    with pytest.raises(ValueError, match=rf"JaxroboEnv: {name}=.*: expected an integer >= 1 and <= 16384"):
+        gym.make("jaxrobo/CartPoleStayUp-v0", render_mode="rgb_array", **size)
+    with pytest.raises(ValueError, match=rf"JaxroboVectorEnv: {name}=.*: expected an integer >= 1"):
+        gym.make_vec("jaxrobo/CartPoleStayUp-v0", num_envs=2, render_mode="rgb_array", **size)
+    with pytest.raises(ValueError, match=rf"^{name}=.*: expected an integer >= 1"):
+        render.Renderer(None, **{"width": 64, "height": 48, **size})
+    assert render.check_frame_size(np.int64(64), 48) == (64, 48)

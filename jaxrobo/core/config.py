@@ -347,6 +347,55 @@ def check_relations(obj: Any, where: str) -> None:
             raise ConfigError(f"{where}: {name}={show(v)} is outside [{lo}, {hi}] = [{show(a)}, {show(b)}]")
 
 
+def _check_array(key: str, value: Any, rule: Rule, loc: str) -> None:
+    """Every element of a concrete array value (a parameter given as a JAX or numpy array, a sweep's rows) against
+    ``rule``, as :func:`coerce` checks one number; bounds compared in the array's own dtype, so a float32 copy of an
+    accepted value (0.1 is 0.100000001 in float32) is accepted too."""
+    a = np.asarray(value)
+    if rule.kind in (str, bool) or (rule.kind is tuple and not rule.pair):
+        return
+    if a.dtype.kind not in "biuf" or a.dtype.kind == "b" or (rule.kind is int and a.dtype.kind == "f") \
+            or (rule.pair and (a.ndim == 0 or a.shape[-1] != 2)):
+        raise ConfigError(f"{loc}{key}: an array of {a.dtype} with shape {a.shape}: expected {rule.describe()}")
+    bad = ~np.isfinite(a) if a.dtype.kind == "f" else np.zeros(a.shape, bool)
+    if rule.choices is not None:
+        bad |= ~np.isin(a, np.asarray(rule.choices, a.dtype))
+    if rule.low is not None:
+        low = np.asarray(rule.low).astype(a.dtype)
+        bad |= (a <= low) if rule.low_open else (a < low)
+    if rule.high is not None:
+        bad |= a > np.asarray(rule.high).astype(a.dtype)
+    if rule.pair:
+        bad |= (a[..., 0] > a[..., 1])[..., None]
+    if bad.any():
+        # str of the array's own scalar: a float32 1.9 reads 1.9, not its float64 expansion 1.899999976158142
+        first = ("[" + ", ".join(map(str, a.reshape(-1, 2)[bad.reshape(-1, 2).any(1)][0])) + "]" if rule.pair
+                 else str(a[bad].flat[0]))
+        raise ConfigError(f"{loc}{key}={first}: expected {rule.describe()}")
+
+
+def check_fields(obj: Any, where: str) -> None:
+    """A built Options/Params/config dataclass (one a Python caller made, not read through :func:`build`) checked as
+    :func:`split_and_validate` and :func:`check_relations` check given values: every declared field against its
+    rule, a value of the wrong type included (``n_envs=2.5``); array values element by element; traced values
+    (inside a jitted function) are left alone. A ConfigError naming ``where``, the field and what it accepts."""
+    loc = f"{where}: " if where else ""
+    for name, rule in rules(obj).items():
+        value = getattr(obj, name)
+        if isinstance(value, (bool, int, float, str, list, tuple)) or value is None:
+            coerce(name, value, rule, where)
+            # coerce takes 2.0 for 2 (a file's number); a shape needs the int
+            if rule.kind is int and value is not None and not isinstance(value, int):
+                raise ConfigError(f"{loc}{name}={shown(value)}: expected {rule.describe()}")
+            continue
+        try:
+            np.asarray(value)
+        except Exception:  # noqa: BLE001 - a tracer (or an object that is no array): not a concrete value to check
+            continue
+        _check_array(name, value, rule, loc)
+    check_relations(obj, where)
+
+
 def parse_overrides(pairs: Iterable[str]) -> dict[str, Any]:
     """``["alpha=0.3", "env.pos_step=0.02"]`` → ``{"alpha": 0.3, "env.pos_step": 0.02}``."""
     out = {}

@@ -28,15 +28,15 @@ termination). jaxrobo adds what a run needs around them, one concern per module:
 
 Public surface (all importable from ``jaxrobo.deep``): :data:`AGENTS`, :class:`DeepConfig`, :class:`PPOConfig`,
 :class:`SACConfig`, :class:`DeepRunSpec`, :func:`is_deep`, :func:`config_class`, :func:`presets`,
-:func:`resolve`, :func:`check_combinations`, :func:`train`, :class:`TrainingStopped`, :class:`TrainerWatch`,
-:class:`DeepResult`, :func:`evaluate`, :func:`save_policy`, :func:`load_policy`, :class:`LoadedPolicy`, :func:`write_run`,
-:func:`spec_from_config`.
+:func:`resolve`, :func:`check_combinations`, :func:`check_spec`, :func:`train`, :class:`TrainingStopped`,
+:class:`TrainerWatch`, :class:`DeepResult`, :func:`evaluate`, :func:`save_policy`, :func:`load_policy`,
+:class:`LoadedPolicy`, :func:`write_run`, :func:`spec_from_config`.
 """
 from __future__ import annotations
 
 from jaxrobo.deep.config import (AGENT_CONFIG_DIR, AGENTS, MAX_LAYER, DeepConfig, DeepRunSpec, PPOConfig, SACConfig,
-                                 check_action_space, check_combinations, config_class, is_deep, preset_paths, presets,
-                                 resolve, spec_from_config)
+                                 check_action_space, check_combinations, check_spec, config_class, is_deep,
+                                 preset_paths, presets, resolve, spec_from_config)
 from jaxrobo.deep.output import EVAL_COLUMNS, STAT_COLUMNS, LiveRun, eval_means, is_deep_run, write_run
 from jaxrobo.deep.policy import (POLICIES, POLICY_JSON, POLICY_NPZ, LoadedPolicy, env_policy, load_policy,
                                  network_config, policy_dir, save_policy)
@@ -46,6 +46,6 @@ from jaxrobo.deep.training import (DeepResult, EpochPlan, Point, TrainerWatch, T
 __all__ = ["AGENTS", "AGENT_CONFIG_DIR", "DeepConfig", "DeepResult", "DeepRunSpec", "EVAL_COLUMNS", "EpochPlan",
            "LiveRun", "LoadedPolicy", "MAX_LAYER", "POLICIES", "POLICY_JSON", "POLICY_NPZ", "PPOConfig", "Point",
            "SACConfig", "STAT_COLUMNS", "TrainerWatch", "TrainingStopped", "best_index", "check_action_space",
-           "check_combinations", "config_class", "env_policy", "epoch_plan", "eval_means", "evaluate", "is_deep",
-           "is_deep_run", "load_policy", "network_config", "policy_dir", "preset_paths", "presets", "resolve",
-           "save_policy", "spec_from_config", "train", "write_run"]
+           "check_combinations", "check_spec", "config_class", "env_policy", "epoch_plan", "eval_means", "evaluate",
+           "is_deep", "is_deep_run", "load_policy", "network_config", "policy_dir", "preset_paths", "presets",
+           "resolve", "save_policy", "spec_from_config", "train", "write_run"]

@@ -8,7 +8,7 @@ import dataclasses
 import os
 from typing import Any, Mapping
 
-from jaxrobo.core.config import ConfigError, as_dict, load_yaml, split_and_validate, unknown_key
+from jaxrobo.core.config import ConfigError, as_dict, check_fields, load_yaml, split_and_validate, unknown_key
 from jaxrobo.core.struct import param, rules
 
 #: The deep-RL learners, each Brax's trainer of that name.
@@ -233,6 +233,24 @@ def check_action_space(env: Any, agent: str, env_id: str) -> None:
         BraxEnv(env)
     except ConfigError as err:
         raise ConfigError(f"--agent {agent} on {env_id}: {err} (or train {env_id} with a tabular agent)") from None
+
+
+def check_spec(spec: Any, where: str = "deep.train(spec)") -> None:
+    """A :class:`DeepRunSpec` a Python caller built or edited (``dataclasses.replace(spec, config=...)``), checked
+    as :func:`resolve` checks what it reads, before Brax's trainer is built: every field of its config against its
+    rule, their combinations, the env's parameters and its action space. Brax asserts with no message (a
+    ``batch_size`` that does not divide), divides by zero (``num_envs=0``) or trains on a NaN learning rate
+    before an assertion inside its pmap; here a TypeError or a ConfigError names the field."""
+    if not isinstance(spec, DeepRunSpec):
+        raise TypeError(f"{where}: expected a jaxrobo.deep.DeepRunSpec (jaxrobo.deep.resolve(...)), got "
+                        f"{type(spec).__name__}")
+    if not isinstance(spec.config, DeepConfig):
+        raise TypeError(f"{where}: config: expected a jaxrobo.deep.PPOConfig or SACConfig, got "
+                        f"{type(spec.config).__name__}")
+    check_fields(spec.config, where)
+    check_combinations(spec.config, where)
+    check_fields(spec.env.default_params, where)
+    check_action_space(spec.env, spec.config.agent, spec.env_id)
 
 
 def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping[str, Any] | None = None

@@ -123,10 +123,31 @@ class LoadedPolicy:
     make_policy: Callable
 
     def act(self, obs: Any, key: Any = None) -> Any:
+        """The action for ``obs`` (one observation or a batch ``[..., observation_size]``; a list or numpy array
+        too); a ValueError naming the sizes for an observation of another size (Brax's networks broadcast it, or
+        fail inside its normaliser)."""
         import jax
 
+        if not hasattr(obs, "shape"):  # a list is no array to Brax's normaliser (a pytree error there)
+            obs = np.asarray(obs, np.float32)
+        # An array is passed as it is: a numpy one is normalised in numpy, a JAX one by XLA (last bits differ).
+        size = int(self.net["observation_size"])
+        if len(obs.shape) == 0 or obs.shape[-1] != size:
+            raise ValueError(f"LoadedPolicy.act(obs): obs has shape {tuple(obs.shape)}; this policy takes "
+                             f"observations of size {size} (shape ({size},), or a batch (..., {size}))")
         key = jax.random.key(0) if key is None else key
         return self.make_policy(self.params, deterministic=True)(obs, key)[0]
+
+    def __reduce__(self) -> tuple:
+        # Brax's inference function is a local closure that pickle cannot name: rebuilt from the network config.
+        import jax
+
+        return (_loaded, (dict(self.net), jax.device_get(self.params)))
+
+
+def _loaded(net: dict[str, Any], params: Any) -> LoadedPolicy:
+    """A :class:`LoadedPolicy` unpickled: its networks rebuilt from ``net``."""
+    return LoadedPolicy(net, params, _networks(net)[1])
 
 
 #: The policies a deep run keeps: ``latest`` (the run directory's own ``policy.npz``: the last evaluation point's,

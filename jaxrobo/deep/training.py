@@ -356,9 +356,11 @@ def train(spec: DeepRunSpec, on_point: Callable[[Point], None] | None = None,
     import jax
 
     from jaxrobo.deep.checkpoint import restore_states
+    from jaxrobo.deep.config import check_spec
     from jaxrobo.interop import brax_env  # its import gives Brax 0.14's trainers the JAX calls they need
     from jaxrobo.interop.brax_compat import hook_epochs
 
+    check_spec(spec)  # a Python caller's spec, checked as resolve checks the command line's values
     c = spec.config
     plan = epoch_plan(c)
     benv = brax_env.BraxEnv(spec.env)

@@ -274,7 +274,9 @@ class JaxroboEnv(_Picklable, gymnasium.Env):
         if engine not in ENGINES:  # before the env is built
             raise ValueError(f"engine={engine!r}: allowed values are {', '.join(map(repr, ENGINES))}")
         from jaxrobo.pictures import window
+        from jaxrobo.pictures.render import check_frame_size
 
+        width, height = check_frame_size(width, height, "JaxroboEnv")  # at make, not at the first render()
         no_window = window.unavailable_reason()
         if render_mode == "human" and no_window is not None:  # refused now, with the reason, not at render()
             raise gymnasium.error.DependencyNotInstalled(f"render_mode='human': {no_window}")
@@ -490,6 +492,9 @@ class JaxroboVectorEnv(_Picklable, gymnasium.vector.VectorEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: allowed values are None, 'rgb_array' (a vector env "
                              "draws no window; render_mode='human' is the single env's)")
+        from jaxrobo.pictures.render import check_frame_size
+
+        width, height = check_frame_size(width, height, "JaxroboVectorEnv")  # at make, not at the first render()
         self.jax_env = _make_env(env_id, env, overrides, kwargs)
         self._made = None if env is not None else (env_id, {**(overrides or {}), **kwargs})
         self.params = self.jax_env.default_params

@@ -217,17 +217,40 @@ def _geom_type(value: Any) -> int:
     return int(value)
 
 
+#: The largest frame side accepted: GL drivers' framebuffers commonly stop at 16,384 pixels, and a larger one failed
+#: inside MuJoCo with "Offscreen framebuffer is not complete", read as a missing GL library.
+MAX_FRAME_SIDE = 16384
+
+
+def check_frame_size(width: Any, height: Any, where: str = "") -> tuple[int, int]:
+    """``(width, height)`` as ints, or a ValueError naming the one that is not an integer in 1..MAX_FRAME_SIDE (a
+    negative one failed in MuJoCo's renderer, 0 gave an empty frame, 2.5 was cut to 2 without a word)."""
+    import operator
+
+    out = []
+    for name, value in (("width", width), ("height", height)):
+        try:
+            n = None if isinstance(value, bool) else operator.index(value)
+        except TypeError:
+            n = None
+        if n is None or not 1 <= n <= MAX_FRAME_SIDE:
+            raise ValueError(f"{where + ': ' if where else ''}{name}={value!r}: expected an integer >= 1 and <= "
+                             f"{MAX_FRAME_SIDE} (pixels)")
+        out.append(n)
+    return out[0], out[1]
+
+
 class Renderer:
     """Draws an env's state to ``height x width x 3`` uint8 frames; reuse one per env (it holds a GL context)."""
 
     def __init__(self, env: Any, width: int = 320, height: int = 240, camera: str | int | None = None):
         import mujoco
 
+        self.width, self.height = check_frame_size(width, height)
         self.env = env
         self.sim = _sim_of(env)
         self.model = self.sim.mj_model
         self.data = mujoco.MjData(self.model)
-        self.width, self.height = int(width), int(height)
         off_w, off_h = self.model.vis.global_.offwidth, self.model.vis.global_.offheight
         if self.width > off_w or self.height > off_h:
             # The framebuffer limits are model data; raise them on this private copy only.

@@ -92,7 +92,11 @@ def as_callbacks(callbacks: Callback | Callable[..., Any] | Iterable[Any] | None
     TypeError naming what is not one."""
     if callbacks is None:
         return CallbackList([])
-    items = [callbacks] if isinstance(callbacks, Callback) or callable(callbacks) else list(callbacks)
+    try:
+        items = [callbacks] if isinstance(callbacks, Callback) or callable(callbacks) else list(callbacks)
+    except TypeError:  # not iterable: list()'s own message names no argument
+        raise TypeError(f"callbacks: {callbacks!r} is neither a jaxrobo.training.callbacks.Callback, a function nor a "
+                        "sequence of them") from None
     out = []
     for c in items:
         if isinstance(c, Callback):

@@ -24,7 +24,8 @@ import numpy as np
 
 from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.tabular import discretise
-from jaxrobo.core.config import ConfigError, as_dict, flat_keys, load_yaml, split_and_validate, unknown_key
+from jaxrobo.core.config import (ConfigError, as_dict, check_fields, flat_keys, load_yaml, shown, split_and_validate,
+                                 unknown_key)
 from jaxrobo.task.env import Env
 from jaxrobo.task.registry import _lookup, find, learner, learners, make, qualified_id
 from jaxrobo.core.struct import INT32_MAX, Rule, rules
@@ -249,6 +250,43 @@ def check_tables(q: np.ndarray, env: Env, config: TrainConfig, path: str) -> Non
                           f"{'one shared table' if config.shared_table else f'{config.n_envs} envs'}, "
                           f"{config.agent}'s {want[1]} table(s), {want[2]} states x {want[3]} actions); the files are "
                           "not of one run")
+
+
+def check_train_arguments(env: Env, config: Any, agent_params: Any = None, env_params: Any = None, *,
+                          population: bool = False, **counts: Any) -> None:
+    """What a Python caller hands :func:`jaxrobo.training.train.train`, checked as :func:`resolve` checks what the
+    command line reads, before anything is built or compiles: the config's every field, its combinations and its
+    discretiser against the task; the learner and env parameters (a population's: its sweep checked each row, and
+    its arrays may lie on other hosts); ``counts`` (``start_chunk=...``: integers >= 0; ``checkpoint_seconds``: a
+    number >= 0 or None). A TypeError for an argument of the wrong class, a
+    ConfigError (a ValueError) naming the argument, the field and what it accepts otherwise."""
+    if not isinstance(config, TrainConfig):
+        raise TypeError(f"train(config=...): expected a jaxrobo.training.trainer.TrainConfig (jaxrobo.training.run."
+                        f"resolve(...).config), got {type(config).__name__}")
+    check_fields(config, "train(config)")
+    check_combinations(config, {}, "train(config)")
+    from jaxrobo.core import spaces
+
+    if isinstance(env.action_space(), spaces.Box):  # before the discretiser: its message would mislead
+        raise ConfigError(f"train: agent={config.agent!r} is a tabular learner (a table of Discrete actions) and "
+                          f"{env.name} has continuous (Box) actions; use jaxrobo.deep (Brax's PPO or SAC)")
+    check_discretiser(env, config, "train(config)")
+    for name, value, cls in (("agent_params", agent_params, AgentParams),
+                             ("env_params", env_params, type(env.default_params))):
+        if value is None:
+            continue
+        if not isinstance(value, cls):
+            raise TypeError(f"train({name}=...): expected {cls.__module__}.{cls.__qualname__}, got "
+                            f"{type(value).__name__}; build it with .replace(...) on the default")
+        if not population:
+            check_fields(value, f"train({name})")
+    for name, value in counts.items():
+        seconds = name == "checkpoint_seconds"
+        kinds = (int, float) if seconds else int
+        ok = (seconds and value is None) or (isinstance(value, kinds) and not isinstance(value, bool) and value >= 0)
+        if not ok:  # NaN seconds too (never >= 0): a NaN would never be due, a negative count run a chunk twice
+            raise ConfigError(f"train({name}={shown(value)}): expected "
+                              + ("a number of seconds >= 0, or None" if seconds else "an integer >= 0"))
 
 
 def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] | None = None,

@@ -22,6 +22,7 @@ from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.task.env import Env
 from jaxrobo.training.callbacks import Callback, as_callbacks
 from jaxrobo.training.driver import CheckpointFn, Population, PopulationResult, run_population, run_training
+from jaxrobo.training.run import check_train_arguments
 from jaxrobo.training.summary import TrainResult
 from jaxrobo.training.trainer import Runner, TrainConfig, Trainer
 
@@ -68,6 +69,11 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
     what a finished population keeps), there is no learning-target stop and no evaluation callbacks (the rows'
     greedy evaluation is part of the population's ``finish``); a :class:`~jaxrobo.training.driver.PopulationResult`."""
     hooks = as_callbacks(callbacks)
+    # The command line's values were checked by run.resolve; a Python caller's get the same checks here, before the
+    # trainer is built (a zero n_envs failed inside the execution plan, a NaN alpha trained NaN tables).
+    check_train_arguments(env, config, agent_params, env_params, population=population is not None,
+                          start_chunk=start_chunk, checkpoint_every=checkpoint_every,
+                          checkpoint_seconds=checkpoint_seconds)
     if trainer is None:
         trainer = Trainer(env, config, plan=plan)
     elif trainer.env is not env or trainer.config != config or (plan is not None and plan != trainer.plan):
