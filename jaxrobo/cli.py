@@ -268,6 +268,14 @@ def _deep_spec(args: argparse.Namespace, agent: str):
     if args.checkpoint_every is not None:
         raise ConfigError(f"--checkpoint-every: a {agent} run keeps a checkpoint at each of its evaluation points "
                           "(--set num_evals=N sets how many); drop the flag")
+    # Flags of the tabular loop that Brax's trainer has no use for: refused, where they were silently ignored.
+    run = "a resumed ppo/sac run" if agent == "resume" else f"--agent {agent}"
+    if getattr(args, "devices", None) is not None:
+        raise ConfigError(f"--devices: {run} trains on one device (Brax's trainer, max_devices_per_host=1); drop "
+                          "the flag")
+    if getattr(args, "total_episodes", None) is not None:
+        raise ConfigError(f"--total-episodes: {run} trains for a number of env steps, not episodes; use "
+                          "--total-steps N")
     if args.resume is not None:
         refuse_resume_flags(args.resume, (("--env", args.env),
                                           ("--agent", args.agent if agent != "resume" else None),
