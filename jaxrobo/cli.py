@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import importlib
 import os
 import shutil
@@ -167,7 +168,6 @@ def _train_spec(args: argparse.Namespace):
                                  ("--n-envs", args.n_envs), ("--nepisodes", args.nepisodes),
                                  ("--total-steps", getattr(args, "total_steps", None)),
                                  ("--total-episodes", getattr(args, "total_episodes", None)),
-                                 ("--devices", getattr(args, "devices", None)),
                                  ("--seed", args.seed), ("--set", args.set), ("--out", args.out)), args.overwrite)
     resume = rundir.check_out(resume, resume=True, flag="--resume")
     from jaxrobo.core.config import load_yaml
@@ -177,6 +177,25 @@ def _train_spec(args: argparse.Namespace):
         raise ConfigError(f"--env {args.env}: the run in --resume {resume} is of env_id {saved.get('env_id')!r}; "
                           "with --resume, --env only confirms a 'module:Id' to import (drop it or give that id)")
     return spec_from_config(saved, where=f"--resume {resume}", trusted_env=args.env), resume
+
+
+def _resumed_devices(cfg: Any, devices: int | None, resume: str) -> Any:
+    """The loop settings a resumed run trains with: its own, or over ``--devices`` (``devices``, None when not
+    given). Where the envs run, not what they compute: the checkpoint holds the whole carry, so a run may go on
+    over another device count (say, on a host with fewer devices than it was split over); its ``config.yaml`` and
+    the checkpoint's fingerprint keep the run's own setting. ConfigError naming the flag."""
+    import jax
+
+    from jaxrobo.core.config import ConfigError
+
+    if devices is None:
+        if cfg.devices > jax.device_count():
+            raise ConfigError(f"--resume {resume}: the run was split over devices={cfg.devices} and there are only "
+                              f"{jax.device_count()} here; --devices N goes on over N of them (0: every device)")
+        return cfg
+    if devices < 0:
+        raise ConfigError(f"--devices={devices}: expected an integer >= 0 (0: every local device)")
+    return dataclasses.replace(cfg, devices=devices)
 
 
 def budget_line(cfg, trainer) -> str:
@@ -249,6 +268,14 @@ def _deep_spec(args: argparse.Namespace, agent: str):
     if args.checkpoint_every is not None:
         raise ConfigError(f"--checkpoint-every: a {agent} run keeps a checkpoint at each of its evaluation points "
                           "(--set num_evals=N sets how many); drop the flag")
+    # Flags of the tabular loop that Brax's trainer has no use for: refused, where they were silently ignored.
+    run = "a resumed ppo/sac run" if agent == "resume" else f"--agent {agent}"
+    if getattr(args, "devices", None) is not None:
+        raise ConfigError(f"--devices: {run} trains on one device (Brax's trainer, max_devices_per_host=1); drop "
+                          "the flag")
+    if getattr(args, "total_episodes", None) is not None:
+        raise ConfigError(f"--total-episodes: {run} trains for a number of env steps, not episodes; use "
+                          "--total-steps N")
     if args.resume is not None:
         refuse_resume_flags(args.resume, (("--env", args.env),
                                           ("--agent", args.agent if agent != "resume" else None),
@@ -558,7 +585,7 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         spec, out = _train_spec(args)
         hold.enter_context(rundir.claimed(out, overwrite=args.overwrite, resume=resume is not None,
                                           flag="--out" if resume is None else "--resume"))
-        cfg = spec.config
+        cfg = spec.config if resume is None else _resumed_devices(spec.config, args.devices, resume)
         trainer = Trainer(spec.env, cfg)
         template = checkpoint.carry_template(trainer, spec.agent_params)
         fingerprint = checkpoint.carry_fingerprint(template, spec.to_dict())
@@ -860,7 +887,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the run already in --out (only once the new run is done or interrupted)")
     p.add_argument("--resume", default=None, metavar="DIR",
                    help="go on with the interrupted run in DIR, from its config.yaml and checkpoint (no other "
-                        "config flags)")
+                        "config flags; --devices N may place it over another device count)")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                    help="save the training carry every N chunks (default: every ~5 minutes; 0: no saves on the "
                         "way); it is also always saved at the end of training, before the evaluation (a late "

@@ -939,6 +939,10 @@ DEEP = [
     D("total-steps-alias-and-name", "name the same setting (num_timesteps is the old name of total_steps)",
       "--set", "num_timesteps=20", "--set", "total_steps=10"),
     D("sac-tau-range", "tau=0.0: expected a number > 0.0 and <= 1.0", "--set", "tau=0", agent="sac"),
+    # Brax's trainer runs on one device and counts env steps: these tabular flags were silently ignored.
+    D("devices", "--devices: --agent ppo trains on one device", "--devices", "4"),
+    D("sac-devices", "--devices: --agent sac trains on one device", "--devices", "1", agent="sac"),
+    D("total-episodes", "--total-episodes: --agent ppo trains for a number of env steps", "--total-episodes", "5"),
 ]
 
 def _check_out(path: str) -> Any:

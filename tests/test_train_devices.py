@@ -138,3 +138,58 @@ def test_a_run_split_over_devices_resumes_to_the_uninterrupted_runs_files(tmp_pa
             assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files), name
     for name in ("episodes.csv", "episode_stats.csv", "eval.csv"):
         assert (tmp_path / "stopped" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+
+
+FEWER_CHILD = r"""
+import signal, sys
+sys.path.insert(0, sys.argv[1])
+from jaxrobo.cli import main
+from jaxrobo.training import checkpoint
+
+out, step = sys.argv[2], sys.argv[3]
+tiny = ["--env", "CartPoleStayUp-v0", "--n-envs", "8", "--nepisodes", "6", "--set", "nsteps=20",
+        "--set", "chunk_steps=10", "--set", "backend=analytic", "--set", "eval_episodes=1",
+        "--set", "stop_at_target=false", "--no-progress"]
+if step == "stop":  # split over the 4 devices by --devices, stopped after its first checkpoint
+    real = checkpoint.save_checkpoint
+
+    def save_then_signal(path, runner, chunks_done, fingerprint, **kwargs):
+        saved = real(path, runner, chunks_done, fingerprint, **kwargs)
+        if chunks_done == 1:
+            signal.raise_signal(signal.SIGTERM)
+        return saved
+
+    checkpoint.save_checkpoint = save_then_signal
+    assert main(["train", *tiny, "--devices", "4", "--checkpoint-every", "1", "--out", out + "/stopped"]) == 143
+else:  # on 2 devices
+    assert main(["train", "--resume", out + "/stopped", "--no-progress"]) == 2
+    assert main(["train", "--resume", out + "/stopped", "--devices", "-1", "--no-progress"]) == 2
+    assert main(["train", "--resume", out + "/stopped", "--devices", "2", "--no-progress"]) == 0
+    assert main(["train", *tiny, "--devices", "2", "--out", out + "/whole"]) == 0
+"""
+
+
+def test_a_run_split_over_4_devices_resumes_on_2_with_devices(tmp_path):
+    """A run split over 4 devices by --devices 4 and stopped goes on on a host of 2 with --resume DIR --devices 2,
+    to the uninterrupted run's files bit for bit, where --devices was refused with --resume and the run's own
+    devices=4 could then not go on anywhere with fewer devices. Without --devices it is refused in one line that
+    names the flag; the run's config.yaml keeps its own devices."""
+    import numpy as np
+
+    procs = {}
+    for step, d in (("stop", 4), ("resume", 2)):
+        env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": "off",
+               "XLA_FLAGS": f"--xla_force_host_platform_device_count={d}"}
+        procs[step] = subprocess.run([sys.executable, "-c", FEWER_CHILD, ROOT, str(tmp_path), step], env=env,
+                                     capture_output=True, text=True, timeout=900)
+        assert procs[step].returncode == 0, procs[step].stderr[-3000:]
+    err = procs["resume"].stderr
+    assert "split over devices=4 and there are only 2 here; --devices N goes on" in err, err[-3000:]
+    assert "--devices=-1: expected an integer >= 0" in err, err[-3000:]
+    assert "devices=2)" in procs["resume"].stdout  # the resumed run's plan line
+    for name in ("qtables.npz", "records.npz"):
+        with np.load(tmp_path / "stopped" / name) as a, np.load(tmp_path / "whole" / name) as b:
+            assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files), name
+    for name in ("episodes.csv", "episode_stats.csv", "eval.csv"):
+        assert (tmp_path / "stopped" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+    assert "devices: 4" in (tmp_path / "stopped" / "config.yaml").read_text()

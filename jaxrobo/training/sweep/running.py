@@ -216,6 +216,19 @@ def _row_metrics_recorded(runner: Runner, n_last: int) -> dict[str, jax.Array]:
     }
 
 
+def _rows(tree: Any, n: int) -> Any:
+    """``tree``'s leaves with ``n`` rows on their leading axis: the first ``n``, or padded to ``n`` by repeating the
+    last row (as :func:`jaxrobo.speed.sharding.pad_rows` pads a group's inputs); shapes (``ShapeDtypeStruct``
+    leaves) too. A tree that has ``n`` rows already is returned as it is."""
+    def one(x: Any) -> Any:
+        if x.shape[0] == n:
+            return x
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return jax.ShapeDtypeStruct((n, *x.shape[1:]), x.dtype)
+        return x[np.minimum(np.arange(n), x.shape[0] - 1)]
+    return jax.tree.map(one, tree)
+
+
 class GroupRunner:
     """One static group of a sweep as a :class:`~jaxrobo.training.driver.Population` of its trainer's runs, trained
     by :func:`jaxrobo.training.train.train` (``init`` / ``run_chunk`` vmapped over the rows, compiled with the
@@ -388,17 +401,22 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
                 f"{spec.config.n_envs} envs, {budget} ≤ {spec.config.nsteps} steps")
             hooks: dict[str, Any] = {}
             if carries:
-                def restore(template: Callable[[], Any], g: int = g) -> tuple[Any, int] | None:
+                # The carry is saved with the group's rows only: the padding rows follow this mesh's device
+                # count, and a sweep resumed on another count pads them again (repeating the last row as a fresh
+                # carry's padding does; they are dropped from every answer).
+                def restore(template: Callable[[], Any], g: int = g, n: int = len(meta),
+                            padded: int = group.n_padded) -> tuple[Any, int] | None:
                     if not os.path.exists(state.group_carry_path(state_dir, g)):
                         return None  # nothing saved: the template is not traced
-                    got = state.load_group_carry(state_dir, fingerprint, g, template())
+                    got = state.load_group_carry(state_dir, fingerprint, g, _rows(template(), n))
                     if got is not None:
                         log(f"  going on from chunk {got[1]} of {trainer.max_chunks()} (saved in "
                             f"{state.group_carry_path(state_dir, g)})")
+                        got = (_rows(got[0], padded), got[1])
                     return got
 
-                def save_carry(carry: Any, chunks_done: int, g: int = g) -> None:
-                    state.save_group_carry(state_dir, fingerprint, g, carry, chunks_done)
+                def save_carry(carry: Any, chunks_done: int, g: int = g, n: int = len(meta)) -> None:
+                    state.save_group_carry(state_dir, fingerprint, g, _rows(carry, n), chunks_done)
 
                 hooks = {"restore": restore, "checkpoint": save_carry, "checkpoint_seconds": checkpoint_seconds}
             try:
