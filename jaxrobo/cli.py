@@ -598,6 +598,10 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         return 2
 
     private = getattr(args, "private_out", None)
+    # How to go on names the run directory (process 0's), not a process's private copy, removed at its exit.
+    public = out if private is None else (args.resume or args.out)
+    resume_cmd = (f"jaxrobo train --resume {shlex.quote(public)}" if public
+                  else "jaxrobo train --resume <process 0's run directory>")
     if private is not None:  # a process other than 0: everything it writes stays in its private directory
         out = private
     live = out if (resume is not None and private is None) else rundir.live_dir(out)
@@ -606,7 +610,6 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
     if resume is None or private is not None:
         write_config(live, spec.to_dict())
     n_chunks = trainer.max_chunks()
-    resume_cmd = f"jaxrobo train --resume {shlex.quote(out)}"
     # --checkpoint-every is kept in status.json, so that a resumed run saves as often as it was asked to.
     every_chunks = args.checkpoint_every if resume is None else _checkpoint_every(args.checkpoint_every, out)
     keep = {} if every_chunks is None else {"checkpoint_every": every_chunks}
@@ -675,8 +678,8 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         startup = command_seconds()  # imports, device discovery, config: the wall before the first compile
         result = train(spec.env, cfg, spec.agent_params, None, hooks, initial=initial, start_chunk=start_chunk,
                        checkpoint=saves, checkpoint_every=every_chunks or 0,
-                       checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None, should_stop=stop,
-                       trainer=trainer)  # the trainer whose carry was checked above: its trace of init is reused
+                       checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None,
+                       should_stop=driver.agreed_stop(stop), trainer=trainer)  # the trainer whose carry was checked above: its trace of init is reused
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.

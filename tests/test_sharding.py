@@ -226,3 +226,54 @@ def test_a_coordinator_port_held_by_another_program_is_one_line_exit_2_for_proce
     assert line == (f"jaxrobo train: JAXROBO_COORDINATOR='127.0.0.1:{port}': the 2 processes (JAXROBO_NUM_PROCESSES) "
                     "did not all join within JAXROBO_INIT_TIMEOUT=1 s: process 1 could not register with the "
                     "coordinator")
+
+
+def test_a_signal_to_one_process_of_a_distributed_run_stops_every_process_at_one_chunk(tmp_path):
+    """``jaxrobo train`` in two processes (2 CPU devices each) under ``jax.distributed``, SIGINT to process 0 only:
+    each decided alone whether to stop (and whether a save was due by its clock), so process 0 gathered its
+    checkpoint while process 1 ran the next chunk and both aborted in Gloo ('collective mismatch'), the run left
+    'running'. Now the stop is agreed (``driver.agreed_stop``): both stop after the same chunk and exit 130, the run
+    is interrupted and resumable, and process 1's line names process 0's run directory, not its private copy."""
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    args = [sys.executable, "-m", "jaxrobo.cli", "train", "--env", "CartPoleStayUp-v0", "--n-envs", "8",
+            "--nepisodes", "20000", "--set", "nsteps=100", "--set", "chunk_steps=50", "--set", "stop_at_target=false",
+            "--checkpoint-every", "1", "--no-progress", "--out", str(out)]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               PYTHONPATH=ROOT)
+    for attempt in range(3):
+        port = _free_port()
+        procs = [subprocess.Popen(args, cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                  env=dict(env, JAXROBO_COORDINATOR=f"localhost:{port}", JAXROBO_NUM_PROCESSES="2",
+                                           JAXROBO_PROCESS_ID=str(i)))
+                 for i in range(2)]
+        status = out / "status.json"
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and procs[0].poll() is None:
+            try:
+                if json.loads(status.read_text()).get("chunks_done", 0) >= 2:
+                    break
+            except (OSError, ValueError):
+                pass
+            time.sleep(0.2)
+        if procs[0].poll() is not None:
+            first = procs[0].communicate()[0]
+            procs[1].kill()
+            procs[1].communicate()
+            if "Failed to add port" in first and attempt < 2:
+                continue  # the free port was taken before the coordinator bound it (as in the sweep's test)
+            raise AssertionError(first[-3000:])
+        break
+    try:
+        procs[0].send_signal(signal.SIGINT)
+        logs = [p.communicate(timeout=300)[0] for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    assert [p.returncode for p in procs] == [130, 130], [log[-3000:] for log in logs]
+    saved = json.loads(status.read_text())
+    assert saved["status"] == "interrupted" and saved["signal"] == "SIGINT", saved
+    assert f"to go on: jaxrobo train --resume {out}" in logs[1], logs[1][-3000:]
+    assert "jaxrobo-process-" not in logs[1]

@@ -217,6 +217,19 @@ def gather(tree: Any) -> Any:
     return jax.device_get(tree)
 
 
+def largest(*values: int) -> tuple[int, ...]:
+    """Each of this process's integers as the largest any process holds (under ``jax.distributed``; one process:
+    as they are). A collective: every process calls it at the same point. For the decisions each process makes on
+    its own (a signal that reached it, its clock) that every process must act on alike, or one of them runs the
+    next collective alone."""
+    if jax.process_count() == 1:
+        return tuple(int(v) for v in values)
+    from jax.experimental import multihost_utils
+
+    got = np.asarray(multihost_utils.process_allgather(np.asarray(values, np.int32)))
+    return tuple(int(v) for v in got.reshape(-1, len(values)).max(axis=0))
+
+
 def specs_like(tree: Any, batch: int) -> Any:
     """A :class:`PartitionSpec` per leaf, as :func:`shardings_like` places it: ``P("batch")`` where axis 0 has
     length ``batch``, ``P()`` otherwise."""

@@ -330,8 +330,9 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
         if should_stop is not None and should_stop():
             stopped = True
             break
-        if max_seconds is not None and chunks_done > start_chunk and time.perf_counter() - t0 > max_seconds:
-            break
+        if max_seconds is not None and sharding.largest(
+                chunks_done > start_chunk and time.perf_counter() - t0 > max_seconds)[0]:
+            break  # every process's clock asked: out of time in one, the processes all stop here
         carry = chunk(carry)
         chunks_done += 1
         if read is not None:
@@ -348,8 +349,11 @@ def run_chunks(chunk: Callable[[Any], Any], carry: Any, n_chunks: int, *, start_
             check_seconds += time.perf_counter() - t_check
             if met:
                 checked_at = chunks_done
+        # A save by the clock is due where any process's clock says so: the save is a collective under
+        # jax.distributed (its carry is gathered), so the processes save at the same chunks or none does.
         due = (checkpoint_every > 0 and chunks_done % checkpoint_every == 0) or (
-            checkpoint_seconds is not None and time.perf_counter() - last_saved >= checkpoint_seconds)
+            checkpoint_seconds is not None and checkpoint is not None
+            and bool(sharding.largest(time.perf_counter() - last_saved >= checkpoint_seconds)[0]))
         if checkpoint is not None and due:
             checkpoint(carry, chunks_done)
             saved_at, last_saved = chunks_done, time.perf_counter()
@@ -1183,6 +1187,24 @@ class StopOnSignal:
             signal.set_wakeup_fd(self._wakeup_old)
             for fd in reversed(pipe):  # the write end first: the watchdog's read then returns b""
                 os.close(fd)
+
+
+def agreed_stop(stop: StopOnSignal) -> Callable[[], bool]:
+    """``stop`` as every process under ``jax.distributed`` answers it (one process: ``stop`` itself): True where a
+    signal reached any of them, and a process it did not reach takes that signal as its own (``stop.signum``), so
+    that each stops at the same chunk and exits with the same status. A collective: the run asks it at the same
+    points in every process (before each chunk, between segments and groups); a stop asked in one process alone
+    left the others running the next chunk's collectives without it (Gloo's 'collective mismatch', both aborted)."""
+    if jax.process_count() == 1:
+        return stop
+
+    def asked() -> bool:
+        signum = sharding.largest(stop.signum or 0)[0]
+        if signum and stop.signum is None:
+            stop.signum = signum
+        return signum != 0
+
+    return asked
 
 
 def _default_action(signum: int) -> None:

@@ -81,7 +81,10 @@ def train(env: Env, config: TrainConfig, agent_params: AgentParams | None = None
     hooks.on_training_start(trainer, initial)
 
     def stop() -> bool:
-        return hooks.stop_requested or (should_stop is not None and should_stop())
+        # should_stop first, always: under jax.distributed it may be a collective (driver.agreed_stop) that
+        # every process calls at the same point, whatever this process's callbacks said.
+        asked = should_stop is not None and should_stop()
+        return hooks.stop_requested or asked
 
     with trainer.plan.tracing():
         if population is None:

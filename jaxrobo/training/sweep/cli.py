@@ -279,7 +279,7 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
     owned = live if main_process else None  # the directory whose status this process writes
     with driver.StopOnSignal() as stop:
         # Processes stop together (a signal may reach only some of them): one more collective per chunk.
-        should_stop = stop if jax.process_count() == 1 else (lambda: not _all_agree(not stop()))
+        should_stop = driver.agreed_stop(stop)
         saved_in = live or "process 0"
         try:
             result = run_plan(plan, mesh, log=print, progress=None if getattr(args, "no_progress", False) else _chunk_line,
