@@ -349,6 +349,14 @@ class SaveInThread:
 
     def last(self, carry: Any, chunks_done: int) -> None:
         self.wait()
+        if jax.process_count() > 1:
+            # Under jax.distributed the save gathers the carry, a collective: in a thread it met the evaluation's
+            # collectives in another order in each process (Gloo's 'collective mismatch', every process aborted
+            # at the end of a run; a hang on GPUs). Saved here, before the evaluation, as every save on the way.
+            t = time.perf_counter()
+            self._save(carry, chunks_done)
+            self.seconds = time.perf_counter() - t
+            return
 
         def run() -> None:
             self._go.wait(self.HOLD_SECONDS)
