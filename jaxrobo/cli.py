@@ -679,7 +679,8 @@ def _train_checked(args: argparse.Namespace, hold: contextlib.ExitStack) -> int:
         result = train(spec.env, cfg, spec.agent_params, None, hooks, initial=initial, start_chunk=start_chunk,
                        checkpoint=saves, checkpoint_every=every_chunks or 0,
                        checkpoint_seconds=CHECKPOINT_SECONDS if every_chunks is None else None,
-                       should_stop=driver.agreed_stop(stop), trainer=trainer)  # the trainer whose carry was checked above: its trace of init is reused
+                       should_stop=driver.agreed_stop(stop),  # every process's answer under jax.distributed
+                       trainer=trainer)  # the trainer whose carry was checked above: its trace of init is reused
         if not result.complete:
             # The checkpoint is saved (train called ``save``); the finished episodes and the status go with it,
             # the status last, and a staging directory is moved into place.
