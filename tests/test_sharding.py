@@ -280,15 +280,19 @@ def test_a_signal_to_one_process_of_a_distributed_run_stops_every_process_at_one
 
 
 @pytest.mark.slow
-def test_two_processes_train_to_the_end_and_write_the_one_process_run(tmp_path):
+@pytest.mark.parametrize("run", [["--env", "CartPoleStayUp-v0", "--nepisodes", "100", "--set", "nsteps=100",
+                                  "--set", "chunk_steps=50"],
+                                 ["--env", "QuadcopterGoto-v2", "--total-steps", "16000", "--nepisodes", "20"]],
+                         ids=["cartpole", "goto"])
+def test_two_processes_train_to_the_end_and_write_the_one_process_run(tmp_path, run):
     """``jaxrobo train`` in two processes (2 CPU devices each) to its end: the closing checkpoint gathered the
     carry in a thread while the evaluation ran its own collectives, in another order in each process (Gloo's
-    'collective mismatch', both aborted at the evaluation; a hang on two GPUs). Now both exit 0 and the run's
-    files are the bytes of one process over 4 devices."""
+    'collective mismatch', both aborted at the evaluation); Goto-v2's progress read, left by XLA on one local
+    device, was stacked per process by the gather (a TypeError before the first chunk, on two H200s too). Now
+    both exit 0 and the run's files are the bytes of one process over 4 devices."""
     import numpy as np
 
-    args = [sys.executable, "-m", "jaxrobo.cli", "train", "--env", "CartPoleStayUp-v0", "--n-envs", "8",
-            "--nepisodes", "100", "--set", "nsteps=100", "--set", "chunk_steps=50", "--set", "stop_at_target=false",
+    args = [sys.executable, "-m", "jaxrobo.cli", "train", *run, "--n-envs", "8", "--set", "stop_at_target=false",
             "--set", "eval_episodes=10", "--no-progress"]
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=ROOT)
     two = dict(env, XLA_FLAGS="--xla_force_host_platform_device_count=2")

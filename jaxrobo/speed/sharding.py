@@ -209,11 +209,19 @@ def put_batch(tree: Any, mesh: Mesh | None) -> Any:
 
 
 def gather(tree: Any) -> Any:
-    """Device arrays (sharded or not, one host or several) → numpy arrays on this host."""
+    """Device arrays (sharded or not, one host or several) → numpy arrays on this host. Under ``jax.distributed``
+    an array over every process's devices is gathered whole; one on this process's devices alone (a program's
+    output that XLA left on one local device, as QuadcopterGoto-v2's progress read) is this process's value as it
+    is: gathered, each process's copy was stacked (a scalar became one value per process)."""
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
-        return multihost_utils.process_allgather(tree, tiled=True)
+        def one(x: Any) -> Any:
+            if isinstance(x, jax.Array) and x.is_fully_addressable:
+                return np.asarray(jax.device_get(x))
+            return multihost_utils.process_allgather(x, tiled=True)
+
+        return jax.tree.map(one, tree)
     return jax.device_get(tree)
 
 
