@@ -125,7 +125,7 @@ WHAT = {
                               "(the run stops at the learning target)",
     "train_two_processes_s24.json": "`jaxrobo train` as two processes (jax.distributed, one GPU each) against one "
                                     "process on one GPU after the multi-process fixes: exit codes, checksums",
-    "step_budget_s24.json": "The 65,536- and 1 M-env cart-pole runs under a step budget at session 24's head, cold "
+    "step_budget_s24.json": "The 65,536- and 1 M-env cart-pole runs under a step budget at 1a0aaff, cold "
                             "and warm: the wall's parts (writing at both sizes against the issue's 1 s and 3 s)",
     "compile_init_beside.json": "The tabular default commands cold and warm, before and after the first carry's "
                                 "program compiles beside the training chunk (`ExecutionPlan.compile_beside`), one call",
