@@ -23,6 +23,7 @@ import pytest
 from jaxrobo.cli import main
 from jaxrobo.core.config import ConfigError
 from jaxrobo.io import rundir
+from stop_at_save import after_chunk, after_groups, signal_after_save
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": ROOT}
@@ -249,19 +250,8 @@ def _interrupted_run(out, extra=()):
     """A tiny ``jaxrobo train`` stopped by SIGTERM after its first checkpoint (exit 143, resumable)."""
     from jaxrobo.training import checkpoint
 
-    real = checkpoint.save_checkpoint
-
-    def save_then_signal(path, runner, chunks_done, fingerprint, **kwargs):
-        saved = real(path, runner, chunks_done, fingerprint, **kwargs)
-        if chunks_done == 1:
-            signal.raise_signal(signal.SIGTERM)
-        return saved
-
-    checkpoint.save_checkpoint = save_then_signal
-    try:
+    with signal_after_save(checkpoint, signal.SIGTERM, after_chunk(1)):
         assert main(["train", *TINY, "--checkpoint-every", "1", *extra, "--out", str(out)]) == 143
-    finally:
-        checkpoint.save_checkpoint = real
 
 
 @pytest.fixture(scope="module")
@@ -298,24 +288,16 @@ def test_a_moved_run_resumes_where_it_is_and_keeps_checkpoint_every(interrupted,
 
 
 @pytest.mark.slow
-def test_a_moved_sweep_resumes_where_it_is_and_touches_nothing_else(tmp_path, monkeypatch, capsys):
+def test_a_moved_sweep_resumes_where_it_is_and_touches_nothing_else(tmp_path, capsys):
     from jaxrobo.training import sweep
     from jaxrobo.training.sweep import state as sweep_state
 
     args = ["--env", CP, "--grid", "number_splits=4,6", "--seeds", "1", "--n-envs", "2", "--nepisodes", "2",
             "--nsteps", "20", "--set", "chunk_steps=10", "--set", "backend=analytic", "--set", "bins=null",
             "--eval-episodes", "1", "--no-plots"]
-    save = sweep_state.save_checkpoint
-
-    def save_then_signal(state_dir, fingerprint, plan, finished):
-        save(state_dir, fingerprint, plan, finished)
-        if len(finished) == 1:
-            signal.raise_signal(signal.SIGTERM)
-
-    monkeypatch.setattr(sweep_state, "save_checkpoint", save_then_signal)
     a, b = tmp_path / "a", tmp_path / "b"
-    assert sweep.main([*args, "--out", str(a)]) == 143
-    monkeypatch.setattr(sweep_state, "save_checkpoint", save)
+    with signal_after_save(sweep_state, signal.SIGTERM, after_groups(1)):
+        assert sweep.main([*args, "--out", str(a)]) == 143
     shutil.move(str(a), str(b))
     a.mkdir()  # an unrelated complete run now where the sweep was
     rundir.write_status(str(a), rundir.COMPLETE)

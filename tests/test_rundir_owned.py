@@ -18,6 +18,7 @@ from jaxrobo.cli import main
 from jaxrobo.io import rundir
 from jaxrobo.training import checkpoint
 
+from stop_at_save import after_groups, signal_after_save
 from test_resume import CLI_TINY
 
 USER_FILES = {"notes.txt": "my notes", "analysis/fit.py": "print('mine')", "analysis/data/results.dat": "1 2 3"}
@@ -53,18 +54,6 @@ def _snapshot(run) -> dict[str, bytes]:
     return out
 
 
-def _stop_after_first_checkpoint(patch: pytest.MonkeyPatch) -> None:
-    """SIGINT right after the first checkpoint is saved: the run stops at that chunk boundary (exit 130)."""
-    save = checkpoint.save_checkpoint
-
-    def save_then_signal(*args, **kwargs):
-        save(*args, **kwargs)
-        patch.setattr(checkpoint, "save_checkpoint", save)
-        signal.raise_signal(signal.SIGINT)
-
-    patch.setattr(checkpoint, "save_checkpoint", save_then_signal)
-
-
 @pytest.fixture(scope="module")
 def done(tmp_path_factory):
     """A complete tiny run."""
@@ -77,8 +66,7 @@ def done(tmp_path_factory):
 def stopped(tmp_path_factory):
     """The tiny run stopped by SIGINT after its first checkpoint: an interrupted, resumable run."""
     out = str(tmp_path_factory.mktemp("stopped") / "run")
-    with pytest.MonkeyPatch.context() as patch:
-        _stop_after_first_checkpoint(patch)
+    with signal_after_save(checkpoint, signal.SIGINT):
         assert main(["train", *CLI_TINY, "--checkpoint-every", "1", "--out", out]) == 130
     assert rundir.is_resumable(out)
     return out
@@ -155,15 +143,14 @@ def test_user_files_survive_a_resume(stopped, tmp_path):
     assert rundir.is_complete(out) and _user_files_kept(out) and _hidden(tmp_path) == []
 
 
-def test_a_stopped_overwrite_keeps_the_old_run_whole_and_resume_replaces_it(done, tmp_path, monkeypatch, capsys):
+def test_a_stopped_overwrite_keeps_the_old_run_whole_and_resume_replaces_it(done, tmp_path, capsys):
     """SIGINT during an --overwrite run: the old run stays byte for byte (summary.json included), the new one's
     state waits in a hidden sibling; ``--resume OUT`` goes on with the new run and replaces the old one only once
     complete, the user's files kept."""
     out = _copy(done, tmp_path)
     _add_user_files(out)
     before = _snapshot(out)
-    with monkeypatch.context() as patch:
-        _stop_after_first_checkpoint(patch)
+    with signal_after_save(checkpoint, signal.SIGINT):
         assert main(["train", *CLI_TINY, "--checkpoint-every", "1", "--out", out, "--overwrite"]) == 130
     err = capsys.readouterr().err
     assert f"to go on: jaxrobo train --resume {out}" in err and "Traceback" not in err
@@ -518,7 +505,7 @@ def test_a_key_set_with_and_without_its_section_is_refused(capsys, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_stopped_sweep_overwrite_keeps_the_old_sweep_and_resumes_from_its_name(tmp_path, monkeypatch, capsys):
+def test_a_stopped_sweep_overwrite_keeps_the_old_sweep_and_resumes_from_its_name(tmp_path, capsys):
     """As for a run: the old sweep (and the user's files in it) stays whole; ``--resume OUT`` finds the new
     sweep's state beside it and replaces the old one once complete."""
     from jaxrobo.training.sweep import state as sweep_state
@@ -529,15 +516,7 @@ def test_a_stopped_sweep_overwrite_keeps_the_old_sweep_and_resumes_from_its_name
     assert _main([*ARGS, "--out", out]) == 0
     _add_user_files(out)
     before = _snapshot(out)
-    save = sweep_state.save_checkpoint
-
-    def save_then_signal(state_dir, fingerprint, plan, finished):
-        save(state_dir, fingerprint, plan, finished)
-        if len(finished) == 1:
-            signal.raise_signal(signal.SIGINT)
-
-    with monkeypatch.context() as patch:
-        patch.setattr(sweep_state, "save_checkpoint", save_then_signal)
+    with signal_after_save(sweep_state, signal.SIGINT, after_groups(1)):
         assert _main([*ARGS, "--out", out, "--overwrite"]) == 130
     assert _snapshot(out) == before and len(_hidden(tmp_path)) == 1
     capsys.readouterr()

@@ -18,6 +18,7 @@ from jaxrobo.io import rundir
 from jaxrobo.training import sweep
 from jaxrobo.training.sweep import state as sweep_state
 from jaxrobo.core.config import ConfigError
+from stop_at_save import after_groups, signal_after_save
 
 ENV = "CartPoleStayUp-v0"
 FAST = {"xla_backend_optimization_level": 0}
@@ -72,26 +73,18 @@ def uninterrupted(tmp_path_factory):
     return out
 
 
-def test_cli_interrupt_by_signal_then_resume(uninterrupted, tmp_path, monkeypatch, capsys):
+def test_cli_interrupt_by_signal_then_resume(uninterrupted, tmp_path, capsys):
     """A SIGTERM after the first group: exit 143, one line, the group saved; --resume finishes the sweep with
     the same sweep.csv and summary.json as the uninterrupted run (timings aside)."""
     out = tmp_path / "sweep"
-    save = sweep_state.save_checkpoint
-
-    def save_then_signal(state_dir, fingerprint, plan, finished):
-        save(state_dir, fingerprint, plan, finished)
-        if len(finished) == 1:
-            signal.raise_signal(signal.SIGTERM)  # the handler only sets a flag; the sweep stops before group 2
-
-    monkeypatch.setattr(sweep_state, "save_checkpoint", save_then_signal)
-    assert _main([*ARGS, "--out", str(out)]) == 143
+    with signal_after_save(sweep_state, signal.SIGTERM, after_groups(1)):  # the sweep stops before group 2
+        assert _main([*ARGS, "--out", str(out)]) == 143
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "SIGTERM" in err[0] and "1 of 2 groups" in err[0] and f"--resume {out}" in err[0]
     assert _finished_groups(out) == 1
     assert rundir.read_status(str(out))["status"] == rundir.INTERRUPTED
     assert not rundir.is_complete(str(out)) and rundir.is_resumable(str(out))
     assert not os.path.exists(out / "sweep.csv") and not os.path.exists(out / "summary.json")
-    monkeypatch.setattr(sweep_state, "save_checkpoint", save)
 
     # The saved settings are the sweep's: flags that differ are refused, before anything runs.
     for flags, name in ((["--seeds", "3"], "--seeds"), (["--grid", "alpha=0.2"], "--grid"),
@@ -262,28 +255,20 @@ def test_error_mid_group_keeps_finished_groups(error, uninterrupted, tmp_path, m
     assert _outputs(out) == _outputs(uninterrupted)
 
 
-def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, monkeypatch, capsys):
+def test_interrupted_overwrite_keeps_the_old_run(uninterrupted, tmp_path, capsys):
     """With --overwrite the state lives in a hidden sibling: an interrupt leaves the old run whole, and resuming
     the sibling replaces the old run and removes the sibling."""
     out = tmp_path / "sweep"
     shutil.copytree(uninterrupted, out)
     (out / "summary.json").write_text('{"old": true}')  # tells the old run from the new one
-    save = sweep_state.save_checkpoint
-
-    def save_then_signal(state_dir, fingerprint, plan, finished):
-        save(state_dir, fingerprint, plan, finished)
-        if len(finished) == 1:
-            signal.raise_signal(signal.SIGINT)
-
-    monkeypatch.setattr(sweep_state, "save_checkpoint", save_then_signal)
-    assert _main([*ARGS, "--out", str(out), "--overwrite"]) == 130
+    with signal_after_save(sweep_state, signal.SIGINT, after_groups(1)):
+        assert _main([*ARGS, "--out", str(out), "--overwrite"]) == 130
     last = capsys.readouterr().err.strip().splitlines()[-1]
     (live,) = [p for p in os.listdir(tmp_path) if p.startswith(".sweep.") and p.endswith(".partial")]
     live = str(tmp_path / live)
     assert f"--resume {live}" in last
     assert json.loads((out / "summary.json").read_text()) == {"old": True}
     assert rundir.read_status(live)["out"] == str(out) and _finished_groups(live) == 1
-    monkeypatch.setattr(sweep_state, "save_checkpoint", save)
     assert _main(["--resume", live]) == 0
     assert _outputs(out) == _outputs(uninterrupted)
     assert not os.path.exists(live) and os.listdir(tmp_path) == ["sweep"]

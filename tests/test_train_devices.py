@@ -97,27 +97,17 @@ def test_several_devices_give_the_one_device_tables(tmp_path):
 
 RESUME_CHILD = r"""
 import signal, sys
-sys.path.insert(0, sys.argv[1])
+sys.path[:0] = [sys.argv[1], sys.argv[1] + "/tests"]
 from jaxrobo.cli import main
 from jaxrobo.training import checkpoint
+from stop_at_save import after_chunk, signal_after_save
 
 out = sys.argv[2]
 tiny = ["--env", "CartPoleStayUp-v0", "--n-envs", "8", "--nepisodes", "6", "--set", "nsteps=20",
         "--set", "chunk_steps=10", "--set", "backend=analytic", "--set", "eval_episodes=1", "--set", "devices=4",
         "--set", "stop_at_target=false", "--no-progress"]
-real = checkpoint.save_checkpoint
-
-
-def save_then_signal(path, runner, chunks_done, fingerprint, **kwargs):
-    saved = real(path, runner, chunks_done, fingerprint, **kwargs)
-    if chunks_done == 1:
-        signal.raise_signal(signal.SIGTERM)
-    return saved
-
-
-checkpoint.save_checkpoint = save_then_signal
-assert main(["train", *tiny, "--checkpoint-every", "1", "--out", out + "/stopped"]) == 143
-checkpoint.save_checkpoint = real
+with signal_after_save(checkpoint, signal.SIGTERM, after_chunk(1)):
+    assert main(["train", *tiny, "--checkpoint-every", "1", "--out", out + "/stopped"]) == 143
 assert main(["train", "--resume", out + "/stopped", "--no-progress"]) == 0
 assert main(["train", *tiny, "--out", out + "/whole"]) == 0
 """
@@ -142,25 +132,18 @@ def test_a_run_split_over_devices_resumes_to_the_uninterrupted_runs_files(tmp_pa
 
 FEWER_CHILD = r"""
 import signal, sys
-sys.path.insert(0, sys.argv[1])
+sys.path[:0] = [sys.argv[1], sys.argv[1] + "/tests"]
 from jaxrobo.cli import main
 from jaxrobo.training import checkpoint
+from stop_at_save import after_chunk, signal_after_save
 
 out, step = sys.argv[2], sys.argv[3]
 tiny = ["--env", "CartPoleStayUp-v0", "--n-envs", "8", "--nepisodes", "6", "--set", "nsteps=20",
         "--set", "chunk_steps=10", "--set", "backend=analytic", "--set", "eval_episodes=1",
         "--set", "stop_at_target=false", "--no-progress"]
 if step == "stop":  # split over the 4 devices by --devices, stopped after its first checkpoint
-    real = checkpoint.save_checkpoint
-
-    def save_then_signal(path, runner, chunks_done, fingerprint, **kwargs):
-        saved = real(path, runner, chunks_done, fingerprint, **kwargs)
-        if chunks_done == 1:
-            signal.raise_signal(signal.SIGTERM)
-        return saved
-
-    checkpoint.save_checkpoint = save_then_signal
-    assert main(["train", *tiny, "--devices", "4", "--checkpoint-every", "1", "--out", out + "/stopped"]) == 143
+    with signal_after_save(checkpoint, signal.SIGTERM, after_chunk(1)):
+        assert main(["train", *tiny, "--devices", "4", "--checkpoint-every", "1", "--out", out + "/stopped"]) == 143
 else:  # on 2 devices
     assert main(["train", "--resume", out + "/stopped", "--no-progress"]) == 2
     assert main(["train", "--resume", out + "/stopped", "--devices", "-1", "--no-progress"]) == 2
