@@ -136,6 +136,9 @@ WHAT = {
                                   "(a check beside the README's table, another host)",
     "compile_beside_cpu.json": "ExecutionPlan.compile_beside on 2 CPU cores, measured again: each tabular "
                                "task's first and warm runs with it on and off (left off)",
+    "chunk_collectives.json": "What a training chunk split over 4 devices exchanges at every step "
+                              "(`benchmarks/studies/chunk_collectives.py`), and the cart-pole's run in one process "
+                              "and in two",
     "compile_flags_not_adopted.json": "ArmReach-v0's first-use compile on 2 CPU cores, and two XLA flags tried on "
                                       "it: measured, not adopted",
     "levers_not_adopted.json": "Start-up with JAX's backend started in a thread, and a cold compile under four XLA "

@@ -161,6 +161,28 @@ def test_env_groups_smoke_gives_the_same_tables_for_every_group_size(tmp_path):
     assert rows[0]["q_fingerprint_after_one_chunk"] == rows[1]["q_fingerprint_after_one_chunk"]
 
 
+@pytest.mark.slow
+def test_chunk_collectives_finds_the_exchanges_in_the_step_loop(tmp_path):
+    """benchmarks/studies/chunk_collectives.py over 4 forced CPU devices: every task's partitioned chunk has a step
+    loop that exchanges data (the figures docs/scaling.md cites), and a device count it cannot see is refused."""
+    script = os.path.join(ROOT, "benchmarks", "studies", "chunk_collectives.py")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": "off",
+           "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    out = tmp_path / "collectives.json"
+    proc = subprocess.run([sys.executable, script, "--out", str(out)], env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    chunks = json.loads(out.read_text())["chunks"]
+    assert [c["env"] for c in chunks] == ["CartPoleStayUp-v0", "QuadcopterGoto-v2", "ArmReach-v0"]
+    for c in chunks:
+        assert "devices=4" in c["plan"] and not c["one_program_per_device"], c
+        assert any(loop["collectives_per_iteration"].get("all-gather", 0) > 0 for loop in c["loops"]), c
+    assert [c["shared_table"] for c in chunks] == [False, True, True]
+    refused = subprocess.run([sys.executable, script, "--devices", "8"], env=env, capture_output=True, text=True,
+                             timeout=300)
+    assert refused.returncode == 1 and "sees 4 device(s)" in refused.stderr
+
+
 def test_fused_plan_tokens_name_the_kernel_choices():
     """benchmarks/studies/fused.py's plan tokens: each turns one of the chunk kernel's plan choices off, printed in
     the plan's tag, and they apply to pallas only."""
