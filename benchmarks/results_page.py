@@ -134,6 +134,8 @@ WHAT = {
                              "cross cut to their written columns (`cut_records`), two calls; the tables file's A/B",
     "time_to_trained_check.json": "The tabular default commands cold and warm after this session's writing changes "
                                   "(a check beside the README's table, another host)",
+    "time_to_trained_065bc26.json": "Time to a trained robot re-checked at 065bc26 on another H200 host "
+                                    "(`benchmarks/time_to_trained.py --seeds 3`), beside the README's table",
     "compile_beside_cpu.json": "ExecutionPlan.compile_beside on 2 CPU cores, measured again: each tabular "
                                "task's first and warm runs with it on and off (left off)",
     "chunk_collectives.json": "What a training chunk split over 4 devices exchanges at every step "
