@@ -136,6 +136,9 @@ WHAT = {
                                   "(a check beside the README's table, another host)",
     "time_to_trained_065bc26.json": "Time to a trained robot re-checked at 065bc26 on another H200 host "
                                     "(`benchmarks/time_to_trained.py --seeds 3`), beside the README's table",
+    "time_to_trained_peers.json": "CartPoleContinuous-v0's default command beside Brax's PPO on Brax's own "
+                                  "inverted_pendulum with its notebook's settings (`benchmarks/time_to_trained.py "
+                                  "--peers`), one call",
     "compile_beside_cpu.json": "ExecutionPlan.compile_beside on 2 CPU cores, measured again: each tabular "
                                "task's first and warm runs with it on and off (left off)",
     "chunk_collectives.json": "What a training chunk split over 4 devices exchanges at every step "
@@ -346,6 +349,8 @@ def section(path: str, data: Any) -> list[str]:
     return out
 
 
+#: The measured peer beside the headline (:func:`peers_sentence`), in the same device's folder.
+PEERS = "time_to_trained_peers.json"
 #: The README's headline block, filled from this device's time_to_trained.json (:func:`readme_block`).
 README = os.path.join(ROOT, "README.md")
 HEADLINE_DEVICE = "h200"
@@ -400,9 +405,37 @@ def readme_block() -> str | None:
              "trains until the task's learning target holds on fresh greedy episodes, then evaluates and writes the "
              "run (seconds; a ppo run's compile is inside its run; [docs/results.md](docs/results.md) has every "
              "figure, `benchmarks/time_to_trained.py` measures them)." + (f" For comparison, {anchors}." if anchors
-                                                                         else ""), ""] \
+                                                                         else "") + peers_sentence(), ""] \
         + time_to_trained_table(data) + ["", END]
     return "\n".join(lines)
+
+
+def peers_sentence() -> str:
+    """The README's measured peer, from ``time_to_trained_peers.json`` (``time_to_trained.py --peers``): Brax's
+    own cart-pole beside CartPoleContinuous-v0's command, in one call on one device; empty where it is absent."""
+    path = os.path.join(RESULTS, HEADLINE_DEVICE, PEERS)
+    if not os.path.exists(path):
+        return ""
+    with open(path, encoding="utf-8") as f:
+        data = json.load(f)
+    rows = [r for r in data.get("rows", []) if r.get("exit_code") == 0]
+    device = str(data.get("device", "device")).split(" (")[0]
+
+    def walls(env_id: str, cache: str, key: str = "wall_seconds") -> str:
+        got = sorted(r[key] for r in rows if r["env_id"] == env_id and r["cache"] == cache and r.get(key))
+        if not got:
+            return "-"
+        return f"{got[0]:.1f}" if got[0] == got[-1] or f"{got[0]:.1f}" == f"{got[-1]:.1f}" \
+            else f"{got[0]:.1f}-{got[-1]:.1f}"
+
+    peer, ours = "brax:inverted_pendulum", "CartPoleContinuous-v0"
+    if not any(r["env_id"] == peer for r in rows) or not any(r["env_id"] == ours for r in rows):
+        return ""
+    return (f" Measured in one call on one {device} ([{PEERS}](docs/results.md)): Brax's PPO on Brax's own cart-pole "
+            f"(`inverted_pendulum`, the settings of Brax's training notebook) takes {walls(peer, 'cold')} s with an "
+            f"empty cache and {walls(peer, 'warm')} s warm from start to exit, its evaluation first at the target's "
+            f"return after {walls(peer, 'warm', 'target_met_at_seconds')} s warm; {ours}'s command "
+            f"{walls(ours, 'cold')} s and {walls(ours, 'warm')} s.")
 
 
 def with_readme_block(readme: str, block: str) -> str:

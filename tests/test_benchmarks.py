@@ -162,6 +162,30 @@ def test_env_groups_smoke_gives_the_same_tables_for_every_group_size(tmp_path):
 
 
 @pytest.mark.slow
+def test_time_to_trained_times_brax_s_own_pendulum_as_a_peer(tmp_path):
+    """``time_to_trained.py --peers``: Brax's PPO on its inverted_pendulum in a fresh process, timed start to exit,
+    each evaluation's return and time kept (here its settings shrunk to a smoke run, and said so in the row)."""
+    shrunk = ["num_envs=8", "batch_size=8", "num_minibatches=1", "episode_length=20", "num_evals=2",
+              "num_timesteps=40"]
+    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "time_to_trained.py"), "--envs", "--peers",
+           "--warm-only", "--out", str(tmp_path), *[f"--peer-set={s}" for s in shrunk]]
+    proc = subprocess.run(cmd, env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (row,) = json.loads((tmp_path / "time_to_trained.json").read_text())["rows"]
+    assert row["env_id"] == "brax:inverted_pendulum" and row["exit_code"] == 0 and row["cache"] == "warm"
+    assert row["agent"] == "ppo (Brax's notebook settings; changed: " + ", ".join(shrunk) + ")"
+    assert row["env_steps"] == 40 and row["settings"]["num_envs"] == 8 and row["backend"] == "positional"
+    steps = [e[0] for e in row["evals"]]
+    assert steps == sorted(steps) and steps[-1] == 40 and all(0 < e[2] < row["wall_seconds"] for e in row["evals"])
+    assert row["learning_value"] == row["evals"][-1][1] and row["learning_target"] == "evaluation return >= 500"
+    assert (row["target_met_at_seconds"] is None) == all(e[1] < 500 for e in row["evals"])
+    bad = subprocess.run(cmd[:2] + ["--peers", "--peer-set", "gamma=3"], capture_output=True, text=True,
+                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=120)
+    assert bad.returncode == 2 and "--peer-set gamma=3" in bad.stderr
+
+
+@pytest.mark.slow
 def test_chunk_collectives_finds_the_exchanges_in_the_step_loop(tmp_path):
     """benchmarks/studies/chunk_collectives.py over 4 forced CPU devices: every task's partitioned chunk has a step
     loop that exchanges data (the figures docs/scaling.md cites), and a device count it cannot see is refused."""
