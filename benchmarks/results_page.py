@@ -328,6 +328,8 @@ def section(path: str, data: Any) -> list[str]:
         return out + rows_table(data["rows"], SCALE_COLUMNS) + [""]
     if name == "time_to_trained.json" and isinstance(data, dict):
         return out + time_to_trained_table(data) + [""] + rows_table(data.get("rows", [])) + [""]
+    if name == PEERS and isinstance(data, dict):
+        return out + rows_table(data.get("rows", []), PEER_COLUMNS) + [""]
     if isinstance(data, list) and data and isinstance(data[0], dict):
         return out + rows_table(data) + [""]
     figures = flat_figures(data) if isinstance(data, dict) else []
@@ -351,6 +353,8 @@ def section(path: str, data: Any) -> list[str]:
 
 #: The measured peer beside the headline (:func:`peers_sentence`), in the same device's folder.
 PEERS = "time_to_trained_peers.json"
+PEER_COLUMNS = ["env_id", "agent", "cache", "seed", "wall_seconds", "startup_seconds", "run_seconds",
+                "evaluation_seconds", "env_steps", "learning_value", "target_met_at_steps", "target_met_at_seconds"]
 #: The README's headline block, filled from this device's time_to_trained.json (:func:`readme_block`).
 README = os.path.join(ROOT, "README.md")
 HEADLINE_DEVICE = "h200"
