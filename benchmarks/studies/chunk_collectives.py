@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import tempfile
@@ -25,6 +24,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
 from _common import ROOT, write_json  # noqa: E402
+from scale_out import free_port  # noqa: E402
 
 COLLECTIVES = ("all-reduce", "all-gather", "reduce-scatter", "collective-permute", "all-to-all")
 #: (env id, overrides): each task's default learner set-up at a small batch.
@@ -94,9 +94,13 @@ def chunk_collectives(env_id: str, overrides: dict, devices: int) -> dict:
             "collectives_in_program": count(hlo), "loops": loops}
 
 
-def _wall_run_seconds(log: str) -> float | None:
-    m = re.search(r"^wall [\d.]+ s: .*?run ([\d.]+) s", log, re.M)
-    return float(m.group(1)) if m else None
+def _run_seconds(out: str) -> float | None:
+    """The run's training seconds, from the run directory's ``summary.json`` (None where it did not finish)."""
+    try:
+        with open(os.path.join(out, "summary.json")) as f:
+            return float(json.load(f)["run_seconds"])
+    except (OSError, ValueError, KeyError):
+        return None
 
 
 def processes() -> list[dict]:
@@ -108,18 +112,16 @@ def processes() -> list[dict]:
         one = subprocess.run(cmd + ["--out", os.path.join(tmp, "one")], cwd=ROOT, text=True, capture_output=True,
                              env=dict(env, XLA_FLAGS="--xla_force_host_platform_device_count=4"), timeout=900)
         rows.append({"processes": 1, "devices_each": 4, "rc": one.returncode,
-                     "run_s": _wall_run_seconds(one.stdout + one.stderr), "chunks": 200})
-        with socket.socket() as s:
-            s.bind(("localhost", 0))
-            port = s.getsockname()[1]
+                     "run_s": _run_seconds(os.path.join(tmp, "one")), "chunks": 200})
         two = dict(env, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAXROBO_NUM_PROCESSES="2",
-                   JAXROBO_COORDINATOR=f"localhost:{port}")
+                   JAXROBO_COORDINATOR=f"localhost:{free_port()}")
         procs = [subprocess.Popen(cmd + ["--out", os.path.join(tmp, "two")], cwd=ROOT, text=True,
                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                   env=dict(two, JAXROBO_PROCESS_ID=str(i))) for i in range(2)]
-        logs = [p.communicate(timeout=900)[0] for p in procs]
+        for p in procs:
+            p.communicate(timeout=900)
         rows.append({"processes": 2, "devices_each": 2, "rc": procs[0].returncode,
-                     "run_s": _wall_run_seconds(logs[0]), "chunks": 200})
+                     "run_s": _run_seconds(os.path.join(tmp, "two")), "chunks": 200})
     for r in rows:
         r["seconds_per_chunk"] = round(r["run_s"] / r["chunks"], 4) if r["run_s"] is not None else None
     return rows
