@@ -429,8 +429,8 @@ def peers_sentence() -> str:
         got = sorted(r[key] for r in rows if r["env_id"] == env_id and r["cache"] == cache and r.get(key))
         if not got:
             return "-"
-        return f"{got[0]:.1f}" if got[0] == got[-1] or f"{got[0]:.1f}" == f"{got[-1]:.1f}" \
-            else f"{got[0]:.1f}-{got[-1]:.1f}"
+        low, high = f"{got[0]:.1f}", f"{got[-1]:.1f}"
+        return low if low == high else f"{low}-{high}"
 
     peer, ours = "brax:inverted_pendulum", "CartPoleContinuous-v0"
     if not any(r["env_id"] == peer for r in rows) or not any(r["env_id"] == ours for r in rows):
