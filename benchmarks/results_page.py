@@ -388,8 +388,8 @@ def time_to_trained_table(data: dict[str, Any]) -> list[str]:
         runs = seeds.get(env_id) or []
         spread = "-"
         if runs:
-            values = sorted(float(r["figure"]) for r in runs)
-            spread = f"{values[0]:.4g} / {values[len(values) // 2]:.4g} ({len(values)} seeds)"
+            values = [float(r["figure"]) for r in runs]
+            spread = f"{min(values):.4g} / {statistics.median(values):.4g} ({len(values)} seeds)"
         empty = "-" if cold is None else f"{cold['wall_seconds']:.1f} s"
         out.append(f"| {env_id} ({warm['agent'].replace('preset', 'qlearn')}) | {empty} | "
                    f"{warm['wall_seconds']:.1f} s | {split} | {warm['env_steps']:,} | {learned} | {spread} |")

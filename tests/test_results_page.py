@@ -53,3 +53,13 @@ def test_a_throughput_row_becomes_a_table_row_with_its_ratio(tmp_path):
              "control_dt": 0.02, "sim_seconds_per_s": 2.0e4}]
     table = "\n".join(rp.throughput_rows({"rows": rows}))
     assert "| jaxrobo | CartPoleStayUp-v0 | analytic | qlearn | 64 | 2.00M | 8.00M | 1.5 | 2.00 |" in table
+
+
+def test_the_headline_table_gives_the_worst_and_the_median_seed():
+    """The README's seeds column: the worst figure and the median (with an even count, the mean of the middle two)."""
+    rp = _results_page()
+    row = {"env_id": "ArmReach-v0", "agent": "preset", "cache": "warm", "wall_seconds": 3.8, "env_steps": 1024,
+           "learning_value": 0.93, "learning_target": "share >= 0.8 (greedy)"}
+    runs = [{"figure": f} for f in (0.97, 0.86, 0.95, 0.99)]
+    table = "\n".join(rp.time_to_trained_table({"rows": [row], "seeds": {"runs": {"ArmReach-v0": runs}}}))
+    assert "| 0.86 / 0.96 (4 seeds) |" in table, table
