@@ -263,7 +263,16 @@ def test_tiny_sweep(tmp_path):
     out = tmp_path / "sweep"
     assert main(["sweep", "--env", ID, "--grid", "alpha=0.1,0.3", "--n-envs", "2", "--nepisodes", "2",
                  "--nsteps", "10", "--no-plots", "--out", str(out)]) == 0
-    assert any(out.iterdir())
+    import csv
+
+    with open(out / "sweep.csv") as f:
+        rows = list(csv.DictReader(f))
+    # a row per grid value and seed (4 by default), each trained (2 episodes of 10 steps on each of 2 envs) and
+    # evaluated on the arm's learning figure
+    assert sorted((float(r["alpha"]), int(r["seed"])) for r in rows) == [(a, s) for a in (0.1, 0.3) for s in range(4)]
+    assert all(int(r["episodes_done"]) == 2 and int(r["env_steps"]) == 40 for r in rows), rows
+    assert all(0.0 <= float(r["eval_success_rate"]) <= 1.0 for r in rows), rows
+    assert json.loads((out / "summary.json").read_text())["n_rows"] == 8
 
 
 @pytest.mark.slow

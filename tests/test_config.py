@@ -109,7 +109,13 @@ def test_deep_train_takes_every_resolved_preset():
     """deep.train's check of a Python caller's spec (deep.check_spec) refuses no spec that resolve gives."""
     from jaxrobo import deep
 
+    checked = []
     for env_id in ("CartPoleContinuous-v0", "QuadcopterGotoTwist-v0"):
         for agent in deep.AGENTS:
             for preset in deep.presets(agent, env_id):
                 deep.check_spec(deep.resolve(env_id, agent, preset))
+                checked.append((env_id, agent, preset))
+    # every agent has its presets on both tasks, the tiny one (the tests') and the default among them
+    for env_id in ("CartPoleContinuous-v0", "QuadcopterGotoTwist-v0"):
+        for agent in deep.AGENTS:
+            assert {"default", "tiny"} <= {p for e, a, p in checked if (e, a) == (env_id, agent)}, (env_id, agent)

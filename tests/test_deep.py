@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -161,10 +162,17 @@ def test_the_fields_both_trainers_take_are_declared_once_on_their_base():
 
 
 def test_show_flies_a_saved_ppo_policy(runs, tmp_path, capsys):
-    for env_id in (CPC, TWIST):
+    for env_id, flown in ((CPC, "2 episodes: mean return"), (TWIST, f"wrote {tmp_path / TWIST}.png")):
         png = str(tmp_path / f"{env_id}.png")
         assert main(["show", runs[env_id], "--out", png, "--episodes", "2"]) == 0
-        assert os.path.getsize(png) > 0
+        out = capsys.readouterr().out
+        assert "policy: ppo latest policy" in out and flown in out and os.path.getsize(png) > 0, out
+    # the policy is the run's: without its parameters show refuses, naming the file
+    bare = str(tmp_path / "bare")
+    shutil.copytree(runs[CPC], bare)
+    os.remove(os.path.join(bare, "policy.npz"))
+    assert main(["show", bare, "--out", str(tmp_path / "none.png")]) == 2
+    assert "no policy.npz" in capsys.readouterr().err
 
 
 def test_plot_overlays_a_tabular_and_a_ppo_run_on_env_steps(runs, tmp_path):

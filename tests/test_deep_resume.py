@@ -132,9 +132,21 @@ def test_resume_reaches_the_uninterrupted_run_bit_for_bit(runs):
 def test_show_flies_a_stopped_runs_policies(runs, tmp_path, which, capsys):
     if runs["agent"] != "ppo":
         pytest.skip("one agent is enough: the policy files are the same kind")
-    png = str(tmp_path / "trace.png")
-    assert main(["show", runs["kept"], "--policy", which, "--episodes", "2", "--out", png]) == 0
-    assert os.path.getsize(png) > 0 and f"wrote {png}" in capsys.readouterr().out
+    from jaxrobo import deep
+
+    run, png = str(tmp_path / "run"), str(tmp_path / "trace.png")
+    shutil.copytree(runs["kept"], run)
+    # Only the chosen policy's files are read: the other one's parameters removed, it still flies.
+    other = "best" if which == "latest" else "latest"
+    os.remove(os.path.join(deep.policy_dir(run, other), deep.POLICY_NPZ))
+    assert main(["show", run, "--policy", which, "--episodes", "2", "--out", png]) == 0
+    out = capsys.readouterr().out
+    assert f"policy: ppo {which} policy" in out and "2 episodes: mean return" in out and f"wrote {png}" in out
+    assert os.path.getsize(png) > 0
+    os.remove(os.path.join(deep.policy_dir(run, which), deep.POLICY_NPZ))  # and without them it is refused
+    assert main(["show", run, "--policy", which, "--episodes", "2", "--out", png]) == 2
+    assert f"no {os.path.relpath(os.path.join(deep.policy_dir(run, which), deep.POLICY_NPZ), run)}" \
+        in capsys.readouterr().err
 
 
 def test_a_damaged_or_foreign_checkpoint_is_refused(runs, tmp_path, capsys):

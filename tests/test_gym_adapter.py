@@ -42,16 +42,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _require(env_id: str) -> None:
-    """Skip an id whose task module is not written yet (another issue); any other import error fails."""
+    """Every registered id's task module imports: a missing one is a broken registration, and fails here."""
     entry = _lookup(env_id).entry_point
     if isinstance(entry, str):
-        module = entry.partition(":")[0]
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as err:
-            if err.name == module:
-                pytest.skip(f"{env_id}: task module {module} is not there yet")
-            raise
+        importlib.import_module(entry.partition(":")[0])
 
 
 def _render_ok() -> bool:
@@ -115,9 +109,18 @@ def test_registration_is_cheap_and_namespace_needs_import():
 
 
 def test_module_prefix_form_imports_jaxrobo():
-    env = gym.make("jaxrobo:jaxrobo/CartPoleStayUpLeftRight-v0")
-    assert isinstance(env.unwrapped, JaxroboEnv)
-    env.close()
+    """In a fresh process with nothing of jaxrobo imported, Gymnasium's ``"jaxrobo:jaxrobo/<id>"`` form imports
+    jaxrobo (which registers the ids) and makes the env."""
+    code = ("import sys, gymnasium as gym\n"
+            "assert 'jaxrobo' not in sys.modules\n"
+            "env = gym.make('jaxrobo:jaxrobo/CartPoleStayUpLeftRight-v0')\n"
+            "from jaxrobo.interop.gym_adapter import JaxroboEnv\n"
+            "print('IMPORTED', 'jaxrobo' in sys.modules, type(env.unwrapped) is JaxroboEnv,\n"
+            "      env.reset(seed=0)[0].shape)\n")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "IMPORTED True True (4,)" in out.stdout, out.stdout
 
 
 def test_make_passes_overrides_and_rejects_bad_ones():

@@ -61,8 +61,15 @@ def test_mjx_imports_without_mesh_libraries_and_builds_the_same_hulls():
 
 
 def test_outside_the_versions_it_was_written_for_mjx_is_imported_as_it_is(monkeypatch):
+    """Under a version it was not written for, the guard says why and ``import_mjx`` is the stock import: the mesh
+    libraries load with it, and the hull is the stock one (checked in a fresh process)."""
     monkeypatch.setattr(mjx_import, "installed_version", lambda: "3.99.0")
     assert "outside the versions it was written for" in mjx_import.unavailable()
+    patched = _run("from jaxrobo.physics import mjx_import; mjx_import.installed_version = lambda: '3.99.0'; "
+                   "mjx = mjx_import.import_mjx()")
+    assert patched["loaded_by_import"] == ["scipy.spatial", "trimesh"]
+    stock = _run("import mujoco.mjx as mjx")
+    assert all(patched[key] == stock[key] for key in ("vert", "face", "edge"))
 
 
 def test_the_lines_about_warp_not_installed_are_not_said_and_other_output_is():

@@ -74,16 +74,33 @@ def test_a_shared_table_run_steps_its_envs_in_groups_with_the_same_values():
     np.testing.assert_array_equal(grouped.q, whole.q)
 
 
+def _learned(**overrides):
+    """The default preset, shortened, on the closed-form backend (300 episodes take seconds): the run, and its
+    mean return over the first and the last 30 episodes."""
+    spec = resolve("CartPoleStayUp-v0", overrides={"n_envs": 16, "nepisodes": 300, "chunk_steps": 500,
+                                                   "eval_episodes": 0, "backend": "analytic", **overrides})
+    r = train(spec.env, spec.config, spec.agent_params)
+    return r, r.returns[:, :30].mean(), r.returns[:, -30:].mean()
+
+
 @pytest.mark.parametrize("agent", ["sarsa", "expected_sarsa", "double_q"])
 def test_each_learner_trains(agent):
-    r = _run(agent=agent)
-    assert np.all(r.lengths >= 1) and np.isfinite(r.q).all() and np.abs(r.q).sum() > 0
+    """Each learner's return improves. Double Q-learning's per-env tables learn too slowly on the cart-pole for
+    300 episodes (updated half as often each, and evaluated by the other table), so it learns here with the
+    16 envs' one shared table, and its per-env run updates both of every env's tables."""
+    if agent == "double_q":
+        r = _run(agent=agent)
+        assert r.q.shape[:2] == (4, 2) and all(np.count_nonzero(r.q[i, t]) for i in range(4) for t in range(2))
+        assert np.count_nonzero(r.q) <= r.env_steps
+    r, first, last = _learned(agent=agent, shared_table=agent == "double_q")
     assert r.q.shape[1] == (2 if agent == "double_q" else 1)
+    assert np.isfinite(r.q).all() and last > 1.5 * first, (first, last)
 
 
 def test_shared_table_mode_learns_one_table():
-    r = _run(shared_table=True)
-    assert r.q.shape == (1, 1, 3 * 6 * 8 * 10, 4) and np.abs(r.q).sum() > 0
+    """Every env's updates go to the one table, and it learns."""
+    r, first, last = _learned(shared_table=True)
+    assert r.q.shape[0] == 1 and np.isfinite(r.q).all() and last > 1.5 * first, (first, last)
 
 
 def test_seed_preset_runs_with_seed_compat_learner():
@@ -96,11 +113,7 @@ def test_seed_preset_runs_with_seed_compat_learner():
 
 
 def test_learning_improves_the_return():
-    # The default preset, shortened; on the closed-form backend so that 300 episodes take seconds.
-    spec = resolve("CartPoleStayUp-v0", overrides={"n_envs": 16, "nepisodes": 300, "chunk_steps": 500,
-                                                   "eval_episodes": 0, "backend": "analytic"})
-    r = train(spec.env, spec.config, spec.agent_params)
-    first, last = r.returns[:, :30].mean(), r.returns[:, -30:].mean()
+    _, first, last = _learned()
     assert last > 1.5 * first, (first, last)
 
 
