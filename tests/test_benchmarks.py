@@ -283,3 +283,42 @@ def test_startup_reaches_the_first_chunk_through_trains_callbacks(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     run = json.loads((tmp_path / "startup.json").read_text())["runs"][0]
     assert run["to_first_chunk_s"] > 0 and run["cache_entries_after"] > 0
+
+
+@pytest.mark.slow
+def test_learners_compare_runs_the_pages_commands_and_keeps_each_runs_figures(tmp_path):
+    """benchmarks/learners_compare.py shrunk: docs/cartpole.md's three commands (2 envs, 20 episodes, 5 greedy
+    episodes a table), one row each with every figure of the page's table, consistent with the runs' own files,
+    and the page's plot command's picture."""
+    lc = _script("learners_compare")
+    out, png, work = tmp_path / "lc.json", tmp_path / "compare.png", tmp_path / "work"
+    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "learners_compare.py"), "--n-envs", "2", "--nepisodes",
+           "20", "--eval-episodes", "5", "--png", str(png), "--work", str(work), "--out", str(out)]
+    proc = subprocess.run(cmd, env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True, text=True,
+                          timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert data["device"].startswith("cpu (") and data["code"] and data["command"].endswith(" ".join(cmd[2:]))
+    assert data["n_envs"] == 2 and png.stat().st_size > 0 and "jaxrobo plot runs/cpu_cartpole_qlearn" in data["note"]
+    rows = data["rows"]
+    assert [r["run"] for r in rows] == ["cpu_cartpole_qlearn", "cpu_cartpole_sarsa", "cpu_cartpole_seed"]
+    assert [r["agent"] for r in rows] == ["qlearn", "sarsa", "qlearn"]
+    assert [r["command"] for r in rows] == [" ".join(["jaxrobo", *c]) for c in lc.commands(2, 20, 5)]
+    assert "--preset seed" in rows[2]["command"] and "stop_at_target=false" not in rows[2]["command"]
+    for r in rows:
+        assert r["exit_code"] == 0 and r["n_envs"] == 2 and r["nepisodes"] == 20 and r["seed"] == 0, r
+        assert r["tables_evaluated"] == 2 and 0 <= r["tables_ge_500"] <= 2, r
+        assert r["eval_episodes_per_table"] == r["fresh_episodes"] == 5, r
+        for key in ("best_100_window_mean_length", "eval_mean_length", "selected_table_fresh_mean_length",
+                    "last_100_mean_length"):
+            assert 1 <= r[key] <= 1000, (key, r)
+        assert r["eval_mean_length"] <= r["eval_best_table_mean_length"] + 1e-6, r
+        rise = [r[f"first_episode_window_ge_{level}"] for level in lc.RISE]
+        assert rise[0] is not None or rise[1] is None, r
+        assert all(0 <= e < 20 for e in rise if e is not None) and (None in rise or rise[0] <= rise[1]), r
+        if not r["stop_at_target"]:
+            assert r["episodes_finished"] == 2 * 20, r
+        again = lc.figures(str(work / "runs" / r["run"]))  # the row is what the run directory holds
+        assert {k: r[k] for k in again} == again
+    bad = subprocess.run(cmd[:2] + ["--n-envs", "0"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--n-envs 0: expected an integer >= 1" in bad.stderr
