@@ -90,6 +90,9 @@ WHAT = {
     "device_splits_one_program.json": "Training split over GPUs with each device's one-device program, against "
                                       "one GPU: tables, records and figures compared",
     "startup_analytic.json": "Start-up on the analytic backend (`benchmarks/startup.py`)",
+    "ros_sim2sim.json": "The exported policies flown in native MuJoCo (`scripts/sim2sim.py`) and through ROS 1 "
+                        "(`jaxrobo ros sim` with the policy node): docs/real_robot.md's and docs/ros.md's commands "
+                        "(`benchmarks/ros_sim2sim.py`)",
     "arm_learning.json": "ArmReach-v0 learning over independent runs (`benchmarks/arm_learning.py`)",
     "goto_learning.json": "QuadcopterGoto-v1 learning over independent runs (`benchmarks/goto_learning.py`)",
     "adapter_latency.json": "Gymnasium adapter latency, one env and vectorised (`benchmarks/adapter_latency.py`)",
@@ -332,6 +335,12 @@ def section(path: str, data: Any) -> list[str]:
         return out + time_to_trained_table(data) + [""] + rows_table(data.get("rows", [])) + [""]
     if name == PEERS and isinstance(data, dict):
         return out + rows_table(data.get("rows", []), PEER_COLUMNS) + [""]
+    if name == "ros_sim2sim.json" and isinstance(data, dict):  # its rows of three kinds, a table each
+        for kind, columns in ROS_SIM2SIM_COLUMNS.items():
+            rows = [r for r in data.get("rows", []) if r.get("kind") == kind]
+            if rows:
+                out += rows_table(rows, columns) + [""]
+        return out
     if isinstance(data, list) and data and isinstance(data[0], dict):
         return out + rows_table(data) + [""]
     figures = flat_figures(data) if isinstance(data, dict) else []
@@ -357,6 +366,18 @@ def section(path: str, data: Any) -> list[str]:
 PEERS = "time_to_trained_peers.json"
 PEER_COLUMNS = ["env_id", "agent", "cache", "seed", "wall_seconds", "startup_seconds", "run_seconds",
                 "evaluation_seconds", "env_steps", "learning_value", "target_met_at_steps", "target_met_at_seconds"]
+#: ``benchmarks/ros_sim2sim.py``'s rows, by kind: the columns of each kind's table.
+ROS_SIM2SIM_COLUMNS = {
+    "train": ["run", "command", "exit_code", "wall_seconds", "env_steps", "eval_success_rate", "eval_mean_length"],
+    "sim2sim": ["page", "env_id", "episodes", "seed", "same_outcome", "identical_flights", "median_part_step",
+                "native_success_rate", "jax_export_success_rate", "jax_evaluation_success_rate", "native_mean_length",
+                "jax_export_mean_length", "runner_on_jax_obs", "max_obs_gap_at_step_1", "max_obs_gap_at_step_50",
+                "max_obs_gap_before_parting"],
+    "ros": ["name", "episodes", "seed", "mode", "status", "success_rate", "mean_steps", "same_outcome_as_native",
+            "same_steps_as_native", "same_steps_as_jax_export", "native_success_rate_same_episodes",
+            "jax_export_success_rate_same_episodes", "jax_evaluation_success_rate_same_episodes", "wall_seconds",
+            "reason"],
+}
 #: The README's headline block, filled from this device's time_to_trained.json (:func:`readme_block`).
 README = os.path.join(ROOT, "README.md")
 HEADLINE_DEVICE = "h200"

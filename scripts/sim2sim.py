@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import json
 import os
 import sys
 import tempfile
@@ -119,6 +120,8 @@ def native_episodes(env, runner, start: dict, episodes: int) -> tuple[list[dict]
 
 #: Continuous actions: the two sides' flights "part" where their actions differ by more than this (of [-1, 1]).
 ACTION_GAP = 1e-3
+#: Steps at which :func:`compare` reports the largest observation gap over the flights not yet parted there.
+GAP_STEPS = (1, 10, 50)
 #: Continuous actions: the runner matches JAX's action on JAX's observation within this (tests/test_export.py).
 RUNNER_TOL = 1e-5
 
@@ -132,6 +135,7 @@ def compare(jx: dict, native: list[dict], runner) -> dict:
     continuous = runner.kind == "mlp"
     same_outcome = sum(bool(ref["success"][i]) == bool(native[i]["success"]) for i in range(n))
     part, gaps, agree, total = [], [], 0, 0
+    at = {k: [] for k in GAP_STEPS}  # the observation gap at step k, in episodes whose flights have not parted by k
     for i in range(n):
         a_j, a_n = ref["actions"][i, : ref["length"][i]], native[i]["actions"]
         m = min(len(a_j), len(a_n))
@@ -145,6 +149,9 @@ def compare(jx: dict, native: list[dict], runner) -> dict:
             k = m
         # observations 0..k were seen by both sides, after the same actions
         gaps.append(np.max(np.abs(native[i]["obs"][: k + 1] - ref["obs"][i, : k + 1])))
+        for step in GAP_STEPS:
+            if step <= k and step < len(native[i]["obs"]):
+                at[step].append(float(np.max(np.abs(native[i]["obs"][step] - ref["obs"][i, step]))))
         seen = ref["obs"][i, : ref["length"][i]]
         mine = runner.batch(seen)
         agree += int(np.sum(np.abs(mine - a_j).reshape(len(a_j), -1).max(axis=1) <= RUNNER_TOL if continuous
@@ -152,7 +159,8 @@ def compare(jx: dict, native: list[dict], runner) -> dict:
         total += len(a_j)
     return {"same_outcome": same_outcome, "identical_flights": n - len(part),
             "median_part_step": float(np.median(part)) if part else None,
-            "max_obs_gap_before_parting": float(np.max(gaps)), "runner_on_jax_obs": (agree, total)}
+            "max_obs_gap_before_parting": float(np.max(gaps)), "runner_on_jax_obs": (agree, total),
+            "parted_at": part, "max_obs_gap_at_step": {str(k): max(v) if v else None for k, v in at.items()}}
 
 
 def main(argv=None) -> int:
@@ -161,6 +169,8 @@ def main(argv=None) -> int:
     ap.add_argument("--policy", default=None, help="the run's export (default: export into a temporary directory)")
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=12345, help="key of the episodes' resets (fresh: not the run's seed)")
+    ap.add_argument("--json", default=None, metavar="FILE",
+                    help="also write the figures printed, and each episode's outcome and length on each side, here")
     args = ap.parse_args(argv)
 
     from jaxrobo.core.config import ConfigError
@@ -207,6 +217,18 @@ def main(argv=None) -> int:
     print(f"exported runner on JAX's observations: {agree}/{total} actions "
           + ("identical" if runner.kind == "tabular" else f"within {RUNNER_TOL:g}"))
     print(f"native loop: {sps:,.0f} control steps/s (one env, policy included)")
+    if args.json:
+        sides = {"native": {"success": [bool(e["success"]) for e in native],
+                            "length": [int(e["length"]) for e in native]}}
+        for name in ("export", "evaluation"):
+            if name in jx:
+                sides[f"jax_{name}"] = {"success": [bool(x) for x in jx[name]["success"]],
+                                        "length": [int(x) for x in jx[name]["length"]]}
+        out = {"env_id": spec.env_id, "policy": what, "kind": runner.kind, "episodes": args.episodes,
+               "seed": args.seed, "backend": getattr(env.options, "backend", None),
+               "native_control_steps_per_s": sps, **c, "sides": sides}
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=1)
     if tmp is not None:
         tmp.cleanup()
     return 0

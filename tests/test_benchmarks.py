@@ -322,3 +322,32 @@ def test_learners_compare_runs_the_pages_commands_and_keeps_each_runs_figures(tm
         assert {k: r[k] for k in again} == again
     bad = subprocess.run(cmd[:2] + ["--n-envs", "0"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--n-envs 0: expected an integer >= 1" in bad.stderr
+
+
+def test_ros_sim2sim_keeps_every_rows_figures(tmp_path):
+    """benchmarks/ros_sim2sim.py shrunk (the Goto-v2 run, 2 episodes a row, ROS left out): the train row, both pages'
+    sim2sim rows with each side's outcomes, and the ROS rows kept as skipped with the reason."""
+    out = tmp_path / "ros_sim2sim.json"
+    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "ros_sim2sim.py"), "--runs", "goto2", "--episodes", "2",
+           "--no-ros", "--out", str(out)]
+    proc = subprocess.run(cmd, env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-3000:]
+    data = json.loads(out.read_text())
+    assert data["device"] and data["code"] and data["command"] and "Shrunk" in data["note"]
+    kinds = [(r["kind"], r.get("page") or r.get("name")) for r in data["rows"]]
+    assert kinds == [("train", None), ("sim2sim", "real_robot"), ("sim2sim", "ros"), ("ros", "goto2_lockstep"),
+                     ("ros", "goto2_speed10")], kinds
+    train = data["rows"][0]
+    assert train["exit_code"] == 0 and train["export_exit_code"] == 0 and 0 <= train["eval_success_rate"] <= 1
+    for r in data["rows"][1:3]:
+        assert r["status"] == "ok" and r["episodes"] == 2 and r["env_id"] == "QuadcopterGoto-v2", r
+        assert 0 <= r["identical_flights"] <= r["same_outcome"] <= r["episodes"]
+        for side in ("native", "jax_export", "jax_evaluation"):
+            assert 0 <= r[f"{side}_success_rate"] <= 1 and r[f"{side}_successes"] <= r["episodes"]
+        agree, total = r["runner_on_jax_obs"]
+        assert agree == total == r["steps_jax_export"] > 0
+        assert len(r["parted_at"]) == r["episodes"] - r["identical_flights"]
+    assert [r["seed"] for r in data["rows"][1:3]] == [12345, 12345]
+    for r in data["rows"][3:]:
+        assert r["status"] == "skipped" and "--no-ros" in r["reason"] and r["episodes"] <= 2
