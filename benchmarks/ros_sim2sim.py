@@ -71,7 +71,8 @@ def run(cmd: list[str], env: dict, log: str, timeout: float) -> dict[str, Any]:
     t0 = time.perf_counter()
     with open(log, "w") as out:
         try:
-            rc = subprocess.run(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, timeout=timeout).returncode
+            rc = subprocess.run(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT,
+                                timeout=timeout).returncode
         except subprocess.TimeoutExpired:
             rc = None
     return {"exit_code": rc, "wall_seconds": round(time.perf_counter() - t0, 2)}
@@ -104,21 +105,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def compare_ros(eps: list[dict], ref: dict) -> dict[str, Any]:
-    """A ROS row's episodes against the sim2sim row on the same resets (its native and JAX sides)."""
+def compare_ros(eps: list[dict], sides: dict[str, dict]) -> dict[str, Any]:
+    """A ROS row's episodes against other flights of the same resets (``sides``: each side's ``success`` and
+    ``length`` per episode): the sim2sim row's native and JAX sides, and a lockstep ROS row's."""
     n = len(eps)
     steps = [e["steps"] for e in eps]
     success = [bool(e["success"]) for e in eps]
     out: dict[str, Any] = {"episodes_flown": n, "success_rate": sum(success) / n if n else None,
                            "successes": sum(success), "mean_steps": sum(steps) / n if n else None}
-    for side in ("native", "jax_export", "jax_evaluation"):
-        if side not in ref["sides"]:
-            continue
-        s = ref["sides"][side]
+    for side, s in sides.items():
         out[f"same_outcome_as_{side}"] = sum(a == b for a, b in zip(success, s["success"]))
         out[f"same_steps_as_{side}"] = sum(a == b for a, b in zip(steps, s["length"]))
-        sub = s["success"][:n]
-        out[f"{side}_success_rate_same_episodes"] = sum(sub) / n if n else None
+        out[f"{side}_success_rate_same_episodes"] = sum(s["success"][:n]) / n if n else None
+        # (episode, steps here, steps there) of each episode flown for another number of steps
+        out[f"steps_differ_from_{side}"] = [(i, a, b) for i, (a, b) in enumerate(zip(steps, s["length"])) if a != b]
     out["steps"] = steps
     return out
 
@@ -199,12 +199,12 @@ def main(argv: list[str] | None = None) -> int:
             row[f"{side}_successes"] = sum(s["success"])
             row[f"{side}_mean_length"] = sum(s["length"]) / n
         row["steps_jax_export"] = sum(sides["jax_export"]["length"])
-        got["sides"] = sides
+        got["sides"] = row["sides"] = sides
         rows.append(row)
         print(f"sim2sim {page} {name}: {n} episodes, same outcome {row['same_outcome']}, identical "
               f"{row['identical_flights']}, {row['wall_seconds']} s", flush=True)
 
-    reason = "--no-ros" if args.no_ros else ros_reason()
+    reason = "left out (--no-ros)" if args.no_ros else ros_reason()
     master = None
     if reason is None:
         from jaxrobo.ros.launch import ros_env, start_master, stop
@@ -217,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
             master = start_master(port, renv)
         except RuntimeError as err:
             reason = str(err)
+    flown: dict[tuple[str, str], dict] = {}  # the lockstep ROS rows' episodes, by run
     try:
         for name, run_name, episodes, seed, flags in ROS:
             if run_name not in names:
@@ -226,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
                    "mode": "lockstep" if "--lockstep" in flags else f"{flags[-1]} x real time"}
             ref = refs.get(("ros", run_name))
             if reason is not None:
-                rows.append({**row, "status": "skipped", "reason": f"ROS 1 unavailable: {reason}"})
+                rows.append({**row, "status": "skipped", "reason": f"ROS 1: {reason}"})
                 continue
             if ref is None:
                 rows.append({**row, "status": "skipped", "reason": f"no sim2sim row of {run_name} to compare with"})
@@ -258,9 +259,15 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             with open(results) as f:
                 eps = json.load(f)["episodes"]
-            row.update(status="ok", **compare_ros(eps, ref))
+            sides = dict(ref["sides"])
+            if "--lockstep" not in flags and (run_name, "lockstep") in flown:
+                sides["ros_lockstep"] = flown[(run_name, "lockstep")]
+            row.update(status="ok", **compare_ros(eps, sides))
+            if "--lockstep" in flags:
+                flown[(run_name, "lockstep")] = {"success": [bool(e["success"]) for e in eps],
+                                                 "length": [e["steps"] for e in eps]}
             with open(slog) as f:
-                row["sim_log_last_line"] = f.read().strip().splitlines()[-1][-300:]
+                row["sim_log_tail"] = [line[-300:] for line in f.read().strip().splitlines()[-3:]]
             rows.append(row)
             print(f"ros {name}: success {row['success_rate']:.3f}, same steps as native "
                   f"{row['same_steps_as_native']}/{n}, {row['wall_seconds']} s", flush=True)
@@ -282,7 +289,9 @@ def main(argv: list[str] | None = None) -> int:
             "MLP, within 1e-5; max_obs_gap_at_step: the largest observation gap at that step over the flights not "
             "yet parted). ROS rows: the sim node and the policy node on a master of localhost, each episode against "
             "the sim2sim row of the same policy and resets (page ros): same outcome and same number of steps as "
-            "native in-process and as JAX.")
+            "native in-process and as JAX, and (at 10 x real time) as the lockstep row's first episodes; "
+            "steps_differ_from_*: (episode, steps here, steps there). sides: each sim2sim side's outcome and length "
+            "per episode.")
     if args.episodes is not None:
         note += f" Shrunk: at most {args.episodes} episodes a row (not the pages' counts)."
     out = {"benchmark": "ros_sim2sim", "device": device_name(), "jax": jax.__version__,

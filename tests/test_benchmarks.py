@@ -348,6 +348,8 @@ def test_ros_sim2sim_keeps_every_rows_figures(tmp_path):
         agree, total = r["runner_on_jax_obs"]
         assert agree == total == r["steps_jax_export"] > 0
         assert len(r["parted_at"]) == r["episodes"] - r["identical_flights"]
+        assert all(len(v) == r["episodes"] for side in r["sides"].values() for v in side.values())
+        assert r["native_successes"] == sum(r["sides"]["native"]["success"])
     assert [r["seed"] for r in data["rows"][1:3]] == [12345, 12345]
     for r in data["rows"][3:]:
         assert r["status"] == "skipped" and "--no-ros" in r["reason"] and r["episodes"] <= 2
