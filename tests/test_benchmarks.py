@@ -324,6 +324,7 @@ def test_learners_compare_runs_the_pages_commands_and_keeps_each_runs_figures(tm
     assert bad.returncode == 2 and "--n-envs 0: expected an integer >= 1" in bad.stderr
 
 
+@pytest.mark.slow
 def test_ros_sim2sim_keeps_every_rows_figures(tmp_path):
     """benchmarks/ros_sim2sim.py shrunk (the Goto-v2 run, 2 episodes a row, ROS left out): the train row, both pages'
     sim2sim rows with each side's outcomes, and the ROS rows kept as skipped with the reason."""
