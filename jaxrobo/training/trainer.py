@@ -414,9 +414,10 @@ class Trainer:
         Why: the last updates of a run come from the few envs still flying, and a greedy flight that loops between
         two near-tied states lowers the loop's values on every lap until another action wins there; the table
         frozen at the end keeps whichever flip came last, and its greedy policy may loop where a table a few
-        chunks earlier did not (docs/quadcopter.md, "Seeds that fail"). Each candidate flies the same
-        ``snapshot_episodes`` greedy episodes, from ``fold_in(key, 3)`` of the run's ``key`` (the evaluation's
-        are 1 and 2: :func:`jaxrobo.training.driver.evaluation_keys`), and the best by the task's learning target
+        chunks earlier did not (docs/quadcopter.md, "Why the run keeps the best of its late tables"). Each
+        candidate flies the same ``snapshot_episodes`` greedy episodes, from ``fold_in(key, 3)`` of the run's
+        ``key`` (the evaluation's are 1 and 2: :func:`jaxrobo.training.driver.evaluation_keys`), and the best by
+        the task's learning target
         (:func:`jaxrobo.task.env.ranking`; a tie by the higher mean return, then the later table) is kept. Pure
         and traceable: ``jaxrobo train``, the sweep and the benchmarks' vmapped populations choose alike."""
         if runner.snapshots is None:
