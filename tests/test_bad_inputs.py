@@ -327,6 +327,8 @@ TRAIN = [
       "--set", "fused=pallas", "--set", "env.backend=mjx"),
     T("running-step-off-grid", "running_step=0.0333 s is not a whole multiple of the physics timestep",
       "--set", "running_step=0.0333"),
+    T("timestep-tiny", "timestep=1e-12 s: running_step=0.04 s would take 4e+10 physics steps per control step; "
+      "expected at most 100,000", "--set", "timestep=1e-12"),
     # combinations
     T("double-q-seed-compat", "agent='double_q' with seed_compat=true: the seed's learners had one table",
       "--agent", "double_q", "--set", "seed_compat=true"),

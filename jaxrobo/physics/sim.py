@@ -103,11 +103,21 @@ class MjxState:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
+#: Most physics steps one control step may take: a tiny ``timestep`` would otherwise overflow the substep loop's
+#: int32 length (a traceback from inside a compiled step) or step for hours per control step.
+MAX_SUBSTEPS = 100_000
+
+
 def substeps_for(running_step: float, timestep: float) -> int:
-    """How many physics steps make one control step; the two must divide evenly (to 1e-6)."""
+    """How many physics steps make one control step; the two must divide evenly (to 1e-6), in at most
+    :data:`MAX_SUBSTEPS` physics steps."""
     if running_step <= 0 or timestep <= 0:
         raise ValueError(f"running_step ({running_step}) and timestep ({timestep}) must be > 0")
     n = running_step / timestep
+    if n > MAX_SUBSTEPS:
+        raise ValueError(f"timestep={timestep} s: running_step={running_step} s would take {n:.4g} physics steps "
+                         f"per control step; expected at most {MAX_SUBSTEPS:,} (timestep >= "
+                         f"{running_step / MAX_SUBSTEPS:.3g} s)")
     if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 1:
         raise ValueError(
             f"running_step={running_step} s is not a whole multiple of the physics timestep={timestep} s; "
