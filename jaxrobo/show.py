@@ -25,7 +25,7 @@ from jaxrobo.io import rundir
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", nargs="?", help="training run directory (tabular or ppo/sac)")
     parser.add_argument("--env", dest="env_id", help="show this env id with a random policy (no run needed)")
-    parser.add_argument("--preset", default="default", help="agent preset when --env is given")
+    parser.add_argument("--preset", default=None, help="agent preset when --env is given (default: default)")
     parser.add_argument("--out", default=None,
                         help="image to write (default: RUN_DIR/show.png, or runs/show/ENV.png with --env)")
     parser.add_argument("--episodes", type=int, default=6, help="episodes to run and draw")
@@ -33,9 +33,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="which trained table (env index) to show; default the run's selected best table "
                              "(summary.json), else 0")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the episodes")
-    parser.add_argument("--policy", default="latest", choices=("latest", "best"),
-                        help="a ppo/sac run's policy: latest (the trained one; a stopped run's last evaluation "
-                             "point's) or best (its best evaluation's)")
+    parser.add_argument("--policy", default=None, choices=("latest", "best"),
+                        help="a ppo/sac run's policy: latest (the default: the trained one; a stopped run's last "
+                             "evaluation point's) or best (its best evaluation's)")
     parser.add_argument("--video", metavar="PATH", default=None,
                         help="render one episode of the run's policy (a trained table, a saved ppo/sac policy, or "
                              "random with --env) to this .gif or .mp4 instead of drawing the figure; needs an "
@@ -220,6 +220,18 @@ def check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--seed {args.seed}: must be an integer >= 0 and <= {INT32_MAX}")
     if args.table is not None and args.table < 0:
         raise ConfigError(f"--table {args.table}: must be an integer >= 0")
+    # Flags that would be silently ignored are refused, naming what they apply to.
+    if args.env_id and args.table is not None:
+        raise ConfigError(f"--table {args.table}: --env flies a random policy, which has no tables; drop --table")
+    if args.env_id and args.policy is not None:
+        raise ConfigError(f"--policy {args.policy}: --env flies a random policy; --policy chooses a ppo/sac run's "
+                          "saved policy")
+    if args.run_dir and args.preset is not None:
+        raise ConfigError(f"--preset {args.preset}: a run directory flies with its own config.yaml; --preset "
+                          "applies to --env only")
+    if args.video is not None and args.out is not None:
+        raise ConfigError(f"--out {args.out!r} with --video: --video writes the episode instead of the figure; "
+                          "give one of them")
     if args.out is None:
         args.out = default_out(args.run_dir, args.env_id)
     check_image_path(args.out)
@@ -424,17 +436,21 @@ def run(args: argparse.Namespace) -> int:
         check_args(args)
         if args.run_dir and deep.is_deep_run(args.run_dir):
             args.table = args.table or 0
+            args.policy = args.policy or "latest"
             spec, policy = _load_deep_run(args.run_dir, args.table, args.policy)
             q = None
             name = f"{spec.agent} {args.policy} policy"
         elif args.run_dir:
+            if args.policy is not None:
+                raise ConfigError(f"--policy {args.policy}: {args.run_dir} is a tabular run (its q-tables, not a "
+                                  "ppo/sac policy); choose a table with --table N")
             spec, cfg, q = _load_run(args.run_dir)
             if args.table is None:
                 args.table = selected_table(args.run_dir, q.shape[0])
             check_table(q, args.table, os.path.join(args.run_dir, "qtables.npz"))
             name = f"greedy {spec.config.agent}, table {args.table}"
         else:
-            spec, q = resolve(args.env_id, args.preset, check_memory=False), None
+            spec, q = resolve(args.env_id, args.preset or "default", check_memory=False), None
             args.table = 0
             name = "random policy (untrained)"
     except ConfigError as err:

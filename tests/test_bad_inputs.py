@@ -629,6 +629,15 @@ SHOW = [
     S("env-cartpole-episodes-zero", "--episodes 0: must be an integer >= 1", "--env", CP, "--episodes", "0"),
     S("env-unknown", "environment id: unknown key 'Nope-v0'", "--env", "Nope-v0"),
     S("env-bad-preset", "preset='nope': allowed values are default, seed", "--env", GOTO, "--preset", "nope"),
+    # flags that would be silently ignored
+    S("env-with-table", "--table 1: --env flies a random policy, which has no tables", "--env", GOTO, "--table", "1"),
+    S("env-with-policy", "--policy best: --env flies a random policy", "--env", GOTO, "--policy", "best"),
+    S("run-with-preset", "--preset seed: a run directory flies with its own config.yaml", "{tmp}/run", "--preset",
+      "seed", setup=run_dir()),
+    S("tabular-run-with-policy", "--policy best: {tmp}/run is a tabular run", "{tmp}/run", "--policy", "best",
+      setup=run_dir()),
+    Case("show-video-and-out", "show", ("{tmp}/run", "--video", "{tmp}/v.gif", "--out", "{tmp}/f.png"),
+         "--out '{tmp}/f.png' with --video: --video writes the episode instead of the figure", run_dir()),
     Case("show-out-not-image", "show", ("{tmp}/run", "--out", "{tmp}/flights.txt"),
          "--out '{tmp}/flights.txt': expected an image file", run_dir()),
     # hostile config.yaml and qtables.npz
