@@ -566,6 +566,12 @@ PLOT = [
     P("stats-duplicate-column", "episode_stats.csv: column(s) 'return_mean' named twice", "{tmp}/r",
       setup=csv_run("episode_stats.csv", STATS_HEADER.replace("\n", ",return_mean\n") + STATS_ROW.replace("\n", ",1\n")
                     + STATS_ROW.replace("0,", "1,", 1).replace("\n", ",1\n"))),
+    P("stats-episode-nan", "episode_stats.csv line 2: column episode=nan: expected a whole number in 0..2147483647",
+      "{tmp}/r", setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW.replace("0,", "nan,", 1))),
+    P("stats-episode-fraction", "episode_stats.csv line 3: column episode=1.5: expected a whole number", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW + STATS_ROW.replace("0,", "1.5,", 1))),
+    P("stats-episode-negative", "episode_stats.csv line 2: column episode=-3: expected a whole number", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW.replace("0,", "-3,", 1))),
     P("x-not-a-choice", "jaxrobo plot: argument --x: invalid choice: 'time' (choose from", "{tmp}/r", "--x", "time"),
     P("window-not-int", "jaxrobo plot: argument --window: invalid int value: '2.5'", "{tmp}/r", "--window", "2.5"),
     P("second-run-broken", "missing column(s)", "{tmp}/r", "{tmp}/s",

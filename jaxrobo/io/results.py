@@ -549,21 +549,30 @@ def read_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:
 MAX_CSV_INDEX = 2**31 - 1
 
 
+def _check_indices(path: str, data: dict[str, np.ndarray], lines: list[int], names: tuple[str, ...]) -> None:
+    """ValueError naming the file, line and column where a column of ``names`` is not a whole number in
+    0..:data:`MAX_CSV_INDEX` (NaN and inf included)."""
+    for name in names:
+        col = data[name]
+        with np.errstate(invalid="ignore"):
+            bad = np.flatnonzero(~((col >= 0) & (col <= MAX_CSV_INDEX) & (col == np.round(col))))
+        if bad.size:  # before any cast: 1e300 as an int is garbage, and garbage indexes or sizes an array
+            raise ValueError(f"{path} line {lines[bad[0]]}: column {name}={col[bad[0]]:.15g}: expected a whole "
+                             f"number in 0..{MAX_CSV_INDEX}")
+
+
 def load_stats(run_dir: str) -> dict[str, np.ndarray]:
     """Per-episode statistics of a run (from ``episode_stats.csv``, else computed from ``episodes.csv``)."""
     path = os.path.join(run_dir, "episode_stats.csv")
     if os.path.exists(path):
-        return read_columns(path, PLOTTED_STATS)
+        data, lines = _read_columns(path, PLOTTED_STATS)
+        _check_indices(path, data, lines, ("episode",))  # the x axis: a NaN, negative or 1.5 episode is no episode
+        return data
     path = os.path.join(run_dir, "episodes.csv")
     if not os.path.exists(path):
         raise FileNotFoundError(f"{run_dir}: no episode_stats.csv or episodes.csv; is it a jaxrobo run directory?")
     data, lines = _read_columns(path, ("env", "episode", "return", "length", "epsilon"))
-    for name in ("env", "episode"):
-        col = data[name]
-        bad = np.flatnonzero((col < 0) | (col > MAX_CSV_INDEX) | (col != np.round(col)))
-        if bad.size:  # before any cast: 1e300 as an int is garbage, and garbage indexes or sizes an array
-            raise ValueError(f"{path} line {lines[bad[0]]}: column {name}={col[bad[0]]:.15g}: expected a whole "
-                             f"number in 0..{MAX_CSV_INDEX}")
+    _check_indices(path, data, lines, ("env", "episode"))
     env, ep = data["env"].astype(np.int64), data["episode"].astype(np.int64)
     n_env, n_ep = int(env.max()) + 1, int(ep.max()) + 1
     if n_env * n_ep > 10 * env.size + 1_000_000:  # Python ints: no overflow
