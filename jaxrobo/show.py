@@ -78,7 +78,8 @@ def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
     overrides.update({f"agent.{k}": v for k, v in (cfg.get("agent_params") or {}).items()})
     overrides.update({f"agent.{k}": v for k, v in (cfg.get("train") or {}).items()})
     try:
-        spec = resolve(cfg["env_id"], cfg.get("preset", "default"), overrides, check_memory=False)
+        spec = resolve(cfg["env_id"], cfg.get("preset", "default"), overrides, check_memory=False,
+                       source="")  # an unknown key: named after the file, not as a --set
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
     q = load_tables(run_dir)["q"]

@@ -456,6 +456,10 @@ TRAIN = [
          f"is of env_id '{CP}'; with --resume, --env only confirms", resumable(config=cp_config()), out=False),
     Case("train-resume-missing", "train", ("--resume", "{tmp}/nope"), "--resume {tmp}/nope: no such run directory",
          out=False),
+    # a key the env does not have (an env_id edited to another task's) is named as config.yaml's, not as a --set
+    Case("train-resume-config-unknown-key", "train", ("--resume", "{tmp}/run"),
+         "--resume {tmp}/run: config.yaml: unknown key '", resumable(config=cp_config(env_id="ArmReach-v0")),
+         out=False),
 ]
 
 SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
@@ -635,6 +639,8 @@ SHOW = [
     S("env-cartpole-episodes-zero", "--episodes 0: must be an integer >= 1", "--env", CP, "--episodes", "0"),
     S("env-unknown", "environment id: unknown key 'Nope-v0'", "--env", "Nope-v0"),
     S("env-bad-preset", "preset='nope': allowed values are default, seed", "--env", GOTO, "--preset", "nope"),
+    S("config-key-of-another-env", "{tmp}/run/config.yaml: unknown key '", "{tmp}/run",
+      setup=lambda tmp, mp: write_run(tmp, config=cp_config(env_id="ArmReach-v0"))),
     # flags that would be silently ignored
     S("env-with-table", "--table 1: --env flies a random policy, which has no tables", "--env", GOTO, "--table", "1"),
     S("env-with-policy", "--policy best: --env flies a random policy", "--env", GOTO, "--policy", "best"),

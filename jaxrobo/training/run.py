@@ -290,13 +290,16 @@ def check_train_arguments(env: Env, config: Any, agent_params: Any = None, env_p
 
 
 def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] | None = None,
-            agent: str | None = None, check_memory: bool = True, device_defaults: bool = True) -> RunSpec:
+            agent: str | None = None, check_memory: bool = True, device_defaults: bool = True,
+            source: str = "--set") -> RunSpec:
     """Build env, learner parameters and loop config for a run; raises :class:`ConfigError` on any bad value.
 
     Everything is checked here, before anything compiles: each value against its declared rule, combinations
     (:func:`check_combinations`), the discretiser against the task's observation, and (``check_memory``) the
     batch's estimated memory against what the device has (:func:`jaxrobo.training.budget.check_memory`).
     ``device_defaults``: apply the preset's ``on_gpu`` settings on an accelerator (:func:`device_overlay`).
+    ``source``: where ``overrides`` come from, as an unknown key's message names it (a run's config.yaml on
+    ``--resume``, not ``--set``).
     """
     env_id = _lookup(env_id).spec.id  # a deprecated alias resolves (and warns) once; the run records the real id
     presets = agent_presets(env_id)
@@ -314,7 +317,7 @@ def resolve(env_id: str, preset: str = "default", overrides: Mapping[str, Any] |
     agent_values = chosen
     given: dict[str, Any] = {}
     for key, value in (overrides or {}).items():
-        r = route(env_id, key)
+        r = route(env_id, key, where=source)
         if r.side == "agent":
             agent_values[r.name] = given[r.name] = value
         else:
@@ -366,7 +369,8 @@ def spec_from_config(run_config: Any, where: str = "config.yaml", trusted_env: s
     except (KeyError, TypeError, AttributeError) as err:
         raise ConfigError(f"{where}: config.yaml is not a jaxrobo run configuration (missing {err})") from err
     find(env_id, where=f"{where}: config.yaml env_id", may_import=trusted_env is not None and env_id == trusted_env)
-    spec = resolve(env_id, preset, overrides, check_memory=check_memory)
+    source = "" if where == "config.yaml" else f"{where}: config.yaml"  # "": the caller names the file
+    spec = resolve(env_id, preset, overrides, check_memory=check_memory, source=source)
     again = json.loads(json.dumps(spec.to_dict()))
     if again != json.loads(json.dumps(run_config)):
         a, b = flat_keys(run_config), flat_keys(again)
