@@ -499,6 +499,8 @@ SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
     ("range-key-twice", ("--random", "2", "--range", "alpha=0.1:0.5", "--range", "alpha=0.2:0.6"),
      "--range alpha: given twice"),
     ("grid-empty-value", ("--grid", "alpha=0.1,,0.3"), "--grid 'alpha=0.1,,0.3': value 2 of 3 is empty"),
+    ("grid-value-twice", ("--grid", "alpha=0.1,0.3,0.10"), "--grid 'alpha=0.1,0.3,0.10': value 0.1 is given twice"),
+    ("grid-list-value-twice", ("--grid", "rand_cart_mass=[1,1],[1,1]"), "value [1, 1] is given twice"),
     ("grid-trailing-comma", ("--grid", "alpha=0.1,"), "value 2 of 2 is empty"),
     ("grid-only-commas", ("--grid", "alpha=,"), "value 1 of 2 is empty"),
     ("set-float32-zero", ("--set", "alpha=1e-320"), "alpha=1e-320: is 0 in float32"),

@@ -64,6 +64,9 @@ def parse_grid(items: Sequence[str]) -> dict[str, list[Any]]:
             raise ConfigError(f"--grid {key}: given twice ({','.join(map(str, axes[key]))} and {text}); give each "
                               "key once, with all its values")
         axes[key] = [parse_value(v.strip(), key) for v in parts]
+        twice = [i for i, v in enumerate(axes[key]) if v in axes[key][:i]]
+        if twice:  # 0.1,0.10 or 0.1,0.1: the same configuration twice, its rows run and ranked as two (a typo)
+            raise ConfigError(f"--grid {item!r}: value {axes[key][twice[0]]!r} is given twice; give each value once")
     return axes
 
 
