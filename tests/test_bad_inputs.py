@@ -456,6 +456,9 @@ TRAIN = [
          f"is of env_id '{CP}'; with --resume, --env only confirms", resumable(config=cp_config()), out=False),
     Case("train-resume-missing", "train", ("--resume", "{tmp}/nope"), "--resume {tmp}/nope: no such run directory",
          out=False),
+    Case("train-resume-a-file", "train", ("--resume", "{tmp}/f"), "--resume {tmp}/f: is an existing file, not a run "
+         "directory; give the directory of the run to go on with", lambda tmp, mp: open(f"{tmp}/f", "w").close(),
+         out=False),
     # a key the env does not have (an env_id edited to another task's) is named as config.yaml's, not as a --set
     Case("train-resume-config-unknown-key", "train", ("--resume", "{tmp}/run"),
          "--resume {tmp}/run: config.yaml: unknown key '", resumable(config=cp_config(env_id="ArmReach-v0")),

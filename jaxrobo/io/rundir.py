@@ -183,6 +183,9 @@ def check_out(path: str, *, overwrite: bool = False, resume: bool = False, flag:
     where = f"{flag} {path}"
     path = resolve_out(path, flag)
     if os.path.exists(path) and not os.path.isdir(path):
+        if resume:  # the advice for --out (a new or empty directory) would be nonsense here
+            raise ConfigError(f"{where}: is an existing file, not a run directory; give the directory of the run "
+                              "to go on with")
         raise ConfigError(f"{where}: is an existing file, not a directory; give a new or empty directory "
                           "(--overwrite replaces run directories only)")
     if resume:
