@@ -164,8 +164,8 @@ def cp_config(**changes: Any) -> dict[str, Any]:
     return {**resolve(CP, check_memory=False).to_dict(), **changes}
 
 
-def interrupted_sweep(env_id: str) -> Callable[[str, Any], None]:
-    """An interrupted sweep ({tmp}/sw) whose saved flags name ``env_id``."""
+def interrupted_sweep(env_id: str, **flags: Any) -> Callable[[str, Any], None]:
+    """An interrupted sweep ({tmp}/sw) whose saved flags name ``env_id`` (and ``flags``)."""
     def setup(tmp: str, monkeypatch: Any) -> None:
         import json
 
@@ -178,7 +178,7 @@ def interrupted_sweep(env_id: str) -> Callable[[str, Any], None]:
         with open(os.path.join(d, "status.json"), "w") as f:
             json.dump({"status": "interrupted", "out": "/somewhere/else"}, f)
         with open(os.path.join(d, "sweep_state.json"), "w") as f:
-            json.dump({"format": 1, "extra": {"flags": {**SWEEP_FLAGS, "env": env_id}, "argv": []}}, f)
+            json.dump({"format": 1, "extra": {"flags": {**SWEEP_FLAGS, "env": env_id, **flags}, "argv": []}}, f)
         evil_module(tmp, monkeypatch)
     return setup
 
@@ -532,6 +532,17 @@ SWEEP += [
     Case("sweep-resume-module-env", "sweep", ("--resume", "{tmp}/sw"),
          f"names the Python module '{EVIL}', which a file read back never imports",
          interrupted_sweep(f"{EVIL}:Foo-v0"), out=False),
+    # hand-edited saved flags: refused naming the flag, where they failed deep in the sweep with a traceback
+    Case("sweep-resume-saved-seeds-str", "sweep", ("--resume", "{tmp}/sw"),
+         "sweep_state.json: saved flag --seeds='4': expected an integer", interrupted_sweep(CP, seeds="4"), out=False),
+    Case("sweep-resume-saved-metric-unknown", "sweep", ("--resume", "{tmp}/sw"),
+         "sweep_state.json: saved flag --metric='best': expected one of final_return,",
+         interrupted_sweep(CP, metric="best"), out=False),
+    Case("sweep-resume-saved-no-plots-str", "sweep", ("--resume", "{tmp}/sw"),
+         "saved flag --no-plots='yes': expected true or false", interrupted_sweep(CP, no_plots="yes"), out=False),
+    Case("sweep-resume-saved-grid-str", "sweep", ("--resume", "{tmp}/sw"),
+         "saved flag --grid='alpha=0.1': expected a list of strings", interrupted_sweep(CP, grid="alpha=0.1"),
+         out=False),
 ]
 
 

@@ -121,9 +121,10 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
         raise ConfigError(f"--out {args.out}: a resumed sweep finishes where it was going to; drop --out")
     live = rundir.check_out(live, resume=True, flag="--resume")
     extra = read_state(live).get("extra", {})
-    saved = extra.get("flags")
+    saved = extra.get("flags") if isinstance(extra, dict) else None
     if not isinstance(saved, dict) or set(saved) != set(SWEEP_FLAGS):
         raise ConfigError(f"--resume {live}: its sweep state has no command-line flags to resume from")
+    _check_saved_flags(live, saved)
     for k, v in given.items():
         if v is not None and _canonical(v) != saved[k]:
             raise ConfigError(f"--resume {live}: {_flag(k)} {_show(v)} differs from the saved sweep's "
@@ -136,6 +137,33 @@ def sweep_flags(args: argparse.Namespace, check_out: bool = True) -> tuple[str, 
     # staging sibling of an --overwrite sweep (.NAME.<r>.partial), the run NAME beside it.
     out = rundir.run_name(live)
     return out, dict(saved), list(extra.get("argv") or [])
+
+
+#: What each saved flag may be, as the parser gives it (None: the flag was not given).
+_STR_FLAGS = ("env", "agent", "preset")
+_LIST_FLAGS = ("grid", "ranges", "set")
+
+
+def _check_saved_flags(live: str, saved: Mapping[str, Any]) -> None:
+    """The flags read back from a sweep's state must be of the types the parser gives (a hand-edited
+    ``sweep_state.json`` of ``"seeds": "4"`` or ``"metric": "best"`` would fail deep in the sweep, with a
+    traceback): ConfigError naming the file and flag."""
+    from jaxrobo.training.sweep.state import STATE_FILE
+
+    for k, v in saved.items():
+        if k in _STR_FLAGS:
+            ok, want = v is None or isinstance(v, str), "a string"
+        elif k in _LIST_FLAGS:
+            ok, want = v is None or (isinstance(v, list) and all(isinstance(x, str) for x in v)), "a list of strings"
+        elif k == "metric":
+            ok, want = v in METRICS, f"one of {', '.join(METRICS)}"
+        elif k == "no_plots":
+            ok, want = isinstance(v, bool), "true or false"
+        else:
+            ok, want = v is None or (isinstance(v, int) and not isinstance(v, bool)), "an integer"
+        if not ok:
+            raise ConfigError(f"--resume {live}: {STATE_FILE}: saved flag {_flag(k)}={v!r}: expected {want}; "
+                              "edited by hand?")
 
 
 def _all_agree(ok: bool) -> bool:
