@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 
 import numpy as np
@@ -140,6 +141,35 @@ def test_a_policy_that_does_not_match_its_networks_is_refused(tmp_path):
     with open(tmp_path / "policy.json", "w") as f:
         json.dump(net, f)
     with pytest.raises(ConfigError, match="has shape"):
+        deep.load_policy(str(tmp_path))
+
+
+@pytest.mark.parametrize("change, fragment", [
+    ({"policy_hidden_layer_sizes": [-4]}, "policy_hidden_layer_sizes=[-4]: expected a non-empty list of integers"),
+    ({"normalize_observations": "yes"}, "normalize_observations='yes': expected true or false"),
+    ({"observation_size": 3.0}, "observation_size=3.0: expected an integer >= 1"),
+    ({"nan_weight": True}, "has 1 non-finite values (NaN or inf)"),
+    ({"zero_std": True}, "0/std holds values <= 0"),
+])
+def test_a_tampered_policy_is_refused_naming_the_field(tmp_path, change, fragment):
+    """A hand-edited policy.json (a negative layer width was a traceback inside Brax; a string flag was taken as
+    true) or a policy.npz of NaN weights or a zero normaliser std (flown and exported as a policy) is refused."""
+    from jaxrobo import deep
+    from jaxrobo.deep.policy import _template
+    from jaxrobo.core.config import ConfigError
+
+    net = {"format": 1, "agent": "ppo", "observation_size": 3, "action_size": 1, "normalize_observations": True,
+           "policy_hidden_layer_sizes": [4], "value_hidden_layer_sizes": [4], "env_id": CPC}
+    deep.save_policy(str(tmp_path), _template(net), net)
+    arrays = dict(np.load(tmp_path / "policy.npz"))
+    if change.pop("nan_weight", False):
+        arrays["1/params/hidden_0/kernel"][0, 0] = np.nan
+    if change.pop("zero_std", False):
+        arrays["0/std"][:] = 0
+    np.savez(tmp_path / "policy.npz", **arrays)
+    with open(tmp_path / "policy.json", "w") as f:
+        json.dump({**net, **change}, f)
+    with pytest.raises(ConfigError, match=re.escape(fragment)):
         deep.load_policy(str(tmp_path))
 
 

@@ -162,6 +162,26 @@ def policy_dir(run_dir: str, which: str = "latest") -> str:
     return os.path.join(run_dir, POLICIES[which]) if POLICIES[which] else run_dir
 
 
+def _check_network_config(net: Mapping[str, Any]) -> None:
+    """ValueError naming the field of a ``policy.json`` whose sizes or flags Brax's network makers would take
+    and fail on deep inside (a traceback) or silently misread (``"normalize_observations": "yes"``)."""
+    from jaxrobo.deep.config import _LAYERS, MAX_LAYER
+
+    def is_int(x: Any, high: int) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool) and 1 <= x <= high
+
+    for name in ("observation_size", "action_size"):
+        if not is_int(net[name], 1 << 20):
+            raise ValueError(f"{name}={net[name]!r}: expected an integer >= 1 and <= {1 << 20}")
+    if not isinstance(net["normalize_observations"], bool):
+        raise ValueError(f"normalize_observations={net['normalize_observations']!r}: expected true or false")
+    for name in _LAYERS[net["agent"]]:
+        sizes = net.get(name)
+        if not isinstance(sizes, list) or not sizes or not all(is_int(x, MAX_LAYER) for x in sizes):
+            raise ValueError(f"{name}={sizes!r}: expected a non-empty list of integers >= 1 and <= {MAX_LAYER} "
+                             f"(the {net['agent']} networks' layer widths)")
+
+
 def load_policy(run_dir: str, which: str = "latest") -> LoadedPolicy:
     """The ``which`` policy (:data:`POLICIES`) a deep run saved (a finished run, or one stopped after its first
     evaluation point); :class:`ConfigError` naming the file when it is missing, pickled, or does not match its
@@ -183,11 +203,13 @@ def load_policy(run_dir: str, which: str = "latest") -> LoadedPolicy:
         missing = [k for k in nets_config_keys if k not in net]
         if missing or net["agent"] not in AGENTS:
             raise ValueError(f"missing {', '.join(missing)}" if missing else f"agent={net['agent']!r}")
+        _check_network_config(net)
     except (OSError, ValueError) as err:
         raise ConfigError(f"{json_path}: not a policy description ({err})") from None
     from jaxrobo.io.npz import read_npz
 
-    arrays = read_npz(npz_path, "the policy's parameters", finite=False)  # headers checked first; NpzError
+    # Headers checked first (NpzError); NaN or inf weights (a diverged run's) would fly or export as a policy.
+    arrays = read_npz(npz_path, "the policy's parameters", finite=True)
     try:
         template = _template(net)
     except (KeyError, TypeError, ValueError) as err:
@@ -204,6 +226,9 @@ def load_policy(run_dir: str, which: str = "latest") -> LoadedPolicy:
         if value.shape != np.shape(leaf):
             raise ConfigError(f"{npz_path}: {name} has shape {value.shape}, the networks of {POLICY_JSON} need "
                               f"{np.shape(leaf)}")
+        if name.endswith("/std") and np.any(value <= 0):  # the normaliser divides by it: inf or flipped obs
+            raise ConfigError(f"{npz_path}: {name} holds values <= 0 (the observation normaliser's standard "
+                              "deviations must be > 0)")
         leaves.append(value.astype(np.asarray(leaf).dtype))
     extra = sorted(set(arrays) - names)
     if extra:
