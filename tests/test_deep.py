@@ -144,6 +144,18 @@ def test_a_policy_that_does_not_match_its_networks_is_refused(tmp_path):
         deep.load_policy(str(tmp_path))
 
 
+def test_an_unknown_key_in_a_deep_run_config_is_named_as_the_file_s_not_a_set():
+    from jaxrobo import deep
+    from jaxrobo.core.config import ConfigError
+
+    cfg = deep.resolve(CPC, "ppo", "tiny").to_dict()
+    cfg["train"]["bogus_key"] = 1
+    with pytest.raises(ConfigError) as err:
+        deep.spec_from_config(cfg, "run/config.yaml")
+    assert str(err.value).startswith("run/config.yaml: (ppo on CartPoleContinuous-v0): unknown key 'bogus_key'")
+    assert "--set" not in str(err.value)
+
+
 @pytest.mark.parametrize("change, fragment", [
     ({"policy_hidden_layer_sizes": [-4]}, "policy_hidden_layer_sizes=[-4]: expected a non-empty list of integers"),
     ({"normalize_observations": "yes"}, "normalize_observations='yes': expected true or false"),

@@ -253,11 +253,12 @@ def check_spec(spec: Any, where: str = "deep.train(spec)") -> None:
     check_action_space(spec.env, spec.config.agent, spec.env_id)
 
 
-def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping[str, Any] | None = None
-            ) -> DeepRunSpec:
+def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping[str, Any] | None = None,
+            source: str = "--set") -> DeepRunSpec:
     """Build the env and the trainer's config of a deep run; :class:`ConfigError` on any bad value, before
     anything compiles. Override keys: a field of the agent's config, or an env option/parameter (``env.KEY``
-    forces the env, ``agent.KEY`` the config)."""
+    forces the env, ``agent.KEY`` the config). ``source``: where the overrides come from, as an unknown key's
+    message names it (``""`` where the caller names a run's config.yaml)."""
     from jaxrobo.task.registry import _lookup, make
 
     cls = config_class(agent)
@@ -274,9 +275,10 @@ def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping
     env_cls = _lookup(env_id).env_class()
     env_keys = {**rules(env_cls.Options), **rules(env_cls.Params)}
     agent_keys = rules(cls)
+    loc = f"{source} " if source else ""
     for key, value in _unalias(overrides or {}, "--set").items():
         if not isinstance(key, str):
-            raise unknown_key(repr(key), set(agent_keys) | set(env_keys), where="--set")
+            raise unknown_key(repr(key), set(agent_keys) | set(env_keys), where=source)
         side, name = key.split(".", 1) if key.startswith(("env.", "agent.")) else (None, key)
         if side != "env" and name in agent_keys:
             agent_values[name] = value
@@ -284,7 +286,7 @@ def resolve(env_id: str, agent: str, preset: str = "default", overrides: Mapping
             env_values[name] = value
         else:
             known = agent_keys if side == "agent" else env_keys if side == "env" else {**agent_keys, **env_keys}
-            raise unknown_key(name, known, where=f"--set ({agent} on {env_id})")
+            raise unknown_key(name, known, where=f"{loc}({agent} on {env_id})")
     agent_values["agent"] = agent
     where = f"{env_id} --agent {agent} preset {preset}"
     (kw,) = split_and_validate(agent_values, cls, where=where)
@@ -308,6 +310,6 @@ def spec_from_config(run_config: Mapping[str, Any], where: str = "config.yaml") 
         raise ConfigError(f"{where}: not a jaxrobo deep-RL run configuration (missing {err})") from err
     find(env_id, where=f"{where}: env_id {env_id}")
     try:
-        return resolve(env_id, agent, preset, overrides)
+        return resolve(env_id, agent, preset, overrides, source="")  # an unknown key: named after the file
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
