@@ -28,6 +28,8 @@ import numpy as np
 COLUMNS = ("shift", "value", "metric", "mean", "worst", "best", "tables", "episodes")
 #: Most tables one evaluation flies (each flies ``--episodes`` episodes per value).
 MAX_TABLES = 4096
+#: Tables evaluated without ``--tables`` (fewer where the run has fewer).
+DEFAULT_TABLES = 8
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -37,7 +39,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="a randomisable quantity and the values to evaluate at, e.g. mass=0.8,1.0,1.2 or "
                              "wind=0,0.5,1 (repeatable; names: the task's rand_* ranges without the prefix)")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per table and value")
-    parser.add_argument("--tables", type=int, default=8, help="how many of the run's tables to evaluate")
+    parser.add_argument("--tables", type=int, default=None,
+                        help=f"how many of the run's tables to evaluate (default: {DEFAULT_TABLES}, or all the run "
+                             "has where fewer)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes (the same for every value)")
     parser.add_argument("--out", default=None, help="output directory (default <RUN>/robustness)")
     parser.add_argument("--overwrite", action="store_true",
@@ -75,7 +79,7 @@ def parse_shifts(items: Sequence[str] | None, params: Any) -> dict[str, list[flo
     return out
 
 
-def _load(run_dir: str, tables: int) -> tuple[Any, Any, Any]:
+def _load(run_dir: str, tables: int | None) -> tuple[Any, Any, Any]:
     """``(env, policies, kind)``: the run's env, a function ``(q_or_none, key, obs) -> action`` maker, and the
     run's tables (``[T, n_tables, n_states, n_actions]``) or None for a deep run."""
     from jaxrobo import deep
@@ -85,10 +89,14 @@ def _load(run_dir: str, tables: int) -> tuple[Any, Any, Any]:
     if not os.path.isdir(run_dir):
         raise ConfigError(f"run directory {run_dir!r} does not exist (or is not a directory)")
     if deep.is_deep_run(run_dir):
+        if tables is not None:  # silently ignored otherwise
+            raise ConfigError(f"--tables {tables}: a ppo/sac run has one policy, no tables; drop the flag")
         spec, policy = _load_deep_run(run_dir, 0)
         return spec, policy, None
     spec, _, q = _load_run(run_dir)
-    n = min(tables, q.shape[0])
+    if tables is not None and tables > q.shape[0]:  # was cut to the run's count without a word
+        raise ConfigError(f"--tables {tables}: the run has {q.shape[0]} tables; expected 1..{q.shape[0]}")
+    n = min(DEFAULT_TABLES if tables is None else tables, q.shape[0])
     for t in range(n):
         check_table(q, t, os.path.join(run_dir, "qtables.npz"))
     return spec, None, q[:n]
@@ -208,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if not 1 <= args.episodes <= 1_000_000:
             raise ConfigError(f"--episodes {args.episodes}: expected 1..1000000")
-        if not 1 <= args.tables <= MAX_TABLES:
+        if args.tables is not None and not 1 <= args.tables <= MAX_TABLES:
             raise ConfigError(f"--tables {args.tables}: expected 1..{MAX_TABLES}")
         from jaxrobo.core.struct import INT32_MAX
 

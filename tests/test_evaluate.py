@@ -47,6 +47,13 @@ def test_a_bad_shift_exits_2_naming_it(run_dir, tmp_path, capsys, shift, message
     assert message in capsys.readouterr().err
 
 
+def test_more_tables_than_the_run_has_exits_2_where_it_was_cut_silently(run_dir, tmp_path, capsys):
+    out = str(tmp_path / "x")
+    assert main(["eval", run_dir, "--shift", "cart_mass=1", "--tables", "99", "--out", out]) == 2
+    assert "--tables 99: the run has 2 tables; expected 1..2" in capsys.readouterr().err
+    assert not os.path.exists(out)
+
+
 def test_a_run_that_is_not_there_or_a_task_without_randomisation_exits_2(tmp_path, capsys):
     assert main(["eval", str(tmp_path / "nothing"), "--shift", "mass=1"]) == 2
     assert "does not exist" in capsys.readouterr().err
