@@ -170,6 +170,10 @@ def _train_spec(args: argparse.Namespace):
                                  ("--total-episodes", getattr(args, "total_episodes", None)),
                                  ("--seed", args.seed), ("--set", args.set), ("--out", args.out)), args.overwrite)
     resume = rundir.check_out(resume, resume=True, flag="--resume")
+    is_sweep = os.path.exists(os.path.join(resume, "sweep_state.json"))
+    if is_sweep and not os.path.exists(os.path.join(resume, "config.yaml")):  # else 'config file not found'
+        raise ConfigError(f"--resume {resume}: is an interrupted sweep, not a train run; go on with "
+                          f"jaxrobo sweep --resume {resume}")
     from jaxrobo.core.config import load_yaml
 
     saved = load_yaml(os.path.join(resume, "config.yaml"), where=f"--resume {resume}: config.yaml")

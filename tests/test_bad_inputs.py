@@ -532,6 +532,9 @@ SWEEP += [
     Case("sweep-resume-module-env", "sweep", ("--resume", "{tmp}/sw"),
          f"names the Python module '{EVIL}', which a file read back never imports",
          interrupted_sweep(f"{EVIL}:Foo-v0"), out=False),
+    Case("train-resume-of-a-sweep", "train", ("--resume", "{tmp}/sw"),
+         "--resume {tmp}/sw: is an interrupted sweep, not a train run; go on with jaxrobo sweep --resume {tmp}/sw",
+         interrupted_sweep(CP), out=False),
     # hand-edited saved flags: refused naming the flag, where they failed deep in the sweep with a traceback
     Case("sweep-resume-saved-seeds-str", "sweep", ("--resume", "{tmp}/sw"),
          "sweep_state.json: saved flag --seeds='4': expected an integer", interrupted_sweep(CP, seeds="4"), out=False),
