@@ -9,7 +9,9 @@ next ``## `` heading), so the transcript cannot drift from what the README says;
 checkout this script belongs to, in order (later commands read the runs earlier ones wrote). A line that cannot
 run unattended (``...`` placeholders, a Ctrl-C) is listed as skipped, with why. ``--device gpu`` sets
 ``JAX_PLATFORMS=cuda`` for every command. The README's outputs land in ``runs/`` (git-ignored); this script
-removes ``runs/`` and ``policy/`` first (``--keep`` leaves them), so every command starts as on a fresh clone.
+removes ``runs/`` and ``policy/`` first (``--keep`` leaves them), and gives the commands an empty compile cache of
+their own (``JAXROBO_CACHE_DIR``, a temporary folder; ``--cache DIR`` names one), so every command starts as on a
+fresh clone: the first to compile a program pays for it, later ones find it in the cache.
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -80,13 +83,15 @@ def machine(env: dict) -> tuple[str, str]:
 
 def write(args, rows: list[dict], kind: str, version: str) -> None:
     """The transcript of the rows so far (written after every command, so a stopped transcript keeps its rows)."""
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    commit = commit.stdout.strip()
     head = [f"# README transcript: {kind} ({os.cpu_count()} cores visible)", "",
             f"`python scripts/readme_transcript.py --device {args.device} --out {os.path.relpath(args.out, ROOT)}` on "
             f"{time.strftime('%Y-%m-%d')}, "
             f"Python {platform.python_version()}, jax {version}, commit "
-            f"{subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=ROOT, capture_output=True, text=True).stdout.strip()}. "
+            f"{commit}. "
             "Each command ran in order in one checkout, as the README gives it; times are wall seconds from start to "
-            "exit (compile included; the compile cache as the earlier commands left it).", "",
+            f"exit (compile included; {args.cache_said}).", "",
             "| # | command | wall (s) | exit | last lines of output |", "|---|---|---|---|---|"]
     esc = lambda s: s.replace("|", "\\|").replace("\n", " ")  # noqa: E731
     for i, r in enumerate(rows, 1):
@@ -112,12 +117,30 @@ def main(argv=None) -> int:
     ap.add_argument("--no-notebook", action="store_true")
     ap.add_argument("--keep", action="store_true", help="keep runs/ and policy/ from an earlier transcript")
     ap.add_argument("--start-at", default=None, metavar="TEXT",
-                    help="skip the commands before the first one containing TEXT (with --keep: go on with a transcript)")
+                    help="skip the commands before the first one containing TEXT "
+                         "(with --keep: go on with a transcript)")
+    ap.add_argument("--cache", default=None, metavar="DIR",
+                    help="the commands' compile cache (default: an empty temporary folder, removed at the end)")
     args = ap.parse_args(argv)
+    if args.cache is None:
+        cache = tempfile.mkdtemp(prefix="jaxrobo-transcript-cache-")
+        args.cache_said = "the compile cache empty at the first command, then as the earlier commands left it"
+    else:
+        cache = args.cache
+        args.cache_said = f"the compile cache {cache} as it was, then as the earlier commands left it"
+    try:
+        return transcript(args, cache)
+    finally:
+        if args.cache is None:
+            shutil.rmtree(cache, ignore_errors=True)
+
+
+def transcript(args, cache: str) -> int:
     if not args.keep:
         for d in ("runs", "policy"):
             shutil.rmtree(os.path.join(ROOT, d), ignore_errors=True)
-    env = {**os.environ, "JAX_PLATFORMS": {"cpu": "cpu", "gpu": "cuda"}[args.device], "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "JAX_PLATFORMS": {"cpu": "cpu", "gpu": "cuda"}[args.device], "PYTHONUNBUFFERED": "1",
+           "JAXROBO_CACHE_DIR": cache}
     bindir = os.path.dirname(sys.executable)  # the venv's `jaxrobo` before any other on PATH
     env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
     info = machine(env)

@@ -50,3 +50,40 @@ def test_a_stale_block_is_caught(tmp_path, monkeypatch, capsys):
     assert "stale; run python scripts/gen_docs.py" in capsys.readouterr().err
     assert doc.read_text(encoding="utf-8") == stale  # --check writes nothing
     assert gen.main([]) == 0 and doc.read_text(encoding="utf-8") == text
+
+
+def test_the_readmes_quickstart_times_are_the_transcripts():
+    """Each "~N s" the README's quickstart gives a command is its wall in docs/transcripts/cpu-2cores.md (the
+    transcript scripts/readme_transcript.py writes from the README itself), to the rounding a "~" allows."""
+    import re
+
+    def bare(command: str) -> str:  # a command without its "# ~N s: ..." comment, which a new transcript updates
+        return re.sub(r"\s+# ~\d+ s.*$", "", command)
+
+    spec = importlib.util.spec_from_file_location("readme_transcript",
+                                                  os.path.join(ROOT, "scripts", "readme_transcript.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    with open(os.path.join(ROOT, "docs", "transcripts", "cpu-2cores.md"), encoding="utf-8") as f:
+        walls = {}
+        for line in f:
+            row = re.match(r"\| \d+ \| `(.*)` \| ([0-9.]+) \| 0 \|", line)
+            if row:
+                walls[bare(row.group(1).replace("\\|", "|"))] = float(row.group(2))
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
+        readme = f.read()
+    said = {}
+    for kind, text in mod.readme_commands(os.path.join(ROOT, "README.md")):
+        if kind == "bash":
+            key, about = bare(text), re.search(r"# ~(\d+) s", text)
+        else:  # the library block: its time is in the sentence that opens it
+            key = "python block: " + text.strip().splitlines()[0] + " …"
+            about = re.search(r"\(~(\d+) s\):\n+```python\n" + re.escape(text.strip().splitlines()[0]), readme)
+        assert about, f"the README gives no ~time for {key!r}"
+        assert key in walls, f"not in the transcript (run scripts/readme_transcript.py): {key!r}"
+        said[key] = int(about.group(1))
+    for key, n in said.items():
+        assert abs(n - walls[key]) <= max(1.0, 0.2 * walls[key]), (key, n, walls[key])
+    total = sum(walls[k] for k in said)
+    about = re.search(r"\(about (\d+) s\s+in\s+all", readme)
+    assert about and abs(int(about.group(1)) - total) <= 0.1 * total, (about and about.group(1), total)
