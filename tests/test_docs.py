@@ -83,7 +83,7 @@ def test_the_readmes_quickstart_times_are_the_transcripts():
         assert key in walls, f"not in the transcript (run scripts/readme_transcript.py): {key!r}"
         said[key] = int(about.group(1))
     for key, n in said.items():
-        assert abs(n - walls[key]) <= max(1.0, 0.2 * walls[key]), (key, n, walls[key])
+        assert abs(n - walls[key]) <= max(1.5, 0.25 * walls[key]), (key, n, walls[key])  # a "~": run to run
     total = sum(walls[k] for k in said)
     about = re.search(r"\(about (\d+) s\s+in\s+all", readme)
     assert about and abs(int(about.group(1)) - total) <= 0.1 * total, (about and about.group(1), total)
