@@ -733,6 +733,10 @@ def check_env(env_or_id: Any, *, quick: bool = False, seed: int = 0, params: Any
         raise ConfigError(f"long={long!r}: expected an integer >= 0 and <= {MAX_LONG} (steps per env)")
     if isinstance(env_or_id, str):
         env_id = env_or_id[len("jaxrobo/"):] if env_or_id.startswith("jaxrobo/") else env_or_id
+        if ":" not in env_id:
+            from jaxrobo.task.registry import registration
+
+            env_id = registration(env_id).spec.id  # a deprecated name: said once (here), then its id
         env = make(env_id, **overrides)
         env_id = None if overrides else env_id  # Gymnasium's make would build the id's defaults, not these
     else:

@@ -156,7 +156,9 @@ def _train_spec(args: argparse.Namespace):
     if resume is None:
         overrides = train_overrides(args)
         env_id = args.env or "CartPoleStayUp-v0"
-        find(env_id, where=f"--env {env_id}")  # imports the module of a 'module:Id'; a missing one names --env
+        found = find(env_id, where=f"--env {env_id}")  # imports a 'module:Id's module; a missing one names --env
+        if ":" not in env_id:
+            env_id = found.spec.id  # a deprecated name: said once (here), then the id it stands for
         spec = resolve(env_id, args.preset or "default", overrides, agent=args.agent)
         out = args.out or os.path.join("training_results",
                                        f"{spec.env_id}_{spec.config.agent}_{time.strftime('%Y%m%d-%H%M%S')}")
@@ -977,6 +979,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name, value in PROCESS_DEFAULTS.items():  # before any JAX backend starts (environ.check may start one)
             os.environ.setdefault(name, value)
         guard_streams()
+        import warnings
+
+        # A warning is one line naming the command (a deprecated --env, say), not Python's file:line and source.
+        warnings.formatwarning = lambda message, category, *_, **__: \
+            f"jaxrobo {args.command}: {category.__name__}: {message}\n"
     from jaxrobo.core.config import ConfigError
 
     try:  # every environment variable jaxrobo reads, and no flag given empty, before anything uses one
