@@ -288,6 +288,8 @@ def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chun
                        should_stop=lambda: len(chunks) == 2)
     assert info.value.partial == (0, 2, 9) and "group 1 saved after chunk 2 of 9" in info.value.where
     assert _finished_groups(state) == 0 and os.path.exists(sweep_state.group_carry_path(state, 0))
+    kept = str(tmp_path / "group_0_kept.npz")
+    shutil.copy(sweep_state.group_carry_path(state, 0), kept)
 
     lines: list[str] = []
     chunks.clear()
@@ -308,14 +310,22 @@ def test_a_stop_inside_a_group_saves_its_carry_and_resume_goes_on_from_that_chun
     with open(tmp_path / "resumed.csv") as f:
         assert f.read() == _outputs(uninterrupted)[0]
 
-    # A damaged carry is refused before a chunk runs.
+    # A damaged carry, or another group's, is refused before any group is set up or compiled.
     bad = str(tmp_path / "bad")
     os.makedirs(bad)
     sweep_state.open_state(bad, plan)
     with open(sweep_state.group_carry_path(bad, 0), "wb") as f:
         f.write(b"PK\x03\x04 not an npz")
+    lines.clear()
     with pytest.raises(ConfigError, match=r"group_0\.npz.*remove .*group_0\.npz to run group 1 from its first"):
-        sweep.run_plan(plan, state_dir=bad)
+        sweep.run_plan(plan, state_dir=bad, log=lines.append)
+    assert not any(line.startswith("group ") for line in lines), lines
+    os.remove(sweep_state.group_carry_path(bad, 0))
+    shutil.copy(kept, sweep_state.group_carry_path(bad, 1))  # group 1's carry saved as group 2's
+    with pytest.raises(ConfigError, match=r"group_1\.npz: refusing to resume from it: the configuration differs "
+                                          r"\(group: 0 in the checkpoint vs 1 now\).*to run group 2 from its first"):
+        sweep.run_plan(plan, state_dir=bad, log=lines.append)
+    assert not any(line.startswith("group ") for line in lines), lines
 
 
 def test_a_sweep_group_trains_through_train_and_its_callbacks(uninterrupted, tmp_path, monkeypatch):

@@ -368,6 +368,9 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
         saved = state.load_checkpoint(state_dir, plan, fingerprint)
         in_progress = [g for g in range(len(planned))
                        if g not in saved and os.path.exists(state.group_carry_path(state_dir, g))]
+        if carries:
+            for g in in_progress:  # a damaged or foreign carry is refused now, not once its group has compiled
+                state.check_group_carry(state_dir, fingerprint, g)
         if saved or in_progress:
             log(f"resuming: {len(saved)} of {len(planned)} groups already finished in {state_dir}"
                 + (f"; group {in_progress[0] + 1} goes on from its last saved chunk" if in_progress else "")

@@ -11,7 +11,8 @@ checked against the sweep's fingerprint, the group and the carry's shapes before
 
 Public surface: :data:`STATE_FILE`, :data:`STATE_FORMAT`, :func:`code_version`, :func:`read_state`,
 :func:`open_state`, :func:`save_checkpoint`, :func:`load_checkpoint`, :func:`group_carry_path`,
-:func:`save_group_carry`, :func:`load_group_carry`, :func:`drop_group_carry`.
+:func:`save_group_carry`, :func:`check_group_carry`, :func:`load_group_carry`,
+:func:`drop_group_carry`.
 """
 from __future__ import annotations
 
@@ -180,6 +181,26 @@ def load_group_carry(state_dir: str, fingerprint: str, group: int, template: Any
         return None
     try:
         return checkpoint.load_checkpoint(path, template, _carry_fingerprint(fingerprint, group, template))
+    except ConfigError as err:
+        raise ConfigError(f"{err} (remove {path} to run group {group + 1} from its first chunk)") from None
+
+
+def check_group_carry(state_dir: str, fingerprint: str, group: int) -> None:
+    """Before anything compiles: group ``group``'s saved carry (where one is saved) is a whole checkpoint of this
+    sweep and group, written by this jaxrobo, JAX and source code. :class:`ConfigError` naming the file and how to
+    start the group over otherwise; the carry's structure and shapes are checked when it is loaded
+    (:func:`load_group_carry`, which needs the group's traced template)."""
+    path = group_carry_path(state_dir, group)
+    if not os.path.exists(path):
+        return
+    try:
+        saved, _ = checkpoint.read_fingerprint(path)
+        expected = checkpoint.carry_fingerprint([], {"sweep": fingerprint, "group": int(group)})
+        known = {k: v for k, v in expected.items() if k not in ("treedef", "leaves")}  # need the template
+        why = checkpoint.fingerprint_mismatch({k: saved.get(k) for k in known} if isinstance(saved, dict) else {},
+                                              known)
+        if why:
+            raise ConfigError(f"{path}: refusing to resume from it: {why}")
     except ConfigError as err:
         raise ConfigError(f"{err} (remove {path} to run group {group + 1} from its first chunk)") from None
 
