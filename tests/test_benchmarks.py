@@ -287,7 +287,7 @@ def test_startup_reaches_the_first_chunk_through_trains_callbacks(tmp_path):
 
 @pytest.mark.slow
 def test_learners_compare_runs_the_pages_commands_and_keeps_each_runs_figures(tmp_path):
-    """benchmarks/learners_compare.py shrunk: docs/cartpole.md's three commands (2 envs, 20 episodes, 5 greedy
+    """benchmarks/learners_compare.py shrunk: docs/cartpole.md's commands (2 envs, 20 episodes, 5 greedy
     episodes a table), one row each with every figure of the page's table, consistent with the runs' own files,
     and the page's plot command's picture."""
     lc = _script("learners_compare")
@@ -301,17 +301,24 @@ def test_learners_compare_runs_the_pages_commands_and_keeps_each_runs_figures(tm
     assert data["device"].startswith("cpu (") and data["code"] and data["command"].endswith(" ".join(cmd[2:]))
     assert data["n_envs"] == 2 and png.stat().st_size > 0 and "jaxrobo plot runs/cpu_cartpole_qlearn" in data["note"]
     rows = data["rows"]
-    assert [r["run"] for r in rows] == ["cpu_cartpole_qlearn", "cpu_cartpole_sarsa", "cpu_cartpole_seed"]
-    assert [r["agent"] for r in rows] == ["qlearn", "sarsa", "qlearn"]
+    assert [r["run"] for r in rows] == ["cpu_cartpole_qlearn", "cpu_cartpole_sarsa", "cpu_cartpole_seed",
+                                        "cpu_cartpole_expected_sarsa", "cpu_cartpole_double_q",
+                                        "cpu_cartpole_double_q_shared"]
+    assert [r["agent"] for r in rows] == ["qlearn", "sarsa", "qlearn", "expected_sarsa", "double_q", "double_q"]
+    assert [r["shared_table"] for r in rows] == [False] * 5 + [True]
+    assert "double_q" not in data["note"].split("; then ")[1]  # the picture draws the page's three runs
     assert [r["command"] for r in rows] == [" ".join(["jaxrobo", *c]) for c in lc.commands(2, 20, 5)]
     assert "--preset seed" in rows[2]["command"] and "stop_at_target=false" not in rows[2]["command"]
     for r in rows:
         assert r["exit_code"] == 0 and r["n_envs"] == 2 and r["nepisodes"] == 20 and r["seed"] == 0, r
-        assert r["tables_evaluated"] == 2 and 0 <= r["tables_ge_500"] <= 2, r
+        tables = 1 if r["shared_table"] else 2
+        assert r["tables_evaluated"] == tables and 0 <= r["tables_ge_500"] <= tables, r
         assert r["eval_episodes_per_table"] == r["fresh_episodes"] == 5, r
-        for key in ("best_100_window_mean_length", "eval_mean_length", "selected_table_fresh_mean_length",
-                    "last_100_mean_length"):
+        fresh = [] if r["shared_table"] else ["selected_table_fresh_mean_length"]  # one table: none selected
+        for key in ("best_100_window_mean_length", "eval_mean_length", "last_100_mean_length", *fresh):
             assert 1 <= r[key] <= 1000, (key, r)
+        if r["shared_table"]:
+            assert r["selected_table_fresh_mean_length"] is None, r
         assert r["eval_mean_length"] <= r["eval_best_table_mean_length"] + 1e-6, r
         rise = [r[f"first_episode_window_ge_{level}"] for level in lc.RISE]
         assert rise[0] is not None or rise[1] is None, r
