@@ -108,8 +108,8 @@ WHAT = {
     "scale_sweep_dist.json": "`jaxrobo sweep`, one process per GPU (`benchmarks/scale_out.py --distributed`)",
     "default_learning_16_seeds.json": "Each tabular task's default command on 16 seeds (learning figure on fresh "
                                       "episodes)",
-    "learners_compare.json": "The cart-pole's Q-learning, Sarsa and seed-preset runs of docs/cartpole.md's 'What it "
-                             "learns', 16 learners each (`benchmarks/learners_compare.py`)",
+    "learners_compare.json": "The cart-pole's four learners (Double Q also with a shared table) and the seed preset, "
+                             "docs/cartpole.md's 'What it learns', 16 learners each (`benchmarks/learners_compare.py`)",
     "scale_sweep_2gpu.json": "`jaxrobo sweep` on 1 GPU, 2 GPUs and 2 processes: the same rows on each (a step "
                              "of 64 envs a row launches the same kernels on half the rows, so the run scales "
                              "sublinearly)",
