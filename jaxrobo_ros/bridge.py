@@ -10,7 +10,12 @@ Each command also goes out stamped, on ``command_stamped`` (default: the command
 same command with the stamp of the state it answers (``geometry_msgs/TwistStamped`` for the drone,
 ``sensor_msgs/JointState`` with the cart joint's velocity for the cart-pole). The command topics themselves
 (``std_msgs/Float64``, ``geometry_msgs/Twist``) carry no stamp; the lockstep sim steps on the stamped copy, so it can
-tell an answer to the state it waits on from a late or repeated answer to a state it has already stepped."""
+tell an answer to the state it waits on from a late or repeated answer to a state it has already stepped. The policy
+node also names in the copy's ``header.frame_id`` the episode whose start it had heard of when it acted
+(:func:`episode_tag`, from ``/jaxrobo/episode``; the cart-pole's accumulated command starts afresh there): that topic
+and the states travel over separate connections, so a new episode's first state can arrive before its number, and the
+lockstep sim does not step on an answer tagged with another episode than its own (it republishes the state, which the
+node then answers afresh)."""
 from __future__ import annotations
 
 import os
@@ -28,6 +33,27 @@ TOPIC_KEYS = {"quadcopter": ("cmd_vel", "takeoff", "land", "odom", "gt_pose", "g
 SONARS = ("sonar_forward", "sonar_left", "sonar_right", "sonar_down")
 #: The command's topic key of each family (``topics.command_stamped`` defaults to its name + ``_stamped``).
 COMMAND_KEYS = {"quadcopter": "cmd_vel", "cartpole": "command"}
+
+
+#: ``header.frame_id`` of a stamped command copy: the episode it was computed in (the node's last
+#: ``/jaxrobo/episode``).
+EPISODE_TAG = "jaxrobo_episode "
+
+
+def episode_tag(episode: int) -> str:
+    return f"{EPISODE_TAG}{int(episode)}"
+
+
+def tagged_episode(msg) -> int | None:
+    """The episode a stamped command copy names (:func:`episode_tag`); None where it names none (a node that does
+    not tag its copies, or the policy node before any ``/jaxrobo/episode`` reached it)."""
+    frame = getattr(getattr(msg, "header", None), "frame_id", "") or ""
+    if not frame.startswith(EPISODE_TAG):
+        return None
+    try:
+        return int(frame[len(EPISODE_TAG):])
+    except ValueError:
+        return None
 
 
 class Fault(Exception):

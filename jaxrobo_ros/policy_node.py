@@ -14,7 +14,9 @@ copies. A missing, stale or non-finite reading, or none at all for ``stale_after
 wall-clock seconds (a sim or sensor that died), stops the robot: a zero command and one warning saying why, repeated
 while the cause lasts; the node keeps running and acts again once fresh readings arrive. A reading stamped before
 the last one (Gazebo's ``reset_simulation`` rewinds time) or a new ``/jaxrobo/episode`` starts a new episode (the
-cart-pole's accumulated command returns to its start value).
+cart-pole's accumulated command returns to its start value). The stamped copy names the episode it was computed in
+(``header.frame_id``, :func:`jaxrobo_ros.bridge.episode_tag`): a lockstep sim does not step on an answer to a new
+episode's first state computed before the node heard of that episode, and republishes the state.
 
 An export without a ``robot`` section (written before exports carried one, or of a task without a native port)
 is refused with one line saying to export it again.
@@ -34,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxrobo_ros.bridge import Fault, make_bridge, stamp
+from jaxrobo_ros.bridge import Fault, episode_tag, make_bridge, stamp
 from jaxrobo_ros.system import SetupError, line_buffered, rospy as import_rospy
 
 #: The numpy runner ``jaxrobo export`` copies into every export.
@@ -162,6 +164,10 @@ class PolicyNode:
             out = self.b.command_msg(self.policy(obs))
             self.pub.publish(out)
             stamped = self.b.stamped_command(out, self.latest[self.b.primary].header.stamp)
+            if self.episode is not None:
+                # the episode whose start this answer counts from: a new episode's first state can arrive before
+                # its number (another connection); a lockstep sim does not step on an answer of another episode
+                stamped.header.frame_id = episode_tag(self.episode)
             self.stamped_pub.publish(stamped)
             self.last_out, self.last_stamped, self.acted_t = out, stamped, t
             self.latency.append(time.perf_counter() - t_in)

@@ -13,7 +13,10 @@ already stepped (a late answer, or the policy node's copy of it sent again when 
 second answer, and does not take the plain commands of a node that sends stamped copies. From a node that sends
 none (the Gymnasium env over ROS, a seed-style script) the first plain command received after a state went out
 answers it: such a client must send one command per state. A state republished after ``REPUBLISH`` s keeps its
-stamp and its answer.
+stamp and its answer. A stamped copy that names another episode than the state's (``header.frame_id``,
+:func:`jaxrobo_ros.bridge.episode_tag`: the policy node answered a new episode's first state before its number, sent
+over another connection, reached it, so with the last episode's accumulated cart command) is dropped too: the state is
+republished and answered afresh. ``EPISODE_MARGIN`` makes that rare; the tag, not the margin, keeps lockstep exact.
 
 Episodes start from the task's own resets (``jaxrobo.task.rollout.rollout_start`` with key ``--seed``: episode ``i``
 is the ``i``-th reset of ``jaxrobo eval``/``scripts/sim2sim.py`` with that key). With ``--episodes N`` the sim runs
@@ -34,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxrobo_ros.bridge import tagged_episode
 from jaxrobo_ros.system import line_buffered, rospy as import_rospy
 from jaxrobo.core.config import ConfigError, parse_json
 from jaxrobo.ros.bridge import make_bridge, make_env
@@ -112,10 +116,13 @@ class SimNode:
 
     def _on_stamped(self, msg) -> None:
         with self.lock:
-            if msg.header.stamp == self.out:
+            if msg.header.stamp == self.out and tagged_episode(msg) in (None, self.index):
                 self._answer(self.b.command_of_stamped(msg))
             else:
-                self.dropped += 1  # it answers a state already stepped (late, or sent again), or none published
+                # it answers a state already stepped (late, or sent again), or none published, or was computed in
+                # another episode than this state's (the node had not yet heard of it: the episode number and the
+                # states travel over separate connections); the state is republished after REPUBLISH s
+                self.dropped += 1
 
     def _stamps(self, msg) -> bool:
         """Whether the node that published ``msg`` also publishes stamped copies to this node (is connected to it on
