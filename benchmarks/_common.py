@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 import os
 import random
+import socket
+import subprocess
 import sys
 import time
 from typing import Any, Callable
@@ -20,6 +22,24 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TIMED_TRAINING = {"record_episodes": False, "nepisodes": 2_000_000, "eval_episodes": 0}
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
+
+
+def free_port() -> int:
+    """A TCP port of localhost free now (a coordinator's, a ROS master's)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def git_commit(*paths: str) -> str:
+    """The commit a script runs at, "+ uncommitted changes" where ``jaxrobo`` or ``paths`` (relative to the
+    repository) differ from it; "unknown" outside a git checkout."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", ROOT, *args], capture_output=True, text=True).stdout.strip()
+
+    commit = git("rev-parse", "--short", "HEAD") or "unknown"
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", "jaxrobo", *paths)
+    return commit + (" + uncommitted changes" if dirty else "")
 
 
 def select_device(device: str | None) -> None:

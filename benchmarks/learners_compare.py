@@ -41,7 +41,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 if HERE not in sys.path:
     sys.path.insert(0, HERE)
 
-from _common import ROOT, write_json  # noqa: E402
+from _common import ROOT, git_commit, write_json  # noqa: E402
 
 ENV_ID = "CartPoleStayUp-v0"
 #: The page's runs: (run directory under ``runs/``, learner and preset flags, whether the whole budget is forced,
@@ -179,16 +179,6 @@ def figures(run_dir: str) -> dict[str, Any]:
     return row
 
 
-def git_commit() -> str:
-    """The commit the script runs at, "+ uncommitted changes" where the package or this script differ from it."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", "-C", ROOT, *args], capture_output=True, text=True).stdout.strip()
-
-    commit = git("rev-parse", "--short", "HEAD") or "unknown"
-    dirty = git("status", "--porcelain", "--untracked-files=no", "--", "jaxrobo", "benchmarks/learners_compare.py")
-    return commit + (" + uncommitted changes" if dirty else "")
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--n-envs", type=int, default=16, help="envs (independent learners) of each run, every table "
@@ -209,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"{flag} {value}: expected an integer >= 1")
     import importlib.metadata
 
-    code = git_commit()
+    code = git_commit("envs", "agents", "benchmarks/learners_compare.py")
     png = os.path.abspath(args.png)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(x for x in (ROOT, os.environ.get("PYTHONPATH")) if x)}
     shown = lambda cmd: " ".join(["jaxrobo", *cmd])  # noqa: E731

@@ -26,7 +26,6 @@ import argparse
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -34,7 +33,7 @@ import time
 from typing import Any
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import ROOT, write_json  # noqa: E402
+from _common import ROOT, free_port, git_commit, write_json  # noqa: E402
 
 #: The runs, by name: their ``jaxrobo train`` flags (the pages' commands; ``--no-progress`` added).
 RUNS = {
@@ -97,12 +96,6 @@ def ros_reason() -> str | None:
     if reason:
         return reason
     return None if shutil.which("roscore") else "roscore is not on PATH: apt-get install ros-core (docs/ros.md)"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def compare_ros(eps: list[dict], sides: dict[str, dict]) -> dict[str, Any]:
@@ -278,10 +271,6 @@ def main(argv: list[str] | None = None) -> int:
     import jax  # the device's name, after the children have run
 
     from _common import device_name
-    code = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True).stdout.strip()
-    dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                           text=True).stdout.strip()
     note = ("Each command a fresh process on this machine, in the order of the rows; docs/real_robot.md's "
             "QuadcopterGoto-v2 run (its default seed, 0) is docs/ros.md's --seed 0 run, trained once. sim2sim rows: "
             "scripts/sim2sim.py's figures (same_outcome, identical_flights: JAX with first-maximum ties against native "
@@ -295,7 +284,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes is not None:
         note += f" Shrunk: at most {args.episodes} episodes a row (not the pages' counts)."
     out = {"benchmark": "ros_sim2sim", "device": device_name(), "jax": jax.__version__,
-           "mujoco": __import__("mujoco").__version__, "code": code + ("-dirty" if dirty else ""),
+           "mujoco": __import__("mujoco").__version__,
+           "code": git_commit("envs", "agents", "jaxrobo_ros", "scripts", "benchmarks/ros_sim2sim.py"),
            "command": " ".join(["python", "benchmarks/ros_sim2sim.py", *(argv if argv is not None else sys.argv[1:])]),
            "ros": reason or "rospy and roscore found", "wall_seconds": round(time.perf_counter() - t_start, 1),
            "note": note, "rows": rows}

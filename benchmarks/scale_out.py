@@ -22,7 +22,6 @@ import argparse
 import hashlib
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -58,12 +57,6 @@ def command(args, out: str) -> list[str]:
             "--no-plots", "--no-progress", "--eval-episodes", str(args.eval_episodes), "--out", out, *sets]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
-
-
 def parse_counts(text: str, distributed: bool) -> list[tuple[int, bool]]:
     """``"1,2,4,4p"`` → ``[(1, False), (2, False), (4, False), (4, True)]`` (``p``: one process per GPU)."""
     out = []
@@ -86,7 +79,7 @@ def run_one(args, gpus: int, tmp: str, distributed: bool = False) -> dict:
     base = dict(os.environ)
     t0 = time.perf_counter()
     if distributed and gpus > 1:
-        port = free_port()
+        port = _common.free_port()
         procs = [subprocess.Popen(argv, env={**base, "CUDA_VISIBLE_DEVICES": str(i),
                                              "JAXROBO_COORDINATOR": f"localhost:{port}",
                                              "JAXROBO_NUM_PROCESSES": str(gpus), "JAXROBO_PROCESS_ID": str(i)},

@@ -23,8 +23,7 @@ import tempfile
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from _common import ROOT, write_json  # noqa: E402
-from scale_out import free_port  # noqa: E402
+from _common import ROOT, free_port, write_json  # noqa: E402
 
 COLLECTIVES = ("all-reduce", "all-gather", "reduce-scatter", "collective-permute", "all-to-all")
 #: (env id, overrides): each task's default learner set-up at a small batch.
