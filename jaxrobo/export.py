@@ -124,7 +124,7 @@ def _pick_table(run_dir: str, q: np.ndarray, table: int | None) -> int:
 def tabular_export(run_dir: str, cfg: dict[str, Any], table: int | None) -> tuple[dict, dict]:
     """``(meta, arrays)`` of a tabular run's greedy policy (see the module's docstring)."""
     from jaxrobo.core.config import ConfigError
-    from jaxrobo.io.results import load_tables
+    from jaxrobo.io.results import check_saved_discretiser, load_tables
     from jaxrobo.training.run import check_tables, spec_from_config
     from jaxrobo.training.trainer import make_discretiser_for
 
@@ -139,11 +139,8 @@ def tabular_export(run_dir: str, cfg: dict[str, Any], table: int | None) -> tupl
     n_actions = int(spec.env.num_actions)
     tables_path = os.path.join(run_dir, "qtables.npz")
     check_tables(q, spec.env, spec.config, tables_path)
+    check_saved_discretiser(saved, disc, tables_path)
     low, width = np.asarray(disc.low, np.float32), np.asarray(disc.width, np.float32)
-    for name, mine in (("low", low), ("width", width), ("bins", np.asarray(disc.bins))):
-        if name in saved and not np.array_equal(np.asarray(saved[name]).astype(mine.dtype), mine):
-            raise ConfigError(f"{tables_path}: its discretiser's {name} differs from the one config.yaml builds; "
-                              "the files are not of one run")
     table = _pick_table(run_dir, q, table)
     rows = q[table].astype(np.float32)
     # The policy's values as the learner acts on them (jaxrobo.tabular.learner.policy_values): one table, or the

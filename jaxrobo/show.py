@@ -82,11 +82,15 @@ def _load_run(run_dir: str) -> tuple[Any, Any, np.ndarray | None]:
                        source="")  # an unknown key: named after the file, not as a --set
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
-    q = load_tables(run_dir)["q"]
+    saved = load_tables(run_dir)
+    from jaxrobo.io.results import check_saved_discretiser
     from jaxrobo.training.run import check_tables
+    from jaxrobo.training.trainer import make_discretiser_for
 
-    check_tables(q, spec.env, spec.config, os.path.join(run_dir, "qtables.npz"))
-    return spec, cfg, q
+    path = os.path.join(run_dir, "qtables.npz")
+    check_tables(saved["q"], spec.env, spec.config, path)
+    check_saved_discretiser(saved, make_discretiser_for(spec.env, spec.config), path)  # the one it acts through
+    return spec, cfg, saved["q"]
 
 
 def check_table(q: np.ndarray, table: int, source: str) -> None:

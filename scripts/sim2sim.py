@@ -59,9 +59,10 @@ def jax_policies(run_dir: str, runner) -> tuple:
     exported runner does) and with the evaluation's random ties (``evaluation``); a PPO/SAC run's deterministic
     policy through the env's action mapping (``export``)."""
     from jaxrobo import deep
-    from jaxrobo.io.results import load_config, load_tables
+    from jaxrobo.core.config import ConfigError
+    from jaxrobo.io.results import check_saved_discretiser, load_config, load_tables
     from jaxrobo.task.rollout import greedy_policy
-    from jaxrobo.training.run import spec_from_config
+    from jaxrobo.training.run import check_tables, spec_from_config
     from jaxrobo.training.trainer import make_discretiser_for
 
     cfg = load_config(run_dir)
@@ -72,8 +73,14 @@ def jax_policies(run_dir: str, runner) -> tuple:
         loaded = deep.load_policy(run_dir)
         return spec, {"export": deep.env_policy(BraxEnv(spec.env), loaded.make_policy, loaded.params)}
     spec = spec_from_config(cfg, check_memory=False)
-    q = load_tables(run_dir)["q"][runner.meta["table"]]
-    disc = make_discretiser_for(spec.env, spec.config)
+    saved, disc = load_tables(run_dir), make_discretiser_for(spec.env, spec.config)
+    path = os.path.join(run_dir, "qtables.npz")
+    check_tables(saved["q"], spec.env, spec.config, path)  # before any program: tables of the run's config, read
+    check_saved_discretiser(saved, disc, path)  # through the discretiser they were learnt with
+    table = runner.meta.get("table")
+    if isinstance(table, bool) or not isinstance(table, int) or not 0 <= table < saved["q"].shape[0]:
+        raise ConfigError(f"{path}: the export's table {table!r} is not one of the run's {saved['q'].shape[0]}")
+    q = saved["q"][table]
     return spec, {"export": greedy_policy(q, disc, ties="first"), "evaluation": greedy_policy(q, disc)}
 
 

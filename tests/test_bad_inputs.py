@@ -1,11 +1,11 @@
 """Every bad input is refused at the boundary: a clear message naming the field, exit code 2 (or the error for a
 Python call), no traceback, nothing written, nothing compiled or trained.
 
-One table, :data:`CASES`. A case is a command (``train``, ``sweep``, ``plot``, ``show``, ``list`` - run in-process
-through ``jaxrobo.cli.main`` - or ``api``, a Python call), its arguments, the message fragment that must appear,
-and optionally a ``setup`` that writes the input files (a broken run directory, a broken YAML) first. ``{tmp}``
-in an argument is the case's own temporary directory. To cover a new command, add its cases with its name: the
-runner is the same.
+One table, :data:`CASES`. A case is a command (``train``, ``sweep``, ``plot``, ``show``, ``eval``, ``export``,
+``list`` - run in-process through ``jaxrobo.cli.main`` - or ``api``, a Python call), its arguments, the message
+fragment that must appear, and optionally a ``setup`` that writes the input files (a broken run directory, a broken
+YAML) first. ``{tmp}`` in an argument is the case's own temporary directory. To cover a new command, add its cases
+with its name: the runner is the same.
 
 Training, sweeping, flying and drawing are replaced for this module by functions that fail the test, so a case
 that got past validation cannot pass by accident (and none compiles: the whole file runs in seconds).
@@ -25,6 +25,7 @@ from jaxrobo.core.config import ConfigError, load_yaml, parse_overrides
 
 CP = "CartPoleStayUp-v0"
 GOTO = "QuadcopterGoto-v1"
+GOTO2 = "QuadcopterGoto-v2"  # its default discretiser is of edges (edges_0..edges_7)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,10 +71,56 @@ def write_run(tmp: str, name: str = "run", config: Any = "goto", q: Any = "ok", 
         with open(path, "wb") as f:
             f.write(npz)
     elif isinstance(q, str) and q == "ok":
-        np.savez(path, q=np.zeros((1, 1, 1296, 5), np.float32))  # the Goto default preset: 1296 states, 5 actions
-    elif q is not None:
-        np.savez(path, **q) if isinstance(q, dict) else np.savez(path, q=q)
+        np.savez(path, **saved_tables(GOTO))  # the Goto default preset: 1296 states, 5 actions
+    elif q is not None:  # a dict: those arrays alone; an array: q beside the Goto default discretiser's arrays
+        np.savez(path, **q) if isinstance(q, dict) else np.savez(path, **{**saved_tables(GOTO), "q": q})
     return d
+
+
+_SAVED: dict[str, dict[str, np.ndarray]] = {}
+
+
+def saved_tables(env_id: str) -> dict[str, np.ndarray]:
+    """The arrays of a one-table ``qtables.npz`` of ``env_id``'s default preset as `jaxrobo train` writes them: ``q``
+    (zeros) and the discretiser's (``low``, ``width``, ``bins``, ``edges_<i>``), built once."""
+    if env_id not in _SAVED:
+        from jaxrobo.io.results import discretiser_arrays
+        from jaxrobo.training.run import resolve
+        from jaxrobo.training.trainer import make_discretiser_for
+
+        spec = resolve(env_id, check_memory=False)
+        disc = make_discretiser_for(spec.env, spec.config)
+        _SAVED[env_id] = {"q": np.zeros((1, 1, disc.n_states, spec.env.num_actions), np.float32),
+                          **discretiser_arrays(disc)}
+    return _SAVED[env_id]
+
+
+def tampered(env_id: str = GOTO, **changes: Any) -> Callable[[str, Any], None]:
+    """A run of ``env_id``'s default config whose ``qtables.npz`` has ``changes``: an array, None (left out), or a
+    function of the saved array."""
+    def setup(tmp: str, _mp: Any) -> None:
+        arrays = dict(saved_tables(env_id))
+        for name, change in changes.items():
+            if change is None:
+                arrays.pop(name)
+            else:
+                arrays[name] = change(arrays[name]) if callable(change) else change
+        from jaxrobo.training.run import resolve
+
+        config = goto_config() if env_id == GOTO else resolve(env_id, check_memory=False).to_dict()
+        d = write_run(tmp, config=config, q=arrays)
+        with open(os.path.join(d, "status.json"), "w") as f:
+            f.write('{"status": "complete"}')  # a finished run: export reads no other
+    return setup
+
+
+def nudged(i: int, by: float) -> Callable[[np.ndarray], np.ndarray]:
+    """The array with its ``i``-th value moved by ``by``, its dtype kept."""
+    def change(x: np.ndarray) -> np.ndarray:
+        x = x.copy()
+        x[i] = x[i] + by
+        return x
+    return change
 
 
 def ok_npz_bytes(tmp: str) -> bytes:
@@ -641,8 +688,8 @@ SHOW = [
     S("q-two-tables-for-qlearn", "q has shape (1, 2, 1296, 5), but the run's config.yaml gives (1, 1, 1296, 5)",
       "{tmp}/run", setup=run_dir(q=np.zeros((1, 2, 1296, 5), np.float32))),
     S("q-no-tables", "holds no table", "{tmp}/run", setup=run_dir(q=np.zeros((0, 1, 1296, 5), np.float32))),
-    S("discretiser-strings", "low must be a vector of numbers", "{tmp}/run",
-      setup=run_dir(q={"q": np.zeros((1, 1, 1296, 5), np.float32), "low": np.array(["abc"] * 6)})),
+    S("discretiser-strings", "low is <U3 of shape (7,), expected float32 of shape (7,)", "{tmp}/run",
+      setup=tampered(low=np.array(["abc"] * 7))),
     S("q-all-nan", "table 0 has 6480 non-finite values of 6480", "{tmp}/run",
       setup=run_dir(q=np.full((1, 1, 1296, 5), np.nan, np.float32))),
     S("table-out-of-range", "--table 5: must be in 0..0 (the run has 1 tables)", "{tmp}/run", "--table", "5",
@@ -689,6 +736,68 @@ SHOW = [
     S("q-inf-table", "table 0 has 1 non-finite values of 6480", "{tmp}/run",
       setup=run_dir(q=np.where(np.arange(6480).reshape(1, 1, 1296, 5) == 7, np.inf, 0).astype(np.float32))),
 ]
+
+
+def disc_rows(row: Callable[..., Case], *argv: str) -> list[Case]:
+    """The discretiser saved beside ``q`` in ``qtables.npz`` against the one the run's config builds
+    (:func:`jaxrobo.io.results.check_saved_discretiser`), as ``row`` (show, eval, export) refuses it."""
+    return [row(id, fragment, "{tmp}/run", *argv, setup=setup) for id, fragment, setup in [
+        # members: each of the config's discretiser, no other
+        ("disc-missing-low", "run/qtables.npz: no array 'low' of the discretiser (found width, bins); expected low, "
+         "width, bins: the uniform discretiser the run's config.yaml builds", tampered(low=None)),
+        ("disc-only-q", "no array 'low' of the discretiser (found none)", tampered(low=None, width=None, bins=None)),
+        ("disc-missing-edges", "run/qtables.npz: no array 'edges_7' of the discretiser (found low, width, bins, "
+         "edges_0", tampered(GOTO2, edges_7=None)),
+        ("disc-edges-of-uniform", "run/qtables.npz: array 'edges_0' is no part of the uniform discretiser the run's "
+         "config.yaml builds (7 dimensions: low, width, bins)", tampered(edges_0=np.zeros(1))),
+        ("disc-edges-beyond", "array 'edges_8' is no part of the edges discretiser the run's config.yaml builds "
+         "(8 dimensions: low, width, bins, edges_0,", tampered(GOTO2, edges_8=np.zeros(1))),
+        # shapes and dtypes
+        ("disc-low-short", "run/qtables.npz: low is float32 of shape (6,), expected float32 of shape (7,) (one per "
+         "observation dimension", tampered(low=lambda x: x[:6])),
+        ("disc-width-float64", "width is float64 of shape (7,), expected float32 of shape (7,)",
+         tampered(width=lambda x: x.astype(np.float64))),
+        ("disc-bins-2d", "bins is int64 of shape (1, 7), expected integers of shape (7,)",
+         tampered(bins=lambda x: x[None])),
+        ("disc-bins-bool", "bins is bool of shape (7,), expected integers of shape (7,)",
+         tampered(bins=lambda x: x > 0)),
+        ("disc-edges-short", "edges_1 is float64 of shape (7,), expected float64 of shape (8,) (that dimension's "
+         "interior edges", tampered(GOTO2, edges_1=lambda x: x[:7])),
+        # values: finite, whole bins >= 1 whose product is q's states, each the config's
+        ("disc-low-nan", "run/qtables.npz: low=[nan, -3.1415927, -0.75, 0.0, ", tampered(low=nudged(0, np.nan))),
+        ("disc-width-inf", "holds 1 non-finite values (NaN or inf); expected finite numbers",
+         tampered(width=nudged(2, np.inf))),
+        ("disc-edges-inf", "edges_3=[1.0, inf] holds 1 non-finite values", tampered(GOTO2, edges_3=nudged(1, np.inf))),
+        ("disc-bins-fractional", "bins=[2.5, 9.0, 3.0,", tampered(bins=lambda x: x + np.eye(7)[0] / 2)),
+        ("disc-bins-float", "(float64): expected whole numbers >= 1 as integers, one per observation dimension",
+         tampered(bins=lambda x: x.astype(np.float64))),
+        ("disc-bins-zero", "run/qtables.npz: bins=[0, 9, 3,", tampered(bins=nudged(0, -2))),
+        ("disc-bins-negative", "expected whole numbers >= 1, one per observation dimension",  # the product kept
+         tampered(bins=lambda x: x * np.array([-1, -1, 1, 1, 1, 1, 1]))),
+        ("disc-bins-product", "run/qtables.npz: q of shape (1, 1, 1296, 5) has 1296 states, but its bins=[3, 9, 3,",
+         tampered(bins=nudged(0, 1))),
+        ("disc-bins-differ", "the discretiser's bins[0]=1, but the run's config.yaml builds bins[0]=2 (uniform "
+         "discretiser); the files are not of one run", tampered(bins=lambda x: x * np.array([1, 1, 2, 1, 1, 1, 1]) //
+                                                                 np.array([2, 1, 1, 1, 1, 1, 1]))),
+        ("disc-low-differs", "the discretiser's low[1]=-2.6415927, but the run's config.yaml builds low[1]=-3.1415927",
+         tampered(low=nudged(1, 0.5))),
+        ("disc-width-differs", "the discretiser's width[6]=", tampered(width=nudged(6, 1e-6))),
+        ("disc-edges-differ", "the discretiser's edges_1[3]=", tampered(GOTO2, edges_1=nudged(3, 1e-9))),
+        ("disc-edges-width-differs", "builds width[0]=1.0 (edges discretiser)", tampered(GOTO2, width=nudged(0, 1))),
+    ]]
+
+
+def E(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a table row
+    return Case(f"eval-{id}", "eval", argv + ("--out", "{tmp}/out"), fragment, setup)
+
+
+def X(id: str, fragment: str, *argv: str, setup=None) -> Case:  # noqa: N802 - a table row
+    return Case(f"export-{id}", "export", argv + ("--out", "{tmp}/out"), fragment, setup)
+
+
+SHOW += disc_rows(S)
+EVAL = disc_rows(E, "--shift", "mass=1")
+EXPORT = disc_rows(X)
 
 def _mkstemp_erofs(tmp: str, monkeypatch: Any) -> None:
     from jaxrobo.speed import cache
@@ -993,7 +1102,7 @@ def _check_out(path: str) -> Any:
     return rundir.check_out(path)
 
 
-CASES = TRAIN + SWEEP + PLOT + SHOW + LIST + CHECK + API + DEEP
+CASES = TRAIN + SWEEP + PLOT + SHOW + EVAL + EXPORT + LIST + CHECK + API + DEEP
 
 
 # ---- the runner -------------------------------------------------------------------------------------------------
@@ -1023,6 +1132,9 @@ def nothing_runs(monkeypatch):
     monkeypatch.setattr(sweep_running, "GroupRunner", forbidden("the sweep's compiled group"))
     monkeypatch.setattr(flights, "fly", forbidden("flights.fly"))
     monkeypatch.setattr(flights, "episodes", forbidden("show.episodes"))
+    from jaxrobo import evaluate
+
+    monkeypatch.setattr(evaluate, "evaluate", forbidden("eval's rollouts"))
     monkeypatch.setattr(results, "save_run", forbidden("save_run"))
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", forbidden("savefig"))
 
@@ -1069,7 +1181,7 @@ def test_bad_input_is_refused_naming_the_field(case: Case, tmp_path, monkeypatch
 def test_the_table_is_large_and_its_ids_unique():
     assert len(CASES) >= 110
     assert len({c.id for c in CASES}) == len(CASES)
-    assert {c.command for c in CASES} == {"train", "sweep", "plot", "show", "list", "check", "api"}
+    assert {c.command for c in CASES} == {"train", "sweep", "plot", "show", "eval", "export", "list", "check", "api"}
 
 
 @pytest.mark.parametrize("argv, line", [

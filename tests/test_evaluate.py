@@ -54,6 +54,33 @@ def test_more_tables_than_the_run_has_exits_2_where_it_was_cut_silently(run_dir,
     assert not os.path.exists(out)
 
 
+def test_a_tampered_discretiser_is_refused_naming_the_file_before_anything_compiles(run_dir, tmp_path, capsys,
+                                                                                     caplog):
+    """qtables.npz's bins swapped (the same number of states, so q's shape still fits): the table would act on
+    other states than it learnt; refused naming the file and field, exit 2, no program compiled."""
+    import logging
+    import shutil
+
+    import jax
+    import numpy as np
+
+    run = str(tmp_path / "run")
+    shutil.copytree(run_dir, run)
+    path = os.path.join(run, "qtables.npz")
+    with np.load(path) as z:
+        arrays = dict(z)
+    arrays["bins"] = arrays["bins"][::-1].copy()
+    assert not np.array_equal(arrays["bins"], arrays["bins"][::-1])
+    np.savez(path, **arrays)
+    capsys.readouterr()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        assert main(["eval", run, "--shift", "cart_mass=1", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: the discretiser's bins[0]=" in err and "the files are not of one run" in err, err
+    assert not [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert not os.path.exists(tmp_path / "x")
+
+
 def test_a_run_that_is_not_there_or_a_task_without_randomisation_exits_2(tmp_path, capsys):
     assert main(["eval", str(tmp_path / "nothing"), "--shift", "mass=1"]) == 2
     assert "does not exist" in capsys.readouterr().err

@@ -255,6 +255,39 @@ def test_refusals(runs, tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("task, change, fragment", [
+    ("goto", lambda a: {**a, "edges_1": a["edges_1"] + 0.01}, "qtables.npz: the discretiser's edges_1[0]="),
+    ("goto", lambda a: {**a, "edges_8": np.zeros(1)}, "qtables.npz: array 'edges_8' is no part of the edges "
+     "discretiser"),
+    ("goto", lambda a: {k: v for k, v in a.items() if k != "edges_3"}, "qtables.npz: no array 'edges_3'"),
+    ("cartpole", lambda a: {**a, "width": a["width"].astype(np.float64)}, "qtables.npz: width is float64 of shape "
+     "(4,), expected float32 of shape (4,)"),
+    ("cartpole", lambda a: {**a, "bins": a["bins"] - 1}, "qtables.npz: bins=[0, "),
+], ids=["edges-moved", "edges-extra", "edges-missing", "width-float64", "bins-zero"])
+def test_a_tampered_discretiser_is_refused_before_anything_compiles(runs, tmp_path, capsys, caplog, task, change,
+                                                                    fragment):
+    """The export's arrays come from the discretiser config.yaml builds: a qtables.npz saved with another (edges
+    included) is refused naming the file and field, exit 2, no program compiled and nothing written."""
+    import logging
+
+    import jax
+
+    run = str(tmp_path / "run")
+    shutil.copytree(runs[task], run)
+    path = os.path.join(run, "qtables.npz")
+    with np.load(path) as z:
+        arrays = change(dict(z))
+    np.savez(path, **arrays)
+    out = str(tmp_path / "out")
+    capsys.readouterr()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        assert main(["export", run, "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and path in err, err
+    assert not [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert not os.path.exists(out)
+
+
 def test_runner_refuses_hostile_files(runs, tmp_path):
     out = str(tmp_path / "policy")
     assert main(["export", runs["goto"], "--out", out]) == 0

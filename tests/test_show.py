@@ -28,10 +28,17 @@ def _image(path: str) -> np.ndarray:
     return matplotlib.image.imread(path)
 
 
-def test_show_draws_a_tabular_cartpole_run_with_its_own_discretiser(tmp_path, capsys):
-    """A run with non-default bins: the table only fits the discretiser rebuilt from the run's config.yaml."""
-    run = str(tmp_path / "cp")
+@pytest.fixture(scope="module")
+def cartpole_run(tmp_path_factory) -> str:
+    """A tiny tabular cart-pole run with non-default bins."""
+    run = str(tmp_path_factory.mktemp("show") / "cp")
     assert main(["train", "--env", "CartPoleStayUp-v0", *TINY, "--set", "bins=[1,3,5,7]", "--out", run]) == 0
+    return run
+
+
+def test_show_draws_a_tabular_cartpole_run_with_its_own_discretiser(cartpole_run, capsys):
+    """A run with non-default bins: the table only fits the discretiser rebuilt from the run's config.yaml."""
+    run = cartpole_run
     capsys.readouterr()
     assert main(["show", run, "--episodes", "3"]) == 0  # default --out: into the run directory
     out = capsys.readouterr()
@@ -43,6 +50,39 @@ def test_show_draws_a_tabular_cartpole_run_with_its_own_discretiser(tmp_path, ca
         assert "no frames drawn" not in out.err
     else:
         assert f"no frames drawn: {GL}" in out.err
+
+
+@pytest.mark.parametrize("change, fragment", [
+    (lambda a: {"low": a["low"] + np.float32(0.25)}, "qtables.npz: the discretiser's low[0]=-2.15, but the run's "
+     "config.yaml builds low[0]=-2.4 (uniform discretiser); the files are not of one run"),
+    (lambda a: {"bins": np.array([1, 3, 7, 5])}, "qtables.npz: the discretiser's bins[2]=7, but the run's config.yaml "
+     "builds bins[2]=5"),
+    (lambda a: {"bins": np.array([1, 3, 5, 8])}, "qtables.npz: q of shape (2, 1, 105, 4) has 105 states, but its "
+     "bins=[1, 3, 5, 8] give 120"),
+    (lambda a: {"edges_0": np.zeros(0)}, "qtables.npz: array 'edges_0' is no part of the uniform discretiser"),
+], ids=["low", "bins-swapped", "bins-product", "extra-edges"])
+def test_show_refuses_a_tampered_discretiser_before_anything_compiles(cartpole_run, tmp_path, capsys, caplog,
+                                                                      change, fragment):
+    """The table acts through the discretiser config.yaml builds: qtables.npz saved with another is refused naming
+    the file and field, exit 2, no program compiled and nothing drawn."""
+    import logging
+
+    import jax
+
+    run = str(tmp_path / "cp")
+    shutil.copytree(cartpole_run, run)
+    path = os.path.join(run, "qtables.npz")
+    with np.load(path) as z:
+        arrays = dict(z)
+    np.savez(path, **{**arrays, **change(arrays)})
+    png = str(tmp_path / "show.png")
+    capsys.readouterr()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        assert main(["show", run, "--episodes", "2", "--out", png]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and path in err, err
+    assert not [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert not os.path.exists(png)
 
 
 def test_show_frames_are_the_episode_the_plots_draw(tmp_path):

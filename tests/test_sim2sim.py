@@ -74,6 +74,17 @@ def test_sim2sim_script(tmp_path, capsys):
     agree, total = line.split(": ")[1].split(" ")[0].split("/")
     assert agree == total and int(total) > 0
     assert mod.main([str(tmp_path / "nothing"), "--episodes", "5"]) == 2
+    # the run's tables read through another discretiser than they were exported with: refused before any program
+    policy = str(tmp_path / "policy")
+    assert main(["export", run, "--out", policy]) == 0
+    path = os.path.join(run, "qtables.npz")
+    with np.load(path) as z:
+        arrays = dict(z)
+    np.savez(path, **{**arrays, "low": arrays["low"] + np.float32(0.5)})
+    capsys.readouterr()
+    assert mod.main([run, "--policy", policy, "--episodes", "5"]) == 2
+    err = capsys.readouterr().err
+    assert f"sim2sim: {path}: the discretiser's low[0]=" in err, err
 
 
 def test_native_base_imports_no_jax():

@@ -10,7 +10,8 @@ A run directory holds:
 ``records.npz``          every env's ``returns``, ``lengths``, ``terminated``, and ``epsilon`` per episode
 ``summary.json``         the seed's summary figures and the run's timing
 ``qtables.npz``          ``q [n_envs, n_tables, n_states, n_actions]`` and the discretiser (``low``, ``width``,
-                         ``bins``, ``edges``) - plain arrays, no pickle
+                         ``bins``, ``edges_<i>``) - plain arrays, no pickle; read back, checked against the
+                         config's (:func:`check_saved_discretiser`)
 ``eval.csv``             greedy evaluation: ``table,episode,return,length`` (when evaluated)
 ``tensorboard/``         TensorBoard scalars per episode (mean return, mean length, epsilon)
 ``status.json``          ``{"status": "running" | "interrupted" | "complete", ...}``: an interrupted run also
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import re
 import warnings
@@ -616,7 +618,9 @@ def selected_table(run_dir: str, n_tables: int) -> int:
 
 def load_tables(run_dir: str) -> dict[str, np.ndarray]:
     """A run's ``qtables.npz`` as plain arrays (no pickle); ConfigError naming the file when it is missing,
-    truncated, pickled or has no ``q`` of shape ``[n_envs, n_tables, n_states, n_actions]``."""
+    truncated, pickled or has no ``q`` of shape ``[n_envs, n_tables, n_states, n_actions]``. The discretiser's
+    arrays beside ``q`` are read, not checked: each reader checks them against the discretiser the run's config
+    builds (:func:`check_saved_discretiser`), ``q`` against the config (:func:`jaxrobo.training.run.check_tables`)."""
     from jaxrobo.core.config import ConfigError
     from jaxrobo.io.npz import member_headers, read_npz
 
@@ -624,8 +628,9 @@ def load_tables(run_dir: str) -> dict[str, np.ndarray]:
     if not os.path.isfile(path):
         raise ConfigError(f"{run_dir}: no qtables.npz; is it a finished jaxrobo run directory?")
     # Headers checked before any data is read (a header claiming 2^40 rows is refused, not allocated); the tables'
-    # finiteness is checked per table by the caller (one NaN table must not hide the others).
-    arrays = read_npz(path, "the q-tables", finite={"q": False}, wanted=lambda name: name in TABLES_MEMBERS
+    # finiteness is checked per table by the caller (one NaN table must not hide the others), the discretiser's by
+    # check_saved_discretiser (naming the field and what was expected).
+    arrays = read_npz(path, "the q-tables", finite=False, wanted=lambda name: name in TABLES_MEMBERS
                       or re.fullmatch(r"edges_\d+", name) is not None)
     if "q" not in arrays:
         found = ", ".join(member_headers(path)) or "none"
@@ -636,8 +641,69 @@ def load_tables(run_dir: str) -> dict[str, np.ndarray]:
                           f"{q.dtype} of shape {q.shape}")
     if 0 in q.shape:
         raise ConfigError(f"{path}: q of shape {q.shape} holds no table; every axis must be at least 1")
-    for name, x in arrays.items():
-        if name != "q" and (x.ndim > 1 or not np.issubdtype(x.dtype, np.number)):
-            raise ConfigError(f"{path}: {name} must be a vector of numbers (the discretiser's), got {x.dtype} of "
-                              f"shape {x.shape}")
     return arrays
+
+
+def _listed(x: np.ndarray, most: int = 8) -> str:
+    """A vector's values as a list, its first ``most`` and a count of the rest; each as its dtype prints it (a
+    float32 in its shortest digits)."""
+    more = f", ... ({x.size} values)" if x.size > most else ""
+    return "[" + ", ".join(map(str, np.asarray(x).ravel()[:most])) + more + "]"
+
+
+def check_saved_discretiser(saved: dict[str, np.ndarray], disc: Discretiser, path: str) -> None:
+    """The discretiser saved beside ``q`` in a run's ``qtables.npz`` (``saved``: :func:`load_tables`' arrays, read
+    from ``path``) against ``disc``, the one the run's env and config build
+    (:func:`jaxrobo.tabular.discretise.make_discretiser_for`), before anything uses the tables: every array
+    :func:`discretiser_arrays` writes (``low``, ``width``, ``bins``, and ``edges_<i>`` for an ``edges``
+    discretiser) present and no other ``edges_<i>``; each of its shape and dtype (``bins`` any integers); finite;
+    ``bins`` whole numbers >= 1 whose product is ``q``'s states; and each value that of ``disc``. ConfigError naming
+    the file, the field and what was expected otherwise: the tables are then not the config's, and a table read
+    through another discretiser acts on the wrong states."""
+    from jaxrobo.core.config import ConfigError
+
+    mine = discretiser_arrays(disc)
+    dims = len(disc.bins)
+    kind = "edges" if disc.edges is not None else "uniform"
+    found = ", ".join(name for name in saved if name != "q") or "none"
+    for name in mine:
+        if name not in saved:
+            raise ConfigError(f"{path}: no array {name!r} of the discretiser (found {found}); expected "
+                              f"{', '.join(mine)}: the {kind} discretiser the run's config.yaml builds")
+    for name in saved:
+        if name != "q" and name not in mine:
+            raise ConfigError(f"{path}: array {name!r} is no part of the {kind} discretiser the run's config.yaml "
+                              f"builds ({dims} dimensions: {', '.join(mine)}); the files are not of one run")
+    for name, want in mine.items():
+        x = saved[name]
+        ints = name == "bins" and x.dtype.kind in "iu"
+        if x.shape != want.shape or not (ints or x.dtype == want.dtype):
+            if name == "bins" and x.shape == want.shape and x.dtype.kind == "f":
+                raise ConfigError(f"{path}: bins={_listed(x)} ({x.dtype}): expected whole numbers >= 1 as "
+                                  f"integers, one per observation dimension")
+            what = "integers" if name == "bins" else str(want.dtype)
+            each = "that dimension's interior edges" if name.startswith("edges_") else "one per observation dimension"
+            raise ConfigError(f"{path}: {name} is {x.dtype} of shape {x.shape}, expected {what} of shape "
+                              f"{want.shape} ({each}, as the run's config.yaml builds it)")
+        if x.dtype.kind == "f" and not np.all(np.isfinite(x)):
+            bad = int(x.size - np.count_nonzero(np.isfinite(x)))
+            raise ConfigError(f"{path}: {name}={_listed(x)} holds {bad} non-finite values (NaN or inf); expected "
+                              "finite numbers")
+    bins = saved["bins"]
+    if np.any(bins < 1):
+        raise ConfigError(f"{path}: bins={_listed(bins)}: expected whole numbers >= 1, one per observation "
+                          "dimension")
+    states = math.prod(int(b) for b in bins)  # Python ints: a hostile count cannot overflow
+    q = saved.get("q")
+    if q is None or q.ndim != 4 or q.shape[2] != states:
+        if q is None:
+            raise ConfigError(f"{path}: no array 'q' (found {found})")
+        raise ConfigError(f"{path}: q of shape {q.shape} has {q.shape[2] if q.ndim == 4 else '?'} states, but its "
+                          f"bins={_listed(bins)} give {states}; expected q[n_envs, n_tables, n_states, n_actions] "
+                          "with n_states the product of bins")
+    for name, want in mine.items():
+        x = saved[name]
+        if not np.array_equal(x, want):
+            i = int(np.flatnonzero(x != want)[0])
+            raise ConfigError(f"{path}: the discretiser's {name}[{i}]={x[i]!s}, but the run's config.yaml builds "
+                              f"{name}[{i}]={want[i]!s} ({kind} discretiser); the files are not of one run")
