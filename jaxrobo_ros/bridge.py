@@ -15,7 +15,14 @@ node also names in the copy's ``header.frame_id`` the episode whose start it had
 (:func:`episode_tag`, from ``/jaxrobo/episode``; the cart-pole's accumulated command starts afresh there): that topic
 and the states travel over separate connections, so a new episode's first state can arrive before its number, and the
 lockstep sim does not step on an answer tagged with another episode than its own (it republishes the state, which the
-node then answers afresh)."""
+node then answers afresh).
+
+The drone's goal and obstacles race the same way: the sim publishes a new episode's goal and obstacles before its
+first state, over connections of their own. The sim names their episode too (the goal's ``header.frame_id``, the
+obstacle array's ``layout.dim[0].label``: :func:`episode_tag`), and :meth:`DroneBridge.readings` takes them only in
+the episode of the last ``/jaxrobo/episode`` (:meth:`Bridge.episode_check`; one that names none counts as current):
+the policy node and the Gymnasium env over ROS wait for them (:class:`Fault`, ``waiting``) instead of acting on a
+new state with the last episode's goal."""
 from __future__ import annotations
 
 import os
@@ -35,8 +42,9 @@ SONARS = ("sonar_forward", "sonar_left", "sonar_right", "sonar_down")
 COMMAND_KEYS = {"quadcopter": "cmd_vel", "cartpole": "command"}
 
 
-#: ``header.frame_id`` of a stamped command copy: the episode it was computed in (the node's last
-#: ``/jaxrobo/episode``).
+#: The episode a message belongs to, in its ``header.frame_id`` (a stamped command copy: the episode it was computed
+#: in, the node's last ``/jaxrobo/episode``; the drone's goal: the episode it is the goal of) or, for an array (the
+#: obstacles), its ``layout.dim[0].label``.
 EPISODE_TAG = "jaxrobo_episode "
 
 
@@ -45,9 +53,14 @@ def episode_tag(episode: int) -> str:
 
 
 def tagged_episode(msg) -> int | None:
-    """The episode a stamped command copy names (:func:`episode_tag`); None where it names none (a node that does
-    not tag its copies, or the policy node before any ``/jaxrobo/episode`` reached it)."""
-    frame = getattr(getattr(msg, "header", None), "frame_id", "") or ""
+    """The episode ``msg`` names (:func:`episode_tag`: a header's ``frame_id``, an array's first dimension's label);
+    None where it names none (a sender that does not tag, or the policy node before any ``/jaxrobo/episode``
+    reached it)."""
+    if hasattr(msg, "header"):
+        frame = getattr(msg.header, "frame_id", "") or ""
+    else:
+        dims = getattr(getattr(msg, "layout", None), "dim", None) or ()
+        frame = (getattr(dims[0], "label", "") or "") if dims else ""
     if not frame.startswith(EPISODE_TAG):
         return None
     try:
@@ -134,6 +147,21 @@ class Bridge:
                             f"s from {self.topics[self.primary]}'s {t:.3f} s (stale)", waiting=True)
         return t
 
+    @staticmethod
+    def episode_check(msg, episode: int | None) -> bool:
+        """Whether ``msg`` (the drone's goal or obstacles) belongs to ``episode`` (the last ``/jaxrobo/episode``
+        heard; None: none yet): one that names no episode (:func:`tagged_episode`: an older sim, Gazebo, a robot)
+        belongs to any; one that names one, to that one alone (the number of a new episode, or the episode's goal,
+        may still be on its way)."""
+        tag = tagged_episode(msg)
+        return tag is None or tag == episode
+
+    @staticmethod
+    def episode_of(latest: dict) -> int | None:
+        """The episode of the readings ``latest``: its last ``/jaxrobo/episode``; None where none was heard."""
+        m = latest.get("episode")
+        return None if m is None else int(m.data)
+
     def stamped_type(self) -> Any:
         """The message type of ``command_stamped``."""
         raise NotImplementedError
@@ -166,6 +194,7 @@ class DroneBridge(Bridge):
 
     def readings(self, latest: dict, goal=None) -> dict:
         t = self.fresh(latest, self.needs)
+        self.current(latest, goal is None)
         o = latest["odom"]
         p, q, v = o.pose.pose.position, o.pose.pose.orientation, o.twist.twist.linear
         top = self.topics
@@ -179,6 +208,22 @@ class DroneBridge(Bridge):
         obstacles = self.obstacles(latest.get("obstacles"))
         return {"t": t, "pos": pos, "quat": quat, "vz": vz, "sonars": sonars, "goal": np.asarray(goal, np.float64),
                 "obstacles": obstacles}
+
+    def current(self, latest: dict, goal_topic: bool = True) -> None:
+        """:class:`Fault` (``waiting``) unless the goal (``goal_topic``: from its topic, not a parameter) and the
+        obstacles in ``latest`` are those of its episode (:meth:`episode_check`). A goal that names its episode
+        comes from a sim that names the obstacles' too: then the obstacles must be there."""
+        ep = self.episode_of(latest)
+        heard = "none heard yet" if ep is None else f"episode {ep}"
+        goal = latest.get("goal") if goal_topic else None
+        for name, msg in (("goal", goal), ("obstacles", latest.get("obstacles"))):
+            if msg is None:
+                if name == "obstacles" and goal is not None and tagged_episode(goal) is not None:
+                    raise Fault(f"{self.topics[name]}: no message yet for episode {tagged_episode(goal)}",
+                                waiting=True)
+            elif not self.episode_check(msg, ep):
+                raise Fault(f"{self.topics[name]}: of episode {tagged_episode(msg)}, not of the current one "
+                            f"({heard} on {self.topics['episode']})", waiting=True)
 
     def obstacles(self, msg) -> dict:
         rows = np.zeros((0, 7)) if msg is None or not msg.data else np.asarray(msg.data, np.float64)

@@ -16,7 +16,11 @@ while the cause lasts; the node keeps running and acts again once fresh readings
 the last one (Gazebo's ``reset_simulation`` rewinds time) or a new ``/jaxrobo/episode`` starts a new episode (the
 cart-pole's accumulated command returns to its start value). The stamped copy names the episode it was computed in
 (``header.frame_id``, :func:`jaxrobo_ros.bridge.episode_tag`): a lockstep sim does not step on an answer to a new
-episode's first state computed before the node heard of that episode, and republishes the state.
+episode's first state computed before the node heard of that episode, and republishes the state. The drone's goal
+and obstacles count only in the episode they name, where they name one
+(:meth:`jaxrobo_ros.bridge.Bridge.episode_check`): a new episode's state waits for its own goal and obstacles, and
+is acted on from the callback of the one that completes the set; a state that arrived before its episode's number
+(the goal names that episode and is stamped with its first state), from the number's.
 
 An export without a ``robot`` section (written before exports carried one, or of a task without a native port)
 is refused with one line saying to export it again.
@@ -36,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxrobo_ros.bridge import Fault, episode_tag, make_bridge, stamp
+from jaxrobo_ros.bridge import Fault, episode_tag, make_bridge, stamp, tagged_episode
 from jaxrobo_ros.system import SetupError, line_buffered, rospy as import_rospy
 
 #: The numpy runner ``jaxrobo export`` copies into every export.
@@ -128,10 +132,14 @@ class PolicyNode:
             self.latest[name] = msg
             if name == "episode":
                 if self.episode is not None and msg.data != self.episode:
-                    self._new_episode()
+                    self._new_episode(self._episode_start(msg.data))
                 self.episode = msg.data
-                return
-            if name != self.b.primary and self.b.primary in self.latest:
+                if self.b.primary not in self.latest:
+                    return
+                # a state held for its episode's number (its goal named the episode) is acted on now
+                t = stamp(self.latest[self.b.primary])
+            elif name != self.b.primary and self.b.primary in self.latest:
+                # a reading that completes the set: a sonar, or the goal and obstacles a held state waits for
                 t = stamp(self.latest[self.b.primary])
             elif name == self.b.primary:
                 t = stamp(msg)
@@ -149,7 +157,7 @@ class PolicyNode:
                 self.last_t = t
             else:
                 return
-            if t < self.next_due - 1e-6 or name in ("goal", "obstacles"):
+            if t < self.next_due - 1e-6:  # acted on already (a goal or sonar after the command)
                 return
             try:
                 obs = self.b.observation(self.latest, self.goal)
@@ -180,12 +188,20 @@ class PolicyNode:
                                                                    f" again ({self.fault} has cleared)"))
                 self.fault = None
 
-    def _new_episode(self) -> None:
+    def _episode_start(self, episode: int) -> float | None:
+        """The stamp of episode ``episode``'s first state where the goal held names that episode (the sim stamps
+        a goal with its episode's first state); None where it does not say."""
+        goal = self.latest.get("goal")
+        return stamp(goal) if goal is not None and tagged_episode(goal) == episode else None
+
+    def _new_episode(self, start: float | None = None) -> None:
+        """Forget the last episode: its readings (those stamped from ``start`` on are this one's: a first state
+        that arrived before the episode's number), its command memory."""
         self.b.reset_memory()
         self.last_out = None
         self.next_due = -np.inf
         for k in list(self.latest):  # readings of the last episode say nothing of this one
-            if k not in ("goal", "obstacles", "episode"):
+            if k not in ("goal", "obstacles", "episode") and (start is None or stamp(self.latest[k]) < start):
                 del self.latest[k]
 
     def _hold(self, why: str) -> None:

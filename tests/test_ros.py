@@ -583,6 +583,199 @@ def test_lockstep_sim_does_not_step_on_an_answer_of_another_episode(ros, cartpol
     assert "Traceback" not in log(sim)
 
 
+def drone_state(t: float, pos=(0.5, -0.3, 1.0), yaw=0.3, sonar=3.0) -> dict:
+    """One moment's drone readings stamped ``t`` (the odometry and the four sonars), by topic key."""
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Range
+
+    from jaxrobo_ros.bridge import SONARS
+    from jaxrobo_ros.system import rospy
+
+    when = rospy().Time.from_sec(t)
+    o = Odometry()
+    o.header.stamp = when
+    o.pose.pose.position.x, o.pose.pose.position.y, o.pose.pose.position.z = pos
+    o.pose.pose.orientation.w, o.pose.pose.orientation.z = np.cos(yaw / 2), np.sin(yaw / 2)
+    out = {}
+    for name in SONARS:
+        out[name] = Range(range=sonar)
+        out[name].header.stamp = when
+    return {**out, "odom": o}  # the odometry last: the reading the policy node acts on
+
+
+def drone_episode(episode, goal, t: float, rows=((0, 1.0, 1.5, 1.0, 0.3, 0.3, 1.0),)) -> dict:
+    """An episode's goal (stamped ``t``, its first state's) and obstacles, each naming ``episode`` as the sim names
+    them (None: naming none, as an older sender's: the goal in frame ``world``, the array without a layout)."""
+    from geometry_msgs.msg import PointStamped
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+    from jaxrobo_ros.bridge import episode_tag
+    from jaxrobo_ros.system import rospy
+
+    g = PointStamped()
+    g.header.stamp = rospy().Time.from_sec(t)
+    g.header.frame_id = "world" if episode is None else episode_tag(episode)
+    g.point.x, g.point.y, g.point.z = goal
+    o = Float64MultiArray(data=[float(x) for r in rows for x in r])
+    if episode is not None:
+        o.layout.dim = [MultiArrayDimension(label=episode_tag(episode), size=len(rows), stride=7 * len(rows))]
+    return {"goal": g, "obstacles": o}
+
+
+def drone_node(export: str):
+    """A policy node of the drone whose commands (plain and stamped) and observations are kept, not published."""
+    from types import SimpleNamespace
+
+    from jaxrobo_ros.policy_node import PolicyNode
+
+    n = PolicyNode(export)
+    n.plain, n.stamped, n.seen, runner = [], [], [], n.policy
+    n.pub, n.stamped_pub = SimpleNamespace(publish=n.plain.append), SimpleNamespace(publish=n.stamped.append)
+    n.policy = lambda obs: (n.seen.append(np.asarray(obs)), runner(obs))[1]
+    return n
+
+
+def feed(node, msgs: dict) -> None:
+    for name, m in msgs.items():
+        node._on_msg(m, name)
+
+
+@needs_ros
+def test_drone_node_waits_for_its_episodes_goal_and_obstacles(goto_export):
+    """A new episode's goal and obstacles travel over connections of their own and can reach the policy node after
+    the episode's number and first state (the sim's EPISODE_MARGIN only makes it rare). They name their episode
+    (the goal's header.frame_id, the obstacle array's layout.dim[0].label), and the node does not act on a state of
+    episode 1 with episode 0's goal or obstacles: it holds the state and acts from the callback of the message that
+    completes the set, as a node that had them in time; a first state that came before its episode's number (its
+    goal, stamped with it, names the episode) is acted on when the number comes, not dropped."""
+    from std_msgs.msg import Int32
+
+    from jaxrobo_ros.bridge import Fault, tagged_episode
+
+    node, in_time = drone_node(goto_export), drone_node(goto_export)
+    node._on_msg(Int32(data=0), "episode")
+    feed(node, drone_episode(0, (2.0, -1.0, 1.2), 1.0))
+    feed(node, drone_state(1.0))
+    assert node.commands == 1 and tagged_episode(node.stamped[-1]) == 0
+    # episode 1: its number and first state, while episode 0's goal and obstacles are still the node's
+    node._on_msg(Int32(data=1), "episode")
+    first = drone_state(1.5, pos=(-0.2, 0.4, 0.9), yaw=-1.0, sonar=2.5)
+    feed(node, first)
+    assert node.commands == 1 and len(node.stamped) == len(node.plain) == 1  # waits: no command, not a zero one
+    with pytest.raises(Fault, match="of episode 0, not of the current one") as err:
+        node.b.observation(node.latest)
+    assert err.value.waiting
+    new = drone_episode(1, (-1.5, 2.0, 0.8), 1.5, rows=((1, -0.5, 1.0, 1.0, 0.4, 0.2, 1.0),))
+    node._on_msg(new["goal"], "goal")
+    assert node.commands == 1  # episode 0's obstacles are not taken either
+    node._on_msg(new["obstacles"], "obstacles")
+    assert node.commands == 2  # at once, from the obstacles' callback, on the state held
+    assert tagged_episode(node.stamped[-1]) == 1 and node.stamped[-1].header.stamp == first["odom"].header.stamp
+
+    in_time._on_msg(Int32(data=1), "episode")
+    feed(in_time, new)
+    feed(in_time, first)
+    assert in_time.commands == 1 and np.array_equal(node.seen[-1], in_time.seen[-1])
+    assert node.stamped[-1].twist == in_time.stamped[-1].twist
+    stale = node.b.observation({**node.latest, **drone_episode(None, (2.0, -1.0, 1.2), 1.0)})
+    assert not np.array_equal(stale, node.seen[-1])  # what the node would have acted on
+
+    # episode 2: goal and obstacles, then the first state before the episode's number: held, acted on at the number
+    feed(node, drone_episode(2, (1.0, 1.0, 1.5), 2.0))
+    second = drone_state(2.0, pos=(0.1, 0.1, 1.1))
+    feed(node, second)
+    assert node.commands == 2
+    node._on_msg(Int32(data=2), "episode")
+    assert node.commands == 3 and tagged_episode(node.stamped[-1]) == 2
+    assert node.stamped[-1].header.stamp == second["odom"].header.stamp
+
+
+@needs_ros
+def test_drone_node_takes_a_goal_and_obstacles_that_name_no_episode(goto_export):
+    """An older sender's goal and obstacles (naming no episode) count in every episode, with or without an episode
+    number heard, as before; a goal from a sim that names episodes brings that episode's obstacles."""
+    from std_msgs.msg import Int32
+
+    from jaxrobo_ros.bridge import Bridge, Fault, episode_tag, tagged_episode
+
+    plain, named = drone_episode(None, (2.0, -1.0, 1.2), 0.0), drone_episode(4, (2.0, -1.0, 1.2), 0.0)
+    for m in plain.values():
+        assert tagged_episode(m) is None and all(Bridge.episode_check(m, e) for e in (None, 0, 4))
+    for m in named.values():
+        assert tagged_episode(m) == 4 and Bridge.episode_check(m, 4)
+        assert not Bridge.episode_check(m, 3) and not Bridge.episode_check(m, None)
+
+    node = drone_node(goto_export)
+    node._on_msg(plain["goal"], "goal")  # no obstacles topic at all: an empty map, as before
+    feed(node, drone_state(1.0))
+    assert node.commands == 1 and node.stamped[-1].header.frame_id == ""  # no episode heard: none named
+    node._on_msg(plain["obstacles"], "obstacles")
+    for k, episode in enumerate((3, 4)):
+        node._on_msg(Int32(data=episode), "episode")
+        feed(node, drone_state(1.0 + node.b.period * (k + 1)))  # the next control periods
+        assert node.commands == 2 + k and node.stamped[-1].header.frame_id == episode_tag(episode)
+
+    fresh = drone_node(goto_export)
+    fresh._on_msg(Int32(data=4), "episode")
+    fresh._on_msg(named["goal"], "goal")
+    feed(fresh, drone_state(1.0))
+    assert fresh.commands == 0
+    with pytest.raises(Fault, match="no message yet for episode 4"):
+        fresh.b.observation(fresh.latest)
+    fresh._on_msg(named["obstacles"], "obstacles")
+    assert fresh.commands == 1
+
+
+@needs_ros
+def test_drone_node_over_ros_acts_once_its_episodes_goal_and_obstacles_arrive(ros, goto_export):
+    """The same over a master, the policy node in its own process: a state of episode 1 whose obstacles have not
+    come (the last episode's are still latched) gets no answer, whatever order the node hears the episode's number,
+    goal and state in (before the number the goal is not of the node's episode, after it the obstacles are not); it
+    is answered, once, stamped with it and naming its episode, when they come. The state is sent once (no sim
+    republishes it here), so the answer is the node's to the state it held."""
+    from geometry_msgs.msg import PointStamped, TwistStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Range
+    from std_msgs.msg import Float64MultiArray, Int32
+
+    from jaxrobo_ros.bridge import SONARS, load_topics, tagged_episode
+    from jaxrobo_ros.system import rospy as get
+
+    rospy = get()
+    top = load_topics("quadcopter")["topics"]
+    types = {"odom": Odometry, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Int32,
+             **{s: Range for s in SONARS}}
+    pubs = {k: rospy.Publisher(top[k], cls, queue_size=10, latch=k in ("goal", "obstacles", "episode"))
+            for k, cls in types.items()}
+    new = drone_episode(1, (-1.5, 2.0, 0.8), 1.5, rows=((1, -0.5, 1.0, 1.0, 0.4, 0.2, 1.0),))
+    pubs["episode"].publish(Int32(data=1))
+    pubs["goal"].publish(new["goal"])
+    pubs["obstacles"].publish(drone_episode(0, (2.0, -1.0, 1.2), 1.0)["obstacles"])
+    answers = Listener(top["command_stamped"], TwistStamped)
+    policy = ros.policy(goto_export, name="episode_goal_policy")
+    try:
+        assert answers.connected_to(node_uri(policy, "/jaxrobo_policy")), log(policy)
+        assert all(subscribed_by(p, "/jaxrobo_policy") for p in pubs.values()), log(policy)
+        first = drone_state(1.5, pos=(-0.2, 0.4, 0.9))
+        for k, m in first.items():
+            pubs[k].publish(m)
+        assert not answers.wait(1, timeout=1.0), (answers.got, log(policy))  # waits for episode 1's obstacles
+        sent = time.monotonic()
+        pubs["obstacles"].publish(new["obstacles"])
+        assert answers.wait(1, timeout=30), log(policy)
+        took = time.monotonic() - sent
+        answer = answers.got[0]
+        assert tagged_episode(answer) == 1 and answer.header.stamp == first["odom"].header.stamp
+        assert not answers.wait(2, timeout=0.5)  # one answer to the one state
+        assert took < 10, took
+    finally:
+        stop(policy)
+        answers.sub.unregister()
+        for p in pubs.values():
+            p.unregister()
+    assert "Traceback" not in log(policy)
+
+
 @needs_ros
 def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
     import gymnasium as gym
@@ -618,14 +811,18 @@ def test_gym_env_over_ros_gives_the_drones_shaped_reward(ros, goto_export):
 
     from jaxrobo.interop.numpy_policy import Policy
 
+    from jaxrobo_ros.bridge import tagged_episode
+
     n, seed = 3, 11
     sim = ros.node("sim", goto_export, "--lockstep", "--seed", str(seed), name="gym_goto_sim")
     try:
         env = gym.make("jaxrobo-ros/QuadcopterGoto-v2", timeout=60.0)
         policy = Policy.load(goto_export)
         flights = []
-        for _ in range(n):  # the sim starts at episode 0; each reset_simulation draws the next one
+        for k in range(n):  # the sim starts at episode 0; each reset_simulation draws the next one
             obs, _ = env.reset()
+            latest = env.unwrapped.latest  # the sim names each episode's goal and obstacles
+            assert tagged_episode(latest["goal"]) == tagged_episode(latest["obstacles"]) == k + 1
             rewards, info = [], {}
             for _ in range(1000):
                 obs, reward, terminated, truncated, info = env.step(policy(obs))
@@ -644,6 +841,73 @@ def test_gym_env_over_ros_gives_the_drones_shaped_reward(ros, goto_export):
     returns = [float(np.sum(r)) for r, _ in flights]
     assert np.allclose(returns, [e["return"] for e in native], rtol=1e-5, atol=1e-4), (returns, native)
     assert len({round(x, 4) for r, _ in flights for x in r}) > 3  # shaped per step, not an arrival flag
+
+
+@needs_ros
+def test_gym_env_over_ros_reset_waits_for_its_episodes_goal(ros, goto_export):
+    """The Gymnasium env's reset, against a sim (here this test's, answering the /gazebo services) whose new goal
+    and obstacles come after the new episode's number and first state: the reset returns that state with the new
+    episode's goal and obstacles, once they have come, not with the last episode's."""
+    import gymnasium as gym
+    from geometry_msgs.msg import PointStamped, Twist
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Range
+    from std_msgs.msg import Float64MultiArray, Int32
+
+    import jaxrobo.ros  # noqa: F401 - registers the envs
+    from jaxrobo.ros import msgs
+    from jaxrobo_ros.bridge import SONARS, load_topics, tagged_episode
+    from jaxrobo_ros.system import rospy as get
+
+    rospy = get()
+    top = load_topics("quadcopter")["topics"]
+    types = {"odom": Odometry, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Int32,
+             **{s: Range for s in SONARS}}
+    pubs = {k: rospy.Publisher(top[k], cls, queue_size=10, latch=True) for k, cls in types.items()}
+    commands = Listener(top["cmd_vel"], Twist)
+    new = drone_episode(1, (-1.5, 2.0, 0.8), 1.5, rows=((1, -0.5, 1.0, 1.0, 0.4, 0.2, 1.0),))
+    first = drone_state(1.5, pos=(-0.2, 0.4, 0.9), yaw=-1.0, sonar=2.5)
+    sent = []
+
+    def late_goal():
+        time.sleep(0.5)
+        sent.append(time.monotonic())
+        for k, m in new.items():
+            pubs[k].publish(m)
+
+    def reset(_req):
+        pubs["episode"].publish(Int32(data=1))
+        for k, m in first.items():
+            pubs[k].publish(m)
+        threading.Thread(target=late_goal, daemon=True).start()
+        return msgs.EmptyResponse()
+
+    services = [rospy.Service(f"/gazebo/{name}", msgs.Empty, fn) for name, fn in
+                (("pause_physics", lambda _r: msgs.EmptyResponse()),
+                 ("unpause_physics", lambda _r: msgs.EmptyResponse()), ("reset_simulation", reset))]
+    env = None
+    try:
+        pubs["episode"].publish(Int32(data=0))
+        for k, m in {**drone_episode(0, (2.0, -1.0, 1.2), 1.0), **drone_state(1.0)}.items():
+            pubs[k].publish(m)
+        env = gym.make("jaxrobo-ros/QuadcopterGoto-v2", timeout=30.0)
+        obs, _ = env.reset()
+        done = time.monotonic()
+        assert sent and done >= sent[0]
+        latest = env.unwrapped.latest
+        assert latest["episode"].data == 1 and tagged_episode(latest["goal"]) == 1
+        b = env.unwrapped.b
+        assert np.array_equal(obs, b.observation({**first, **new, "episode": Int32(data=1)}))
+        stale = b.observation({**first, **drone_episode(None, (2.0, -1.0, 1.2), 1.0)})
+        assert not np.array_equal(obs, stale)
+    finally:
+        if env is not None:
+            env.close()
+        for s in services:
+            s.shutdown()
+        commands.sub.unregister()
+        for p in pubs.values():
+            p.unregister()
 
 
 @needs_ros

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo.core.config import ConfigError
-from jaxrobo_ros.bridge import SONARS, CartPoleBridge, DroneBridge, load_topics
+from jaxrobo_ros.bridge import SONARS, CartPoleBridge, DroneBridge, episode_tag, load_topics
 
 #: The task modules with a native port: their family (the topic file's name) and the port's entry point.
 FAMILIES = {"envs.quadcopter.goto": "quadcopter", "envs.quadcopter.goto_v2": "quadcopter",
@@ -117,17 +117,23 @@ class DroneSim(DroneBridge):
         return {"goal": readings["goal"], "obstacles": readings["obstacles"],
                 "potentials": self.port.potentials_of(obs), "return": 0.0}
 
-    def episode_msgs(self, task: dict, t) -> dict:
+    def episode_msgs(self, task: dict, t, episode: int) -> dict:
+        """Episode ``episode``'s goal (world frame, stamped ``t``: its first state's) and obstacles, each naming the
+        episode (:func:`jaxrobo_ros.bridge.episode_tag`: the goal's ``header.frame_id``, the obstacle array's
+        ``layout.dim[0].label``), so that a subscriber does not take them for another episode's."""
         from geometry_msgs.msg import PointStamped
-        from std_msgs.msg import Float64MultiArray
+        from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
         g = PointStamped()
-        g.header.stamp, g.header.frame_id = t, "world"
+        g.header.stamp, g.header.frame_id = t, episode_tag(episode)
         g.point.x, g.point.y, g.point.z = (float(x) for x in task["goal"])
         o = task["obstacles"]
         act = np.asarray(o["active"], bool)
         rows = np.concatenate([np.asarray(o["kind"], np.float64)[act, None], o["center"][act], o["size"][act]], 1)
-        return {"goal": g, "obstacles": Float64MultiArray(data=rows.reshape(-1).tolist())}
+        m = Float64MultiArray(data=rows.reshape(-1).tolist())
+        m.layout.dim = [MultiArrayDimension(label=episode_tag(episode), size=len(rows), stride=rows.size),
+                        MultiArrayDimension(label="kind cx cy cz sx sy sz", size=7, stride=7)]
+        return {"goal": g, "obstacles": m}
 
     def state_msgs(self, task: dict, t) -> dict:
         from geometry_msgs.msg import Pose, Twist
@@ -208,7 +214,7 @@ class CartPoleSim(CartPoleBridge):
     def task_seen(self, readings: dict, obs: np.ndarray) -> dict:
         return {"return": 0.0}
 
-    def episode_msgs(self, task: dict, t) -> dict:
+    def episode_msgs(self, task: dict, t, episode: int) -> dict:
         return {}
 
     def state_msgs(self, task: dict, t) -> dict:

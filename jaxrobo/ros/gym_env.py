@@ -1,8 +1,10 @@
 """A Gymnasium env over live ROS topics, the seed's structure literally: ``step`` = unpause physics, publish the
 command of the action (the task's mapping), wait one control period of stamp time for the state, pause physics,
 then observation (the task's native port on the readings, as training built it), termination and reward; ``reset``
-= ``/gazebo/reset_simulation`` and the first state. It evaluates a jaxrobo policy, or any Gymnasium agent, on
-whatever answers on the topics: ``jaxrobo ros sim ID`` (without ``--episodes``), Gazebo, a robot.
+= ``/gazebo/reset_simulation`` and the first state (from a sim that numbers its episodes on ``/jaxrobo/episode``:
+with the next number, and the drone's goal and obstacles of that episode). It evaluates a jaxrobo policy, or any
+Gymnasium agent, on whatever answers on the topics: ``jaxrobo ros sim ID`` (without ``--episodes``), Gazebo, a
+robot.
 
     import gymnasium as gym, jaxrobo.ros
     env = gym.make("jaxrobo-ros/QuadcopterGoto-v2")   # a master and a sim must be up (docs/ros.md)
@@ -73,13 +75,17 @@ class RosTaskEnv(gymnasium.Env):
         self.rospy.wait_for_service(f"/gazebo/{name}", timeout=self.timeout)
         self.srv[name]()
 
-    def _state_after(self, t: float) -> tuple[np.ndarray, dict]:
-        """The observation of the first complete set of readings stamped after ``t``."""
+    def _state_after(self, t: float, episode: int | None = None) -> tuple[np.ndarray, dict]:
+        """The observation of the first complete set of readings stamped after ``t`` (the drone's: with the goal and
+        obstacles of the episode they are in, :meth:`jaxrobo_ros.bridge.DroneBridge.current`), in another episode
+        than ``episode`` where one is given."""
         end = time.monotonic() + self.timeout
         why = "no reading"
         with self.cv:
             while time.monotonic() < end:
-                if self.b.primary in self.latest and stamp(self.latest[self.b.primary]) > t:
+                if episode is not None and self.b.episode_of(self.latest) in (None, episode):
+                    why = f"no {self.b.topics['episode']} after episode {episode}"
+                elif self.b.primary in self.latest and stamp(self.latest[self.b.primary]) > t:
                     try:
                         latest = dict(self.latest)
                         return self.b.observation(latest), latest
@@ -97,9 +103,13 @@ class RosTaskEnv(gymnasium.Env):
         # (a reading of the state before the reset, still in flight, is not taken for it).
         _, before = self._state_after(-np.inf)
         t0 = max(self.t, stamp(before[self.b.primary]))
+        # A sim that numbers its episodes (jaxrobo ros sim): the reset's first state is taken with the next
+        # episode's number and, for the drone, that episode's goal and obstacles (each travels over a connection
+        # of its own, and may arrive after the state).
+        episode = self.b.episode_of(before)
         self._call("reset_simulation")
         self.b.reset_memory()
-        obs, latest = self._state_after(t0)
+        obs, latest = self._state_after(t0, episode)
         self.t, self.steps = stamp(latest[self.b.primary]), 0
         self.episode = self.b.task_seen(self.b.readings(latest), obs)
         return obs, {}

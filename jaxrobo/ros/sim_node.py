@@ -16,7 +16,10 @@ answers it: such a client must send one command per state. A state republished a
 stamp and its answer. A stamped copy that names another episode than the state's (``header.frame_id``,
 :func:`jaxrobo_ros.bridge.episode_tag`: the policy node answered a new episode's first state before its number, sent
 over another connection, reached it, so with the last episode's accumulated cart command) is dropped too: the state is
-republished and answered afresh. ``EPISODE_MARGIN`` makes that rare; the tag, not the margin, keeps lockstep exact.
+republished and answered afresh. The drone's goal and obstacles name their episode the same way (the goal's
+``header.frame_id``, the obstacle array's ``layout.dim[0].label``), and the policy node and the Gymnasium env over
+ROS wait for those of the episode they are in. ``EPISODE_MARGIN`` only makes these waits and drops rare (a speed
+measure); the tags, not the margin, keep lockstep exact.
 
 Episodes start from the task's own resets (``jaxrobo.task.rollout.rollout_start`` with key ``--seed``: episode ``i``
 is the ``i``-th reset of ``jaxrobo eval``/``scripts/sim2sim.py`` with that key). With ``--episodes N`` the sim runs
@@ -42,8 +45,9 @@ from jaxrobo_ros.system import line_buffered, rospy as import_rospy
 from jaxrobo.core.config import ConfigError, parse_json
 from jaxrobo.ros.bridge import make_bridge, make_env
 
-#: Wall-clock seconds between a new episode's goal (latched topics) and its first state: what lets a subscriber
-#: receive the goal before the state of the episode it belongs to (topics travel over separate connections).
+#: Wall-clock seconds between a new episode's goal, obstacles and number (latched topics) and its first state: a
+#: speed measure only. Topics travel over separate connections, so a subscriber usually has them before the state
+#: and need not wait for them, or answer the state again; the episode tags make it right when it does not.
 EPISODE_MARGIN = 0.05
 #: Wall-clock seconds without a step (paused, or waiting for a lockstep command) before the sim publishes its
 #: state again (same stamp).
@@ -168,7 +172,7 @@ class SimNode:
         self.b.port.reset(self.qpos[i], self.qvel[i])
         self.command = self.task.get("command", self.b.zero_command())
         self.steps, self.t = 0, self.t + self.b.period
-        for k, m in self.b.episode_msgs(self.task, self.stamp()).items():
+        for k, m in self.b.episode_msgs(self.task, self.stamp(), self.index).items():
             self.pubs[k].publish(m)
         self.pubs["episode"].publish(self.Int32(data=self.index))
         time.sleep(EPISODE_MARGIN)
