@@ -760,14 +760,11 @@ def test_drone_node_over_ros_acts_once_its_episodes_goal_and_obstacles_arrive(ro
         for k, m in first.items():
             pubs[k].publish(m)
         assert not answers.wait(1, timeout=1.0), (answers.got, log(policy))  # waits for episode 1's obstacles
-        sent = time.monotonic()
         pubs["obstacles"].publish(new["obstacles"])
         assert answers.wait(1, timeout=30), log(policy)
-        took = time.monotonic() - sent
         answer = answers.got[0]
         assert tagged_episode(answer) == 1 and answer.header.stamp == first["odom"].header.stamp
         assert not answers.wait(2, timeout=0.5)  # one answer to the one state
-        assert took < 10, took
     finally:
         stop(policy)
         answers.sub.unregister()
