@@ -22,7 +22,7 @@ fi
 xdist=()
 if [ "$workers" -gt 1 ]; then xdist=(-n "$workers" --dist loadfile); fi
 # Two tiers: by default the suite without the tests marked `slow` (long end-to-end runs and re-checks of what the
-# default tier already covers in smaller form); --slow runs only those, --all everything. CI runs both tiers.
+# default tier already covers in smaller form); --slow runs only those, --all everything. CI runs the first tier.
 tier=(-m "not slow")
 args=()
 for arg in "$@"; do
@@ -40,7 +40,7 @@ for arg in "$@"; do
 done
 # Each xdist worker compiles into a cache folder of its own (tests/conftest.py says why). Before a session, while no
 # worker writes, each folder takes the entries the others wrote in earlier sessions, so a program compiled once
-# (CI's first tier, then its slow tier) is found whichever worker compiled it.
+# (the first tier, then the slow tier) is found whichever worker compiled it.
 cache=${JAXROBO_TEST_CACHE:-.jax_cache/tests}
 for d in "$cache"/gw*/; do
   for o in "$cache"/gw*/; do [ "$d" = "$o" ] || cp -rn "$o". "$d" 2>/dev/null || true; done
