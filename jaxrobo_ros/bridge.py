@@ -18,11 +18,14 @@ lockstep sim does not step on an answer tagged with another episode than its own
 node then answers afresh).
 
 The drone's goal and obstacles race the same way: the sim publishes a new episode's goal and obstacles before its
-first state, over connections of their own. The sim names their episode too (the goal's ``header.frame_id``, the
-obstacle array's ``layout.dim[0].label``: :func:`episode_tag`), and :meth:`DroneBridge.readings` takes them only in
-the episode of the last ``/jaxrobo/episode`` (:meth:`Bridge.episode_check`; one that names none counts as current):
-the policy node and the Gymnasium env over ROS wait for them (:class:`Fault`, ``waiting``) instead of acting on a
-new state with the last episode's goal."""
+first state, over connections of their own. ``/jaxrobo/episode`` is a ``std_msgs/Header`` (:func:`episode_msg`:
+``seq`` the episode's number, ``stamp`` its start, the stamp of its first state and of its goal), so the goal, in
+frame ``world`` as a tf or RViz consumer needs, is matched to its episode by its stamp; the obstacle array, which has
+no header, names its episode in ``layout.dim[0].label`` (:func:`episode_tag`). :meth:`DroneBridge.readings` takes
+them only in the episode of the last ``/jaxrobo/episode`` (:meth:`Bridge.episode_check`: a goal heard with no episode
+number, from Gazebo or a robot, and obstacles naming none count as current): the policy node and the Gymnasium env
+over ROS wait for them (:class:`Fault`, ``waiting``) instead of acting on a new state with the last episode's
+goal."""
 from __future__ import annotations
 
 import os
@@ -43,13 +46,25 @@ COMMAND_KEYS = {"quadcopter": "cmd_vel", "cartpole": "command"}
 
 
 #: The episode a message belongs to, in its ``header.frame_id`` (a stamped command copy: the episode it was computed
-#: in, the node's last ``/jaxrobo/episode``; the drone's goal: the episode it is the goal of) or, for an array (the
-#: obstacles), its ``layout.dim[0].label``.
+#: in, the node's last ``/jaxrobo/episode``) or, for an array (the obstacles), its ``layout.dim[0].label``. Not the
+#: goal's: its frame_id is its frame, and its stamp (its episode's start) names its episode.
 EPISODE_TAG = "jaxrobo_episode "
+#: The frame of the drone's goal, odometry and episode messages.
+WORLD = "world"
 
 
 def episode_tag(episode: int) -> str:
     return f"{EPISODE_TAG}{int(episode)}"
+
+
+def episode_msg(episode: int, start) -> Any:
+    """What the sim publishes on ``/jaxrobo/episode`` when episode ``episode`` starts: a ``std_msgs/Header`` with
+    ``seq`` its number and ``stamp`` its start (``start``, a ``rospy.Time``: its first state's and its goal's).
+    rospy sets the ``seq`` of a message that has a header, not of a Header itself (``rospy.msg.serialize_message``),
+    so the number arrives as sent."""
+    from std_msgs.msg import Header
+
+    return Header(seq=int(episode), stamp=start, frame_id=WORLD)
 
 
 def tagged_episode(msg) -> int | None:
@@ -148,19 +163,23 @@ class Bridge:
         return t
 
     @staticmethod
-    def episode_check(msg, episode: int | None) -> bool:
+    def episode_check(msg, episode) -> bool:
         """Whether ``msg`` (the drone's goal or obstacles) belongs to ``episode`` (the last ``/jaxrobo/episode``
-        heard; None: none yet): one that names no episode (:func:`tagged_episode`: an older sim, Gazebo, a robot)
-        belongs to any; one that names one, to that one alone (the number of a new episode, or the episode's goal,
-        may still be on its way)."""
+        heard, :func:`episode_msg`; None: none yet). The goal: where an episode was heard, iff stamped with its
+        start (the sim stamps each goal so); where none was (Gazebo, a robot: nothing numbers episodes), it is
+        current. The obstacles: one naming no episode (:func:`tagged_episode`: an older sim, Gazebo, a robot)
+        belongs to any; one naming one, to that one alone (the number of a new episode may still be on its way)."""
+        if hasattr(msg, "header"):
+            return episode is None or msg.header.stamp == episode.stamp
         tag = tagged_episode(msg)
-        return tag is None or tag == episode
+        return tag is None or (episode is not None and tag == episode.seq)
 
     @staticmethod
     def episode_of(latest: dict) -> int | None:
-        """The episode of the readings ``latest``: its last ``/jaxrobo/episode``; None where none was heard."""
+        """The episode of the readings ``latest``: its last ``/jaxrobo/episode``'s number; None where none was
+        heard."""
         m = latest.get("episode")
-        return None if m is None else int(m.data)
+        return None if m is None else int(m.seq)
 
     def stamped_type(self) -> Any:
         """The message type of ``command_stamped``."""
@@ -186,10 +205,10 @@ class DroneBridge(Bridge):
         from geometry_msgs.msg import PointStamped, Pose, Twist
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import Imu, Range
-        from std_msgs.msg import Empty, Float64MultiArray, Int32
+        from std_msgs.msg import Empty, Float64MultiArray, Header
 
         return {"cmd_vel": Twist, "takeoff": Empty, "land": Empty, "odom": Odometry, "gt_pose": Pose,
-                "gt_vel": Twist, "imu": Imu, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Int32,
+                "gt_vel": Twist, "imu": Imu, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Header,
                 **{s: Range for s in SONARS}}
 
     def readings(self, latest: dict, goal=None) -> dict:
@@ -211,19 +230,19 @@ class DroneBridge(Bridge):
 
     def current(self, latest: dict, goal_topic: bool = True) -> None:
         """:class:`Fault` (``waiting``) unless the goal (``goal_topic``: from its topic, not a parameter) and the
-        obstacles in ``latest`` are those of its episode (:meth:`episode_check`). A goal that names its episode
-        comes from a sim that names the obstacles' too: then the obstacles must be there."""
-        ep = self.episode_of(latest)
-        heard = "none heard yet" if ep is None else f"episode {ep}"
+        obstacles in ``latest`` are those of its episode (:meth:`episode_check`). A sim that numbers its episodes
+        publishes each one's obstacles with its goal: then the obstacles must be there."""
+        ep = latest.get("episode")
+        heard = "none heard yet" if ep is None else f"episode {ep.seq}, started at {ep.stamp.to_sec():.3f} s"
         goal = latest.get("goal") if goal_topic else None
         for name, msg in (("goal", goal), ("obstacles", latest.get("obstacles"))):
             if msg is None:
-                if name == "obstacles" and goal is not None and tagged_episode(goal) is not None:
-                    raise Fault(f"{self.topics[name]}: no message yet for episode {tagged_episode(goal)}",
-                                waiting=True)
+                if name == "obstacles" and goal is not None and ep is not None:
+                    raise Fault(f"{self.topics[name]}: no message yet for episode {ep.seq}", waiting=True)
             elif not self.episode_check(msg, ep):
-                raise Fault(f"{self.topics[name]}: of episode {tagged_episode(msg)}, not of the current one "
-                            f"({heard} on {self.topics['episode']})", waiting=True)
+                what = f"stamped {stamp(msg):.3f} s" if name == "goal" else f"of episode {tagged_episode(msg)}"
+                raise Fault(f"{self.topics[name]}: {what}, not of the current episode ({heard} on "
+                            f"{self.topics['episode']})", waiting=True)
 
     def obstacles(self, msg) -> dict:
         rows = np.zeros((0, 7)) if msg is None or not msg.data else np.asarray(msg.data, np.float64)
@@ -281,9 +300,9 @@ class CartPoleBridge(Bridge):
 
     def msg_types(self):
         from sensor_msgs.msg import JointState
-        from std_msgs.msg import Float64, Int32
+        from std_msgs.msg import Float64, Header
 
-        return {"joint_states": JointState, "command": Float64, "episode": Int32}
+        return {"joint_states": JointState, "command": Float64, "episode": Header}
 
     def joints(self, msg) -> np.ndarray:
         names = list(msg.name)

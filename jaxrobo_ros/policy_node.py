@@ -17,10 +17,10 @@ the last one (Gazebo's ``reset_simulation`` rewinds time) or a new ``/jaxrobo/ep
 cart-pole's accumulated command returns to its start value). The stamped copy names the episode it was computed in
 (``header.frame_id``, :func:`jaxrobo_ros.bridge.episode_tag`): a lockstep sim does not step on an answer to a new
 episode's first state computed before the node heard of that episode, and republishes the state. The drone's goal
-and obstacles count only in the episode they name, where they name one
-(:meth:`jaxrobo_ros.bridge.Bridge.episode_check`): a new episode's state waits for its own goal and obstacles, and
-is acted on from the callback of the one that completes the set; a state that arrived before its episode's number
-(the goal names that episode and is stamped with its first state), from the number's.
+and obstacles count only in their own episode (:meth:`jaxrobo_ros.bridge.Bridge.episode_check`: the goal's stamp is
+its episode's start, which ``/jaxrobo/episode`` carries, the obstacles name theirs): a new episode's state waits for
+its own goal and obstacles, and is acted on from the callback of the one that completes the set; a state that
+arrived before its episode's number (stamped from the episode's start on), from the number's.
 
 An export without a ``robot`` section (written before exports carried one, or of a task without a native port)
 is refused with one line saying to export it again.
@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxrobo_ros.bridge import Fault, episode_tag, make_bridge, stamp, tagged_episode
+from jaxrobo_ros.bridge import Fault, episode_tag, make_bridge, stamp
 from jaxrobo_ros.system import SetupError, line_buffered, rospy as import_rospy
 
 #: The numpy runner ``jaxrobo export`` copies into every export.
@@ -131,12 +131,13 @@ class PolicyNode:
                 return
             self.latest[name] = msg
             if name == "episode":
-                if self.episode is not None and msg.data != self.episode:
-                    self._new_episode(self._episode_start(msg.data))
-                self.episode = msg.data
+                episode = self.b.episode_of(self.latest)
+                if self.episode is not None and episode != self.episode:
+                    self._new_episode(msg.stamp.to_sec())  # the number carries its episode's start
+                self.episode = episode
                 if self.b.primary not in self.latest:
                     return
-                # a state held for its episode's number (its goal named the episode) is acted on now
+                # a state held for its episode's number (stamped from the episode's start on) is acted on now
                 t = stamp(self.latest[self.b.primary])
             elif name != self.b.primary and self.b.primary in self.latest:
                 # a reading that completes the set: a sonar, or the goal and obstacles a held state waits for
@@ -188,15 +189,9 @@ class PolicyNode:
                                                                    f" again ({self.fault} has cleared)"))
                 self.fault = None
 
-    def _episode_start(self, episode: int) -> float | None:
-        """The stamp of episode ``episode``'s first state where the goal held names that episode (the sim stamps
-        a goal with its episode's first state); None where it does not say."""
-        goal = self.latest.get("goal")
-        return stamp(goal) if goal is not None and tagged_episode(goal) == episode else None
-
     def _new_episode(self, start: float | None = None) -> None:
-        """Forget the last episode: its readings (those stamped from ``start`` on are this one's: a first state
-        that arrived before the episode's number), its command memory."""
+        """Forget the last episode: its readings (those stamped from ``start``, the new episode's start, on are this
+        one's: a first state that arrived before the episode's number), its command memory."""
         self.b.reset_memory()
         self.last_out = None
         self.next_due = -np.inf

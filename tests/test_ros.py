@@ -472,12 +472,12 @@ def test_policy_node_names_the_episode_each_stamped_answer_counts_from(cartpole_
     shared cores flew one lockstep cart-pole episode of 20 for another number of steps than native; with no margin
     and a loaded CPU it happened in one run of three). Answered then, the state gets a command counted from the last
     episode's accumulated cart command. The stamped copy names the episode the node had heard of (header.frame_id),
-    so a lockstep sim does not step on it; the state again, once the number has arrived, is answered afresh: as a
-    node that heard of the episode in time answers it."""
+    so a lockstep sim does not step on it; the number (a Header: the episode's start stamp with it) brings the state
+    an answer afresh, from the number's callback, as a node that heard of the episode in time answers it, and the
+    state again gets that answer again."""
     from types import SimpleNamespace
 
     from sensor_msgs.msg import JointState
-    from std_msgs.msg import Int32
 
     from jaxrobo_ros.bridge import tagged_episode
     from jaxrobo_ros.policy_node import PolicyNode
@@ -495,7 +495,7 @@ def test_policy_node_names_the_episode_each_stamped_answer_counts_from(cartpole_
         return m
 
     late, in_time = node(), node()
-    late._on_msg(Int32(data=0), "episode")
+    late._on_msg(episode_header(0, 2.0), "episode")
     for k, pole in enumerate((0.05, 0.05, 0.05, 0.05, 0.05, 0.05)):  # episode 0: the cart command accumulates
         late._on_msg(joints(2.0 + 0.04 * k, pole), "joint_states")
     assert late.commands == 6 and late.b.command != late.b.start
@@ -504,12 +504,14 @@ def test_policy_node_names_the_episode_each_stamped_answer_counts_from(cartpole_
     late._on_msg(first, "joint_states")
     stale = late.stamped[-1]
     assert tagged_episode(stale) == 0  # counted from episode 0's command: a lockstep sim drops it
-    late._on_msg(Int32(data=1), "episode")
-    late._on_msg(first, "joint_states")  # the sim republishes the state it has no answer for
+    late._on_msg(episode_header(1, 2.4), "episode")
     assert late.commands == 8 and late.stamped[-1] is not stale and tagged_episode(late.stamped[-1]) == 1
+    answer = late.stamped[-1]
+    late._on_msg(first, "joint_states")  # the sim republishes a state it has no answer for: the same answer
+    assert late.commands == 8 and late.stamped[-1] is answer
 
-    in_time._on_msg(Int32(data=0), "episode")
-    in_time._on_msg(Int32(data=1), "episode")
+    in_time._on_msg(episode_header(0, 2.0), "episode")
+    in_time._on_msg(episode_header(1, 2.4), "episode")
     in_time._on_msg(first, "joint_states")
     assert tagged_episode(in_time.stamped[-1]) == 1
     assert late.stamped[-1].velocity == in_time.stamped[-1].velocity and late.plain[-1] == in_time.plain[-1]
@@ -603,9 +605,18 @@ def drone_state(t: float, pos=(0.5, -0.3, 1.0), yaw=0.3, sonar=3.0) -> dict:
     return {**out, "odom": o}  # the odometry last: the reading the policy node acts on
 
 
+def episode_header(episode: int, t: float):
+    """``/jaxrobo/episode`` as the sim publishes it: episode ``episode``, started at ``t`` (its first state's
+    stamp)."""
+    from jaxrobo_ros.bridge import episode_msg
+    from jaxrobo_ros.system import rospy
+
+    return episode_msg(episode, rospy().Time.from_sec(t))
+
+
 def drone_episode(episode, goal, t: float, rows=((0, 1.0, 1.5, 1.0, 0.3, 0.3, 1.0),)) -> dict:
-    """An episode's goal (stamped ``t``, its first state's) and obstacles, each naming ``episode`` as the sim names
-    them (None: naming none, as an older sender's: the goal in frame ``world``, the array without a layout)."""
+    """An episode's goal (frame ``world``, stamped ``t``: its first state's, the episode's start) and obstacles,
+    naming ``episode`` as the sim names them (None: naming none, as an older sender's: without a layout)."""
     from geometry_msgs.msg import PointStamped
     from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
@@ -613,8 +624,7 @@ def drone_episode(episode, goal, t: float, rows=((0, 1.0, 1.5, 1.0, 0.3, 0.3, 1.
     from jaxrobo_ros.system import rospy
 
     g = PointStamped()
-    g.header.stamp = rospy().Time.from_sec(t)
-    g.header.frame_id = "world" if episode is None else episode_tag(episode)
+    g.header.stamp, g.header.frame_id = rospy().Time.from_sec(t), "world"
     g.point.x, g.point.y, g.point.z = goal
     o = Float64MultiArray(data=[float(x) for r in rows for x in r])
     if episode is not None:
@@ -643,67 +653,79 @@ def feed(node, msgs: dict) -> None:
 @needs_ros
 def test_drone_node_waits_for_its_episodes_goal_and_obstacles(goto_export):
     """A new episode's goal and obstacles travel over connections of their own and can reach the policy node after
-    the episode's number and first state (the sim's EPISODE_MARGIN only makes it rare). They name their episode
-    (the goal's header.frame_id, the obstacle array's layout.dim[0].label), and the node does not act on a state of
-    episode 1 with episode 0's goal or obstacles: it holds the state and acts from the callback of the message that
-    completes the set, as a node that had them in time; a first state that came before its episode's number (its
-    goal, stamped with it, names the episode) is acted on when the number comes, not dropped."""
-    from std_msgs.msg import Int32
-
+    the episode's number and first state (the sim's EPISODE_MARGIN only makes it rare). The goal is stamped with its
+    episode's start, which /jaxrobo/episode carries, and the obstacle array names its episode
+    (layout.dim[0].label): the node does not act on a state of episode 1 with episode 0's goal or obstacles; it
+    holds the state and acts from the callback of the message that completes the set, as a node that had them in
+    time. A first state that came before its episode's number (stamped from the start the number carries) is acted
+    on when the number comes, not dropped."""
     from jaxrobo_ros.bridge import Fault, tagged_episode
 
     node, in_time = drone_node(goto_export), drone_node(goto_export)
-    node._on_msg(Int32(data=0), "episode")
+    node._on_msg(episode_header(0, 1.0), "episode")
     feed(node, drone_episode(0, (2.0, -1.0, 1.2), 1.0))
     feed(node, drone_state(1.0))
     assert node.commands == 1 and tagged_episode(node.stamped[-1]) == 0
     # episode 1: its number and first state, while episode 0's goal and obstacles are still the node's
-    node._on_msg(Int32(data=1), "episode")
+    node._on_msg(episode_header(1, 1.5), "episode")
     first = drone_state(1.5, pos=(-0.2, 0.4, 0.9), yaw=-1.0, sonar=2.5)
     feed(node, first)
     assert node.commands == 1 and len(node.stamped) == len(node.plain) == 1  # waits: no command, not a zero one
-    with pytest.raises(Fault, match="of episode 0, not of the current one") as err:
+    with pytest.raises(Fault, match="/drone/goal: stamped 1.000 s, not of the current episode "
+                                    r"\(episode 1, started at 1.500 s") as err:
         node.b.observation(node.latest)
     assert err.value.waiting
     new = drone_episode(1, (-1.5, 2.0, 0.8), 1.5, rows=((1, -0.5, 1.0, 1.0, 0.4, 0.2, 1.0),))
     node._on_msg(new["goal"], "goal")
     assert node.commands == 1  # episode 0's obstacles are not taken either
+    with pytest.raises(Fault, match="/jaxrobo/obstacles: of episode 0, not of the current episode") as err:
+        node.b.observation(node.latest)
+    assert err.value.waiting
     node._on_msg(new["obstacles"], "obstacles")
     assert node.commands == 2  # at once, from the obstacles' callback, on the state held
     assert tagged_episode(node.stamped[-1]) == 1 and node.stamped[-1].header.stamp == first["odom"].header.stamp
 
-    in_time._on_msg(Int32(data=1), "episode")
+    in_time._on_msg(episode_header(1, 1.5), "episode")
     feed(in_time, new)
     feed(in_time, first)
     assert in_time.commands == 1 and np.array_equal(node.seen[-1], in_time.seen[-1])
     assert node.stamped[-1].twist == in_time.stamped[-1].twist
-    stale = node.b.observation({**node.latest, **drone_episode(None, (2.0, -1.0, 1.2), 1.0)})
-    assert not np.array_equal(stale, node.seen[-1])  # what the node would have acted on
+    # what the node would have acted on with episode 0's goal and obstacles (taken as a sender's that numbers no
+    # episodes: no number heard)
+    unnumbered = {k: m for k, m in node.latest.items() if k != "episode"}
+    stale = node.b.observation({**unnumbered, **drone_episode(None, (2.0, -1.0, 1.2), 1.0)})
+    assert not np.array_equal(stale, node.seen[-1])
 
     # episode 2: goal and obstacles, then the first state before the episode's number: held, acted on at the number
     feed(node, drone_episode(2, (1.0, 1.0, 1.5), 2.0))
     second = drone_state(2.0, pos=(0.1, 0.1, 1.1))
     feed(node, second)
     assert node.commands == 2
-    node._on_msg(Int32(data=2), "episode")
+    node._on_msg(episode_header(2, 2.0), "episode")
     assert node.commands == 3 and tagged_episode(node.stamped[-1]) == 2
     assert node.stamped[-1].header.stamp == second["odom"].header.stamp
 
 
 @needs_ros
-def test_drone_node_takes_a_goal_and_obstacles_that_name_no_episode(goto_export):
-    """An older sender's goal and obstacles (naming no episode) count in every episode, with or without an episode
-    number heard, as before; a goal from a sim that names episodes brings that episode's obstacles."""
-    from std_msgs.msg import Int32
-
+def test_drone_goal_belongs_to_the_episode_of_its_stamp(goto_export):
+    """The goal (frame world) belongs to the episode whose start it is stamped with; heard with no /jaxrobo/episode
+    (Gazebo, a robot: nothing numbers episodes) it is current. Obstacles naming no episode (an older sender's) count
+    in every episode; obstacles naming one, in that one alone. A goal of the sim's, which numbers its episodes,
+    brings that episode's obstacles."""
     from jaxrobo_ros.bridge import Bridge, Fault, episode_tag, tagged_episode
 
     plain, named = drone_episode(None, (2.0, -1.0, 1.2), 0.0), drone_episode(4, (2.0, -1.0, 1.2), 0.0)
-    for m in plain.values():
-        assert tagged_episode(m) is None and all(Bridge.episode_check(m, e) for e in (None, 0, 4))
-    for m in named.values():
-        assert tagged_episode(m) == 4 and Bridge.episode_check(m, 4)
-        assert not Bridge.episode_check(m, 3) and not Bridge.episode_check(m, None)
+    assert plain["goal"].header.frame_id == named["goal"].header.frame_id == "world"
+    assert tagged_episode(named["goal"]) is None  # the goal's frame_id is its frame, not a tag
+    assert Bridge.episode_check(named["goal"], None) and Bridge.episode_check(named["goal"], episode_header(4, 0.0))
+    assert Bridge.episode_check(named["goal"], episode_header(3, 0.0))  # the stamp, not a number, says its episode
+    assert not Bridge.episode_check(named["goal"], episode_header(4, 0.3))
+    assert tagged_episode(plain["obstacles"]) is None
+    assert all(Bridge.episode_check(plain["obstacles"], e) for e in (None, episode_header(0, 0.0),
+                                                                       episode_header(4, 0.3)))
+    assert tagged_episode(named["obstacles"]) == 4 and Bridge.episode_check(named["obstacles"], episode_header(4, 1))
+    assert not Bridge.episode_check(named["obstacles"], episode_header(3, 1))
+    assert not Bridge.episode_check(named["obstacles"], None)
 
     node = drone_node(goto_export)
     node._on_msg(plain["goal"], "goal")  # no obstacles topic at all: an empty map, as before
@@ -711,12 +733,18 @@ def test_drone_node_takes_a_goal_and_obstacles_that_name_no_episode(goto_export)
     assert node.commands == 1 and node.stamped[-1].header.frame_id == ""  # no episode heard: none named
     node._on_msg(plain["obstacles"], "obstacles")
     for k, episode in enumerate((3, 4)):
-        node._on_msg(Int32(data=episode), "episode")
-        feed(node, drone_state(1.0 + node.b.period * (k + 1)))  # the next control periods
+        t = 1.0 + node.b.period * (k + 1)  # the next control periods
+        node._on_msg(episode_header(episode, t), "episode")
+        feed(node, drone_state(t))
+        assert node.commands == 1 + k  # the goal held is stamped with another episode's start: waits
+        with pytest.raises(Fault, match="/drone/goal: stamped .* not of the current episode") as err:
+            node.b.current(node.latest)
+        assert err.value.waiting
+        node._on_msg(drone_episode(None, (2.0, -1.0, 1.2), t)["goal"], "goal")  # plain obstacles count in each
         assert node.commands == 2 + k and node.stamped[-1].header.frame_id == episode_tag(episode)
 
     fresh = drone_node(goto_export)
-    fresh._on_msg(Int32(data=4), "episode")
+    fresh._on_msg(episode_header(4, 0.0), "episode")
     fresh._on_msg(named["goal"], "goal")
     feed(fresh, drone_state(1.0))
     assert fresh.commands == 0
@@ -728,30 +756,33 @@ def test_drone_node_takes_a_goal_and_obstacles_that_name_no_episode(goto_export)
 
 @needs_ros
 def test_drone_node_over_ros_acts_once_its_episodes_goal_and_obstacles_arrive(ros, goto_export):
-    """The same over a master, the policy node in its own process: a state of episode 1 whose obstacles have not
+    """The same over a master, the policy node in its own process: a state of episode 5 whose obstacles have not
     come (the last episode's are still latched) gets no answer, whatever order the node hears the episode's number,
     goal and state in (before the number the goal is not of the node's episode, after it the obstacles are not); it
     is answered, once, stamped with it and naming its episode, when they come. The state is sent once (no sim
-    republishes it here), so the answer is the node's to the state it held."""
+    republishes it here), so the answer is the node's to the state it held. /jaxrobo/episode (a std_msgs/Header)
+    arrives with the seq it was sent with: rospy numbers the messages that have a header, not a Header itself (5 is
+    not the count rospy would write: this publisher's first message)."""
     from geometry_msgs.msg import PointStamped, TwistStamped
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import Range
-    from std_msgs.msg import Float64MultiArray, Int32
+    from std_msgs.msg import Float64MultiArray, Header
 
     from jaxrobo_ros.bridge import SONARS, load_topics, tagged_episode
     from jaxrobo_ros.system import rospy as get
 
     rospy = get()
     top = load_topics("quadcopter")["topics"]
-    types = {"odom": Odometry, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Int32,
+    types = {"odom": Odometry, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Header,
              **{s: Range for s in SONARS}}
     pubs = {k: rospy.Publisher(top[k], cls, queue_size=10, latch=k in ("goal", "obstacles", "episode"))
             for k, cls in types.items()}
-    new = drone_episode(1, (-1.5, 2.0, 0.8), 1.5, rows=((1, -0.5, 1.0, 1.0, 0.4, 0.2, 1.0),))
-    pubs["episode"].publish(Int32(data=1))
+    new = drone_episode(5, (-1.5, 2.0, 0.8), 1.5, rows=((1, -0.5, 1.0, 1.0, 0.4, 0.2, 1.0),))
+    pubs["episode"].publish(episode_header(5, 1.5))
     pubs["goal"].publish(new["goal"])
-    pubs["obstacles"].publish(drone_episode(0, (2.0, -1.0, 1.2), 1.0)["obstacles"])
+    pubs["obstacles"].publish(drone_episode(4, (2.0, -1.0, 1.2), 1.0)["obstacles"])
     answers = Listener(top["command_stamped"], TwistStamped)
+    episodes = Listener(top["episode"], Header)
     policy = ros.policy(goto_export, name="episode_goal_policy")
     try:
         assert answers.connected_to(node_uri(policy, "/jaxrobo_policy")), log(policy)
@@ -759,15 +790,19 @@ def test_drone_node_over_ros_acts_once_its_episodes_goal_and_obstacles_arrive(ro
         first = drone_state(1.5, pos=(-0.2, 0.4, 0.9))
         for k, m in first.items():
             pubs[k].publish(m)
-        assert not answers.wait(1, timeout=1.0), (answers.got, log(policy))  # waits for episode 1's obstacles
+        assert not answers.wait(1, timeout=1.0), (answers.got, log(policy))  # waits for episode 5's obstacles
         pubs["obstacles"].publish(new["obstacles"])
         assert answers.wait(1, timeout=30), log(policy)
         answer = answers.got[0]
-        assert tagged_episode(answer) == 1 and answer.header.stamp == first["odom"].header.stamp
+        assert tagged_episode(answer) == 5 and answer.header.stamp == first["odom"].header.stamp
         assert not answers.wait(2, timeout=0.5)  # one answer to the one state
+        assert episodes.wait(1), "the latched /jaxrobo/episode did not reach this process's subscriber"
+        got = episodes.got[0]
+        assert (got.seq, got.stamp, got.frame_id) == (5, new["goal"].header.stamp, "world"), got
     finally:
         stop(policy)
         answers.sub.unregister()
+        episodes.sub.unregister()
         for p in pubs.values():
             p.unregister()
     assert "Traceback" not in log(policy)
@@ -803,23 +838,33 @@ def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
 def test_gym_env_over_ros_gives_the_drones_shaped_reward(ros, goto_export):
     """The drone through the Gymnasium env over ROS: each step's reward is the task's shaped one, so an episode's
     rewards sum to its return in-process (the native port, the same runner, the same resets) to float32 round-off
-    (the observation and the sonar messages are float32)."""
+    (the observation and the sonar messages are float32). The sim's goal is in frame world and stamped with its
+    episode's start, as /jaxrobo/episode (number and start) says; the last episode's goal is refused (waiting)."""
     import gymnasium as gym
 
     from jaxrobo.interop.numpy_policy import Policy
 
-    from jaxrobo_ros.bridge import tagged_episode
+    from jaxrobo_ros.bridge import Fault, tagged_episode
 
     n, seed = 3, 11
     sim = ros.node("sim", goto_export, "--lockstep", "--seed", str(seed), name="gym_goto_sim")
     try:
         env = gym.make("jaxrobo-ros/QuadcopterGoto-v2", timeout=60.0)
         policy = Policy.load(goto_export)
-        flights = []
+        flights, last_goal = [], None
         for k in range(n):  # the sim starts at episode 0; each reset_simulation draws the next one
             obs, _ = env.reset()
-            latest = env.unwrapped.latest  # the sim names each episode's goal and obstacles
-            assert tagged_episode(latest["goal"]) == tagged_episode(latest["obstacles"]) == k + 1
+            with env.unwrapped.cv:  # the env's subscribers write to it
+                latest = dict(env.unwrapped.latest)
+            goal, episode = latest["goal"], latest["episode"]
+            assert goal.header.frame_id == "world" and episode.frame_id == "world"
+            assert episode.seq == tagged_episode(latest["obstacles"]) == k + 1
+            assert goal.header.stamp == episode.stamp == latest["odom"].header.stamp  # the episode's first state
+            if last_goal is not None:
+                with pytest.raises(Fault, match="/drone/goal: stamped .* not of the current episode") as err:
+                    env.unwrapped.b.current({**latest, "goal": last_goal})
+                assert err.value.waiting
+            last_goal = goal
             rewards, info = [], {}
             for _ in range(1000):
                 obs, reward, terminated, truncated, info = env.step(policy(obs))
@@ -849,7 +894,7 @@ def test_gym_env_over_ros_reset_waits_for_its_episodes_goal(ros, goto_export):
     from geometry_msgs.msg import PointStamped, Twist
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import Range
-    from std_msgs.msg import Float64MultiArray, Int32
+    from std_msgs.msg import Float64MultiArray, Header
 
     import jaxrobo.ros  # noqa: F401 - registers the envs
     from jaxrobo.ros import msgs
@@ -858,7 +903,7 @@ def test_gym_env_over_ros_reset_waits_for_its_episodes_goal(ros, goto_export):
 
     rospy = get()
     top = load_topics("quadcopter")["topics"]
-    types = {"odom": Odometry, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Int32,
+    types = {"odom": Odometry, "goal": PointStamped, "obstacles": Float64MultiArray, "episode": Header,
              **{s: Range for s in SONARS}}
     pubs = {k: rospy.Publisher(top[k], cls, queue_size=10, latch=True) for k, cls in types.items()}
     commands = Listener(top["cmd_vel"], Twist)
@@ -873,7 +918,7 @@ def test_gym_env_over_ros_reset_waits_for_its_episodes_goal(ros, goto_export):
             pubs[k].publish(m)
 
     def reset(_req):
-        pubs["episode"].publish(Int32(data=1))
+        pubs["episode"].publish(episode_header(1, 1.5))
         for k, m in first.items():
             pubs[k].publish(m)
         threading.Thread(target=late_goal, daemon=True).start()
@@ -884,7 +929,7 @@ def test_gym_env_over_ros_reset_waits_for_its_episodes_goal(ros, goto_export):
                  ("unpause_physics", lambda _r: msgs.EmptyResponse()), ("reset_simulation", reset))]
     env = None
     try:
-        pubs["episode"].publish(Int32(data=0))
+        pubs["episode"].publish(episode_header(0, 1.0))
         for k, m in {**drone_episode(0, (2.0, -1.0, 1.2), 1.0), **drone_state(1.0)}.items():
             pubs[k].publish(m)
         env = gym.make("jaxrobo-ros/QuadcopterGoto-v2", timeout=30.0)
@@ -892,10 +937,11 @@ def test_gym_env_over_ros_reset_waits_for_its_episodes_goal(ros, goto_export):
         done = time.monotonic()
         assert sent and done >= sent[0]
         latest = env.unwrapped.latest
-        assert latest["episode"].data == 1 and tagged_episode(latest["goal"]) == 1
+        assert latest["episode"].seq == 1 and tagged_episode(latest["obstacles"]) == 1
+        assert latest["goal"].header.stamp == latest["episode"].stamp
         b = env.unwrapped.b
-        assert np.array_equal(obs, b.observation({**first, **new, "episode": Int32(data=1)}))
-        stale = b.observation({**first, **drone_episode(None, (2.0, -1.0, 1.2), 1.0)})
+        assert np.array_equal(obs, b.observation({**first, **new, "episode": episode_header(1, 1.5)}))
+        stale = b.observation({**first, **drone_episode(None, (2.0, -1.0, 1.2), 1.0)})  # no number heard
         assert not np.array_equal(obs, stale)
     finally:
         if env is not None:

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo.core.config import ConfigError
-from jaxrobo_ros.bridge import SONARS, CartPoleBridge, DroneBridge, episode_tag, load_topics
+from jaxrobo_ros.bridge import SONARS, WORLD, CartPoleBridge, DroneBridge, episode_tag, load_topics
 
 #: The task modules with a native port: their family (the topic file's name) and the port's entry point.
 FAMILIES = {"envs.quadcopter.goto": "quadcopter", "envs.quadcopter.goto_v2": "quadcopter",
@@ -118,14 +118,15 @@ class DroneSim(DroneBridge):
                 "potentials": self.port.potentials_of(obs), "return": 0.0}
 
     def episode_msgs(self, task: dict, t, episode: int) -> dict:
-        """Episode ``episode``'s goal (world frame, stamped ``t``: its first state's) and obstacles, each naming the
-        episode (:func:`jaxrobo_ros.bridge.episode_tag`: the goal's ``header.frame_id``, the obstacle array's
-        ``layout.dim[0].label``), so that a subscriber does not take them for another episode's."""
+        """Episode ``episode``'s goal (world frame, stamped ``t``: its first state's, the episode's start that
+        ``/jaxrobo/episode`` carries) and obstacles (naming the episode in ``layout.dim[0].label``,
+        :func:`jaxrobo_ros.bridge.episode_tag`), so that a subscriber does not take them for another episode's
+        (:meth:`jaxrobo_ros.bridge.Bridge.episode_check`)."""
         from geometry_msgs.msg import PointStamped
         from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
         g = PointStamped()
-        g.header.stamp, g.header.frame_id = t, episode_tag(episode)
+        g.header.stamp, g.header.frame_id = t, WORLD
         g.point.x, g.point.y, g.point.z = (float(x) for x in task["goal"])
         o = task["obstacles"]
         act = np.asarray(o["active"], bool)
@@ -149,7 +150,7 @@ class DroneSim(DroneBridge):
         vel.linear.x, vel.linear.y, vel.linear.z = (float(v) for v in d.qvel[:3])
         vel.angular.x, vel.angular.y, vel.angular.z = (float(v) for v in d.qvel[3:6])
         odom = Odometry()
-        odom.header.stamp, odom.header.frame_id, odom.child_frame_id = t, "world", "base_link"
+        odom.header.stamp, odom.header.frame_id, odom.child_frame_id = t, WORLD, "base_link"
         odom.pose.pose, odom.twist.twist = pose, vel
         imu = Imu()
         imu.header.stamp, imu.header.frame_id = t, "base_link"

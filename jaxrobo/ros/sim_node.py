@@ -16,10 +16,11 @@ answers it: such a client must send one command per state. A state republished a
 stamp and its answer. A stamped copy that names another episode than the state's (``header.frame_id``,
 :func:`jaxrobo_ros.bridge.episode_tag`: the policy node answered a new episode's first state before its number, sent
 over another connection, reached it, so with the last episode's accumulated cart command) is dropped too: the state is
-republished and answered afresh. The drone's goal and obstacles name their episode the same way (the goal's
-``header.frame_id``, the obstacle array's ``layout.dim[0].label``), and the policy node and the Gymnasium env over
-ROS wait for those of the episode they are in. ``EPISODE_MARGIN`` only makes these waits and drops rare (a speed
-measure); the tags, not the margin, keep lockstep exact.
+republished and answered afresh. ``/jaxrobo/episode`` carries each episode's number and start stamp (a
+``std_msgs/Header``, :func:`jaxrobo_ros.bridge.episode_msg`); the drone's goal (frame ``world``) is stamped with that
+start and the obstacle array names its episode (``layout.dim[0].label``), and the policy node and the Gymnasium env
+over ROS wait for those of the episode they are in. ``EPISODE_MARGIN`` only makes these waits and drops rare (a
+speed measure); the stamps and tags, not the margin, keep lockstep exact.
 
 Episodes start from the task's own resets (``jaxrobo.task.rollout.rollout_start`` with key ``--seed``: episode ``i``
 is the ``i``-th reset of ``jaxrobo eval``/``scripts/sim2sim.py`` with that key). With ``--episodes N`` the sim runs
@@ -40,14 +41,14 @@ from typing import Any
 
 import numpy as np
 
-from jaxrobo_ros.bridge import tagged_episode
+from jaxrobo_ros.bridge import episode_msg, tagged_episode
 from jaxrobo_ros.system import line_buffered, rospy as import_rospy
 from jaxrobo.core.config import ConfigError, parse_json
 from jaxrobo.ros.bridge import make_bridge, make_env
 
 #: Wall-clock seconds between a new episode's goal, obstacles and number (latched topics) and its first state: a
 #: speed measure only. Topics travel over separate connections, so a subscriber usually has them before the state
-#: and need not wait for them, or answer the state again; the episode tags make it right when it does not.
+#: and need not wait for them, or answer the state again; the episode stamps and tags make it right when it does not.
 EPISODE_MARGIN = 0.05
 #: Wall-clock seconds without a step (paused, or waiting for a lockstep command) before the sim publishes its
 #: state again (same stamp).
@@ -76,7 +77,6 @@ class SimNode:
         """``ros_args``: the node's own ``name:=value`` arguments (remappings, ``__name``, ...) for rospy."""
         self.rospy = rospy = import_rospy()
         from rosgraph_msgs.msg import Clock
-        from std_msgs.msg import Int32
 
         from jaxrobo.ros import msgs
 
@@ -100,7 +100,7 @@ class SimNode:
                      for k in types if k not in (self.b.command_topic, "takeoff", "land")}
         self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
         self.reward = rospy.Publisher("/openai/reward", msgs.RLExperimentInfo, queue_size=10)
-        self.Int32, self.Clock, self.Info = Int32, Clock, msgs.RLExperimentInfo
+        self.Clock, self.Info = Clock, msgs.RLExperimentInfo
         # lockstep: the commands' stamped copies (subscribed first: a node found on the command topic is on this one)
         self.stamped = rospy.Subscriber(top["command_stamped"], self.b.stamped_type(), self._on_stamped,
                                         queue_size=10, tcp_nodelay=True) if lockstep else None
@@ -172,9 +172,10 @@ class SimNode:
         self.b.port.reset(self.qpos[i], self.qvel[i])
         self.command = self.task.get("command", self.b.zero_command())
         self.steps, self.t = 0, self.t + self.b.period
-        for k, m in self.b.episode_msgs(self.task, self.stamp(), self.index).items():
+        start = self.stamp()  # the first state's, the goal's and the episode message's: a goal's stamp says its episode
+        for k, m in self.b.episode_msgs(self.task, start, self.index).items():
             self.pubs[k].publish(m)
-        self.pubs["episode"].publish(self.Int32(data=self.index))
+        self.pubs["episode"].publish(episode_msg(self.index, start))
         time.sleep(EPISODE_MARGIN)
         self.publish_state()
         self.tick = time.monotonic()  # the first period of the episode is a whole one
