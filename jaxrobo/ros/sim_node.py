@@ -27,8 +27,8 @@ is the ``i``-th reset of ``jaxrobo eval``/``scripts/sim2sim.py`` with that key).
 ``N`` episodes back to back (a new one when the task ends one or at the horizon), publishes each one's return on
 ``/openai/reward`` (the task's own reward summed over the episode, as openai_ros does: the cart-pole's 1 per step,
 the drone's shaped reward of ``envs/quadcopter/goto*.py``), writes ``--results`` and exits; without it episodes
-change only on ``/gazebo/reset_simulation`` or ``/gazebo/reset_world`` (as a seed training script drives Gazebo). ``/gazebo/pause_physics`` and
-``/gazebo/unpause_physics`` stop and resume time.
+change only on ``/gazebo/reset_simulation`` or ``/gazebo/reset_world`` (as a seed training script drives Gazebo).
+``/gazebo/pause_physics`` and ``/gazebo/unpause_physics`` stop and resume time.
 """
 from __future__ import annotations
 
