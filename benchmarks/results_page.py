@@ -143,6 +143,8 @@ WHAT = {
                                     "(`benchmarks/time_to_trained.py --seeds 3`), beside the README's table",
     "time_to_trained_5b0c43b.json": "Time to a trained robot re-checked at 5b0c43b on a third H200 host "
                                     "(`benchmarks/time_to_trained.py --seeds 3`), beside the README's table",
+    "time_to_trained_5784dc9.json": "Time to a trained robot re-checked at 5784dc9 on a fourth H200 host "
+                                    "(`benchmarks/time_to_trained.py --seeds 3`), beside the README's table",
     "time_to_trained_peers.json": "CartPoleContinuous-v0's default command beside Brax's PPO on Brax's own "
                                   "inverted_pendulum with its notebook's settings (`benchmarks/time_to_trained.py "
                                   "--peers`), one call",
