@@ -61,7 +61,7 @@ class PolicyNode:
         self.rospy = import_rospy()
         self.latest: dict[str, Any] = {}
         self.lock = threading.Lock()
-        self.next_due, self.last_t, self.episode = -np.inf, -np.inf, None
+        self.next_due, self.last_t = -np.inf, -np.inf
         self.last_act = time.monotonic()
         self.commands = 0
         self.goal = None  # the goal parameter's value, where the topic file names one (else the goal topic)
@@ -129,12 +129,12 @@ class PolicyNode:
         with self.lock:
             if self.closing:  # stop() sent the zero command: nothing after it (rospy closes the topics next)
                 return
+            # the episode lives in latest["episode"] alone: the one before this message's, to tell a new one
+            previous = self.b.episode_of(self.latest) if name == "episode" else None
             self.latest[name] = msg
             if name == "episode":
-                episode = self.b.episode_of(self.latest)
-                if self.episode is not None and episode != self.episode:
+                if previous is not None and self.b.episode_of(self.latest) != previous:
                     self._new_episode(msg.stamp.to_sec())  # the number carries its episode's start
-                self.episode = episode
                 if self.b.primary not in self.latest:
                     return
                 # a state held for its episode's number (stamped from the episode's start on) is acted on now
@@ -173,10 +173,11 @@ class PolicyNode:
             out = self.b.command_msg(self.policy(obs))
             self.pub.publish(out)
             stamped = self.b.stamped_command(out, self.latest[self.b.primary].header.stamp)
-            if self.episode is not None:
+            episode = self.b.episode_of(self.latest)
+            if episode is not None:
                 # the episode whose start this answer counts from: a new episode's first state can arrive before
                 # its number (another connection); a lockstep sim does not step on an answer of another episode
-                stamped.header.frame_id = episode_tag(self.episode)
+                stamped.header.frame_id = episode_tag(episode)
             self.stamped_pub.publish(stamped)
             self.last_out, self.last_stamped, self.acted_t = out, stamped, t
             self.latency.append(time.perf_counter() - t_in)
