@@ -306,9 +306,12 @@ def run(args) -> int:
     except SetupError as err:
         print(f"jaxrobo ros policy: {err}; nothing was started", file=sys.stderr)
         return 2
-    stop = threading.Event()
+    # The handler only appends: Python runs it in the main thread between bytecodes, and the loop below would hold
+    # an Event's own lock inside Event.wait, so an Event set from the handler could deadlock the node (it then never
+    # stops the robot or writes its stats, and is killed).
+    stopping: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, lambda signum, _frame: stopping.append(signum))
     try:
         node.start()
     except SetupError as err:
@@ -317,9 +320,9 @@ def run(args) -> int:
     meta = node.policy.meta
     print(f"jaxrobo ros policy: {meta['env_id']} ({meta['kind']}) as {node.rospy.get_name()} every "
           f"{node.b.period:g} s of stamp time on {node.pub.resolved_name}", flush=True)
-    while not stop.is_set() and not node.rospy.is_shutdown() and node.master_lost is None:
+    while not stopping and not node.rospy.is_shutdown() and node.master_lost is None:
         node.watch()
-        stop.wait(0.02)
+        time.sleep(0.02)  # a signal's handler runs during the sleep; the loop stops after it
     node.stop()
     if node.master_lost is not None:
         print(f"jaxrobo ros policy: stopped the robot (zero command): {node.master_lost}", file=sys.stderr)
