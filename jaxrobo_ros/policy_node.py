@@ -31,7 +31,6 @@ import argparse
 import importlib.util
 import json
 import os
-import signal
 import sys
 import threading
 import time
@@ -41,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo_ros.bridge import Fault, episode_tag, make_bridge, stamp
-from jaxrobo_ros.system import SetupError, line_buffered, rospy as import_rospy
+from jaxrobo_ros.system import SetupError, line_buffered, rospy as import_rospy, stop_on_signals
 
 #: The numpy runner ``jaxrobo export`` copies into every export.
 RUNNER = "jaxrobo_policy.py"
@@ -133,7 +132,7 @@ class PolicyNode:
             previous = self.b.episode_of(self.latest) if name == "episode" else None
             self.latest[name] = msg
             if name == "episode":
-                if previous is not None and self.b.episode_of(self.latest) != previous:
+                if previous is not None and int(msg.seq) != previous:
                     self._new_episode(msg.stamp.to_sec())  # the number carries its episode's start
                 if self.b.primary not in self.latest:
                     return
@@ -306,12 +305,7 @@ def run(args) -> int:
     except SetupError as err:
         print(f"jaxrobo ros policy: {err}; nothing was started", file=sys.stderr)
         return 2
-    # The handler only appends: Python runs it in the main thread between bytecodes, and the loop below would hold
-    # an Event's own lock inside Event.wait, so an Event set from the handler could deadlock the node (it then never
-    # stops the robot or writes its stats, and is killed).
-    stopping: list[int] = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda signum, _frame: stopping.append(signum))
+    stopping = stop_on_signals()
     try:
         node.start()
     except SetupError as err:

@@ -51,6 +51,19 @@ def line_buffered() -> None:
             pass
 
 
+def stop_on_signals() -> list[int]:
+    """A list that SIGINT and SIGTERM append their number to: a node's main loop runs while it is empty. The
+    handler only appends: Python runs it in the main thread between bytecodes, where that thread may hold a lock
+    (an Event's own, inside ``Event.wait``), so a handler that takes one (``Event.set``) can deadlock the node: it
+    then never stops the robot or writes what it writes at exit, and is killed."""
+    import signal
+
+    stopping: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: stopping.append(signum))
+    return stopping
+
+
 def split_ros_args(argv) -> tuple[list[str], list[str]]:
     """``(argv without ROS's own arguments, those arguments)``: the ``name:=value`` arguments roslaunch and rosrun
     give a node (remappings ``from:=to``, ``__name:=``, ``__ns:=``, ``__log:=``, private parameters ``_p:=v``), told

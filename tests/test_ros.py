@@ -1330,3 +1330,25 @@ def test_a_nodes_log_lines_reach_a_file_as_they_are_written(tmp_path):
     finally:
         p.kill()
         p.wait()
+
+
+def test_a_stop_signal_is_heard_while_the_main_thread_holds_a_lock():
+    """The nodes' SIGINT/SIGTERM handler (stop_on_signals) takes no lock: Python runs a handler in the main thread
+    between bytecodes, where that thread may hold one (an Event's own, inside Event.wait). Raised while the main
+    thread holds an Event's lock, the signal is recorded and the process goes on; a handler that set an Event hung
+    there (the node was killed without stopping the robot or writing its stats). No rospy needed."""
+    script = """if True:
+        import os, signal, threading
+        from jaxrobo_ros.system import stop_on_signals
+        stopping = stop_on_signals()
+        event = threading.Event()
+        def call():
+            return 1
+        with event._cond:  # what Event.wait holds for a few bytecodes
+            os.kill(os.getpid(), signal.SIGINT)
+            call()  # the pending handler runs here, inside the lock
+        print("stopping", stopping == [signal.SIGINT])
+    """
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0 and r.stdout.strip() == "stopping True", r.stdout + r.stderr

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from jaxrobo_ros.bridge import episode_msg, tagged_episode
-from jaxrobo_ros.system import line_buffered, rospy as import_rospy
+from jaxrobo_ros.system import line_buffered, rospy as import_rospy, stop_on_signals
 from jaxrobo.core.config import ConfigError, parse_json
 from jaxrobo.ros.bridge import make_bridge, make_env
 
@@ -209,10 +209,11 @@ class SimNode:
     def ready(self) -> bool:
         return not self.paused and (not self.lockstep or self.answer is not None)
 
-    def run(self, stop: threading.Event) -> list[dict]:
+    def run(self, stopping: list) -> list[dict]:
+        """Episodes until ``stopping`` (:func:`jaxrobo_ros.system.stop_on_signals`) is not empty."""
         with self.lock:
             self.new_episode()
-        while not stop.is_set() and not self.rospy.is_shutdown():
+        while not stopping and not self.rospy.is_shutdown():
             with self.lock:
                 if not self.ready():
                     self.lock.wait(0.05)
@@ -232,8 +233,6 @@ class SimNode:
 
 
 def run(args) -> int:
-    import signal
-
     line_buffered()  # its log lines reach a log file as they are written
 
     if os.path.isdir(args.env_id):  # an export: its task with the run's options and parameters
@@ -249,13 +248,11 @@ def run(args) -> int:
     else:
         env = make_env({"env_id": args.env_id}, where="ID")
     node = SimNode(env, args.episodes, args.seed, args.lockstep, args.speed, args.topics, ros_args=args.ros_args)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stopping = stop_on_signals()
     print(f"jaxrobo ros sim: {args.env_id} in native MuJoCo as {node.rospy.get_name()}, control period "
           f"{node.b.period:g} s, "
           f"{'lockstep' if args.lockstep else f'{args.speed:g} x real time'}", flush=True)
-    results = node.run(stop)
+    results = node.run(stopping)
     if args.results:
         with open(args.results, "w") as f:
             json.dump({"env_id": args.env_id, "seed": args.seed, "episodes": results}, f)
