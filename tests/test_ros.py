@@ -98,10 +98,19 @@ def ros(tmp_path_factory):
         r.close()
 
 
-def stop(*procs):
-    from jaxrobo.ros.launch import stop as stop_all
+def close(*things):
+    """A test's teardown, in one call: its node processes stopped (:func:`jaxrobo.ros.launch.stop`), then its own
+    handles dropped in the order given: a :class:`Listener`'s subscriber, a publisher, a service."""
+    from jaxrobo.ros.launch import stop
 
-    stop_all(procs)
+    stop([t for t in things if isinstance(t, subprocess.Popen)])
+    for t in things:
+        if isinstance(t, Listener):
+            t.sub.unregister()
+        elif hasattr(t, "unregister"):  # a publisher or subscriber
+            t.unregister()
+        elif not isinstance(t, subprocess.Popen):  # a service
+            t.shutdown()
 
 
 def eventually(predicate, timeout=BOUND, every=0.05) -> bool:
@@ -290,8 +299,7 @@ def test_goto_through_ros_arrives_as_in_process(ros, goto_export):
         assert sim.wait(timeout=BOUND) == 0, log(sim)
         assert rewards.wait(n, timeout=10)
     finally:
-        stop(sim, policy)
-        rewards.sub.unregister()
+        close(sim, policy, rewards)
     eps = json.loads(results.read_text())["episodes"]
     native = in_process(goto_export, n, seed)
     rate_ros = np.mean([e["success"] for e in eps])
@@ -331,7 +339,7 @@ def test_cartpole_through_ros_stays_up_as_in_process(ros, cartpole_export):
     try:
         assert sim.wait(timeout=BOUND) == 0, log(sim)
     finally:
-        stop(sim, policy)
+        close(sim, policy)
     eps = json.loads(results.read_text())["episodes"]
     native = in_process(cartpole_export, n, seed)
     assert [e["steps"] for e in eps] == [e["length"] for e in native]
@@ -413,10 +421,7 @@ def test_lockstep_sim_steps_once_per_state_when_an_answer_comes_twice(ros, cartp
                 assert len(newer) == 1, f"the sim stepped on a second answer to one state:\n{log(sim)}"
         assert sim.wait(timeout=BOUND) == 0, log(sim)
     finally:
-        stop(sim)
-        states.sub.unregister()
-        plain.unregister()
-        stamped.unregister()
+        close(sim, states, plain, stamped)
     native = in_process(cartpole_export, 1, seed)[0]
     eps = json.loads(results.read_text())["episodes"]
     assert len(seen) > again + 1
@@ -574,9 +579,7 @@ def test_lockstep_sim_does_not_step_on_an_answer_of_another_episode(ros, cartpol
             seen.append(obs)
         assert sim.wait(timeout=BOUND) == 0, log(sim)
     finally:
-        stop(sim)
-        states.sub.unregister()
-        stamped.unregister()
+        close(sim, states, stamped)
     native = in_process(cartpole_export, 1, seed)[0]
     eps = json.loads(results.read_text())["episodes"]
     assert [e["steps"] for e in eps] == [native["length"]] == [len(seen)], (eps, native["length"], len(seen))
@@ -800,11 +803,7 @@ def test_drone_node_over_ros_acts_once_its_episodes_goal_and_obstacles_arrive(ro
         got = episodes.got[0]
         assert (got.seq, got.stamp, got.frame_id) == (5, new["goal"].header.stamp, "world"), got
     finally:
-        stop(policy)
-        answers.sub.unregister()
-        episodes.sub.unregister()
-        for p in pubs.values():
-            p.unregister()
+        close(policy, answers, episodes, *pubs.values())
     assert "Traceback" not in log(policy)
 
 
@@ -830,7 +829,7 @@ def test_gym_env_over_ros_is_the_task(ros, cartpole_export):
             lengths.append(t + 1)
         env.close()
     finally:
-        stop(sim)
+        close(sim)
     assert lengths == [e["length"] for e in in_process(cartpole_export, 2, seed, first=1)]
 
 
@@ -874,7 +873,7 @@ def test_gym_env_over_ros_gives_the_drones_shaped_reward(ros, goto_export):
             flights.append((rewards, info))
         env.close()
     finally:
-        stop(sim)
+        close(sim)
     assert "Traceback" not in log(sim)
     native = in_process(goto_export, n, seed, first=1)
     assert [len(r) for r, _ in flights] == [e["length"] for e in native]
@@ -946,11 +945,7 @@ def test_gym_env_over_ros_reset_waits_for_its_episodes_goal(ros, goto_export):
     finally:
         if env is not None:
             env.close()
-        for s in services:
-            s.shutdown()
-        commands.sub.unregister()
-        for p in pubs.values():
-            p.unregister()
+        close(*services, commands, *pubs.values())
 
 
 @needs_ros
@@ -1002,8 +997,7 @@ def test_policy_node_faults_stop_the_robot(ros, cartpole_export, goto_export, tm
         policy.send_signal(signal.SIGINT)
         assert policy.wait(timeout=30) == 0
     finally:
-        stop(sim, policy)
-        commands.sub.unregister()
+        close(sim, policy, commands)
     assert "Traceback" not in log(policy)
 
     # an export written before exports carried the robot section, the robot section of another task, topics of
@@ -1090,10 +1084,7 @@ def test_drone_node_builds_the_training_observation_from_messages(ros, goto_expo
             c = acted()[k]
             assert np.allclose([c.linear.x, c.linear.y, c.linear.z, c.angular.z], want), (k, c, want)
     finally:
-        stop(policy)
-        commands.sub.unregister()
-        for p in pubs.values():
-            p.unregister()
+        close(policy, commands, *pubs.values())
     assert "Traceback" not in log(policy)
 
 
@@ -1110,11 +1101,11 @@ def test_policy_node_stops_when_the_master_restarts(ros, cartpole_export):
         assert eventually(lambda: "1 x real time" in log(sim), every=0.2), log(sim)
         time.sleep(2.0)
         assert policy.poll() is None, log(policy)
-        stop(master)
+        close(master)
         master = start_master(port, env)
         assert policy.wait(timeout=60) == 3, log(policy)
     finally:
-        stop(sim, policy, master)
+        close(sim, policy, master)
     text = log(policy)
     assert "stopped the robot (zero command): the ROS master at" in text and "was restarted" in text, text
     assert "Traceback" not in text, text
@@ -1155,7 +1146,7 @@ def test_roslaunch_file_starts_sim_and_policy(ros, cartpole_export):
                             f"export:={cartpole_export}", "episodes:=2", "lockstep:=true", "seed:=4"], env=env,
                            capture_output=True, text=True, timeout=BOUND, cwd=ROOT)
     finally:
-        commands.sub.unregister()
+        close(commands)
     out = r.stdout + r.stderr
     steps = sum(e["length"] for e in in_process(cartpole_export, 2, 4))
     assert "jaxrobo ros sim: 2 episodes" in out and "jaxrobo ros policy: CartPoleStayUp-v0" in out, out
@@ -1198,8 +1189,7 @@ def test_roslaunch_remappings_and_names_reach_the_nodes(ros, cartpole_export, tm
         r = subprocess.run(["roslaunch", "-p", port, str(launch)], env=env, capture_output=True, text=True,
                            timeout=BOUND, cwd=ROOT)
     finally:
-        remapped.sub.unregister()
-        original.sub.unregister()
+        close(remapped, original)
     out = r.stdout + r.stderr
     steps = sum(e["length"] for e in in_process(cartpole_export, 2, 4))
     assert "jaxrobo ros sim: 2 episodes" in out, out
@@ -1228,7 +1218,7 @@ def test_seed_style_qlearning_against_the_sim_sees_the_local_episodes(ros):
         r = ros.script(QLEARN, *args, "--out", str(over_ros))
         assert r.returncode == 0, r.stdout + r.stderr
     finally:
-        stop(sim)
+        close(sim)
     r = ros.script(QLEARN, *args, "--local", "--sim-seed", "3", "--out", str(local))
     assert r.returncode == 0, r.stdout + r.stderr
     lengths = json.loads(over_ros.read_text())
