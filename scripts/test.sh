@@ -22,7 +22,8 @@ fi
 xdist=()
 if [ "$workers" -gt 1 ]; then xdist=(-n "$workers" --dist loadfile); fi
 # Two tiers: by default the suite without the tests marked `slow` (long end-to-end runs and re-checks of what the
-# default tier already covers in smaller form); --slow runs only those, --all everything. CI runs the first tier.
+# default tier already covers in smaller form); --slow runs only those, --all everything. CI runs the first
+# tier, then the second where its machine has the time (.ci/run).
 tier=(-m "not slow")
 args=()
 for arg in "$@"; do
