@@ -108,8 +108,8 @@ def headline_bars(rows: list[dict[str, Any]], fam: str) -> list[dict[str, Any]]:
         for r in (r for r in group if r["n_envs"] == top):
             command, budget = mode.split("-")
             backend = "" if r["backend"] == "default" else f" [{r['backend']}]"
-            bars.append({"label": f"jaxrobo {command} {r['env']}{backend} ({budget} budget), end to end", "value": r[key],
-                         "n_envs": top, "published": False})
+            bars.append({"label": f"jaxrobo {command} {r['env']}{backend} ({budget} budget), end to end",
+                         "value": r[key], "n_envs": top, "published": False})
     peers: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
         if not r["suite"].startswith("jaxrobo"):

@@ -67,8 +67,9 @@ def main() -> int:
     rows = []
     for variant in args.variants.split(","):
         cmd = [ncu, "--kernel-name", "regex:cartpole", "--launch-count", "1", "--section", "LaunchStats",
-               "--section", "Occupancy", "--section", "ComputeWorkloadAnalysis", "--section", "SpeedOfLight", sys.executable,
-               os.path.join(HERE, "randomisation_cost.py"), "--device", "gpu", "--envs", "CartPoleStayUp-v0",
+               "--section", "Occupancy", "--section", "ComputeWorkloadAnalysis", "--section", "SpeedOfLight",
+               sys.executable, os.path.join(HERE, "randomisation_cost.py"), "--device", "gpu",
+               "--envs", "CartPoleStayUp-v0",
                "--n-envs", str(args.n_envs), "--nepisodes", str(args.nepisodes), "--repeats", "1",
                "--variants", variant]
         run = subprocess.run(cmd, capture_output=True, text=True)

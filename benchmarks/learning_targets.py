@@ -51,8 +51,9 @@ def train_and_judge(env_id: str, runs: int, seed_base: int, overrides: dict) -> 
     spec = resolve(env_id, overrides=overrides)
     env, config = spec.env, spec.config
     print(f"{env_id}: {runs} runs of the default preset, budget "
-          f"{'total_steps ' + format(config.total_steps, ',') if config.total_steps else 'nepisodes ' + str(config.nepisodes)}"
-          " ...", flush=True)
+          + ('total_steps ' + format(config.total_steps, ',') if config.total_steps
+             else 'nepisodes ' + str(config.nepisodes))
+          + " ...", flush=True)
     target = getattr(env, "learning_target", None)
     if target is None:
         raise ValueError(f"{env_id} declares no learning_target")
@@ -67,7 +68,8 @@ def train_and_judge(env_id: str, runs: int, seed_base: int, overrides: dict) -> 
     chunks = population.loop.chunks_done
     slots = chunks * config.chunk_steps * config.n_envs
     return {"target": target.description, "metric": target.metric, "threshold": float(target.threshold),
-            "n_envs": config.n_envs, "chunk_steps": config.chunk_steps, "nepisodes": config.nepisodes, "total_steps": config.total_steps,
+            "n_envs": config.n_envs, "chunk_steps": config.chunk_steps, "nepisodes": config.nepisodes,
+            "total_steps": config.total_steps,
             "budget": trainer.budget, "seeds": seeds, "score": [round(float(s), 4) for s in scores],
             "met": [bool(m) for m in met], "env_steps": env_steps.tolist(),
             "useful_share": [round(float(s) / slots, 4) for s in env_steps],

@@ -1,7 +1,7 @@
 """PPO (Brax's trainer, unchanged) on the continuous Goto: arrivals on 200 fresh goals with the obstacle, median of
 3 seeds, and the wall time to reach the target on one device.
 
-    python benchmarks/ppo_goto.py --device gpu                      # the preset of agents/configs/ppo/QuadcopterGotoTwist-v0.yaml
+    python benchmarks/ppo_goto.py --device gpu   # the preset of agents/configs/ppo/QuadcopterGotoTwist-v0.yaml
     python benchmarks/ppo_goto.py --device cpu --preset tiny --seeds 0 --eval-episodes 8    # a smoke run
 
 Each seed is one ``jaxrobo train --env QuadcopterGotoTwist-v0 --agent ppo`` run (:func:`jaxrobo.deep.train`): the

@@ -144,8 +144,8 @@ def main(argv=None) -> int:
             print(f"{r['gpus']:4d} {r['processes']:5d} failed (exit {r['returncodes']})")
             continue
         print(f"{r['gpus']:4d} {r['processes']:5d} {r['checksum']:>16s} {str(r.get('same_as_baseline', '-')):>5s} "
-              f"{r['compile_s']:9.1f} {r['run_s']:8.1f} {r['wall_s']:8.1f} {r.get('efficiency_run', float('nan')):7.2f} "
-              f"{r.get('efficiency_wall', float('nan')):8.2f}")
+              f"{r['compile_s']:9.1f} {r['run_s']:8.1f} {r['wall_s']:8.1f} "
+              f"{r.get('efficiency_run', float('nan')):7.2f} {r.get('efficiency_wall', float('nan')):8.2f}")
     if args.out:
         _common.write_json({"argv": sys.argv, "kind": args.kind, "distributed": args.distributed, "rows": rows},
                            args.out)

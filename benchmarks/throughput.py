@@ -686,7 +686,8 @@ def jaxrobo_plan(args, n_list, gpu: bool = False) -> list[tuple]:
         if env_id not in ids:
             plan.append(("skip", env_id, f"{env_id} is not registered in this checkout"))
             continue
-        if continuous(env_id):  # tabular rows need Discrete actions; PPO's throughput: benchmarks/studies/ppo_throughput.py
+        # tabular rows need Discrete actions; PPO's throughput: benchmarks/studies/ppo_throughput.py
+        if continuous(env_id):
             plan.append(("skip", env_id, f"{env_id} has continuous (Box) actions: no tabular rows; "
                                          "benchmarks/studies/ppo_throughput.py measures PPO on it"))
             continue
@@ -849,8 +850,9 @@ def main(argv: list[str] | None = None) -> int:
             add(_guard(fn, skip, n, args, ctx, *extra) if fn is not None else skip)
 
     for kind, env_id, n in command_plan(args, gpu):
-        add(_guard(measure_command, _skip("jaxrobo-cli", env_id.partition(":")[0], env_id.partition(":")[2] or "default",
-                                          kind, n, ""), kind, env_id, n, args, ctx))
+        add(_guard(measure_command,
+                   _skip("jaxrobo-cli", env_id.partition(":")[0], env_id.partition(":")[2] or "default", kind, n, ""),
+                   kind, env_id, n, args, ctx))
 
     meta = {"device": jax.devices()[0].device_kind, "device_name": dev, "backend": jax.default_backend(),
             "device_count": jax.device_count(), "cpu_count": os.cpu_count(), "platform": platform.platform(),

@@ -160,7 +160,8 @@ def goto_row(args) -> dict[str, Any]:
     last = {}
 
     def score(runner, chunks):
-        last["rates"] = rates = np.asarray(select(runner.agent.q, jax.random.split(jax.random.key(5000 + chunks), runs)))
+        last["rates"] = rates = np.asarray(select(runner.agent.q,
+                                                  jax.random.split(jax.random.key(5000 + chunks), runs)))
         best = float(rates.max())
         return best, {"best_success": best, "mean_success": float(rates.mean())}, \
             f"best greedy success {best:.2f} (mean over {runs} runs {rates.mean():.2f})"

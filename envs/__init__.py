@@ -27,8 +27,9 @@ How to add your own robot or task (in this package or in your own module, docs/e
 * a **task** subclasses :class:`jaxrobo.api.TaskEnv` with its ``Options``/``Params``, opens with its environment
   card, and is registered here with :func:`jaxrobo.api.register` (``"module:Class"``, its step limit, its YAML);
 * a **continuous-action task** (``cartpole/continuous.py``: ``CartPoleContinuous-v0``; ``quadcopter/goto_twist.py``:
-  ``QuadcopterGotoTwist-v0``) has a ``Box`` action space and an observation without discretisation, for Brax's PPO/SAC through :mod:`jaxrobo.interop.brax_env`
-  (``jaxrobo train --agent ppo|sac``); it sits beside its discrete task, whose id stays exactly as it is.
+  ``QuadcopterGotoTwist-v0``) has a ``Box`` action space and an observation without discretisation, for Brax's PPO/SAC
+  through :mod:`jaxrobo.interop.brax_env` (``jaxrobo train --agent ppo|sac``); it sits beside its discrete task, whose
+  id stays exactly as it is.
 
 A module here imports from jaxrobo only its public surface, :mod:`jaxrobo.api` (``tests/test_structure.py``
 checks it): never the trainer, the CLI or a learner.

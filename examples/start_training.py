@@ -10,8 +10,8 @@ What changed from the seed (openai_ros, seed 001):
   :func:`jaxrobo.training.run.resolve`, instead of the ROS parameter server; ``--set KEY=VALUE`` overrides any of them.
 * ``gym.wrappers.Monitor`` no longer exists: results go to a run directory that ``jaxrobo plot`` reads
   (``config.yaml``, ``episodes.csv``, ``summary.json``, ``qtables.npz``).
-* States are integer bins (:func:`jaxrobo.training.trainer.make_discretiser_for`); ``--preset seed`` reproduces the seed's
-  rounding to 0.1 and its learner rules exactly.
+* States are integer bins (:func:`jaxrobo.training.trainer.make_discretiser_for`); ``--preset seed`` reproduces the
+  seed's rounding to 0.1 and its learner rules exactly.
 
 This is the slow, classic path on purpose (one env, numpy ↔ JAX every step); ``jaxrobo train`` runs the same
 experiment for thousands of environments in one compiled loop.

@@ -8,9 +8,9 @@
 Public surface: :func:`make`, :func:`register`, :func:`registered`, :func:`spec` (:mod:`jaxrobo.task.registry`); to
 write a task, subclass :class:`TaskEnv` (:mod:`jaxrobo.task.env`); a robot, :class:`Robot` (:mod:`jaxrobo.task.robot`),
 whose simulator comes from :func:`make_simulator`, with a hand-written backend on :class:`ClosedFormSim`
-(:mod:`jaxrobo.physics.sim`). Training, sweeps, plots and videos are the ``jaxrobo`` CLI and :mod:`jaxrobo.training.train`,
-:mod:`jaxrobo.training.sweep`, :mod:`jaxrobo.pictures.render`; the Gymnasium ids ``jaxrobo/<id>`` are :mod:`jaxrobo.interop.gym_ids` (registered here) and
-:mod:`jaxrobo.interop.gym_adapter` (the envs).
+(:mod:`jaxrobo.physics.sim`). Training, sweeps, plots and videos are the ``jaxrobo`` CLI and
+:mod:`jaxrobo.training.train`, :mod:`jaxrobo.training.sweep`, :mod:`jaxrobo.pictures.render`; the Gymnasium ids
+``jaxrobo/<id>`` are :mod:`jaxrobo.interop.gym_ids` (registered here) and :mod:`jaxrobo.interop.gym_adapter` (the envs).
 
 ``import jaxrobo`` loads neither JAX nor MuJoCo: the registry, the Gymnasium ids and :class:`ConfigError` need
 neither, and the names that do are imported on first access.

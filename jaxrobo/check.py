@@ -352,7 +352,8 @@ class _Checker:
             return f"a step keeps the state's types ({len(_leaf_types(s0)[1])} leaves)"
         field = changes[0].split(" ", 1)[0]
         hook = self._carry_hook(s0, field)
-        raise _Fail(f"{hook}: state.{changes[0]} over a step{' (and ' + str(len(changes) - 1) + ' more)' if len(changes) > 1 else ''}; "
+        raise _Fail(f"{hook}: state.{changes[0]} over a step"
+                    f"{' (and ' + str(len(changes) - 1) + ' more)' if len(changes) > 1 else ''}; "
                     "a lax.scan over steps (training, rollouts, evaluation) needs every field to keep the dtype and "
                     "shape reset gave it: cast it (jnp.asarray(x, dtype)) or give it that type in "
                     "_init_env_variables")
@@ -572,7 +573,8 @@ class _Checker:
                 d.ctrl[:] = np.asarray(ctrl)
                 mujoco.mj_step(m, d)
                 ps = step(ps, ctrl)
-                err = max(np.abs(np.asarray(sim.qpos(ps)) - d.qpos).max(), np.abs(np.asarray(sim.qvel(ps)) - d.qvel).max())
+                err = max(np.abs(np.asarray(sim.qpos(ps)) - d.qpos).max(),
+                          np.abs(np.asarray(sim.qvel(ps)) - d.qvel).max())
                 worst = max(worst, float(err))
                 if err > 1e-4:
                     raise _Fail(f"MJX and native MuJoCo differ by {err:.2e} after one physics step (tolerance 1e-4)")
@@ -667,7 +669,8 @@ class _Checker:
             e, j = np.unravel_index(np.argmin(hit), hit.shape)
             name = self._element_name(paths[j], int(arg[e, j]), flat[floats[j]][1])
             raise _Fail(f"state.{name} passed |x| > {HUGE:.0e} at step {int(first[e, j]) + 1} of env {e} and reached "
-                        f"{worst[e, j]:.3g} (random actions, fresh episodes where one ends){nan_note}: finite, so the NaN guard "
+                        f"{worst[e, j]:.3g} (random actions, fresh episodes where one ends){nan_note}: "
+                        "finite, so the NaN guard "
                         "lets it through; the simulation or the task has left any sane range (a smaller timestep, "
                         "damping, joint limits, clipped velocities or bounded task variables)")
         j = int(np.argmax(worst.max(axis=0))) if len(floats) else 0

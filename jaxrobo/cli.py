@@ -21,7 +21,8 @@ import time
 from typing import Any, Iterator, Sequence
 
 # Subcommands whose module provides configure_parser(parser) and run(args) -> int.
-PLUGINS = {"show": ("jaxrobo.show", "what a policy does, for any task: frames, returns, traces (flights for a quadcopter)"),
+PLUGINS = {"show": ("jaxrobo.show",
+                    "what a policy does, for any task: frames, returns, traces (flights for a quadcopter)"),
            "sweep": ("jaxrobo.training.sweep", "parameter sweep as one vmapped computation"),
            "export": ("jaxrobo.export", "a trained policy as policy.npz + policy.json and a numpy-only runner"),
            "eval": ("jaxrobo.evaluate", "a trained policy on shifted physics (robustness table and plot)"),
@@ -227,9 +228,9 @@ def refuse_resume_flags(resume: str, flags: Sequence[tuple[str, Any]], overwrite
 
 
 def keep_live_scalars(live: str, staged: str) -> None:
-    """Copy the event files :class:`jaxrobo.training.callbacks.LiveScalars` wrote into ``live`` while the run trained into the ``staged``
-    run that replaces it, beside the per-episode scalars written at the end: the finished run keeps the curve a
-    user watched. A name the final writer also took (the same second) gets a ``.live`` suffix."""
+    """Copy the event files :class:`jaxrobo.training.callbacks.LiveScalars` wrote into ``live`` while the run trained
+    into the ``staged`` run that replaces it, beside the per-episode scalars written at the end: the finished run keeps
+    the curve a user watched. A name the final writer also took (the same second) gets a ``.live`` suffix."""
     src, dst = os.path.join(live, "tensorboard"), os.path.join(staged, "tensorboard")
     if os.path.abspath(src) == os.path.abspath(dst) or not os.path.isdir(src):
         return
@@ -467,7 +468,8 @@ def _train_deep(args: argparse.Namespace, agent: str, hold: contextlib.ExitStack
               "before total_steps")
     print(f"{s['env_steps']:,} env steps in {s['train_seconds']:.1f} s of training ({s['env_steps_per_second']:,.0f} "
           f"steps/s, compile included; evaluations {s['eval_seconds']:.1f} s more)")
-    line = f"final evaluation: mean return {s['final_eval_mean_return']:.2f}, mean length {s['final_eval_mean_length']:.1f}"
+    line = (f"final evaluation: mean return {s['final_eval_mean_return']:.2f}, "
+            f"mean length {s['final_eval_mean_length']:.1f}")
     if "final_eval_success_rate" in s:
         line += f", success {s['final_eval_success_rate']:.3f}"
     print(line + f" over {c.eval_episodes} fresh episodes (best: evaluation {s['best_evaluation']}, in best/)")
@@ -841,7 +843,8 @@ def _list(args: argparse.Namespace) -> int:
     print("agents: " + ", ".join(registry.learners()) + " (tabular: Discrete actions)")
     from jaxrobo import deep
 
-    print("        " + ", ".join(deep.AGENTS) + " (Brax's trainers: Box actions; presets in agents/configs/<agent>.yaml)")
+    print("        " + ", ".join(deep.AGENTS)
+          + " (Brax's trainers: Box actions; presets in agents/configs/<agent>.yaml)")
     return 0
 
 

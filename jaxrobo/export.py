@@ -1,14 +1,13 @@
 """``jaxrobo export RUN --out DIR``: a trained policy as a small self-describing file and a numpy-only runner.
 
 ``DIR`` receives ``policy.json`` (what the policy is: format, kind, env id, observation and action layout, the env's
-options and parameters as the run set them, where it came from), ``policy.npz`` (its numbers, plain arrays) and ``jaxrobo_policy.py``
-(:mod:`jaxrobo.interop.numpy_policy` with the task modules it computes with, :func:`runner_source`; importing only
-numpy): ``Policy.load(DIR)(obs) -> action`` outside JAX. A deep
-run also gets ``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``). For a task
-with a native port, ``policy.json`` also holds a ``robot`` section (:func:`jaxrobo.ros.bridge.robot_section`: the
-control period, the observation's constants, the action table), from which the runner turns the robot's readings
-into observations and actions into commands (``policy.io``): what the ROS policy node (:mod:`jaxrobo_ros`) works
-from, without JAX.
+options and parameters as the run set them, where it came from), ``policy.npz`` (its numbers, plain arrays) and
+``jaxrobo_policy.py`` (:mod:`jaxrobo.interop.numpy_policy` with the task modules it computes with,
+:func:`runner_source`; importing only numpy): ``Policy.load(DIR)(obs) -> action`` outside JAX. A deep run also gets
+``policy.onnx`` where the ``onnx`` package is installed (``pip install jaxrobo[export]``). For a task with a native
+port, ``policy.json`` also holds a ``robot`` section (:func:`jaxrobo.ros.bridge.robot_section`: the control period, the
+observation's constants, the action table), from which the runner turns the robot's readings into observations and
+actions into commands (``policy.io``): what the ROS policy node (:mod:`jaxrobo_ros`) works from, without JAX.
 
 * A **tabular** run: the discretiser rebuilt from the run's ``config.yaml`` exactly as training built it
   (:func:`jaxrobo.training.trainer.make_discretiser_for`; checked against the one saved in ``qtables.npz``) and the
@@ -307,11 +306,11 @@ def _top_names(tree: ast.Module) -> set[str]:
 def runner_source(root: str = RUNNER_MODULE) -> str:
     """``jaxrobo_policy.py``: the source of :mod:`jaxrobo.interop.numpy_policy` with the JAX-free task modules it
     imports (the Goto task's geometry and observation: :mod:`envs.quadcopter.geometry`,
-    :mod:`envs.quadcopter.goto_step`; the cart-pole's command and observation: :mod:`envs.cartpole.rules`;
-    the Python-float math they run on, :mod:`jaxrobo.core.scalar`) written in before it, dependencies first, as one module: the runner computes
-    with the task's own functions and still needs nothing but numpy. A module so written in may be imported only
-    by ``from module import name`` of names it defines at its top level (they share one namespace), and no two
-    may define the same name: anything else is refused (``RuntimeError``), not written."""
+    :mod:`envs.quadcopter.goto_step`; the cart-pole's command and observation: :mod:`envs.cartpole.rules`; the
+    Python-float math they run on, :mod:`jaxrobo.core.scalar`) written in before it, dependencies first, as one module:
+    the runner computes with the task's own functions and still needs nothing but numpy. A module so written in may be
+    imported only by ``from module import name`` of names it defines at its top level (they share one namespace), and no
+    two may define the same name: anything else is refused (``RuntimeError``), not written."""
     order: list[str] = []
     trees: dict[str, tuple[list[str], ast.Module]] = {}
 

@@ -75,9 +75,9 @@ def render() -> str:
               "on a task class)", "",
               "| metric | what the summary measures |", "|---|---|"]
     lines += [f"| `{metric}` | {meaning} |" for metric, meaning in TARGET_METRICS.items()]
-    lines += ["", "`better` (`\"higher\"` or `\"lower\"`) is the metric's direction; every \"best\" of the summary, the "
-              "printed summary and `jaxrobo sweep` (`best_100_window_mean_*`, `eval_best_table*`, the best "
-              "configuration) follows it (`jaxrobo.task.env.ranking`)."]
+    lines += ["", "`better` (`\"higher\"` or `\"lower\"`) is the metric's direction; every \"best\" of the "
+              "summary, the printed summary and `jaxrobo sweep` (`best_100_window_mean_*`, `eval_best_table*`, the "
+              "best configuration) follows it (`jaxrobo.task.env.ranking`)."]
     lines += ["", END]
     return "\n".join(lines)
 

@@ -2,12 +2,11 @@
 
     python scripts/sim2sim.py RUN [--policy DIR] [--episodes 100] [--seed 0]
 
-``RUN`` is a finished run of a task with a native port: tabular CartPoleStayUp-v0/-v1 and PPO/SAC
-CartPoleContinuous-v0 (``envs/cartpole/native.py``), QuadcopterGoto-v1/-v2 and PPO/SAC QuadcopterGotoTwist-v0
-(``envs/quadcopter/native.py``),
-ArmReach-v0 (``envs/arm/native.py``). ``--policy`` is its
-export (``jaxrobo export RUN --out DIR``; without it the run is exported into a temporary directory). The episodes' initial states, goals and obstacles are
-drawn once, by the JAX env's reset (:func:`jaxrobo.task.rollout.rollout` with key ``--seed``), and fed to both:
+``RUN`` is a finished run of a task with a native port: tabular CartPoleStayUp-v0/-v1 and PPO/SAC CartPoleContinuous-v0
+(``envs/cartpole/native.py``), QuadcopterGoto-v1/-v2 and PPO/SAC QuadcopterGotoTwist-v0 (``envs/quadcopter/native.py``),
+ArmReach-v0 (``envs/arm/native.py``). ``--policy`` is its export (``jaxrobo export RUN --out DIR``; without it the run
+is exported into a temporary directory). The episodes' initial states, goals and obstacles are drawn once, by the JAX
+env's reset (:func:`jaxrobo.task.rollout.rollout` with key ``--seed``), and fed to both:
 
 * **JAX**: the run's greedy table on its own backend, ties to the first maximum (``greedy_policy(ties="first")``,
   the rule the export acts by), and with the evaluation's random ties for reference; or a PPO/SAC run's

@@ -123,7 +123,8 @@ def test_seed_noise_exploration_matches_reference_frequencies():
     """With epsilon=1 the seed adds U[-mag/2, mag/2) noise to every value; compare the action frequencies."""
     q_row = jnp.array([1.0, 0.8, -0.5, 0.2])
     n = 20_000
-    actions = jax.jit(jax.vmap(lambda k: noisy_greedy(k, q_row, jnp.float32(1.0))))(jax.random.split(jax.random.key(0), n))
+    actions = jax.jit(jax.vmap(lambda k: noisy_greedy(k, q_row, jnp.float32(1.0))))(
+        jax.random.split(jax.random.key(0), n))
     ours = np.bincount(np.asarray(actions), minlength=4) / n
     rng = np.random.default_rng(1)
     mag = 1.0

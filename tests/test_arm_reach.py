@@ -279,9 +279,9 @@ def test_tiny_sweep(tmp_path):
 def test_throughput_row(tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": str(tmp_path / "cache"),
            "XLA_FLAGS": "--xla_backend_optimization_level=0"}
-    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "throughput.py"), "--commands", "none", "--time-to-trained", "none", "--envs", ID, "--n-envs", "4",
-           "--steps", "5", "--repeats", "1", "--learners", "qlearn", "--peers", "none", "--no-plot",
-           "--out", str(tmp_path / "out")]
+    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "throughput.py"), "--commands", "none",
+           "--time-to-trained", "none", "--envs", ID, "--n-envs", "4", "--steps", "5", "--repeats", "1",
+           "--learners", "qlearn", "--peers", "none", "--no-plot", "--out", str(tmp_path / "out")]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = [r for r in json.loads((tmp_path / "out" / "throughput.json").read_text())["rows"] if r["env"] == ID]

@@ -169,7 +169,8 @@ def agent_yaml(text: str, env_id: str = CP, which: str = "agent_config") -> Call
 #: Hostile config.yaml texts, as classes: an alias bomb, nesting past the limit, a file past the size cap, bytes
 #: that are not UTF-8, NUL bytes, an env_id that names a module (which must never be imported).
 ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
-    f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n" for i in range(8))
+    f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n"
+    for i in range(8))
 DEEP = "env_id: " + "[" * 5000 + "]" * 5000 + "\n"
 HUGE = "env_id: [" + "1, " * 600_000 + "1]\n"
 EVIL = "evil_jaxrobo_module"
@@ -534,7 +535,8 @@ SWEEP = [Case(f"sweep-{i}", "sweep", a, f) for i, a, f in [
     ("flag-and-set-clash", ("--n-envs", "2", "--set", "n_envs=3"), "n_envs given twice: --n-envs 2 and --set n_envs=3"),
     ("seeds-past-int32", ("--seed", "2147483647", "--seeds", "2"), "which must lie in [0, 2147483647]"),
     # each run fits (a few GB); its 128 rows at once do not
-    ("group-too-big-for-memory", ("--grid", "alpha=0.1,0.2", "--seeds", "64", "--n-envs", "200000", "--nepisodes", "10"),
+    ("group-too-big-for-memory",
+     ("--grid", "alpha=0.1,0.2", "--seeds", "64", "--n-envs", "200000", "--nepisodes", "10"),
      "sweep group 1 (128 rows)"),
     ("second-group-bad", ("--grid", "number_splits=4,100000"), "number_splits"),
     # silently dropped or overridden: a key given twice, swept and fixed at once, an empty value
@@ -613,7 +615,8 @@ PLOT = [
       setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW + "1,1,0,1\n")),
     P("stats-not-a-number", "line 2: column return_mean='abc' is not a number", "{tmp}/r",
       setup=csv_run("episode_stats.csv", STATS_HEADER + STATS_ROW.replace("0,1,", "0,abc,", 1))),
-    P("stats-header-only", "episode_stats.csv has no rows", "{tmp}/r", setup=csv_run("episode_stats.csv", STATS_HEADER)),
+    P("stats-header-only", "episode_stats.csv has no rows", "{tmp}/r",
+      setup=csv_run("episode_stats.csv", STATS_HEADER)),
     P("stats-binary", "not a text CSV file", "{tmp}/r", setup=csv_run("episode_stats.csv", b"\xff\xfe\x00\x81bad")),
     P("episodes-missing-column", "missing column(s) epsilon", "{tmp}/r",
       setup=csv_run("episodes.csv", "env,episode,return,length,terminated\n0,0,1,2,0\n")),
@@ -999,7 +1002,8 @@ API = [
       _deep_train(learning_rate=float("nan"))),
     A("deep-train-batch-not-multiple", "deep.train(spec): batch_size x num_minibatches = 3 x 4 = 12 must be a "
       "multiple of num_envs=8", _deep_train(batch_size=3)),
-    A("resolve-float32-zero", "alpha=1e-320: is 0 in float32", raises(lambda: _resolve(CP, overrides={"alpha": 1e-320}))),
+    A("resolve-float32-zero", "alpha=1e-320: is 0 in float32",
+      raises(lambda: _resolve(CP, overrides={"alpha": 1e-320}))),
     A("make-float32-inf", "is inf in float32", raises(lambda: _make(CP, pos_step=1e39))),
     A("yaml-alias", "YAML aliases (*name) are not accepted", _yaml_file("a: &x 1\nb: *x\n")),
     A("yaml-merge-key-alias", "YAML aliases", _yaml_file("base: &b {alpha: 1}\nd:\n  <<: *b\n")),
@@ -1019,7 +1023,8 @@ API = [
     A("make-choice", "n_actions=3: allowed values are 2, 4", raises(lambda: _make(CP, n_actions=3))),
     A("make-wrong-type", "pos_step='fast': expected a number", raises(lambda: _make(CP, pos_step="fast"))),
     A("gym-make-unknown-key", "unknown key 'pos_stepp'", raises(lambda: _gym_make(f"jaxrobo/{CP}", pos_stepp=1))),
-    A("resolve-string-number", "alpha='1e-3': expected a number", raises(lambda: _resolve(CP, overrides={"alpha": "1e-3"}))),
+    A("resolve-string-number", "alpha='1e-3': expected a number",
+      raises(lambda: _resolve(CP, overrides={"alpha": "1e-3"}))),
     A("resolve-overrides-not-mapping", "overrides: expected a mapping of key: value, got list",
       raises(lambda: _resolve(CP, overrides=[("alpha", 0.1)]))),
     A("resolve-non-string-key", "--set: unknown key '1'", raises(lambda: _resolve(CP, overrides={1: 2}))),
@@ -1034,9 +1039,12 @@ API = [
       raises(lambda: _resolve(CP, overrides={"bins": (2, 2)}))),
     A("disc-unequal-bounds", "high=[1]: expected 2 values, one per observation dimension, got 1 (low and high must "
       "be equal-length lists)", raises(lambda: _disc([0, 0], [1], number_splits=3))),
-    A("disc-splits-length", "number_splits=[2, 3]: expected 1 bin counts", raises(lambda: _disc([0], [1], number_splits=[2, 3]))),
-    A("disc-splits-string", "number_splits='3': expected a positive integer", raises(lambda: _disc([0], [1], number_splits="3"))),
-    A("disc-splits-zero", "number_splits=0: expected an integer >= 1", raises(lambda: _disc([0], [1], number_splits=0))),
+    A("disc-splits-length", "number_splits=[2, 3]: expected 1 bin counts",
+      raises(lambda: _disc([0], [1], number_splits=[2, 3]))),
+    A("disc-splits-string", "number_splits='3': expected a positive integer",
+      raises(lambda: _disc([0], [1], number_splits="3"))),
+    A("disc-splits-zero", "number_splits=0: expected an integer >= 1",
+      raises(lambda: _disc([0], [1], number_splits=0))),
     A("disc-equal-bounds", "high[0]=0 must be greater than low[0]=0 (each dimension needs high > low)",
       raises(lambda: _disc([0], [0]))),
     A("disc-nan-bound", "low=[nan]: every value must be finite", raises(lambda: _disc([float("nan")], [1]))),

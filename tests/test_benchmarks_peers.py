@@ -186,9 +186,9 @@ def test_playground_and_crazyflow_peers_run_at_a_tiny_size(tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXROBO_CACHE_DIR": str(tmp_path / "cache"),
            "XLA_FLAGS": "--xla_backend_optimization_level=0"}
     env.pop("SCIPY_ARRAY_API", None)
-    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "throughput.py"), "--commands", "none", "--time-to-trained", "none", "--n-envs", "2", "--steps", "2",
-           "--repeats", "1", "--envs", "NoSuchEnv-v0", "--peers", "playground,crazyflow", "--no-plot",
-           "--out", str(tmp_path)]
+    cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "throughput.py"), "--commands", "none",
+           "--time-to-trained", "none", "--n-envs", "2", "--steps", "2", "--repeats", "1", "--envs", "NoSuchEnv-v0",
+           "--peers", "playground,crazyflow", "--no-plot", "--out", str(tmp_path)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = {r["suite"]: r for r in json.loads((tmp_path / "throughput.json").read_text())["rows"]

@@ -1,4 +1,5 @@
-"""jaxrobo.interop.brax_compat: the JAX shim for Brax's trainers and the SAC evaluator swap, and their Brax version guard."""
+"""jaxrobo.interop.brax_compat: the JAX shim for Brax's trainers and the SAC evaluator swap, and their Brax version
+guard."""
 from __future__ import annotations
 
 import jax

@@ -1,5 +1,5 @@
-"""Brax's Env interface over jaxrobo envs (jaxrobo.interop.brax_env): jit/vmap, fresh autoresets, truncation vs termination,
-the NaN guard, and Brax's own PPO and SAC trainers running unchanged on the continuous ids (tiny, CPU)."""
+"""Brax's Env interface over jaxrobo envs (jaxrobo.interop.brax_env): jit/vmap, fresh autoresets, truncation vs
+termination, the NaN guard, and Brax's own PPO and SAC trainers running unchanged on the continuous ids (tiny, CPU)."""
 from __future__ import annotations
 
 import functools

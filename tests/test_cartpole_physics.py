@@ -222,8 +222,8 @@ def test_the_kernels_coordinate_step_is_the_physics_step(control_type):
     v = jax.random.uniform(k[1], (256, 2), minval=-3.0, maxval=3.0)
     u = jax.random.uniform(k[2], (256, 1), minval=-2.0, maxval=2.0)
     stacked = lambda q, v, u: jax.vmap(sim.physics_step)(JointState(q, v), u)  # noqa: E731
-    columns = lambda q, v, u, sincos=None: sim.coordinate_step(q[:, 0], q[:, 1], v[:, 0], v[:, 1], (u[:, 0],),  # noqa: E731
-                                                               sincos)
+    columns = lambda q, v, u, sincos=None: sim.coordinate_step(  # noqa: E731
+        q[:, 0], q[:, 1], v[:, 0], v[:, 1], (u[:, 0],), sincos)
     with jax.disable_jit():
         runs = [(stacked(q, v, u), columns(q, v, u))]
     runs.append((jax.jit(stacked)(q, v, u), jax.jit(columns)(q, v, u)))

@@ -1,4 +1,5 @@
-"""CartPoleStayUp follows the seed's task (docs/cartpole.md): actions, termination, reward, reset pose, time limit, NaN guard, jit/vmap."""
+"""CartPoleStayUp follows the seed's task (docs/cartpole.md): actions, termination, reward, reset pose, time limit,
+NaN guard, jit/vmap."""
 from __future__ import annotations
 
 import jax

@@ -252,5 +252,6 @@ def test_progress_line_csv_and_tensorboard_show_the_same_numbers(runs, capsys):
     line = deep_progress_line(point)
     steps = evaluations[3]["env_steps"]
     assert f"{steps:,}/{plan.total_steps:,} env steps ({100 * steps / plan.total_steps:3.0f} %)" in line
-    assert f"return {float(rows[3]['return_mean']):.2f}" in line and f"length {float(rows[3]['length_mean']):.1f}" in line
+    assert (f"return {float(rows[3]['return_mean']):.2f}" in line
+            and f"length {float(rows[3]['length_mean']):.1f}" in line)
     assert f"{steps / evaluations[3]['seconds']:,.0f} steps/s" in line and "ETA " in line and "ETA ?" not in line

@@ -1,13 +1,13 @@
 """``ExecutionPlan.fused = "pallas"``: the analytic cart-pole + Q-learning chunk as one Pallas kernel, run here in
 interpret mode on CPU and held to the plain path as its oracle.
 
-What is exact and what is not: the kernel draws JAX's own threefry numbers and writes the same step in the same
-order, so keys, actions, table updates, resets, records and counters follow the plain path bit for bit. The
-physics is the simulator's own equations, per coordinate in the kernel (``CartPoleSim.coordinate_step``) and on
-stacked coordinates in the env's step; op by op they agree bit for bit (``tests/test_cartpole_physics.py``), but
-XLA fuses the two programs differently and contracts a multiply and an add within a fusion into one FMA, so the
-continuous state is compared with a tolerance. For these seeds no such difference moves a state across a bin edge, so the tables and records
-are equal; in a long run one does, after which tabular learning takes another path (docs/benchmarks.md, "Pallas").
+What is exact and what is not: the kernel draws JAX's own threefry numbers and writes the same step in the same order,
+so keys, actions, table updates, resets, records and counters follow the plain path bit for bit. The physics is the
+simulator's own equations, per coordinate in the kernel (``CartPoleSim.coordinate_step``) and on stacked coordinates in
+the env's step; op by op they agree bit for bit (``tests/test_cartpole_physics.py``), but XLA fuses the two programs
+differently and contracts a multiply and an add within a fusion into one FMA, so the continuous state is compared with a
+tolerance. For these seeds no such difference moves a state across a bin edge, so the tables and records are equal; in a
+long run one does, after which tabular learning takes another path (docs/benchmarks.md, "Pallas").
 """
 from __future__ import annotations
 
@@ -38,7 +38,8 @@ def _plan(spec, **changes):
 
 
 def _leaves(runner):
-    as_data = lambda x: jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x  # noqa: E731
+    as_data = lambda x: (  # noqa: E731
+        jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
     return jax.tree_util.tree_flatten_with_path(jax.tree.map(as_data, runner))[0]
 
 
@@ -55,7 +56,8 @@ def test_the_choice_is_validated_and_refused_where_it_does_not_apply():
             Trainer(other.env, other.config, plan=_plan(other, fused="pallas"))
     with pytest.raises(ValueError, match=r"fused='pallas': fused_block=48; .* a power of two up to 1024"):
         Trainer(spec.env, spec.config, plan=_plan(spec, fused="pallas", fused_block=48))
-    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4, backend="mjx"))  # rigid: tests/test_quadcopter_kernel.py
+    # rigid: tests/test_quadcopter_kernel.py
+    goto = resolve("QuadcopterGoto-v1", overrides=dict(n_envs=4, backend="mjx"))
     with pytest.raises(ValueError, match=r"fused='pallas': the env is QuadcopterGoto"):
         Trainer(goto.env, goto.config, plan=_plan(goto, fused="pallas"))
 
@@ -178,7 +180,8 @@ def test_the_reset_branch_changes_nothing(case):
     resets (3 steps of fresh episodes), where every env resets every step (nsteps=1) and where some do, the carry
     equals the unbranched kernel's (the reset computed in every env every step) bit for bit. 8 envs in programs
     of 4 (the plan's ``skip_resets`` on and off)."""
-    overrides = {"none": dict(chunk_steps=3), "all": dict(nsteps=1, chunk_steps=3), "some": dict(nsteps=200, chunk_steps=40)}
+    overrides = {"none": dict(chunk_steps=3), "all": dict(nsteps=1, chunk_steps=3),
+                 "some": dict(nsteps=200, chunk_steps=40)}
     spec = _cartpole(n_envs=8, **overrides[case])
     out = {}
     for skip in (True, False):

@@ -77,7 +77,8 @@ def _actions(n: int | gym.spaces.Box, count: int, seed: int = 0) -> list:
 def test_every_id_is_registered_with_its_step_limit():
     for env_id in IDS:
         spec = gym.spec(f"jaxrobo/{env_id}")
-        expected = jaxrobo.task.registry.env_config(env_id).get("max_episode_steps", jaxrobo.spec(env_id).max_episode_steps)
+        expected = jaxrobo.task.registry.env_config(env_id).get("max_episode_steps",
+                                                                jaxrobo.spec(env_id).max_episode_steps)
         assert spec.max_episode_steps == expected
         assert spec.entry_point == "jaxrobo.interop.gym_adapter:JaxroboEnv"
         assert spec.vector_entry_point == "jaxrobo.interop.gym_adapter:JaxroboVectorEnv"
@@ -277,7 +278,8 @@ def test_make_vec_uses_the_vector_entry_point(env_id, single):
 
 @pytest.fixture(scope="module")
 def short_episodes():
-    """CartPoleStayUpLeftRight-v0 with episodes that end fast both ways: the pole limit terminates, the step cap truncates."""
+    """CartPoleStayUpLeftRight-v0 with episodes that end fast both ways: the pole limit terminates, the step cap
+    truncates."""
     return {"max_episode_steps": 6, "max_pole_angle": 0.03, "min_pole_angle": -0.03}
 
 

@@ -1,7 +1,7 @@
-"""libdevice's sinf/cosf written out for small arguments (:mod:`jaxrobo.physics.libdevice_sincos`). The bit-for-bit check
-against libdevice needs a GPU (``benchmarks/studies/libdevice_sincos.py``, and :func:`verified` before a kernel uses it);
-here: the coefficients and the order of the fmas make a sine and a cosine (the host's exact-arithmetic reference
-within an ulp of the true values), the signs of zero, and the guard's behaviour on every outcome."""
+"""libdevice's sinf/cosf written out for small arguments (:mod:`jaxrobo.physics.libdevice_sincos`). The bit-for-bit
+check against libdevice needs a GPU (``benchmarks/studies/libdevice_sincos.py``, and :func:`verified` before a kernel
+uses it); here: the coefficients and the order of the fmas make a sine and a cosine (the host's exact-arithmetic
+reference within an ulp of the true values), the signs of zero, and the guard's behaviour on every outcome."""
 from __future__ import annotations
 
 import jax

@@ -1,4 +1,5 @@
-"""The MJX stage replacement (jaxrobo.physics.mjx_lean): bit for bit MJX as it is, scoped to its block, version-guarded."""
+"""The MJX stage replacement (jaxrobo.physics.mjx_lean): bit for bit MJX as it is, scoped to its block,
+version-guarded."""
 from __future__ import annotations
 
 import threading

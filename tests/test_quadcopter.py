@@ -148,7 +148,8 @@ def test_rigid_backend_matches_mjx():
             r = robot.read_sensors(s)
             return s, jnp.concatenate([r["pos"], r["quat"], r["vel"], r["omega"]])
 
-        traj[backend] = np.asarray(jax.jit(lambda s, seq: jax.lax.scan(run, s, seq)[1])(robot.sim.init(qpos, qvel), seq))
+        traj[backend] = np.asarray(jax.jit(lambda s, seq: jax.lax.scan(run, s, seq)[1])(robot.sim.init(qpos, qvel),
+                                                                                           seq))
     diff = np.abs(traj["rigid"] - traj["mjx"])
     assert diff[:, :3].max() < 1e-3, diff[:, :3].max()  # position, m
     assert diff[:, 3:7].max() < 1e-3  # quaternion
@@ -283,6 +284,6 @@ def test_controller_on_python_floats_is_numpys_float64():
                        for qi, vi, ci in zip(q, v, cmd)])
     assert scalar.dtype == np.float64
     np.testing.assert_allclose(scalar, vector, rtol=1e-13, atol=1e-13)
-    f32 = np.stack(controller(jnp, robot.control, list(jnp.asarray(q.T, jnp.float32)), list(jnp.asarray(v.T, jnp.float32)),
-                              list(jnp.asarray(cmd.T, jnp.float32))), axis=1)
+    f32 = np.stack(controller(jnp, robot.control, list(jnp.asarray(q.T, jnp.float32)),
+                              list(jnp.asarray(v.T, jnp.float32)), list(jnp.asarray(cmd.T, jnp.float32))), axis=1)
     np.testing.assert_allclose(f32, vector, rtol=1e-4, atol=1e-4)

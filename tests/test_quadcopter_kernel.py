@@ -167,7 +167,8 @@ def _carry(spec, n_chunks: int, **plan_changes):
     chunk = jax.jit(trainer.run_chunk)
     for _ in range(n_chunks):
         runner = chunk(runner, spec.agent_params, spec.env.default_params)
-    as_data = lambda x: jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x  # noqa: E731
+    as_data = lambda x: (  # noqa: E731
+        jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
     return jax.tree_util.tree_flatten_with_path(jax.tree.map(as_data, runner))[0]
 
 

@@ -14,8 +14,8 @@ The layers:
   top.
 * ``envs/`` (robots and tasks) and ``agents/`` (tabular learners) import from jaxrobo only its public surface,
   :data:`PUBLIC_SURFACE` (``jaxrobo.api``; ``tests/test_public_api.py`` holds its names); a native-MuJoCo port
-  (``envs/*/native.py``), which runs without JAX, its JAX-free base instead (:data:`NATIVE_SURFACE`). ``envs`` and ``agents``
-  never import each other.
+  (``envs/*/native.py``), which runs without JAX, its JAX-free base instead (:data:`NATIVE_SURFACE`). ``envs`` and
+  ``agents`` never import each other.
 * ``jaxrobo/`` reaches ``envs`` and the learners only through the registry's entry points
   (:data:`ENTRY_POINTS`: ``jaxrobo.task.registry`` imports them by name with importlib), and the exported runner
   the JAX-free task modules it is assembled from (:data:`RUNNER_SOURCES`).
@@ -98,6 +98,11 @@ KNOBS_ALLOWED_FOR_NOW: dict[tuple[str, str], str] = {}
 #: Folders whose Python may overwrite a jaxrobo module's globals (where an outside write is looked for).
 WRITERS = ("jaxrobo", "envs", "agents", "tests", "benchmarks", "scripts", "examples")
 
+#: The project's style: no line of its Python is longer than this, in the folders that hold it (every ``.py`` file
+#: the repository tracks lies in one of them) and in any ``.py`` file at the repository's root.
+MAX_LINE = 120
+LINE_FOLDERS = WRITERS + ("jaxrobo_ros",)
+
 
 class Edge(NamedTuple):
     src: str
@@ -126,7 +131,8 @@ def modules() -> dict[str, str]:
 
 
 def _resolve(name: str, known: dict[str, str]) -> str | None:
-    """The longest known module ``name`` starts with (``jaxrobo.physics.sim.mjx`` -> ``jaxrobo.physics.sim``); None if outside."""
+    """The longest known module ``name`` starts with (``jaxrobo.physics.sim.mjx`` -> ``jaxrobo.physics.sim``); None if
+    outside."""
     parts = name.split(".")
     while parts:
         candidate = ".".join(parts)
@@ -229,7 +235,8 @@ def forbidden(edge: Edge) -> str | None:
             return None
         if a is not None and b is not None and _subpackage(edge.src) != _subpackage(edge.dst) and b >= a:
             if b > a:
-                return f"upward: {_subpackage(edge.src)} (layer {a}) must not import {_subpackage(edge.dst)} (layer {b})"
+                return (f"upward: {_subpackage(edge.src)} (layer {a}) must not import "
+                        f"{_subpackage(edge.dst)} (layer {b})")
             return f"sideways: {_subpackage(edge.src)} and {_subpackage(edge.dst)} are siblings of layer {a}"
         return None
     if src == "envs" and dst == "agents":
@@ -382,12 +389,31 @@ def _writer_sources() -> dict[str, str]:
     return out
 
 
+def long_lines(limit: int = MAX_LINE) -> list[str]:
+    """``path:line (N characters)`` of each line longer than ``limit`` characters in the Python of
+    :data:`LINE_FOLDERS` and of the repository's root."""
+    paths = sorted(os.path.join(ROOT, name) for name in os.listdir(ROOT) if name.endswith(".py"))
+    for folder in LINE_FOLDERS:
+        for dirpath, dirnames, filenames in os.walk(os.path.join(ROOT, folder)):
+            dirnames[:] = sorted(d for d in dirnames if d not in ("__pycache__", "results"))
+            paths += [os.path.join(dirpath, name) for name in sorted(filenames) if name.endswith(".py")]
+    found = []
+    for path in paths:
+        with open(path, encoding="utf-8") as f:
+            for number, line in enumerate(f, 1):
+                length = len(line.rstrip("\r\n"))
+                if length > limit:
+                    found.append(f"{os.path.relpath(path, ROOT)}:{number} ({length} characters)")
+    return found
+
+
 # ---- tests ---------------------------------------------------------------------------------------------------
 def test_every_package_is_parsed():
     known = modules()
     for pkg in PACKAGES:
         assert pkg in known, f"{pkg}/__init__.py not found under {ROOT}"
-    assert {"jaxrobo.physics.sim", "jaxrobo.task.registry", "envs.cartpole.robot", "jaxrobo.tabular.learner"} <= set(known)
+    assert {"jaxrobo.physics.sim", "jaxrobo.task.registry", "envs.cartpole.robot",
+            "jaxrobo.tabular.learner"} <= set(known)
     assert any(e.src == "envs.cartpole.robot" and e.dst == "jaxrobo.api" for e in import_edges())
 
 
@@ -423,7 +449,8 @@ def test_the_checker_finds_circles_and_forbidden_edges():
     assert forbidden(e("envs.x", "jaxrobo.training.train")) and forbidden(e("agents.sarsa", "jaxrobo.task.env"))
     assert not forbidden(e("jaxrobo.task.registry", "envs"))
     assert not forbidden(e("jaxrobo.training.train", "jaxrobo.tabular.learner"))
-    assert forbidden(e("envs.cartpole.robot", "jaxrobo.physics.sim")) and forbidden(e("agents.sarsa", "jaxrobo.core.rng"))
+    assert (forbidden(e("envs.cartpole.robot", "jaxrobo.physics.sim"))
+            and forbidden(e("agents.sarsa", "jaxrobo.core.rng")))
     assert not forbidden(e("envs.cartpole.robot", "jaxrobo.api")) and not forbidden(e("agents.sarsa", "jaxrobo.api"))
     assert forbidden(e("agents.sarsa", "jaxrobo.tabular.learner"))
     assert forbidden(e("jaxrobo.training.trainer", "agents.tabular"))
@@ -448,11 +475,13 @@ def test_import_jaxrobo_loads_no_jax():
             "from jaxrobo.api import register, scalar\n"
             "assert 'jaxrobo/CartPoleStayUp-v0' in gym.registry and 'CartPoleStayUp-v0' in jaxrobo.registered()\n"
             "print(sorted(m for m in ('jax', 'jaxlib', 'mujoco.mjx') if m in sys.modules))\n"
-            "print(sorted(set(jaxrobo.__all__) - set(dir(jaxrobo))), jaxrobo.TaskEnv.__module__, 'jax' in sys.modules)\n"
+            "print(sorted(set(jaxrobo.__all__) - set(dir(jaxrobo))), jaxrobo.TaskEnv.__module__, "
+            "'jax' in sys.modules)\n"
             "import copy\n"  # gymnasium.make_vec reads the step limit from a deep copy of the spec
             "print(copy.deepcopy(gym.spec('jaxrobo/CartPoleStayUp-v0')).max_episode_steps)\n"
             "env = gym.make('jaxrobo/CartPoleStayUp-v0')\n"
-            "print(type(env.unwrapped).__name__, env.spec.max_episode_steps, jaxrobo.spec('CartPoleStayUp-v0').max_episode_steps)\n")
+            "print(type(env.unwrapped).__name__, env.spec.max_episode_steps, "
+            "jaxrobo.spec('CartPoleStayUp-v0').max_episode_steps)\n")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
                          env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": ROOT})
     assert out.returncode == 0, out.stderr[-3000:]
@@ -504,6 +533,13 @@ def test_the_checker_finds_aliases_and_knobs():
         ("envs.cartpole.kernel", "WARPS"): "overwritten from outside its module",
         ("envs.cartpole.kernel", "*"): "attributes set by a computed name from outside its module"}
     assert module_knobs({"envs.cartpole.kernel": kernel}, {}) == {}
+
+
+def test_no_line_over_the_limit():
+    """Every line of the repository's Python is at most :data:`MAX_LINE` characters (wrap a longer one: reflow the
+    docstring or comment, split the expression inside parentheses)."""
+    found = long_lines()
+    assert not found, f"lines over {MAX_LINE} characters:\n" + "\n".join(f"  {where}" for where in found)
 
 
 def report() -> str:

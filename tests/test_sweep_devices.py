@@ -1,11 +1,11 @@
 """``jaxrobo sweep`` and ``jaxrobo eval`` on 1, 3 and 4 forced CPU devices: the same bytes on every count.
 
-Each count is a fresh process (XLA_FLAGS is read when JAX starts). The sweeps have 5 rows of 3 envs, so neither
-divides the device counts: on 3 devices one padding row shares a device with a real row (as on 2), on 4 a whole
-device holds padding only; their greedy evaluation runs inside the sharded program. ``jaxrobo eval`` flies a run's tables on shifted physics on whatever devices there are. The
-cart-pole sweep runs on every count; the Goto-v2 sweep, whose step is the one that rounded differently on
-several devices (see :data:`jaxrobo.speed.sharding.SPMD_DISABLED_PASSES`) and compiles for ~30 s, on 1 and 3.
-The runs are tiny (a few short episodes): the check is the bytes, not the learning.
+Each count is a fresh process (XLA_FLAGS is read when JAX starts). The sweeps have 5 rows of 3 envs, so neither divides
+the device counts: on 3 devices one padding row shares a device with a real row (as on 2), on 4 a whole device holds
+padding only; their greedy evaluation runs inside the sharded program. ``jaxrobo eval`` flies a run's tables on shifted
+physics on whatever devices there are. The cart-pole sweep runs on every count; the Goto-v2 sweep, whose step is the one
+that rounded differently on several devices (see :data:`jaxrobo.speed.sharding.SPMD_DISABLED_PASSES`) and compiles for
+~30 s, on 1 and 3. The runs are tiny (a few short episodes): the check is the bytes, not the learning.
 """
 from __future__ import annotations
 

@@ -120,7 +120,8 @@ def test_register_paths_beside_the_module_or_absolute(example_dir, tmp_path):
     (tmp_path / "cfg" / "env.yaml").write_text("env:\n  max_episode_steps: 30\n")
     (tmp_path / "my_other_task.py").write_text(
         "import jaxrobo\nfrom my_task import MyPendulum\n"
-        f"jaxrobo.register('MyOtherPendulum-v0', MyPendulum, config='cfg/env.yaml', agent_config={str(agent_yaml)!r})\n")
+        "jaxrobo.register('MyOtherPendulum-v0', MyPendulum, config='cfg/env.yaml', "
+        f"agent_config={str(agent_yaml)!r})\n")
     registry.find(f"my_task:{ID}")  # my_other_task imports my_task: from the current directory, now on sys.path
     sys.path.insert(0, str(tmp_path))
     env = jaxrobo.make("my_other_task:MyOtherPendulum-v0")

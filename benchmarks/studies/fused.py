@@ -2,23 +2,24 @@
 per env, over batch sizes, in one process on one device.
 
     python benchmarks/studies/fused.py --device gpu --n-envs 1024,16384,262144,1048576 --plans off,xla,xla:65536
-    python benchmarks/studies/fused.py --device cpu --n-envs 16384 --plans off,xla:2048 --envs CartPoleStayUp-v0:analytic
+    python benchmarks/studies/fused.py --device cpu --n-envs 16384 --plans off,xla:2048 \
+        --envs CartPoleStayUp-v0:analytic
     python benchmarks/studies/fused.py --device gpu --n-envs 65536,262144,1048576 --plans off,xla,pallas \
         --envs CartPoleStayUp-v0:analytic --gymnax
 
 Each row trains (Q-learning, records off, the chunk ``jaxrobo train`` compiles:
-:func:`jaxrobo.training.driver.compiled_chunk`)
-under one plan: ``off`` (the plain path), ``xla`` (substeps written out), ``xla:BLOCK`` (and the chunk's steps
-run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas kernel: :mod:`envs.cartpole.kernel`,
-the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing about the GPU kernel);
-``pallas:BLOCK[:always][:lanes][:libdevice]`` sets its envs per program and turns its plan choices off (:func:`plan_of`). The
-default chunk (4 M env steps per call, at least 10 steps) is short enough that a fast kernel's calls time the
-fixed cost per call (the host's dispatch); ``--steps 1000`` times the chunk ``jaxrobo train`` runs by default. Columns: env steps/s, physics steps/s, simulated s/s, the compiled
-program's kernels (fusions and library calls in the whole chunk, the step's loop body being nearly all of it),
-the training carry per env, and the tables' checksum after one chunk (equal across plans: the same values). ``--gymnax`` adds
-gymnax's CartPole random rollout at the same sizes (benchmarks/throughput.py's peer row). ``--learning SEEDS``
-trains each env's default preset under each plan instead, and prints what it learned (the plans' values can
-differ in the last bits on a GPU, where XLA rounds written-out substeps differently; learning must not).
+:func:`jaxrobo.training.driver.compiled_chunk`) under one plan: ``off`` (the plain path), ``xla`` (substeps written
+out), ``xla:BLOCK`` (and the chunk's steps run block of BLOCK envs after block) or ``pallas`` (the chunk as one Pallas
+kernel: :mod:`envs.cartpole.kernel`, the analytic cart-pole only; on a CPU it runs interpreted, which measures nothing
+about the GPU kernel); ``pallas:BLOCK[:always][:lanes][:libdevice]`` sets its envs per program and turns its plan
+choices off (:func:`plan_of`). The default chunk (4 M env steps per call, at least 10 steps) is short enough that a fast
+kernel's calls time the fixed cost per call (the host's dispatch); ``--steps 1000`` times the chunk ``jaxrobo train``
+runs by default. Columns: env steps/s, physics steps/s, simulated s/s, the compiled program's kernels (fusions and
+library calls in the whole chunk, the step's loop body being nearly all of it), the training carry per env, and the
+tables' checksum after one chunk (equal across plans: the same values). ``--gymnax`` adds gymnax's CartPole random
+rollout at the same sizes (benchmarks/throughput.py's peer row). ``--learning SEEDS`` trains each env's default preset
+under each plan instead, and prints what it learned (the plans' values can differ in the last bits on a GPU, where XLA
+rounds written-out substeps differently; learning must not).
 """
 from __future__ import annotations
 

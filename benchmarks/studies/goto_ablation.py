@@ -3,8 +3,8 @@
     python benchmarks/studies/goto_ablation.py --device gpu --n-envs 262144,1048576 --steps 1000 --out rows.json \
         --hlo-dir hlo/
 
-Each row trains ``--env`` (QuadcopterGoto-v2 by default; rigid, Q-learning, the preset's shared table and
-``edges`` discretiser, records off: the chunk ``jaxrobo train`` compiles, :func:`jaxrobo.training.driver.compiled_chunk`) under
+Each row trains ``--env`` (QuadcopterGoto-v2 by default; rigid, Q-learning, the preset's shared table and ``edges``
+discretiser, records off: the chunk ``jaxrobo train`` compiles, :func:`jaxrobo.training.driver.compiled_chunk`) under
 ``ExecutionPlan.for_run``'s plan with one change (``--variants``, comma list):
 
 ``base``                   the plan as built (on a GPU: ``fused=pallas`` with the task's whole step as one
@@ -175,7 +175,8 @@ def measure(n: int, variant: str, args: argparse.Namespace) -> dict[str, Any]:
         jax.block_until_ready(carry)
         best = min(best, time.perf_counter() - t0)
     sps = n * args.steps / best
-    row.update(seconds=best, steps_per_s=sps, physics_steps_per_s=sps * 30, ns_per_env_step=best / (n * args.steps) * 1e9)
+    row.update(seconds=best, steps_per_s=sps, physics_steps_per_s=sps * 30,
+               ns_per_env_step=best / (n * args.steps) * 1e9)
     return row
 
 
@@ -198,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
             if "error" in row:
                 print(f"n={n:<8d} {variant:18s} ERROR {row['error']}", flush=True)
                 continue
-            print(f"n={n:<8d} {variant:18s} {row['steps_per_s'] / 1e6:8.1f} M env/s {row['physics_steps_per_s'] / 1e9:6.2f}"
+            print(f"n={n:<8d} {variant:18s} {row['steps_per_s'] / 1e6:8.1f} M env/s "
+                  f"{row['physics_steps_per_s'] / 1e9:6.2f}"
                   f" G phys/s {row['ns_per_env_step']:6.3f} ns/env-step  kernels {row['kernels']:4d}  compile "
                   f"{row['compile_s']:5.1f}s  check {row['checksum']:.7g}", flush=True)
     return 0

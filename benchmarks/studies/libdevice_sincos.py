@@ -1,8 +1,8 @@
-"""Check :func:`jaxrobo.physics.libdevice_sincos.sincos` against libdevice's ``sinf``/``cosf`` on this GPU over every float32
-in ``[-LIMIT, LIMIT]`` (2**31 arguments, both signs, zero and the subnormals), bit for bit, inside Pallas kernels;
-and the host's exact-arithmetic :func:`~jaxrobo.physics.libdevice_sincos.reference` against the GPU's values on a sample.
-The kernels check the same on a sample once per process (:func:`~jaxrobo.physics.libdevice_sincos.verified`) before they
-use it.
+"""Check :func:`jaxrobo.physics.libdevice_sincos.sincos` against libdevice's ``sinf``/``cosf`` on this GPU over every
+float32 in ``[-LIMIT, LIMIT]`` (2**31 arguments, both signs, zero and the subnormals), bit for bit, inside Pallas
+kernels; and the host's exact-arithmetic :func:`~jaxrobo.physics.libdevice_sincos.reference` against the GPU's values on
+a sample. The kernels check the same on a sample once per process (:func:`~jaxrobo.physics.libdevice_sincos.verified`)
+before they use it.
 
     python benchmarks/studies/libdevice_sincos.py --out benchmarks/results/h100/libdevice_sincos.json
 """

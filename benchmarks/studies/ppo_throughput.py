@@ -2,7 +2,8 @@
 Brax's own ``inverted_pendulum`` (``mjx`` backend) under the same PPO settings: one run each, one device.
 
     python benchmarks/studies/ppo_throughput.py --device gpu
-    python benchmarks/studies/ppo_throughput.py --device cpu --num-envs 16 --num-timesteps 20000 --batch-size 16   # smoke
+    python benchmarks/studies/ppo_throughput.py --device cpu --num-envs 16 --num-timesteps 20000 \
+        --batch-size 16   # smoke
 
 Both runs call ``brax.training.agents.ppo.train`` with the same hyperparameters and networks; jaxrobo's runs on
 ``CartPoleContinuous-v0`` through :class:`jaxrobo.interop.brax_env.BraxEnv` and ``wrap_for_training``, Brax's on its

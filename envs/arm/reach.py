@@ -45,7 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.arm.robot import BACKENDS, ELBOW_MAX, FORE, UPPER, ArmRobot, fingertip
-from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng, spaces
+from jaxrobo.api import (BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng,
+                         spaces)
 
 OBS_NAMES = ("elbow", "goal_x", "goal_y")
 #: Action ``i`` adds ``ACTION_DELTAS[i] * joint_step`` to the ``[shoulder, elbow]`` set-points.

@@ -100,7 +100,8 @@ def constants_from_model(mj_model: mujoco.MjModel, cart_joint: str, pole_joint: 
     _refuse(m.jnt_type[slide] != mujoco.mjtJoint.mjJNT_SLIDE or m.jnt_type[hinge] != mujoco.mjtJoint.mjJNT_HINGE,
             f"{cart_joint!r} must be a slide and {pole_joint!r} a hinge")
     cart, pole = int(m.jnt_bodyid[slide]), int(m.jnt_bodyid[hinge])
-    _refuse(m.body_parentid[cart] != 0 or m.body_parentid[pole] != cart, "the pole's body must be a child of the cart's")
+    _refuse(m.body_parentid[cart] != 0 or m.body_parentid[pole] != cart,
+            "the pole's body must be a child of the cart's")
     for b in (cart, pole):
         _refuse(np.abs(m.body_quat[b] - [1, 0, 0, 0]).max() > 1e-9, "body frames must be aligned with the world")
     _refuse(np.abs(m.jnt_axis[slide] - [1, 0, 0]).max() > 1e-9, "the slide axis must be +x")

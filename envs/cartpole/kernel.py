@@ -122,7 +122,8 @@ def unsupported_run(env: Any, config: Any, agent: str, discretiser: Any, fused_b
             return (f"randomise=true with the ranges {', '.join(randomise.PREFIX + n for n in other)}; the kernel "
                     f"draws only {', '.join(randomise.PREFIX + n for n in _DOMAIN)}")
     if o.control_type != "velocity" or o.round_obs:
-        return f"control_type={o.control_type!r}, round_obs={o.round_obs}; only control_type='velocity' without round_obs"
+        return (f"control_type={o.control_type!r}, round_obs={o.round_obs}; "
+                "only control_type='velocity' without round_obs")
     if agent != "qlearn" or c.seed_compat or c.shared_table:
         return f"agent={agent!r} (seed_compat={c.seed_compat}, shared_table={c.shared_table}); " \
                "only agent='qlearn' with per-env tables, not seed_compat"
@@ -728,7 +729,8 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any, wri
     for k in range(4):
         cols[f"r{k}"] = rows[:, k] if k < n_actions else jnp.zeros(n, jnp.float32)
     if records:
-        cols.update(ret_sum=jnp.zeros(n, jnp.float32), len_sum=jnp.zeros(n, jnp.int32), term_any=jnp.zeros(n, jnp.int32))
+        cols.update(ret_sum=jnp.zeros(n, jnp.float32), len_sum=jnp.zeros(n, jnp.int32),
+                    term_any=jnp.zeros(n, jnp.int32))
     else:
         cols.update(ret_sum=runner.returns[:, 0], len_sum=runner.lengths[:, 0], term_any=i32(runner.terminated[:, 0]))
     cols.update({name: es.domain[name] for name in domain})
@@ -752,7 +754,8 @@ def run_chunk(trainer: Any, runner: Any, agent_params: Any, env_params: Any, wri
     col_spec = pl.BlockSpec((block,), lambda i: (i,))
     whole = pl.BlockSpec(memory_space=pl.ANY)
     n_cols = len(columns)
-    in_specs = [pl.BlockSpec((_PARAMS,), lambda i: (0,)), pl.BlockSpec((1,), lambda i: (0,))] + [col_spec] * n_cols + [whole] * len(big)
+    in_specs = ([pl.BlockSpec((_PARAMS,), lambda i: (0,)), pl.BlockSpec((1,), lambda i: (0,))]
+                + [col_spec] * n_cols + [whole] * len(big))
     out_specs = [col_spec] * n_cols + [whole] * len(big)
     out_shape = [jax.ShapeDtypeStruct((n,), dtype) for _, dtype in columns] + \
                 [jax.ShapeDtypeStruct(b.shape, b.dtype) for b in big]

@@ -1,15 +1,15 @@
 """CartPoleStayUp and CartPoleContinuous in native MuJoCo (``mujoco.MjData``, the C engine, float64, one env): the
 sim-to-sim check of an exported policy (``scripts/sim2sim.py``).
 
-The task's step, ported to numpy: a discrete action adds ``ACTION_STEPS[a] * pos_step`` to the cart command
-(clipped to ``±max_base_velocity`` under velocity control), a continuous one (CartPoleContinuous, ``Box(-1, 1)``) is
-the command ``max_command * clip(a, -1, 1)`` itself; the command is the actuator's control for
-``running_step / timestep`` ``mj_step`` calls, the observation is the joint sensors cast to float32 (rounded to 0.1 with ``round_obs``), the
-episode terminates when the cart or the pole leaves its limits and is cut at ``max_episode_steps``. Success: the
-pole stayed up for the whole horizon. Every number comes from the task object the run built (its options and
-params) and its compiled model; nothing here calls JAX. The observation and the command are
-:class:`jaxrobo.api.numpy_policy.CartPoleIO`'s, the robot side an export carries (``policy.json``'s ``robot``,
-:meth:`NativeCartPole.robot_section`): the port and an exported policy compute them with the same code.
+The task's step, ported to numpy: a discrete action adds ``ACTION_STEPS[a] * pos_step`` to the cart command (clipped to
+``±max_base_velocity`` under velocity control), a continuous one (CartPoleContinuous, ``Box(-1, 1)``) is the command
+``max_command * clip(a, -1, 1)`` itself; the command is the actuator's control for ``running_step / timestep``
+``mj_step`` calls, the observation is the joint sensors cast to float32 (rounded to 0.1 with ``round_obs``), the episode
+terminates when the cart or the pole leaves its limits and is cut at ``max_episode_steps``. Success: the pole stayed up
+for the whole horizon. Every number comes from the task object the run built (its options and params) and its compiled
+model; nothing here calls JAX. The observation and the command are :class:`jaxrobo.api.numpy_policy.CartPoleIO`'s, the
+robot side an export carries (``policy.json``'s ``robot``, :meth:`NativeCartPole.robot_section`): the port and an
+exported policy compute them with the same code.
 """
 from __future__ import annotations
 

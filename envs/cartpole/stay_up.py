@@ -29,7 +29,8 @@ from envs.cartpole.host import HostStayUp
 from envs.cartpole.kernel import CHUNK_KERNEL
 from envs.cartpole.robot import BACKENDS, CONTROL_TYPES, CartPoleRobot
 from envs.cartpole.rules import ACTION_STEPS, REWARD, command_after, fell, observation
-from jaxrobo.api import BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng, spaces
+from jaxrobo.api import (BaseParams, LearningTarget, TaskEnv, param, pytree_dataclass, randomise, range_param, rng,
+                         spaces)
 OBS_NAMES = ("cart_x", "cart_v", "pole_angle", "pole_angular_velocity")
 
 

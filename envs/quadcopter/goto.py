@@ -161,7 +161,8 @@ class QuadcopterGoto(QuadcopterTask):
         else:  # random: 16 candidates each, the first clear of start and goal (else the last)
             cand = rng.uniform(k_xy, (n, 16, 2), -params.workspace, params.workspace)
             free = params.obstacle_clearance + params.obstacle_size * np.sqrt(2.0)
-            ok = (jnp.linalg.norm(cand - start[:2], axis=-1) > free) & (jnp.linalg.norm(cand - goal[:2], axis=-1) > free)
+            ok = ((jnp.linalg.norm(cand - start[:2], axis=-1) > free)
+                  & (jnp.linalg.norm(cand - goal[:2], axis=-1) > free))
             idx = jnp.where(jnp.any(ok, axis=1), jnp.argmax(ok, axis=1), 15)
             xy = jnp.take_along_axis(cand, idx[:, None, None], axis=1)[:, 0]
         if o.obstacle_kind == "cylinder":

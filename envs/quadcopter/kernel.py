@@ -2,8 +2,8 @@
 rigid-body physics for a block of envs, each env's state in registers from the first substep to the last.
 
 Why: on the XLA path a control step of the Goto tasks is 30 substeps of :meth:`envs.quadcopter.robot.Quadcopter.
-controller` + :meth:`envs.quadcopter.rigid_body.RigidBodySim.physics_step`, which XLA splits into several batch-wide kernels,
-so the whole env state goes through memory many times per control step. Here each env reads its 13 state floats
+controller` + :meth:`envs.quadcopter.rigid_body.RigidBodySim.physics_step`, which XLA splits into several batch-wide
+kernels, so the whole env state goes through memory many times per control step. Here each env reads its 13 state floats
 and 4 command floats once and writes 13, whatever the number of substeps.
 
 What it computes: the XLA step's own equations, :func:`envs.quadcopter.dynamics.controller` and
@@ -20,9 +20,9 @@ wind's force: :meth:`envs.quadcopter.robot.Quadcopter.sim_physics`) to the kerne
 the kernel is the nominal program it always was.
 
 How it is used: :func:`make_advance` builds the batch function the robot offers as ``advance_kernel``
-(:class:`jaxrobo.task.robot.Robot`); under ``ExecutionPlan(fused="pallas")`` :meth:`jaxrobo.physics.sim.Simulator.advance`
-runs a vmapped control step through it, one kernel call for the whole batch. On a CPU it runs interpreted (the
-tests' oracle checks), on a GPU through Triton.
+(:class:`jaxrobo.task.robot.Robot`); under ``ExecutionPlan(fused="pallas")``
+:meth:`jaxrobo.physics.sim.Simulator.advance` runs a vmapped control step through it, one kernel call for the whole
+batch. On a CPU it runs interpreted (the tests' oracle checks), on a GPU through Triton.
 
 Public surface: :func:`make_advance`, :func:`control_step` (the per-coordinate step, for any array shape) with
 its :class:`Constants` (:func:`constants_of`), :data:`BLOCK`.

@@ -1,15 +1,15 @@
 """Hand-written dynamics of one free rigid body driven by actuator wrenches: the quadcopter's fast backend.
 
-A contact-free quadrotor is one free body and four constant body-frame wrenches, so its whole MuJoCo step
-reduces to Newton–Euler plus a quaternion update. :class:`RigidBodySim` does exactly that, with every constant
-(mass, inertia, timestep, gravity, each actuator's body-frame force and torque per unit control, control limits)
-read from the compiled :class:`mujoco.MjModel`, so the MJCF stays the single source of truth. It mirrors
-MuJoCo's semi-implicit Euler (velocities first, then positions with the new velocities; quaternions integrated
-in the body frame as ``mju_quatIntegrate`` does), so it agrees with MJX to float32 round-off over seconds of
-flight (see ``tests/test_quadcopter.py``). The equations themselves live in :mod:`envs.quadcopter.dynamics`,
-written per coordinate so that the Pallas kernels run the same source; this module reads the constants and
-splits the state into coordinates and back. It subclasses :class:`jaxrobo.physics.sim.ClosedFormSim`, so the robot, the tasks
-and ``advance`` (the controller every substep) are shared with the MJX backend.
+A contact-free quadrotor is one free body and four constant body-frame wrenches, so its whole MuJoCo step reduces to
+Newton–Euler plus a quaternion update. :class:`RigidBodySim` does exactly that, with every constant (mass, inertia,
+timestep, gravity, each actuator's body-frame force and torque per unit control, control limits) read from the compiled
+:class:`mujoco.MjModel`, so the MJCF stays the single source of truth. It mirrors MuJoCo's semi-implicit Euler
+(velocities first, then positions with the new velocities; quaternions integrated in the body frame as
+``mju_quatIntegrate`` does), so it agrees with MJX to float32 round-off over seconds of flight (see
+``tests/test_quadcopter.py``). The equations themselves live in :mod:`envs.quadcopter.dynamics`, written per coordinate
+so that the Pallas kernels run the same source; this module reads the constants and splits the state into coordinates
+and back. It subclasses :class:`jaxrobo.physics.sim.ClosedFormSim`, so the robot, the tasks and ``advance`` (the
+controller every substep) are shared with the MJX backend.
 """
 from __future__ import annotations
 

@@ -2,9 +2,9 @@
 
 * **Model** - ``envs/quadcopter/quadcopter.xml``: a 0.42 kg X-quadrotor on a free joint, four site-thrust actuators each
   with its reaction yaw torque, contacts disabled (crashes are exact geometry, see :func:`sphere_hits`).
-* **Backends** - ``mjx`` (MuJoCo MJX) or ``rigid`` (:mod:`envs.quadcopter.rigid_body`: Newton–Euler for the one free body,
-  every constant read from the same compiled model; agrees with MJX to round-off and is much faster). On
-  ``rigid`` the robot also offers its control step as a Pallas kernel (:mod:`envs.quadcopter.kernel`), which
+* **Backends** - ``mjx`` (MuJoCo MJX) or ``rigid`` (:mod:`envs.quadcopter.rigid_body`: Newton–Euler for the one free
+  body, every constant read from the same compiled model; agrees with MJX to round-off and is much faster). On ``rigid``
+  the robot also offers its control step as a Pallas kernel (:mod:`envs.quadcopter.kernel`), which
   ``ExecutionPlan(fused="pallas")`` runs.
 * **On-board controller** (:meth:`Quadcopter.controller`, every physics substep, on every backend; its equations
   are :func:`envs.quadcopter.dynamics.controller`, which the Pallas kernels run too) - the seed's ``cmd_vel`` Twist

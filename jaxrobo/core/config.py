@@ -49,7 +49,8 @@ def _mapping_without_duplicates(loader: StrictLoader, node: yaml.MappingNode, de
         try:
             first = seen.get(key)
         except TypeError:  # an unhashable key (a list or mapping used as a key)
-            raise ConfigError(f"line {key_node.start_mark.line + 1}: a key must be a plain value, got {key!r}") from None
+            raise ConfigError(f"line {key_node.start_mark.line + 1}: a key must be a plain value, "
+                              f"got {key!r}") from None
         if first is not None:
             raise ConfigError(f"duplicate key {key!r} (lines {first} and {key_node.start_mark.line + 1}): "
                               "give each key once")

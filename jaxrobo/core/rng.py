@@ -1,13 +1,13 @@
 """Random numbers for the hot loop: bit for bit JAX's default (threefry) ``split`` / ``bits`` / ``uniform``, cheaper.
 
-A tabular training step draws random numbers in every env every step (key split, exploration, resets), and
-on a CPU they cost more than the cart-pole's physics. JAX lowers its threefry hash on CPU as a *rolled* loop
-(five iterations of four rounds, to keep compile times down), so each iteration writes the whole batch of
-counters back to memory and XLA cannot fuse the hash with what consumes it. Here the same hash (Threefry-2x32,
-20 rounds, JAX's partitionable counter layout) is written out unrolled in ``jnp`` ops: XLA fuses it into the
-surrounding loop, and the values are JAX's own, so results do not change (tested against ``jax.random``).
-With the one-hash epsilon-greedy of :mod:`jaxrobo.tabular.learner` it doubled cart-pole Q-learning's env-steps/s on 2 CPU
-cores. On GPUs JAX's lowering is unrolled already; the H100 still gained (1.8x on `analytic`, all changes together).
+A tabular training step draws random numbers in every env every step (key split, exploration, resets), and on a CPU they
+cost more than the cart-pole's physics. JAX lowers its threefry hash on CPU as a *rolled* loop (five iterations of four
+rounds, to keep compile times down), so each iteration writes the whole batch of counters back to memory and XLA cannot
+fuse the hash with what consumes it. Here the same hash (Threefry-2x32, 20 rounds, JAX's partitionable counter layout)
+is written out unrolled in ``jnp`` ops: XLA fuses it into the surrounding loop, and the values are JAX's own, so results
+do not change (tested against ``jax.random``). With the one-hash epsilon-greedy of :mod:`jaxrobo.tabular.learner` it
+doubled cart-pole Q-learning's env-steps/s on 2 CPU cores. On GPUs JAX's lowering is unrolled already; the H100 still
+gained (1.8x on `analytic`, all changes together).
 
 Keys of another implementation (``jax_default_prng_impl``, ``jax.random.key(..., impl=...)``) or with
 ``jax_threefry_partitionable`` off fall back to ``jax.random``.

@@ -23,8 +23,9 @@ def _clip(x: float, low: float, high: float) -> float:
 
 
 #: ``xp`` over Python floats: :mod:`math` and the built-ins.
-FLOATS = SimpleNamespace(sin=math.sin, cos=math.cos, minimum=min, maximum=max, where=lambda cond, a, b: a if cond else b,
-                         clip=_clip, abs=abs, sqrt=math.sqrt, arctan2=math.atan2, arcsin=math.asin)
+FLOATS = SimpleNamespace(sin=math.sin, cos=math.cos, minimum=min, maximum=max,
+                         where=lambda cond, a, b: a if cond else b, clip=_clip, abs=abs, sqrt=math.sqrt,
+                         arctan2=math.atan2, arcsin=math.asin)
 
 
 class _Value:

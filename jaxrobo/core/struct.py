@@ -53,10 +53,12 @@ class Rule:
 
     def describe(self) -> str:
         if self.pair:
-            return f"a range [low, high] with {self.low} <= low <= high <= {self.high}{' ' + self.unit if self.unit else ''}"
+            return (f"a range [low, high] with {self.low} <= low <= high <= {self.high}"
+                    f"{' ' + self.unit if self.unit else ''}")
         if self.choices is not None:
             return "one of " + ", ".join(repr(c) for c in self.choices)
-        kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string", tuple: "a list"}.get(self.kind, str(self.kind))
+        kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+                tuple: "a list"}.get(self.kind, str(self.kind))
         lo = "" if self.low is None else f"{'>' if self.low_open else '>='} {self.low}"
         hi = "" if self.high is None else f"<= {self.high}"
         bounds = " and ".join(b for b in (lo, hi) if b)

@@ -71,12 +71,12 @@ TENSORBOARD = "tensorboard"
 
 
 class LiveRun:
-    """Keeps a deep run's work in its directory ``live`` at each evaluation point (:meth:`point`, the
-    ``on_point`` of :func:`jaxrobo.deep.training.train`), in this order: the latest policy (``policy.npz`` +
-    ``policy.json``, with the point's ``evaluation`` and ``env_steps``), the best one when this point is the best
-    so far (``best/``), the checkpoint (:mod:`jaxrobo.deep.checkpoint`; what ``--resume`` trusts), then
-    ``episode_stats.csv``, TensorBoard scalars (written and closed: readable while the run goes on) and ``status.json``. A
-    stop, a crash or a kill at any moment leaves the last point's files whole."""
+    """Keeps a deep run's work in its directory ``live`` at each evaluation point (:meth:`point`, the ``on_point`` of
+    :func:`jaxrobo.deep.training.train`), in this order: the latest policy (``policy.npz`` + ``policy.json``, with the
+    point's ``evaluation`` and ``env_steps``), the best one when this point is the best so far (``best/``), the
+    checkpoint (:mod:`jaxrobo.deep.checkpoint`; what ``--resume`` trusts), then ``episode_stats.csv``, TensorBoard
+    scalars (written and closed: readable while the run goes on) and ``status.json``. A stop, a crash or a kill at any
+    moment leaves the last point's files whole."""
 
     def __init__(self, live: str, fingerprint: dict[str, Any], resume_cmd: str, saved: Any = None,
                  out: str | None = None):
@@ -122,8 +122,9 @@ class LiveRun:
             finally:
                 writer.close()
             self._metrics_written = len(p.training_metrics)
-        rundir.write_status(self.live, rundir.RUNNING, out=self.out, env_steps=int(e["env_steps"]), total_steps=p.plan.total_steps,
-                            epochs_done=p.epochs_done, epochs=p.plan.epochs, resume=self.resume_cmd)
+        rundir.write_status(self.live, rundir.RUNNING, out=self.out, env_steps=int(e["env_steps"]),
+                            total_steps=p.plan.total_steps, epochs_done=p.epochs_done, epochs=p.plan.epochs,
+                            resume=self.resume_cmd)
 
     def _checkpoint(self, p: Point) -> None:
         from jaxrobo.deep import checkpoint

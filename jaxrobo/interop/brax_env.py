@@ -334,7 +334,8 @@ def wrap_for_training(env: BraxEnv, episode_length: int = 1000, action_repeat: i
     """The training env Brax's ``ppo.train`` / ``sac.train`` build with ``wrap_env_fn=wrap_for_training``
     (same signature as ``brax.envs.training.wrap``; see the module docstring)."""
     if not isinstance(env, BraxEnv):
-        raise TypeError(f"wrap_for_training(env): expected a jaxrobo.interop.brax_env.BraxEnv, got {type(env).__name__}")
+        raise TypeError("wrap_for_training(env): expected a jaxrobo.interop.brax_env.BraxEnv, "
+                        f"got {type(env).__name__}")
     if randomization_fn is not None:
         raise ConfigError("wrap_for_training: randomization_fn is not supported: Brax's domain randomisation edits "
                           "a Brax System, which a jaxrobo env does not have; vary the env's Params instead "

@@ -79,8 +79,8 @@ def register_gymnasium_id(env_id: str) -> str | None:
         names.append(env_id)
     for name in names:
         # Gymnasium's own register (its checks of the id), then the same spec as one that reads the step limit later
-        gymnasium.register(id=name, entry_point=f"{ADAPTER}:JaxroboEnv", vector_entry_point=f"{ADAPTER}:JaxroboVectorEnv",
-                           kwargs={"env_id": env_id})
+        gymnasium.register(id=name, entry_point=f"{ADAPTER}:JaxroboEnv",
+                           vector_entry_point=f"{ADAPTER}:JaxroboVectorEnv", kwargs={"env_id": env_id})
         plain = gymnasium.registry[name]
         fields = {f.name: getattr(plain, f.name) for f in dataclasses.fields(plain) if f.init}
         gymnasium.registry[name] = JaxroboSpec(**{**fields, "max_episode_steps": _Unread}, jaxrobo_id=env_id)

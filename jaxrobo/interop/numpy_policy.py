@@ -1,10 +1,10 @@
 """A policy exported by ``jaxrobo export``, run with numpy alone: ``Policy.load(dir)`` then ``policy(obs) -> action``.
 
-``jaxrobo export`` writes this module into every exported policy directory (beside ``policy.npz`` and
-``policy.json``) with the JAX-free task modules it imports written in before it
-(:func:`jaxrobo.export.runner_source`: the Goto task's geometry and observation, the cart-pole's rules, and
-:data:`jaxrobo.core.scalar.FLOATS`, the Python-float math they run on here): the file imports nothing but
-numpy and the standard library, and runs where JAX is not installed (a robot's computer, a native MuJoCo loop). It reproduces the JAX policy of the run:
+``jaxrobo export`` writes this module into every exported policy directory (beside ``policy.npz`` and ``policy.json``)
+with the JAX-free task modules it imports written in before it (:func:`jaxrobo.export.runner_source`: the Goto task's
+geometry and observation, the cart-pole's rules, and :data:`jaxrobo.core.scalar.FLOATS`, the Python-float math they run
+on here): the file imports nothing but numpy and the standard library, and runs where JAX is not installed (a robot's
+computer, a native MuJoCo loop). It reproduces the JAX policy of the run:
 
 * **tabular** (``kind: tabular``): the observation is cast to float32 and cut into bins exactly as
   ``jaxrobo.tabular.discretise.Discretiser`` does (uniform bins: ``floor((obs - low) / width)`` in float32, clipped

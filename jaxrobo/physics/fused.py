@@ -14,13 +14,12 @@ quadcopter's 30) runs them as a rolled loop, one round trip of the whole state t
   written-out physics into several kernels, but the step ran 1.3-1.6x faster for the quadcopter (the plan's
   default for a closed form of many substeps without a kernel: :func:`jaxrobo.speed.plan.default_fused`; the rigid
   quadcopter's default is now its kernel, ``"pallas"``).
-* **Steps inside blocks of envs** (``fused_block``). The chunk runs block after block of ``fused_block`` envs,
-  each block doing all ``chunk_steps`` steps before the next starts (:meth:`jaxrobo.training.trainer.Trainer.run_chunk`):
-  the loop over
-  steps moves inside the loop over envs, so a block's carry can stay in cache across its steps. Envs with their
-  own tables are independent, so the values are those of the plain path bit for bit; with a shared table they
-  are not (each step's update mixes every env), so a shared table always runs unblocked. Measured slower on both
-  an H100 and 2 CPU cores (docs/benchmarks.md, "Fused path"): an option to measure, never a default.
+* **Steps inside blocks of envs** (``fused_block``). The chunk runs block after block of ``fused_block`` envs, each
+  block doing all ``chunk_steps`` steps before the next starts (:meth:`jaxrobo.training.trainer.Trainer.run_chunk`): the
+  loop over steps moves inside the loop over envs, so a block's carry can stay in cache across its steps. Envs with
+  their own tables are independent, so the values are those of the plain path bit for bit; with a shared table they are
+  not (each step's update mixes every env), so a shared table always runs unblocked. Measured slower on both an H100 and
+  2 CPU cores (docs/benchmarks.md, "Fused path"): an option to measure, never a default.
 
 What stays the same: the step itself (:meth:`jaxrobo.training.trainer.Trainer.step`), its random keys (each env's own),
 its records, its resets: the fused path is that step rearranged, which is how the tests hold it to the plain
@@ -30,8 +29,9 @@ there, and a tabular run then takes another path (within the seed-to-seed spread
 
 ``fused="pallas"`` (a choice :mod:`jaxrobo.speed.plan` adds) is read here too: a robot that offers a kernel for its
 control step (:attr:`jaxrobo.task.robot.Robot.advance_kernel`, the rigid quadcopter's) has a vmapped step call it once
-on the whole batch (:func:`physics_kernels`, read by :meth:`jaxrobo.physics.sim.Simulator.advance`); the rest of the step
-stays XLA's. The cart-pole's whole-chunk kernel is its task's ``chunk_kernel`` (:mod:`envs.cartpole.kernel`), which the trainer runs itself.
+on the whole batch (:func:`physics_kernels`, read by :meth:`jaxrobo.physics.sim.Simulator.advance`); the rest of the
+step stays XLA's. The cart-pole's whole-chunk kernel is its task's ``chunk_kernel`` (:mod:`envs.cartpole.kernel`), which
+the trainer runs itself.
 
 Public surface: :data:`CHOICES`, :func:`unroll_all_substeps`, :func:`physics_kernels`, :func:`task_kernels`,
 :func:`choose`. The module imports nothing of jaxrobo's: the simulators and tasks read its flags and the plan its

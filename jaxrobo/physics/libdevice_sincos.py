@@ -32,7 +32,8 @@ import numpy as np
 
 #: The largest ``|t|`` :func:`sincos` serves: ``fl(0.78 * 0.63661975) = 0.4966 < 0.5``, quadrant 0.
 LIMIT = 0.78
-# libdevice's coefficients (float32 bit patterns, read from libdevice.10.bc of CUDA 13.0; verified() checks the GPU's own).
+# libdevice's coefficients (float32 bit patterns, read from libdevice.10.bc of CUDA 13.0;
+# verified() checks the GPU's own).
 _SIN = ("B94D4153", "3C0885E4", "BE2AAAA8")  # z = (c0 * t2 + c1) * t2 + c2; sin = z * (t2 * t) + t
 _COS = ("37CBAC00", "BAB607ED", "3D2AAABB", "BEFFFFFF")  # z = ((c0 * t2 + c1) * t2 + c2) * t2 + c3; cos = z * t2 + 1
 
@@ -144,12 +145,12 @@ def verified() -> bool:
         with jax.ensure_compile_time_eval():
             bad = int(jax.jit(mismatches)(x))
     except Exception as err:  # noqa: BLE001 - a Triton without inline assembly, another lowering: keep libdevice
-        warnings.warn(f"jaxrobo.physics.libdevice_sincos: the check did not run ({type(err).__name__}: {err}); the kernels "
-                      "keep libdevice's sin/cos calls", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"jaxrobo.physics.libdevice_sincos: the check did not run ({type(err).__name__}: {err}); "
+                      "the kernels keep libdevice's sin/cos calls", RuntimeWarning, stacklevel=2)
         return False
     if bad:
-        warnings.warn(f"jaxrobo.physics.libdevice_sincos: {bad} of {len(x)} arguments differ from this GPU's libdevice; the "
-                      "kernels keep libdevice's sin/cos calls", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"jaxrobo.physics.libdevice_sincos: {bad} of {len(x)} arguments differ from this GPU's "
+                      "libdevice; the kernels keep libdevice's sin/cos calls", RuntimeWarning, stacklevel=2)
     return bad == 0
 
 

@@ -1,12 +1,12 @@
 """The MJX stage replacement: one stage of ``mjx.step`` in a form XLA compiles better, the same values bit for bit.
 
-MJX's ``smooth.com_pos`` computes the body inertias about the subtree centres of mass (``cinert``) and takes the
-upper triangle of each 3x3 inertia with an index-array gather. XLA fuses the 3x3 matrix products into that gather
-and recomputes them for each of the six entries it reads, and on a GPU at large batches that gather was a large
-share of a cart-pole step (docs/results.md, ``env_groups.json``). :func:`lean` replaces ``com_pos`` while MJX code is traced inside
-it by MJX's own ``com_pos`` followed by ``cinert`` computed again with the triangle taken by static indices: the
-same arithmetic in the same order, so the same values bit for bit (``tests/test_mjx_lean.py`` checks positions,
-velocities and ``cinert`` of both robots on random states), and XLA drops MJX's own ``cinert`` as dead code.
+MJX's ``smooth.com_pos`` computes the body inertias about the subtree centres of mass (``cinert``) and takes the upper
+triangle of each 3x3 inertia with an index-array gather. XLA fuses the 3x3 matrix products into that gather and
+recomputes them for each of the six entries it reads, and on a GPU at large batches that gather was a large share of a
+cart-pole step (docs/results.md, ``env_groups.json``). :func:`lean` replaces ``com_pos`` while MJX code is traced inside
+it by MJX's own ``com_pos`` followed by ``cinert`` computed again with the triangle taken by static indices: the same
+arithmetic in the same order, so the same values bit for bit (``tests/test_mjx_lean.py`` checks positions, velocities
+and ``cinert`` of both robots on random states), and XLA drops MJX's own ``cinert`` as dead code.
 
 It reaches into MJX's private modules, so it is guarded: it applies only to ``mujoco-mjx`` versions in
 :data:`WRITTEN_FOR` (the range it was written and tested for) with the layout it expects. Elsewhere it does

@@ -1,25 +1,25 @@
 """The execution plan: every choice that changes how fast a run goes and never what it computes.
 
-A run's speed choices (how many envs are stepped at once, whether MJX's inertia stage is replaced, how done
-envs are reset, whether table rows are carried, the XLA options) live in one frozen :class:`ExecutionPlan`,
-built once from the device and the run's config by :meth:`ExecutionPlan.for_run` and passed explicitly to
-whatever traces the run: :class:`jaxrobo.training.trainer.Trainer` (and so :func:`jaxrobo.training.train.train`), the sweep's
-compiled groups, :class:`jaxrobo.interop.gym_adapter.JaxroboVectorEnv`, the benchmarks. Every choice gives the same
-values bit for bit (the tests compare them); what changes is the program XLA compiles (exceptions found: on a CPU,
-XLA rounds the quadcopter's step by the batch it is given, so ``env_group`` and ``devices`` may move its last bits
-there, and on GPUs ``devices`` moves them: docs/scaling.md). There are no module-global knobs: to measure another
-choice, build another plan (``plan.replace(lean_mjx=False)``).
+A run's speed choices (how many envs are stepped at once, whether MJX's inertia stage is replaced, how done envs are
+reset, whether table rows are carried, the XLA options) live in one frozen :class:`ExecutionPlan`, built once from the
+device and the run's config by :meth:`ExecutionPlan.for_run` and passed explicitly to whatever traces the run:
+:class:`jaxrobo.training.trainer.Trainer` (and so :func:`jaxrobo.training.train.train`), the sweep's compiled groups,
+:class:`jaxrobo.interop.gym_adapter.JaxroboVectorEnv`, the benchmarks. Every choice gives the same values bit for bit
+(the tests compare them); what changes is the program XLA compiles (exceptions found: on a CPU, XLA rounds the
+quadcopter's step by the batch it is given, so ``env_group`` and ``devices`` may move its last bits there, and on GPUs
+``devices`` moves them: docs/scaling.md). There are no module-global knobs: to measure another choice, build another
+plan (``plan.replace(lean_mjx=False)``).
 
-The plan acts while a program is traced: its fields are read by the code that builds the step
-(:func:`step_batch`, the trainer's step), and the one choice that sits deep under the pure
-``env.step(state, action, params)``, the MJX stage replacement, travels with :meth:`ExecutionPlan.tracing`, a
-block during which the simulator asks :func:`jaxrobo.physics.mjx_lean.wanted` (see :mod:`jaxrobo.physics.mjx_lean`). A jitted
-function traced once keeps the plan it was traced under, so build one jitted function per plan (a
-:class:`~jaxrobo.training.trainer.Trainer` per plan does that). ``repr(plan)`` is short, names every choice, and is the
-plan's tag in benchmark rows and run summaries. JAX's persistent compilation cache keys on the lowered program,
-so two plans never share a cached executable unless they lower to the same program. A checkpoint does not
-record the plan: the values do not depend on it (a carry written under one plan goes on under another, as
-long as the carry's structure, which ``carry_rows`` changes, is the same; the checkpoint checks that).
+The plan acts while a program is traced: its fields are read by the code that builds the step (:func:`step_batch`, the
+trainer's step), and the one choice that sits deep under the pure ``env.step(state, action, params)``, the MJX stage
+replacement, travels with :meth:`ExecutionPlan.tracing`, a block during which the simulator asks
+:func:`jaxrobo.physics.mjx_lean.wanted` (see :mod:`jaxrobo.physics.mjx_lean`). A jitted function traced once keeps the
+plan it was traced under, so build one jitted function per plan (a :class:`~jaxrobo.training.trainer.Trainer` per plan
+does that). ``repr(plan)`` is short, names every choice, and is the plan's tag in benchmark rows and run summaries.
+JAX's persistent compilation cache keys on the lowered program, so two plans never share a cached executable unless they
+lower to the same program. A checkpoint does not record the plan: the values do not depend on it (a carry written under
+one plan goes on under another, as long as the carry's structure, which ``carry_rows`` changes, is the same; the
+checkpoint checks that).
 
 Public surface: :class:`ExecutionPlan` (fields, :meth:`~ExecutionPlan.for_run`, :meth:`~ExecutionPlan.replace`,
 :meth:`~ExecutionPlan.partitioned`, :meth:`~ExecutionPlan.tracing`, :meth:`~ExecutionPlan.traced`,
@@ -161,25 +161,24 @@ def check_pallas(trainer: Any) -> None:
 
 def default_fused(env: Env, backend: str | None = None, n_envs: int | None = None, *, config: Any = None,
                   agent: str | None = None, discretiser: Any = None, devices: int | None = None) -> str:
-    """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``, split over ``devices`` (default:
-    every device JAX sees). On a GPU, from 1,024 envs: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a run whose whole chunk is
-    one kernel (the analytic cart-pole with Q-learning,
-    :mod:`envs.cartpole.kernel`: 10.5-17.7x the env steps/s of the plain path on an H100 at 1 k-1 M envs; it
-    compiles ~10-25 s longer, which a short run compiling cold does not earn back; the persistent compile cache
-    serves the later runs of a configuration, docs/benchmarks.md, "Pallas"), decided from ``config`` (a
-    :class:`jaxrobo.training.trainer.TrainConfig`; its ``n_envs`` replaces ``n_envs``) with the run's learner name ``agent`` and ``discretiser`` (defaults: the
-    config's) by :func:`chunk_kernel_refusal`, the rules that also refuse an explicit choice.
-    Otherwise, with a
-    closed form of more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot
-    offers its control step as a kernel (:func:`physics_kernel`: the rigid quadcopter, whose Goto + Q-learning ran
-    2.9-3.9x the env steps/s of ``"xla"`` on an H100 at 1 k-1 M envs and compiled faster) and the run is on one
-    device (XLA cannot split that kernel's custom call over several; the whole-chunk kernel runs on each device's
-    envs under ``shard_map``), else ``"xla"`` (the substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"``
-    otherwise: on 2 CPU cores they ran at the same speed and took longer to compile, small runs do not earn back
-    the longer compile, and with 8 substeps or fewer the program is the same. A run the kernels cannot take keeps
-    these choices; blocks of envs (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path" and
-    "Pallas"). ``backend``: JAX's platform name (default: ``jax.default_backend()``); ``n_envs`` and ``config``
-    None (stepping envs outside training): ``"off"``."""
+    """The fused choice for training ``n_envs`` envs of ``env`` on ``backend``, split over ``devices`` (default: every
+    device JAX sees). On a GPU, from 1,024 envs: ``"pallas"`` from 16,384 envs (:data:`_CHUNK_KERNEL_MIN_ENVS`) for a
+    run whose whole chunk is one kernel (the analytic cart-pole with Q-learning, :mod:`envs.cartpole.kernel`: 10.5-17.7x
+    the env steps/s of the plain path on an H100 at 1 k-1 M envs; it compiles ~10-25 s longer, which a short run
+    compiling cold does not earn back; the persistent compile cache serves the later runs of a configuration,
+    docs/benchmarks.md, "Pallas"), decided from ``config`` (a :class:`jaxrobo.training.trainer.TrainConfig`; its
+    ``n_envs`` replaces ``n_envs``) with the run's learner name ``agent`` and ``discretiser`` (defaults: the config's)
+    by :func:`chunk_kernel_refusal`, the rules that also refuse an explicit choice. Otherwise, with a closed form of
+    more substeps per control step than the plain path writes out (8): ``"pallas"`` where the robot offers its control
+    step as a kernel (:func:`physics_kernel`: the rigid quadcopter, whose Goto + Q-learning ran 2.9-3.9x the env steps/s
+    of ``"xla"`` on an H100 at 1 k-1 M envs and compiled faster) and the run is on one device (XLA cannot split that
+    kernel's custom call over several; the whole-chunk kernel runs on each device's envs under ``shard_map``), else
+    ``"xla"`` (the substeps written out: 1.3x the rolled loop at 1 k-262 k envs, 1.6x at 1 M). ``"off"`` otherwise: on 2
+    CPU cores they ran at the same speed and took longer to compile, small runs do not earn back the longer compile, and
+    with 8 substeps or fewer the program is the same. A run the kernels cannot take keeps these choices; blocks of envs
+    (``fused_block``) are never defaults (docs/benchmarks.md, "Fused path" and "Pallas"). ``backend``: JAX's platform
+    name (default: ``jax.default_backend()``); ``n_envs`` and ``config`` None (stepping envs outside training):
+    ``"off"``."""
     backend = jax.default_backend() if backend is None else backend
     n_envs = config.n_envs if config is not None else n_envs
     big = n_envs is not None and n_envs >= _FUSED_MIN_ENVS
@@ -226,17 +225,17 @@ class ExecutionPlan:
     are cheap and XLA may copy the whole tables each step to keep the rows from before the update, and with a
     shared table other envs' updates would make the carried rows stale.
 
-    ``fused``: ``"off"``, ``"xla"`` or ``"pallas"``. ``"xla"``: the fused training path of :mod:`jaxrobo.physics.fused`: a
-    closed form's physics substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks
-    of that many envs. ``"pallas"``: a Pallas kernel, for two kinds of run (``Trainer`` refuses the others, naming
-    the field: :func:`check_pallas`): the rigid quadcopter's control step (controller and physics substeps) as
-    one kernel over the batch (:mod:`envs.quadcopter.kernel`, any learner; the rest of the step is XLA's), and the
-    analytic cart-pole's whole chunk with Q-learning and per-env tables (:mod:`envs.cartpole.kernel`).
-    ``fused_block``: with ``fused="xla"``, envs per block (None: the whole batch, no blocking), read only with
-    per-env tables (a shared table mixes every env each step, so it runs unblocked); bit for bit on a CPU, while
-    on a GPU the written-out substeps may round a last bit differently (see :mod:`jaxrobo.physics.fused`). With
-    ``fused="pallas"`` on the cart-pole, envs per Pallas program (a power of two up to 1024; None: one warp's
-    32, :data:`envs.cartpole.kernel.BLOCK`); the quadcopter's kernel sets its own block, so it refuses one.
+    ``fused``: ``"off"``, ``"xla"`` or ``"pallas"``. ``"xla"``: the fused training path of :mod:`jaxrobo.physics.fused`:
+    a closed form's physics substeps all written out, and with ``fused_block`` the chunk's steps run inside blocks of
+    that many envs. ``"pallas"``: a Pallas kernel, for two kinds of run (``Trainer`` refuses the others, naming the
+    field: :func:`check_pallas`): the rigid quadcopter's control step (controller and physics substeps) as one kernel
+    over the batch (:mod:`envs.quadcopter.kernel`, any learner; the rest of the step is XLA's), and the analytic
+    cart-pole's whole chunk with Q-learning and per-env tables (:mod:`envs.cartpole.kernel`). ``fused_block``: with
+    ``fused="xla"``, envs per block (None: the whole batch, no blocking), read only with per-env tables (a shared table
+    mixes every env each step, so it runs unblocked); bit for bit on a CPU, while on a GPU the written-out substeps may
+    round a last bit differently (see :mod:`jaxrobo.physics.fused`). With ``fused="pallas"`` on the cart-pole, envs per
+    Pallas program (a power of two up to 1024; None: one warp's 32, :data:`envs.cartpole.kernel.BLOCK`); the
+    quadcopter's kernel sets its own block, so it refuses one.
 
     ``skip_resets``, ``group_resets``, ``fast_sincos``: read only by a whole-chunk kernel (the cart-pole's), each
     keeping every value (the tests compare them with the choice off). ``skip_resets``: a program hashes the
@@ -353,20 +352,20 @@ class ExecutionPlan:
     def for_run(cls, env: Env, config: Any = None, backend: str | None = None, *,
                 compiler_options: Mapping[str, Any] | None = None, agent: str | None = None,
                 discretiser: Any = None) -> "ExecutionPlan":
-        """The plan for training ``env`` with ``config`` (a :class:`jaxrobo.training.trainer.TrainConfig`: its ``n_envs``,
-        ``shared_table`` and ``env_group``) on ``backend`` (JAX's platform name; default
-        ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector
-        env) only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not
-        carried. With a config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"``
-        with a physics kernel from 262,144 envs, the whole batch (the plain select) otherwise. ``fused``: the
-        config's ``fused`` where it names one (``off``, ``xla``, ``pallas``), else (``auto``) :func:`default_fused`,
-        which on a GPU from 1,024 envs picks ``"pallas"`` for a run the cart-pole's whole-chunk kernel or the
-        quadcopter's control-step kernel takes; with ``devices`` automatic (0), a run that takes the control-step
-        kernel on one device stays on one (the plan does not depend on the device count); ``agent`` (a learner's name) and ``discretiser`` (a
+        """The plan for training ``env`` with ``config`` (a :class:`jaxrobo.training.trainer.TrainConfig`: its
+        ``n_envs``, ``shared_table`` and ``env_group``) on ``backend`` (JAX's platform name; default
+        ``jax.default_backend()``). Without a config (stepping envs outside training, e.g. the Gymnasium vector env)
+        only the env grouping and the MJX stage matter: ``reset_capacity`` is None and rows are not carried. With a
+        config, ``reset_capacity`` is an eighth of the batch on a CPU and under ``fused="pallas"`` with a physics kernel
+        from 262,144 envs, the whole batch (the plain select) otherwise. ``fused``: the config's ``fused`` where it
+        names one (``off``, ``xla``, ``pallas``), else (``auto``) :func:`default_fused`, which on a GPU from 1,024 envs
+        picks ``"pallas"`` for a run the cart-pole's whole-chunk kernel or the quadcopter's control-step kernel takes;
+        with ``devices`` automatic (0), a run that takes the control-step kernel on one device stays on one (the plan
+        does not depend on the device count); ``agent`` (a learner's name) and ``discretiser`` (a
         :class:`jaxrobo.tabular.discretise.Discretiser`) are the run's where they differ from the config's (a
-        :class:`jaxrobo.training.trainer.Trainer` given its own passes them). ``compiler_options``: see the class docstring
-        (XLA's defaults unless given). ``ordered_sums`` is on for a shared table on a GPU, ``hash_kernel`` on one GPU
-        up to :data:`jaxrobo.core.hash_kernel.MAX_ENVS` envs."""
+        :class:`jaxrobo.training.trainer.Trainer` given its own passes them). ``compiler_options``: see the class
+        docstring (XLA's defaults unless given). ``ordered_sums`` is on for a shared table on a GPU, ``hash_kernel`` on
+        one GPU up to :data:`jaxrobo.core.hash_kernel.MAX_ENVS` envs."""
         backend = jax.default_backend() if backend is None else backend
         cpu = backend == "cpu"
         if config is None:

@@ -1,9 +1,10 @@
 """Autoreset: a fresh episode, from fresh randomness, wherever an episode is done, and nothing else changed.
 
 One definition serves the three places that start new episodes inside a compiled loop: the trainer
-(:meth:`jaxrobo.training.trainer.Trainer.step`), the Gymnasium vector env (:class:`jaxrobo.interop.gym_adapter.JaxroboVectorEnv`)
-and the :class:`jaxrobo.task.wrappers.AutoReset` wrapper. Each passes the keys its envs reset from; this module only
-decides which envs take the fresh values and how they are computed.
+(:meth:`jaxrobo.training.trainer.Trainer.step`), the Gymnasium vector env
+(:class:`jaxrobo.interop.gym_adapter.JaxroboVectorEnv`) and the :class:`jaxrobo.task.wrappers.AutoReset` wrapper. Each
+passes the keys its envs reset from; this module only decides which envs take the fresh values and how they are
+computed.
 
 Public surface:
 

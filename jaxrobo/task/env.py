@@ -73,17 +73,17 @@ class BaseParams:
 
 @dataclasses.dataclass(frozen=True)
 class LearningTarget:
-    """What "has learned" means for a task, declared on the task class (:attr:`Env.learning_target`) and read by
-    the training summary (:meth:`jaxrobo.training.summary.TrainResult.summary`), so the trainer knows no task's threshold.
+    """What "has learned" means for a task, declared on the task class (:attr:`Env.learning_target`) and read by the
+    training summary (:meth:`jaxrobo.training.summary.TrainResult.summary`), so the trainer knows no task's threshold.
 
-    A table reaches the target when its greedy evaluation's ``metric`` is ``>= threshold`` (``better="higher"``,
-    the default) or ``<= threshold`` (``better="lower"``: e.g. a minimum-time task's ``mean_length``). ``metric`` is one of
+    A table reaches the target when its greedy evaluation's ``metric`` is ``>= threshold`` (``better="higher"``, the
+    default) or ``<= threshold`` (``better="lower"``: e.g. a minimum-time task's ``mean_length``). ``metric`` is one of
     :data:`TARGET_METRICS`: ``"mean_length"`` / ``"mean_return"`` (mean greedy episode length / return, which the
-    trainer's evaluation records per table: the summary gives the share of evaluated tables that reach the
-    target as ``eval_share_of_tables_<name>``), or ``"success_rate"`` (share of greedy episodes the task counts as
-    a success: for a task whose task variables carry an ``arrived`` flag the evaluation records it too
-    (:func:`jaxrobo.training.driver.evaluate_tables`) and the summary adds ``eval_success_rate`` and the share; for
-    any other task the summary names the target only and the task measures it itself).
+    trainer's evaluation records per table: the summary gives the share of evaluated tables that reach the target as
+    ``eval_share_of_tables_<name>``), or ``"success_rate"`` (share of greedy episodes the task counts as a success: for
+    a task whose task variables carry an ``arrived`` flag the evaluation records it too
+    (:func:`jaxrobo.training.driver.evaluate_tables`) and the summary adds ``eval_success_rate`` and the share; for any
+    other task the summary names the target only and the task measures it itself).
     """
 
     name: str
@@ -166,7 +166,8 @@ def ranking(target: LearningTarget | None) -> Ranking:
 
 #: The figures a :class:`LearningTarget` can be stated on, each with what it measures (docs/extending.md lists them).
 TARGET_METRICS = {
-    "mean_length": "mean greedy episode length per evaluated table (longer is better, or shorter with better=\"lower\")",
+    "mean_length": "mean greedy episode length per evaluated table "
+                   "(longer is better, or shorter with better=\"lower\")",
     "mean_return": "mean greedy episode return per evaluated table",
     "success_rate": "share of greedy episodes the task counts as a success (its task variables' `arrived` flag)",
 }
@@ -299,7 +300,8 @@ class TaskEnv(Env):
     # ---- composition ----------------------------------------------------------------------------------
     @property
     def randomised(self) -> bool:
-        """True when the task draws its physics per episode (its ``randomise`` option, :mod:`jaxrobo.task.randomise`)."""
+        """True when the task draws its physics per episode (its ``randomise`` option,
+        :mod:`jaxrobo.task.randomise`)."""
         return bool(getattr(self.options, "randomise", False))
 
     def reset(self, key: jax.Array, params: Any = None) -> EnvState:

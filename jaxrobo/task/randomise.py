@@ -55,7 +55,8 @@ def obs_noise_range() -> Any:
 
 def range_fields(params_cls: Any) -> tuple[str, ...]:
     """The names (without :data:`PREFIX`) of the randomisation ranges a Params class declares, in field order."""
-    return tuple(name[len(PREFIX):] for name, rule in rules(params_cls).items() if rule.pair and name.startswith(PREFIX))
+    return tuple(name[len(PREFIX):] for name, rule in rules(params_cls).items()
+                 if rule.pair and name.startswith(PREFIX))
 
 
 def ranges(params: Any) -> dict[str, Any]:

@@ -4,11 +4,11 @@ A robot owns a :class:`~jaxrobo.physics.sim.Simulator`; tasks talk to the robot,
 same task runs on MJX, on a Brax pipeline or on the robot's own closed form.
 
 Public surface: subclass :class:`Robot`; build its simulator in ``__init__`` with
-:func:`jaxrobo.physics.sim.make_simulator` from a model loaded by :func:`jaxrobo.physics.sim.load_model` (the robot module owns
-its MJCF's path), and override :meth:`Robot.controller` (runs every physics substep) and
-:meth:`Robot.read_sensors`. Tasks call :meth:`Robot.advance` and :meth:`Robot.read_sensors`; ``robot.sim`` is
-there for tasks that need the state's coordinates or ``forward`` (MJX). ``_check_all_systems_ready`` keeps the
-seed's name and is called by the task layer.
+:func:`jaxrobo.physics.sim.make_simulator` from a model loaded by :func:`jaxrobo.physics.sim.load_model` (the robot
+module owns its MJCF's path), and override :meth:`Robot.controller` (runs every physics substep) and
+:meth:`Robot.read_sensors`. Tasks call :meth:`Robot.advance` and :meth:`Robot.read_sensors`; ``robot.sim`` is there for
+tasks that need the state's coordinates or ``forward`` (MJX). ``_check_all_systems_ready`` keeps the seed's name and is
+called by the task layer.
 """
 from __future__ import annotations
 
@@ -64,4 +64,5 @@ class Robot:
 
     def _check_all_systems_ready(self, pipeline_state: Any) -> jax.Array:
         """True when the physics state is usable (all finite); the seed waited for ROS topics here instead."""
-        return jnp.all(jnp.isfinite(self.sim.qpos(pipeline_state))) & jnp.all(jnp.isfinite(self.sim.qvel(pipeline_state)))
+        return (jnp.all(jnp.isfinite(self.sim.qpos(pipeline_state)))
+                & jnp.all(jnp.isfinite(self.sim.qvel(pipeline_state))))

@@ -1,10 +1,10 @@
 """Episodes of a policy, in one compiled computation: greedy evaluation of tables, random baselines, success rates.
 
 Every place that runs a policy's episodes goes through here: the trainer's evaluation
-(:meth:`jaxrobo.training.trainer.Trainer.evaluate`), the quadcopter flights (:mod:`jaxrobo.show`, the benchmarks) and the
-greedy policy of a video (:func:`jaxrobo.pictures.render.q_policy`). So a greedy policy breaks ties one way everywhere:
-uniformly at random among the maximal action values, drawn from the step's key (:func:`greedy_action`, which is
-:func:`jaxrobo.tabular.learner.greedy`); only a policy that leaves JAX (``jaxrobo export``) takes the first maximal
+(:meth:`jaxrobo.training.trainer.Trainer.evaluate`), the quadcopter flights (:mod:`jaxrobo.show`, the benchmarks) and
+the greedy policy of a video (:func:`jaxrobo.pictures.render.q_policy`). So a greedy policy breaks ties one way
+everywhere: uniformly at random among the maximal action values, drawn from the step's key (:func:`greedy_action`, which
+is :func:`jaxrobo.tabular.learner.greedy`); only a policy that leaves JAX (``jaxrobo export``) takes the first maximal
 action instead, and ``greedy_policy(..., ties="first")`` is its JAX twin.
 
 Public surface:

@@ -177,8 +177,8 @@ def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any 
 
 
 def carry_fingerprint(template: Runner, run_config: dict[str, Any]) -> dict[str, Any]:
-    """What a checkpoint must match to be loaded: the resolved run config, the jaxrobo and JAX versions, the
-    carry's tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`jaxrobo.core.version.source_hash`)."""
+    """What a checkpoint must match to be loaded: the resolved run config, the jaxrobo and JAX versions, the carry's
+    tree structure and leaf shapes/dtypes, and the hash of the sources (:func:`jaxrobo.core.version.source_hash`)."""
     from jaxrobo.core.version import __version__, source_hash
 
     leaves, treedef = jax.tree.flatten(template)

@@ -1,10 +1,10 @@
 """Resolve a training run from the shipped YAML files and user overrides, validated before anything compiles.
 
-A task's agent YAML (``agents/configs/<name>.yaml`` for a built-in task; for a task in a user's module, the path
-its ``register`` call gives, relative to that module's directory or absolute) holds presets; each preset maps learner parameters
-(:class:`jaxrobo.tabular.learner.AgentParams`) and loop settings (:class:`jaxrobo.training.trainer.TrainConfig`), plus an optional
-``env:`` mapping of env overrides. ``default`` is the textbook setup that learns; ``seed`` is the seed's own
-values with its learners reproduced exactly.
+A task's agent YAML (``agents/configs/<name>.yaml`` for a built-in task; for a task in a user's module, the path its
+``register`` call gives, relative to that module's directory or absolute) holds presets; each preset maps learner
+parameters (:class:`jaxrobo.tabular.learner.AgentParams`) and loop settings
+(:class:`jaxrobo.training.trainer.TrainConfig`), plus an optional ``env:`` mapping of env overrides. ``default`` is the
+textbook setup that learns; ``seed`` is the seed's own values with its learners reproduced exactly.
 
 Overrides are ``{key: value}``; :func:`route` says where each key lives, for ``--set`` here and for the swept
 keys of :mod:`jaxrobo.training.sweep`: a bare key goes to whichever of learner, loop or env declares it (learner and
@@ -70,8 +70,8 @@ def _tables(env_cls: type) -> dict[str, dict[str, Rule]]:
 
 
 def route(env_id: str, key: Any, where: str = "--set") -> KeyRoute:
-    """Where ``key`` lives for the env ``env_id``; :class:`ConfigError` naming the key and the allowed keys if
-    nowhere. The one router of ``--set`` (:func:`resolve`) and of swept keys (:func:`jaxrobo.training.sweep.classify`)."""
+    """Where ``key`` lives for the env ``env_id``; :class:`ConfigError` naming the key and the allowed keys if nowhere.
+    The one router of ``--set`` (:func:`resolve`) and of swept keys (:func:`jaxrobo.training.sweep.classify`)."""
     tables = _tables(_lookup(env_id).env_class())
     homes: tuple[str, ...] = HOMES
     name = key
@@ -209,7 +209,8 @@ def check_combinations(config: TrainConfig, given: Mapping[str, Any], where: str
                           f"{INT32_MAX - config.n_envs:,} (episode counters are int32)")
     if config.total_episodes and -(-config.total_episodes // config.n_envs) * config.nsteps > INT32_MAX:
         raise ConfigError(f"{loc}total_episodes={config.total_episodes:,} over n_envs={config.n_envs} with "
-                          f"nsteps={config.nsteps}: up to {-(-config.total_episodes // config.n_envs) * config.nsteps:,} "
+                          f"nsteps={config.nsteps}: "
+                          f"up to {-(-config.total_episodes // config.n_envs) * config.nsteps:,} "
                           f"steps per env; must be <= {INT32_MAX:,} (step counters are int32)")
     steps = config.nepisodes * config.nsteps
     if not (config.total_steps or config.total_episodes) and steps > INT32_MAX:

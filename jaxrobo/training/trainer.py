@@ -26,10 +26,10 @@ at chunk boundaries near 95 %, 90 %, ... of the budget), and a finished run keep
 table on greedy flights of its own (:meth:`Trainer.final_table`): see that method for why.
 
 Public surface: :class:`TrainConfig`, :class:`Runner`, :class:`Trainer` (``init``, ``step``, ``run_chunk``,
-``keep_snapshots``, ``snapshot_points``, ``final_table``, ``max_chunks``, ``budget``, ``budget_total``, ``progress``, ``evaluate``,
-``evaluate_episodes``), :data:`SNAPSHOT_SPACING`, :data:`MAX_SNAPSHOTS`, :func:`make_discretiser_for` (defined in
-:mod:`jaxrobo.tabular.discretise`, where the plan's default reads it too), :func:`progress_stats`. Names with a leading
-underscore are private.
+``keep_snapshots``, ``snapshot_points``, ``final_table``, ``max_chunks``, ``budget``, ``budget_total``, ``progress``,
+``evaluate``, ``evaluate_episodes``), :data:`SNAPSHOT_SPACING`, :data:`MAX_SNAPSHOTS`, :func:`make_discretiser_for`
+(defined in :mod:`jaxrobo.tabular.discretise`, where the plan's default reads it too), :func:`progress_stats`. Names
+with a leading underscore are private.
 """
 from __future__ import annotations
 
@@ -254,7 +254,8 @@ class Trainer:
         return agent.q[envs, :, s, :]
 
     def _select(self, key, q_rows, epsilon):
-        select = lambda k, r, e: self.learner.select(k, tabular.policy_values(r), e, self.config.seed_compat)  # noqa: E731
+        select = lambda k, r, e: self.learner.select(  # noqa: E731
+            k, tabular.policy_values(r), e, self.config.seed_compat)
         return jax.vmap(select)(key, q_rows, epsilon)
 
     def _learn(self, key, agent, q_s, q_s2, s, a, r, s2, a2, terminated, epsilon, params, active):
@@ -550,7 +551,8 @@ class Trainer:
 
 
 def _everywhere(devices: int, tree: Any) -> Any:
-    """``tree`` replicated on the first ``devices`` devices (the run's mesh, :func:`jaxrobo.training.driver.env_mesh`)."""
+    """``tree`` replicated on the first ``devices`` devices (the run's mesh,
+    :func:`jaxrobo.training.driver.env_mesh`)."""
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     import numpy as np

@@ -1,9 +1,9 @@
 """``jaxrobo sweep``: the flags, their checks at the boundary, ``--resume``, and the run from flags to results.
 
-The sweep-defining flags (:data:`SWEEP_FLAGS`) are saved with the sweep's state, so ``--resume DIR`` runs the
-same sweep again (:func:`sweep_flags`). :func:`run` plans the sweep (:mod:`jaxrobo.training.sweep.planning`), runs it
-(:mod:`jaxrobo.training.sweep.running`) under the signal handlers of :class:`jaxrobo.training.driver.StopOnSignal`, and publishes
-``sweep.csv``, ``summary.json`` and the heatmaps (:mod:`jaxrobo.training.sweep.output`) in one rename.
+The sweep-defining flags (:data:`SWEEP_FLAGS`) are saved with the sweep's state, so ``--resume DIR`` runs the same sweep
+again (:func:`sweep_flags`). :func:`run` plans the sweep (:mod:`jaxrobo.training.sweep.planning`), runs it
+(:mod:`jaxrobo.training.sweep.running`) under the signal handlers of :class:`jaxrobo.training.driver.StopOnSignal`, and
+publishes ``sweep.csv``, ``summary.json`` and the heatmaps (:mod:`jaxrobo.training.sweep.output`) in one rename.
 
 Public surface: :data:`SWEEP_FLAGS`, :func:`configure_parser`, :func:`sweep_flags`, :func:`points_from_args`,
 :func:`run`, :func:`main`.
@@ -310,7 +310,8 @@ def _run(args: argparse.Namespace, compiler_options: Mapping[str, Any] | None = 
         should_stop = driver.agreed_stop(stop)
         saved_in = live or "process 0"
         try:
-            result = run_plan(plan, mesh, log=print, progress=None if getattr(args, "no_progress", False) else _chunk_line,
+            result = run_plan(plan, mesh, log=print,
+                              progress=None if getattr(args, "no_progress", False) else _chunk_line,
                               state_dir=state_dir, should_stop=should_stop,
                               state_extra={"flags": flags, "argv": argv})
         except KeyboardInterrupt:  # a second Ctrl-C: the chunk in flight is dropped at once

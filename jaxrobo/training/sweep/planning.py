@@ -30,8 +30,8 @@ NOT_SWEPT = ("seed",)  # the seed axis is --seeds
 
 
 # ---- what a key is -------------------------------------------------------------------------------------------
-#: A swept key as :func:`jaxrobo.training.run.route`, the router of ``--set``, places it: ``name`` (the field), ``where``
-#: (``"agent"``/``"env"``: a traced learner / env parameter, vmapped; ``"train"``/``"option"``: a static loop
+#: A swept key as :func:`jaxrobo.training.run.route`, the router of ``--set``, places it: ``name`` (the field),
+#: ``where`` (``"agent"``/``"env"``: a traced learner / env parameter, vmapped; ``"train"``/``"option"``: a static loop
 #: setting / env option, one compiled group per value) and ``static``.
 KeyKind = KeyRoute
 
@@ -154,7 +154,8 @@ def plan_sweep(env_id: str, points: Sequence[Mapping[str, Any]], seeds: Sequence
                preset: str = "default", agent: str | None = None, overrides: Mapping[str, Any] | None = None,
                eval_episodes: int = 0, n_last: int = 100, compiler_options: dict[str, Any] | None = None,
                max_seconds: float | None = None) -> SweepPlan:
-    """Validate every point and resolve every group's run (see :func:`jaxrobo.training.sweep.running.run_sweep`); nothing compiles.
+    """Validate every point and resolve every group's run (see :func:`jaxrobo.training.sweep.running.run_sweep`);
+    nothing compiles.
 
     Raises :class:`ConfigError` naming the key for any bad key or value, in whichever group it is.
     """

@@ -96,8 +96,8 @@ def open_state(state_dir: str, plan: SweepPlan, extra: Mapping[str, Any] | None 
 
 def save_checkpoint(state_dir: str, fingerprint: str, plan: SweepPlan, finished: Mapping[int, Mapping[str, Any]]
                     ) -> None:
-    """The row metrics of every finished group in ``state_dir/checkpoint.npz`` (plain arrays, no pickle),
-    written atomically (:func:`jaxrobo.training.checkpoint.write_npz`): a crash leaves the previous checkpoint or this one."""
+    """The row metrics of every finished group in ``state_dir/checkpoint.npz`` (plain arrays, no pickle), written
+    atomically (:func:`jaxrobo.training.checkpoint.write_npz`): a crash leaves the previous checkpoint or this one."""
     from jaxrobo.io import rundir
 
     arrays: dict[str, np.ndarray] = {"fingerprint": np.asarray(fingerprint),
