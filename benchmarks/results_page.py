@@ -123,9 +123,9 @@ WHAT = {
                          "traced afresh, alternating in one call on one cache (`jaxrobo.speed.reuse`)",
     "xla_autotune_cold.json": "Goto-v2's and the arm's default commands cold with XLA's GPU autotuning as it is, at "
                               "level 0, and without Triton GEMM fusions (one call)",
-    "compile_flags_s30.json": "The arm's and Goto-v2's default commands cold and warm with XLA's GPU autotuning as "
-                              "it is and at level 0, alternating, and whether XLA's LLVM-module split is a flag of "
-                              "this jaxlib (one call)",
+    "compile_flags_s30.json": "The arm's and Goto-v2's default commands cold and warm without and with a "
+                              "process-wide --xla_gpu_autotune_level=0 (the plan's programs compile at level 0 "
+                              "already), alternating, and whether XLA's LLVM-module split is a flag of this jaxlib",
     "ppo_twist_warm_profile.json": "Where a warm QuadcopterGotoTwist-v0 PPO run's wall goes: its evaluation points' "
                                    "seconds and JAX's compile log",
     "stop_latency.json": "PPO and SAC stopped by SIGINT on a GPU: how soon they exit, what they keep, the resume",
