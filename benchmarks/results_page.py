@@ -123,6 +123,8 @@ WHAT = {
                          "traced afresh, alternating in one call on one cache (`jaxrobo.speed.reuse`)",
     "xla_autotune_cold.json": "Goto-v2's and the arm's default commands cold with XLA's GPU autotuning as it is, at "
                               "level 0, and without Triton GEMM fusions (one call)",
+    "startup_imports_s30.json": "A lent GPU host's imports and device discovery, timed in fresh processes, beside "
+                                "the tabular default commands' warm start-up",
     "compile_flags_s30.json": "The arm's and Goto-v2's default commands cold and warm without and with a "
                               "process-wide --xla_gpu_autotune_level=0 (the plan's programs compile at level 0 "
                               "already), alternating, and whether XLA's LLVM-module split is a flag of this jaxlib",
