@@ -123,6 +123,10 @@ WHAT = {
                          "traced afresh, alternating in one call on one cache (`jaxrobo.speed.reuse`)",
     "xla_autotune_cold.json": "Goto-v2's and the arm's default commands cold with XLA's GPU autotuning as it is, at "
                               "level 0, and without Triton GEMM fusions (one call)",
+    "startup_s31.json": "The tabular default commands' start-up on a lent GPU host with the bytecode compiled, and "
+                        "ml_dtypes' import beside numpy 2.5.2 (0.6.0 and 0.7.0)",
+    "ml_dtypes_import.json": "ml_dtypes 0.7.0 against 0.6.0 beside numpy 2.4.6 on 2 CPU cores: its import and the "
+                             "tabular default commands' start-up, alternating",
     "startup_imports_s30.json": "A lent GPU host's imports and device discovery, timed in fresh processes, beside "
                                 "the tabular default commands' warm start-up",
     "compile_flags_s30.json": "The arm's and Goto-v2's default commands cold and warm without and with a "
