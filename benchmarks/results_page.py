@@ -146,6 +146,8 @@ WHAT = {
     "writing_parallel.json": "Writing at 65,536 and 1 M envs before and after the `.npz` blocks are checksummed and "
                              "deflated by a thread per core (`jaxrobo.io.npz.write_npz_deflated`) and the records "
                              "cross cut to their written columns (`cut_records`), two calls; the tables file's A/B",
+    "time_to_trained_check_s31.json": "Every task's default command cold and warm (seeds 0-2) and the 65,536-env "
+                                      "step-budget run, re-measured at 8f291fa on another H200 host",
     "time_to_trained_check.json": "The tabular default commands cold and warm after this session's writing changes "
                                   "(a check beside the README's table, another host)",
     "time_to_trained_065bc26.json": "Time to a trained robot re-checked at 065bc26 on another H200 host "
