@@ -125,6 +125,8 @@ WHAT = {
                               "level 0, and without Triton GEMM fusions (one call)",
     "startup_s31.json": "The tabular default commands' start-up on a lent GPU host with the bytecode compiled, and "
                         "ml_dtypes' import beside numpy 2.5.2 (0.6.0 and 0.7.0)",
+    "startup_seed_key.json": "The tabular default commands' start-up before and after the run's key is written on "
+                             "the host (rng.seed_key) and the kept traces' key resolves each file once, alternating",
     "ml_dtypes_import.json": "ml_dtypes 0.7.0 against 0.6.0 beside numpy 2.4.6 on 2 CPU cores: its import and the "
                              "tabular default commands' start-up, alternating",
     "startup_imports_s30.json": "A lent GPU host's imports and device discovery, timed in fresh processes, beside "

@@ -236,6 +236,44 @@ def test_rng_defers_to_jax_random_for_other_key_implementations():
     assert 0.0 <= float(u1) < 1.0 and 0.0 <= float(u2) < 1.0
 
 
+SEEDS = [0, 1, 7, 2**31 - 1, 2**31, 2**32 - 1, 2**32, 2**40 + 3, -1, -2**31, np.int64(5), np.uint32(9), np.int32(-4)]
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_seed_key_is_jax_random_key(x64):
+    from jaxrobo.core import rng
+
+    before = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", x64)
+    try:
+        for seed in SEEDS:
+            ours, theirs = rng.seed_key(seed), jax.random.key(seed)
+            assert ours.dtype == theirs.dtype and ours.shape == theirs.shape and ours.sharding == theirs.sharding
+            np.testing.assert_array_equal(np.asarray(jax.random.key_data(ours)),
+                                          np.asarray(jax.random.key_data(theirs)), err_msg=f"seed {seed!r}")
+    finally:
+        jax.config.update("jax_enable_x64", before)
+
+
+def test_seed_key_runs_no_jax_seeding_where_the_key_is_known_and_defers_elsewhere(monkeypatch):
+    from jaxrobo.core import rng
+
+    asked = []
+    real = jax.random.key
+    monkeypatch.setattr(jax.random, "key", lambda seed, **kw: asked.append(seed) or real(seed, **kw))
+    for seed in (0, 5, 2**32 - 1, np.int64(7)):
+        rng.seed_key(seed)
+    assert asked == []  # written on the host: no program compiled or run for these
+    for seed in (-1, 2**32, True):
+        rng.seed_key(seed)
+    assert asked == [-1, 2**32, True]
+    asked.clear()
+    with jax.default_prng_impl("rbg"):  # another implementation's key data is its own: jax.random.key's
+        np.testing.assert_array_equal(np.asarray(jax.random.key_data(rng.seed_key(3))),
+                                      np.asarray(jax.random.key_data(real(3))))
+    assert asked == [3]
+
+
 @pytest.mark.parametrize("n", [1, 2, 4, 7, tabular.UNROLL_ACTIONS + 3])
 def test_action_axis_reductions_match_numpy(n):
     rows = np.random.default_rng(n).integers(-3, 3, size=(50, n)).astype(np.float32)  # many ties

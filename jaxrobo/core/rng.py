@@ -26,6 +26,21 @@ _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 _PARITY = np.uint32(0x1BD11BDA)
 
 
+def seed_key(seed: int) -> jax.Array:
+    """``jax.random.key(seed)``, the same key, written on the host: no program compiled or run.
+
+    JAX's threefry seeding puts a seed's high and low 32-bit words in the key's two words, so for
+    ``0 <= seed < 2**32`` the key's data is ``[0, seed]`` with x64 on or off. ``jax.random.key`` computes that on
+    the device: two small programs compiled on first use (about 0.1 s of a GPU command's start-up with an empty
+    cache) and dispatched every call. Any other seed, another default implementation (``jax_default_prng_impl``)
+    or a ``jax_random_seed_offset`` is ``jax.random.key``'s own (tested against it)."""
+    if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and 0 <= seed < 2**32 \
+            and jax.config.jax_default_prng_impl == "threefry2x32" \
+            and not getattr(jax.config, "jax_random_seed_offset", 0):
+        return jax.random.wrap_key_data(np.array([0, seed], np.uint32), impl="threefry2x32")
+    return jax.random.key(seed)
+
+
 def threefry2x32(k1: jax.Array, k2: jax.Array, x1: jax.Array, x2: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Threefry-2x32 (Salmon et al. 2011, 20 rounds) of counters ``(x1, x2)`` under key ``(k1, k2)``: uint32 arrays
     of one shape, or scalars (a Pallas kernel hashes its ``[block]`` vectors of key words with it)."""

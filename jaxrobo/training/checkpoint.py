@@ -38,6 +38,7 @@ import numpy as np
 
 from jaxrobo.io import rundir
 from jaxrobo.training import nonzero_copy
+from jaxrobo.core import rng
 from jaxrobo.core.config import ConfigError, flat_keys, parse_json
 from jaxrobo.core.environ import in_threads, usable_cores
 
@@ -165,7 +166,7 @@ def carry_template(trainer: Trainer, agent_params: AgentParams, env_params: Any 
     (:func:`jaxrobo.training.train.train`'s ``trainer``) compiles its first carry from this trace instead of
     tracing the env's reset again."""
     env_params = trainer.env.default_params if env_params is None else env_params
-    args = (jax.random.key(trainer.config.seed), agent_params, env_params)
+    args = (rng.seed_key(trainer.config.seed), agent_params, env_params)
     if trainer.plan.reuse_traces:  # the init an earlier process kept says its carry's shapes without a trace
         from jaxrobo.speed import reuse
 

@@ -44,6 +44,7 @@ from jaxrobo.training import checkpoint as checkpoint_io
 from jaxrobo.training import nonzero_copy, record_parts
 from jaxrobo.speed import reuse, sharding
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
+from jaxrobo.core import rng
 from jaxrobo.core.precision import check_precision
 from jaxrobo.task.env import ranking
 from jaxrobo.training.summary import TrainResult
@@ -388,7 +389,7 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     env_params = env.default_params if env_params is None else env_params
     # The CLI checked this in ``run.resolve``; a Python caller gets the same refusal before anything compiles.
     budget.check_memory(env, config, trainer.disc.n_states, where=env.name)
-    key = jax.random.key(config.seed)
+    key = rng.seed_key(config.seed)  # jax.random.key's key, no program compiled for it
     t0 = time.perf_counter()
     check_every, checks = trainer.target_every(), []
     # The flights' programs compile ahead where they are one device's (Flights: a split run's too, in one process).

@@ -24,6 +24,7 @@ import numpy as np
 from jaxrobo.training import driver
 from jaxrobo.training import train as training
 from jaxrobo.speed.plan import ExecutionPlan
+from jaxrobo.core import rng
 from jaxrobo.core.struct import rules
 from jaxrobo.training.sweep import state
 from jaxrobo.training.sweep.planning import SweepPlan, plan_sweep
@@ -389,7 +390,7 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
         else:
             if should_stop is not None and should_stop():
                 raise SweepInterrupted(len(saved), len(planned), state_dir)
-            key_data = np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for (_, s, _) in meta])
+            key_data = np.stack([np.asarray(jax.random.key_data(rng.seed_key(s))) for (_, s, _) in meta])
             # A sweep splits its rows over the devices (the mesh), not each row's envs.
             config = dataclasses.replace(spec.config, devices=1)
             execution = ExecutionPlan.for_run(spec.env, config, compiler_options=plan.compiler_options)
