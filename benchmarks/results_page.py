@@ -123,6 +123,8 @@ WHAT = {
                          "traced afresh, alternating in one call on one cache (`jaxrobo.speed.reuse`)",
     "xla_autotune_cold.json": "Goto-v2's and the arm's default commands cold with XLA's GPU autotuning as it is, at "
                               "level 0, and without Triton GEMM fusions (one call)",
+    "startup_seed_key_s31.json": "The tabular default commands before and after the run's key is written on the "
+                                 "host and the kept traces' key resolves each file once, alternating on an H200",
     "startup_s31.json": "The tabular default commands' start-up on a lent GPU host with the bytecode compiled, and "
                         "ml_dtypes' import beside numpy 2.5.2 (0.6.0 and 0.7.0)",
     "startup_seed_key.json": "The tabular default commands' start-up before and after the run's key is written on "
