@@ -152,8 +152,8 @@ def _live_code() -> str:
     back. A swap of two of their own functions is not seen."""
     h = hashlib.sha256()
     home = _roots()
-    # Resolved once per file, not per function: about 1,500 functions in 150 files, each realpath a few system
-    # calls (0.09 s of a warm command's start-up on 2 CPU cores).
+    # Resolved once per file, not per function: about 1,500 functions sit in about 150 files, and each realpath
+    # costs system calls in every command's start-up (cpu-2cores/startup_seed_key.json).
     real = functools.lru_cache(maxsize=None)(os.path.realpath)
     for name in sorted(sys.modules):
         if name.split(".")[0] not in _PACKAGES and not name.startswith("mujoco.mjx"):
