@@ -255,6 +255,18 @@ def test_seed_key_is_jax_random_key(x64):
         jax.config.update("jax_enable_x64", before)
 
 
+def test_seed_key_data_is_each_seeds_jax_key_data():
+    from jaxrobo.core import rng
+
+    def theirs(seeds):
+        return np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for s in seeds])
+
+    for seeds in ([0, 3, 2**32 - 1, np.int64(12)], [4, -1, 2**32 + 5]):  # host-written; one that defers
+        ours = rng.seed_key_data(seeds)
+        assert ours.dtype == np.uint32 and ours.shape == (len(seeds), 2)
+        np.testing.assert_array_equal(ours, theirs(seeds))
+
+
 def test_seed_key_runs_no_jax_seeding_where_the_key_is_known_and_defers_elsewhere(monkeypatch):
     from jaxrobo.core import rng
 

@@ -15,6 +15,7 @@ Keys of another implementation (``jax_default_prng_impl``, ``jax.random.key(...,
 from __future__ import annotations
 
 import math
+from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -26,18 +27,36 @@ _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 _PARITY = np.uint32(0x1BD11BDA)
 
 
-def seed_key(seed: int) -> jax.Array:
-    """``jax.random.key(seed)``, the same key, written on the host: no program compiled or run.
+def seed_words(seeds: Any) -> np.ndarray:
+    """The threefry key data of each seed, ``uint32[..., 2]``: its high and low 32-bit words (``0 <= s < 2**64``),
+    written on the host. JAX's threefry seeding puts a seed's words in a key's two words, so for ``0 <= s < 2**32``
+    this is ``jax.random.key_data(jax.random.key(s))`` with x64 on or off (:func:`seed_key_data`)."""
+    s = np.asarray(seeds, np.uint64)
+    return np.stack([(s >> np.uint64(32)).astype(np.uint32), (s & np.uint64(0xFFFFFFFF)).astype(np.uint32)], -1)
 
-    JAX's threefry seeding puts a seed's high and low 32-bit words in the key's two words, so for
-    ``0 <= seed < 2**32`` the key's data is ``[0, seed]`` with x64 on or off. ``jax.random.key`` computes that on
-    the device: two small programs compiled on first use (about 0.1 s of a GPU command's start-up with an empty
-    cache) and dispatched every call. Any other seed, another default implementation (``jax_default_prng_impl``)
-    or a ``jax_random_seed_offset`` is ``jax.random.key``'s own (tested against it)."""
-    if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and 0 <= seed < 2**32 \
-            and jax.config.jax_default_prng_impl == "threefry2x32" \
-            and not getattr(jax.config, "jax_random_seed_offset", 0):
-        return jax.random.wrap_key_data(np.array([0, seed], np.uint32), impl="threefry2x32")
+
+def _host_seedable(seeds: Sequence[Any]) -> bool:
+    """Whether :func:`seed_words` gives ``jax.random.key``'s data for every one of ``seeds``: integers in
+    ``[0, 2**32)`` under JAX's default threefry implementation and no ``jax_random_seed_offset``."""
+    return all(isinstance(s, (int, np.integer)) and not isinstance(s, bool) and 0 <= s < 2**32 for s in seeds) \
+        and jax.config.jax_default_prng_impl == "threefry2x32" and not getattr(jax.config, "jax_random_seed_offset", 0)
+
+
+def seed_key_data(seeds: Sequence[Any]) -> np.ndarray:
+    """``jax.random.key_data(jax.random.key(s))`` of each seed, stacked on the host (a sweep's rows): written by
+    :func:`seed_words` where :func:`_host_seedable`, else each by ``jax.random.key`` itself."""
+    if _host_seedable(seeds):
+        return seed_words([int(s) for s in seeds])
+    return np.stack([np.asarray(jax.random.key_data(jax.random.key(s))) for s in seeds])
+
+
+def seed_key(seed: int) -> jax.Array:
+    """``jax.random.key(seed)``, the same key, written on the host where :func:`_host_seedable`: no program compiled
+    or run. ``jax.random.key`` computes it on the device, two small programs compiled on first use (0.10-0.15 s of
+    a GPU command's start-up with an empty cache) and dispatched every call. Any other seed, default
+    implementation or seed offset is ``jax.random.key``'s own (tested against it)."""
+    if _host_seedable([seed]):
+        return jax.random.wrap_key_data(seed_words(int(seed)), impl="threefry2x32")
     return jax.random.key(seed)
 
 

@@ -187,9 +187,9 @@ def _seed_keys(seeds: Sequence[int]) -> Any:
     ``[s >> 32, s & 0xffffffff]``); larger seeds keep both halves, which ``jax.random.key`` without x64 would not."""
     import jax
 
-    s = np.asarray([int(x) % _KEY_MOD for x in seeds], np.uint64)
-    data = np.stack([(s >> np.uint64(32)).astype(np.uint32), (s & np.uint64(0xFFFFFFFF)).astype(np.uint32)], -1)
-    return jax.random.wrap_key_data(data)
+    from jaxrobo.core import rng
+
+    return jax.random.wrap_key_data(rng.seed_words([int(x) % _KEY_MOD for x in seeds]))
 
 
 #: ``JaxroboEnv``'s engines: the task's jitted ``step``, or its host step (:attr:`TaskEnv.host_step`).

@@ -390,7 +390,7 @@ def run_plan(plan: SweepPlan, mesh: Any = None, log: Callable[[str], None] | Non
         else:
             if should_stop is not None and should_stop():
                 raise SweepInterrupted(len(saved), len(planned), state_dir)
-            key_data = np.stack([np.asarray(jax.random.key_data(rng.seed_key(s))) for (_, s, _) in meta])
+            key_data = rng.seed_key_data([s for (_, s, _) in meta])
             # A sweep splits its rows over the devices (the mesh), not each row's envs.
             config = dataclasses.replace(spec.config, devices=1)
             execution = ExecutionPlan.for_run(spec.env, config, compiler_options=plan.compiler_options)
