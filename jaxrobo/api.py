@@ -9,6 +9,7 @@ A robot and a task::
     from jaxrobo.api import (BaseParams, ClosedFormSim, EnvState, JointState, LearningTarget, Robot, TaskEnv,
                              backend_choices, load_model, make_simulator, param, pytree_dataclass, register,
                              rng, spaces)
+    from jaxrobo.api import actuators   # a hand-written backend's MuJoCo joint actuators
 
 A learner::
 
@@ -49,7 +50,8 @@ _HOMES: dict[str, tuple[str, ...]] = {
 }
 #: The public modules, by the name they go by here.
 _MODULES = {name.rpartition(".")[2]: name for name in ("jaxrobo.core.rng", "jaxrobo.core.scalar", "jaxrobo.core.spaces",
-                                                        "jaxrobo.interop.numpy_policy", "jaxrobo.task.randomise")}
+                                                        "jaxrobo.interop.numpy_policy", "jaxrobo.task.randomise",
+                                                        "jaxrobo.physics.actuators")}
 _HOME = {name: module for module, names in _HOMES.items() for name in names}
 
 __all__ = [*_HOME, *_MODULES]

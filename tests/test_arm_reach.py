@@ -19,6 +19,7 @@ import pytest
 import jaxrobo
 from envs.arm import reach as arm_reach
 from envs.arm.robot import ELBOW_MAX, FORE, UPPER, ArmRobot, fingertip
+from jaxrobo.physics.sim import JointState
 from jaxrobo.pictures import render
 from jaxrobo.cli import main
 
@@ -105,6 +106,106 @@ def test_a_servo_step_settles_within_two_control_steps(robot):
         assert np.all(moved > 0.08) and np.all(moved < 0.12), moved
         mujoco.mj_step(m, d, nstep=n)
         np.testing.assert_allclose(d.qpos - [0.0, elbow], 0.1, atol=0.006)
+
+
+# ---- the closed form (backend "analytic", the default preset's) ----------------------------------------------
+# In a fresh interpreter: float64 must be on before JAX starts. The closed form steps the shipped MJCF through 300
+# physics steps beside native MuJoCo (both servos, the elbow's set-point beyond its range), at nominal physics and
+# with the masses and damping scaled (domain randomisation's factors against the model edited the same way).
+_X64_SCRIPT = """
+import jax, jax.numpy as jnp, mujoco, numpy as np
+from envs.arm.robot import ArmRobot
+from jaxrobo.physics.sim import JointState
+robot = ArmRobot("analytic", running_step=0.01, timestep=0.01)
+for mass, damping in ((1.0, 1.0), (1.3, 0.6)):
+    m = robot.sim.mj_model
+    saved = (m.body_mass.copy(), m.body_inertia.copy(), m.dof_damping.copy())
+    m.body_mass[:] *= mass; m.body_inertia[:] *= mass; m.dof_damping[:] *= damping
+    t = np.arange(300) * m.opt.timestep
+    ctrl = np.stack([1.5 * np.sin(1.3 * t), 1.4 + 1.8 * np.sin(2.1 * t)], axis=1)
+    d = mujoco.MjData(m); d.qpos[:] = [0.3, 1.0]
+    native = []
+    for u in ctrl:
+        d.ctrl[:] = u; mujoco.mj_step(m, d); native.append(np.concatenate([d.qpos, d.qvel]))
+    m.body_mass[:], m.body_inertia[:], m.dof_damping[:] = saved
+    f = None if mass == 1.0 else {"link_mass": jnp.float64(mass), "damping": jnp.float64(damping)}
+    def body(s, u):
+        s = robot.sim.physics_step(s, u, f)
+        return s, jnp.concatenate([s.qpos, s.qvel])
+    s0 = JointState(jnp.array([0.3, 1.0]), jnp.zeros(2))  # float64: not through sim.init, which casts
+    _, traj = jax.jit(lambda s: jax.lax.scan(body, s, jnp.asarray(ctrl)))(s0)
+    native = np.array(native)
+    print("MAXERR", mass, np.abs(np.asarray(traj) - native).max(), np.ptp(native[:, 0]), native[:, 1].max())
+"""
+
+
+def test_analytic_backend_matches_native_mujoco_to_float64_roundoff():
+    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", _X64_SCRIPT], capture_output=True, text=True, env=env, timeout=300,
+                         cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("MAXERR")]
+    assert [r[1] for r in rows] == ["1.0", "1.3"], out.stdout
+    for _, mass, err, sweep, elbow in rows:
+        assert float(sweep) > 2.0 and float(elbow) > 2.5, "the trajectory should move both joints far"
+        assert float(err) < 1e-10, f"link_mass={mass}: the closed form and native MuJoCo differ by {err}"
+
+
+def test_analytic_backend_tracks_mjx_in_float32():
+    """The task on either backend, the same actions from the same reset: float32 round-off apart over 40 steps."""
+    traces = []
+    for backend in ("mjx", "analytic"):
+        env = jaxrobo.make(ID, backend=backend)
+        step = jax.jit(env.step)
+        state, obs = env.reset(jax.random.key(3)), []
+        for t in range(40):
+            state = step(state, (0, 2, 2, 1, 3, 0)[t % 6])
+            obs.append(np.asarray(state.obs))
+        traces.append(np.array(obs))
+    assert np.ptp(traces[0][:, 0]) > 0.3, "the elbow should move"
+    np.testing.assert_allclose(traces[1], traces[0], atol=1e-5)
+
+
+def test_analytic_backend_at_nominal_factors_steps_the_nominal_physics():
+    """Domain randomisation's factors of 1 step the nominal physics (to float32 round-off: the nominal step sums its
+    constants on the host), and other factors another physics (native MuJoCo agrees with them above)."""
+    sim = ArmRobot("analytic", running_step=0.01, timestep=0.01).sim
+    k = jax.random.split(jax.random.key(0), 3)
+    q = jax.random.uniform(k[0], (64, 2), minval=-2.0, maxval=2.0)
+    v = jax.random.uniform(k[1], (64, 2), minval=-4.0, maxval=4.0)
+    u = jax.random.uniform(k[2], (64, 2), minval=-1.0, maxval=3.0)
+    nominal = jax.jit(jax.vmap(lambda q, v, u: sim.physics_step(JointState(q, v), u)))(q, v, u)
+    drawn = jax.jit(jax.vmap(lambda q, v, u, f: sim.physics_step(JointState(q, v), u, f)))
+    one = drawn(q, v, u, {"link_mass": jnp.ones(64), "damping": jnp.ones(64)})
+    other = drawn(q, v, u, {"link_mass": jnp.full(64, 1.5), "damping": jnp.ones(64)})
+    np.testing.assert_allclose(np.asarray(one.qvel), np.asarray(nominal.qvel), rtol=1e-6, atol=1e-5)
+    assert np.abs(np.asarray(other.qvel) - np.asarray(nominal.qvel)).max() > 1e-3
+
+
+def test_analytic_backend_refuses_what_it_cannot_model():
+    from envs.arm.dynamics import ArmSim
+    from envs.arm.robot import JOINTS, MJCF
+    from jaxrobo.physics.sim import load_model
+
+    def edited(edit):
+        return load_model(MJCF, edit=edit)
+
+    with pytest.raises(ValueError, match="limits"):
+        ArmSim(edited(lambda s: setattr(s.joint("elbow"), "range", [0, 2])), JOINTS)
+    with pytest.raises(ValueError, match="stiffness"):
+        ArmSim(edited(lambda s: setattr(s.joint("shoulder"), "stiffness", [1.0, 0, 0])), JOINTS)
+    with pytest.raises(ValueError, match="axes must be"):
+        ArmSim(edited(lambda s: setattr(s.joint("elbow"), "axis", [0, 1, 0])), JOINTS)
+    with pytest.raises(ValueError, match="backend='mjx'"):
+        ArmSim(edited(None), ("shoulder", "no_such_joint"))
+
+
+def test_the_default_preset_trains_on_the_closed_form():
+    from jaxrobo.training.run import resolve
+
+    spec = resolve(ID)
+    assert spec.env.robot.sim.backend == "analytic" and spec.env.robot.sim.n_substeps == 10
+    assert jaxrobo.make(ID).robot.sim.backend == "mjx"  # the task's own default (gym.make) stays MJX
 
 
 # ---- the task: the environment card ---------------------------------------------------------------------------

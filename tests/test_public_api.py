@@ -13,7 +13,7 @@ import jaxrobo.api as api
 PUBLIC = {
     "ConfigError", "param", "pytree_dataclass", "range_param", "static_field", "rng", "scalar", "spaces",
     "ClosedFormSim", "JointState", "MjxEdit", "Simulator", "backend_choices", "load_model", "make_simulator",
-    "through_batch", "NativeSim", "numpy_policy", "Robot", "BaseParams", "Env", "EnvState", "HostStep",
+    "through_batch", "actuators", "NativeSim", "numpy_policy", "Robot", "BaseParams", "Env", "EnvState", "HostStep",
     "LearningTarget", "TaskEnv", "deprecated_alias", "make", "register",
     "randomise", "greedy_policy", "random_policy", "rollout", "success_rate",
     "AgentParams", "AgentState", "Learner", "argmax_random_ties", "epsilon_greedy", "epsilon_greedy_probabilities",

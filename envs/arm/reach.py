@@ -83,7 +83,8 @@ def reached(obs: Any, goal_tolerance: Any, xp: Any = jnp) -> Any:
 
 @pytree_dataclass
 class Options:
-    backend: str = param("mjx", choices=BACKENDS, static=True, doc="physics engine (MJX or a Brax pipeline)")
+    backend: str = param("mjx", choices=BACKENDS, static=True,
+                         doc="physics engine (MJX, a Brax pipeline or the closed form)")
     running_step: float = param(0.1, low=0.0, low_open=True, high=1.0, static=True, unit="s", doc="control period")
     timestep: float = param(0.01, low=0.0, low_open=True, high=0.02, static=True, unit="s",
                             doc="physics step (the servos are stiff: explicit Euler needs <= 0.02 s)")

@@ -10,7 +10,8 @@ controller is the default pass-through. The elbow's set-point is clamped to ``[0
 Sensors: the joint angles and rates, and the fingertip (the MJCF's ``fingertip`` site) from the joint angles by
 the arm's forward kinematics, which equals MuJoCo's site position (``tests/test_arm_reach.py`` checks it).
 
-Backends: ``mjx`` (MuJoCo MJX, default) and Brax's pipelines (:func:`jaxrobo.physics.sim.backend_choices`).
+Backends: ``mjx`` (MuJoCo MJX, the task's default), Brax's pipelines (:func:`jaxrobo.physics.sim.backend_choices`)
+and ``analytic``, the closed form of the same MJCF (``envs/arm/dynamics.py``; the default preset's).
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
+from envs.arm.dynamics import FACTORS, ArmSim
 from jaxrobo.api import MjxEdit, Robot, backend_choices, load_model, make_simulator
 
 #: The robot's MJCF, beside this module.
@@ -30,7 +32,9 @@ JOINTS = ("shoulder", "elbow")
 UPPER, FORE = 0.5, 0.4
 #: The elbow servo's set-point range (rad), the MJCF's ``ctrlrange``.
 ELBOW_MAX = 2.8
-BACKENDS = backend_choices()
+#: The arm's hand-written backend, beside every engine of :mod:`jaxrobo.physics.sim`.
+CLOSED_FORM = {"analytic": lambda mj_model, running_step: ArmSim(mj_model, JOINTS, running_step)}
+BACKENDS = backend_choices(CLOSED_FORM)
 
 
 def fingertip(q: Any, xp: Any = jnp) -> Any:
@@ -49,7 +53,7 @@ class ArmRobot(Robot):
         mj_model = load_model(MJCF, timestep=timestep)
         # MJX integrates the model without its light, camera, floor and base (same dynamics, less work).
         physics = lambda: load_model(MJCF, timestep=timestep, physics_only=True)  # noqa: E731
-        super().__init__(make_simulator(mj_model, backend, running_step, physics))
+        super().__init__(make_simulator(mj_model, backend, running_step, physics, closed_form=CLOSED_FORM))
         ids = [mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_JOINT, n) for n in JOINTS]
         self.q = tuple(int(mj_model.jnt_qposadr[i]) for i in ids)
         self.v = tuple(int(mj_model.jnt_dofadr[i]) for i in ids)
@@ -65,16 +69,19 @@ class ArmRobot(Robot):
 
     def randomisable(self) -> tuple[str, ...]:
         """``link_mass`` (a factor on both links' masses and inertias) and ``damping`` (a factor on the joints'
-        damping), on ``mjx``; Brax's pipelines: none."""
-        return ("link_mass", "damping") if self.sim.backend == "mjx" else ()
+        damping), on ``mjx`` and ``analytic``; Brax's pipelines: none."""
+        return FACTORS if self.sim.backend in ("analytic", "mjx") else ()
 
-    def sim_physics(self, domain: dict[str, jax.Array]) -> MjxEdit:
-        """A drawn domain as MJX model fields."""
+    def sim_physics(self, domain: dict[str, jax.Array]) -> Any:
+        """A drawn domain as the closed form's factors, or as MJX model fields."""
         one = jnp.ones((), jnp.float32)
+        f = {name: domain.get(name, one) for name in FACTORS}
+        if self.sim.backend == "analytic":
+            return f
         m = self.sim.model
-        mass, damping = domain.get("link_mass", one), domain.get("damping", one)
+        mass = f["link_mass"]
         return MjxEdit(model={"body_mass": m.body_mass * mass, "body_inertia": m.body_inertia * mass,
-                              "dof_damping": m.dof_damping * damping}, data={})
+                              "dof_damping": m.dof_damping * f["damping"]}, data={})
 
     def init_pose(self, q: jax.Array, qdot: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         """``(qpos, qvel)`` for joint angles ``q = [shoulder, elbow]`` (rad) and their rates (rad/s, default 0)."""

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from typing import Any, Callable, Optional
 
 import jax
@@ -43,7 +42,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxrobo.api import ClosedFormSim, JointState
+from jaxrobo.api import ClosedFormSim, JointState, actuators
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,15 +73,11 @@ class CartPoleConstants:
     weight_arm: float = 0.0  # pole_mass_length * gravity
 
     @functools.cached_property
-    def actuators(self) -> tuple[tuple[tuple[float, float], float, tuple[float, float, float], tuple[float, float],
-                                       tuple[float, float]], ...]:
-        """Per actuator, in Python floats: ``(gear on (x, θ), gain, bias (b0, b1, b2), ctrl (low, high), force
-        (low, high))``, what :func:`accelerations` reads; converted once, since reading a numpy element costs more
-        than the arithmetic of a host step on Python floats."""
-        f = lambda a: tuple(float(v) for v in a)  # noqa: E731
-        return tuple((f(self.transmission[:, j]), float(self.gain[j]), f(self.bias[:, j]),
-                      (float(self.ctrl_low[j]), float(self.ctrl_high[j])),
-                      (float(self.force_low[j]), float(self.force_high[j]))) for j in range(self.gain.shape[0]))
+    def actuators(self) -> tuple:
+        """Per actuator, in Python floats, what :func:`accelerations` reads
+        (:func:`jaxrobo.physics.actuators.actuator_rows`)."""
+        return actuators.actuator_rows(self.transmission, self.gain, self.bias, self.ctrl_low, self.ctrl_high,
+                                       self.force_low, self.force_high)
 
 
 def _refuse(condition: bool, why: str) -> None:
@@ -125,31 +120,14 @@ def constants_from_model(mj_model: mujoco.MjModel, cart_joint: str, pole_joint: 
     _refuse((m.jnt_qposadr[slide], m.jnt_qposadr[hinge], m.jnt_dofadr[slide], m.jnt_dofadr[hinge]) != (0, 1, 0, 1),
             "the cart's coordinate must come first in qpos and qvel")
 
-    nu = m.nu
-    transmission = np.zeros((2, nu))
-    for i in range(nu):
-        _refuse(m.actuator_trntype[i] != mujoco.mjtTrn.mjTRN_JOINT, f"actuator {i} must act on a joint")
-        _refuse(m.actuator_dyntype[i] != mujoco.mjtDyn.mjDYN_NONE, f"actuator {i} has activation dynamics")
-        _refuse(m.actuator_gaintype[i] != mujoco.mjtGain.mjGAIN_FIXED, f"actuator {i} needs a fixed gain")
-        _refuse(int(m.actuator_biastype[i]) not in (int(mujoco.mjtBias.mjBIAS_NONE), int(mujoco.mjtBias.mjBIAS_AFFINE)),
-                f"actuator {i} needs no bias or an affine one")
-        transmission[int(m.jnt_dofadr[m.actuator_trnid[i, 0]]), i] = m.actuator_gear[i, 0]
-    affine = (m.actuator_biastype == int(mujoco.mjtBias.mjBIAS_AFFINE))[None, :]
-    ctrl_lim = m.actuator_ctrllimited.astype(bool)
-    force_lim = m.actuator_forcelimited.astype(bool)
+    actuated = actuators.joint_actuators(m, _refuse)
     total_mass = mass_c + mass_p + float(arm[m.jnt_dofadr[slide]])
     pole_mass_length = mass_p * length
     pole_inertia = mass_p * length**2 + inertia_y + float(arm[m.jnt_dofadr[hinge]])
     gravity = float(-m.opt.gravity[2])
     return CartPoleConstants(
         total_mass=total_mass, pole_mass_length=pole_mass_length, pole_inertia=pole_inertia, gravity=gravity,
-        transmission=transmission,
-        gain=np.array(m.actuator_gainprm[:, 0]),
-        bias=np.where(affine, m.actuator_biasprm[:, :3].T, 0.0),
-        ctrl_low=np.where(ctrl_lim, m.actuator_ctrlrange[:, 0], -np.inf),
-        ctrl_high=np.where(ctrl_lim, m.actuator_ctrlrange[:, 1], np.inf),
-        force_low=np.where(force_lim, m.actuator_forcerange[:, 0], -np.inf),
-        force_high=np.where(force_lim, m.actuator_forcerange[:, 1], np.inf),
+        **actuated,
         cart_mass=mass_c, pole_mass=mass_p, pole_length=length, pole_inertia_com=inertia_y,
         armature_x=float(arm[m.jnt_dofadr[slide]]), armature_th=float(arm[m.jnt_dofadr[hinge]]),
         mass_inertia=total_mass * pole_inertia, weight_arm=pole_mass_length * gravity,
@@ -220,21 +198,7 @@ def accelerations(c: CartPoleConstants, x: jax.Array, th: jax.Array, xd: jax.Arr
     :data:`jaxrobo.core.scalar.FLOATS` for Python floats on the host). The division by the determinant is left to
     the caller so that :meth:`CartPoleSim.physics_step` scales both accelerations as one stacked vector (as it
     always has: the CPU's fixed-seed results stay bit for bit) while a kernel scales each coordinate."""
-    # Actuators (mj_fwdActuation): clamp ctrl, force = gain u + b0 + b1 length + b2 velocity, clamp force,
-    # then map to the joints by the gear. Written per actuator and coordinate over host constants, so only
-    # the non-zero terms are traced and the step stays a chain of scalar multiply-adds that XLA fuses.
-    generalized = [0.0, 0.0]
-    # The actuator's length and velocity are computed only where its bias reads them (on the host nothing is
-    # dead code; in a trace the unused ones never reached the program).
-    for j, (gear, gain, bias, ctrl_range, force_range) in enumerate(c.actuators):
-        u = _clip(ctrl[j], *ctrl_range, xp)
-        force = gain * u + bias[0]
-        if bias[1]:
-            force = force + bias[1] * sum(g * coord for g, coord in zip(gear, (x, th)) if g)
-        if bias[2]:
-            force = force + bias[2] * sum(g * rate for g, rate in zip(gear, (xd, thd)) if g)
-        force = _clip(force, *force_range, xp)
-        generalized = [f + g * force if g else f for f, g in zip(generalized, gear)]
+    generalized = actuators.generalized_forces(c.actuators, (x, th), (xd, thd), ctrl, xp)  # mj_fwdActuation
     # Dynamics: solve the 2×2 system M q̈ = rhs in closed form.
     sin, cos = (xp.sin(th), xp.cos(th)) if sincos is None else sincos(th)
     coupling = c.pole_mass_length * cos
@@ -249,12 +213,3 @@ def euler(q: jax.Array, v: jax.Array, acc: jax.Array, inv_det: jax.Array, dt: fl
     or on the stacked ``[x, θ]`` vectors alike."""
     v = v + dt * (acc * inv_det)
     return q + dt * v, v
-
-
-def _clip(value: jax.Array, low: float, high: float, xp: Any = jnp) -> jax.Array:
-    """``clip`` that traces nothing for an infinite (absent) limit."""
-    if math.isfinite(low):
-        value = xp.maximum(value, low)
-    if math.isfinite(high):
-        value = xp.minimum(value, high)
-    return value
