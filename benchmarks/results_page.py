@@ -150,6 +150,10 @@ WHAT = {
     "writing_parallel.json": "Writing at 65,536 and 1 M envs before and after the `.npz` blocks are checksummed and "
                              "deflated by a thread per core (`jaxrobo.io.npz.write_npz_deflated`) and the records "
                              "cross cut to their written columns (`cut_records`), two calls; the tables file's A/B",
+    "arm_analytic_s32.json": "ArmReach-v0's default command on MJX (the code before) and on its closed form (the new "
+                             "default), alternating, and the closed form's default on 16 seeds",
+    "arm_analytic.json": "ArmReach-v0's default command on 2 CPU cores before (MJX) and after (its closed form), "
+                         "farm-bench alternating, and the closed form's default on 16 seeds",
     "time_to_trained_check_s31.json": "Every task's default command cold and warm (seeds 0-2) and the 65,536-env "
                                       "step-budget run, re-measured at 8f291fa on another H200 host",
     "time_to_trained_check.json": "The tabular default commands cold and warm after this session's writing changes "
