@@ -153,7 +153,8 @@ WHAT = {
     "arm_analytic_s32.json": "ArmReach-v0's default command on MJX (the code before) and on its closed form (the new "
                              "default), alternating, and the closed form's default on 16 seeds",
     "goto_compile_s33.json": "Where QuadcopterGoto-v2's cold compile goes (JAX's events and XLA's timers), its step "
-                             "alone with and without the task kernel, and a prototype tracing the kernel once",
+                             "alone with and without the task kernel and with parts of the kernel stubbed, and a "
+                             "prototype tracing the kernel once",
     "arm_analytic.json": "ArmReach-v0's default command on 2 CPU cores before (MJX) and after (its closed form), "
                          "farm-bench alternating, and the closed form's default on 16 seeds",
     "time_to_trained_check_s31.json": "Every task's default command cold and warm (seeds 0-2) and the 65,536-env "
