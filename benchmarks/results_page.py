@@ -152,6 +152,9 @@ WHAT = {
                              "cross cut to their written columns (`cut_records`), two calls; the tables file's A/B",
     "arm_analytic_s32.json": "ArmReach-v0's default command on MJX (the code before) and on its closed form (the new "
                              "default), alternating, and the closed form's default on 16 seeds",
+    "locked_copy_s34.json": "A 1 M-env run's records crossing to the host through page-locked memory "
+                            "(`jaxrobo.speed.locked_copy`) against `jax.device_get`: the copy alone by each path, "
+                            "the whole command alternating, timelines of its writing, and a prototype not adopted",
     "goto_compile_s33.json": "Where QuadcopterGoto-v2's cold compile goes (JAX's events and XLA's timers), its step "
                              "alone with and without the task kernel and with parts of the kernel stubbed, and a "
                              "prototype tracing the kernel once",

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.io import rundir
+from jaxrobo.speed import locked_copy
 from jaxrobo.training import nonzero_copy
 from jaxrobo.core import rng
 from jaxrobo.core.config import ConfigError, flat_keys, parse_json
@@ -265,10 +266,10 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
             rest = [None if i == table else x for i, x in enumerate(data)]
             if one and not tables_first:
                 for x in jax.tree.leaves(rest):
-                    if isinstance(x, jax.Array):
-                        x.copy_to_host_async()
+                    if locked_copy.why_not(x) is not None and isinstance(x, jax.Array):
+                        x.copy_to_host_async()  # queued before the tables' (the large ones: by locked_copy, below)
                 pending = start_tables()
-            host = jax.device_get(rest)
+            host = locked_copy.get(rest)
         arrays, cut = {}, {}
         for i, x in enumerate(host):
             x = np.asarray(x)

@@ -42,7 +42,7 @@ from jaxrobo.tabular.learner import AgentParams
 from jaxrobo.training import budget
 from jaxrobo.training import checkpoint as checkpoint_io
 from jaxrobo.training import nonzero_copy, record_parts
-from jaxrobo.speed import reuse, sharding
+from jaxrobo.speed import locked_copy, reuse, sharding
 from jaxrobo.speed.plan import ExecutionPlan, physics_kernel
 from jaxrobo.core import rng
 from jaxrobo.core.precision import check_precision
@@ -254,13 +254,13 @@ def _caller_of(progress: ProgressFn | None) -> Callable[[Progress], None] | None
 
 
 def host_get(tree: Any) -> Any:
-    """Device arrays → host numpy, whole: ``jax.device_get`` in one process, every process's shards gathered under
-    ``jax.distributed`` (a collective: every process calls it at the same point)."""
+    """Device arrays → host numpy, whole: :func:`jaxrobo.speed.locked_copy.get` in one process, every process's shards
+    gathered under ``jax.distributed`` (a collective: every process calls it at the same point)."""
     if jax.process_count() > 1:
         from jaxrobo.speed import sharding
 
         return sharding.gather(tree)
-    return jax.device_get(tree)
+    return locked_copy.get(tree)
 
 
 # ---- the loop ----------------------------------------------------------------------------------------------------

@@ -8,7 +8,9 @@ so 4.7 s of the tables alone at 1 M envs, 0.5 s at 65,536. Here two small progra
 the mask (entries whose bits are not all zero, so ``-0.0`` is kept as it is) and counts the nonzero entries of each
 block of :data:`jaxrobo.io.npz.BLOCK_BYTES`; the other gathers those entries' bits in order into an array sized
 to their count (rounded up to one of 16 sizes an octave, so that runs of other counts reuse its compiled program).
-About a bit and a tenth of an entry's bytes cross instead of the entry.
+About a bit and a tenth of an entry's bytes cross instead of the entry. On a CUDA GPU the mask and the values cross
+through page-locked memory (:mod:`jaxrobo.speed.locked_copy`); the whole tables copied that way instead wrote a
+1 M-env run no faster and held 7 GB more host memory (``benchmarks/results/h200/locked_copy_s34.json``).
 
 The host copy (:class:`NonzeroCopy`) is made dense only where it is read: :meth:`NonzeroCopy.dense` (a thread
 per core, block by block), or block by block by the ``.npz`` writer (:func:`jaxrobo.io.npz.write_npz_deflated`
@@ -34,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.core.environ import in_threads, usable_cores
+from jaxrobo.speed import locked_copy
 
 #: Arrays smaller than this cross whole (the two programs and their reads cost more than they save).
 FROM_BYTES = 64 << 20
@@ -177,15 +180,15 @@ def host_copy(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) ->
             return hit[1]
         copy: Any = None
         try:
-            bits, counts = jax.device_get(_mask(x, block))
+            bits, counts = locked_copy.get(_mask(x, block))
             total = int(np.asarray(counts, np.int64).sum())
             if total <= MAX_SHARE * x.size and total < 2 ** 31 - 1:
-                values = np.asarray(jax.device_get(_gather(x, _rounded(total))))
+                values = np.asarray(locked_copy.get(_gather(x, _rounded(total))))
                 copy = NonzeroCopy(x.shape, x.dtype, np.asarray(bits), values, counts, block)
         except RuntimeError:  # the programs' temporaries did not fit beside the run's arrays: the plain copy
             copy = None
         if copy is None:
-            copy = np.asarray(jax.device_get(x))
+            copy = np.asarray(locked_copy.get(x))
         _COPIES.clear()  # the latest array only: a run's tables, copied by its checkpoint and its result
         _COPIES[id(x)] = (weakref.ref(x, lambda _, key=id(x): _COPIES.pop(key, None)), copy)
         return copy
