@@ -56,7 +56,6 @@ class StandIn:
 def stand_in(monkeypatch):
     driver = StandIn()
     monkeypatch.setattr(locked_copy, "_driver", lambda: driver)
-    monkeypatch.setattr(locked_copy, "FAULT_BLOCK", 4096 * 3)  # several blocks per array, one cut short
     monkeypatch.setattr(locked_copy, "_COPIES", {})
     return driver
 
@@ -84,6 +83,15 @@ def test_the_copies_are_the_arrays_bytes_and_every_locked_buffer_is_unlocked(sta
             assert host[name].tobytes() == np.asarray(plain[name]).tobytes(), name
             assert not host[name].flags.writeable  # read-only, as jax.device_get's copies
     assert host["returns"].flags.c_contiguous
+
+
+def test_the_fault_blocks_cover_each_buffer_once():
+    sizes = [0, 1, 4096 * 3, 4096 * 7 + 5]
+    blocks = locked_copy._fault_blocks(sizes, 4096 * 3)
+    for i, n in enumerate(sizes):
+        mine = [(a, b) for j, a, b in blocks if j == i]
+        assert [a for a, _ in mine] == list(range(0, n, 4096 * 3)) and all(b - a <= 4096 * 3 for a, b in mine)
+        assert all(b == a2 for (_, b), (a2, _) in zip(mine, mine[1:])) and (not mine or mine[-1][1] == n)
 
 
 def test_the_same_array_asked_again_by_two_threads_is_copied_once(stand_in):

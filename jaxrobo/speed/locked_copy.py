@@ -147,12 +147,18 @@ def _remember(x: jax.Array, copy: np.ndarray) -> None:
     _COPIES[id(x)] = (weakref.ref(x, lambda _, key=id(x): _COPIES.pop(key, None)), copy)
 
 
+def _fault_blocks(sizes: list[int], block: int) -> list[tuple[int, int, int]]:
+    """``(buffer, start, stop)`` for each block of at most ``block`` bytes of buffers of ``sizes`` bytes, in order:
+    together they cover every byte of each once."""
+    return [(i, a, min(a + block, n)) for i, n in enumerate(sizes) for a in range(0, n, block)]
+
+
 def _through_driver(arrays: list[jax.Array]) -> list[np.ndarray | None]:
     """The arrays' host copies (None where the driver failed: the caller copies those with ``jax.device_get``)."""
     driver = _driver()
     out = [np.empty(x.shape, x.dtype) for x in arrays]
     flat = [o.reshape(-1).view(np.uint8) for o in out]
-    blocks = [(i, a, min(a + FAULT_BLOCK, f.size)) for i, f in enumerate(flat) for a in range(0, f.size, FAULT_BLOCK)]
+    blocks = _fault_blocks([f.size for f in flat], FAULT_BLOCK)
 
     def fault(k: int, _: int) -> None:
         i, a, b = blocks[k]
