@@ -155,6 +155,8 @@ WHAT = {
     "locked_copy_s34.json": "A 1 M-env run's records crossing to the host through page-locked memory "
                             "(`jaxrobo.speed.locked_copy`) against `jax.device_get`: the copy alone by each path, "
                             "the whole command alternating, timelines of its writing, and a prototype not adopted",
+    "moment_blocks_s34.json": "A 1 M-env run's writing with the statistics' means and spreads summed over blocks of "
+                              "1 MB (before) or 8 MB of envs (adopted), alternating, with timelines",
     "goto_compile_s33.json": "Where QuadcopterGoto-v2's cold compile goes (JAX's events and XLA's timers), its step "
                              "alone with and without the task kernel and with parts of the kernel stubbed, and a "
                              "prototype tracing the kernel once",

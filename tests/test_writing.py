@@ -207,10 +207,14 @@ def test_blocked_statistics_are_those_of_the_whole_arrays(run, monkeypatch):
         assert len(whole[0]) == int(d.max())
         for cols in (2, 3):
             for cores in (1, 4):  # the blocks computed in turn, or by a pool of threads
-                monkeypatch.setattr(results, "STATS_BLOCK_BYTES", 8 * len(d) * cols)
-                blocked = results.episode_stats(r, ln, result.epsilon, d, threads=cores)
-                for name, x, y in zip(STAT_COLUMNS, whole, blocked):
-                    assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), (name, cols, cores)
+                # The means and spreads over blocks of a few envs, of envs up to the default size, or all at once.
+                for moment_bytes in (8 * 3 * cols, results.MOMENT_BLOCK_BYTES, 1 << 40):
+                    monkeypatch.setattr(results, "STATS_BLOCK_BYTES", 8 * len(d) * cols)
+                    monkeypatch.setattr(results, "MOMENT_BLOCK_BYTES", moment_bytes)
+                    blocked = results.episode_stats(r, ln, result.epsilon, d, threads=cores)
+                    monkeypatch.undo()
+                    for name, x, y in zip(STAT_COLUMNS, whole, blocked):
+                        assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), (name, cols, cores, moment_bytes)
 
     monkeypatch.setattr(summary, "FIGURE_BLOCK_ENVS", 1 << 30)
     whole = result.summary()
