@@ -91,9 +91,11 @@ class _Driver:
             for host, device, nbytes in pairs:
                 self._call("cuMemcpyDtoHAsync_v2", ctypes.c_void_p(host), ctypes.c_uint64(device),
                            ctypes.c_size_t(nbytes), stream)
-            self._call("cuStreamSynchronize", stream)
-        finally:
-            self._call("cuStreamDestroy_v2", stream)
+        finally:  # whatever was queued lands before its buffers are unlocked or let go, even after a failed call
+            synced = self.lib.cuStreamSynchronize(stream)
+            self.lib.cuStreamDestroy_v2(stream)
+        if synced != 0:
+            raise DriverError(f"cuStreamSynchronize returned CUresult {synced}")
 
 
 @functools.cache
@@ -195,7 +197,10 @@ def _through_driver(arrays: list[jax.Array]) -> list[np.ndarray | None]:
                 except DriverError:  # a buffer still locked is neither handed out nor freed
                     done[i] = None
                     _STILL_LOCKED.append(out[i])
-            driver.leave(device)
+            try:
+                driver.leave(device)
+            except DriverError:  # the copies are whole; the context stays current in this thread
+                pass
     return done
 
 
