@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from jaxrobo.cli import main
+from jaxrobo.core.memo import IdentityMemo
 from jaxrobo.speed import locked_copy
 from jaxrobo.speed.locked_copy import DriverError
 
@@ -56,7 +57,7 @@ class StandIn:
 def stand_in(monkeypatch):
     driver = StandIn()
     monkeypatch.setattr(locked_copy, "_driver", lambda: driver)
-    monkeypatch.setattr(locked_copy, "_COPIES", {})
+    monkeypatch.setattr(locked_copy, "_COPIES", IdentityMemo())
     return driver
 
 
@@ -152,7 +153,7 @@ def test_no_driver_library_falls_back(monkeypatch):
         raise OSError("libcuda.so.1: cannot open shared object file")
 
     monkeypatch.setattr(locked_copy, "_driver", missing)
-    monkeypatch.setattr(locked_copy, "_COPIES", {})
+    monkeypatch.setattr(locked_copy, "_COPIES", IdentityMemo())
     x = jnp.arange(4096, dtype=jnp.float32).reshape(64, 64)
     assert locked_copy.get(x, from_bytes=0, on_cpu=True).tobytes() == np.asarray(x).tobytes()
 

@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import threading
-import weakref
 from typing import Any
 
 import jax
 import numpy as np
 
 from jaxrobo.core.environ import in_threads
+from jaxrobo.core.memo import IdentityMemo
 from jaxrobo.core.version import outside
 
 #: JAX versions ``[low, high)`` this was written and tested for (0.10 on CPU with the stand-in driver; 0.11.2 on an
@@ -140,13 +139,9 @@ def why_not(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) -> s
     return None
 
 
-_LOCK = threading.Lock()
 _STILL_LOCKED: list[np.ndarray] = []
-_COPIES: dict[int, tuple[weakref.ref, np.ndarray]] = {}
-
-
-def _remember(x: jax.Array, copy: np.ndarray) -> None:
-    _COPIES[id(x)] = (weakref.ref(x, lambda _, key=id(x): _COPIES.pop(key, None)), copy)
+#: Every array's copy while the array lives (a run's records and its tables' mask and values).
+_COPIES = IdentityMemo()
 
 
 def _fault_blocks(sizes: list[int], block: int) -> list[tuple[int, int, int]]:
@@ -213,12 +208,12 @@ def get(tree: Any, *, from_bytes: int | None = None, on_cpu: bool = False) -> An
     if not wanted:
         return jax.device_get(tree)
     host = list(leaves)
-    with _LOCK:
+    with _COPIES.lock:
         todo = []
         for i in wanted:
-            hit = _COPIES.get(id(leaves[i]))
-            if hit is not None and hit[0]() is leaves[i]:
-                host[i] = hit[1]
+            hit = _COPIES.get(leaves[i])
+            if hit is not None:
+                host[i] = hit
             else:
                 todo.append(i)
         try:
@@ -230,7 +225,7 @@ def get(tree: Any, *, from_bytes: int | None = None, on_cpu: bool = False) -> An
                 copy = np.asarray(jax.device_get(leaves[i]))
             else:
                 copy.flags.writeable = False
-                _remember(leaves[i], copy)
+                _COPIES.put((leaves[i],), copy)
             host[i] = copy
     rest = sorted(set(range(len(leaves))) - set(wanted))
     for i, x in zip(rest, jax.device_get([leaves[i] for i in rest])):

@@ -27,7 +27,6 @@ import re
 import secrets
 import threading
 import time
-import weakref
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, Callable, NamedTuple
@@ -42,6 +41,7 @@ from jaxrobo.training import nonzero_copy
 from jaxrobo.core import rng
 from jaxrobo.core.config import ConfigError, flat_keys, parse_json
 from jaxrobo.core.environ import in_threads, usable_cores
+from jaxrobo.core.memo import IdentityMemo
 
 if TYPE_CHECKING:
     from jaxrobo.tabular.learner import AgentParams
@@ -57,8 +57,8 @@ CHECKPOINT_FORMAT = 2
 RECORD_LEAVES = (".returns", ".lengths", ".terminated")
 
 
-_CUT_LOCK = threading.Lock()
-_CUT: dict[tuple[int, ...], tuple[list[weakref.ref], list[Any]]] = {}
+#: The latest carry's cut records only: a carry is cut at a run's end, by its checkpoint and for its result.
+_CUT = IdentityMemo(latest_only=True)
 
 
 def cut_records(tree: Any, *, from_bytes: int = 64 << 20) -> Any:
@@ -77,17 +77,14 @@ def cut_records(tree: Any, *, from_bytes: int = 64 << 20) -> Any:
     records = [leaves[i] for i in index]
     if not index or jax.process_count() > 1 or sum(x.nbytes for x in records) < from_bytes:
         return tree
-    key = tuple(id(x) for x in records)
-    with _CUT_LOCK:
-        hit = _CUT.get(key)
-        if hit is None or any(ref() is not x for ref, x in zip(hit[0], records)):
-            written = np.asarray(functools.reduce(jnp.logical_or, [jnp.any(x != 0, axis=0) for x in records]))
-            columns = np.flatnonzero(written)
-            k = int(columns[-1]) + 1 if columns.size else 0
-            cut = [x if k >= x.shape[1] else x[:, :k] for x in records]
-            _CUT.clear()  # the latest carry only: it is cut at a run's end, by its checkpoint and its result
-            hit = _CUT[key] = ([weakref.ref(x, lambda _, key=key: _CUT.pop(key, None)) for x in records], cut)
-    for i, x in zip(index, hit[1]):
+
+    def cut() -> list[Any]:
+        written = np.asarray(functools.reduce(jnp.logical_or, [jnp.any(x != 0, axis=0) for x in records]))
+        columns = np.flatnonzero(written)
+        k = int(columns[-1]) + 1 if columns.size else 0
+        return [x if k >= x.shape[1] else x[:, :k] for x in records]
+
+    for i, x in zip(index, _CUT.get_or_make(records, cut)):
         leaves[i] = x
     return jax.tree.unflatten(treedef, leaves)
 

@@ -27,8 +27,6 @@ Public surface: :func:`host_copy`, :class:`NonzeroCopy`, :data:`FROM_BYTES`, :da
 from __future__ import annotations
 
 import functools
-import threading
-import weakref
 from typing import Any
 
 import jax
@@ -36,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrobo.core.environ import in_threads, usable_cores
+from jaxrobo.core.memo import IdentityMemo
 from jaxrobo.speed import locked_copy
 
 #: Arrays smaller than this cross whole (the two programs and their reads cost more than they save).
@@ -156,8 +155,8 @@ def _rounded(count: int) -> int:
     return max(step, -(-count // step) * step)
 
 
-_LOCK = threading.Lock()
-_COPIES: dict[int, tuple[weakref.ref, Any]] = {}
+#: The latest array's copy only: a run's tables, copied by its checkpoint and for its result.
+_COPIES = IdentityMemo(latest_only=True)
 
 
 def host_copy(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) -> np.ndarray | NonzeroCopy:
@@ -174,21 +173,16 @@ def host_copy(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) ->
             or (not on_cpu and {d.platform for d in x.devices()} == {"cpu"}) or itemsize not in (1, 2, 4, 8) \
             or block < 8 or block % 8 or block * itemsize != npz.BLOCK_BYTES:
         return np.asarray(jax.device_get(x))
-    with _LOCK:
-        hit = _COPIES.get(id(x))
-        if hit is not None and hit[0]() is x:
-            return hit[1]
-        copy: Any = None
+
+    def make() -> np.ndarray | NonzeroCopy:
         try:
             bits, counts = locked_copy.get(_mask(x, block))
             total = int(np.asarray(counts, np.int64).sum())
             if total <= MAX_SHARE * x.size and total < 2 ** 31 - 1:
                 values = np.asarray(locked_copy.get(_gather(x, _rounded(total))))
-                copy = NonzeroCopy(x.shape, x.dtype, np.asarray(bits), values, counts, block)
+                return NonzeroCopy(x.shape, x.dtype, np.asarray(bits), values, counts, block)
         except RuntimeError:  # the programs' temporaries did not fit beside the run's arrays: the plain copy
-            copy = None
-        if copy is None:
-            copy = np.asarray(locked_copy.get(x))
-        _COPIES.clear()  # the latest array only: a run's tables, copied by its checkpoint and its result
-        _COPIES[id(x)] = (weakref.ref(x, lambda _, key=id(x): _COPIES.pop(key, None)), copy)
-        return copy
+            pass
+        return np.asarray(locked_copy.get(x))
+
+    return _COPIES.get_or_make((x,), make)
