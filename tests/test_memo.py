@@ -29,7 +29,6 @@ def test_a_dead_objects_id_reused_finds_nothing():
     objs = [np.zeros(2) for _ in range(64)]
     for x in objs:
         memo.put((x,), id(x))
-    ids = {id(x) for x in objs}
     del objs, x
     gc.collect()
     fresh = [np.zeros(2) for _ in range(256)]  # CPython hands most of the freed ids out again
