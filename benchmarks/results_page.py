@@ -155,6 +155,9 @@ WHAT = {
     "locked_copy_s34.json": "A 1 M-env run's records crossing to the host through page-locked memory "
                             "(`jaxrobo.speed.locked_copy`) against `jax.device_get`: the copy alone by each path, "
                             "the whole command alternating, timelines of its writing, and a prototype not adopted",
+    "device_deflate_s35.json": "A 1 M-env run's tables deflated on the device (`jaxrobo.speed.device_deflate`) "
+                               "against the host's threads: the encoder alone, the whole command alternating with "
+                               "the code before (and at 65,536 envs, where the host path stays), timelines",
     "moment_blocks_s34.json": "A 1 M-env run's writing with the statistics' means and spreads summed over blocks of "
                               "1 MB (before) or 8 MB of envs (adopted), alternating, with timelines",
     "goto_compile_s33.json": "Where QuadcopterGoto-v2's cold compile goes (JAX's events and XLA's timers), its step "

@@ -5,7 +5,9 @@ from __future__ import annotations
 import functools
 import io
 import os
+import zipfile
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -49,6 +51,27 @@ def test_the_copy_is_the_array_bit_for_bit_and_writes_the_same_file(monkeypatch,
         assert _npz_bytes(copy, threads) == _npz_bytes(a, threads)
     with np.load(io.BytesIO(_npz_bytes(copy, 4)), allow_pickle=False) as z:
         assert z["q"].tobytes() == a.tobytes()
+
+
+@pytest.mark.parametrize("shape", [(13, 5, 7, 2), (64, 1, 64, 2)])
+def test_blocks_deflated_on_the_device_write_a_file_of_the_same_arrays(monkeypatch, shape):
+    """The whole blocks' streams made on the device (jaxrobo.speed.device_deflate), a last block cut short (or none)
+    deflated on the host: the file holds the same arrays and passes zip's CRC checks, whatever the threads."""
+    monkeypatch.setattr(npz, "BLOCK_BYTES", 1024)
+    monkeypatch.setattr(nonzero_copy, "host_copy", functools.partial(host_copy, from_bytes=0, on_cpu=True))
+    a = _sparse(shape, 0.1)
+    x = jnp.asarray(a)
+    assert nonzero_copy.file_copy(x).deflated is None  # under DEFLATE_FROM_BYTES: the host deflates
+    copy = nonzero_copy.file_copy(x, deflate_from=0)
+    assert copy.deflated is not None and len(copy.deflated.crc) == a.nbytes // 1024
+    assert nonzero_copy.host_copy(x).deflated is None  # the copy other callers get: made first, not waiting
+    files = {threads: _npz_bytes(copy, threads) for threads in (1, 4)}
+    assert files[1] == files[4] != _npz_bytes(a, 4)
+    with zipfile.ZipFile(io.BytesIO(files[1])) as zf:
+        assert zf.testzip() is None and zf.getinfo("q.npy").compress_type == zipfile.ZIP_DEFLATED
+    with np.load(io.BytesIO(files[1]), allow_pickle=False) as z:
+        assert z["q"].tobytes() == a.tobytes()
+    assert copy.reshape(a.size).deflated is copy.deflated and copy[None].deflated is copy.deflated
 
 
 def test_the_same_array_is_copied_once_and_the_plain_copy_where_it_would_not_pay():
@@ -112,6 +135,47 @@ def test_a_run_whose_tables_cross_as_their_nonzero_entries_writes_the_same_files
         np.testing.assert_array_equal(plain[0][k], nonzero[0][k], err_msg=k)
 
 
+def test_a_run_whose_tables_are_deflated_on_the_device_writes_the_same_tables(tmp_path, monkeypatch):
+    """As above with blocks of 4 KB, deflated on the device (forced on the CPU): other bytes, the same arrays, a
+    file whose CRCs hold."""
+    monkeypatch.setattr(npz, "BLOCK_BYTES", 4096)
+    args = ["train", "--env", "CartPoleStayUp-v0", "--n-envs", "16", "--nepisodes", "8", "--no-progress",
+            "--set", "nsteps=40", "--set", "chunk_steps=20", "--set", "eval_episodes=2", "--set", "eval_envs=2"]
+    assert main([*args, "--out", str(tmp_path / "plain")]) == 0
+    made = []
+    original = nonzero_copy.file_copy
+
+    def kept(x):
+        made.append(original(x, deflate_from=0))
+        return made[-1]
+
+    monkeypatch.setattr(nonzero_copy, "host_copy", functools.partial(host_copy, from_bytes=0, on_cpu=True))
+    monkeypatch.setattr(nonzero_copy, "file_copy", kept)
+    assert main([*args, "--out", str(tmp_path / "device")]) == 0
+    assert made and made[-1].deflated is not None and len(made[-1].deflated.crc) > 1
+    plain, device = _files(tmp_path / "plain"), _files(tmp_path / "device")
+    assert plain[1] != device[1]
+    for k in plain[0]:
+        np.testing.assert_array_equal(plain[0][k], device[0][k], err_msg=k)
+    with zipfile.ZipFile(tmp_path / "device" / "qtables.npz") as zf:
+        assert zf.testzip() is None
+
+
+def test_the_host_deflates_when_the_device_cannot(monkeypatch):
+    """The blocks' programs out of the device's memory: the copy without them, the file the host's (the same bytes
+    as the dense array's)."""
+    def fail(*a, **k):
+        raise RuntimeError("RESOURCE_EXHAUSTED: out of memory")
+
+    monkeypatch.setattr(npz, "BLOCK_BYTES", 1024)
+    monkeypatch.setattr(nonzero_copy, "host_copy", functools.partial(host_copy, from_bytes=0, on_cpu=True))
+    monkeypatch.setattr(nonzero_copy.device_deflate, "_measure", fail)
+    a = _sparse((16, 1, 30, 2), 0.1)
+    copy = nonzero_copy.file_copy(jnp.asarray(a), deflate_from=0)
+    assert isinstance(copy, NonzeroCopy) and copy.deflated is None
+    assert _npz_bytes(copy, 4) == _npz_bytes(a, 4)
+
+
 def test_the_plain_copy_when_the_programs_fail(monkeypatch):
     """A device out of memory for the mask's or the gather's temporaries: the plain copy, nothing lost."""
     def fail(*a, **k):
@@ -121,3 +185,8 @@ def test_the_plain_copy_when_the_programs_fail(monkeypatch):
     a = _sparse((16, 1, 30, 2), 0.1)
     copy = functools.partial(host_copy, from_bytes=0, on_cpu=True)(jnp.asarray(a))
     assert isinstance(copy, np.ndarray) and copy.tobytes() == a.tobytes()
+
+
+def test_nothing_compiles_ahead_for_arrays_that_cross_whole_or_on_a_cpu():
+    assert nonzero_copy.prepare(jnp.zeros((1024, 1024), jnp.float32)) == []  # a CPU array
+    assert nonzero_copy.prepare(jax.ShapeDtypeStruct((8, 1, 480, 4), jnp.float32)) == []  # the default device: a CPU

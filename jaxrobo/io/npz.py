@@ -71,6 +71,10 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
     all (hence the probe). Where the file's large arrays are :data:`UNCACHED_ABOVE_BYTES` or more, it goes through
     :class:`UncachedWrites` (where the file system allows it).
 
+    A piece with ``deflated(last)`` (a block of a :class:`~jaxrobo.training.nonzero_copy.NonzeroCopy` deflated on the
+    device, :mod:`jaxrobo.speed.device_deflate`) gives its raw deflate bytes (ending on a byte; ending the stream
+    where ``last``) and its CRC-32: its array is taken deflated, with any number of threads.
+
     A value may be a function of no arguments returning a small array (at most :data:`SMALL_BYTES`): it is called
     when its turn comes, after the members before it are written (a checkpoint names the tables' file, written
     meanwhile in another thread, in its last members). A value with ``npy_pieces(BLOCK_BYTES)`` (and ``shape``,
@@ -100,8 +104,9 @@ def write_npz_deflated(path: str | IO[bytes], *, compress: bool = True, threads:
             header, blocks = _npy_parts(value)
             if value.nbytes <= SMALL_BYTES:
                 level = 1 if compress else None
-            else:
-                level = -1 if compress and threads >= DEFLATE_FROM_THREADS else None
+            else:  # blocks deflated already (on the device) are taken deflated however few the threads
+                level = -1 if compress and (threads >= DEFLATE_FROM_THREADS
+                                            or any(hasattr(b, "deflated") for b in blocks)) else None
             writer.member(f"{name}.npy", header, blocks, level, pool, 2 * threads)
         writer.close()
 
@@ -151,6 +156,8 @@ def _block(piece: Any, level: int | None, last: bool) -> tuple[bytes | memoryvie
     :data:`PROBE_BYTES` shrink to :data:`DENSE_RATIO` or less at level 1, else level 0 (a copy). On a core of this
     repository's 2-core machine: 8 MB of cart-pole tables with 93 % zero bytes, 8 ms to 8 % of their size with run
     lengths against 7 ms to 10 % with level 1's matches; 8 MB of normal floats 75 ms at level 1, 6 % larger."""
+    if level is not None and hasattr(piece, "deflated"):  # deflated already (jaxrobo.speed.device_deflate)
+        return piece.deflated(last)
     data = piece if isinstance(piece, memoryview) else piece.view()  # a _Rows or another maker of its bytes
     crc = zlib.crc32(data)
     if level is None:

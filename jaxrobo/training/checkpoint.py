@@ -247,7 +247,7 @@ def save_checkpoint(path: str, runner: Runner, chunks_done: int, fingerprint: di
     pool = ThreadPoolExecutor(1, thread_name_prefix="jaxrobo-tables") if one else None
     try:
         def start_tables():
-            return pool.submit(lambda: _write_tables(directory, nonzero_copy.host_copy(uncut[table][1]), tables))
+            return pool.submit(lambda: _write_tables(directory, nonzero_copy.file_copy(uncut[table][1]), tables))
         pending = start_tables() if tables_first else None
         with_paths = jax.tree_util.tree_flatten_with_path(cut_records(runner))[0]
         leaves = [x for _, x in with_paths]

@@ -416,6 +416,8 @@ def run_training(trainer: Trainer, agent_params: AgentParams | None = None, env_
     flights = Flights(trainer, env_params)
     check = target_check(trainer, flights, key, checks) if check_every else None
     threads = [] if compiling_init is None else [compiling_init]  # joined however the block ends
+    if trainer.plan.devices == 1 and jax.process_count() == 1:  # the large tables' copy at the end, beside the rest
+        threads += nonzero_copy.prepare(runner.agent.q)
     with _joined(threads), _saved_after_evaluation(checkpoint, config.eval_episodes > 0):
         # Beside: the chunk is traced first (its XLA compile is the longest), then compiles in a thread while the
         # evaluation's programs are traced and compiled in another.

@@ -22,11 +22,17 @@ their entries nonzero (otherwise the plain copy, a numpy array: on CPUs the arra
 split over devices would need the programs' collectives, issued from the checkpoint's thread beside the run's).
 The values are the array's bit for bit either way.
 
-Public surface: :func:`host_copy`, :class:`NonzeroCopy`, :data:`FROM_BYTES`, :data:`MAX_SHARE`.
+For the tables' file, :func:`file_copy` also deflates a large copy's blocks on the device
+(:mod:`jaxrobo.speed.device_deflate`), after the shared copy is made; :func:`prepare` compiles what that runs from
+the carry's shapes while the run compiles.
+
+Public surface: :func:`host_copy`, :func:`file_copy`, :func:`prepare`, :class:`NonzeroCopy`, :data:`FROM_BYTES`,
+:data:`MAX_SHARE`, :data:`DEFLATE_FROM_BYTES`.
 """
 from __future__ import annotations
 
 import functools
+import threading
 from typing import Any
 
 import jax
@@ -35,12 +41,17 @@ import numpy as np
 
 from jaxrobo.core.environ import in_threads, usable_cores
 from jaxrobo.core.memo import IdentityMemo
-from jaxrobo.speed import locked_copy
+from jaxrobo.speed import device_deflate, locked_copy
 
 #: Arrays smaller than this cross whole (the two programs and their reads cost more than they save).
 FROM_BYTES = 64 << 20
 #: Arrays with more than this share of nonzero entries cross whole (mask and values would be most of their bytes).
 MAX_SHARE = 0.75
+#: Arrays of this many bytes or more are also deflated on the device for their file (:func:`file_copy`): at 1 M
+#: envs (8 GB of tables) an H200 host's run wrote in 2.9-3.2 s instead of 4.7-5.0 s; at 65,536 envs (0.5 GB) its 16
+#: cores deflated as fast (0.6-0.8 s either way) and compiling the programs ahead took 0.3 s of the compile
+#: (``benchmarks/results/h200/device_deflate_s35.json``).
+DEFLATE_FROM_BYTES = 1 << 30
 
 
 class NonzeroCopy:
@@ -51,9 +62,9 @@ class NonzeroCopy:
     block by block for the ``.npz`` writer."""
 
     def __init__(self, shape: tuple[int, ...], dtype: Any, bits: np.ndarray, values: np.ndarray, counts: np.ndarray,
-                 block: int) -> None:
+                 block: int, deflated: device_deflate.DeflatedBlocks | None = None) -> None:
         self.shape, self.dtype, self.block = tuple(int(n) for n in shape), np.dtype(dtype), int(block)
-        self.bits, self.values = bits, values
+        self.bits, self.values, self.deflated = bits, values, deflated
         self.counts = np.asarray(counts, np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)])  # where each block's values start
 
@@ -74,7 +85,11 @@ class NonzeroCopy:
         shape = tuple(shape[0]) if len(shape) == 1 and isinstance(shape[0], (tuple, list)) else shape
         if int(np.prod(shape, dtype=np.int64)) != self.size:
             raise ValueError(f"cannot reshape {self.shape} into {shape}")
-        return NonzeroCopy(shape, self.dtype, self.bits, self.values, self.counts, self.block)
+        return NonzeroCopy(shape, self.dtype, self.bits, self.values, self.counts, self.block, self.deflated)
+
+    def with_deflated(self, deflated: device_deflate.DeflatedBlocks | None) -> "NonzeroCopy":
+        """The same entries, with the whole blocks' streams ``deflated`` (:func:`file_copy`)."""
+        return NonzeroCopy(self.shape, self.dtype, self.bits, self.values, self.counts, self.block, deflated)
 
     def __getitem__(self, index: Any) -> "NonzeroCopy":
         """Only ``copy[None]`` (a leading axis of one, as a shared table is given in ``qtables.npz``)."""
@@ -107,24 +122,36 @@ class NonzeroCopy:
 
     def npy_pieces(self, block_bytes: int) -> list["_Piece"]:
         """The array's C-ordered bytes in pieces of ``block_bytes`` (which must be ``block`` entries), each made
-        when the writer's thread takes it."""
+        when the writer's thread takes it; those deflated on the device (:attr:`deflated`) also give their stream."""
         if block_bytes != self.block * self.dtype.itemsize:
             raise ValueError(f"pieces of {block_bytes} bytes asked of a copy counted in blocks of {self.block} "
                              "entries")
-        return [_Piece(self, s, min(s + self.block, self.size)) for s in range(0, self.size, self.block)]
+        ready = self.deflated if self.deflated is not None and self.deflated.block_bytes == block_bytes else None
+        return [_Piece(self, s, min(s + self.block, self.size), ready if ready is not None and k < len(ready.crc)
+                       else None) for k, s in enumerate(range(0, self.size, self.block))]
 
 
 class _Piece:
-    """Entries ``start:stop`` of a :class:`NonzeroCopy`, as bytes made when :meth:`view` is called."""
+    """Entries ``start:stop`` of a :class:`NonzeroCopy`, as bytes made when :meth:`view` is called; where the block
+    was deflated on the device, its stream too (:meth:`deflated`)."""
 
-    def __init__(self, copy: NonzeroCopy, start: int, stop: int) -> None:
+    def __init__(self, copy: NonzeroCopy, start: int, stop: int,
+                 ready: device_deflate.DeflatedBlocks | None = None) -> None:
         self.copy, self.start, self.stop = copy, start, stop
         self.nbytes = (stop - start) * copy.dtype.itemsize
+        if ready is not None:
+            self.deflated = functools.partial(_deflated, ready, start // copy.block)
 
     def view(self) -> memoryview:
         out = np.empty(self.stop - self.start, self.copy.dtype)
         self.copy.fill(out, self.start, self.stop)
         return memoryview(out.view(np.uint8))
+
+
+def _deflated(ready: device_deflate.DeflatedBlocks, k: int, last: bool) -> tuple[bytes | memoryview, int]:
+    """Block ``k``'s raw deflate bytes (ending the stream where ``last``) and the CRC-32 of its bytes."""
+    block = ready.block(k)
+    return (bytes(block) + device_deflate.FINAL if last else block), int(ready.crc[k])
 
 
 def _word(dtype: Any) -> Any:
@@ -153,6 +180,58 @@ def _rounded(count: int) -> int:
     """``count`` rounded up to one of 16 sizes an octave (at least 1,024)."""
     step = 1 << max(10, count.bit_length() - 4)
     return max(step, -(-count // step) * step)
+
+
+def file_copy(x: Any, *, deflate_from: int | None = None) -> np.ndarray | NonzeroCopy:
+    """:func:`host_copy`'s copy of ``x`` for a file: where it is a :class:`NonzeroCopy` of ``deflate_from`` bytes
+    or more (default :data:`DEFLATE_FROM_BYTES`), its whole blocks are also deflated on ``x``'s device
+    (:mod:`jaxrobo.speed.device_deflate`; :attr:`NonzeroCopy.deflated`, which the ``.npz`` writer takes as they
+    are), after the copy that :func:`host_copy` hands to other callers (a run's result) is made. Where the
+    programs' temporaries do not fit beside the run's arrays, the writer deflates the blocks on the host."""
+    from jaxrobo.io import npz
+
+    copy = host_copy(x)
+    smallest = DEFLATE_FROM_BYTES if deflate_from is None else deflate_from
+    if not isinstance(copy, NonzeroCopy) or copy.nbytes < smallest:
+        return copy
+    try:
+        ready = device_deflate.deflate_blocks(x, npz.BLOCK_BYTES, get=locked_copy.get)
+    except RuntimeError:
+        return copy
+    return copy if ready is None else copy.with_deflated(ready)
+
+
+def prepare(x: Any, *, deflate_from: int | None = None) -> list[threading.Thread]:
+    """Compile, in a thread, the programs :func:`file_copy` runs on an array shaped as ``x`` (an array or a
+    ``jax.ShapeDtypeStruct`` on one accelerator, the default device where it names none) whose shapes alone
+    decide (the mask's and the blocks' sizes and CRCs): a run's end then runs them at once (at 1 M envs their
+    traces and reads from the compilation cache took 0.5 and 0.7 s there, on an H200 host). The thread is
+    returned (not a daemon's: the caller joins it); none where the array would cross whole or not be deflated there
+    (``deflate_from``, as :func:`file_copy`'s). A failure is left to the programs' own calls."""
+    from jaxrobo.io import npz
+
+    itemsize = np.dtype(x.dtype).itemsize
+    sharding = getattr(x, "sharding", None)
+    if sharding is None:
+        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    devices = sharding.device_set
+    block = npz.BLOCK_BYTES // max(itemsize, 1)
+    if len(devices) != 1 or {d.platform for d in devices} == {"cpu"} or itemsize not in (1, 2, 4) \
+            or x.size * itemsize < max(FROM_BYTES, DEFLATE_FROM_BYTES if deflate_from is None else deflate_from) \
+            or block % 8 or block * itemsize != npz.BLOCK_BYTES:
+        return []
+    like = jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+
+    def compile_both() -> None:
+        try:
+            _mask.lower(like, block).compile()
+            device_deflate.prepare(like, npz.BLOCK_BYTES)
+        except Exception:  # noqa: BLE001 - the calls themselves compile again and raise where they are made
+            pass
+
+    thread = threading.Thread(target=compile_both, name="jaxrobo-compile-copy")
+    thread.start()
+    return [thread]
 
 
 #: The latest array's copy only: a run's tables, copied by its checkpoint and for its result.
