@@ -190,3 +190,11 @@ def test_the_plain_copy_when_the_programs_fail(monkeypatch):
 def test_nothing_compiles_ahead_for_arrays_that_cross_whole_or_on_a_cpu():
     assert nonzero_copy.prepare(jnp.zeros((1024, 1024), jnp.float32)) == []  # a CPU array
     assert nonzero_copy.prepare(jax.ShapeDtypeStruct((8, 1, 480, 4), jnp.float32)) == []  # the default device: a CPU
+
+
+def test_nothing_compiles_ahead_for_a_cpu_array_or_one_that_crosses_whole():
+    big = jax.ShapeDtypeStruct((1 << 28,), jnp.float32)  # 1 GiB, on the default device: a CPU here
+    assert nonzero_copy.prepare(big) == [] and nonzero_copy.prepare(jnp.zeros((8, 1, 40, 2))) == []
+    assert nonzero_copy._taken(big, [jax.devices()[0]], 0, on_cpu=True, itemsizes=(4,))
+    assert not nonzero_copy._taken(big, [jax.devices()[0]], 0, on_cpu=False, itemsizes=(4,))
+    assert not nonzero_copy._taken(big, [jax.devices()[0]], 1 << 31, on_cpu=True, itemsizes=(4,))

@@ -201,6 +201,19 @@ def file_copy(x: Any, *, deflate_from: int | None = None) -> np.ndarray | Nonzer
     return copy if ready is None else copy.with_deflated(ready)
 
 
+def _taken(x: Any, devices: Any, from_bytes: int, *, on_cpu: bool, itemsizes: tuple[int, ...]) -> bool:
+    """Whether an array shaped as ``x`` on ``devices`` crosses by this module's programs: one device, an accelerator
+    (or a CPU, ``on_cpu``), ``from_bytes`` or more, items of ``itemsizes`` bytes, the writer's blocks a whole number
+    of its entries and of mask bytes."""
+    from jaxrobo.io import npz
+
+    itemsize = np.dtype(x.dtype).itemsize
+    block = npz.BLOCK_BYTES // itemsize
+    return len(devices) == 1 and (on_cpu or {d.platform for d in devices} != {"cpu"}) and itemsize in itemsizes \
+        and 0 < x.size * itemsize and x.size * itemsize >= from_bytes and block >= 8 and block % 8 == 0 \
+        and block * itemsize == npz.BLOCK_BYTES
+
+
 def prepare(x: Any, *, deflate_from: int | None = None) -> list[threading.Thread]:
     """Compile, in a thread, the programs :func:`file_copy` runs on an array shaped as ``x`` (an array or a
     ``jax.ShapeDtypeStruct`` on one accelerator, the default device where it names none) whose shapes alone
@@ -210,16 +223,13 @@ def prepare(x: Any, *, deflate_from: int | None = None) -> list[threading.Thread
     (``deflate_from``, as :func:`file_copy`'s). A failure is left to the programs' own calls."""
     from jaxrobo.io import npz
 
-    itemsize = np.dtype(x.dtype).itemsize
     sharding = getattr(x, "sharding", None)
     if sharding is None:
         sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    devices = sharding.device_set
-    block = npz.BLOCK_BYTES // max(itemsize, 1)
-    if len(devices) != 1 or {d.platform for d in devices} == {"cpu"} or itemsize not in (1, 2, 4) \
-            or x.size * itemsize < max(FROM_BYTES, DEFLATE_FROM_BYTES if deflate_from is None else deflate_from) \
-            or block % 8 or block * itemsize != npz.BLOCK_BYTES:
+    smallest = max(FROM_BYTES, DEFLATE_FROM_BYTES if deflate_from is None else deflate_from)
+    if not _taken(x, sharding.device_set, smallest, on_cpu=False, itemsizes=(1, 2, 4)):
         return []
+    block = npz.BLOCK_BYTES // np.dtype(x.dtype).itemsize
     like = jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
 
     def compile_both() -> None:
@@ -245,13 +255,10 @@ def host_copy(x: Any, *, from_bytes: int | None = None, on_cpu: bool = False) ->
     while it lives (by another thread too) gives the same copy, made once."""
     from jaxrobo.io import npz
 
-    from_bytes = FROM_BYTES if from_bytes is None else from_bytes
-    itemsize = np.dtype(x.dtype).itemsize if isinstance(x, jax.Array) else 0
-    block = npz.BLOCK_BYTES // max(itemsize, 1)  # the writer's blocks, each a whole number of mask bytes
-    if not isinstance(x, jax.Array) or x.nbytes < from_bytes or x.size == 0 or len(x.devices()) != 1 \
-            or (not on_cpu and {d.platform for d in x.devices()} == {"cpu"}) or itemsize not in (1, 2, 4, 8) \
-            or block < 8 or block % 8 or block * itemsize != npz.BLOCK_BYTES:
+    if not isinstance(x, jax.Array) or not _taken(x, x.devices(), FROM_BYTES if from_bytes is None else from_bytes,
+                                                  on_cpu=on_cpu, itemsizes=(1, 2, 4, 8)):
         return np.asarray(jax.device_get(x))
+    block = npz.BLOCK_BYTES // np.dtype(x.dtype).itemsize  # the writer's blocks, each a whole number of mask bytes
 
     def make() -> np.ndarray | NonzeroCopy:
         try:
