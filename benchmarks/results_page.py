@@ -158,6 +158,9 @@ WHAT = {
     "device_deflate_s35.json": "A 1 M-env run's tables deflated on the device (`jaxrobo.speed.device_deflate`) "
                                "against the host's threads: the encoder alone, the whole command alternating with "
                                "the code before (and at 65,536 envs, where the host path stays), timelines",
+    "direct_writes_s36.json": "A 1 M-env run's writing with large files written by a thread from gathered buffers "
+                              "(`jaxrobo.io.npz.UncachedWrites`) against the code before, alternating; the disk's "
+                              "own write rates; a prototype starting the statistics earlier, not adopted",
     "moment_blocks_s34.json": "A 1 M-env run's writing with the statistics' means and spreads summed over blocks of "
                               "1 MB (before) or 8 MB of envs (adopted), alternating, with timelines",
     "goto_compile_s33.json": "Where QuadcopterGoto-v2's cold compile goes (JAX's events and XLA's timers), its step "

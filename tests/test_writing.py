@@ -363,3 +363,110 @@ def test_the_figures_and_stats_are_the_same_for_records_in_either_order(counts, 
     assert fc == ff and wc == wf and tc == tf
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(sc, sf))
     assert rc.keys() == rf.keys() and all(np.array_equal(rc[key], rf[key]) for key in rc)
+
+
+def _uncached_or_skip(path):
+    from jaxrobo.io import npz
+
+    with open(path, "wb") as f:
+        try:
+            npz.UncachedWrites(f).close()
+        except OSError:
+            pytest.skip("no O_DIRECT on this file system")
+
+
+def test_uncached_writes_gather_write_in_a_thread_and_give_the_same_bytes(monkeypatch, tmp_path):
+    """:class:`jaxrobo.io.npz.UncachedWrites` gathers the writes that follow a large one into page-aligned buffers
+    written ``O_DIRECT`` by a thread while the caller fills the next (one buffer too: the caller waits for it):
+    whatever the sizes, alignments and seeks back (a zip's patched headers), the file holds the bytes a plain file
+    would, every direct write is whole pages at a page's offset, and the pages went direct."""
+    import threading
+
+    from jaxrobo.io import npz
+
+    _uncached_or_skip(tmp_path / "probe")
+    monkeypatch.setattr(npz.UncachedWrites, "DIRECT_FROM", 5000)
+    monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 3 * 4096 + 100)  # buffers of three pages
+    rng = np.random.default_rng(7)
+    ops = []
+    for _ in range(300):
+        kind = rng.random()
+        if kind < 0.08:
+            ops.append(("seek", int(rng.integers(0, 1 + sum(len(d) for k, d in ops if k == "write")))))
+        elif kind < 0.12:
+            ops.append(("end", 0))
+        else:
+            size = int(rng.choice([1, 30, 4095, 4096, 4097, 5000, 9000, 20_000, 70_000]))
+            ops.append(("write", rng.integers(0, 256, size, dtype=np.uint8).tobytes()))
+    pwrite, seen = npz.UncachedWrites._pwrite, []
+
+    def spy(self, fd, data, offset):
+        if fd == self._direct:
+            seen.append((threading.current_thread().name, offset, memoryview(data).nbytes))
+        return pwrite(self, fd, data, offset)
+
+    monkeypatch.setattr(npz.UncachedWrites, "_pwrite", spy)
+    for buffers in (1, 3):
+        monkeypatch.setattr(npz.UncachedWrites, "BUFFERS", buffers)
+        plain, uncached = tmp_path / f"plain{buffers}", tmp_path / f"uncached{buffers}"
+        seen.clear()
+        with open(plain, "wb") as p, open(uncached, "wb") as u:
+            p.write(b"head")
+            u.write(b"head")
+            u.flush()
+            w = npz.UncachedWrites(u)
+            for kind, arg in ops:
+                if kind == "write":
+                    assert w.write(arg) == len(arg)
+                    p.write(arg)
+                elif kind == "seek":
+                    assert w.seek(arg) == p.seek(arg)
+                else:
+                    w.flush()
+                    assert w.seek(0, os.SEEK_END) == p.seek(0, os.SEEK_END)
+                assert w.tell() == p.tell()
+            w.close()
+            assert not any(t.name == "jaxrobo-direct-writes" for t in threading.enumerate())
+        assert uncached.read_bytes() == plain.read_bytes()
+        assert seen and all(name == "jaxrobo-direct-writes" and offset % 4096 == 0 and n % 4096 == 0
+                            for name, offset, n in seen)
+        assert sum(n for _, _, n in seen) > plain.stat().st_size // 2
+
+
+def test_uncached_writes_raise_the_thread_s_error_and_leave_no_thread(monkeypatch, tmp_path):
+    """A direct write that fails (not EINVAL: a full or failing disk) is raised in the caller's thread by its next
+    call, and closing still stops the writing thread and closes the descriptor it opened."""
+    import errno
+    import threading
+
+    from jaxrobo.io import npz
+
+    _uncached_or_skip(tmp_path / "probe")
+    monkeypatch.setattr(npz.UncachedWrites, "DIRECT_FROM", 4096)
+    monkeypatch.setattr(npz, "WRITE_CHUNK_BYTES", 8192)
+    pwrite = npz.UncachedWrites._pwrite
+
+    def fail(self, fd, data, offset):
+        if fd == self._direct:
+            raise OSError(errno.EIO, "Input/output error")
+        return pwrite(self, fd, data, offset)
+
+    monkeypatch.setattr(npz.UncachedWrites, "_pwrite", fail)
+    with open(tmp_path / "x", "wb") as f:
+        w = npz.UncachedWrites(f)
+        direct = w._direct
+        with pytest.raises(OSError, match="Input/output"):
+            for _ in range(20):
+                w.write(bytes(20_000))
+            w.flush()
+        w.close()
+        assert w.closed
+    assert not any(t.name == "jaxrobo-direct-writes" for t in threading.enumerate())
+    with pytest.raises(OSError):
+        os.fstat(direct)
+    with open(tmp_path / "y", "wb") as f:  # the same error found first by close (less than a buffer written)
+        w = npz.UncachedWrites(f)
+        w.write(bytes(6000))
+        with pytest.raises(OSError, match="Input/output"):
+            w.close()
+        assert w.closed

@@ -17,6 +17,7 @@ import math
 import mmap
 import os
 import struct
+import threading
 import tokenize
 import zipfile
 import zlib as stdlib_zlib
@@ -201,7 +202,6 @@ class _ZipWriter:
         pieces = [memoryview(header)] + blocks
         start, crc, size = self._pos, 0, sum(piece.nbytes for piece in pieces)
         pending: collections.deque = collections.deque()
-        out = bytearray()
         for i, piece in enumerate(pieces):
             args = (piece, level, i == len(pieces) - 1)
             pending.append((pool.submit(_block, *args) if pool is not None else _done(_block(*args)), piece.nbytes))
@@ -209,16 +209,7 @@ class _ZipWriter:
                 future, n = pending.popleft()
                 block, block_crc = future.result()
                 crc = zlib.crc32_combine(crc, block_crc, n)
-                if len(block) >= BLOCK_BYTES // 4:  # a stored or dense block: written as it is, without a copy
-                    self._write(out)
-                    self._write(block)
-                    out = bytearray()
-                    continue
-                out += block
-                if len(out) >= WRITE_CHUNK_BYTES:
-                    self._write(out)
-                    out = bytearray()
-        self._write(out)
+                self._write(block)  # small ones are gathered by the file (a buffered file, or UncachedWrites)
         stored = self._pos - start
         self._f.seek(offset + 14)
         self._f.write(struct.pack("<I", crc))
@@ -256,19 +247,31 @@ UNCACHED_ABOVE_BYTES = 64 << 20
 
 
 class UncachedWrites(io.RawIOBase):
-    """A binary file open for writing (``f``, at its position), written with ``O_DIRECT`` where a write is large:
-    its 4096-byte-aligned middle goes from an aligned buffer straight to the disk, the unaligned ends (and every
-    small write: zip headers) through ``f``'s descriptor and the page cache as usual. Every write is positional;
-    ``f``'s own buffer is not used (close this before using ``f`` again; its ``fsync`` covers both).
+    """A binary file open for writing (``f``, at its position), written with ``O_DIRECT`` where the writes are
+    large: from a write of :data:`DIRECT_FROM` bytes or more on, the bytes written one after another are gathered
+    into page-aligned buffers of :data:`WRITE_CHUNK_BYTES`, each written straight to the disk by a thread of its own
+    while the caller fills the next (:data:`BUFFERS` at most on the way); the unaligned ends (the bytes before the
+    first whole page, those after the last when :meth:`flush`, :meth:`seek` or :meth:`close` ends the run of
+    writes) and every small write on its own (zip headers, their patches) go through ``f``'s descriptor and the
+    page cache as usual. A page is written one way only, and a write that goes back (a seek) waits for the direct
+    ones before it. Every write is positional; ``f``'s own buffer is not used (close this before using ``f``
+    again; its ``fsync`` covers both). An error of the writing thread is raised by the next call (or by
+    :meth:`close`); nothing is left writing after :meth:`close`, whatever happened.
 
     Why: a file of hundreds of MB written through the page cache needs as many fresh pages, which on a virtual
     machine that hands its free memory back to the host cost several times the writing (a 0.5 GB checkpoint:
-    seconds, where the same bytes written with ``O_DIRECT`` took a fraction of one, already on the disk). Opening
-    ``O_DIRECT`` raises OSError where the file system does not have it."""
+    seconds, where the same bytes written with ``O_DIRECT`` took a fraction of one, already on the disk). Why the
+    thread: one buffer copied then written in turn kept an H200 host's disk (1.9 GB/s written this way alone)
+    at 0.7-0.9 GB/s while a 1 M-env run's tables' file (831 MB) was written (``device_deflate_s35.json``,
+    ``benchmarks/results/h200/direct_writes_s36.json``). Opening ``O_DIRECT`` raises OSError where the file
+    system does not have it."""
 
     ALIGN = 4096
-    #: Writes of at least this many bytes take the direct path.
-    DIRECT_FROM = 1 << 20
+    #: A write of at least this many bytes starts gathering the writes that follow it (a device-deflated block of
+    #: a 1 M-env run's tables is about 0.9 MB).
+    DIRECT_FROM = 64 << 10
+    #: Buffers filled or being written at once.
+    BUFFERS = 3
 
     def __init__(self, f: IO[bytes]) -> None:
         super().__init__()
@@ -278,9 +281,17 @@ class UncachedWrites(io.RawIOBase):
             raise OSError("no O_DIRECT on this system")
         self._direct = os.open(f"/proc/self/fd/{self._fd}", os.O_WRONLY | os.O_DIRECT)
         self._direct_ok = True  # until a direct write is refused (EINVAL): the rest then go through the page cache
-        # Page-aligned, reused for every direct write; a whole number of aligned blocks.
-        self._buffer = mmap.mmap(-1, max(self.ALIGN, WRITE_CHUNK_BYTES // self.ALIGN * self.ALIGN))
-        self._aligned = np.frombuffer(self._buffer, np.uint8)  # copied into by numpy, without the GIL
+        self._size = max(self.ALIGN, WRITE_CHUNK_BYTES // self.ALIGN * self.ALIGN)
+        self._buffers: list[mmap.mmap] = []  # page-aligned, made as needed (BUFFERS at most), reused
+        self._free: collections.deque = collections.deque()
+        self._todo: collections.deque = collections.deque()  # (buffer, file offset, bytes) for the thread
+        self._cond = threading.Condition()
+        self._busy = 0  # buffers handed to the thread and not given back yet
+        self._error: BaseException | None = None  # the thread's first; it writes nothing after it
+        self._error_raised = False
+        self._thread: threading.Thread | None = None
+        self._stage: mmap.mmap | None = None  # the buffer being filled: file offset _stage_at (aligned), _filled bytes
+        self._stage_at = self._filled = 0
 
     def writable(self) -> bool:
         return True
@@ -292,6 +303,7 @@ class UncachedWrites(io.RawIOBase):
         return self._pos
 
     def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        self.flush()
         base = {os.SEEK_SET: 0, os.SEEK_CUR: self._pos, os.SEEK_END: os.fstat(self._fd).st_size}[whence]
         self._pos = base + offset
         return self._pos
@@ -301,40 +313,140 @@ class UncachedWrites(io.RawIOBase):
             n = os.pwrite(fd, data, offset)
             data, offset = data[n:], offset + n
 
+    def _raise_error(self) -> None:
+        """The thread's error, if any (every call after it raises it: the file misses bytes)."""
+        if self._error is not None:
+            self._error_raised = True
+            raise self._error
+
+    def _take_buffer(self) -> mmap.mmap:
+        """A free buffer: a fresh one while fewer than :data:`BUFFERS` exist, else one the thread gives back."""
+        with self._cond:
+            while not self._free and len(self._buffers) >= self.BUFFERS and self._error is None:
+                self._cond.wait()
+            self._raise_error()
+            if self._free:
+                return self._free.popleft()
+        self._buffers.append(mmap.mmap(-1, self._size))
+        return self._buffers[-1]
+
+    def _send(self, buffer: mmap.mmap, offset: int, n: int) -> None:
+        """``n`` bytes of ``buffer`` (a whole number of pages) to the thread, for ``offset`` of the file."""
+        with self._cond:
+            self._todo.append((buffer, offset, n))
+            self._busy += 1
+            self._cond.notify_all()
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._writing, name="jaxrobo-direct-writes", daemon=True)
+            self._thread.start()
+
+    def _writing(self) -> None:
+        while True:
+            with self._cond:
+                while not self._todo:
+                    self._cond.wait()
+                item = self._todo.popleft()
+            if item is None:
+                return
+            buffer, offset, n = item
+            try:
+                if self._error is None:
+                    self._write_pages(buffer, offset, n)
+            except BaseException as err:  # noqa: BLE001 - raised in the caller's thread by its next call
+                self._error = err
+            with self._cond:
+                self._busy -= 1
+                self._free.append(buffer)
+                self._cond.notify_all()
+
+    def _write_pages(self, buffer: mmap.mmap, offset: int, n: int) -> None:
+        view = memoryview(buffer)[:n]
+        try:
+            if self._direct_ok:
+                try:
+                    self._pwrite(self._direct, view, offset)
+                    return
+                except OSError as err:  # a device whose blocks are not 4096-aligned: the page cache from here
+                    if err.errno != errno.EINVAL:
+                        raise
+                    self._direct_ok = False
+            self._pwrite(self._fd, view, offset)
+        finally:
+            view.release()
+
     def write(self, data: Any) -> int:
         view = memoryview(data).cast("B")
         n, pos = view.nbytes, self._pos
-        head = (-pos) % self.ALIGN
-        middle = (n - head) // self.ALIGN * self.ALIGN if n >= self.DIRECT_FROM and self._direct_ok else 0
-        if middle <= 0:
-            self._pwrite(self._fd, view, pos)
+        self._raise_error()
+        if self._stage is None:
+            head = (-pos) % self.ALIGN
+            if n < self.DIRECT_FROM or n - head < self.ALIGN:  # on its own: through the page cache
+                self._pwrite(self._fd, view, pos)
+                self._pos = pos + n
+                return n
+            self._pwrite(self._fd, view[:head], pos)  # up to the first whole page
+            self._stage, self._stage_at, self._filled = self._take_buffer(), pos + head, 0
+            done = head
         else:
-            self._pwrite(self._fd, view[:head], pos)
-            for start in range(head, head + middle, len(self._buffer)):
-                k = min(len(self._buffer), head + middle - start)
-                if self._direct_ok:
-                    np.copyto(self._aligned[:k], np.frombuffer(view[start:start + k], np.uint8))
-                    try:
-                        self._pwrite(self._direct, memoryview(self._buffer)[:k], pos + start)
-                        continue
-                    except OSError as err:  # a device whose blocks are not 4096-aligned: the page cache from here
-                        if err.errno != errno.EINVAL:
-                            raise
-                        self._direct_ok = False
-                self._pwrite(self._fd, view[start:start + k], pos + start)
-            self._pwrite(self._fd, view[head + middle:], pos + head + middle)
+            done = 0
+        while done < n:
+            k = min(n - done, self._size - self._filled)
+            np.copyto(np.frombuffer(self._stage, np.uint8, k, self._filled),  # copied without Python's lock
+                      np.frombuffer(view[done:done + k], np.uint8))
+            self._filled += k
+            done += k
+            if self._filled == self._size:
+                self._send(self._stage, self._stage_at, self._size)
+                self._stage_at += self._size
+                self._stage, self._filled = self._take_buffer(), 0
         self._pos = pos + n
         return n
 
+    def flush(self) -> None:
+        """The gathered bytes written (the whole pages direct, the rest through the page cache) and every direct
+        write done."""
+        if self.closed or self._buffers is None:
+            return
+        if self._stage is not None:
+            stage, at, filled = self._stage, self._stage_at, self._filled
+            self._stage = None
+            pages = filled // self.ALIGN * self.ALIGN
+            if pages:
+                self._send(stage, at, pages)
+            with memoryview(stage) as rest:  # bytes of the buffer the thread does not touch
+                self._pwrite(self._fd, rest[pages:filled], at + pages)
+            if not pages:
+                with self._cond:
+                    self._free.append(stage)
+        with self._cond:
+            while self._busy:  # the thread goes on through its list after an error, writing nothing
+                self._cond.wait()
+        self._raise_error()
+
     def close(self) -> None:
-        if not self.closed:
+        if self.closed:
+            return
+        try:
+            raised = self._error_raised
+            try:
+                self.flush()
+            except BaseException:
+                if not raised:  # said once: a close while the caller's error unwinds does not raise it again
+                    raise
+        finally:
+            if self._thread is not None:
+                with self._cond:
+                    self._todo.append(None)
+                    self._cond.notify_all()
+                self._thread.join()
             os.close(self._direct)
-            del self._aligned  # the buffer's only export: it closes then
-            self._buffer.close()
-        super().close()
+            for buffer in self._buffers:
+                buffer.close()
+            self._buffers = None  # flush() (IOBase.close calls it) has nothing left to do
+            super().close()
 
 
-#: Bytes written to the file at once: :class:`UncachedWrites` takes writes this large past the page cache.
+#: Bytes of each of :class:`UncachedWrites`' buffers: written to the disk at once.
 WRITE_CHUNK_BYTES = 16 << 20
 
 
