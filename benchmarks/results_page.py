@@ -161,6 +161,9 @@ WHAT = {
     "direct_writes_s36.json": "A 1 M-env run's writing with large files written by a thread from gathered buffers "
                               "(`jaxrobo.io.npz.UncachedWrites`) against the code before, alternating; the disk's "
                               "own write rates; a prototype starting the statistics earlier, not adopted",
+    "uneven_tables_s36.json": "A 1 M-env run whose tables are not whole blocks of the device deflate (device memory "
+                              "peak, the file's CRCs), and XLA's parallel LLVM compile option, which this jaxlib "
+                              "refuses",
     "moment_blocks_s34.json": "A 1 M-env run's writing with the statistics' means and spreads summed over blocks of "
                               "1 MB (before) or 8 MB of envs (adopted), alternating, with timelines",
     "goto_compile_s33.json": "Where QuadcopterGoto-v2's cold compile goes (JAX's events and XLA's timers), its step "
