@@ -255,8 +255,9 @@ class UncachedWrites(io.RawIOBase):
     writes) and every small write on its own (zip headers, their patches) go through ``f``'s descriptor and the
     page cache as usual. A page is written one way only, and a write that goes back (a seek) waits for the direct
     ones before it. Every write is positional; ``f``'s own buffer is not used (close this before using ``f``
-    again; its ``fsync`` covers both). An error of the writing thread is raised by the next call (or by
-    :meth:`close`); nothing is left writing after :meth:`close`, whatever happened.
+    again; its ``fsync`` covers both). An error of the writing thread is raised by the caller's next call and
+    every one after it (:meth:`close` raises it only if none did); nothing is left writing after :meth:`close`,
+    whatever happened.
 
     Why: a file of hundreds of MB written through the page cache needs as many fresh pages, which on a virtual
     machine that hands its free memory back to the host cost several times the writing (a 0.5 GB checkpoint:
@@ -441,7 +442,8 @@ class UncachedWrites(io.RawIOBase):
                 self._thread.join()
             os.close(self._direct)
             for buffer in self._buffers:
-                buffer.close()
+                with contextlib.suppress(BufferError):  # a view still held (a traceback's frame): freed with it
+                    buffer.close()
             self._buffers = None  # flush() (IOBase.close calls it) has nothing left to do
             super().close()
 
