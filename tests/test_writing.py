@@ -435,7 +435,7 @@ def test_uncached_writes_gather_write_in_a_thread_and_give_the_same_bytes(monkey
 
 def test_uncached_writes_raise_the_thread_s_error_and_leave_no_thread(monkeypatch, tmp_path):
     """A direct write that fails (not EINVAL: a full or failing disk) is raised in the caller's thread by its next
-    call, and closing still stops the writing thread and closes the descriptor it opened."""
+    call (once: a close while it unwinds does not raise it again), and closing still stops the writing thread."""
     import errno
     import threading
 
@@ -454,7 +454,6 @@ def test_uncached_writes_raise_the_thread_s_error_and_leave_no_thread(monkeypatc
     monkeypatch.setattr(npz.UncachedWrites, "_pwrite", fail)
     with open(tmp_path / "x", "wb") as f:
         w = npz.UncachedWrites(f)
-        direct = w._direct
         with pytest.raises(OSError, match="Input/output"):
             for _ in range(20):
                 w.write(bytes(20_000))
@@ -462,8 +461,6 @@ def test_uncached_writes_raise_the_thread_s_error_and_leave_no_thread(monkeypatc
         w.close()
         assert w.closed
     assert not any(t.name == "jaxrobo-direct-writes" for t in threading.enumerate())
-    with pytest.raises(OSError):
-        os.fstat(direct)
     with open(tmp_path / "y", "wb") as f:  # the same error found first by close (less than a buffer written)
         w = npz.UncachedWrites(f)
         w.write(bytes(6000))
