@@ -161,8 +161,8 @@ WHAT = {
     "direct_writes_s36.json": "A 1 M-env run's writing with large files written by a thread from gathered buffers "
                               "(`jaxrobo.io.npz.UncachedWrites`) against the code before, alternating; the disk's "
                               "own write rates; a prototype starting the statistics earlier, not adopted",
-    "goto_compile_options_s36.json": "QuadcopterGoto-v2's cold compile on a timeline (JAX's and XLA's logs) and four XLA "
-                                     "compile options tried on it, none adopted",
+    "goto_compile_options_s36.json": "QuadcopterGoto-v2's cold compile on a timeline (JAX's and XLA's logs) and "
+                                     "XLA compile options tried on it, none adopted",
     "uneven_tables_s36.json": "A 1 M-env run whose tables are not whole blocks of the device deflate (device memory "
                               "peak, the file's CRCs), and XLA's parallel LLVM compile option, which this jaxlib "
                               "refuses",
