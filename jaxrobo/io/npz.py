@@ -17,7 +17,6 @@ import math
 import mmap
 import os
 import struct
-import threading
 import tokenize
 import zipfile
 import zlib as stdlib_zlib
@@ -283,14 +282,12 @@ class UncachedWrites(io.RawIOBase):
         self._direct = os.open(f"/proc/self/fd/{self._fd}", os.O_WRONLY | os.O_DIRECT)
         self._direct_ok = True  # until a direct write is refused (EINVAL): the rest then go through the page cache
         self._size = max(self.ALIGN, WRITE_CHUNK_BYTES // self.ALIGN * self.ALIGN)
-        self._buffers: list[mmap.mmap] = []  # page-aligned, made as needed (BUFFERS at most), reused
-        self._free: collections.deque = collections.deque()
-        self._todo: collections.deque = collections.deque()  # (buffer, file offset, bytes) for the thread
-        self._cond = threading.Condition()
-        self._busy = 0  # buffers handed to the thread and not given back yet
-        self._error: BaseException | None = None  # the thread's first; it writes nothing after it
+        self._buffers: list[mmap.mmap] | None = []  # page-aligned, made as needed (BUFFERS at most), reused
+        self._free: list[mmap.mmap] = []
+        self._pool: ThreadPoolExecutor | None = None  # one thread: the direct writes, in order
+        self._pending: collections.deque = collections.deque()  # (future, buffer) of the writes on the way
+        self._error: BaseException | None = None  # the first write that failed; every call after it raises it
         self._error_raised = False
-        self._thread: threading.Thread | None = None
         self._stage: mmap.mmap | None = None  # the buffer being filled: file offset _stage_at (aligned), _filled bytes
         self._stage_at = self._filled = 0
 
@@ -320,45 +317,30 @@ class UncachedWrites(io.RawIOBase):
             self._error_raised = True
             raise self._error
 
+    def _settle_oldest(self) -> mmap.mmap:
+        """The oldest write on the way, once done (its error kept for :meth:`_raise_error`); its buffer."""
+        future, buffer = self._pending.popleft()
+        error = future.exception()
+        if error is not None and self._error is None:
+            self._error = error
+        return buffer
+
     def _take_buffer(self) -> mmap.mmap:
-        """A free buffer: a fresh one while fewer than :data:`BUFFERS` exist, else one the thread gives back."""
-        with self._cond:
-            while not self._free and len(self._buffers) >= self.BUFFERS and self._error is None:
-                self._cond.wait()
-            self._raise_error()
-            if self._free:
-                return self._free.popleft()
-        self._buffers.append(mmap.mmap(-1, self._size))
-        return self._buffers[-1]
+        """A free buffer: a fresh one while fewer than :data:`BUFFERS` exist, else the oldest write's, once done."""
+        if self._free:
+            return self._free.pop()
+        if len(self._buffers) < self.BUFFERS:
+            self._buffers.append(mmap.mmap(-1, self._size))
+            return self._buffers[-1]
+        buffer = self._settle_oldest()
+        self._raise_error()
+        return buffer
 
     def _send(self, buffer: mmap.mmap, offset: int, n: int) -> None:
         """``n`` bytes of ``buffer`` (a whole number of pages) to the thread, for ``offset`` of the file."""
-        with self._cond:
-            self._todo.append((buffer, offset, n))
-            self._busy += 1
-            self._cond.notify_all()
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._writing, name="jaxrobo-direct-writes", daemon=True)
-            self._thread.start()
-
-    def _writing(self) -> None:
-        while True:
-            with self._cond:
-                while not self._todo:
-                    self._cond.wait()
-                item = self._todo.popleft()
-            if item is None:
-                return
-            buffer, offset, n = item
-            try:
-                if self._error is None:
-                    self._write_pages(buffer, offset, n)
-            except BaseException as err:  # noqa: BLE001 - raised in the caller's thread by its next call
-                self._error = err
-            with self._cond:
-                self._busy -= 1
-                self._free.append(buffer)
-                self._cond.notify_all()
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="jaxrobo-direct-writes")
+        self._pending.append((self._pool.submit(self._write_pages, buffer, offset, n), buffer))
 
     def _write_pages(self, buffer: mmap.mmap, offset: int, n: int) -> None:
         view = memoryview(buffer)[:n]
@@ -417,11 +399,9 @@ class UncachedWrites(io.RawIOBase):
             with memoryview(stage) as rest:  # bytes of the buffer the thread does not touch
                 self._pwrite(self._fd, rest[pages:filled], at + pages)
             if not pages:
-                with self._cond:
-                    self._free.append(stage)
-        with self._cond:
-            while self._busy:  # the thread goes on through its list after an error, writing nothing
-                self._cond.wait()
+                self._free.append(stage)
+        while self._pending:  # every write done, whatever the first one's error
+            self._free.append(self._settle_oldest())
         self._raise_error()
 
     def close(self) -> None:
@@ -435,11 +415,8 @@ class UncachedWrites(io.RawIOBase):
                 if not raised:  # said once: a close while the caller's error unwinds does not raise it again
                     raise
         finally:
-            if self._thread is not None:
-                with self._cond:
-                    self._todo.append(None)
-                    self._cond.notify_all()
-                self._thread.join()
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
             os.close(self._direct)
             for buffer in self._buffers:
                 with contextlib.suppress(BufferError):  # a view still held (a traceback's frame): freed with it
